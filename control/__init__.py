@@ -1,0 +1,1 @@
+"""Pure logic: onset detection, gyro conditioning, contact estimators, planners and task state machines."""

@@ -1,0 +1,80 @@
+"""Gyro conditioning: rest bias, causal low-pass, IMU->world frames and the eta transmission scaling."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+class GyroConditioner:
+    """Turns raw IMU-frame gyro batches into the grasped object's angular velocity in the world.
+
+    The fingertip gyro sees the gripper's own rotation in full and the object's
+    rotation *relative to the gripper* attenuated by the soft fingertip, so
+        w_imu_world = w_tcp + (w_obj - w_tcp) / eta
+    and the object rate is recovered as
+        w_obj = w_tcp + eta * (w_imu_world - w_tcp).
+    """
+
+    def __init__(self, R_tcp_imu: np.ndarray, eta: float = 2.0, bias_tau_s: float = 0.5,
+                 lpf_window: int = 1):
+        if eta <= 0:
+            raise ValueError("eta: must be > 0")
+        if lpf_window < 1:
+            raise ValueError("lpf_window: must be >= 1 sample")
+        self.R_tcp_imu = np.asarray(R_tcp_imu, dtype=float)
+        self.eta = eta
+        self.bias_tau_s = bias_tau_s
+        self.lpf_window = lpf_window
+        self.bias = np.zeros(3)        # rad/s, IMU frame
+        self._bias_ready = False
+        self.bias_frozen = False
+        self._hist = np.zeros((0, 3))  # last lpf_window-1 bias-free samples for the causal filter
+
+    def track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
+        """Update the rest bias from a batch taken while no contact is tracked."""
+        if self.bias_frozen or len(t) == 0:
+            return
+        if not self._bias_ready:
+            self.bias = gyro.mean(axis=0)
+            self._bias_ready = True
+            return
+        dt = float(t[-1] - t[0]) + 1e-4
+        alpha = 1.0 - math.exp(-dt / self.bias_tau_s)
+        self.bias = self.bias + alpha * (gyro.mean(axis=0) - self.bias)
+
+    def freeze_bias(self, frozen: bool = True) -> None:
+        """Hold the bias during a contact episode (the object's rotation is not bias)."""
+        self.bias_frozen = frozen
+
+    def lowpass(self, gyro: np.ndarray) -> np.ndarray:
+        """Bias-free, causally filtered gyro (IMU frame), moving average over lpf_window samples."""
+        x = gyro - self.bias
+        w = self.lpf_window
+        if w == 1:
+            return x
+        ext = np.vstack([self._hist, x])
+        c = np.cumsum(np.vstack([np.zeros((1, 3)), ext]), axis=0)
+        n_hist = len(self._hist)
+        idx = np.arange(n_hist + 1, n_hist + len(x) + 1)
+        lo = np.maximum(idx - w, 0)
+        out = (c[idx] - c[lo]) / (idx - lo)[:, None]
+        self._hist = ext[-(w - 1):].copy()
+        return out
+
+    def reset_filter(self) -> None:
+        self._hist = np.zeros((0, 3))
+
+    def object_rate_world(self, w_imu: np.ndarray, R_world_tcp: np.ndarray, w_tcp_world: np.ndarray,
+                          eta: float | None = None) -> np.ndarray:
+        """Object angular velocity in the world (n, 3) from filtered IMU-frame gyro (n, 3).
+
+        R_world_tcp is (n, 3, 3) or (3, 3); w_tcp_world (n, 3) or (3,) is the gripper's own rate.
+        """
+        eta = self.eta if eta is None else eta
+        w_tcp_imu = w_imu @ self.R_tcp_imu.T
+        if R_world_tcp.ndim == 2:
+            w_world = w_tcp_imu @ R_world_tcp.T
+        else:
+            w_world = np.einsum("nij,nj->ni", R_world_tcp, w_tcp_imu)
+        return w_tcp_world + eta * (w_world - w_tcp_world)

@@ -1,0 +1,93 @@
+"""Jerk-limited Cartesian TCP trajectory with Ruckig, re-planned from a new target every control tick."""
+from __future__ import annotations
+
+import numpy as np
+import ruckig
+
+
+class PlannerError(RuntimeError):
+    """Ruckig returned something other than Working or Finished; the message names the result."""
+
+
+_OK = (ruckig.Result.Working, ruckig.Result.Finished)
+
+
+class CartesianPlanner:
+    """Owns Ruckig's InputParameter/OutputParameter for the TCP position (3 DOF, world, m).
+
+    Each tick: `step(target_p, target_v)` runs `update()` then `pass_to_input()`,
+    so the next plan starts from where this one says the TCP is now. Never uses
+    intermediate waypoints (that path is not real-time).
+    """
+
+    def __init__(self, tick_s: float, max_speed: float, max_accel: float, max_jerk: float):
+        if min(tick_s, max_speed, max_accel, max_jerk) <= 0:
+            raise ValueError("planner limits: tick_s, max_speed, max_accel and max_jerk must be > 0")
+        self.tick_s = tick_s
+        self.max_speed = max_speed
+        self.max_accel = max_accel
+        self.max_jerk = max_jerk
+        self.otg = ruckig.Ruckig(3, tick_s)
+        self.inp = ruckig.InputParameter(3)
+        self.out = ruckig.OutputParameter(3)
+        self._set_limits(max_speed)
+        self.result = ruckig.Result.Finished
+
+    def _set_limits(self, speed: float) -> None:
+        # Per-axis limits; the Cartesian norm may exceed `speed` by up to sqrt(3), so scale.
+        s = min(speed, self.max_speed) / np.sqrt(3.0)
+        self.inp.max_velocity = [s] * 3
+        self.inp.max_acceleration = [self.max_accel / np.sqrt(3.0)] * 3
+        self.inp.max_jerk = [self.max_jerk / np.sqrt(3.0)] * 3
+
+    def reset(self, p: np.ndarray, v: np.ndarray | None = None, a: np.ndarray | None = None,
+              speed: float | None = None) -> None:
+        """Restart from the measured TCP state; `speed` caps the velocity of what follows (m/s)."""
+        self.inp.current_position = list(map(float, p))
+        self.inp.current_velocity = [0.0] * 3 if v is None else list(map(float, v))
+        self.inp.current_acceleration = [0.0] * 3 if a is None else list(map(float, a))
+        self.inp.control_interface = ruckig.ControlInterface.Position
+        self._set_limits(self.max_speed if speed is None else speed)
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.array(self.inp.current_position)
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return np.array(self.inp.current_velocity)
+
+    def step(self, target_p: np.ndarray, target_v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Plan towards (target_p, target_v) and advance one tick; returns the new (p, v)."""
+        self.inp.control_interface = ruckig.ControlInterface.Position
+        self.inp.target_position = list(map(float, target_p))
+        tv = np.zeros(3) if target_v is None else np.asarray(target_v, dtype=float)
+        # A target velocity beyond the per-axis limit is infeasible; clip it into the box.
+        lim = self.inp.max_velocity[0]
+        self.inp.target_velocity = list(map(float, np.clip(tv, -lim, lim)))
+        self.inp.target_acceleration = [0.0] * 3
+        return self._update()
+
+    def brake(self) -> tuple[np.ndarray, np.ndarray]:
+        """Decelerate to rest within the jerk and acceleration limits (velocity interface)."""
+        self.inp.control_interface = ruckig.ControlInterface.Velocity
+        self.inp.target_velocity = [0.0] * 3
+        self.inp.target_acceleration = [0.0] * 3
+        return self._update()
+
+    def _update(self) -> tuple[np.ndarray, np.ndarray]:
+        result = self.otg.update(self.inp, self.out)
+        if result not in _OK:
+            raise PlannerError(f"ruckig: {result.name}")
+        self.result = result
+        self.out.pass_to_input(self.inp)
+        return np.array(self.out.new_position), np.array(self.out.new_velocity)
+
+    @property
+    def finished(self) -> bool:
+        return self.result == ruckig.Result.Finished
+
+    @property
+    def at_rest(self) -> bool:
+        return float(np.linalg.norm(self.inp.current_velocity)) < 1e-5 and \
+            float(np.linalg.norm(self.inp.current_acceleration)) < 1e-4

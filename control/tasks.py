@@ -1,0 +1,231 @@
+"""Task state machines stepped by the 20 ms control tick: two-phase probing and hinge rotation (Algorithm 2)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from control.geometry import rotvec_to_matrix, signed_angle, unit
+
+LOOKAHEAD_S = 0.25            # arc target placed this far ahead along the arc, at the commanded speed
+PROBE_OVERSHOOT_M = 0.002     # phase-1 target lies beyond the probe distance so the TCP never stops there
+ANGLE_TOL_RAD = math.radians(0.2)
+PHASE_TIMEOUT_FACTOR = 4.0    # a phase may take this many times its nominal duration (+ slack)
+PHASE_TIMEOUT_SLACK_S = 2.0
+
+
+@dataclass
+class ContactView:
+    """What a task may know of the contact: the estimator's latest output."""
+    tracking: bool
+    p: np.ndarray | None = None       # contact / hinge point, world, m
+    std: np.ndarray | None = None     # one-sigma, m
+    axis: np.ndarray | None = None    # rotation axis estimate, world unit
+    onset_t: float | None = None
+
+
+@dataclass
+class TickInput:
+    t: float                  # s, monotonic
+    p: np.ndarray             # measured TCP position, world, m
+    R: np.ndarray             # measured TCP orientation, world <- TCP
+    contact: ContactView
+    planner_at_rest: bool
+
+
+@dataclass
+class Motion:
+    """The planner target for this tick and the orientation to hold."""
+    p: np.ndarray
+    v: np.ndarray
+    R: np.ndarray
+
+
+@dataclass
+class TaskStatus:
+    state: str = "running"              # running | done | failed
+    phase: str = "start"
+    progress: float = 0.0
+    result: dict = field(default_factory=dict)
+    error: str = ""
+
+
+class TwoPhaseTask:
+    """Algorithm 2 of the paper.
+
+    Phase 1 (`probe`): open-loop straight motion along `direction` for
+    `probe_distance` while the contact estimator converges. Phase 2 (`arc`):
+    each tick, a target on the circle about the current hinge estimate,
+    through the TCP's start position, `LOOKAHEAD_S` ahead at `speed`, with the
+    tangential target velocity, until the rotation reaches `angle_rad`.
+    With strategy `straight` phase 2 is instead a straight pull of the same
+    length as the arc (the paper's failure case).
+
+    Unlike the paper's pseudo-code, which computes the phase-1 direction from
+    the *true* contact point, the direction here comes from the command: the
+    controller does not know the geometry.
+    """
+
+    kind = "rotate"
+
+    def __init__(self, task_id: str, angle_rad: float, speed: float, probe_distance: float,
+                 direction: np.ndarray, strategy: str = "arc"):
+        if strategy not in ("arc", "straight"):
+            raise ValueError("strategy: expected 'arc' or 'straight'")
+        self.id = task_id
+        self.angle_rad = angle_rad
+        self.speed = speed
+        self.probe_distance = probe_distance
+        self.direction = unit(direction, "direction")
+        self.strategy = strategy
+        self.status = TaskStatus()
+        self.p_start: np.ndarray | None = None
+        self.R_hold: np.ndarray | None = None
+        self._phase_t0 = 0.0
+        self._axis_sign = 1.0
+        self._straight_len = 0.0
+        self._angle = 0.0
+        self._radius = 0.0
+
+    def _timeout(self, t: float, nominal_s: float) -> bool:
+        return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
+
+    def _enter(self, phase: str, t: float) -> None:
+        self.status.phase = phase
+        self._phase_t0 = t
+
+    def _fail(self, message: str) -> None:
+        self.status.state = "failed"
+        self.status.error = message
+
+    def step(self, inp: TickInput) -> Motion | None:
+        """Advance the state machine; returns the motion target, or None to brake/hold."""
+        st = self.status
+        if st.state != "running":
+            return None
+        if self.p_start is None:
+            self.p_start = inp.p.copy()
+            self.R_hold = inp.R.copy()
+            self._enter("probe", inp.t)
+        if st.phase == "probe":
+            return self._step_probe(inp)
+        if st.phase == "arc":
+            return self._step_arc(inp)
+        if st.phase == "straight":
+            return self._step_straight(inp)
+        return None
+
+    def _step_probe(self, inp: TickInput) -> Motion | None:
+        s = float(np.dot(inp.p - self.p_start, self.direction))
+        self.status.progress = 0.1 * min(max(s / self.probe_distance, 0.0), 1.0)
+        if s >= self.probe_distance:
+            c = inp.contact
+            if not c.tracking or c.p is None or c.axis is None:
+                self._fail("no contact onset detected during probing")
+                return None
+            self._axis_sign = self._orient_axis(c)
+            self.angle_rad = self._phase2_angle(c)
+            if self.strategy == "straight":
+                self._straight_len = self.angle_rad * self._radius_about(c.p, c.axis)
+                self._enter("straight", inp.t)
+                return self._step_straight(inp)
+            self._enter("arc", inp.t)
+            return self._step_arc(inp)
+        if self._timeout(inp.t, self.probe_distance / self.speed):
+            self._fail("probing did not cover probe_distance in time")
+            return None
+        target = self.p_start + (self.probe_distance + PROBE_OVERSHOOT_M) * self.direction
+        return Motion(target, self.speed * self.direction, self.R_hold)
+
+    def _phase2_angle(self, c: ContactView) -> float:
+        """Rotation to perform in phase 2, rad, fixed when phase 1 ends."""
+        return self.angle_rad
+
+    def _orient_axis(self, c: ContactView) -> float:
+        """Sign making the rotation about the axis start along the probing direction."""
+        r = self.p_start - c.p
+        return 1.0 if float(np.dot(np.cross(c.axis, r), self.direction)) >= 0 else -1.0
+
+    def _radius_about(self, p_c: np.ndarray, axis: np.ndarray) -> float:
+        r = self.p_start - p_c
+        return float(np.linalg.norm(r - np.dot(r, axis) * axis))
+
+    def _step_arc(self, inp: TickInput) -> Motion | None:
+        c = inp.contact
+        a = self._axis_sign * unit(c.axis, "axis")
+        r0 = self.p_start - c.p
+        along = float(np.dot(r0, a))
+        r0_perp = r0 - along * a
+        rho = float(np.linalg.norm(r0_perp))
+        if rho < 0.01:
+            self._fail(f"hinge estimate {rho * 1000:.1f} mm from the TCP: too close to follow an arc")
+            return None
+        phi = signed_angle(r0, inp.p - c.p, a)
+        self._angle, self._radius = phi, rho
+        self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
+        remaining = self.angle_rad - phi
+        if remaining <= ANGLE_TOL_RAD and inp.planner_at_rest:
+            self._finish(c)
+            return None
+        if self._timeout(inp.t, self.angle_rad * rho / self.speed):
+            self._fail("arc following did not reach the angle in time")
+            return None
+        lookahead = self.speed * LOOKAHEAD_S / rho
+        phi_t = min(phi + lookahead, self.angle_rad)
+        Rot = rotvec_to_matrix(a * phi_t)
+        target = c.p + Rot @ r0
+        tangent = np.cross(a, Rot @ r0_perp) / rho
+        v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
+        return Motion(target, v, self.R_hold)
+
+    def _step_straight(self, inp: TickInput) -> Motion | None:
+        s = float(np.dot(inp.p - self.p_start, self.direction))
+        self.status.progress = 0.1 + 0.9 * min(max(s / max(self._straight_len, 1e-9), 0.0), 1.0)
+        if s >= self._straight_len - 1e-4 and inp.planner_at_rest:
+            c = inp.contact
+            if c.p is not None:
+                self._angle = signed_angle(self.p_start - c.p, inp.p - c.p, self._axis_sign * c.axis)
+                self._radius = self._radius_about(c.p, c.axis)
+            self._finish(c)
+            return None
+        if self._timeout(inp.t, self._straight_len / self.speed):
+            self._fail("straight pull did not finish in time")
+            return None
+        return Motion(self.p_start + self._straight_len * self.direction, np.zeros(3), self.R_hold)
+
+    def _finish(self, c: ContactView) -> None:
+        st = self.status
+        st.state = "done"
+        st.progress = 1.0
+        st.result = {
+            "hinge": {"p": c.p.tolist(), "std": c.std.tolist(), "axis": (self._axis_sign * c.axis).tolist()},
+            "p": c.p.tolist(),
+            "std": c.std.tolist(),
+            "angle_deg": math.degrees(self._angle),
+            "radius": self._radius,
+            "strategy": self.strategy,
+        }
+
+
+class RotateTask(TwoPhaseTask):
+    kind = "rotate"
+
+
+class ProbeTask(TwoPhaseTask):
+    """Probe (Algorithm 2): phase 1 for `distance`, then arc-follow the same arc length; result is the contact."""
+
+    kind = "probe"
+
+    def __init__(self, task_id: str, speed: float, distance: float, direction: np.ndarray):
+        super().__init__(task_id, angle_rad=0.0, speed=speed, probe_distance=distance, direction=direction)
+        self._arc_len = distance
+
+    def _phase2_angle(self, c: ContactView) -> float:
+        return self._arc_len / max(self._radius_about(c.p, c.axis), 0.01)
+
+    def _finish(self, c: ContactView) -> None:
+        super()._finish(c)
+        self.status.result = {"p": c.p.tolist(), "std": c.std.tolist(),
+                              "axis": (self._axis_sign * c.axis).tolist(),
+                              "angle_deg": math.degrees(self._angle), "radius": self._radius}

@@ -1,0 +1,1 @@
+"""Fingertip IMU sources: bytes or simulated physics to timestamped SI samples."""

@@ -1,0 +1,77 @@
+"""Bounded single-producer/single-consumer ring buffer of IMU samples (t, gyro xyz, accel xyz)."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+COLUMNS = 7  # t, gx, gy, gz, ax, ay, az
+
+
+class SampleRing:
+    """Preallocated ring; the producer pushes batches, the consumer pops batches.
+
+    When the consumer falls behind by more than `capacity` samples the oldest
+    are overwritten and counted in `overwritten`: acquisition never blocks.
+    """
+
+    def __init__(self, capacity: int = 65536):
+        if capacity < 64:
+            raise ValueError("capacity: must be >= 64 samples")
+        self.capacity = capacity
+        self._buf = np.zeros((capacity, COLUMNS))
+        self._head = 0          # total samples ever written
+        self._tail = 0          # total samples ever read
+        self._cond = threading.Condition()
+        self.overwritten = 0
+        self.last_t = float("-inf")   # time of the newest sample, s (read without the lock)
+
+    def push(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        n = len(t)
+        if n == 0:
+            return
+        if n > self.capacity:
+            t, gyro, accel = t[-self.capacity:], gyro[-self.capacity:], accel[-self.capacity:]
+            n = self.capacity
+        with self._cond:
+            start = self._head % self.capacity
+            first = min(n, self.capacity - start)
+            buf = self._buf
+            buf[start:start + first, 0] = t[:first]
+            buf[start:start + first, 1:4] = gyro[:first]
+            buf[start:start + first, 4:7] = accel[:first]
+            if first < n:
+                rest = n - first
+                buf[:rest, 0] = t[first:]
+                buf[:rest, 1:4] = gyro[first:]
+                buf[:rest, 4:7] = accel[first:]
+            self._head += n
+            if self._head - self._tail > self.capacity:
+                self.overwritten += self._head - self._tail - self.capacity
+                self._tail = self._head - self.capacity
+            self.last_t = float(t[-1])
+            self._cond.notify()
+
+    def pop(self, max_n: int = 1024, timeout: float = 0.05) -> np.ndarray:
+        """Up to max_n oldest unread samples as an (n, 7) copy; empty after `timeout` s without data."""
+        with self._cond:
+            if self._head == self._tail:
+                self._cond.wait(timeout)
+            n = min(self._head - self._tail, max_n)
+            if n <= 0:
+                return self._buf[:0].copy()
+            start = self._tail % self.capacity
+            end = start + n
+            if end <= self.capacity:
+                out = self._buf[start:end].copy()
+            else:
+                out = np.vstack([self._buf[start:], self._buf[:end - self.capacity]])
+            self._tail += n
+            return out
+
+    def __len__(self) -> int:
+        return self._head - self._tail
+
+    @property
+    def total(self) -> int:
+        return self._head

@@ -1,0 +1,1 @@
+"""Arm kinematic models and robot backends (the simulated robot and its world)."""

@@ -1,0 +1,40 @@
+"""Robot backend interfaces: reading state apart from commanding, in the manner of ur_rtde."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass
+class JointState:
+    """Proprioception as a robot reports it: joint positions and rates on the daemon's clock."""
+    t: float                 # monotonic time of the measurement, s
+    q: np.ndarray            # rad
+    qd: np.ndarray           # rad/s
+    seq: int = 0             # increments with every new measurement
+
+
+@dataclass
+class SimTruth:
+    """Ground truth that only a simulated world can report (never used by the controller)."""
+    hinge_point: np.ndarray
+    hinge_axis: np.ndarray
+    handle_angle_rad: float
+    base_displacement_m: float
+    extra: dict = field(default_factory=dict)
+
+
+class RobotReceive(Protocol):
+    """Reading side: latest proprioception."""
+
+    def read_state(self) -> JointState: ...
+
+
+class RobotControl(Protocol):
+    """Commanding side: joint velocity streaming, and a hold."""
+
+    def command_joint_velocity(self, qd: np.ndarray) -> None: ...
+
+    def hold(self) -> None: ...

@@ -1,0 +1,130 @@
+"""Arm kinematics from example-robot-data URDFs with Pinocchio: TCP forward kinematics and DLS IK."""
+from __future__ import annotations
+
+import pathlib
+import site
+import sys
+
+import numpy as np
+import pinocchio as pin
+
+# Damped least-squares IK constants.
+DLS_DAMPING = 1e-2          # lambda, m (or rad) equivalent
+IK_POS_GAIN_PER_S = 5.0     # feedback on Cartesian position error, 1/s
+IK_ROT_GAIN_PER_S = 5.0     # feedback on orientation error, 1/s
+IK_POSTURE_GAIN_PER_S = 0.5 # null-space pull towards the home posture, 1/s
+JOINT_LIMIT_MARGIN_RAD = 0.02
+
+# Arms by name: URDF path under example-robot-data's robots/ and the flange frame.
+ARMS = {
+    "panda": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
+    "ur3": ("ur_description/urdf/ur3_robot.urdf", "tool0"),
+    "ur5": ("ur_description/urdf/ur5_robot.urdf", "tool0"),
+    "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
+    "z1": ("z1_description/urdf/z1.urdf", "gripperStator"),
+    "xarm7": ("xarm_description/urdf/xarm7.urdf", "link7"),
+}
+
+
+class UnknownRobotError(ValueError):
+    pass
+
+
+def robots_dir() -> pathlib.Path:
+    """example-robot-data's robots/ folder inside the installed cmeel prefix."""
+    candidates = [pathlib.Path(p) for p in site.getsitepackages()] + [pathlib.Path(p) for p in sys.path if p]
+    for base in candidates:
+        path = base / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
+        if path.is_dir():
+            return path
+    raise FileNotFoundError("example-robot-data: robots/ not found under any site-packages cmeel.prefix")
+
+
+class ArmModel:
+    """A fixed-base arm: Pinocchio model (gripper fingers locked), TCP frame = flange * tool offset.
+
+    Load once; each thread that calls FK/IK makes its own `ArmModel.clone()` so
+    that every `pin.Data` has a single owner.
+    """
+
+    def __init__(self, name: str, tool_offset: np.ndarray | None = None, tool_quat=None):
+        if name not in ARMS:
+            raise UnknownRobotError(f"robot.model: unknown arm {name!r}; known: {', '.join(sorted(ARMS))}")
+        rel, flange = ARMS[name]
+        urdf = robots_dir() / rel
+        full = pin.buildModelFromUrdf(str(urdf))
+        # Lock everything that is not a revolute arm joint (gripper fingers).
+        lock = [j for j in range(1, full.njoints) if "finger" in full.names[j] or "gripper" in full.names[j].lower()]
+        if lock:
+            model = pin.buildReducedModel(full, lock, pin.neutral(full))
+        else:
+            model = full
+        self.name = name
+        self.model = model
+        self.nq = model.nq
+        if model.existFrame(flange, pin.FrameType.BODY):
+            flange_id = model.getFrameId(flange, pin.FrameType.BODY)
+        elif model.existFrame(flange):
+            flange_id = model.getFrameId(flange)
+        else:
+            raise UnknownRobotError(f"robot.model: frame {flange!r} not in {urdf.name}")
+        offset = pin.SE3.Identity()
+        if tool_offset is not None:
+            offset.translation = np.asarray(tool_offset, dtype=float)
+        if tool_quat is not None:
+            offset.rotation = pin.Quaternion(np.asarray(tool_quat, dtype=float)).toRotationMatrix()
+        parent = model.frames[flange_id]
+        tcp = pin.Frame("tecdar_tcp", parent.parentJoint, flange_id, parent.placement * offset,
+                        pin.FrameType.OP_FRAME)
+        self.tcp_id = model.addFrame(tcp)
+        self.q_min = model.lowerPositionLimit.copy()
+        self.q_max = model.upperPositionLimit.copy()
+        self.qd_max = model.velocityLimit.copy()
+        self.data = model.createData()
+
+    def clone(self) -> "ArmModel":
+        other = object.__new__(ArmModel)
+        other.__dict__.update(self.__dict__)
+        other.data = self.model.createData()
+        return other
+
+    def fk(self, q: np.ndarray) -> pin.SE3:
+        """oMtcp: TCP placement in the world (base) frame."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        return self.data.oMf[self.tcp_id].copy()
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """6 x nq TCP Jacobian, rows [v; w] in LOCAL_WORLD_ALIGNED (call after fk at the same q)."""
+        return pin.computeFrameJacobian(self.model, self.data, q, self.tcp_id, pin.LOCAL_WORLD_ALIGNED)
+
+    def fk_twist(self, q: np.ndarray, qd: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
+        """oMtcp and the TCP twist [v; w] (world-aligned, m/s and rad/s)."""
+        oMtcp = self.fk(q)
+        return oMtcp, self.jacobian(q) @ qd
+
+    def dls_velocity(self, q: np.ndarray, twist: np.ndarray, q_home: np.ndarray | None = None) -> np.ndarray:
+        """Joint velocity for a desired TCP twist [v; w] (world-aligned) by damped least squares.
+
+        Respects joint velocity limits by uniform scaling and stops joints moving
+        further into a position limit.
+        """
+        J = self.jacobian(q)
+        JJt = J @ J.T + (DLS_DAMPING**2) * np.eye(6)
+        qd = J.T @ np.linalg.solve(JJt, twist)
+        if q_home is not None:
+            N = np.eye(self.nq) - J.T @ np.linalg.solve(JJt, J)
+            qd += N @ (IK_POSTURE_GAIN_PER_S * (q_home - q))
+        at_min = (q <= self.q_min + JOINT_LIMIT_MARGIN_RAD) & (qd < 0)
+        at_max = (q >= self.q_max - JOINT_LIMIT_MARGIN_RAD) & (qd > 0)
+        qd[at_min | at_max] = 0.0
+        scale = np.max(np.abs(qd) / self.qd_max)
+        if scale > 1.0:
+            qd /= scale
+        return qd
+
+    def servo_twist(self, oMtcp: pin.SE3, p_des: np.ndarray, v_des: np.ndarray, R_des: np.ndarray,
+                    w_des: np.ndarray) -> np.ndarray:
+        """Feed-forward twist plus proportional correction towards (p_des, R_des)."""
+        v = v_des + IK_POS_GAIN_PER_S * (p_des - oMtcp.translation)
+        w = w_des + IK_ROT_GAIN_PER_S * pin.log3(R_des @ oMtcp.rotation.T)
+        return np.concatenate([v, w])

@@ -1,0 +1,177 @@
+"""Simulated robot backend: 1 kHz joint integration in a physics thread, with a world and a fingertip IMU."""
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from robots.backend import JointState, SimTruth
+from robots.model import ArmModel
+from robots.world import HingeWorld
+
+log = logging.getLogger("tecdar.sim")
+
+PHYSICS_RATE_HZ = 1000.0
+PHYSICS_WAKE_S = 0.002     # the physics thread integrates in slices of this length
+
+
+@dataclass
+class SimRobotParams:
+    q_home: np.ndarray
+    proprio_rate_hz: float = 65.0
+    command_latency_s: float = 0.002
+    tracking_tau_s: float = 0.01
+    encoder_noise_rad: float = 5e-5
+
+    @classmethod
+    def from_config(cls, section, q_home: np.ndarray) -> "SimRobotParams":
+        return cls(
+            q_home=np.array(q_home, dtype=float),
+            proprio_rate_hz=section.getfloat("proprio_rate_hz", 65.0, minval=10.0, maxval=PHYSICS_RATE_HZ),
+            command_latency_s=section.getfloat("command_latency_s", 0.002, minval=0.0, maxval=0.1),
+            tracking_tau_s=section.getfloat("tracking_tau_s", 0.01, minval=0.0, maxval=0.5),
+            encoder_noise_rad=section.getfloat("encoder_noise_rad", 5e-5, minval=0.0),
+        )
+
+
+class SimRobot:
+    """A velocity-commanded arm. Implements RobotReceive and RobotControl.
+
+    The physics thread owns the joint state, the world and the IMU signal; the
+    daemon's threads see only the latest proprioception (published at
+    `proprio_rate_hz` with encoder noise) and hand in joint velocity commands,
+    which take effect after `command_latency_s` through a first-order tracking
+    lag of `tracking_tau_s`.
+    """
+
+    def __init__(self, model: ArmModel, params: SimRobotParams, world_factory=None, imu=None, seed: int = 0):
+        self.model = model.clone()
+        self.p = params
+        self.imu = imu
+        self.rng = np.random.default_rng(seed + 1)
+        self.q = params.q_home.copy()
+        self.qd = np.zeros(model.nq)
+        self.t = None
+        oMtcp, twist = self.model.fk_twist(self.q, self.qd)
+        self.world = world_factory(oMtcp.translation.copy()) if world_factory else None
+        self._v_prev = twist[:3].copy()
+        self._cmds: collections.deque = collections.deque(maxlen=64)   # (t_effective, qd), from any thread
+        self._pending: collections.deque = collections.deque()        # owned by the physics thread
+        self._qd_cmd = np.zeros(model.nq)
+        self._lock = threading.Lock()
+        self._state = JointState(t=time.monotonic(), q=self.q.copy(), qd=self.qd.copy(), seq=0)
+        self._truth = self._make_truth()
+        self._next_proprio = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.overruns = 0
+
+    # -- RobotReceive -------------------------------------------------------
+    def read_state(self) -> JointState:
+        with self._lock:
+            return self._state
+
+    def truth(self) -> SimTruth | None:
+        with self._lock:
+            return self._truth
+
+    # -- RobotControl -------------------------------------------------------
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        qd = np.asarray(qd, dtype=float)
+        if qd.shape != (self.model.nq,) or not np.all(np.isfinite(qd)):
+            raise ValueError(f"qd: expected {self.model.nq} finite joint rates")
+        with self._lock:
+            self._cmds.append((time.monotonic() + self.p.command_latency_s, qd.copy()))
+
+    def hold(self) -> None:
+        self.command_joint_velocity(np.zeros(self.model.nq))
+
+    # -- lifecycle ----------------------------------------------------------
+    def start(self) -> None:
+        self.t = time.monotonic()
+        self._next_proprio = self.t
+        self._thread = threading.Thread(target=self._run, name="sim-physics", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+
+    def _run(self) -> None:
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            t_next += PHYSICS_WAKE_S
+            try:
+                self.advance_to(time.monotonic())
+            except Exception:
+                log.exception("sim physics failed")
+                raise
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                self.overruns += 1
+                if delay < -0.1:
+                    t_next = time.monotonic()
+
+    # -- physics ------------------------------------------------------------
+    def advance_to(self, t_end: float) -> None:
+        """Integrate at 1 kHz up to t_end (s, monotonic) and feed the IMU."""
+        dt = 1.0 / PHYSICS_RATE_HZ
+        n = int((t_end - self.t) / dt)
+        if n <= 0:
+            return
+        ts = np.empty(n + 1)
+        w_tcp = np.empty((n + 1, 3))
+        w_obj = np.empty((n + 1, 3))
+        a_tcp = np.empty((n + 1, 3))
+        Rs = np.empty((n + 1, 3, 3))
+        onsets = []
+        with self._lock:
+            self._pending.extend(self._cmds)
+            self._cmds.clear()
+        pending = self._pending
+        alpha = 1.0 if self.p.tracking_tau_s <= 0 else 1.0 - np.exp(-dt / self.p.tracking_tau_s)
+        for k in range(n + 1):
+            if k > 0:
+                t = self.t + dt
+                while pending and pending[0][0] <= t:
+                    self._qd_cmd = pending.popleft()[1]
+                self.qd += alpha * (self._qd_cmd - self.qd)
+                self.qd = np.clip(self.qd, -self.model.qd_max, self.model.qd_max)
+                self.q = np.clip(self.q + self.qd * dt, self.model.q_min, self.model.q_max)
+                self.t = t
+            oMtcp, twist = self.model.fk_twist(self.q, self.qd)
+            ts[k] = self.t
+            w_tcp[k] = twist[3:]
+            a_tcp[k] = (twist[:3] - self._v_prev) / dt if k > 0 else 0.0
+            self._v_prev = twist[:3]
+            Rs[k] = oMtcp.rotation
+            if self.world is not None:
+                if k > 0 and self.world.step(oMtcp.translation, dt):
+                    onsets.append((self.t, self.world.tangent(oMtcp.translation)))
+                w_obj[k] = self.world.object_rate_world()
+            else:
+                w_obj[k] = twist[3:]
+            if self.t >= self._next_proprio:
+                self._next_proprio += 1.0 / self.p.proprio_rate_hz
+                noisy_q = self.q + self.rng.normal(0.0, self.p.encoder_noise_rad, self.q.shape)
+                with self._lock:
+                    self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1)
+        a_tcp[0] = a_tcp[1] if n >= 1 else 0.0
+        with self._lock:
+            self._truth = self._make_truth()
+        if self.imu is not None:
+            self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs, onsets)
+
+    def _make_truth(self) -> SimTruth | None:
+        if self.world is None:
+            return None
+        return SimTruth(hinge_point=self.world.hinge_now.copy(), hinge_axis=self.world.axis.copy(),
+                        handle_angle_rad=self.world.angle, base_displacement_m=self.world.base_displacement(),
+                        extra={"radius_m": self.world.radius, "hinge_point_initial": self.world.p.hinge_point.tolist()})

@@ -1,0 +1,91 @@
+"""A Zenoh client of the `tecdar/1` API: commands, event and state streams (used by the demo, CLI and tests)."""
+from __future__ import annotations
+
+import json
+import queue
+import time
+
+import zenoh
+
+from tecdard.zenoh_io import Keys, dumps, session_config
+
+
+class ClientError(RuntimeError):
+    pass
+
+
+class Client:
+    """Connects to a daemon's endpoint (no listening, no multicast scouting)."""
+
+    def __init__(self, endpoint: str, robot: str = "sim"):
+        self.keys = Keys(robot)
+        self.session = zenoh.open(session_config([], [endpoint]))
+        self.events: queue.Queue = queue.Queue()
+        self.states: queue.Queue = queue.Queue(maxsize=1000)
+        self.contacts: queue.Queue = queue.Queue(maxsize=10000)
+        self._subs = [
+            self.session.declare_subscriber(self.keys.events, lambda s: self.events.put(json.loads(s.payload.to_string()))),
+            self.session.declare_subscriber(self.keys.state, lambda s: _put_latest(self.states, s)),
+            self.session.declare_subscriber(self.keys.contact, lambda s: _put_latest(self.contacts, s)),
+        ]
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        self.session.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def alive(self, timeout: float = 1.0) -> bool:
+        replies = self.session.liveliness().get(self.keys.alive, timeout=timeout)
+        return any(r.ok is not None for r in replies)
+
+    def wait_alive(self, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.alive(0.5):
+                return
+            time.sleep(0.2)
+        raise ClientError(f"daemon {self.keys.alive} not alive after {timeout:.0f} s")
+
+    def command(self, verb: str, payload: dict | str | None = None, timeout: float = 10.0) -> dict:
+        """Send a command and return the decoded reply."""
+        if isinstance(payload, dict):
+            payload = dumps(payload)
+        kwargs = {"timeout": timeout}
+        if payload is not None:
+            kwargs["payload"] = payload
+        for reply in self.session.get(self.keys.cmd(verb), **kwargs):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_string())
+            raise ClientError(f"{verb}: error reply {reply.err.payload.to_string()}")
+        raise ClientError(f"{verb}: no reply within {timeout:.0f} s")
+
+    def wait_event(self, kinds: tuple[str, ...], task: str | None = None, timeout: float = 60.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ClientError(f"no {'/'.join(kinds)} event within {timeout:.0f} s")
+            try:
+                ev = self.events.get(timeout=min(left, 0.5))
+            except queue.Empty:
+                continue
+            if ev.get("kind") in kinds and (task is None or ev.get("task") in (None, task)):
+                return ev
+
+
+def _put_latest(q: queue.Queue, sample) -> None:
+    item = json.loads(sample.payload.to_string())
+    try:
+        q.put_nowait(item)
+    except queue.Full:
+        try:
+            q.get_nowait()
+        except queue.Empty:
+            pass
+        q.put_nowait(item)

@@ -1,0 +1,149 @@
+"""Validation of `tecdar/1` command payloads: JSON in, normalised fields or a coded one-line error out."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
+TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
+IMPLEMENTED = ("probe", "rotate", "stop", "status", "cancel")
+
+# Error codes of the reply {"ok": false, "error": {"code", "message"}}.
+BAD_JSON = "bad_json"
+UNKNOWN_VERB = "unknown_verb"
+UNKNOWN_FIELD = "unknown_field"
+MISSING_FIELD = "missing_field"
+BAD_TYPE = "bad_type"
+OUT_OF_LIMITS = "out_of_limits"
+BUSY = "busy"
+NOT_IMPLEMENTED = "not_implemented"
+NO_TASK = "no_task"
+FAULT = "fault"
+INTERNAL = "internal"
+
+UNIT_TOL = 1e-3   # a direction must have |d| within this of 1
+
+
+class CommandError(Exception):
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+    def reply(self) -> dict:
+        return {"ok": False, "error": {"code": self.code, "message": self.message}}
+
+
+@dataclass
+class Limits:
+    """Configured bounds that commands are checked against (SI)."""
+    max_speed: float = 0.05            # m/s
+    min_speed: float = 0.001           # m/s
+    max_rotation_deg: float = 90.0
+    max_probe_distance: float = 0.02   # m
+    default_speed: float = 0.02        # m/s
+    default_probe_distance: float = 0.005
+    default_direction: tuple = (0.0, 0.0, 1.0)
+
+    @classmethod
+    def from_config(cls, section) -> "Limits":
+        d = cls()
+        max_speed = section.getfloat("max_speed", d.max_speed, above=0.0, maxval=0.5)
+        return cls(
+            max_speed=max_speed,
+            min_speed=section.getfloat("min_speed", d.min_speed, above=0.0, maxval=max_speed),
+            max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=180.0),
+            max_probe_distance=section.getfloat("max_probe_distance", d.max_probe_distance, above=0.0, maxval=0.1),
+            default_speed=section.getfloat("default_speed", d.default_speed, above=0.0, maxval=max_speed),
+            default_probe_distance=section.getfloat("default_probe_distance", d.default_probe_distance, above=0.0),
+            default_direction=tuple(section.getvec3("default_direction", list(d.default_direction), unit=True)),
+        )
+
+
+def parse_payload(raw: str | None) -> dict:
+    """The command's JSON object ({} for an empty payload)."""
+    if raw is None or raw.strip() == "":
+        return {}
+    try:
+        obj = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CommandError(BAD_JSON, f"payload: malformed JSON ({exc.msg} at char {exc.pos})") from None
+    if not isinstance(obj, dict):
+        raise CommandError(BAD_JSON, f"payload: expected a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> float:
+    if name not in obj:
+        if default is None:
+            raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
+        return float(default)
+    v = obj[name]
+    if not _is_num(v) or not math.isfinite(float(v)):
+        raise CommandError(BAD_TYPE, f"{name}: expected a finite number, got {json.dumps(v)}")
+    v = float(v)
+    if v < lo or v > hi:
+        raise CommandError(OUT_OF_LIMITS, f"{name}: {v:g} {unit} is outside the configured limits [{lo:g}, {hi:g}]")
+    return v
+
+
+def _direction(obj: dict, name: str, default) -> list[float]:
+    if name not in obj:
+        if default is None:
+            raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
+        return list(default)
+    v = obj[name]
+    if not isinstance(v, list) or len(v) != 3 or not all(_is_num(x) and math.isfinite(float(x)) for x in v):
+        raise CommandError(BAD_TYPE, f"{name}: expected a unit vector [x, y, z], got {json.dumps(v)}")
+    norm = math.sqrt(sum(float(x) ** 2 for x in v))
+    if abs(norm - 1.0) > UNIT_TOL:
+        raise CommandError(OUT_OF_LIMITS, f"{name}: expected a unit vector, |{name}| = {norm:.4g}")
+    return [float(x) / norm for x in v]
+
+
+def _check_fields(obj: dict, verb: str, allowed: tuple) -> None:
+    for key in obj:
+        if key not in allowed:
+            raise CommandError(UNKNOWN_FIELD, f"{key}: not a field of '{verb}' (fields: {', '.join(allowed) or 'none'})")
+
+
+def validate(verb: str, obj: dict, limits: Limits) -> dict:
+    """Normalised command fields with defaults applied; CommandError on anything wrong."""
+    if verb not in VERBS:
+        raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{verb}' (known: {', '.join(VERBS)})")
+    if verb == "rotate":
+        _check_fields(obj, verb, ("angle_deg", "speed", "probe_distance", "direction", "strategy"))
+        strategy = obj.get("strategy", "arc")
+        if strategy not in ("arc", "straight"):
+            raise CommandError(BAD_TYPE, f"strategy: expected \"arc\" or \"straight\", got {json.dumps(strategy)}")
+        return {
+            "angle_deg": _number(obj, "angle_deg", None, 0.1, limits.max_rotation_deg, "deg"),
+            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
+            "probe_distance": _number(obj, "probe_distance", limits.default_probe_distance, 0.0005,
+                                      limits.max_probe_distance, "m"),
+            "direction": _direction(obj, "direction", limits.default_direction),
+            "strategy": strategy,
+        }
+    if verb == "probe":
+        _check_fields(obj, verb, ("direction", "distance", "speed"))
+        return {
+            "direction": _direction(obj, "direction", limits.default_direction),
+            "distance": _number(obj, "distance", limits.default_probe_distance, 0.0005,
+                                limits.max_probe_distance, "m"),
+            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
+        }
+    if verb in ("stop", "status"):
+        _check_fields(obj, verb, ())
+        return {}
+    if verb == "cancel":
+        _check_fields(obj, verb, ("task",))
+        task = obj.get("task")
+        if task is not None and not isinstance(task, str):
+            raise CommandError(BAD_TYPE, f"task: expected a task id string, got {json.dumps(task)}")
+        return {"task": task}
+    raise CommandError(NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet")

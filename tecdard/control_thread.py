@@ -1,0 +1,358 @@
+"""The 20 ms control thread: FK, safety, task state machine, Ruckig re-plan, DLS IK, joint commands."""
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+
+from control.planner import CartesianPlanner, PlannerError
+from control.tasks import ContactView, ProbeTask, RotateTask, TickInput
+from control.geometry import matrix_to_quat
+from tecdard import commands as C
+
+log = logging.getLogger("tecdar.control")
+
+TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
+REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
+
+
+@dataclass
+class ControlParams:
+    tick_s: float = 0.02
+    max_speed: float = 0.05
+    max_accel: float = 0.5
+    max_jerk: float = 5.0
+    workspace_min: tuple = (-1.0, -1.0, 0.0)
+    workspace_max: tuple = (1.0, 1.0, 1.5)
+    imu_stale_s: float = 0.05
+
+    @classmethod
+    def from_config(cls, section, max_speed: float) -> "ControlParams":
+        d = cls()
+        p = cls(
+            tick_s=section.getfloat("tick_s", d.tick_s, minval=0.002, maxval=0.1),
+            max_speed=max_speed,
+            max_accel=section.getfloat("max_accel", d.max_accel, above=0.0, maxval=10.0),
+            max_jerk=section.getfloat("max_jerk", d.max_jerk, above=0.0, maxval=500.0),
+            workspace_min=tuple(section.getvec3("workspace_min", list(d.workspace_min))),
+            workspace_max=tuple(section.getvec3("workspace_max", list(d.workspace_max))),
+            imu_stale_s=section.getfloat("imu_stale_s", d.imu_stale_s, above=0.0, maxval=1.0),
+        )
+        if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
+            from tecdard.config import ConfigError
+            raise ConfigError(f"{section.path}.workspace_min: must be below workspace_max on every axis")
+        return p
+
+
+class LatestValue:
+    """A single-slot buffer: one writer replaces, readers take the newest."""
+
+    def __init__(self, value=None):
+        self._lock = threading.Lock()
+        self._value = value
+
+    def set(self, value) -> None:
+        with self._lock:
+            self._value = value
+
+    def get(self):
+        with self._lock:
+            return self._value
+
+
+class TickStats:
+    def __init__(self):
+        self.ticks = 0
+        self.overruns = 0
+        self._work = np.zeros(TICK_STATS_WINDOW)
+        self._late = np.zeros(TICK_STATS_WINDOW)
+        self.summary = {}
+
+    def add(self, work_s: float, late_s: float) -> None:
+        i = self.ticks % TICK_STATS_WINDOW
+        self._work[i] = work_s
+        self._late[i] = late_s
+        self.ticks += 1
+        if self.ticks % TICK_STATS_EVERY == 0:
+            n = min(self.ticks, TICK_STATS_WINDOW)
+            w, lt = self._work[:n] * 1e3, self._late[:n] * 1e3
+            self.summary = {
+                "ticks": self.ticks, "overruns": self.overruns,
+                "work_ms_p50": round(float(np.median(w)), 3), "work_ms_p99": round(float(np.percentile(w, 99)), 3),
+                "work_ms_max": round(float(w.max()), 3),
+                "late_ms_p50": round(float(np.median(lt)), 3), "late_ms_p99": round(float(np.percentile(lt, 99)), 3),
+                "late_ms_max": round(float(lt.max()), 3),
+            }
+
+    def snapshot(self) -> dict:
+        out = dict(self.summary)
+        out["ticks"] = self.ticks
+        out["overruns"] = self.overruns
+        return out
+
+
+class ControlThread:
+    """Owns the task, the planner and the robot commands. Everything else reaches it
+    through `inbox` (commands from the Zenoh thread) and hands results out
+    through `outbox` (state, events, deferred replies) and `to_estimator`.
+    """
+
+    def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue,
+                 to_estimator: queue.Queue, outbox: queue.Queue, q_home: np.ndarray, robot_name: str,
+                 notifier=None):
+        self.p = params
+        self.model = model.clone()
+        self.robot = robot
+        self.ring = ring
+        self.contact = contact
+        self.to_estimator = to_estimator
+        self.outbox = outbox
+        self.q_home = q_home
+        self.robot_name = robot_name
+        self.notifier = notifier
+        self.inbox: queue.Queue = queue.Queue(maxsize=256)
+        self.planner = CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk)
+        self.stats = TickStats()
+        self.task = None
+        self.mode = "idle"
+        self.faults: dict[str, str] = {}
+        self._braking = False
+        self._stop_waiters: list = []
+        self._seq = 0
+        self._last_proprio_seq = -1
+        self._R_hold = None
+        self._task_t0 = 0.0
+        self.first_tick = threading.Event()
+        self.dropped = 0
+        self._wd_interval = notifier.watchdog_interval_s() if notifier else None
+        self._wd_last = 0.0
+
+    # -- outbox helpers (never block the tick) ------------------------------
+    def _put(self, item, queue_: queue.Queue | None = None) -> None:
+        try:
+            (queue_ or self.outbox).put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+
+    def _event(self, kind: str, **fields) -> None:
+        self._put(("event", {"t": time.monotonic(), "kind": kind, **fields}))
+
+    def _reply(self, query, payload: dict) -> None:
+        if query is not None:
+            self._put(("reply", query, payload))
+
+    # -- thread body --------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        t_next = time.monotonic()
+        try:
+            while not stop.is_set():
+                t_next += self.p.tick_s
+                t0 = time.monotonic()
+                self.tick(t0)
+                self.first_tick.set()
+                t1 = time.monotonic()
+                self.stats.add(t1 - t0, max(0.0, t0 - (t_next - self.p.tick_s)))
+                delay = t_next - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                else:
+                    self.stats.overruns += 1
+                    if delay < -10 * self.p.tick_s:
+                        t_next = time.monotonic()   # far behind: re-anchor rather than burst
+        finally:
+            try:
+                self.robot.hold()
+            except Exception:
+                log.exception("hold on exit failed")
+
+    def tick(self, now: float) -> None:
+        js = self.robot.read_state()
+        oMtcp, twist = self.model.fk_twist(js.q, js.qd)
+        p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
+        v, w = twist[:3].copy(), twist[3:].copy()
+        if js.seq != self._last_proprio_seq:
+            self._last_proprio_seq = js.seq
+            self._put(("proprio", js.t, p, v, R, w), self.to_estimator)
+        est = self.contact.get()
+        self._check_faults(now)
+        self._handle_commands(p, v)
+        p_plan = self.planner.position
+        if self.task is not None and not self._braking:
+            p_cmd, v_cmd = self._step_task(now, p, R, est)
+        elif self._braking or self.mode == "stopped":
+            p_cmd, v_cmd = self._brake_step()
+        else:
+            self.planner.reset(p)
+            p_plan, p_cmd, v_cmd = p, p, np.zeros(3)
+            if self._R_hold is None:
+                self._R_hold = R
+        if self.mode == "idle" and self.task is None and not self._braking:
+            self.robot.hold()
+            self._R_hold = R
+        else:
+            v_ff = (p_cmd - p_plan) / self.p.tick_s
+            tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, np.zeros(3))
+            qd = self.model.dls_velocity(js.q, tw, self.q_home)
+            self.robot.command_joint_velocity(qd)
+        self._publish_state(now, p, R, v, est)
+        if self._wd_interval and now - self._wd_last >= self._wd_interval:
+            self._wd_last = now
+            self.notifier.notify("WATCHDOG=1")
+
+    # -- safety ---------------------------------------------------------------
+    def _check_faults(self, now: float) -> None:
+        age = now - self.ring.last_t
+        if age > self.p.imu_stale_s:
+            if "imu_stale" not in self.faults:
+                self._set_fault("imu_stale", f"no IMU sample for {age * 1e3:.0f} ms (limit {self.p.imu_stale_s * 1e3:.0f} ms)")
+        elif "imu_stale" in self.faults:
+            self._clear_fault("imu_stale")
+
+    def _set_fault(self, code: str, message: str) -> None:
+        self.faults[code] = message
+        self._event("fault", code=code, message=message)
+        self._protective_stop(code, message)
+
+    def _clear_fault(self, code: str) -> None:
+        self.faults.pop(code, None)
+        self._event("fault_cleared", code=code)
+
+    def _protective_stop(self, cause: str, message: str) -> None:
+        if self.task is not None or self._braking or self.mode == "busy":
+            self._event("protective_stop", cause=cause, message=message)
+            self._end_task("failed", error=f"protective stop: {message}")
+            self._braking = True
+
+    # -- commands ---------------------------------------------------------------
+    def _handle_commands(self, p: np.ndarray, v: np.ndarray) -> None:
+        while True:
+            try:
+                msg = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            kind = msg[0]
+            if kind == "stop":
+                self._stop_waiters.append(msg[1])
+                if self.task is not None:
+                    self._end_task("failed", error="stopped by command")
+                self._braking = True
+                self.mode = "stopped"
+            elif kind == "cancel":
+                task_id, query = msg[1], msg[2]
+                if self.task is None or (task_id is not None and task_id != self.task.id):
+                    self._reply(query, C.CommandError(C.NO_TASK, f"task: no running task {task_id or ''}".strip()).reply())
+                else:
+                    self._end_task("failed", error="cancelled")
+                    self._braking = True
+                    self._reply(query, {"ok": True})
+            elif kind == "start":
+                verb, fields, query = msg[1], msg[2], msg[3]
+                self._start_task(verb, fields, query, p, v)
+
+    def _start_task(self, verb: str, f: dict, query, p: np.ndarray, v: np.ndarray) -> None:
+        if self.task is not None or self._braking:
+            running = self.task.id if self.task is not None else "a stop"
+            self._reply(query, C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply())
+            return
+        if self.faults:
+            code = next(iter(self.faults))
+            self._reply(query, C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply())
+            return
+        task_id = f"{verb}-{uuid.uuid4().hex[:8]}"
+        direction = np.array(f["direction"])
+        if verb == "rotate":
+            task = RotateTask(task_id, math.radians(f["angle_deg"]), f["speed"], f["probe_distance"], direction,
+                              f["strategy"])
+        elif verb == "probe":
+            task = ProbeTask(task_id, f["speed"], f["distance"], direction)
+        else:
+            self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
+            return
+        self.task = task
+        self._task_t0 = time.monotonic()
+        self.mode = "busy"
+        self.planner.reset(p, speed=f["speed"])
+        self._put(("release",), self.to_estimator)     # fresh contact episode for this task
+        self._event("task_started", task=task_id, verb=verb, params=f)
+        self._reply(query, {"ok": True, "task": task_id})
+
+    # -- motion ---------------------------------------------------------------
+    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est) -> tuple[np.ndarray, np.ndarray]:
+        task = self.task
+        if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
+            view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t)
+        else:
+            view = ContactView(tracking=False)
+        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest))
+        st = task.status
+        if motion is None:
+            if st.state == "done":
+                self._end_task("done", result=st.result)
+            elif st.state == "failed":
+                self._end_task("failed", error=st.error)
+            return self._brake_step()
+        self._R_hold = motion.R
+        if np.any(motion.p < self.p.workspace_min) or np.any(motion.p > self.p.workspace_max):
+            self._protective_stop("workspace", f"target {np.round(motion.p, 4).tolist()} leaves the workspace box")
+            return self._brake_step()
+        try:
+            return self.planner.step(motion.p, motion.v)
+        except PlannerError as exc:
+            self._protective_stop("planner", str(exc))
+            return self._brake_step()
+
+    def _brake_step(self) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            p_cmd, v_cmd = self.planner.brake()
+        except PlannerError:
+            p_cmd, v_cmd = self.planner.position, np.zeros(3)
+        if float(np.linalg.norm(v_cmd)) < REST_SPEED_M_S and self.planner.at_rest:
+            self._braking = False
+            if self.task is None:
+                self.mode = "idle"
+                for q in self._stop_waiters:
+                    self._reply(q, {"ok": True})
+                self._stop_waiters.clear()
+        return p_cmd, v_cmd
+
+    def _end_task(self, outcome: str, result: dict | None = None, error: str = "") -> None:
+        task = self.task
+        if task is None:
+            return
+        self.task = None
+        self._braking = True
+        self._put(("release",), self.to_estimator)
+        if outcome == "done":
+            result = dict(result or {})
+            truth = self.robot.truth() if hasattr(self.robot, "truth") else None
+            if truth is not None:
+                result["sim"] = {"hinge_point": truth.hinge_point.tolist(), "hinge_axis": truth.hinge_axis.tolist(),
+                                 "angle_deg": math.degrees(truth.handle_angle_rad),
+                                 "base_displacement": truth.base_displacement_m, **truth.extra}
+            self._event("task_done", task=task.id, verb=task.kind, result=result)
+        else:
+            self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase)
+
+    # -- state ----------------------------------------------------------------
+    def _publish_state(self, now: float, p, R, v, est) -> None:
+        self._seq += 1
+        task = None
+        if self.task is not None:
+            task = {"id": self.task.id, "kind": self.task.kind, "phase": self.task.status.phase,
+                    "progress": round(self.task.status.progress, 4)}
+        state = {
+            "t": now, "seq": self._seq, "mode": "fault" if self.faults and self.task is None and not self._braking else self.mode,
+            "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
+            "contact": None if est is None else est.to_json("ekf"),
+            "task": task,
+            "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
+            "control": self.stats.snapshot(),
+        }
+        self._put(("state", state))

@@ -1,0 +1,218 @@
+"""The tecdard process: builds every component from the config, runs the threads, serves Zenoh."""
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from control.conditioning import GyroConditioner
+from control.ekf import EkfParams
+from control.geometry import quat_to_matrix
+from control.onset import OnsetDetector
+from control.pipeline import ContactPipeline
+from drivers.ring import SampleRing
+from drivers.sim_imu import SimImu, SimImuParams
+from robots.model import ArmModel, UnknownRobotError
+from robots.sim import SimRobot, SimRobotParams
+from robots.world import HingeParams, HingeWorld
+from tecdard import commands as C
+from tecdard.config import Config, ConfigError
+from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+from tecdard.sdnotify import Notifier
+from tecdard.workers import EstimatorThread, acquisition_loop
+from tecdard.zenoh_io import JSON, Keys, dumps, session_config
+
+log = logging.getLogger("tecdar")
+
+OUTBOX_SIZE = 4096
+THREAD_JOIN_S = 0.5
+
+
+class Daemon:
+    """Reads all options in the constructor (so a bad config never half-starts), runs on `run()`."""
+
+    def __init__(self, cfg: Config, listen: list[str] | None = None):
+        robot = cfg.section("robot")
+        self.robot_name = robot.getstr("name", "sim")
+        if not self.robot_name.replace("_", "").replace("-", "").isalnum():
+            raise ConfigError(f"robot.name: {self.robot_name!r} must be letters, digits, '-' or '_'")
+        model_name = robot.getstr("model", "panda")
+        backend = robot.getstr("backend", "sim", choices=("sim",))
+        try:
+            self.model = ArmModel(model_name, robot.getvec3("tool_offset", [0.0, 0.0, 0.0]),
+                                  robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0]))
+        except UnknownRobotError as exc:
+            raise ConfigError(str(exc)) from None
+        self.q_home = np.array(robot.getfloats("q_home", n=self.model.nq))
+
+        zc = cfg.section("zenoh")
+        configured = zc.getstrlist("listen", ["tcp/127.0.0.1:7447"])
+        self.listen = listen if listen is not None else configured
+        self.connect = zc.getstrlist("connect", [])
+        self.multicast = zc.getbool("multicast_scouting", False)
+
+        self.limits = C.Limits.from_config(cfg.section("limits"))
+        self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
+
+        imu = cfg.section("imu")
+        imu.getstr("source", "sim", choices=("sim",))
+        ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
+        mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
+
+        est = cfg.section("estimator")
+        self.method = est.getstr("method", "ekf", choices=("ekf",))
+        conditioner = GyroConditioner(
+            quat_to_matrix(np.array(mount)),
+            eta=est.getfloat("eta", 2.0, above=0.0, maxval=20.0),
+            bias_tau_s=est.getfloat("bias_tau_s", 0.5, above=0.0),
+            lpf_window=est.getint("gyro_lpf_window", 33, minval=1, maxval=2000),
+        )
+        detector = OnsetDetector.from_config(est.section("onset"))
+        ekf_params = EkfParams.from_config(est.section("ekf"))
+        self.pipeline = ContactPipeline(detector, conditioner, ekf_params, self.method)
+
+        sim = cfg.section("sim")
+        seed = sim.getint("seed", 0, minval=0)
+        imu_params = SimImuParams.from_config(sim.section("imu"), default_mount=mount)
+        robot_params = SimRobotParams.from_config(sim.section("robot"), self.q_home)
+        hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
+        cfg.check_unused()
+
+        self.ring = SampleRing(ring_capacity)
+        self.imu = SimImu(imu_params, seed=seed)
+        factory = (lambda p_tcp: HingeWorld(hinge, p_tcp)) if hinge is not None else None
+        try:
+            self.robot = SimRobot(self.model, robot_params, factory, self.imu, seed=seed)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        del backend
+        self.stop_event = threading.Event()
+        self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
+        self.contact = LatestValue()
+        self.notifier = Notifier()
+        self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox)
+        self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
+                                     self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier)
+        self.keys = Keys(self.robot_name)
+        self.latest_state: dict | None = None
+        self._threads: list[threading.Thread] = []
+
+    # -- lifecycle ----------------------------------------------------------
+    def request_stop(self, *_args) -> None:
+        self.stop_event.set()
+
+    def _start_threads(self) -> None:
+        self.robot.start()
+        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event)),
+                 ("estimator", lambda: self.estimator.run(self.stop_event)),
+                 ("control", lambda: self.control.run(self.stop_event))]
+        for name, body in specs:
+            th = threading.Thread(target=body, name=name, daemon=True)
+            th.start()
+            self._threads.append(th)
+
+    def _shutdown(self) -> None:
+        """Stop motion first, then the threads; each step guarded so one failure skips nothing."""
+        self.stop_event.set()
+        self.notifier.notify("STOPPING=1")
+        for th in self._threads:
+            try:
+                th.join(THREAD_JOIN_S)
+            except Exception:
+                log.exception("joining %s", th.name)
+        for step in (self.robot.hold, self.robot.stop, self.imu.close):
+            try:
+                step()
+            except Exception:
+                log.exception("shutdown step %s failed", getattr(step, "__name__", step))
+
+    def run(self) -> int:
+        signal.signal(signal.SIGINT, self.request_stop)
+        signal.signal(signal.SIGTERM, self.request_stop)
+        inbox: queue.Queue = self.outbox
+        conf = session_config(self.listen, self.connect, self.multicast)
+
+        def on_query(query) -> None:
+            # Enqueue and return: never reply or block inside a Zenoh callback.
+            try:
+                inbox.put_nowait(("query", query))
+            except queue.Full:
+                log.warning("command queue full; dropped a query on %s", query.key_expr)
+
+        with zenoh.open(conf) as session:
+            pub_state = session.declare_publisher(self.keys.state, encoding=JSON)
+            pub_contact = session.declare_publisher(self.keys.contact, encoding=JSON)
+            pub_events = session.declare_publisher(self.keys.events, encoding=JSON)
+            session.declare_queryable(self.keys.cmd_all, on_query)
+            token = session.liveliness().declare_token(self.keys.alive)
+            self._start_threads()
+            if not self.control.first_tick.wait(2.0):
+                log.error("control thread did not tick within 2 s")
+            self.notifier.notify("READY=1")
+            log.info("tecdard ready: robot %s (%s), listening on %s", self.robot_name, self.model.name,
+                     ", ".join(self.listen))
+            try:
+                while not self.stop_event.is_set():
+                    try:
+                        msg = inbox.get(timeout=0.1)
+                    except queue.Empty:
+                        continue
+                    kind = msg[0]
+                    if kind == "state":
+                        self.latest_state = msg[1]
+                        pub_state.put(dumps(msg[1]))
+                    elif kind == "contact":
+                        pub_contact.put(dumps(msg[1]))
+                    elif kind == "event":
+                        log.info("event %s", dumps(msg[1]))
+                        pub_events.put(dumps(msg[1]))
+                    elif kind == "reply":
+                        self._reply(msg[1], msg[2])
+                    elif kind == "query":
+                        self._on_command(msg[1])
+            finally:
+                self._shutdown()
+                token.undeclare()
+        log.info("tecdard stopped")
+        return 0
+
+    # -- commands -----------------------------------------------------------
+    @staticmethod
+    def _reply(query, payload: dict) -> None:
+        try:
+            query.reply(query.key_expr, dumps(payload), encoding=JSON)
+        except Exception as exc:   # the client may have gone; never let it kill the loop
+            log.warning("reply to %s failed: %s", query.key_expr, exc)
+
+    def _on_command(self, query) -> None:
+        key = str(query.key_expr)
+        verb = key[len(self.keys.cmd_prefix):] if key.startswith(self.keys.cmd_prefix) else key
+        try:
+            try:
+                raw = query.payload.to_string() if query.payload is not None else None
+            except Exception:
+                raise C.CommandError(C.BAD_JSON, "payload: not valid UTF-8") from None
+            fields = C.validate(verb, C.parse_payload(raw), self.limits) if verb in C.VERBS else None
+            if fields is None:
+                C.validate(verb, {}, self.limits)   # raises unknown_verb
+            if verb == "status":
+                self._reply(query, {"ok": True, "state": self.latest_state})
+                return
+            if verb == "stop":
+                msg = ("stop", query)
+            elif verb == "cancel":
+                msg = ("cancel", fields["task"], query)
+            else:
+                msg = ("start", verb, fields, query)
+            try:
+                self.control.inbox.put_nowait(msg)
+            except queue.Full:
+                raise C.CommandError(C.BUSY, f"{verb}: control queue full, try again") from None
+        except C.CommandError as exc:
+            log.info("refused %s: %s (%s)", verb, exc.message, exc.code)
+            self._reply(query, exc.reply())

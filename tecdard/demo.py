@@ -1,0 +1,82 @@
+"""`make run`: start tecdard on the simulated robot, rotate the paper cutter over Zenoh, print what happened."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+
+import numpy as np
+
+from tecdard.client import Client, ClientError
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def distance_to_axis(p: np.ndarray, point: np.ndarray, axis: np.ndarray) -> float:
+    """Distance (m) from p to the line through `point` along unit `axis`."""
+    d = p - point
+    return float(np.linalg.norm(d - np.dot(d, axis) * axis))
+
+
+def start_daemon(config: str, endpoint: str, log_file=None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", config, "--listen", endpoint],
+                            stdout=log_file or subprocess.DEVNULL, stderr=log_file or subprocess.DEVNULL)
+
+
+def stop_daemon(proc: subprocess.Popen, timeout: float = 5.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            return proc.wait()
+    return proc.returncode
+
+
+def run_demo(config: str, angle_deg: float) -> int:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    print(f"starting tecdard on {config} at {endpoint} ...", flush=True)
+    log_path = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"tecdard-demo-{os.getpid()}.log")
+    with open(log_path, "w") as log_file:
+        proc = start_daemon(config, endpoint, log_file)
+        try:
+            with Client(endpoint) as cli:
+                cli.wait_alive(30.0)
+                reply = cli.command("rotate", {"angle_deg": angle_deg})
+                if not reply.get("ok"):
+                    print(f"rotate refused: {reply['error']['code']}: {reply['error']['message']}")
+                    return 1
+                task = reply["task"]
+                print(f"rotate {angle_deg:g} deg accepted as task {task}; waiting ...", flush=True)
+                ev = cli.wait_event(("task_done", "task_failed"), task, timeout=120.0)
+                status = cli.command("status")
+        except ClientError as exc:
+            print(f"demo failed: {exc} (daemon log: {log_path})")
+            return 1
+        finally:
+            code = stop_daemon(proc)
+    if ev["kind"] != "task_done":
+        print(f"task failed: {ev.get('error')} (daemon log: {log_path})")
+        return 1
+    res = ev["result"]
+    truth = res["sim"]
+    p_est = np.array(res["hinge"]["p"])
+    err = distance_to_axis(p_est, np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
+    ticks = status["state"]["control"]
+    print("")
+    print(f"hinge estimate  {np.round(p_est * 1e3, 1).tolist()} mm  (one-sigma {np.round(np.array(res['hinge']['std']) * 1e3, 1).tolist()} mm)")
+    print(f"hinge truth     {np.round(np.array(truth['hinge_point']) * 1e3, 1).tolist()} mm, axis {np.round(truth['hinge_axis'], 3).tolist()}")
+    print(f"hinge error     {err * 1e3:.2f} mm from the true axis")
+    print(f"angle reached   {truth['angle_deg']:.2f} deg true, {res['angle_deg']:.2f} deg estimated (asked {angle_deg:g})")
+    print(f"base displaced  {truth['base_displacement'] * 1e3:.2f} mm")
+    print(f"control ticks   {ticks.get('ticks')} ticks, {ticks.get('overruns')} overruns, work p50 {ticks.get('work_ms_p50')} ms"
+          f" p99 {ticks.get('work_ms_p99')} ms max {ticks.get('work_ms_max')} ms, lateness p99 {ticks.get('late_ms_p99')} ms")
+    print(f"daemon exit     {code} (log: {log_path})")
+    return 0 if code == 0 else 1

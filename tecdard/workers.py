@@ -1,0 +1,61 @@
+"""The acquisition and estimator thread bodies: IMU source -> ring buffer -> contact pipeline."""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+
+from control.pipeline import ContactPipeline
+from drivers.ring import SampleRing
+
+log = logging.getLogger("tecdar.estimator")
+
+POP_MAX_SAMPLES = 4096
+POP_TIMEOUT_S = 0.02
+
+
+def acquisition_loop(source, ring: SampleRing, stop: threading.Event) -> None:
+    """Transport only: move timestamped SI samples from the source into the ring."""
+    while not stop.is_set():
+        chunk = source.read(timeout=0.05)
+        if chunk is not None:
+            ring.push(*chunk)
+
+
+class EstimatorThread:
+    """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
+    estimates leave through the `contact` latest-value slot and the outbox."""
+
+    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue):
+        self.pipeline = pipeline
+        self.ring = ring
+        self.contact = contact
+        self.outbox = outbox
+        self.inbox: queue.Queue = queue.Queue(maxsize=1024)
+        self.dropped = 0
+
+    def _put(self, item) -> None:
+        try:
+            self.outbox.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+
+    def run(self, stop: threading.Event) -> None:
+        pipe = self.pipeline
+        while not stop.is_set():
+            while True:
+                try:
+                    msg = self.inbox.get_nowait()
+                except queue.Empty:
+                    break
+                if msg[0] == "proprio":
+                    pipe.add_proprio(*msg[1:])
+                elif msg[0] == "release":
+                    pipe.release()
+            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
+            events, est = pipe.process(batch)
+            for ev in events:
+                self._put(("event", ev))
+            if est is not None:
+                self.contact.set(est)
+                self._put(("contact", est.to_json(pipe.method)))
