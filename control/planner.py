@@ -34,11 +34,15 @@ class CartesianPlanner:
         self.result = ruckig.Result.Finished
 
     def _set_limits(self, speed: float) -> None:
-        # Per-axis limits; the Cartesian norm may exceed `speed` by up to sqrt(3), so scale.
-        s = min(speed, self.max_speed) / np.sqrt(3.0)
+        # Ruckig limits are per axis. Targets here always carry a velocity of norm
+        # <= speed, so per-axis `speed` keeps their direction intact (dividing by
+        # sqrt(3) would clip and turn a tangent off the arc). The Cartesian norm
+        # can exceed `speed` only transiently; the control thread clamps the
+        # commanded twist to the configured maximum as the safety bound.
+        s = min(speed, self.max_speed)
         self.inp.max_velocity = [s] * 3
-        self.inp.max_acceleration = [self.max_accel / np.sqrt(3.0)] * 3
-        self.inp.max_jerk = [self.max_jerk / np.sqrt(3.0)] * 3
+        self.inp.max_acceleration = [self.max_accel] * 3
+        self.inp.max_jerk = [self.max_jerk] * 3
 
     def reset(self, p: np.ndarray, v: np.ndarray | None = None, a: np.ndarray | None = None,
               speed: float | None = None) -> None:
@@ -62,9 +66,13 @@ class CartesianPlanner:
         self.inp.control_interface = ruckig.ControlInterface.Position
         self.inp.target_position = list(map(float, target_p))
         tv = np.zeros(3) if target_v is None else np.asarray(target_v, dtype=float)
-        # A target velocity beyond the per-axis limit is infeasible; clip it into the box.
+        # A target velocity beyond the per-axis limit is infeasible: scale it
+        # uniformly into the box so that its direction is kept.
         lim = self.inp.max_velocity[0]
-        self.inp.target_velocity = list(map(float, np.clip(tv, -lim, lim)))
+        peak = float(np.max(np.abs(tv)))
+        if peak > lim:
+            tv = tv * (lim / peak)
+        self.inp.target_velocity = list(map(float, tv))
         self.inp.target_acceleration = [0.0] * 3
         return self._update()
 
@@ -76,7 +84,10 @@ class CartesianPlanner:
         return self._update()
 
     def _update(self) -> tuple[np.ndarray, np.ndarray]:
-        result = self.otg.update(self.inp, self.out)
+        try:
+            result = self.otg.update(self.inp, self.out)
+        except ruckig.RuckigError as exc:   # raised instead of returned for invalid input
+            raise PlannerError(f"ruckig: ErrorInvalidInput: {str(exc).strip().splitlines()[-1]}") from None
         if result not in _OK:
             raise PlannerError(f"ruckig: {result.name}")
         self.result = result

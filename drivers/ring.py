@@ -30,10 +30,13 @@ class SampleRing:
         n = len(t)
         if n == 0:
             return
+        skipped = 0
         if n > self.capacity:
+            skipped = n - self.capacity
             t, gyro, accel = t[-self.capacity:], gyro[-self.capacity:], accel[-self.capacity:]
             n = self.capacity
         with self._cond:
+            self.overwritten += skipped
             start = self._head % self.capacity
             first = min(n, self.capacity - start)
             buf = self._buf

@@ -21,6 +21,7 @@ log = logging.getLogger("tecdar.control")
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
+IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 
 
 @dataclass
@@ -129,6 +130,7 @@ class ControlThread:
         self._last_proprio_seq = -1
         self._R_hold = None
         self._task_t0 = 0.0
+        self._t_boot = time.monotonic()
         self.first_tick = threading.Event()
         self.dropped = 0
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
@@ -199,6 +201,9 @@ class ControlThread:
         else:
             v_ff = (p_cmd - p_plan) / self.p.tick_s
             tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, np.zeros(3))
+            speed = float(np.linalg.norm(tw[:3]))
+            if speed > self.p.max_speed:       # hard TCP speed bound, whatever the planner said
+                tw[:3] *= self.p.max_speed / speed
             qd = self.model.dls_velocity(js.q, tw, self.q_home)
             self.robot.command_joint_velocity(qd)
         self._publish_state(now, p, R, v, est)
@@ -208,6 +213,8 @@ class ControlThread:
 
     # -- safety ---------------------------------------------------------------
     def _check_faults(self, now: float) -> None:
+        if self.ring.total == 0 and now - self._t_boot < IMU_STARTUP_GRACE_S:
+            return     # the first samples are still on their way
         age = now - self.ring.last_t
         if age > self.p.imu_stale_s:
             if "imu_stale" not in self.faults:
@@ -333,8 +340,11 @@ class ControlThread:
             result = dict(result or {})
             truth = self.robot.truth() if hasattr(self.robot, "truth") else None
             if truth is not None:
+                # The true handle angle, signed about the axis the task rotated about.
+                axis = np.asarray(result.get("hinge", result).get("axis", truth.hinge_axis))
+                sign = 1.0 if float(np.dot(axis, truth.hinge_axis)) >= 0 else -1.0
                 result["sim"] = {"hinge_point": truth.hinge_point.tolist(), "hinge_axis": truth.hinge_axis.tolist(),
-                                 "angle_deg": math.degrees(truth.handle_angle_rad),
+                                 "angle_deg": sign * math.degrees(truth.handle_angle_rad),
                                  "base_displacement": truth.base_displacement_m, **truth.extra}
             self._event("task_done", task=task.id, verb=task.kind, result=result)
         else:

@@ -1,0 +1,94 @@
+"""Shared fixtures: temporary configs, a tecdard subprocess on a free loopback port, a Zenoh client."""
+from __future__ import annotations
+
+import copy
+import pathlib
+import signal
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from tecdard.client import Client
+from tecdard.demo import free_port
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SIM_CONFIG = ROOT / "configs" / "sim.yaml"
+DAEMON_START_TIMEOUT_S = 60.0
+
+
+def sim_config(**overrides) -> dict:
+    """configs/sim.yaml as a dict with dotted-path overrides, e.g. {"sim.seed": 3}."""
+    cfg = copy.deepcopy(yaml.safe_load(SIM_CONFIG.read_text()))
+    for dotted, value in overrides.items():
+        node = cfg
+        *path, last = dotted.split(".")
+        for key in path:
+            node = node.setdefault(key, {})
+        node[last] = value
+    return cfg
+
+
+class DaemonProcess:
+    def __init__(self, tmp_path: pathlib.Path, cfg: dict):
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        cfg = copy.deepcopy(cfg)
+        cfg["zenoh"]["listen"] = [self.endpoint]
+        self.config_path = tmp_path / "tecdard.yaml"
+        self.config_path.write_text(yaml.safe_dump(cfg))
+        self.log_path = tmp_path / "tecdard.log"
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(self.config_path)],
+                                     stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT)
+        self.client = Client(self.endpoint, robot=cfg["robot"]["name"])
+        try:
+            self.client.wait_alive(DAEMON_START_TIMEOUT_S)
+        except Exception:
+            self.close()
+            raise RuntimeError(f"tecdard did not come up: {self.log()}")
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def terminate(self, sig=signal.SIGTERM, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def close(self) -> None:
+        try:
+            self.client.close()
+        finally:
+            self.terminate()
+            self._log.close()
+
+
+@pytest.fixture
+def make_daemon(tmp_path):
+    started = []
+
+    def factory(**overrides) -> DaemonProcess:
+        sub = tmp_path / f"d{len(started)}"
+        sub.mkdir()
+        d = DaemonProcess(sub, sim_config(**overrides))
+        started.append(d)
+        return d
+
+    yield factory
+    for d in started:
+        d.close()
+
+
+@pytest.fixture(scope="module")
+def shared_daemon(tmp_path_factory):
+    """One daemon for a module of tests that only talk to it."""
+    d = DaemonProcess(tmp_path_factory.mktemp("shared"), sim_config())
+    yield d
+    d.close()

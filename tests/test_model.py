@@ -1,0 +1,57 @@
+"""Arm models: TCP FK against Pinocchio's own placement, DLS IK convergence and limit handling."""
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from robots.model import ArmModel
+
+POS_TOL_M = 1e-4
+ROT_TOL_RAD = 1e-3
+
+
+def test_tcp_is_flange_times_tool_offset():
+    arm = ArmModel("panda", tool_offset=[0.0, 0.0, 0.05])
+    q = np.array([0.1, -0.5, 0.2, -2.0, 0.1, 1.8, 0.5])
+    oMtcp = arm.fk(q)
+    flange = arm.model.getFrameId("panda_hand_tcp", pin.FrameType.BODY) \
+        if arm.model.existFrame("panda_hand_tcp", pin.FrameType.BODY) else arm.model.getFrameId("panda_hand_tcp")
+    oMf = arm.data.oMf[flange]
+    assert np.allclose(oMtcp.translation, oMf.translation + oMf.rotation @ [0, 0, 0.05], atol=1e-12)
+    assert np.allclose(oMtcp.rotation, oMf.rotation, atol=1e-12)
+
+
+@pytest.mark.parametrize("name,q0", [
+    ("panda", [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]),
+    ("ur5", [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]),
+])
+def test_dls_servo_converges_to_a_pose(name, q0):
+    arm = ArmModel(name)
+    q = np.array(q0)
+    start = arm.fk(q)
+    p_des = start.translation + np.array([0.05, -0.04, 0.03])
+    R_des = pin.exp3(np.array([0.0, 0.2, 0.1])) @ start.rotation
+    dt = 0.01
+    for _ in range(600):
+        oMtcp = arm.fk(q)
+        tw = arm.servo_twist(oMtcp, p_des, np.zeros(3), R_des, np.zeros(3))
+        q = q + arm.dls_velocity(q, tw, np.array(q0)) * dt
+    final = arm.fk(q)
+    assert np.linalg.norm(final.translation - p_des) < POS_TOL_M
+    assert np.linalg.norm(pin.log3(R_des @ final.rotation.T)) < ROT_TOL_RAD
+    assert np.all(q >= arm.q_min) and np.all(q <= arm.q_max)
+
+
+def test_joint_limits_and_rates_are_respected():
+    arm = ArmModel("panda")
+    q = arm.q_max.copy() - 0.01            # every joint at its upper limit
+    q[3] = -1.5
+    arm.fk(q)
+    qd = arm.dls_velocity(q, np.array([2.0, 2.0, 2.0, 3.0, 3.0, 3.0]))
+    at_max = q >= arm.q_max - 0.02
+    assert np.all(qd[at_max] <= 0.0)
+    assert np.all(np.abs(qd) <= arm.qd_max + 1e-12)
+
+
+def test_unknown_arm_is_a_clear_error():
+    with pytest.raises(ValueError, match="robot.model: unknown arm 'robbie'"):
+        ArmModel("robbie")
