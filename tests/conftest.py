@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import pathlib
 import signal
 import subprocess
@@ -31,7 +32,7 @@ def sim_config(**overrides) -> dict:
 
 
 class DaemonProcess:
-    def __init__(self, tmp_path: pathlib.Path, cfg: dict):
+    def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None):
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         cfg = copy.deepcopy(cfg)
         cfg["zenoh"]["listen"] = [self.endpoint]
@@ -40,7 +41,8 @@ class DaemonProcess:
         self.log_path = tmp_path / "tecdard.log"
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(self.config_path)],
-                                     stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT)
+                                     stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
+                                     env=None if env is None else {**os.environ, **env})
         self.client = Client(self.endpoint, robot=cfg["robot"]["name"])
         try:
             self.client.wait_alive(DAEMON_START_TIMEOUT_S)
@@ -74,10 +76,10 @@ class DaemonProcess:
 def make_daemon(tmp_path):
     started = []
 
-    def factory(**overrides) -> DaemonProcess:
+    def factory(env: dict | None = None, **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
-        d = DaemonProcess(sub, sim_config(**overrides))
+        d = DaemonProcess(sub, sim_config(**overrides), env)
         started.append(d)
         return d
 
