@@ -21,13 +21,19 @@ class Client:
         self.keys = Keys(robot)
         self.session = zenoh.open(session_config([], [endpoint]))
         self.events: queue.Queue = queue.Queue()
+        self.event_log: list[dict] = []       # every event seen, in order (wait_event consumes the queue)
         self.states: queue.Queue = queue.Queue(maxsize=1000)
         self.contacts: queue.Queue = queue.Queue(maxsize=10000)
         self._subs = [
-            self.session.declare_subscriber(self.keys.events, lambda s: self.events.put(json.loads(s.payload.to_string()))),
+            self.session.declare_subscriber(self.keys.events, self._on_event),
             self.session.declare_subscriber(self.keys.state, lambda s: _put_latest(self.states, s)),
             self.session.declare_subscriber(self.keys.contact, lambda s: _put_latest(self.contacts, s)),
         ]
+
+    def _on_event(self, sample) -> None:
+        ev = json.loads(sample.payload.to_string())
+        self.event_log.append(ev)
+        self.events.put(ev)
 
     def close(self) -> None:
         for sub in self._subs:

@@ -117,3 +117,19 @@ def test_signals_stop_motion_and_exit_cleanly(make_daemon, sig):
     assert code == 0, d.log()[-2000:]
     assert "tecdard stopped" in d.log()
     print(f"exit after {signal.Signals(sig).name}: {elapsed * 1e3:.0f} ms")
+
+
+def test_probe_localises_the_hinge(make_daemon):
+    d = make_daemon()
+    reply = d.client.command("probe", {"distance": 0.005})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_done", ev
+    res = ev["result"]
+    assert set(res) >= {"p", "std"}
+    sim = res["sim"]
+    err = distance_to_axis(np.array(res["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
+    assert err < HINGE_TOL_M
+    assert sim["base_displacement"] < ARC_BASE_MAX_M
+    kinds = [e["kind"] for e in d.client.event_log]
+    assert kinds.index("task_started") < kinds.index("contact_onset") < kinds.index("task_done")
