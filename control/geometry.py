@@ -80,3 +80,38 @@ def signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
     a_p = a - np.dot(a, axis) * axis
     b_p = b - np.dot(b, axis) * axis
     return float(np.arctan2(np.dot(np.cross(a_p, b_p), axis), np.dot(a_p, b_p)))
+
+
+class Plane:
+    """A plane of motion: unit `normal` and a right-handed in-plane basis (e1, e2 = n x e1).
+
+    2D coordinates are taken relative to `origin`; the planar rate of a 3D
+    angular velocity is its component along the normal, and in 2D
+    w x r becomes w_n * J @ r with J = [[0, -1], [1, 0]].
+    """
+
+    J = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+    def __init__(self, normal: np.ndarray, origin: np.ndarray | None = None):
+        n = unit(normal, "plane_normal")
+        helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = unit(helper - np.dot(helper, n) * n)
+        e2 = np.cross(n, e1)
+        self.n = n
+        self.E = np.vstack([e1, e2])            # (2, 3): world -> plane
+        self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=float).copy()
+
+    def point2(self, p: np.ndarray) -> np.ndarray:
+        """World point(s) (..., 3) to plane coordinates (..., 2) about the origin."""
+        return (np.asarray(p) - self.origin) @ self.E.T
+
+    def vec2(self, v: np.ndarray) -> np.ndarray:
+        return np.asarray(v) @ self.E.T
+
+    def lift(self, c2: np.ndarray) -> np.ndarray:
+        """Plane point (2,) to the world point in the plane through the origin."""
+        return self.origin + c2 @ self.E
+
+    def lift_cov(self, P2: np.ndarray, along_var: float) -> np.ndarray:
+        """In-plane covariance (2, 2) to world (3, 3), with `along_var` along the normal."""
+        return self.E.T @ P2 @ self.E + along_var * np.outer(self.n, self.n)

@@ -1,60 +1,171 @@
-"""Contact-onset trigger: accelerometer deviation from its tracked rest level, over sample batches."""
+"""Contact-onset detection on IMU batches: accelerometer threshold, gyro threshold, accelerometer band energy."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
+MODES = ("any", "all")
 
-class OnsetDetector:
-    """Fires when |accel - rest| exceeds `accel_threshold` (m/s^2).
 
-    The rest level (gravity plus any steady offset, sensor frame) is tracked while
-    armed with time constant `rest_tau_s`; the detector arms only after `warmup_s`
-    of samples so the rest level is known. After firing it stays disarmed until
-    `rearm()`, which is the estimator's call once a contact episode ends.
+class SlidingBandEnergy:
+    """Mean-square of the signal in [lo_hz, hi_hz] over a sliding window, per sample, causally.
+
+    A sliding DFT of N = odr/lo_hz samples (bin spacing lo_hz) keeps the bins
+    lo..hi; by Parseval their power is the band's mean square, summed over
+    the 3 axes (units (m/s^2)^2). Recomputed from the last N-1 samples each
+    batch, so it never accumulates rounding.
     """
 
-    def __init__(self, accel_threshold: float = 0.4, rest_tau_s: float = 0.5, warmup_s: float = 0.1):
-        if accel_threshold <= 0:
-            raise ValueError("accel_threshold: must be > 0 m/s^2")
+    def __init__(self, odr_hz: float, lo_hz: float = 40.0, hi_hz: float = 200.0):
+        if not 0 < lo_hz < hi_hz < odr_hz / 2:
+            raise ValueError("band_hz: expected 0 < lo < hi < odr/2")
+        self.N = int(round(odr_hz / lo_hz))
+        k_lo = max(1, int(math.ceil(lo_hz * self.N / odr_hz - 1e-9)))
+        k_hi = int(math.floor(hi_hz * self.N / odr_hz + 1e-9))
+        self.k = np.arange(k_lo, k_hi + 1)
+        self._hist = np.zeros((0, 3))
+        self._index = 0          # absolute index of the first history sample
+
+    def process(self, x: np.ndarray) -> np.ndarray:
+        N = self.N
+        ext = np.vstack([self._hist, x])
+        m = self._index + np.arange(len(ext))
+        phase = np.exp(-2j * np.pi * np.outer(m % N, self.k) / N)       # (L, K)
+        # cumulative sums of x * e^{-j phi} per axis and bin, with a leading zero row
+        C = np.zeros((len(ext) + 1, 3, len(self.k)), dtype=complex)
+        C[1:] = np.cumsum(ext[:, :, None] * phase[:, None, :], axis=0)
+        ends = np.arange(len(self._hist) + 1, len(ext) + 1)
+        starts = np.maximum(ends - N, 0)
+        S = C[ends] - C[starts]
+        energy = 2.0 / (N * N) * np.sum(np.abs(S) ** 2, axis=(1, 2))
+        energy[ends - starts < N] = 0.0      # not a full window yet
+        keep = min(N - 1, len(ext))
+        self._index += len(ext) - keep
+        self._hist = ext[len(ext) - keep:].copy()
+        return energy
+
+
+class OnsetDetector:
+    """Fires at the first sample where the enabled conditions hold (`any`), or have all held
+    within `coincidence_s` of each other (`all`):
+
+    - `accel_threshold` (m/s^2): |accel - rest| (or its component on `accel_axis`, IMU frame);
+    - `gyro_threshold` (rad/s): |gyro - rest|;
+    - `band_threshold` (m/s^2 RMS): accelerometer energy in `band_hz` over one window of
+      odr/band_hz[0] samples (the paper's way to catch heavy objects such as a book).
+    Rest levels are tracked while armed (time constant `rest_tau_s`); nothing fires until
+    `warmup_s` of data has been seen. After firing it stays disarmed until `rearm()`.
+    """
+
+    def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,
+                 band_threshold: float | None = None, band_hz=(40.0, 200.0), mode: str = "any",
+                 coincidence_s: float = 0.02, rest_tau_s: float = 0.5, warmup_s: float = 0.1,
+                 odr_hz: float = 6667.0):
+        if mode not in MODES:
+            raise ValueError("mode: expected 'any' or 'all'")
+        if accel_threshold is None and gyro_threshold is None and band_threshold is None:
+            raise ValueError("onset: enable at least one of accel_threshold, gyro_threshold, band_threshold")
+        for name, v in (("accel_threshold", accel_threshold), ("gyro_threshold", gyro_threshold),
+                        ("band_threshold", band_threshold)):
+            if v is not None and v <= 0:
+                raise ValueError(f"{name}: must be > 0")
         self.accel_threshold = accel_threshold
+        self.accel_axis = None if accel_axis is None else np.asarray(accel_axis, float) / np.linalg.norm(accel_axis)
+        self.gyro_threshold = gyro_threshold
+        self.band_threshold = band_threshold
+        self.band = SlidingBandEnergy(odr_hz, *band_hz) if band_threshold is not None else None
+        self.mode = mode
+        self.coincidence_s = coincidence_s
         self.rest_tau_s = rest_tau_s
         self.warmup_s = warmup_s
-        self.rest = None            # (3,) rest level, sensor frame, m/s^2
+        self.rest_accel = None
+        self.rest_gyro = None
         self._seen_s = 0.0
+        self._last_true = {}
         self.armed = True
 
     @classmethod
-    def from_config(cls, section) -> "OnsetDetector":
-        return cls(
-            accel_threshold=section.getfloat("accel_threshold", 0.4, above=0.0),
-            rest_tau_s=section.getfloat("rest_tau_s", 0.5, above=0.0),
-            warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
-        )
+    def from_config(cls, section, odr_hz: float = 6667.0) -> "OnsetDetector":
+        def opt(key, default):
+            return section.getoptfloat(key, default, above=0.0)
+
+        band = section.getfloats("band_hz", [40.0, 200.0], n=2, minval=1.0)
+        axis = section.getvec3("accel_axis", None, unit=True) if section.has("accel_axis") else None
+        try:
+            return cls(
+                accel_threshold=opt("accel_threshold", 0.4),
+                accel_axis=axis,
+                gyro_threshold=opt("gyro_threshold", None),
+                band_threshold=opt("band_threshold", None),
+                band_hz=tuple(band),
+                mode=section.getstr("mode", "any", choices=MODES),
+                coincidence_s=section.getfloat("coincidence_s", 0.02, above=0.0, maxval=1.0),
+                rest_tau_s=section.getfloat("rest_tau_s", 0.5, above=0.0),
+                warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
+                odr_hz=odr_hz,
+            )
+        except ValueError as exc:
+            from tecdard.config import ConfigError
+            raise ConfigError(f"{section.path}.{exc}") from None
 
     def rearm(self) -> None:
-        """Start looking for the next onset; the rest level keeps its last value."""
+        """Start looking for the next onset; rest levels keep their last values."""
         self.armed = True
+        self._last_true = {}
 
-    def process(self, t: np.ndarray, accel: np.ndarray) -> int:
-        """Index into the batch of the first sample past the threshold, or -1."""
+    def _conditions(self, accel: np.ndarray, gyro: np.ndarray | None) -> dict:
+        out = {}
+        if self.accel_threshold is not None:
+            dev = accel - self.rest_accel
+            if self.accel_axis is not None:
+                out["accel"] = np.abs(dev @ self.accel_axis) > self.accel_threshold
+            else:
+                out["accel"] = np.einsum("ij,ij->i", dev, dev) > self.accel_threshold ** 2
+        if self.gyro_threshold is not None and gyro is not None:
+            dev = gyro - self.rest_gyro
+            out["gyro"] = np.einsum("ij,ij->i", dev, dev) > self.gyro_threshold ** 2
+        if self.band is not None:
+            out["band"] = self.band.process(accel - self.rest_accel) > self.band_threshold ** 2
+        return out
+
+    def process(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None) -> int:
+        """Index into the batch of the first sample that fires, or -1."""
         n = len(t)
         if n == 0:
             return -1
-        if self.rest is None:
-            self.rest = accel.mean(axis=0)
+        if self.rest_accel is None:
+            self.rest_accel = accel.mean(axis=0)
+            self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
+        conds = self._conditions(accel, gyro)
         hit = -1
-        if self.armed and self._seen_s >= self.warmup_s:
-            dev = accel - self.rest
-            over = np.flatnonzero(np.einsum("ij,ij->i", dev, dev) > self.accel_threshold**2)
-            if len(over):
-                hit = int(over[0])
+        if self.armed and self._seen_s >= self.warmup_s and conds:
+            if self.mode == "any":
+                fired = np.logical_or.reduce(list(conds.values()))
+                idx = np.flatnonzero(fired)
+                hit = int(idx[0]) if len(idx) else -1
+            else:
+                hit = self._coincidence(t, conds)
+            if hit >= 0:
                 self.armed = False
         if hit < 0:
-            # Track the rest level only on batches that contain no onset.
             dt = float(t[-1] - t[0]) if n > 1 else 0.0
             alpha = 1.0 - math.exp(-(dt + 1e-4) / self.rest_tau_s)
-            self.rest = self.rest + alpha * (accel.mean(axis=0) - self.rest)
+            self.rest_accel = self.rest_accel + alpha * (accel.mean(axis=0) - self.rest_accel)
+            if gyro is not None:
+                self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
             self._seen_s += dt
         return hit
+
+    def _coincidence(self, t: np.ndarray, conds: dict) -> int:
+        """First sample at which every condition has been true within coincidence_s."""
+        names = list(conds)
+        last = np.empty((len(names), len(t)))
+        for i, name in enumerate(names):
+            true_t = np.where(conds[name], t, -np.inf)
+            prev = self._last_true.get(name, -np.inf)
+            last[i] = np.maximum.accumulate(np.concatenate([[prev], true_t]))[1:]
+            self._last_true[name] = last[i, -1]
+        ok = np.all(t[None, :] - last <= self.coincidence_s, axis=0)
+        idx = np.flatnonzero(ok)
+        return int(idx[0]) if len(idx) else -1

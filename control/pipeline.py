@@ -1,18 +1,103 @@
-"""Contact pipeline: onset trigger -> gyro conditioning -> differential-constraint EKF, on IMU batches."""
+"""Contact pipeline: onset trigger -> gyro conditioning -> contact estimator, on IMU batches, causally.
+
+Used by the daemon's estimator thread and by `tecdard localize` alike.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
-from control.ekf import ContactEKF, EkfParams
+from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
+from control.geometry import Plane
 from control.onset import OnsetDetector
 
-PROPRIO_HISTORY = 64          # proprioception samples kept for causal lookup
-OUTPUT_PERIOD_S = 0.005       # estimates are emitted at most at 200 Hz
+METHODS = ("ekf", "paper-ekf") + BASELINES
+PROPRIO_HISTORY = 256         # proprioception samples kept for causal lookup
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma is below this
 MIN_AXIS_RATE_RAD_S = 1e-3
+SECOND_AXIS_RATIO = 0.05      # a rotation about a 2nd axis this strong (by variance) makes 3D observable
+DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
+
+
+class EtaSchedule:
+    """Apparent transmission coefficient eta against grip force (N), linearly interpolated, clamped."""
+
+    def __init__(self, table: list[tuple[float, float]] = ((30.0, 2.0),)):
+        table = sorted((float(f), float(e)) for f, e in table)
+        if not table or any(e <= 0 for _, e in table):
+            raise ValueError("eta_table: expected [[force_N, eta], ...] with eta > 0")
+        self.force = np.array([f for f, _ in table])
+        self.eta = np.array([e for _, e in table])
+
+    def __call__(self, force_n) -> np.ndarray:
+        return np.interp(force_n, self.force, self.eta)
+
+
+class ProprioTrack:
+    """Recent TCP states for causal lookup: an IMU sample at time t sees only states stamped at or before t.
+
+    Velocity is the robot's reported TCP velocity when given; otherwise the
+    backward difference of the last two positions (which belongs to the middle
+    of their interval). Each lookup carries a velocity variance: the source's
+    noise plus the staleness of holding it (|a| * age)^2, with |a| from the
+    last two velocities.
+    """
+
+    def __init__(self, size: int = PROPRIO_HISTORY, sigma_p: float = 5e-5, sigma_v: float = 1e-3):
+        self.size = size
+        self.sigma_p = sigma_p
+        self.sigma_v = sigma_v
+        self.t = np.full(size, np.inf)
+        self.p = np.zeros((size, 3))
+        self.v = np.zeros((size, 3))
+        self.tv = np.zeros(size)           # time the velocity belongs to
+        self.var_v = np.zeros(size)
+        self.a = np.zeros(size)            # |acceleration| estimate, m/s^2
+        self.R = np.tile(np.eye(3), (size, 1, 1))
+        self.w = np.zeros((size, 3))
+        self.force = np.full(size, np.nan)
+        self.n = 0
+
+    def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray,
+            force: float = np.nan) -> None:
+        n = self.n
+        if n and t <= self.t[n - 1]:
+            return   # repeated or out of order: keep time strictly increasing
+        if v is None:
+            if n:
+                dt = t - self.t[n - 1]
+                v = (p - self.p[n - 1]) / dt
+                tv, var_v = t - dt / 2, 2 * self.sigma_p ** 2 / dt ** 2
+            else:
+                v, tv, var_v = np.zeros(3), t, DERIVED_V_FIRST_VAR
+        else:
+            tv, var_v = t, self.sigma_v ** 2
+        a = float(np.linalg.norm(v - self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6)) if n else 0.0
+        if n == self.size:
+            for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.R, self.w, self.force):
+                arr[:-1] = arr[1:]
+            n -= 1
+        self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
+        self.a[n], self.R[n], self.w[n], self.force[n] = a, R, w, force
+        self.n = n + 1
+
+    def rate_hz(self) -> float:
+        if self.n < 3:
+            return np.nan
+        return float(1.0 / np.median(np.diff(self.t[:self.n])))
+
+    def lookup(self, ts: np.ndarray):
+        """(p, v, R, w, var_v, force, ok) at times ts, extrapolated from the newest state at or before each."""
+        j = np.searchsorted(self.t[:self.n], ts, side="right") - 1
+        ok = j >= 0
+        j = np.maximum(j, 0)
+        age = ts - self.t[j]
+        p = self.p[j] + self.v[j] * age[:, None]
+        var_v = self.var_v[j] + (self.a[j] * (ts - self.tv[j])) ** 2
+        return p, self.v[j], self.R[j], self.w[j], var_v, self.force[j], ok
 
 
 @dataclass
@@ -21,73 +106,73 @@ class ContactEstimate:
     onset_t: float            # s
     p: np.ndarray             # contact / hinge point, world, m
     std: np.ndarray           # one-sigma per world axis, m
+    cov: np.ndarray           # 3 x 3 covariance, world, m^2
     axis: np.ndarray | None   # rotation axis estimate, world unit (None until excited)
     converged: bool
     nis: float
     steps: int
+    method: str = "ekf"
+    extra: dict = field(default_factory=dict)
 
-    def to_json(self, method: str) -> dict:
+    def to_json(self, method: str | None = None) -> dict:
         return {"t": self.t, "onset_t": self.onset_t, "p": self.p.tolist(), "std": self.std.tolist(),
-                "converged": self.converged, "method": method,
+                "converged": self.converged, "method": method or self.method,
                 "axis": None if self.axis is None else self.axis.tolist()}
 
 
-class ProprioHistory:
-    """Recent TCP states (t, p, v, R, w) for causal lookup: a sample at time t sees only states at or before t."""
+@dataclass
+class PipelineParams:
+    method: str = "ekf"
+    plane_normal: np.ndarray | None = None     # world; None: 3D
+    output_period_s: float = 0.005             # estimates are emitted at most this often
+    eta_table: list = field(default_factory=lambda: [(30.0, 2.0)])
+    grip_force_n: float = 30.0                 # used when no grip force is measured
+    ekf: ContactKfParams = field(default_factory=ContactKfParams)
+    paper_ekf: PaperEkfParams = field(default_factory=PaperEkfParams)
+    baseline: BaselineParams = field(default_factory=BaselineParams)
 
-    def __init__(self, size: int = PROPRIO_HISTORY):
-        self.size = size
-        self.t = np.full(size, np.inf)
-        self.p = np.zeros((size, 3))
-        self.v = np.zeros((size, 3))
-        self.R = np.tile(np.eye(3), (size, 1, 1))
-        self.w = np.zeros((size, 3))
-        self.n = 0
 
-    def add(self, t: float, p: np.ndarray, v: np.ndarray, R: np.ndarray, w: np.ndarray) -> None:
-        if self.n and t <= self.t[self.n - 1]:
-            return   # out of order or repeated: keep time strictly increasing
-        if self.n == self.size:
-            for arr in (self.t, self.p, self.v, self.R, self.w):
-                arr[:-1] = arr[1:]
-            self.n -= 1
-        i = self.n
-        self.t[i], self.p[i], self.v[i], self.R[i], self.w[i] = t, p, v, R, w
-        self.n += 1
-
-    def lookup(self, ts: np.ndarray):
-        """Extrapolate (p, v, R, w) to times ts from the newest state at or before each; mask of valid rows."""
-        j = np.searchsorted(self.t[:self.n], ts, side="right") - 1
-        ok = j >= 0
-        j = np.maximum(j, 0)
-        dt = (ts - self.t[j])[:, None]
-        return self.p[j] + self.v[j] * dt, self.v[j], self.R[j], self.w[j], ok
+def make_estimator(params: PipelineParams, plane: Plane | None):
+    if params.method == "ekf":
+        return ContactKF(params.ekf, plane)
+    if params.method == "paper-ekf":
+        return PaperEKF(params.paper_ekf, plane)
+    if params.method in BASELINES:
+        return make_baseline(params.method, plane, params.baseline)
+    raise ValueError(f"method: unknown estimator {params.method!r} (known: {', '.join(METHODS)})")
 
 
 class ContactPipeline:
-    """Event-driven estimation: idle (bias and rest tracking) until the trigger fires, then the EKF.
+    """Event-driven estimation: idle (bias and rest tracking) until the trigger fires, then the estimator.
 
     `process(batch)` takes an (n, 7) array of t, gyro xyz (rad/s), accel xyz
     (m/s^2) in the IMU frame and returns (events, estimate or None).
+    Proprioception arrives through `add_proprio` no later than the samples
+    that use it; every estimate uses only data stamped at or before its time.
     """
 
-    def __init__(self, detector: OnsetDetector, conditioner: GyroConditioner, ekf_params: EkfParams,
-                 method: str = "ekf"):
+    def __init__(self, detector: OnsetDetector, conditioner: GyroConditioner, params: PipelineParams | None = None,
+                 proprio: ProprioTrack | None = None):
         self.detector = detector
         self.cond = conditioner
-        self.ekf = ContactEKF(ekf_params)
-        self.method = method
-        self.proprio = ProprioHistory()
+        self.params = params or PipelineParams()
+        self.method = self.params.method
+        self.plane = Plane(self.params.plane_normal) if self.params.plane_normal is not None else None
+        self.estimator = make_estimator(self.params, self.plane)
+        self.eta = EtaSchedule(self.params.eta_table)
+        self.proprio = proprio or ProprioTrack(sigma_p=self.params.ekf.sigma_p, sigma_v=self.params.ekf.sigma_v)
         self.tracking = False
         self.onset_t: float | None = None
         self._t_prev: float | None = None
         self._wwT = np.zeros((3, 3))
         self._w_sum = np.zeros(3)
+        self._n_w = 0
         self._t_out = -np.inf
         self.latest: ContactEstimate | None = None
 
-    def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray, R: np.ndarray, w: np.ndarray) -> None:
-        self.proprio.add(t, p, v, R, w)
+    def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray,
+                    force: float = np.nan) -> None:
+        self.proprio.add(t, p, v, R, w, force)
 
     def release(self) -> None:
         """End the contact episode: back to bias tracking and an armed trigger."""
@@ -96,76 +181,92 @@ class ContactPipeline:
         self.cond.freeze_bias(False)
         self.detector.rearm()
 
-    def process(self, batch: np.ndarray) -> tuple[list[dict], ContactEstimate | None]:
+    def process(self, batch: np.ndarray, force_output: bool = False) -> tuple[list[dict], ContactEstimate | None]:
         events: list[dict] = []
         if len(batch) == 0:
             return events, None
         t, gyro, accel = batch[:, 0], batch[:, 1:4], batch[:, 4:7]
         start = 0
         if not self.tracking:
-            hit = self.detector.process(t, accel)
+            hit = self.detector.process(t, accel, gyro)
             if hit < 0:
                 self.cond.track_bias(t, gyro)
                 self.cond.lowpass(gyro)      # keep the filter history warm
                 return events, None
             self.cond.track_bias(t[:hit], gyro[:hit])
-            p, v, _, _, ok = self.proprio.lookup(t[hit:hit + 1])
+            p, v, _, _, _, _, ok = self.proprio.lookup(t[hit:hit + 1])
             if not ok[0]:
                 self.detector.rearm()        # no proprioception yet: cannot start
                 self.cond.lowpass(gyro)
                 return events, None
             self.cond.freeze_bias(True)
-            self.ekf.start(p[0], v[0])
+            self.estimator.start(p[0], v[0])
             self.tracking = True
             self.onset_t = float(t[hit])
             self._t_prev = float(t[hit])
             self._wwT[:] = 0.0
             self._w_sum[:] = 0.0
+            self._n_w = 0
             self._t_out = -np.inf
             start = hit
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
         w_f = self.cond.lowpass(gyro)[start:]
         ts = t[start:]
-        p, v, R, w_tcp, ok = self.proprio.lookup(ts)
-        w_obj = self.cond.object_rate_world(w_f, R, w_tcp)
-        ekf = self.ekf
-        t_prev = self._t_prev
-        for k in range(len(ts)):
-            if not ok[k]:
-                continue
-            dt = ts[k] - t_prev
-            if dt <= 0:
-                dt = 1e-6
-            ekf.step(dt, w_obj[k], p[k], v[k])
-            t_prev = ts[k]
-        self._t_prev = t_prev
-        good = w_obj[ok]
-        self._wwT += good.T @ good
-        self._w_sum += good.sum(axis=0)
+        p, v, R, w_tcp, var_v, force, ok = self.proprio.lookup(ts)
+        force = np.where(np.isnan(force), self.params.grip_force_n, force)
+        w_obj = self.cond.object_rate_world(w_f, R, w_tcp, self.eta(force)[:, None])
+        if not ok.all():
+            ts, w_obj, p, v, var_v = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok]
+        if len(ts):
+            dt = np.diff(ts, prepend=self._t_prev)
+            dt = np.maximum(dt, 1e-6)
+            self._t_prev = float(ts[-1])
+            rate = self.proprio.rate_hz()
+            if np.isfinite(rate) and len(ts) > 1 and hasattr(self.estimator, "corr_samples"):
+                self.estimator.corr_samples = max(1.0, (1.0 / np.median(dt)) / rate)
+            self.estimator.update(dt, w_obj, p, v, var_v)
+            self._wwT += w_obj.T @ w_obj
+            self._w_sum += w_obj.sum(axis=0)
+            self._n_w += len(w_obj)
         estimate = None
-        if ts[-1] - self._t_out >= OUTPUT_PERIOD_S:
-            self._t_out = ts[-1]
-            estimate = self._estimate(float(ts[-1]))
+        if self._t_prev is not None and (force_output or self._t_prev - self._t_out >= self.params.output_period_s):
+            self._t_out = self._t_prev
+            estimate = self._estimate(self._t_prev)
             self.latest = estimate
         return events, estimate
 
-    def _axis(self) -> np.ndarray | None:
-        vals, vecs = np.linalg.eigh(self._wwT)
+    def _excitation(self) -> tuple[np.ndarray | None, bool]:
+        """(principal rotation axis or None, whether a second axis was excited)."""
+        if self._n_w == 0:
+            return None, False
+        sigma_w2 = self.params.ekf.sigma_w ** 2
+        lam, vecs = np.linalg.eigh(self._wwT / self._n_w - sigma_w2 * np.eye(3))
+        if lam[-1] < MIN_AXIS_RATE_RAD_S ** 2:
+            return None, False
         axis = vecs[:, -1]
-        rms = np.sqrt(vals[-1] / max(self.ekf.steps, 1))
-        if rms < MIN_AXIS_RATE_RAD_S:
-            return None
-        return axis if np.dot(axis, self._w_sum) >= 0 else -axis
+        axis = axis if np.dot(axis, self._w_sum) >= 0 else -axis
+        return axis, lam[-2] > SECOND_AXIS_RATIO * lam[-1]
 
     def _estimate(self, t: float) -> ContactEstimate:
-        ekf = self.ekf
-        axis = self._axis()
-        Pc = ekf.P[6:9, 6:9]
+        est = self.estimator
+        p_c, _ = est.estimate()
+        cov = est.covariance()
+        stat = est.filter_covariance() if hasattr(est, "filter_covariance") else cov
+        axis, two_axes = self._excitation()
+        if self.plane is not None:
+            axis = self.plane.n if axis is None or np.dot(axis, self.plane.n) >= 0 else -self.plane.n
+        elif axis is not None and not two_axes:
+            # A rotation about one axis only: the contact is a line along it (edge, hinge),
+            # unobservable along the axis whatever the gyro noise suggests. Say so.
+            proj = np.eye(3) - np.outer(axis, axis)
+            cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * np.outer(axis, axis)
+        # Converged: the statistical uncertainty in the plane of rotation is small
+        # (systematic floors such as eta's are reported, but do not shrink with data).
         if axis is not None:
             proj = np.eye(3) - np.outer(axis, axis)
-            in_plane = float(np.sqrt(max(np.linalg.eigvalsh(proj @ Pc @ proj)[-1], 0.0)))
+            in_plane = float(np.sqrt(max(np.linalg.eigvalsh(proj @ stat @ proj)[-1], 0.0)))
         else:
-            in_plane = float(np.sqrt(np.linalg.eigvalsh(Pc)[-1]))
-        return ContactEstimate(t=t, onset_t=self.onset_t, p=ekf.p_c.copy(), std=ekf.std_c.copy(), axis=axis,
-                               converged=in_plane < CONVERGED_STD_M and ekf.steps > 100, nis=ekf.nis,
-                               steps=ekf.steps)
+            in_plane = float(np.sqrt(max(np.linalg.eigvalsh(stat)[-1], 0.0)))
+        return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(np.diag(cov), 0.0)),
+                               cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
+                               nis=est.nis, steps=est.steps, method=self.method)

@@ -76,6 +76,16 @@ class Section:
         self._check_bounds(key, value, minval, maxval, above)
         return value
 
+    def getoptfloat(self, key: str, default: float | None = None, **bounds) -> float | None:
+        """A number, or None when the key is absent with no default or is explicitly null (disables a feature)."""
+        if key in self._data and self._data[key] is None:
+            self._used.add(key)
+            return None
+        if key not in self._data and default is None:
+            self._used.add(key)
+            return None
+        return self.getfloat(key, default, **bounds)
+
     def getint(self, key: str, default: Any = REQUIRED, *, minval: int | None = None,
                maxval: int | None = None) -> int:
         value = self._raw(key, default)

@@ -360,7 +360,7 @@ class ControlThread:
         state = {
             "t": now, "seq": self._seq, "mode": "fault" if self.faults and self.task is None and not self._braking else self.mode,
             "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
-            "contact": None if est is None else est.to_json("ekf"),
+            "contact": None if est is None else est.to_json(),
             "task": task,
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
             "control": self.stats.snapshot(),

@@ -10,11 +10,7 @@ import time
 import numpy as np
 import zenoh
 
-from control.conditioning import GyroConditioner
-from control.ekf import EkfParams
 from control.geometry import quat_to_matrix
-from control.onset import OnsetDetector
-from control.pipeline import ContactPipeline
 from drivers.ring import SampleRing
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.model import ArmModel, UnknownRobotError
@@ -22,6 +18,7 @@ from robots.sim import SimRobot, SimRobotParams
 from robots.world import HingeParams, HingeWorld
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
+from tecdard.estimation import build_pipeline
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop
@@ -64,21 +61,14 @@ class Daemon:
         ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
         mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
 
-        est = cfg.section("estimator")
-        self.method = est.getstr("method", "ekf", choices=("ekf",))
-        conditioner = GyroConditioner(
-            quat_to_matrix(np.array(mount)),
-            eta=est.getfloat("eta", 2.0, above=0.0, maxval=20.0),
-            bias_tau_s=est.getfloat("bias_tau_s", 0.5, above=0.0),
-            lpf_window=est.getint("gyro_lpf_window", 33, minval=1, maxval=2000),
-        )
-        detector = OnsetDetector.from_config(est.section("onset"))
-        ekf_params = EkfParams.from_config(est.section("ekf"))
-        self.pipeline = ContactPipeline(detector, conditioner, ekf_params, self.method)
-
         sim = cfg.section("sim")
+        sim_imu = sim.section("imu")
+        odr_hz = sim_imu.getfloat("odr_hz", 6667.0, minval=100.0, maxval=20000.0)
+        self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), odr_hz)
+        self.method = self.pipeline.method
+
         seed = sim.getint("seed", 0, minval=0)
-        imu_params = SimImuParams.from_config(sim.section("imu"), default_mount=mount)
+        imu_params = SimImuParams.from_config(sim_imu, default_mount=mount)
         robot_params = SimRobotParams.from_config(sim.section("robot"), self.q_home)
         hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
         cfg.check_unused()

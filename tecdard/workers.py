@@ -58,4 +58,4 @@ class EstimatorThread:
                 self._put(("event", ev))
             if est is not None:
                 self.contact.set(est)
-                self._put(("contact", est.to_json(pipe.method)))
+                self._put(("contact", est.to_json()))

@@ -1,0 +1,55 @@
+"""Builds the contact pipeline from the `estimator` config section (daemon and `tecdard localize` alike)."""
+from __future__ import annotations
+
+import numpy as np
+
+from control.baselines import BaselineParams
+from control.conditioning import GyroConditioner
+from control.ekf import ContactKfParams, PaperEkfParams
+from control.onset import OnsetDetector
+from control.pipeline import METHODS, ContactPipeline, PipelineParams
+from tecdard.config import ConfigError
+
+
+def _eta_table(section) -> list[tuple[float, float]]:
+    raw = section._raw("eta_table", [[30.0, 2.0]])
+    name = f"{section.path}.eta_table"
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{name}: expected a list of [grip_force_N, eta] pairs")
+    out = []
+    for row in raw:
+        if (not isinstance(row, list) or len(row) != 2
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)):
+            raise ConfigError(f"{name}: expected [grip_force_N, eta] pairs, got {row!r}")
+        if row[1] <= 0 or row[0] < 0:
+            raise ConfigError(f"{name}: eta must be > 0 and force >= 0, got {row!r}")
+        out.append((float(row[0]), float(row[1])))
+    return out
+
+
+def build_pipeline(section, R_tcp_imu: np.ndarray, odr_hz: float = 6667.0, method: str | None = None,
+                   plane_normal=None) -> ContactPipeline:
+    """Every option of `estimator` is read here; `method`/`plane_normal` override the config's."""
+    cfg_method = section.getstr("method", "ekf", choices=METHODS)
+    cfg_plane = section.getvec3("plane_normal", None, unit=True) if section.has("plane_normal") else None
+    conditioner = GyroConditioner(
+        R_tcp_imu,
+        eta=2.0,
+        bias_tau_s=section.getfloat("bias_tau_s", 0.5, above=0.0),
+        lpf_window=section.getint("gyro_lpf_window", 33, minval=1, maxval=2000),
+    )
+    params = PipelineParams(
+        method=method or cfg_method,
+        plane_normal=np.array(plane_normal if plane_normal is not None else cfg_plane)
+        if (plane_normal is not None or cfg_plane is not None) else None,
+        output_period_s=section.getfloat("output_period_s", 0.005, above=0.0, maxval=1.0),
+        eta_table=_eta_table(section),
+        grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0),
+        ekf=ContactKfParams.from_config(section.section("ekf")),
+        paper_ekf=PaperEkfParams.from_config(section.section("paper_ekf")),
+    )
+    base = section.section("baseline")
+    params.baseline = BaselineParams(window_s=base.getfloat("window_s", 0.03, above=0.0),
+                                     gd_iterations=base.getint("gd_iterations", 10, minval=1, maxval=1000))
+    detector = OnsetDetector.from_config(section.section("onset"), odr_hz)
+    return ContactPipeline(detector, conditioner, params)

@@ -1,0 +1,147 @@
+"""The whole contact pipeline on IMU batches: frames, eta, causal proprioception, the trigger."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from control.conditioning import GyroConditioner
+from control.geometry import Plane, matrix_to_quat, quat_to_matrix, rotvec_to_matrix, unit
+from control.onset import OnsetDetector
+from control.pipeline import ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
+
+ODR_HZ = 6667.0
+PROPRIO_HZ = 65.0
+TOL_M = 3e-3
+
+
+def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf"):
+    """A hinge rotated by a TCP that may itself turn about the hinge axis (rotating gripper)."""
+    rng = np.random.default_rng(seed)
+    center, axis = np.array([0.157, 0.0, 0.487]), np.array([0.0, -1.0, 0.0])
+    p0 = np.array([0.307, 0.0, 0.487])
+    rate = 0.02 / 0.15
+    t = np.arange(0, 1.5, 1 / ODR_HZ)
+    t_on = 0.5
+    s = np.maximum(t - t_on, 0)
+    p = center + np.stack([rotvec_to_matrix(axis * rate * si) for si in s]) @ (p0 - center)
+    v = np.where((t >= t_on)[:, None], np.cross(rate * axis, p - center), 0.0)
+    R0 = rotvec_to_matrix(np.array([np.pi, 0, 0]))
+    R_tcp = np.stack([rotvec_to_matrix(axis * R_tool_rate * si) @ R0 for si in s])
+    w_tcp = np.where((t >= t_on)[:, None], R_tool_rate * axis, 0.0)
+    w_obj = np.where((t >= t_on)[:, None], rate * axis, 0.0)
+    w_seen = w_tcp + (w_obj - w_tcp) / eta_true
+    R_world_imu = R_tcp @ R_tcp_imu
+    gyro = np.einsum("nji,nj->ni", R_world_imu, w_seen) + [0.01, -0.004, 0.007] + rng.normal(0, noise, (len(t), 3))
+    accel = np.einsum("nji,nj->ni", R_world_imu, np.tile([0, 0, 9.81], (len(t), 1))) + rng.normal(0, 0.03, (len(t), 3))
+    accel[(t >= t_on) & (t < t_on + 0.01)] += [2.0, 0.0, 0.0]
+    params = PipelineParams(method=method, plane_normal=plane)
+    pipe = ContactPipeline(OnsetDetector(0.4, warmup_s=0.05), GyroConditioner(R_tcp_imu, lpf_window=17), params)
+    events, last, next_proprio = [], None, 0.0
+    for k0 in range(0, len(t), 64):
+        sl = slice(k0, k0 + 64)
+        while next_proprio <= t[sl][-1]:          # proprioception known by the end of the batch
+            i = int(next_proprio * ODR_HZ)
+            pipe.add_proprio(t[i], p[i] + rng.normal(0, 5e-5, 3), v[i], R_tcp[i], w_tcp[i])
+            next_proprio += 1 / PROPRIO_HZ
+        ev, est = pipe.process(np.column_stack([t[sl], gyro[sl], accel[sl]]))
+        events += ev
+        last = est or last
+    return events, last, center, axis, t_on
+
+
+def in_plane_error(p, center, axis):
+    d = p - center
+    return float(np.linalg.norm(d - np.dot(d, axis) * axis))
+
+
+@pytest.mark.parametrize("mount", [[0, 0, 0, 1], [0.3, -0.2, 0.1, 0.9], [0.7071068, 0, 0, 0.7071068]])
+@pytest.mark.parametrize("tool_rate", [0.0, 0.05])
+def test_pipeline_localises_with_rotated_mount_and_rotating_gripper(mount, tool_rate):
+    R_tcp_imu = quat_to_matrix(unit(np.array(mount, float)))
+    events, est, center, axis, t_on = simulate(R_tcp_imu, tool_rate)
+    assert [e["kind"] for e in events] == ["contact_onset"]
+    assert abs(events[0]["t"] - t_on) < 0.005
+    assert in_plane_error(est.p, center, axis) < TOL_M
+    assert est.converged
+    assert abs(abs(np.dot(est.axis, axis)) - 1.0) < 1e-3
+    assert est.std[1] > 0.1            # unobservable along the hinge, and said so
+
+
+@pytest.mark.parametrize("method", ["paper-ekf", "svd-diff", "svd-geo"])
+def test_pipeline_runs_every_method(method):
+    _, est, center, axis, _ = simulate(np.eye(3), method=method, plane=np.array([0.0, 1.0, 0.0]))
+    assert est.method == method
+    assert in_plane_error(est.p, center, axis) < 0.02
+
+
+def test_eta_mismatch_scales_the_radius():
+    """With the wrong eta the estimate moves radially by about the ratio: the fingertip model matters."""
+    _, est, center, axis, _ = simulate(np.eye(3), eta_true=2.4)
+    r_true = 0.15
+    r_est = np.linalg.norm((np.array([0.307, 0.0, 0.487]) - est.p)[[0, 2]])
+    assert r_est == pytest.approx(r_true * 2.4 / 2.0, rel=0.05)
+
+
+def test_eta_schedule_interpolates_and_clamps():
+    eta = EtaSchedule([(20.0, 2.6), (30.0, 2.0), (40.0, 1.6)])
+    assert eta(30.0) == pytest.approx(2.0)
+    assert eta(25.0) == pytest.approx(2.3)
+    assert eta(10.0) == pytest.approx(2.6) and eta(60.0) == pytest.approx(1.6)
+
+
+def test_proprio_lookup_is_causal():
+    track = ProprioTrack()
+    track.add(0.0, np.zeros(3), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))
+    track.add(0.1, np.array([0.01, 0, 0]), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))
+    track.add(0.2, np.array([0.5, 0, 0]), np.array([5.0, 0, 0]), np.eye(3), np.zeros(3))   # a jump later on
+    p, v, *_, ok = track.lookup(np.array([-0.01, 0.05, 0.15, 0.199]))
+    assert list(ok) == [False, True, True, True]
+    assert p[1][0] == pytest.approx(0.005) and p[2][0] == pytest.approx(0.015)
+    assert p[3][0] == pytest.approx(0.01 + 0.1 * 0.099)      # never sees the sample at 0.2
+
+
+def test_derived_velocity_when_the_robot_reports_none():
+    track = ProprioTrack(sigma_p=1e-4)
+    for k in range(5):
+        track.add(k * 0.01, np.array([0.02 * k * 0.01, 0, 0]), None, np.eye(3), np.zeros(3))
+    _, v, _, _, var_v, _, ok = track.lookup(np.array([0.045]))
+    assert v[0][0] == pytest.approx(0.02)
+    assert var_v[0] == pytest.approx(2 * 1e-4 ** 2 / 0.01 ** 2)
+
+
+quats = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
+    lambda q: np.linalg.norm(q) > 0.1).map(lambda q: unit(np.array(q)))
+vecs = st.lists(st.floats(-3, 3, allow_nan=False), min_size=3, max_size=3).map(np.array)
+
+
+@settings(max_examples=200, deadline=None)
+@given(quats)
+def test_quaternion_matrix_round_trip(q):
+    R = quat_to_matrix(q)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
+    q2 = matrix_to_quat(R)
+    assert np.allclose(q2, q, atol=1e-7) or np.allclose(q2, -q, atol=1e-7)
+
+
+@settings(max_examples=200, deadline=None)
+@given(quats, quats, vecs, vecs, st.floats(0.5, 5.0))
+def test_conditioning_inverts_the_fingertip_model(q_mount, q_tcp, w_tcp, w_obj, eta):
+    """For any mount, TCP orientation and rates: recover w_obj from what the gyro sees."""
+    R_tcp_imu, R_world_tcp = quat_to_matrix(q_mount), quat_to_matrix(q_tcp)
+    gyro = (R_world_tcp @ R_tcp_imu).T @ (w_tcp + (w_obj - w_tcp) / eta)
+    out = GyroConditioner(R_tcp_imu, eta=eta).object_rate_world(gyro[None], R_world_tcp, w_tcp[None])
+    assert np.allclose(out[0], w_obj, atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(vecs.filter(lambda n: np.linalg.norm(n) > 0.1), vecs, vecs)
+def test_plane_projection_and_lift(normal, origin, x):
+    plane = Plane(normal, origin)
+    E = plane.E
+    assert np.allclose(E @ E.T, np.eye(2), atol=1e-12)
+    assert np.allclose(E @ plane.n, 0, atol=1e-12)
+    assert np.dot(np.cross(E[0], E[1]), plane.n) == pytest.approx(1.0)   # right-handed
+    x_in = plane.lift(plane.point2(x))
+    assert np.allclose(x_in, x - np.dot(x - origin, plane.n) * plane.n, atol=1e-9)
+    # w x r in the plane is w_n J r
+    w_n, r2 = 0.7, plane.point2(x)
+    assert np.allclose(plane.vec2(np.cross(w_n * plane.n, r2 @ E)), w_n * Plane.J @ r2, atol=1e-9)
