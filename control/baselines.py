@@ -103,9 +103,14 @@ class _LeastSquares:
         cov = self._cov()
         return self.plane.lift_cov(cov, UNOBSERVED_STD_M ** 2) if self.plane is not None else cov
 
-    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
+    def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p_c = self.plane.lift(self.c) if self.plane is not None else self.origin + self.c
-        return p_c, np.sqrt(np.maximum(np.diag(self.covariance()), 0.0))
+        cov = self.covariance()
+        return p_c, cov, cov
+
+    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        p_c, cov, _ = self.report()
+        return p_c, np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
 class DiffLeastSquares(_LeastSquares):

@@ -145,6 +145,13 @@ class PaperEKF:
         Pc = self.P[2 * d:, 2 * d:]
         return self.plane.lift_cov(Pc, UNOBSERVED_STD_M ** 2) if self.plane is not None else Pc.copy()
 
+    def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_c, reported covariance, statistical covariance), world."""
+        cov = self.covariance()
+        d = self.d
+        p_c = self.plane.lift(self.x[2 * d:]) if self.plane is not None else self.x[6:9].copy()
+        return p_c, cov, cov
+
 
 @dataclass
 class ContactKfParams:
@@ -345,6 +352,13 @@ class ContactKF:
         r3 = r @ self.plane.E if self.plane is not None else r
         return cov + (self.params.eta_rel_std ** 2) * np.outer(r3, r3)
 
+    def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_c, reported covariance with the eta floor, the filter's own covariance), world."""
+        p_c, stat = self._lift()
+        r = self._r_last
+        r3 = r @ self.plane.E if self.plane is not None else r
+        return p_c, stat + (self.params.eta_rel_std ** 2) * np.outer(r3, r3), stat
+
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        p_c, _ = self._lift()
-        return p_c, np.sqrt(np.maximum(np.diag(self.covariance()), 0.0))
+        p_c, cov, _ = self.report()
+        return p_c, np.sqrt(np.maximum(cov.diagonal(), 0.0))

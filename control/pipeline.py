@@ -60,6 +60,8 @@ class ProprioTrack:
         self.w = np.zeros((size, 3))
         self.force = np.full(size, np.nan)
         self.n = 0
+        self._rate = np.nan
+        self._rate_n = 0
 
     def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray,
             force: float = np.nan) -> None:
@@ -85,9 +87,13 @@ class ProprioTrack:
         self.n = n + 1
 
     def rate_hz(self) -> float:
+        """Median proprioception rate, Hz (recomputed every 16 samples)."""
         if self.n < 3:
             return np.nan
-        return float(1.0 / np.median(np.diff(self.t[:self.n])))
+        if self._rate_n == 0 or self.n - self._rate_n >= 16 or self.n < self._rate_n:
+            self._rate = float(1.0 / np.median(np.diff(self.t[:self.n])))
+            self._rate_n = self.n
+        return self._rate
 
     def lookup(self, ts: np.ndarray):
         """(p, v, R, w, var_v, force, ok) at times ts, extrapolated from the newest state at or before each."""
@@ -223,7 +229,8 @@ class ContactPipeline:
             self._t_prev = float(ts[-1])
             rate = self.proprio.rate_hz()
             if np.isfinite(rate) and len(ts) > 1 and hasattr(self.estimator, "corr_samples"):
-                self.estimator.corr_samples = max(1.0, (1.0 / np.median(dt)) / rate)
+                imu_rate = (len(ts) - 1) / max(ts[-1] - ts[0], 1e-9)
+                self.estimator.corr_samples = max(1.0, imu_rate / rate)
             self.estimator.update(dt, w_obj, p, v, var_v)
             self._wwT += w_obj.T @ w_obj
             self._w_sum += w_obj.sum(axis=0)
@@ -249,9 +256,7 @@ class ContactPipeline:
 
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator
-        p_c, _ = est.estimate()
-        cov = est.covariance()
-        stat = est.filter_covariance() if hasattr(est, "filter_covariance") else cov
+        p_c, cov, stat = est.report()
         axis, two_axes = self._excitation()
         if self.plane is not None:
             axis = self.plane.n if axis is None or np.dot(axis, self.plane.n) >= 0 else -self.plane.n
@@ -267,6 +272,6 @@ class ContactPipeline:
             in_plane = float(np.sqrt(max(np.linalg.eigvalsh(proj @ stat @ proj)[-1], 0.0)))
         else:
             in_plane = float(np.sqrt(max(np.linalg.eigvalsh(stat)[-1], 0.0)))
-        return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(np.diag(cov), 0.0)),
+        return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method)

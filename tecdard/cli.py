@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -19,6 +20,110 @@ def _cmd_run(args) -> int:
     return daemon.run()
 
 
+def _cmd_localize(args) -> int:
+    from control.geometry import quat_to_matrix
+    from control.pipeline import METHODS
+    from tecdard import localize as L
+    from tecdard.estimation import build_pipeline
+    from tecdard.recording import RecordingError, load_recording
+
+    def bad(msg: str) -> int:
+        print(f"tecdard localize: {msg}", file=sys.stderr)
+        return L.EXIT_BAD_INPUT
+
+    if args.method is not None and args.method not in METHODS:
+        return bad(f"--method: unknown estimator {args.method!r} (known: {', '.join(METHODS)})")
+    if not args.rate > 0:
+        return bad(f"--rate: must be > 0 rows per second, got {args.rate:g}")
+    try:
+        rec = load_recording(args.recording)
+    except RecordingError as exc:
+        return bad(str(exc))
+    try:
+        cfg = Config.load(args.config) if args.config else Config({})
+        section = cfg.section("estimator")
+        plane = None if args.no_plane else rec.plane_normal
+        pipeline = build_pipeline(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+                                  method=args.method, plane_normal=plane)
+        if args.no_plane:
+            pipeline.params.plane_normal = None
+        unused = section.unused_keys()
+        if unused:
+            raise ConfigError(f"{unused[0]}: unknown option")
+    except ConfigError as exc:
+        return bad(f"config error: {exc}")
+    rows, onset_t, last = L.replay(rec, pipeline, args.rate)
+    if args.out:
+        L.write_csv(args.out, rows)
+    if onset_t is None or last is None:
+        if args.json:
+            print(json.dumps({"onset_t": None, "p_c": None, "std": None, "method": pipeline.method}))
+        print("tecdard localize: no contact detected", file=sys.stderr)
+        return L.EXIT_NO_CONTACT
+    L.print_summary(L.summary(onset_t, last), args.json)
+    return L.EXIT_OK
+
+
+def _cmd_sim_record(args) -> int:
+    import dataclasses
+
+    from robots.scenarios import Scenario, generate
+    from tecdard.recording import Recording, save_recording
+
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Scenario)
+              if f.name != "extra" and getattr(args, f.name, None) is not None}
+    try:
+        sc = Scenario(**values)
+        fields, truth = generate(sc)
+    except ValueError as exc:
+        print(f"tecdard sim-record: {exc}", file=sys.stderr)
+        return 2
+    rec = Recording(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
+                                              "imu_in_tcp_quat")},
+                    grip_force=fields["grip_force"], plane_normal=fields["plane_normal"],
+                    tcp_vel=fields["tcp_vel"], meta=fields["meta"])
+    save_recording(args.out, rec, truth)
+    print(f"wrote {args.out}: {sc.kind}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
+          f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {sc.rest_s:g} s")
+    return 0
+
+
+def _scenario_options(p) -> None:
+    """One option per Scenario field, typed from its default."""
+    import dataclasses
+
+    from robots.scenarios import KINDS, Scenario
+
+    def vec(text: str):
+        try:
+            return tuple(float(x) for x in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+    def flag(text: str) -> bool:
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+
+    for f in dataclasses.fields(Scenario):
+        if f.name == "extra":
+            continue
+        opt = "--" + f.name.replace("_", "-")
+        default = f.default
+        if f.name == "kind":
+            p.add_argument(opt, choices=KINDS, default=None, help=f"scenario (default {default})")
+        elif isinstance(default, bool) or f.name == "tcp_rotates":
+            p.add_argument(opt, type=flag, default=None, metavar="BOOL", help=f"default {default}")
+        elif isinstance(default, int) and not isinstance(default, bool):
+            p.add_argument(opt, type=int, default=None, help=f"default {default}")
+        elif isinstance(default, tuple):
+            p.add_argument(opt, type=vec, default=None, metavar="X,Y,Z", help=f"default {','.join(map(str, default))}")
+        else:
+            p.add_argument(opt, type=float, default=None, help=f"default {default}")
+
+
 def _cmd_demo(args) -> int:
     from tecdard.demo import run_demo
     return run_demo(args.config, args.angle)
@@ -32,6 +137,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", required=True, help="YAML configuration file")
     p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7447)")
     p.set_defaults(func=_cmd_run)
+    p = sub.add_parser("localize", help="estimate the contact in a recording (tecdar-recording/1)")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("--out", help="write estimates as CSV: t,px,py,pz,sx,sy,sz")
+    p.add_argument("--method", help="ekf (default), paper-ekf, svd-geo, gd-geo, svd-diff, gd-diff")
+    p.add_argument("--rate", type=float, default=1000.0, help="at most this many rows per second (default 1000)")
+    p.add_argument("--json", action="store_true", help="print the summary as a JSON object")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--no-plane", action="store_true", help="ignore plane_normal: use the 3D estimator")
+    p.set_defaults(func=_cmd_localize)
+    p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
+    p.add_argument("out", help="OUT.npz")
+    _scenario_options(p)
+    p.set_defaults(func=_cmd_sim_record)
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")
     p.add_argument("--config", default="configs/sim.yaml")
     p.add_argument("--angle", type=float, default=30.0, help="rotation, degrees")
