@@ -119,8 +119,8 @@ class PaperEKF:
         self.steps += 1
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
-               var_v: np.ndarray | None = None) -> None:
-        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. var_v is not used (fixed M)."""
+               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None) -> None:
+        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. var_v/var_w unused (fixed M)."""
         if self.plane is not None:
             w_n = w @ self.plane.n
             p2 = self.plane.point2(p)
@@ -180,6 +180,7 @@ class ContactKfParams:
         )
 
 
+CONSISTENCY_TAU_S = 0.05      # smoothing of the block NIS ratio
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
 
 
@@ -233,6 +234,8 @@ class ContactKF:
         self.P = np.eye(self.d)
         self.origin = np.zeros(3)
         self.corr_samples = 1.0          # IMU samples per proprioception sample
+        self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
+        self.consistency = 1.0           # smoothed block NIS / its expectation (>= 1 scales the report)
         self.steps = 0
         self.rejected = 0
         self.nis = 0.0
@@ -246,12 +249,17 @@ class ContactKF:
         self.P = self.params.p0_c * np.eye(self.d)
         self.steps = 0
         self.rejected = 0
+        self.consistency = 1.0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
-               var_v: np.ndarray | None = None) -> None:
+               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None) -> None:
+        """Chunk of samples: dt (n,), w/p/v (n, 3) world; var_v (m/s)^2 and var_w (rad/s)^2 are
+        per-sample extra variances of the velocity and the object rate (staleness)."""
         n = len(dt)
         if var_v is None:
             var_v = np.full(n, self.params.sigma_v ** 2)
+        if var_w is None:
+            var_w = np.zeros(n)
         mb = self.params.max_block
         for k0 in range(0, n, mb):
             sl = slice(k0, k0 + mb)
@@ -259,10 +267,11 @@ class ContactKF:
             # first block (from the same prior) so it is linearised about the data's answer.
             c_lin = self.c
             for _ in range(2 if self.steps == 0 else 0):
-                c_lin = self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], c_lin, commit=False)
-            self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], c_lin, commit=True)
+                c_lin = self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin,
+                                    commit=False)
+            self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin, commit=True)
 
-    def _block(self, duration: float, w, p, v, var_v, c_lin: np.ndarray, commit: bool) -> np.ndarray:
+    def _block(self, duration: float, w, p, v, var_v, var_w, c_lin: np.ndarray, commit: bool) -> np.ndarray:
         """One collapsed update from the current prior, noise linearised about c_lin; returns the posterior mean."""
         prm = self.params
         corr = max(self.corr_samples, 1.0)
@@ -275,7 +284,7 @@ class ContactKF:
             H = -w_n[:, None, None] * Plane.J           # (n, 2, 2)
             y = z + w_n[:, None] * (self.c @ Plane.J.T)
             Jr = Jr0 - c_lin @ Plane.J.T                # J (r0 - c_lin)
-            R = prm.sigma_w ** 2 * (Jr[:, :, None] * Jr[:, None, :])
+            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * (Jr[:, :, None] * Jr[:, None, :])
             iso = corr * (var_v + prm.sigma_p ** 2 * w_n ** 2)
             R[:, 0, 0] += iso
             R[:, 1, 1] += iso
@@ -287,7 +296,8 @@ class ContactKF:
             H[:, 1, 0], H[:, 1, 2] = -w[:, 2], w[:, 0]
             H[:, 2, 0], H[:, 2, 1] = w[:, 1], -w[:, 0]      # H = -[w]x
             y = z + cross_rows(w, np.broadcast_to(self.c, w.shape))
-            R = prm.sigma_w ** 2 * _cross_cov(r0 - c_lin) + (corr * prm.sigma_p ** 2) * _cross_cov(w)
+            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r0 - c_lin) \
+                + (corr * prm.sigma_p ** 2) * _cross_cov(w)
             iso = corr * var_v
             R[:, 0, 0] += iso
             R[:, 1, 1] += iso
@@ -328,6 +338,13 @@ class ContactKF:
         S_eq = HP @ Heq.T + np.eye(len(sq))
         K = np.linalg.solve(S_eq, HP).T
         c_new = self.c + K @ yeq
+        if commit and self.steps > 0:
+            # Block-level NIS of the collapsed measurement: chi^2 with len(sq) dof when the model
+            # holds. A coherent bias (sliding in the grasp, a stale TCP rate) shows up here even
+            # when each sample looks fine; its smoothed ratio scales the reported covariance.
+            ratio = float(yeq @ np.linalg.solve(S_eq, yeq)) / len(sq)
+            alpha = 1.0 - np.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
+            self.consistency += alpha * (ratio - self.consistency)
         if commit:
             # Joseph form, with the collapsed measurement's unit noise.
             Aj = np.eye(self.d) - K @ Heq
@@ -343,21 +360,22 @@ class ContactKF:
 
     def filter_covariance(self) -> np.ndarray:
         """The filter's own covariance (statistical errors only), world frame."""
-        return self._lift()[1]
+        return self._lift()[1] * max(self.consistency, 1.0)
 
     def covariance(self) -> np.ndarray:
         """Reported covariance: filter P plus the radial eta floor, world frame."""
-        _, cov = self._lift()
+        cov = self.filter_covariance()
         r = self._r_last
         r3 = r @ self.plane.E if self.plane is not None else r
-        return cov + (self.params.eta_rel_std ** 2) * np.outer(r3, r3)
+        return cov + (self.eta_rel_std ** 2) * np.outer(r3, r3)
 
     def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p_c, reported covariance with the eta floor, the filter's own covariance), world."""
         p_c, stat = self._lift()
+        stat = stat * max(self.consistency, 1.0)
         r = self._r_last
         r3 = r @ self.plane.E if self.plane is not None else r
-        return p_c, stat + (self.params.eta_rel_std ** 2) * np.outer(r3, r3), stat
+        return p_c, stat + (self.eta_rel_std ** 2) * np.outer(r3, r3), stat
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         p_c, cov, _ = self.report()

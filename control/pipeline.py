@@ -11,7 +11,7 @@ import numpy as np
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
-from control.geometry import Plane
+from control.geometry import Plane, matrix_to_rotvec
 from control.onset import OnsetDetector
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
@@ -35,6 +35,10 @@ class EtaSchedule:
     def __call__(self, force_n) -> np.ndarray:
         return np.interp(force_n, self.force, self.eta)
 
+    def distance_n(self, force_n: float) -> float:
+        """How far (N) a grip force lies from the nearest calibrated force."""
+        return float(np.min(np.abs(self.force - force_n)))
+
 
 class ProprioTrack:
     """Recent TCP states for causal lookup: an IMU sample at time t sees only states stamped at or before t.
@@ -56,6 +60,8 @@ class ProprioTrack:
         self.tv = np.zeros(size)           # time the velocity belongs to
         self.var_v = np.zeros(size)
         self.a = np.zeros(size)            # |acceleration| estimate, m/s^2
+        self.alpha = np.zeros(size)        # |angular acceleration| estimate of the TCP, rad/s^2
+        self.tw = np.zeros(size)           # time the TCP rate belongs to
         self.R = np.tile(np.eye(3), (size, 1, 1))
         self.w = np.zeros((size, 3))
         self.force = np.full(size, np.nan)
@@ -63,8 +69,9 @@ class ProprioTrack:
         self._rate = np.nan
         self._rate_n = 0
 
-    def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray,
+    def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
             force: float = np.nan) -> None:
+        """One proprioception sample; v and w (the TCP's rate, world) may be None: derived then."""
         n = self.n
         if n and t <= self.t[n - 1]:
             return   # repeated or out of order: keep time strictly increasing
@@ -77,13 +84,24 @@ class ProprioTrack:
                 v, tv, var_v = np.zeros(3), t, DERIVED_V_FIRST_VAR
         else:
             tv, var_v = t, self.sigma_v ** 2
+        if w is None:
+            # Backward difference of orientations: it belongs to the middle of the interval.
+            if n:
+                dt = t - self.t[n - 1]
+                w, tw = matrix_to_rotvec(R @ self.R[n - 1].T) / dt, t - dt / 2
+            else:
+                w, tw = np.zeros(3), t
+        else:
+            tw = t
         a = float(np.linalg.norm(v - self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6)) if n else 0.0
+        alpha = float(np.linalg.norm(w - self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6)) if n else 0.0
         if n == self.size:
-            for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.R, self.w, self.force):
+            for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.alpha, self.tw, self.R, self.w,
+                        self.force):
                 arr[:-1] = arr[1:]
             n -= 1
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
-        self.a[n], self.R[n], self.w[n], self.force[n] = a, R, w, force
+        self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
         self.n = n + 1
 
     def rate_hz(self) -> float:
@@ -96,14 +114,18 @@ class ProprioTrack:
         return self._rate
 
     def lookup(self, ts: np.ndarray):
-        """(p, v, R, w, var_v, force, ok) at times ts, extrapolated from the newest state at or before each."""
+        """(p, v, R, w, var_v, var_w, force, ok) at times ts, extrapolated from the newest state at or before each.
+
+        var_w is the staleness variance of the TCP's own rate w, (rad/s)^2.
+        """
         j = np.searchsorted(self.t[:self.n], ts, side="right") - 1
         ok = j >= 0
         j = np.maximum(j, 0)
         age = ts - self.t[j]
         p = self.p[j] + self.v[j] * age[:, None]
         var_v = self.var_v[j] + (self.a[j] * (ts - self.tv[j])) ** 2
-        return p, self.v[j], self.R[j], self.w[j], var_v, self.force[j], ok
+        var_w = (self.alpha[j] * (ts - self.tw[j])) ** 2
+        return p, self.v[j], self.R[j], self.w[j], var_v, var_w, self.force[j], ok
 
 
 @dataclass
@@ -133,6 +155,7 @@ class PipelineParams:
     output_period_s: float = 0.005             # estimates are emitted at most this often
     eta_table: list = field(default_factory=lambda: [(30.0, 2.0)])
     grip_force_n: float = 30.0                 # used when no grip force is measured
+    eta_rel_std_per_n: float = 0.02            # eta's relative uncertainty grows this much per N off calibration
     ekf: ContactKfParams = field(default_factory=ContactKfParams)
     paper_ekf: PaperEkfParams = field(default_factory=PaperEkfParams)
     baseline: BaselineParams = field(default_factory=BaselineParams)
@@ -176,7 +199,7 @@ class ContactPipeline:
         self._t_out = -np.inf
         self.latest: ContactEstimate | None = None
 
-    def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray,
+    def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
                     force: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, force)
 
@@ -200,7 +223,7 @@ class ContactPipeline:
                 self.cond.lowpass(gyro)      # keep the filter history warm
                 return events, None
             self.cond.track_bias(t[:hit], gyro[:hit])
-            p, v, _, _, _, _, ok = self.proprio.lookup(t[hit:hit + 1])
+            p, v, *_, ok = self.proprio.lookup(t[hit:hit + 1])
             if not ok[0]:
                 self.detector.rearm()        # no proprioception yet: cannot start
                 self.cond.lowpass(gyro)
@@ -218,11 +241,18 @@ class ContactPipeline:
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
         w_f = self.cond.lowpass(gyro)[start:]
         ts = t[start:]
-        p, v, R, w_tcp, var_v, force, ok = self.proprio.lookup(ts)
+        p, v, R, w_tcp, var_v, var_wt, force, ok = self.proprio.lookup(ts)
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
-        w_obj = self.cond.object_rate_world(w_f, R, w_tcp, self.eta(force)[:, None])
+        eta = self.eta(force)
+        w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
+        # A stale gripper rate enters the object rate as (1 - eta) * its error.
+        var_w = (eta - 1.0) ** 2 * var_wt
+        if hasattr(self.estimator, "eta_rel_std"):
+            # Away from the calibrated grip forces eta is extrapolated: say how much less it is known.
+            self.estimator.eta_rel_std = self.params.ekf.eta_rel_std + \
+                self.params.eta_rel_std_per_n * self.eta.distance_n(float(force[-1]))
         if not ok.all():
-            ts, w_obj, p, v, var_v = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok]
+            ts, w_obj, p, v, var_v, var_w = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok]
         if len(ts):
             dt = np.diff(ts, prepend=self._t_prev)
             dt = np.maximum(dt, 1e-6)
@@ -231,7 +261,7 @@ class ContactPipeline:
             if np.isfinite(rate) and len(ts) > 1 and hasattr(self.estimator, "corr_samples"):
                 imu_rate = (len(ts) - 1) / max(ts[-1] - ts[0], 1e-9)
                 self.estimator.corr_samples = max(1.0, imu_rate / rate)
-            self.estimator.update(dt, w_obj, p, v, var_v)
+            self.estimator.update(dt, w_obj, p, v, var_v, var_w)
             self._wwT += w_obj.T @ w_obj
             self._w_sum += w_obj.sum(axis=0)
             self._n_w += len(w_obj)

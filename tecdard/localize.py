@@ -6,25 +6,16 @@ import sys
 
 import numpy as np
 
-from control.geometry import matrix_to_rotvec, quat_to_matrix
+from control.geometry import quat_to_matrix
 from control.pipeline import ContactEstimate, ContactPipeline
 from tecdard.recording import Recording
 
 EXIT_OK, EXIT_NO_CONTACT, EXIT_BAD_INPUT = 0, 1, 2
 
 
-def tcp_angular_velocity(t: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """World-frame TCP rate from consecutive orientations (backward difference: causal)."""
-    w = np.zeros((len(t), 3))
-    for j in range(1, len(t)):
-        w[j] = matrix_to_rotvec(R[j] @ R[j - 1].T) / (t[j] - t[j - 1])
-    return w
-
-
 def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0):
     """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate)."""
     R = quat_to_matrix(rec.tcp_quat)
-    w_tcp = tcp_angular_velocity(rec.tcp_t, R)
     vel = rec.tcp_vel
     force = rec.grip_force
     batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
@@ -43,7 +34,8 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0):
             continue
         t_end = rec.imu_t[end - 1]
         while j < len(rec.tcp_t) and rec.tcp_t[j] <= t_end:
-            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], w_tcp[j],
+            # The TCP's own rate is derived from the orientations by the pipeline (recordings carry none).
+            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], None,
                                  np.nan if force is None else force[j])
             j += 1
         events, est = pipeline.process(batch[start:end], force_output=pipeline.tracking)

@@ -103,7 +103,7 @@ def test_derived_velocity_when_the_robot_reports_none():
     track = ProprioTrack(sigma_p=1e-4)
     for k in range(5):
         track.add(k * 0.01, np.array([0.02 * k * 0.01, 0, 0]), None, np.eye(3), np.zeros(3))
-    _, v, _, _, var_v, _, ok = track.lookup(np.array([0.045]))
+    _, v, _, _, var_v, _, _, ok = track.lookup(np.array([0.045]))
     assert v[0][0] == pytest.approx(0.02)
     assert var_v[0] == pytest.approx(2 * 1e-4 ** 2 / 0.01 ** 2)
 
