@@ -28,6 +28,7 @@ class GyroConditioner:
         self.lpf_window = lpf_window
         self.bias = np.zeros(3)        # rad/s, IMU frame
         self._bias_ready = False
+        self._bias_s = 0.0             # rest time averaged into the bias so far
         self.bias_frozen = False
         self._hist = np.zeros((0, 3))  # last lpf_window-1 bias-free samples for the causal filter
 
@@ -35,17 +36,26 @@ class GyroConditioner:
         """Update the rest bias from a batch taken while no contact is tracked."""
         if self.bias_frozen or len(t) == 0:
             return
+        dt = float(t[-1] - t[0]) + 1e-4
         if not self._bias_ready:
             self.bias = gyro.mean(axis=0)
             self._bias_ready = True
+            self._bias_s = dt
             return
-        dt = float(t[-1] - t[0]) + 1e-4
-        alpha = 1.0 - math.exp(-dt / self.bias_tau_s)
+        # A cumulative mean until bias_tau_s of rest has been seen, then exponential forgetting:
+        # the first estimate is not one batch's noise.
+        alpha = max(dt / (self._bias_s + dt), 1.0 - math.exp(-dt / self.bias_tau_s))
+        self._bias_s += dt
         self.bias = self.bias + alpha * (gyro.mean(axis=0) - self.bias)
 
     def freeze_bias(self, frozen: bool = True) -> None:
         """Hold the bias during a contact episode (the object's rotation is not bias)."""
         self.bias_frozen = frozen
+
+    @property
+    def group_delay_samples(self) -> float:
+        """Delay of the causal moving average, in samples."""
+        return (self.lpf_window - 1) / 2.0
 
     def lowpass(self, gyro: np.ndarray) -> np.ndarray:
         """Bias-free, causally filtered gyro (IMU frame), moving average over lpf_window samples."""

@@ -276,18 +276,36 @@ class ContactKF:
         prm = self.params
         corr = max(self.corr_samples, 1.0)
         n = len(w)
+        P = self.P + prm.q_c * duration * np.eye(self.d)
         if self.plane is not None:
+            # In the plane R = a I + b u u^T with u = J r (scalar noise plus the gyro's rank-one
+            # term) and H = -w_n J, so Sherman-Morrison gives R^-1, sum H^T R^-1 H and the NIS
+            # in closed form, element-wise over the block.
             w_n = w @ self.plane.n
             r0 = self.plane.point2(p)                   # TCP relative to the onset TCP, plane coords
-            Jr0 = r0 @ Plane.J.T
-            z = self.plane.vec2(v) - w_n[:, None] * Jr0
-            H = -w_n[:, None, None] * Plane.J           # (n, 2, 2)
-            y = z + w_n[:, None] * (self.c @ Plane.J.T)
-            Jr = Jr0 - c_lin @ Plane.J.T                # J (r0 - c_lin)
-            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * (Jr[:, :, None] * Jr[:, None, :])
-            iso = corr * (var_v + prm.sigma_p ** 2 * w_n ** 2)
-            R[:, 0, 0] += iso
-            R[:, 1, 1] += iso
+            J = Plane.J
+            y = self.plane.vec2(v) - w_n[:, None] * ((r0 - self.c) @ J.T)
+            r = r0 - c_lin
+            a = corr * (var_v + prm.sigma_p ** 2 * w_n ** 2)
+            bq = prm.sigma_w ** 2 + var_w
+            rr = (r * r).sum(axis=1)
+            g = bq / (a + bq * rr)                      # R^-1 = (I - g u u^T) / a
+            uy = (r @ J.T * y).sum(axis=1)              # u^T y
+            gate = prm.gate_nis > 0 and self.steps > 0 and \
+                float(np.mean(w_n ** 2)) * float(np.trace(P)) < GATE_HPH_RATIO * 2 * float(a.min())
+            if gate:
+                nis = ((y * y).sum(axis=1) - g * uy ** 2) / a
+                keep = nis <= prm.gate_nis
+            else:
+                nis, keep = None, None
+            k_ = slice(None) if keep is None else keep
+            s_ = (w_n ** 2 / a)[k_]
+            gk, rk = g[k_], r[k_]
+            # sum H^T R^-1 H = sum (w_n^2 / a) (I - g r r^T)   (J^T u = r)
+            A = s_.sum() * np.eye(2) - (rk * (s_ * gk)[:, None]).T @ rk
+            # sum H^T R^-1 y = sum -(w_n / a) (J^T y - g r (u^T y))
+            coef = -(w_n / a)[k_]
+            b = (coef[:, None] * (y[k_] @ J - (gk * uy[k_])[:, None] * rk)).sum(axis=0)
         else:
             r0 = p - self.origin
             z = v - cross_rows(w, r0)
@@ -296,29 +314,29 @@ class ContactKF:
             H[:, 1, 0], H[:, 1, 2] = -w[:, 2], w[:, 0]
             H[:, 2, 0], H[:, 2, 1] = w[:, 1], -w[:, 0]      # H = -[w]x
             y = z + cross_rows(w, np.broadcast_to(self.c, w.shape))
-            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r0 - c_lin) \
+            r = r0 - c_lin
+            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r) \
                 + (corr * prm.sigma_p ** 2) * _cross_cov(w)
             iso = corr * var_v
             R[:, 0, 0] += iso
             R[:, 1, 1] += iso
             R[:, 2, 2] += iso
-        P = self.P + prm.q_c * duration * np.eye(self.d)
-        Rinv = np.linalg.inv(R)
-        HtRi = H.transpose(0, 2, 1) @ Rinv
-        Hm = H.mean(axis=0)
-        if prm.gate_nis > 0 and self.steps > 0 and np.trace(Hm @ P @ Hm.T) < GATE_HPH_RATIO * self.d * float(iso.min()):
-            # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
-            # reject the very samples that carry the information. (H removes the unobservable
-            # direction along w, so a line contact's large along-edge variance does not count.)
-            nis = np.einsum("ni,nij,nj->n", y, Rinv, y)
-            keep = nis <= prm.gate_nis
-        else:
-            nis = None
-            keep = None
-        if keep is not None and not keep.all():
-            HtRi, H, y = HtRi[keep], H[keep], y[keep]
-        A = (HtRi @ H).sum(axis=0)
-        b = (HtRi @ y[:, :, None]).sum(axis=0)[:, 0]
+            Rinv = np.linalg.inv(R)
+            HtRi = H.transpose(0, 2, 1) @ Rinv
+            Hm = H.mean(axis=0)
+            if prm.gate_nis > 0 and self.steps > 0 and np.trace(Hm @ P @ Hm.T) < GATE_HPH_RATIO * 3 * float(iso.min()):
+                # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
+                # reject the very samples that carry the information. (H removes the unobservable
+                # direction along w, so a line contact's large along-edge variance does not count.)
+                nis = np.einsum("ni,nij,nj->n", y, Rinv, y)
+                keep = nis <= prm.gate_nis
+            else:
+                nis = None
+                keep = None
+            if keep is not None and not keep.all():
+                HtRi, H, y = HtRi[keep], H[keep], y[keep]
+            A = (HtRi @ H).sum(axis=0)
+            b = (HtRi @ y[:, :, None]).sum(axis=0)[:, 0]
         lam, U = np.linalg.eigh(A)
         good = lam > 1e-12 * max(lam[-1], 1e-300)
         if commit:

@@ -241,7 +241,10 @@ class ContactPipeline:
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
         w_f = self.cond.lowpass(gyro)[start:]
         ts = t[start:]
-        p, v, R, w_tcp, var_v, var_wt, force, ok = self.proprio.lookup(ts)
+        # The causal low-pass delays the gyro by its group delay; take proprioception at the
+        # same (earlier) instant so that w and v describe the same moment. Still causal.
+        delay = self.cond.group_delay_samples * float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        p, v, R, w_tcp, var_v, var_wt, force, ok = self.proprio.lookup(ts - delay)
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
         eta = self.eta(force)
         w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
