@@ -25,6 +25,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[test,bench]'
 	$(PY) -m benchmarks.estimation
+	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks
 
 clean:

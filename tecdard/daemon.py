@@ -12,6 +12,7 @@ import zenoh
 
 from control.geometry import quat_to_matrix
 from drivers.ring import SampleRing
+from drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.model import ArmModel, UnknownRobotError
 from robots.sim import SimRobot, SimRobotParams
@@ -57,7 +58,8 @@ class Daemon:
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
 
         imu = cfg.section("imu")
-        imu.getstr("source", "sim", choices=("sim",))
+        self.imu_source = imu.getstr("source", "sim", choices=("sim", "serial"))
+        serial_params = SerialParams.from_config(imu.section("serial")) if self.imu_source == "serial" else None
         ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
         mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
 
@@ -74,10 +76,20 @@ class Daemon:
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
-        self.imu = SimImu(imu_params, seed=seed)
+        self.sim_imu = SimImu(imu_params, seed=seed)
+        if serial_params is not None:
+            # The real fingertip board: the simulated arm still runs, its IMU signal is unused.
+            self.imu = SerialImuSource(serial_params)
+            try:
+                self.imu.open()
+            except PortError as exc:
+                log.warning("%s; retrying in the background", exc)
+                self.imu.mark_lost(str(exc))
+        else:
+            self.imu = self.sim_imu
         factory = (lambda p_tcp: HingeWorld(hinge, p_tcp)) if hinge is not None else None
         try:
-            self.robot = SimRobot(self.model, robot_params, factory, self.imu, seed=seed)
+            self.robot = SimRobot(self.model, robot_params, factory, self.sim_imu, seed=seed)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         del backend
@@ -98,7 +110,7 @@ class Daemon:
 
     def _start_threads(self) -> None:
         self.robot.start()
-        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event)),
+        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:

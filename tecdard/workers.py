@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 
 from control.pipeline import ContactPipeline
 from drivers.ring import SampleRing
@@ -14,12 +15,20 @@ POP_MAX_SAMPLES = 4096
 POP_TIMEOUT_S = 0.02
 
 
-def acquisition_loop(source, ring: SampleRing, stop: threading.Event) -> None:
-    """Transport only: move timestamped SI samples from the source into the ring."""
+def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: queue.Queue | None = None) -> None:
+    """Transport only: move timestamped SI samples from the source into the ring, and hand the
+    source's events (port lost, port back) to the outbox."""
+    drain = getattr(source, "drain_events", None)
     while not stop.is_set():
         chunk = source.read(timeout=0.05)
         if chunk is not None:
             ring.push(*chunk)
+        if drain is not None and outbox is not None:
+            for ev in drain():
+                try:
+                    outbox.put_nowait(("event", {"t": time.monotonic(), **ev}))
+                except queue.Full:
+                    pass
 
 
 class EstimatorThread:

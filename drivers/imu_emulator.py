@@ -1,0 +1,147 @@
+"""A fingertip board in software: spec-conforming `tecdar-imu/1` streams, with injectable faults.
+
+Used by the tests (on a pseudo-terminal) and by the simulator to drive the whole serial path.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers import imu_wire as W
+from drivers.lsm6dsr import Scaling
+
+
+@dataclass
+class BoardParams:
+    odr_hz: int = 6667
+    samples_per_packet: int = 8
+    gyro_fs_dps: int = 4000
+    accel_fs_g: int = 16
+    drift_ppm: float = 0.0            # MCU clock error: mcu = true * (1 + drift)
+    t0_us: int = 0                    # MCU time at start (set near 2^32 to test wrapping)
+    status_period_s: float = 1.0
+
+
+class Board:
+    """Encodes samples as the firmware would: packets of n samples, seq and t0_us, a status packet
+    at start and every second. `packets(gyro, accel)` returns bytes for a block of SI samples."""
+
+    def __init__(self, params: BoardParams | None = None):
+        self.p = params or BoardParams()
+        self.scaling = Scaling(self.p.gyro_fs_dps, self.p.accel_fs_g)
+        self.seq = 0
+        self.sample_index = 0
+        self._next_status_s = 0.0
+
+    def mcu_us(self, sample_index: int) -> int:
+        true_s = sample_index / self.p.odr_hz
+        return int(round(self.p.t0_us + true_s * (1 + self.p.drift_ppm * 1e-6) * 1e6)) & 0xFFFFFFFF
+
+    def status(self, flags: int = 0) -> bytes:
+        return W.encode_status(self.p.odr_hz, self.p.gyro_fs_dps, self.p.accel_fs_g, flags)
+
+    def packets(self, gyro: np.ndarray, accel: np.ndarray) -> list[bytes]:
+        """One frame per packet (status frames interleaved once a second of samples)."""
+        raw = self.scaling.to_raw(gyro, accel)
+        out = []
+        n = self.p.samples_per_packet
+        for k in range(0, len(raw), n):
+            t_s = self.sample_index / self.p.odr_hz
+            if t_s >= self._next_status_s:
+                out.append(self.status())
+                self._next_status_s += self.p.status_period_s
+            chunk = raw[k:k + n]
+            out.append(W.encode_samples(self.seq, self.mcu_us(self.sample_index), chunk))
+            self.seq = (self.seq + 1) & 0xFFFF
+            self.sample_index += len(chunk)
+        return out
+
+
+class PtyDevice:
+    """A pseudo-terminal standing in for the USB-CDC port, reachable through a stable symlink.
+
+    `unplug()` closes the pty (the reader gets an I/O error); `replug()` makes a new pty behind
+    the same link path, as udev does for a real device.
+    """
+
+    def __init__(self, link_path: str | pathlib.Path):
+        self.link = pathlib.Path(link_path)
+        self.master = None
+        self.slave = None
+        self.replug()
+
+    def replug(self) -> None:
+        self.master, self.slave = os.openpty()
+        name = os.ttyname(self.slave)
+        import tty
+        tty.setraw(self.slave)
+        tmp = self.link.with_suffix(".tmp")
+        if tmp.exists() or tmp.is_symlink():
+            tmp.unlink()
+        tmp.symlink_to(name)
+        tmp.replace(self.link)
+
+    def unplug(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = None
+        if self.link.is_symlink():
+            self.link.unlink()
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.write(self.master, view)
+            view = view[n:]
+
+    def close(self) -> None:
+        self.unplug()
+
+
+class StreamThread:
+    """Writes a board's stream to a PtyDevice in real time (for the `tecdard imu` tests and the bench)."""
+
+    def __init__(self, device: PtyDevice, board: Board, chunk_s: float = 0.005, mutate=None):
+        self.device = device
+        self.board = board
+        self.chunk_s = chunk_s
+        self.mutate = mutate           # optional function(bytes) -> bytes, for fault injection
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="imu-emulator", daemon=True)
+        self.rng = np.random.default_rng(0)
+
+    def start(self) -> "StreamThread":
+        self.thread.start()
+        return self
+
+    def _run(self) -> None:
+        n = max(1, int(round(self.board.p.odr_hz * self.chunk_s)))
+        t_next = time.monotonic()
+        while not self.stop.is_set():
+            t_next += n / self.board.p.odr_hz
+            gyro = self.rng.normal(0, 0.005, (n, 3))
+            accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
+            data = b"".join(self.board.packets(gyro, accel))
+            if self.mutate is not None:
+                data = self.mutate(data)
+            if self.device.master is not None:
+                try:
+                    self.device.write(data)
+                except OSError:
+                    pass
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                self.stop.wait(delay)
+
+    def join(self) -> None:
+        self.stop.set()
+        self.thread.join(2.0)

@@ -1,0 +1,42 @@
+"""ST LSM6DSR: full-scale settings and sensitivities (datasheet), raw int16 -> SI."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+GYRO_SENS_MDPS_PER_LSB = {125: 4.375, 250: 8.75, 500: 17.5, 1000: 35.0, 2000: 70.0, 4000: 140.0}
+ACCEL_SENS_MG_PER_LSB = {2: 0.061, 4: 0.122, 8: 0.244, 16: 0.488}
+STANDARD_GRAVITY_M_S2 = 9.80665
+DEFAULT_ODR_HZ = 6667
+DEFAULT_GYRO_FS_DPS = 4000
+DEFAULT_ACCEL_FS_G = 16
+
+
+class Scaling:
+    """Raw (n, 6) int16 [gx, gy, gz, ax, ay, az] to SI (rad/s, m/s^2) at the given full scales."""
+
+    def __init__(self, gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS, accel_fs_g: int = DEFAULT_ACCEL_FS_G):
+        self.set(gyro_fs_dps, accel_fs_g)
+
+    def set(self, gyro_fs_dps: int, accel_fs_g: int) -> None:
+        if gyro_fs_dps not in GYRO_SENS_MDPS_PER_LSB:
+            raise ValueError(f"gyro_fs_dps: {gyro_fs_dps} is not an LSM6DSR range "
+                             f"({', '.join(map(str, GYRO_SENS_MDPS_PER_LSB))})")
+        if accel_fs_g not in ACCEL_SENS_MG_PER_LSB:
+            raise ValueError(f"accel_fs_g: {accel_fs_g} is not an LSM6DSR range "
+                             f"({', '.join(map(str, ACCEL_SENS_MG_PER_LSB))})")
+        self.gyro_fs_dps = gyro_fs_dps
+        self.accel_fs_g = accel_fs_g
+        self.gyro_rad_s_per_lsb = GYRO_SENS_MDPS_PER_LSB[gyro_fs_dps] * 1e-3 * math.pi / 180.0
+        self.accel_m_s2_per_lsb = ACCEL_SENS_MG_PER_LSB[accel_fs_g] * 1e-3 * STANDARD_GRAVITY_M_S2
+
+    def to_si(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raw = raw.astype(np.float64)
+        return raw[:, 0:3] * self.gyro_rad_s_per_lsb, raw[:, 3:6] * self.accel_m_s2_per_lsb
+
+    def to_raw(self, gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
+        """SI to int16 (rounded, saturated): what the chip would report."""
+        g = np.round(gyro / self.gyro_rad_s_per_lsb)
+        a = np.round(accel / self.accel_m_s2_per_lsb)
+        return np.clip(np.hstack([g, a]), -32768, 32767).astype("<i2")

@@ -1,0 +1,207 @@
+"""The fingertip board over USB-CDC (pyserial): bytes -> `tecdar-imu/1` packets -> timestamped SI samples."""
+from __future__ import annotations
+
+import collections
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import serial
+import serial.tools.list_ports
+
+from drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
+from drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling
+from drivers.timesync import ClockSync, Unwrapper
+
+READ_CHUNK_BYTES = 1 << 16
+RETRY_MIN_S = 0.05
+RETRY_MAX_S = 2.0
+MIN_STEP_S = 1e-6          # output times are strictly increasing by at least this
+
+
+class PortError(OSError):
+    """The port cannot be opened; the message says which and why, in one line."""
+
+
+@dataclass
+class SerialParams:
+    port: str | None = None           # device path, e.g. /dev/ttyACM0 or /dev/serial/by-id/...
+    vid: int | None = None            # or find it by USB vendor/product id (and serial number)
+    pid: int | None = None
+    serial_number: str | None = None
+    baud: int = 2_000_000             # USB-CDC ignores it; kept for UART bridges
+    odr_hz: int = DEFAULT_ODR_HZ      # used until the first status packet
+    gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS
+    accel_fs_g: int = DEFAULT_ACCEL_FS_G
+
+    @classmethod
+    def from_config(cls, section) -> "SerialParams":
+        from tecdard.config import ConfigError
+        d = cls()
+        vid_pid = section.getstr("vid_pid", "") or None
+        vid = pid = None
+        if vid_pid:
+            try:
+                vid_s, pid_s = vid_pid.split(":")
+                vid, pid = int(vid_s, 16), int(pid_s, 16)
+            except ValueError:
+                raise ConfigError(f"{section.path}.vid_pid: expected hex VID:PID such as 0483:5740, got {vid_pid!r}") from None
+        p = cls(port=section.getstr("port", "") or None, vid=vid, pid=pid,
+                serial_number=section.getstr("serial_number", "") or None,
+                baud=section.getint("baud", d.baud, minval=1200),
+                odr_hz=section.getint("odr_hz", d.odr_hz, minval=1, maxval=65535),
+                gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
+                accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g))
+        if p.port is None and p.vid is None:
+            raise ConfigError(f"{section.path}.port: give a port path or vid_pid")
+        try:
+            Scaling(p.gyro_fs_dps, p.accel_fs_g)
+        except ValueError as exc:
+            raise ConfigError(f"{section.path}.{exc}") from None
+        return p
+
+
+def find_port(vid: int, pid: int, serial_number: str | None = None) -> str:
+    for info in serial.tools.list_ports.comports():
+        if info.vid == vid and info.pid == pid and (serial_number is None or info.serial_number == serial_number):
+            return info.device
+    sn = f" serial {serial_number}" if serial_number else ""
+    raise PortError(f"no USB serial device {vid:04x}:{pid:04x}{sn} is connected")
+
+
+class SerialImuSource:
+    """Implements the IMU source interface: `read(timeout)` -> (t, gyro, accel) or None.
+
+    t is the host's monotonic clock (s); gyro rad/s and accel m/s^2 in the IMU frame.
+    If the port vanishes (unplug), the source reports a `fault` event, retries opening with
+    back-off, and resumes; nothing above it restarts. Events wait in `events` for the owner
+    to forward (the acquisition thread never touches other state).
+    """
+
+    def __init__(self, params: SerialParams, clock=time.monotonic):
+        self.p = params
+        self.clock = clock
+        self.parser = WireParser()
+        self.scaling = Scaling(params.gyro_fs_dps, params.accel_fs_g)
+        self.odr_hz = float(params.odr_hz)
+        self.unwrap = Unwrapper()
+        self.sync = ClockSync()
+        self.ser: serial.Serial | None = None
+        self.events: collections.deque = collections.deque(maxlen=100)
+        self.disconnects = 0
+        self.reconnects = 0
+        self.status: StatusPacket | None = None
+        self.latest: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._retry_at = 0.0
+        self._last_t: float | None = None
+        self._retry_s = RETRY_MIN_S
+        self.port_path: str | None = None
+
+    # -- port -----------------------------------------------------------------
+    def _resolve(self) -> str:
+        if self.p.port:
+            return self.p.port
+        return find_port(self.p.vid, self.p.pid, self.p.serial_number)
+
+    def open(self) -> None:
+        """Open the port now; PortError with a one-line reason if it cannot be."""
+        path = self._resolve()
+        try:
+            self.ser = serial.Serial(path, baudrate=self.p.baud, timeout=0.05)
+        except (serial.SerialException, OSError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc).split(":")[-1].strip() or type(exc).__name__
+            raise PortError(f"cannot open {path}: {reason}") from None
+        self.port_path = path
+
+    def close(self) -> None:
+        if self.ser is not None:
+            try:
+                self.ser.close()
+            except Exception:
+                pass
+            self.ser = None
+
+    def mark_lost(self, why: str) -> None:
+        self.close()
+        self.disconnects += 1
+        self.parser.reset_sequence()
+        self.events.append({"kind": "fault", "code": "imu_disconnected", "message": f"IMU port lost: {why}"})
+        self._retry_s = RETRY_MIN_S
+        self._retry_at = self.clock() + self._retry_s
+
+    def _try_reopen(self) -> bool:
+        now = self.clock()
+        if now < self._retry_at:
+            return False
+        try:
+            self.open()
+        except PortError:
+            self._retry_s = min(self._retry_s * 2, RETRY_MAX_S)
+            self._retry_at = now + self._retry_s
+            return False
+        self.reconnects += 1
+        self.unwrap.reset()
+        self.sync.reset()
+        self.events.append({"kind": "fault_cleared", "code": "imu_disconnected",
+                            "message": f"IMU port {self.port_path} back"})
+        return True
+
+    # -- reading --------------------------------------------------------------
+    def read(self, timeout: float = 0.05):
+        if self.ser is None:
+            if not self._try_reopen():
+                time.sleep(min(timeout, max(0.0, self._retry_at - self.clock())) or 0.001)
+                return None
+        try:
+            self.ser.timeout = timeout
+            data = self.ser.read(1)
+            waiting = self.ser.in_waiting
+            if waiting:
+                data += self.ser.read(min(waiting, READ_CHUNK_BYTES))
+        except (serial.SerialException, OSError) as exc:
+            self.mark_lost(str(exc).split("(")[0].strip() or type(exc).__name__)
+            return None
+        if not data:
+            return None
+        return self.decode(data, self.clock())
+
+    def decode(self, data: bytes, host_s: float):
+        """Bytes that arrived at host time host_s -> (t, gyro, accel) or None (no samples in them)."""
+        ts, raws = [], []
+        for pkt in self.parser.feed(data):
+            if isinstance(pkt, StatusPacket):
+                self.status = pkt
+                try:
+                    self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
+                except ValueError:
+                    self.parser.counters.malformed += 1     # a status naming a range the chip has not
+                if pkt.odr_hz > 0:
+                    self.odr_hz = float(pkt.odr_hz)
+            elif isinstance(pkt, SamplesPacket):
+                n = len(pkt.raw)
+                t0 = self.unwrap(pkt.t0_us)
+                mcu = t0 + np.arange(n) / self.odr_hz
+                self.sync.add(mcu[-1], host_s)
+                ts.append(mcu)
+                raws.append(pkt.raw)
+        if not raws:
+            return None
+        t = self.sync.to_host(np.concatenate(ts))
+        # The fit moves as the lower envelope is learned (most in the first seconds or after a
+        # burst); the times handed on never go backwards whatever it does.
+        if self._last_t is not None and t[0] <= self._last_t:
+            t = np.maximum(t, self._last_t + MIN_STEP_S * np.arange(1, len(t) + 1))
+        self._last_t = float(t[-1])
+        gyro, accel = self.scaling.to_si(np.vstack(raws))
+        self.latest = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
+        return t, gyro, accel
+
+    def counters(self) -> dict:
+        out = self.parser.counters.as_dict()
+        out.update(disconnects=self.disconnects, reconnects=self.reconnects, clock_resets=self.sync.resets)
+        return out
+
+    def drain_events(self) -> list[dict]:
+        out = list(self.events)
+        self.events.clear()
+        return out

@@ -1,0 +1,99 @@
+"""MCU clock -> host monotonic clock: t0_us unwrapping and a drift-tracking fit on the arrival lower envelope."""
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+
+WRAP_US = 1 << 32
+BIN_S = 0.5                # one lower-envelope point per bin of MCU time
+WINDOW_BINS = 60           # fit over the last 30 s
+RESET_JUMP_S = 0.25        # a residual this large means the MCU clock jumped (restart) or the link stalled
+RESET_LATE_PACKETS = 20    # this many late packets in a row: the MCU clock jumped backwards, refit
+
+
+class Unwrapper:
+    """uint32 microsecond counter -> monotonically increasing seconds."""
+
+    def __init__(self):
+        self._last: int | None = None
+        self._base = 0
+
+    def reset(self) -> None:
+        self._last = None
+        self._base = 0
+
+    def __call__(self, t_us: int) -> float:
+        if self._last is not None and t_us < self._last and self._last - t_us > WRAP_US // 2:
+            self._base += WRAP_US
+        self._last = t_us
+        return (self._base + t_us) * 1e-6
+
+
+class ClockSync:
+    """Maps MCU time to the host's monotonic clock.
+
+    Each packet gives a pair (MCU time of its last sample, host time of its
+    arrival); arrival = true host time + latency >= 0, so the lower envelope of
+    (host - mcu) follows the clock offset and its drift. Per bin of BIN_S the
+    minimum is kept; a line through the last WINDOW_BINS minima gives
+    host = a + b * mcu. Mapped times therefore include the link's minimum
+    latency, a constant of the USB path. Drift of 100 ppm moves the offset by
+    0.1 ms per second and is tracked within the window.
+    """
+
+    def __init__(self):
+        self._bins: collections.deque = collections.deque(maxlen=WINDOW_BINS)   # (mcu, offset)
+        self._bin_index: int | None = None
+        self._bin_min: tuple[float, float] | None = None
+        self.a = None        # host = a + b * mcu
+        self.b = 1.0
+        self.resets = 0
+        self._late = 0
+
+    def reset(self) -> None:
+        self._bins.clear()
+        self._bin_index = None
+        self._bin_min = None
+        self.a = None
+        self.b = 1.0
+        self._late = 0
+        self.resets += 1
+
+    def add(self, mcu_s: float, host_s: float) -> None:
+        offset = host_s - mcu_s
+        if self.a is not None:
+            resid = offset - (self.a + (self.b - 1.0) * mcu_s)
+            if resid < -RESET_JUMP_S:
+                self.reset()               # arrived before it was sampled: the MCU clock jumped
+            elif resid > RESET_JUMP_S:
+                self._late += 1            # one stalled transfer is not a clock change; a run of them is
+                if self._late >= RESET_LATE_PACKETS:
+                    self.reset()
+            else:
+                self._late = 0
+        index = int(mcu_s // BIN_S)
+        if self._bin_index is None or index != self._bin_index:
+            if self._bin_min is not None:
+                self._bins.append(self._bin_min)
+                self._fit()
+            self._bin_index = index
+            self._bin_min = (mcu_s, offset)
+        elif offset < self._bin_min[1]:
+            self._bin_min = (mcu_s, offset)
+        if self.a is None:
+            self.a, self.b = self._bin_min[1], 1.0
+        elif len(self._bins) < 2 and offset < self.a + (self.b - 1.0) * mcu_s:
+            self.a = offset            # early on: the lowest offset seen so far
+
+    def _fit(self) -> None:
+        pts = np.array(self._bins)
+        if len(pts) >= 3:
+            slope, intercept = np.polyfit(pts[:, 0] - pts[0, 0], pts[:, 1], 1)
+            self.b = 1.0 + slope
+            self.a = intercept - slope * pts[0, 0]
+        else:
+            self.a, self.b = float(pts[:, 1].min()), 1.0
+
+    def to_host(self, mcu_s: np.ndarray) -> np.ndarray:
+        return self.a + self.b * np.asarray(mcu_s)

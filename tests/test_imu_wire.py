@@ -1,0 +1,223 @@
+"""`tecdar-imu/1` parsing, scaling and clock mapping: pure logic, fuzzed."""
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from drivers import imu_wire as W
+from drivers.imu_emulator import Board, BoardParams
+from drivers.lsm6dsr import ACCEL_SENS_MG_PER_LSB, GYRO_SENS_MDPS_PER_LSB, Scaling
+from drivers.serial_imu import SerialImuSource, SerialParams
+from drivers.timesync import ClockSync, Unwrapper
+
+# Golden packets; CRCs computed by hand with a bit-by-bit CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF).
+GOLDEN_STATUS = bytes.fromhex("a55a 02 0600 0b1a a00f 10 00 bc1a".replace(" ", ""))
+GOLDEN_SAMPLES = bytes.fromhex("a55a 01 1300 0100 40420f00 01 6400 9cff 0000 0000 0000 0108 9d75".replace(" ", ""))
+SAMPLE_TIME_TOL_S = 0.5e-3
+
+
+def test_crc_check_value():
+    assert W.crc16(b"123456789") == 0x29B1
+
+
+def test_golden_packets_decode_and_encode():
+    p = W.WireParser()
+    pkts = p.feed(GOLDEN_STATUS + GOLDEN_SAMPLES)
+    assert pkts[0] == W.StatusPacket(6667, 4000, 16, 0)
+    s = pkts[1]
+    assert (s.seq, s.t0_us) == (1, 1_000_000)
+    assert s.raw.tolist() == [[100, -100, 0, 0, 0, 2049]]
+    assert W.encode_status(6667, 4000, 16) == GOLDEN_STATUS
+    assert W.encode_samples(1, 1_000_000, np.array([[100, -100, 0, 0, 0, 2049]])) == GOLDEN_SAMPLES
+    c = p.counters
+    assert (c.good_packets, c.samples, c.status_packets, c.bytes_discarded) == (2, 1, 1, 0)
+
+
+def stream(n_packets=20, n=8, seq0=0):
+    rng = np.random.default_rng(0)
+    return [W.encode_samples(seq0 + k, 1000 * k, rng.integers(-3000, 3000, (n, 6))) for k in range(n_packets)]
+
+
+def parse_all(data: bytes, chunk: int = 7):
+    p = W.WireParser()
+    out = []
+    for k in range(0, len(data), chunk):
+        out += p.feed(data[k:k + chunk])
+    return p, out
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 64, 10000])
+def test_split_anywhere(chunk):
+    pk = stream()
+    p, out = parse_all(b"".join(pk), chunk)
+    assert [o.seq for o in out] == list(range(20))
+    assert p.counters.bytes_discarded == 0
+
+
+def test_garbage_between_packets_is_discarded_and_counted():
+    pk = stream(5)
+    data = b"\x00\x11\xa5" + pk[0] + b"junk\xa5\xa5" + pk[1] + pk[2] + b"\x5a" * 9 + pk[3] + pk[4]
+    p, out = parse_all(data)
+    assert [o.seq for o in out] == [0, 1, 2, 3, 4]
+    assert p.counters.bytes_discarded == 3 + 6 + 9
+
+
+def test_crc_error_loses_only_that_packet():
+    pk = stream(4)
+    bad = bytearray(pk[1])
+    bad[12] ^= 0xFF
+    p, out = parse_all(pk[0] + bytes(bad) + pk[2] + pk[3])
+    assert [o.seq for o in out] == [0, 2, 3]
+    assert p.counters.crc_errors == 1
+    assert p.counters.samples_lost == 8          # seq 1 missing, 8 samples per packet
+
+
+def test_long_len_resyncs_without_losing_the_next_packet():
+    pk = stream(3)
+    bad = bytearray(pk[1])
+    bad[3:5] = struct.pack("<H", 2000)            # len over 1024
+    p, out = parse_all(pk[0] + bytes(bad) + pk[2])
+    assert [o.seq for o in out] == [0, 2]
+    assert p.counters.malformed == 1
+
+
+def test_corrupted_len_within_bounds_still_finds_the_following_packets():
+    pk = stream(6)
+    bad = bytearray(pk[1])
+    bad[3:5] = struct.pack("<H", 900)             # plausible but wrong: swallows what follows until CRC fails
+    data = pk[0] + bytes(bad) + b"".join(pk[2:]) + b"\x00" * 1000
+    p, out = parse_all(data, 50)
+    assert [o.seq for o in out] == [0, 2, 3, 4, 5]
+
+
+def test_truncated_packet_then_good_one():
+    pk = stream(3)
+    p, out = parse_all(pk[0] + pk[1][:15] + pk[2])
+    assert [o.seq for o in out] == [0, 2]
+
+
+def test_unknown_type_is_skipped_by_len_and_counted():
+    pk = stream(2)
+    unknown = W.frame(0x7E, b"\x01\x02\x03\x04")
+    p, out = parse_all(pk[0] + unknown + pk[1])
+    assert [o.seq for o in out] == [0, 1]
+    assert p.counters.unknown_types == 1 and p.counters.bytes_discarded == 0
+
+
+def test_malformed_samples_len_and_status_len():
+    good = stream(2)
+    wrong_n = W.frame(W.TYPE_SAMPLES, struct.pack("<HIB", 1, 0, 3) + b"\x00" * 12 * 2)   # n=3 but 2 samples
+    zero_n = W.frame(W.TYPE_SAMPLES, struct.pack("<HIB", 1, 0, 0))
+    bad_status = W.frame(W.TYPE_STATUS, b"\x00" * 5)
+    p, out = parse_all(good[0] + wrong_n + zero_n + bad_status + good[1])
+    assert [o.seq for o in out] == [0, 1]
+    assert p.counters.malformed == 3
+
+
+def test_seq_wrap_and_gaps():
+    rng = np.random.default_rng(1)
+    pk = [W.encode_samples(s, 0, rng.integers(-5, 5, (4, 6))) for s in (65534, 65535, 0, 3)]
+    p, out = parse_all(b"".join(pk))
+    assert [o.seq for o in out] == [65534, 65535, 0, 3]
+    assert p.counters.samples_lost == 2 * 4
+
+
+def test_status_flags_count_fifo_overruns():
+    p, _ = parse_all(W.encode_status(6667, 4000, 16, W.FLAG_FIFO_OVERRUN) + W.encode_status(6667, 4000, 16, 0))
+    assert p.counters.fifo_overruns == 1 and p.counters.status_packets == 2
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=3000), st.integers(1, 200))
+def test_fuzz_arbitrary_bytes_never_raise_and_bytes_add_up(data, chunk):
+    p, out = parse_all(data, chunk)
+    c = p.counters
+    assert c.bytes_in == len(data)
+    assert c.bytes_discarded + c.bytes_consumed + p.pending() == c.bytes_in
+    assert c.samples == sum(len(o.raw) for o in out if isinstance(o, W.SamplesPacket))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 4000), st.integers(0, 255)), max_size=6), st.integers(1, 97))
+def test_fuzz_mutated_valid_streams(mutations, chunk):
+    """Random byte flips in a valid stream: never raises, and every untouched packet after the first
+    touched one's end is still decoded (resync never loses a good packet)."""
+    pk = stream(30, n=4)
+    data = bytearray(b"".join(pk))
+    touched = set()
+    bounds = np.cumsum([0] + [len(x) for x in pk])
+    for pos, val in mutations:
+        pos = pos % len(data)
+        if data[pos] != val:
+            data[pos] = val
+            touched.add(int(np.searchsorted(bounds, pos, side="right") - 1))
+    p, out = parse_all(bytes(data), chunk)
+    c = p.counters
+    assert c.bytes_discarded + c.bytes_consumed + p.pending() == c.bytes_in
+    seqs = {o.seq for o in out if isinstance(o, W.SamplesPacket)}
+    # a corrupted len can swallow at most MAX_LEN bytes after a touched packet; beyond that, all good
+    lost_ok = set()
+    for k in touched:
+        end = bounds[k] + W.HEADER_BYTES + W.MAX_LEN + W.CRC_BYTES
+        lost_ok |= {j for j in range(len(pk)) if bounds[j] < end}
+    for j in range(len(pk)):
+        if j not in touched and j not in lost_ok:
+            assert j in seqs
+
+
+@pytest.mark.parametrize("gfs", sorted(GYRO_SENS_MDPS_PER_LSB))
+@pytest.mark.parametrize("afs", sorted(ACCEL_SENS_MG_PER_LSB))
+def test_scaling_for_every_full_scale(gfs, afs):
+    s = Scaling(gfs, afs)
+    raw = np.array([[1000, -1000, 0, 1000, -1000, 0]], dtype="<i2")
+    g, a = s.to_si(raw)
+    assert g[0, 0] == pytest.approx(1000 * GYRO_SENS_MDPS_PER_LSB[gfs] * 1e-3 * math.pi / 180)
+    assert a[0, 1] == pytest.approx(-1000 * ACCEL_SENS_MG_PER_LSB[afs] * 1e-3 * 9.80665)
+    back = s.to_raw(g, a)
+    assert np.array_equal(back, raw)
+
+
+def test_status_packet_sets_the_full_scales_config_is_the_fallback():
+    src = SerialImuSource(SerialParams(port="unused", gyro_fs_dps=2000, accel_fs_g=8))
+    raw = np.array([[1000, 0, 0, 1000, 0, 0]])
+    t, g, a = src.decode(W.encode_samples(0, 0, raw), 1.0)
+    assert g[0, 0] == pytest.approx(1000 * 70e-3 * math.pi / 180)           # config: 2000 dps
+    t, g, a = src.decode(W.encode_status(6667, 250, 2) + W.encode_samples(1, 150, raw), 1.0)
+    assert g[0, 0] == pytest.approx(1000 * 8.75e-3 * math.pi / 180)          # status: 250 dps
+    assert a[0, 0] == pytest.approx(1000 * 0.061e-3 * 9.80665)
+
+
+def test_unknown_full_scale_is_refused():
+    with pytest.raises(ValueError, match="gyro_fs_dps: 3000"):
+        Scaling(3000, 16)
+
+
+def test_unwrap_t0_us():
+    u = Unwrapper()
+    ts = [u(x) for x in (2**32 - 2000, 2**32 - 500, 700, 5000)]
+    assert np.all(np.diff(ts) > 0)
+    assert ts[2] - ts[1] == pytest.approx(1200e-6)
+
+
+def test_clock_sync_tracks_100ppm_drift_for_an_hour():
+    """An hour of packets, MCU clock 100 ppm fast, random USB latency: sample times within 0.5 ms."""
+    rng = np.random.default_rng(3)
+    board = Board(BoardParams(drift_ppm=100.0, t0_us=2**32 - 5_000_000))   # wraps after 5 s
+    odr, n = 6667, 8
+    sync, unwrap = ClockSync(), Unwrapper()
+    host0 = 1234.5
+    worst = 0.0
+    period = n / odr
+    for k in range(int(3600 / period)):
+        idx = k * n
+        t_true = idx / odr                                     # true time of the first sample
+        mcu = unwrap(board.mcu_us(idx)) + (n - 1) / (odr * (1 + 0))
+        arrival = host0 + t_true + (n - 1) / odr + 0.0002 + rng.exponential(0.0005)
+        sync.add(mcu, arrival)
+        if k % 997 == 0 and k > 2000:
+            err = float(sync.to_host(unwrap(board.mcu_us(idx)))) - (host0 + t_true)
+            worst = max(worst, abs(err))
+    assert worst < SAMPLE_TIME_TOL_S
+    assert sync.resets == 0

@@ -1,0 +1,148 @@
+"""The serial path on a pseudo-terminal: corruption round trips, unplug/replug, `tecdard imu`, the daemon."""
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from drivers import imu_wire as W
+from drivers.imu_emulator import Board, BoardParams, PtyDevice, StreamThread
+from drivers.serial_imu import PortError, SerialImuSource, SerialParams
+from tests.conftest import ROOT
+
+READ_DEADLINE_S = 10.0
+
+
+def read_until(src, n_samples, deadline_s=READ_DEADLINE_S):
+    got, t_end = [], time.monotonic() + deadline_s
+    while sum(len(c[0]) for c in got) < n_samples and time.monotonic() < t_end:
+        out = src.read(0.05)
+        if out is not None:
+            got.append(out)
+    return got
+
+
+@pytest.fixture
+def pty(tmp_path):
+    dev = PtyDevice(tmp_path / "ttyIMU")
+    yield dev
+    dev.close()
+
+
+def test_round_trip_with_every_corruption(pty):
+    board = Board(BoardParams(samples_per_packet=8))
+    rng = np.random.default_rng(0)
+    frames = board.packets(rng.normal(0, 0.1, (8 * 40, 3)), np.tile([0, 0, 9.81], (8 * 40, 1)))
+    status, pk = frames[0], frames[1:]
+    bad_crc = bytearray(pk[5])
+    bad_crc[-1] ^= 0x55
+    long_len = bytearray(pk[9])
+    long_len[3:5] = (5000).to_bytes(2, "little")
+    data = (status + b"".join(pk[:5]) + b"\x00garbage\xa5" + bytes(bad_crc) + b"".join(pk[6:9]) + bytes(long_len)
+            + W.frame(0x33, b"future") + b"".join(pk[10:20]) + b"".join(pk[21:]))   # pk[20] dropped
+    src = SerialImuSource(SerialParams(port=str(pty.link)))
+    src.open()
+    pty.write(data)
+    got = read_until(src, 8 * 37)
+    src.close()
+    n = sum(len(c[0]) for c in got)
+    c = src.counters()
+    assert n == 8 * 37                       # 40 packets less the CRC error, the long len and the dropped one
+    assert c["crc_errors"] == 1 and c["malformed"] == 1 and c["unknown_types"] == 1
+    assert c["samples_lost"] == 8 * 3        # seq gaps at 5, 9 and 20
+    assert c["bytes_discarded"] > 0 and c["status_packets"] == 1
+    t = np.concatenate([g[0] for g in got])
+    assert np.all(np.diff(t) > 0)
+    gyro = np.vstack([g[1] for g in got])
+    assert np.all(np.abs(gyro) < 1.0)
+
+
+def test_unplug_and_replug(pty):
+    board = Board()
+    streamer = StreamThread(pty, board).start()
+    src = SerialImuSource(SerialParams(port=str(pty.link)))
+    src.open()
+    try:
+        assert read_until(src, 2000)
+        pty.unplug()
+        t_end = time.monotonic() + READ_DEADLINE_S
+        while not any(e["kind"] == "fault" for e in src.events) and time.monotonic() < t_end:
+            src.read(0.05)
+        events = src.drain_events()
+        assert events and events[0]["kind"] == "fault" and events[0]["code"] == "imu_disconnected"
+        for _ in range(5):
+            assert src.read(0.05) is None    # retrying with back-off, no crash
+        pty.replug()
+        got = read_until(src, 2000)
+        assert sum(len(g[0]) for g in got) >= 2000
+        assert any(e["kind"] == "fault_cleared" for e in src.drain_events())
+        assert src.disconnects == 1 and src.reconnects == 1
+    finally:
+        streamer.join()
+        src.close()
+
+
+def test_open_errors_are_one_line(tmp_path):
+    with pytest.raises(PortError, match="cannot open .*nope"):
+        SerialImuSource(SerialParams(port=str(tmp_path / "nope"))).open()
+    with pytest.raises(PortError, match="no USB serial device dead:beef"):
+        SerialImuSource(SerialParams(vid=0xDEAD, pid=0xBEEF)).open()
+
+
+def test_tecdard_imu_reports_rates_counters_and_the_latest_sample(pty):
+    streamer = StreamThread(pty, Board()).start()
+    try:
+        res = subprocess.run([sys.executable, "-m", "tecdard", "imu", "--port", str(pty.link), "--seconds", "1.5",
+                              "--json"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    finally:
+        streamer.join()
+    assert res.returncode == 0, res.stderr
+    rep = json.loads(res.stdout)
+    assert 4000 < rep["sample_rate_hz"] < 9000
+    assert rep["status"]["odr_hz"] == 6667
+    assert rep["counters"]["crc_errors"] == 0
+    assert abs(rep["latest"]["accel_m_s2"][2] - 9.81) < 0.5
+
+
+def test_tecdard_imu_bad_port_exits_nonzero(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "tecdard", "imu", "--port", str(tmp_path / "ttyNone")],
+                         capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert res.returncode == 1
+    assert len(res.stderr.strip().splitlines()) == 1 and "cannot open" in res.stderr
+
+
+def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
+    streamer = StreamThread(pty, Board()).start()
+    try:
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
+        cli = d.client
+        time.sleep(0.5)
+        assert cli.command("status")["state"]["faults"] == []
+        pty.unplug()
+        ev = cli.wait_event(("fault",), timeout=10.0)
+        codes = {ev["code"]}
+        t_end = time.monotonic() + 5
+        while {"imu_disconnected", "imu_stale"} - codes and time.monotonic() < t_end:
+            try:
+                codes.add(cli.wait_event(("fault",), timeout=1.0)["code"])
+            except Exception:
+                pass
+        assert {"imu_disconnected", "imu_stale"} <= codes
+        assert {f["code"] for f in cli.command("status")["state"]["faults"]} >= {"imu_stale"}
+        refused = cli.command("rotate", {"angle_deg": 10})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault"
+        pty.replug()
+        cleared = set()
+        t_end = time.monotonic() + 10
+        while "imu_stale" not in cleared and time.monotonic() < t_end:
+            try:
+                cleared.add(cli.wait_event(("fault_cleared",), timeout=1.0)["code"])
+            except Exception:
+                pass
+        assert "imu_stale" in cleared
+        assert cli.command("status")["state"]["faults"] == []
+        assert d.proc.poll() is None
+    finally:
+        streamer.join()
