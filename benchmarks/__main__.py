@@ -1,4 +1,4 @@
-"""`make bench`: estimator speed and whole-daemon accuracy/CPU on the simulated robot; writes benchmarks/RESULTS.md."""
+"""`make bench` (last step): whole-daemon accuracy, CPU and ticks on the simulated robot; writes benchmarks/RESULTS.md."""
 from __future__ import annotations
 
 import argparse
@@ -16,51 +16,11 @@ import yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from control.conditioning import GyroConditioner  # noqa: E402
-from control.ekf import ContactEKF, EkfParams  # noqa: E402
-from control.onset import OnsetDetector  # noqa: E402
-from control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.client import Client  # noqa: E402
 from tecdard.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 
 ODR_HZ = 6667.0
 CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-def bench_ekf_step(n: int = 20000) -> dict:
-    rng = np.random.default_rng(0)
-    ekf = ContactEKF(EkfParams())
-    ekf.start(np.zeros(3), np.array([0, 0, 0.02]))
-    w = rng.normal(0, 0.1, (n, 3))
-    z = rng.normal(0, 1e-3, (n, 3))
-    times = np.empty(n)
-    dt = 1 / ODR_HZ
-    for k in range(n):
-        t0 = time.perf_counter()
-        ekf.step(dt, w[k], z[k], z[k])
-        times[k] = time.perf_counter() - t0
-    return {"median_us": float(np.median(times) * 1e6), "p99_us": float(np.percentile(times, 99) * 1e6)}
-
-
-def bench_pipeline(seconds: float = 1.0) -> dict:
-    """Real-time factor of the whole contact pipeline on a tracked contact (worst case: EKF every sample)."""
-    n = int(seconds * ODR_HZ)
-    t = np.arange(n) / ODR_HZ
-    rng = np.random.default_rng(1)
-    gyro = rng.normal(0, 5e-3, (n, 3)) + [0, -0.066, 0]
-    accel = np.tile([0, 0, 9.81], (n, 1)) + rng.normal(0, 0.03, (n, 3))
-    accel[700:760] += [2.0, 0, 0]
-    pipe = ContactPipeline(OnsetDetector(0.4, warmup_s=0.05), GyroConditioner(np.eye(3), 2.0, lpf_window=33),
-                           EkfParams())
-    for tp in np.arange(0, seconds, 1 / 65):
-        pipe.add_proprio(tp, np.array([0.3, 0, 0.5]) + [0, 0, 0.02 * tp], np.array([0, 0, 0.02]), np.eye(3),
-                         np.zeros(3))
-    batch = np.column_stack([t, gyro, accel])
-    t0 = time.perf_counter()
-    for k in range(0, n, 64):
-        pipe.process(batch[k:k + 64])
-    el = time.perf_counter() - t0
-    return {"seconds": seconds, "wall_s": el, "realtime_factor": seconds / el}
 
 
 def proc_cpu_s(pid: int) -> float:
@@ -115,13 +75,7 @@ def main() -> int:
     args = ap.parse_args()
     lines = [f"# Benchmarks ({time.strftime('%Y-%m-%d')}, {platform.processor() or platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()})", ""]
-    ekf = bench_ekf_step()
-    pipe = bench_pipeline()
-    lines += ["## Estimator", "",
-              f"- EKF step (9-state, 3D, numpy): median {ekf['median_us']:.1f} us, p99 {ekf['p99_us']:.1f} us",
-              f"- Contact pipeline while tracking (trigger + conditioning + EKF every sample): "
-              f"{pipe['realtime_factor']:.1f}x real time ({pipe['wall_s'] * 1e3:.0f} ms for {pipe['seconds']:.0f} s at 6667 Hz)",
-              ""]
+    lines += ["Estimator accuracy and speed: [estimation.md](estimation.md); serial driver: [serial.md](serial.md).", ""]
     print("\n".join(lines), flush=True)
     runs = []
     cases = [(0.15, 1, "arc"), (0.15, 1, "straight")] if args.quick else \

@@ -86,5 +86,5 @@ class GyroConditioner:
         if R_world_tcp.ndim == 2:
             w_world = w_tcp_imu @ R_world_tcp.T
         else:
-            w_world = np.einsum("nij,nj->ni", R_world_tcp, w_tcp_imu)
+            w_world = (R_world_tcp @ w_tcp_imu[:, :, None])[:, :, 0]
         return w_tcp_world + eta * (w_world - w_tcp_world)

@@ -140,6 +140,7 @@ class ContactEstimate:
     nis: float
     steps: int
     method: str = "ekf"
+    in_plane_std: float = float("inf")   # statistical one-sigma in the plane of rotation, m
     extra: dict = field(default_factory=dict)
 
     def to_json(self, method: str | None = None) -> dict:
@@ -197,6 +198,7 @@ class ContactPipeline:
         self._w_sum = np.zeros(3)
         self._n_w = 0
         self._t_out = -np.inf
+        self._dt_sample = 1.0 / 6667.0
         self.latest: ContactEstimate | None = None
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
@@ -211,9 +213,20 @@ class ContactPipeline:
         self.detector.rearm()
 
     def process(self, batch: np.ndarray, force_output: bool = False) -> tuple[list[dict], ContactEstimate | None]:
+        """A batch of samples; returns (events, the newest estimate emitted, or None)."""
+        events, estimates = self.process_all(batch, force_output)
+        return events, (estimates[-1] if estimates else None)
+
+    def process_all(self, batch: np.ndarray, force_output: bool = False) -> tuple[list[dict], list[ContactEstimate]]:
+        """A batch of samples; returns (events, every estimate due within it).
+
+        Conditioning is vectorised over the whole batch (it is causal per sample); the
+        estimator then advances in sub-blocks that end at each output time, so each
+        estimate uses only samples at or before its own time, whatever the batch length.
+        """
         events: list[dict] = []
         if len(batch) == 0:
-            return events, None
+            return events, []
         t, gyro, accel = batch[:, 0], batch[:, 1:4], batch[:, 4:7]
         start = 0
         if not self.tracking:
@@ -221,13 +234,13 @@ class ContactPipeline:
             if hit < 0:
                 self.cond.track_bias(t, gyro)
                 self.cond.lowpass(gyro)      # keep the filter history warm
-                return events, None
+                return events, []
             self.cond.track_bias(t[:hit], gyro[:hit])
             p, v, *_, ok = self.proprio.lookup(t[hit:hit + 1])
             if not ok[0]:
                 self.detector.rearm()        # no proprioception yet: cannot start
                 self.cond.lowpass(gyro)
-                return events, None
+                return events, []
             self.cond.freeze_bias(True)
             self.estimator.start(p[0], v[0])
             self.tracking = True
@@ -241,9 +254,11 @@ class ContactPipeline:
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
         w_f = self.cond.lowpass(gyro)[start:]
         ts = t[start:]
+        if len(t) > 1:
+            self._dt_sample = (t[-1] - t[0]) / (len(t) - 1)
         # The causal low-pass delays the gyro by its group delay; take proprioception at the
         # same (earlier) instant so that w and v describe the same moment. Still causal.
-        delay = self.cond.group_delay_samples * float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        delay = self.cond.group_delay_samples * self._dt_sample
         p, v, R, w_tcp, var_v, var_wt, force, ok = self.proprio.lookup(ts - delay)
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
         eta = self.eta(force)
@@ -256,24 +271,33 @@ class ContactPipeline:
                 self.params.eta_rel_std_per_n * self.eta.distance_n(float(force[-1]))
         if not ok.all():
             ts, w_obj, p, v, var_v, var_w = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok]
+        estimates: list[ContactEstimate] = []
         if len(ts):
-            dt = np.diff(ts, prepend=self._t_prev)
-            dt = np.maximum(dt, 1e-6)
-            self._t_prev = float(ts[-1])
+            dt = np.maximum(np.diff(ts, prepend=self._t_prev), 1e-6)
             rate = self.proprio.rate_hz()
-            if np.isfinite(rate) and len(ts) > 1 and hasattr(self.estimator, "corr_samples"):
-                imu_rate = (len(ts) - 1) / max(ts[-1] - ts[0], 1e-9)
-                self.estimator.corr_samples = max(1.0, imu_rate / rate)
-            self.estimator.update(dt, w_obj, p, v, var_v, var_w)
-            self._wwT += w_obj.T @ w_obj
-            self._w_sum += w_obj.sum(axis=0)
-            self._n_w += len(w_obj)
-        estimate = None
-        if self._t_prev is not None and (force_output or self._t_prev - self._t_out >= self.params.output_period_s):
+            if rate == rate and hasattr(self.estimator, "corr_samples"):       # not NaN
+                self.estimator.corr_samples = max(1.0, 1.0 / (self._dt_sample * rate))
+            period = self.params.output_period_s
+            k0, n = 0, len(ts)
+            while k0 < n:
+                due = int(np.searchsorted(ts, self._t_out + period, side="left"))
+                k1 = n if due >= n else max(due + 1, k0 + 1)
+                sl = slice(k0, k1)
+                self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl])
+                self._wwT += w_obj[sl].T @ w_obj[sl]
+                self._w_sum += w_obj[sl].sum(axis=0)
+                self._n_w += k1 - k0
+                self._t_prev = float(ts[k1 - 1])
+                if due < n:
+                    self._t_out = self._t_prev
+                    estimates.append(self._estimate(self._t_prev))
+                k0 = k1
+        if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
-            estimate = self._estimate(self._t_prev)
-            self.latest = estimate
-        return events, estimate
+            estimates.append(self._estimate(self._t_prev))
+        if estimates:
+            self.latest = estimates[-1]
+        return events, estimates
 
     def _excitation(self) -> tuple[np.ndarray | None, bool]:
         """(principal rotation axis or None, whether a second axis was excited)."""
@@ -307,4 +331,4 @@ class ContactPipeline:
             in_plane = float(np.sqrt(max(np.linalg.eigvalsh(stat)[-1], 0.0)))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
-                               nis=est.nis, steps=est.steps, method=self.method)
+                               nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane)

@@ -23,6 +23,7 @@ class ContactView:
     std: np.ndarray | None = None     # one-sigma, m
     axis: np.ndarray | None = None    # rotation axis estimate, world unit
     onset_t: float | None = None
+    in_plane_std: float = float("inf")  # the estimator's statistical one-sigma in the plane of rotation, m
 
 
 @dataclass
@@ -76,6 +77,8 @@ class TwoPhaseTask:
         self.id = task_id
         self.angle_rad = angle_rad
         self.speed = speed
+        # Phase 1 stays short (the paper's 5 mm): a straight probe changes the lever arm as the
+        # object turns, which biases every estimator in proportion to the angle.
         self.probe_distance = probe_distance
         self.direction = unit(direction, "direction")
         self.strategy = strategy

@@ -294,7 +294,8 @@ class ControlThread:
     def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est) -> tuple[np.ndarray, np.ndarray]:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
-            view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t)
+            view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
+                               in_plane_std=est.in_plane_std)
         else:
             view = ContactView(tracking=False)
         motion = task.step(TickInput(now, p, R, view, self.planner.at_rest))

@@ -13,16 +13,19 @@ from tecdard.recording import Recording
 EXIT_OK, EXIT_NO_CONTACT, EXIT_BAD_INPUT = 0, 1, 2
 
 
-def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0):
-    """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate)."""
+def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, chunk_s: float = 0.1):
+    """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate).
+
+    Rows come at the estimator's output cadence, never more than rate_hz per second. The
+    recording is fed in chunks of chunk_s with the proprioception stamped up to each chunk's
+    end; every estimate still uses only samples (and proprioception) stamped at or before it.
+    """
     R = quat_to_matrix(rec.tcp_quat)
     vel = rec.tcp_vel
     force = rec.grip_force
     batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
-    # One row per estimator output: at the pipeline's own cadence, never more than rate_hz.
-    period = max(1.0 / rate_hz, pipeline.params.output_period_s)
-    pipeline.params.output_period_s = period
-    grid = np.arange(rec.imu_t[0] + period, rec.imu_t[-1] + period, period)
+    pipeline.params.output_period_s = max(1.0 / rate_hz, pipeline.params.output_period_s)
+    grid = np.arange(rec.imu_t[0] + chunk_s, rec.imu_t[-1] + chunk_s, chunk_s)
     ends = np.unique(np.append(np.searchsorted(rec.imu_t, grid, side="right"), len(rec.imu_t)))
     rows: list[np.ndarray] = []
     last: ContactEstimate | None = None
@@ -38,12 +41,12 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0):
             pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], None,
                                  np.nan if force is None else force[j])
             j += 1
-        events, est = pipeline.process(batch[start:end], force_output=pipeline.tracking)
+        events, estimates = pipeline.process_all(batch[start:end])
         start = end
         for ev in events:
             if ev["kind"] == "contact_onset" and onset_t is None:
                 onset_t = ev["t"]
-        if est is not None:
+        for est in estimates:
             last = est
             rows.append(np.concatenate([[est.t], est.p, est.std]))
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
@@ -53,7 +56,7 @@ def write_csv(path: str, rows: np.ndarray) -> None:
     with open(path, "w") as f:
         f.write("t,px,py,pz,sx,sy,sz\n")
         for r in rows:
-            f.write(f"{r[0]:.6f},{r[1]:.6f},{r[2]:.6f},{r[3]:.6f},{r[4]:.6f},{r[5]:.6f},{r[6]:.6f}\n")
+            f.write(f"{r[0]:.9f},{r[1]:.6f},{r[2]:.6f},{r[3]:.6f},{r[4]:.6f},{r[5]:.6f},{r[6]:.6f}\n")
 
 
 def summary(onset_t: float, est: ContactEstimate) -> dict:
