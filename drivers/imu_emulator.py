@@ -47,7 +47,10 @@ class Board:
 
     def packets(self, gyro: np.ndarray, accel: np.ndarray) -> list[bytes]:
         """One frame per packet (status frames interleaved once a second of samples)."""
-        raw = self.scaling.to_raw(gyro, accel)
+        return self.packets_raw(self.scaling.to_raw(gyro, accel))
+
+    def packets_raw(self, raw: np.ndarray) -> list[bytes]:
+        """Frames for raw int16 samples (n, 6), as the chip produced them."""
         out = []
         n = self.p.samples_per_packet
         for k in range(0, len(raw), n):

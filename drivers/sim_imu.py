@@ -1,28 +1,40 @@
-"""Simulated fingertip IMU (LSM6DSR-like): world kinematics in, timestamped SI samples out."""
+"""Simulated fingertip IMU (LSM6DSR in a soft fingertip): world kinematics in, timestamped SI samples out."""
 from __future__ import annotations
 
+import math
 import queue
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from control.geometry import quat_to_matrix
+from drivers.lsm6dsr import Scaling
 
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -9.81])
 DEG = np.pi / 180.0
+IIR_BLOCK = 64          # samples per closed-form block of the first-order lag (keeps a^-k well conditioned)
+# The fingertip's apparent transmission against grip force (the paper: eta -> 1 as force grows; 2.0 at 30 N).
+ETA_TRUE_TABLE = ((10.0, 3.2), (20.0, 2.5), (30.0, 2.0), (40.0, 1.7), (60.0, 1.4))
+RING_REF_MASS_KG = 0.1
 
 
 @dataclass
 class SimImuParams:
     odr_hz: float = 6667.0
-    eta: float = 2.0                         # apparent transmission of the object's relative rotation
+    grip_force_n: float = 30.0
+    eta: float | None = None                 # fixed eta; None: from the grip force on ETA_TRUE_TABLE
+    lag_tau_s: float = 0.003                 # viscoelastic lag of the relative rotation, s
     gyro_noise_density: float = 5e-3 * DEG   # rad/s/sqrt(Hz)  (LSM6DSR: 5 mdps/sqrt(Hz))
     accel_noise_density: float = 60e-6 * 9.81  # m/s^2/sqrt(Hz) (LSM6DSR: 60 ug/sqrt(Hz))
-    gyro_bias_max: float = 0.02              # rad/s, per-axis bias drawn uniformly in +-
+    gyro_bias_max: float = 0.02              # rad/s, per-axis initial bias drawn uniformly in +-
     accel_bias_max: float = 0.05             # m/s^2
-    onset_ring_m_s2: float = 2.0             # accelerometer ring amplitude when the object starts to move
-    onset_ring_hz: float = 120.0
-    onset_ring_tau_s: float = 0.015
+    gyro_bias_walk: float = 1e-4             # rad/s/sqrt(s), slow bias drift (random walk)
+    gyro_fs_dps: int = 4000
+    accel_fs_g: int = 16
+    ring_per_m_s: float = 100.0              # impact ring amplitude per TCP speed, (m/s^2)/(m/s), 0.1 kg object
+    ring_hz: float = 120.0                   # for a 0.1 kg object; scales with 1/sqrt(mass)
+    ring_tau_s: float = 0.015
+    object_mass_kg: float = 0.1
     timestamp_jitter_s: float = 2e-6
     imu_in_tcp_quat: tuple = (0.0, 0.0, 0.0, 1.0)  # (x, y, z, w), TCP <- IMU
 
@@ -30,49 +42,147 @@ class SimImuParams:
     def from_config(cls, section, default_mount=None) -> "SimImuParams":
         d = cls()
         mount = list(default_mount) if default_mount is not None else list(d.imu_in_tcp_quat)
-        return cls(
+        p = cls(
             odr_hz=section.getfloat("odr_hz", d.odr_hz, minval=100.0, maxval=20000.0),
-            eta=section.getfloat("eta", d.eta, above=0.0),
+            grip_force_n=section.getfloat("grip_force_n", d.grip_force_n, minval=0.0),
+            eta=section.getoptfloat("eta", None, above=0.0),
+            lag_tau_s=section.getfloat("lag_tau_s", d.lag_tau_s, minval=0.0, maxval=0.1),
             gyro_noise_density=section.getfloat("gyro_noise_density", d.gyro_noise_density, minval=0.0),
             accel_noise_density=section.getfloat("accel_noise_density", d.accel_noise_density, minval=0.0),
             gyro_bias_max=section.getfloat("gyro_bias_max", d.gyro_bias_max, minval=0.0),
             accel_bias_max=section.getfloat("accel_bias_max", d.accel_bias_max, minval=0.0),
-            onset_ring_m_s2=section.getfloat("onset_ring_m_s2", d.onset_ring_m_s2, minval=0.0),
-            onset_ring_hz=section.getfloat("onset_ring_hz", d.onset_ring_hz, above=0.0),
-            onset_ring_tau_s=section.getfloat("onset_ring_tau_s", d.onset_ring_tau_s, above=0.0),
+            gyro_bias_walk=section.getfloat("gyro_bias_walk", d.gyro_bias_walk, minval=0.0),
+            gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
+            accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g),
+            ring_per_m_s=section.getfloat("ring_per_m_s", d.ring_per_m_s, minval=0.0),
+            ring_hz=section.getfloat("ring_hz", d.ring_hz, above=0.0),
+            ring_tau_s=section.getfloat("ring_tau_s", d.ring_tau_s, above=0.0),
+            object_mass_kg=section.getfloat("object_mass_kg", d.object_mass_kg, above=0.0),
             timestamp_jitter_s=section.getfloat("timestamp_jitter_s", d.timestamp_jitter_s, minval=0.0),
             imu_in_tcp_quat=tuple(section.getquat("imu_in_tcp_quat", mount)),
         )
+        try:
+            Scaling(p.gyro_fs_dps, p.accel_fs_g)
+        except ValueError as exc:
+            from tecdard.config import ConfigError
+            raise ConfigError(f"{section.path}.{exc}") from None
+        return p
+
+    def true_eta(self) -> float:
+        if self.eta is not None:
+            return self.eta
+        f, e = zip(*ETA_TRUE_TABLE)
+        return float(np.interp(self.grip_force_n, f, e))
 
 
-class SimImu:
-    """The simulated device. The physics thread calls `feed()` with each slice of
-    kinematics; `read()` hands the acquisition thread the samples, as a serial
-    port would hand it bytes. Samples are (t, gyro, accel): seconds on the
-    daemon's monotonic clock, rad/s and m/s^2 in the IMU sensor frame.
+class FingertipSignal:
+    """What the fingertip IMU reports for given kinematics (all world frame, per sample).
+
+    gyro  = R_imu^T (w_tcp + lag((w_obj - w_tcp) / eta)) + bias(t) + noise   (then int16)
+    accel = R_imu^T (a_tcp - g) + impact rings + bias + noise                 (then int16)
+    The lag is the fingertip's first-order viscoelastic response; eta follows grip force;
+    the gyro bias drifts as a random walk; noise follows the LSM6DSR densities at the ODR;
+    outputs are quantised to the chip's int16 at the configured full scales.
     """
 
-    def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512):
+    def __init__(self, params: SimImuParams, seed: int = 0):
         self.p = params
         self.rng = np.random.default_rng(seed)
         self.R_tcp_imu = quat_to_matrix(np.array(params.imu_in_tcp_quat))
+        self.eta = params.true_eta()
         self.gyro_bias = self.rng.uniform(-params.gyro_bias_max, params.gyro_bias_max, 3)
         self.accel_bias = self.rng.uniform(-params.accel_bias_max, params.accel_bias_max, 3)
         nyquist = params.odr_hz / 2.0
-        self.gyro_sigma = params.gyro_noise_density * np.sqrt(nyquist)
-        self.accel_sigma = params.accel_noise_density * np.sqrt(nyquist)
+        self.gyro_sigma = params.gyro_noise_density * math.sqrt(nyquist)
+        self.accel_sigma = params.accel_noise_density * math.sqrt(nyquist)
+        self.scaling = Scaling(params.gyro_fs_dps, params.accel_fs_g)
+        self._lag_state = np.zeros(3)
+        self._rings: list[tuple[float, np.ndarray, float]] = []   # (start, amplitude vector world, Hz)
+        mass_ratio = RING_REF_MASS_KG / params.object_mass_kg
+        self._ring_gain = params.ring_per_m_s * math.sqrt(mass_ratio)
+        self._ring_hz = float(np.clip(params.ring_hz * math.sqrt(mass_ratio), 40.0, 400.0))
+
+    def impact(self, t0: float, direction_world: np.ndarray, speed_m_s: float = 0.0,
+               amplitude_m_s2: float | None = None) -> None:
+        """Start a damped ring at t0. An impact's amplitude grows with speed and shrinks (and slows)
+        with the held object's mass; a release (e.g. a hinge breaking away) gives its own amplitude."""
+        amp = self._ring_gain * speed_m_s if amplitude_m_s2 is None else amplitude_m_s2
+        self._rings.append((t0, amp * np.asarray(direction_world, float), self._ring_hz))
+
+    def _lag(self, x: np.ndarray, dt: float) -> np.ndarray:
+        """First-order low-pass (time constant lag_tau_s) of x (n, 3), state carried across calls."""
+        if self.p.lag_tau_s <= 0:
+            return x
+        a = math.exp(-dt / self.p.lag_tau_s)
+        out = np.empty_like(x)
+        y0 = self._lag_state
+        for k0 in range(0, len(x), IIR_BLOCK):
+            blk = x[k0:k0 + IIR_BLOCK]
+            m = len(blk)
+            pw = a ** np.arange(1, m + 1)                          # a^(k+1)
+            # y_k = a^(k+1) y0 + (1 - a) sum_j a^(k-j) x_j, in closed form for the block
+            acc = np.cumsum(blk * (a ** -np.arange(m))[:, None], axis=0)
+            y = pw[:, None] * y0 + (1 - a) * (a ** np.arange(m))[:, None] * acc
+            out[k0:k0 + m] = y
+            y0 = y[-1]
+        self._lag_state = y0
+        return out
+
+    def sample(self, ts: np.ndarray, w_tcp: np.ndarray, w_obj: np.ndarray, a_tcp: np.ndarray,
+               R_world_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(raw int16 (n, 6), gyro rad/s (n, 3), accel m/s^2 (n, 3)) at sample times ts; kinematics per sample."""
+        n = len(ts)
+        dt = 1.0 / self.p.odr_hz
+        R_world_imu = R_world_tcp @ self.R_tcp_imu
+        w_seen = w_tcp + self._lag((w_obj - w_tcp) / self.eta, dt)
+        drift = np.cumsum(self.rng.normal(0.0, self.p.gyro_bias_walk * math.sqrt(dt), (n, 3)), axis=0)
+        bias = self.gyro_bias + drift
+        self.gyro_bias = bias[-1]
+        gyro = w_seen @ R_world_imu + bias + self.rng.normal(0.0, self.gyro_sigma, (n, 3))
+        f_world = a_tcp - GRAVITY_WORLD_M_S2
+        for t0, amp, hz in self._rings:
+            s = ts - t0
+            env = np.where(s >= 0, np.exp(-np.maximum(s, 0) / self.p.ring_tau_s)
+                           * np.sin(2 * np.pi * hz * np.maximum(s, 0)), 0.0)
+            f_world = f_world + env[:, None] * amp
+        self._rings = [r for r in self._rings if ts[-1] - r[0] < 10 * self.p.ring_tau_s]
+        accel = f_world @ R_world_imu + self.accel_bias + self.rng.normal(0.0, self.accel_sigma, (n, 3))
+        raw = self.scaling.to_raw(gyro, accel)
+        g, a = self.scaling.to_si(raw)
+        return raw, g, a
+
+
+class SimImu:
+    """The simulated device. The physics thread calls `feed()` with each slice of kinematics.
+
+    Without `wire`, `read()` hands the acquisition thread SI samples (t, gyro, accel) on the
+    daemon's monotonic clock. With `wire` (an imu_emulator Board and PtyDevice), the samples
+    are encoded as `tecdar-imu/1` and written to the pseudo-terminal instead, so the whole
+    serial path (driver, parser, clock sync) runs in simulation.
+    """
+
+    def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512, wire=None):
+        self.p = params
+        self.signal = FingertipSignal(params, seed)
+        self.rng = np.random.default_rng(seed + 7)
         self.period = 1.0 / params.odr_hz
         self._next_t = None
-        self._rings: list[tuple[float, np.ndarray]] = []  # (start time, amplitude vector world)
         self._fifo: queue.Queue = queue.Queue(maxsize=fifo_chunks)
+        self.wire = wire                 # (Board, PtyDevice) or None
         self.dropped_chunks = 0
         self.samples = 0
 
+    @property
+    def R_tcp_imu(self) -> np.ndarray:
+        return self.signal.R_tcp_imu
+
+    def impact(self, t0: float, direction_world: np.ndarray, speed_m_s: float = 0.0,
+               amplitude_m_s2: float | None = None) -> None:
+        self.signal.impact(t0, direction_world, speed_m_s, amplitude_m_s2)
+
     def feed(self, t: np.ndarray, w_tcp: np.ndarray, w_obj: np.ndarray, a_tcp: np.ndarray,
-             R_world_tcp: np.ndarray, onsets: list[tuple[float, np.ndarray]] = ()) -> None:
-        """Kinematic rows (m >= 2, world frame) -> IMU samples for times up to t[-1]."""
-        for t0, direction in onsets:
-            self._rings.append((t0, self.p.onset_ring_m_s2 * direction))
+             R_world_tcp: np.ndarray) -> None:
+        """Kinematic rows (m >= 2, world frame, e.g. 1 kHz) -> IMU samples for times up to t[-1]."""
         if self._next_t is None:
             self._next_t = float(t[0])
         n = int(np.floor((t[-1] - self._next_t) / self.period)) + 1
@@ -85,26 +195,20 @@ class SimImu:
         def interp(arr):
             return np.stack([np.interp(ts_c, t, arr[:, i]) for i in range(3)], axis=1)
 
-        wt, wo, at = interp(w_tcp), interp(w_obj), interp(a_tcp)
-        R = R_world_tcp[-1]                     # orientation changes little within one slice
-        R_world_imu = R @ self.R_tcp_imu
-        w_seen = wt + (wo - wt) / self.p.eta
-        gyro = w_seen @ R_world_imu + self.gyro_bias + self.rng.normal(0.0, self.gyro_sigma, (n, 3))
-        f_world = at - GRAVITY_WORLD_M_S2
-        for t0, amp in self._rings:
-            dt = ts - t0
-            live = dt >= 0
-            if np.any(live):
-                env = np.where(live, np.exp(-np.maximum(dt, 0) / self.p.onset_ring_tau_s)
-                               * np.sin(2 * np.pi * self.p.onset_ring_hz * np.maximum(dt, 0)), 0.0)
-                f_world = f_world + env[:, None] * amp
-        self._rings = [(t0, a) for t0, a in self._rings if ts[-1] - t0 < 10 * self.p.onset_ring_tau_s]
-        accel = f_world @ R_world_imu + self.accel_bias + self.rng.normal(0.0, self.accel_sigma, (n, 3))
+        raw, gyro, accel = self.signal.sample(ts, interp(w_tcp), interp(w_obj), interp(a_tcp), R_world_tcp[-1])
+        self.samples += n
+        if self.wire is not None:
+            board, device = self.wire
+            if device.master is not None:
+                try:
+                    device.write(b"".join(board.packets_raw(raw)))
+                except OSError:
+                    self.dropped_chunks += 1
+            return
         stamps = ts + self.rng.normal(0.0, self.p.timestamp_jitter_s, n) if self.p.timestamp_jitter_s else ts
         stamps = np.maximum.accumulate(stamps)
         try:
             self._fifo.put_nowait((stamps, gyro, accel))
-            self.samples += n
         except queue.Full:
             self.dropped_chunks += 1
 
@@ -116,4 +220,5 @@ class SimImu:
             return None
 
     def close(self) -> None:
-        pass
+        if self.wire is not None:
+            self.wire[1].close()

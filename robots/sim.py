@@ -131,7 +131,6 @@ class SimRobot:
         w_obj = np.empty((n + 1, 3))
         a_tcp = np.empty((n + 1, 3))
         Rs = np.empty((n + 1, 3, 3))
-        onsets = []
         with self._lock:
             self._pending.extend(self._cmds)
             self._cmds.clear()
@@ -153,8 +152,10 @@ class SimRobot:
             self._v_prev = twist[:3]
             Rs[k] = oMtcp.rotation
             if self.world is not None:
-                if k > 0 and self.world.step(oMtcp.translation, dt):
-                    onsets.append((self.t, self.world.tangent(oMtcp.translation)))
+                if k > 0 and self.world.step(oMtcp.translation, dt) and self.imu is not None:
+                    # the object starts to move (breakaway, impact): the fingertip rings
+                    self.imu.impact(self.t, self.world.tangent(oMtcp.translation),
+                                    amplitude_m_s2=self.world.p.breakaway_m_s2)
                 w_obj[k] = self.world.object_rate_world()
             else:
                 w_obj[k] = twist[3:]
@@ -167,7 +168,7 @@ class SimRobot:
         with self._lock:
             self._truth = self._make_truth()
         if self.imu is not None:
-            self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs, onsets)
+            self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs)
 
     def _make_truth(self) -> SimTruth | None:
         if self.world is None:

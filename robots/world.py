@@ -21,6 +21,7 @@ class HingeParams:
     friction_mu: float = 0.3
     grasp_stiffness_n_m: float = 3000.0
     table_normal: np.ndarray = None  # unit, world (default +z)
+    breakaway_m_s2: float = 2.0      # fingertip ring when the handle breaks away from rest
 
     @classmethod
     def from_config(cls, section) -> "HingeParams":
@@ -31,6 +32,7 @@ class HingeParams:
             friction_mu=section.getfloat("friction_mu", 0.3, above=0.0),
             grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
             table_normal=np.array(section.getvec3("table_normal", [0.0, 0.0, 1.0], unit=True)),
+            breakaway_m_s2=section.getfloat("breakaway_m_s2", 2.0, minval=0.0),
         )
 
 

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import signal
+import tempfile
 import threading
 import time
 
@@ -12,6 +14,7 @@ import zenoh
 
 from control.geometry import quat_to_matrix
 from drivers.ring import SampleRing
+from drivers.imu_emulator import Board, BoardParams, PtyDevice
 from drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.model import ArmModel, UnknownRobotError
@@ -58,7 +61,7 @@ class Daemon:
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
 
         imu = cfg.section("imu")
-        self.imu_source = imu.getstr("source", "sim", choices=("sim", "serial"))
+        self.imu_source = imu.getstr("source", "sim", choices=("sim", "sim-wire", "serial"))
         serial_params = SerialParams.from_config(imu.section("serial")) if self.imu_source == "serial" else None
         ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
         mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
@@ -76,7 +79,18 @@ class Daemon:
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
-        self.sim_imu = SimImu(imu_params, seed=seed)
+        wire = None
+        if self.imu_source == "sim-wire":
+            # The simulated fingertip speaks tecdar-imu/1 on a pseudo-terminal and the real
+            # serial driver reads it: parser, scaling and clock sync all run in simulation.
+            self._pty_dir = tempfile.mkdtemp(prefix="tecdar-imu-")
+            device = PtyDevice(os.path.join(self._pty_dir, "ttyIMU"))
+            board = Board(BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
+                                      accel_fs_g=imu_params.accel_fs_g))
+            wire = (board, device)
+            serial_params = SerialParams(port=str(device.link), odr_hz=board.p.odr_hz,
+                                         gyro_fs_dps=board.p.gyro_fs_dps, accel_fs_g=board.p.accel_fs_g)
+        self.sim_imu = SimImu(imu_params, seed=seed, wire=wire)
         if serial_params is not None:
             # The real fingertip board: the simulated arm still runs, its IMU signal is unused.
             self.imu = SerialImuSource(serial_params)
@@ -127,7 +141,7 @@ class Daemon:
                 th.join(THREAD_JOIN_S)
             except Exception:
                 log.exception("joining %s", th.name)
-        for step in (self.robot.hold, self.robot.stop, self.imu.close):
+        for step in (self.robot.hold, self.robot.stop, self.imu.close, self.sim_imu.close):
             try:
                 step()
             except Exception:

@@ -146,3 +146,18 @@ def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
         assert d.proc.poll() is None
     finally:
         streamer.join()
+
+
+def test_daemon_rotates_through_the_whole_serial_path_in_simulation(make_daemon):
+    """imu.source: sim-wire: the simulated fingertip speaks tecdar-imu/1 on a pty, the real driver reads it."""
+    d = make_daemon(**{"imu.source": "sim-wire"})
+    reply = d.client.command("rotate", {"angle_deg": 20.0})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
+    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
+    sim = ev["result"]["sim"]
+    assert abs(sim["angle_deg"] - 20.0) < 2.0
+    p = np.array(ev["result"]["hinge"]["p"]) - np.array(sim["hinge_point"])
+    a = np.array(sim["hinge_axis"])
+    assert np.linalg.norm(p - np.dot(p, a) * a) < 0.010
+    assert all(e["kind"] != "fault" for e in d.client.event_log)
