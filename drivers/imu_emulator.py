@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import os
 import pathlib
+import select
 import threading
 import time
+import tty
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,6 +76,7 @@ class PtyDevice:
 
     def __init__(self, link_path: str | pathlib.Path):
         self.link = pathlib.Path(link_path)
+        self.dropped_frames = 0
         self.master = None
         self.slave = None
         self.replug()
@@ -81,8 +84,8 @@ class PtyDevice:
     def replug(self) -> None:
         self.master, self.slave = os.openpty()
         name = os.ttyname(self.slave)
-        import tty
         tty.setraw(self.slave)
+        os.set_blocking(self.master, False)
         tmp = self.link.with_suffix(".tmp")
         if tmp.exists() or tmp.is_symlink():
             tmp.unlink()
@@ -101,10 +104,30 @@ class PtyDevice:
             self.link.unlink()
 
     def write(self, data: bytes) -> None:
+        """Blocking write of everything (for tests that inject exact byte sequences)."""
         view = memoryview(data)
         while view:
-            n = os.write(self.master, view)
+            try:
+                n = os.write(self.master, view)
+            except BlockingIOError:
+                select.select([], [self.master], [], 1.0)
+                continue
             view = view[n:]
+
+    def write_frames(self, frames: list[bytes]) -> int:
+        """Write whole frames without blocking, as a board does: when the host does not read and
+        the buffer is full, the rest are dropped (returns how many). A frame cut short by a
+        partial write is dropped too, and the reader's parser resynchronises."""
+        for i, fr in enumerate(frames):
+            try:
+                n = os.write(self.master, fr)
+            except BlockingIOError:
+                self.dropped_frames += len(frames) - i
+                return len(frames) - i
+            if n < len(fr):
+                self.dropped_frames += len(frames) - i
+                return len(frames) - i
+        return 0
 
     def close(self) -> None:
         self.unplug()
@@ -133,12 +156,13 @@ class StreamThread:
             t_next += n / self.board.p.odr_hz
             gyro = self.rng.normal(0, 0.005, (n, 3))
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
-            data = b"".join(self.board.packets(gyro, accel))
-            if self.mutate is not None:
-                data = self.mutate(data)
+            frames = self.board.packets(gyro, accel)
             if self.device.master is not None:
                 try:
-                    self.device.write(data)
+                    if self.mutate is not None:
+                        self.device.write(self.mutate(b"".join(frames)))
+                    else:
+                        self.device.write_frames(frames)
                 except OSError:
                     pass
             delay = t_next - time.monotonic()

@@ -201,7 +201,7 @@ class SimImu:
             board, device = self.wire
             if device.master is not None:
                 try:
-                    device.write(b"".join(board.packets_raw(raw)))
+                    device.write_frames(board.packets_raw(raw))     # never blocks the physics thread
                 except OSError:
                     self.dropped_chunks += 1
             return
