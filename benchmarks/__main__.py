@@ -28,9 +28,12 @@ def proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
-def bench_rotate(radius: float, seed: int, strategy: str = "arc", angle_deg: float = 30.0) -> dict:
+def bench_rotate(radius: float, seed: int, strategy: str = "arc", angle_deg: float = 30.0,
+                 sim_overrides: dict | None = None) -> dict:
     cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     cfg["sim"]["seed"] = seed
+    for section, values in (sim_overrides or {}).items():
+        cfg["sim"][section].update(values)
     cfg["sim"]["hinge"]["point"] = [0.307 - radius, 0.0, 0.487]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:

@@ -236,6 +236,11 @@ class ContactKF:
         self.corr_samples = 1.0          # IMU samples per proprioception sample
         self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
         self.consistency = 1.0           # smoothed block NIS / its expectation (>= 1 scales the report)
+        # Extra variance, (m/s)^2, of the TCP velocity along the lever arm. Set while a controller
+        # follows an arc about the estimate: its own path error then moves the TCP along the lever
+        # arm, the compliant grasp absorbs it, and that component is no evidence about the contact.
+        # The tangential component (|v| = w |r|) stays, and the turning lever arm triangulates.
+        self.radial_var = 0.0
         self.steps = 0
         self.rejected = 0
         self.nis = 0.0
@@ -278,34 +283,38 @@ class ContactKF:
         n = len(w)
         P = self.P + prm.q_c * duration * np.eye(self.d)
         if self.plane is not None:
-            # In the plane R = a I + b u u^T with u = J r (scalar noise plus the gyro's rank-one
-            # term) and H = -w_n J, so Sherman-Morrison gives R^-1, sum H^T R^-1 H and the NIS
-            # in closed form, element-wise over the block.
+            # In the plane R = a I + b u u^T + c rh rh^T with u = J r: gyro noise acts along the
+            # tangent u, and `radial_var` (distrust of the velocity along the lever arm, see
+            # below) along rh = r/|r|. R is diagonal in (rh, uh), so R^-1, sum H^T R^-1 H
+            # (H = -w_n J) and the NIS are closed forms, element-wise over the block.
             w_n = w @ self.plane.n
             r0 = self.plane.point2(p)                   # TCP relative to the onset TCP, plane coords
             J = Plane.J
             y = self.plane.vec2(v) - w_n[:, None] * ((r0 - self.c) @ J.T)
             r = r0 - c_lin
             a = corr * (var_v + prm.sigma_p ** 2 * w_n ** 2)
-            bq = prm.sigma_w ** 2 + var_w
             rr = (r * r).sum(axis=1)
-            g = bq / (a + bq * rr)                      # R^-1 = (I - g u u^T) / a
-            uy = (r @ J.T * y).sum(axis=1)              # u^T y
+            rn = np.sqrt(np.maximum(rr, 1e-18))
+            rh = r / rn[:, None]
+            uh = rh @ J.T                               # J rh: the tangent
+            inv_r = 1.0 / (a + corr * self.radial_var)           # along the lever arm
+            inv_u = 1.0 / (a + (prm.sigma_w ** 2 + var_w) * rr)  # along the tangent
+            yr = (rh * y).sum(axis=1)
+            yu = (uh * y).sum(axis=1)
             gate = prm.gate_nis > 0 and self.steps > 0 and \
                 float(np.mean(w_n ** 2)) * float(np.trace(P)) < GATE_HPH_RATIO * 2 * float(a.min())
             if gate:
-                nis = ((y * y).sum(axis=1) - g * uy ** 2) / a
+                nis = yr ** 2 * inv_r + yu ** 2 * inv_u
                 keep = nis <= prm.gate_nis
             else:
                 nis, keep = None, None
             k_ = slice(None) if keep is None else keep
-            s_ = (w_n ** 2 / a)[k_]
-            gk, rk = g[k_], r[k_]
-            # sum H^T R^-1 H = sum (w_n^2 / a) (I - g r r^T)   (J^T u = r)
-            A = s_.sum() * np.eye(2) - (rk * (s_ * gk)[:, None]).T @ rk
-            # sum H^T R^-1 y = sum -(w_n / a) (J^T y - g r (u^T y))
-            coef = -(w_n / a)[k_]
-            b = (coef[:, None] * (y[k_] @ J - (gk * uy[k_])[:, None] * rk)).sum(axis=0)
+            w2 = (w_n ** 2)[k_]
+            # J^T rh rh^T J = uh uh^T and J^T uh uh^T J = rh rh^T
+            A = ((uh[k_] * (w2 * inv_r[k_])[:, None]).T @ uh[k_]
+                 + (rh[k_] * (w2 * inv_u[k_])[:, None]).T @ rh[k_])
+            # H^T R^-1 y = w_n J R^-1 y = w_n (uh (rh.y) inv_r - rh (uh.y) inv_u)
+            b = ((w_n * yr * inv_r)[k_, None] * uh[k_] - (w_n * yu * inv_u)[k_, None] * rh[k_]).sum(axis=0)
         else:
             r0 = p - self.origin
             z = v - cross_rows(w, r0)
@@ -317,6 +326,9 @@ class ContactKF:
             r = r0 - c_lin
             R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r) \
                 + (corr * prm.sigma_p ** 2) * _cross_cov(w)
+            if self.radial_var > 0:
+                rh = r / np.maximum(np.linalg.norm(r, axis=1), 1e-9)[:, None]
+                R += (corr * self.radial_var) * (rh[:, :, None] * rh[:, None, :])
             iso = corr * var_v
             R[:, 0, 0] += iso
             R[:, 1, 1] += iso

@@ -157,6 +157,7 @@ class PipelineParams:
     eta_table: list = field(default_factory=lambda: [(30.0, 2.0)])
     grip_force_n: float = 30.0                 # used when no grip force is measured
     eta_rel_std_per_n: float = 0.02            # eta's relative uncertainty grows this much per N off calibration
+    arc_radial_sigma: float = 0.005            # m/s, distrust of the velocity along the lever arm while arc following
     ekf: ContactKfParams = field(default_factory=ContactKfParams)
     paper_ekf: PaperEkfParams = field(default_factory=PaperEkfParams)
     baseline: BaselineParams = field(default_factory=BaselineParams)
@@ -205,12 +206,18 @@ class ContactPipeline:
                     force: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, force)
 
+    def set_arc_following(self, on: bool) -> None:
+        """The controller follows an arc about the estimate (True) or not: see ContactKF.radial_var."""
+        if hasattr(self.estimator, "radial_var"):
+            self.estimator.radial_var = self.params.arc_radial_sigma ** 2 if on else 0.0
+
     def release(self) -> None:
         """End the contact episode: back to bias tracking and an armed trigger."""
         self.tracking = False
         self.onset_t = None
         self.cond.freeze_bias(False)
         self.detector.rearm()
+        self.set_arc_following(False)
 
     def process(self, batch: np.ndarray, force_output: bool = False) -> tuple[list[dict], ContactEstimate | None]:
         """A batch of samples; returns (events, the newest estimate emitted, or None)."""

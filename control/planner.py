@@ -61,9 +61,12 @@ class CartesianPlanner:
     def velocity(self) -> np.ndarray:
         return np.array(self.inp.current_velocity)
 
-    def step(self, target_p: np.ndarray, target_v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Plan towards (target_p, target_v) and advance one tick; returns the new (p, v)."""
+    def step(self, target_p: np.ndarray, target_v: np.ndarray | None = None,
+             min_duration_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Plan towards (target_p, target_v), taking at least min_duration_s, and advance one tick;
+        returns the new (p, v)."""
         self.inp.control_interface = ruckig.ControlInterface.Position
+        self.inp.minimum_duration = min_duration_s if min_duration_s and min_duration_s > self.tick_s else None
         self.inp.target_position = list(map(float, target_p))
         tv = np.zeros(3) if target_v is None else np.asarray(target_v, dtype=float)
         # A target velocity beyond the per-axis limit is infeasible: scale it
@@ -79,6 +82,7 @@ class CartesianPlanner:
     def brake(self) -> tuple[np.ndarray, np.ndarray]:
         """Decelerate to rest within the jerk and acceleration limits (velocity interface)."""
         self.inp.control_interface = ruckig.ControlInterface.Velocity
+        self.inp.minimum_duration = None
         self.inp.target_velocity = [0.0] * 3
         self.inp.target_acceleration = [0.0] * 3
         return self._update()

@@ -33,6 +33,7 @@ class TickInput:
     R: np.ndarray             # measured TCP orientation, world <- TCP
     contact: ContactView
     planner_at_rest: bool
+    p_plan: np.ndarray | None = None   # where the planner has the TCP now (None: use p)
 
 
 @dataclass
@@ -41,6 +42,7 @@ class Motion:
     p: np.ndarray
     v: np.ndarray
     R: np.ndarray
+    min_duration_s: float | None = None   # reach the target no sooner than this (paces look-ahead targets)
 
 
 @dataclass
@@ -166,6 +168,11 @@ class TwoPhaseTask:
             return None
         phi = signed_angle(r0, inp.p - c.p, a)
         self._angle, self._radius = phi, rho
+        # The look-ahead advances from the *planned* position: the arm runs a little ahead of or
+        # behind the plan, and a target placed from the measured TCP would run away (or stall),
+        # making the planner cut across the arc.
+        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        phi_plan = signed_angle(r0, p_ref - c.p, a)
         self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
         remaining = self.angle_rad - phi
         if remaining <= ANGLE_TOL_RAD and inp.planner_at_rest:
@@ -175,12 +182,14 @@ class TwoPhaseTask:
             self._fail("arc following did not reach the angle in time")
             return None
         lookahead = self.speed * LOOKAHEAD_S / rho
-        phi_t = min(phi + lookahead, self.angle_rad)
+        phi_t = min(phi_plan + lookahead, self.angle_rad)
         Rot = rotvec_to_matrix(a * phi_t)
         target = c.p + Rot @ r0
         tangent = np.cross(a, Rot @ r0_perp) / rho
         v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
-        return Motion(target, v, self.R_hold)
+        # Ruckig's limits are per axis: without a duration it would race a look-ahead target
+        # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
+        return Motion(target, v, self.R_hold, min_duration_s=(phi_t - phi_plan) * rho / self.speed)
 
     def _step_straight(self, inp: TickInput) -> Motion | None:
         s = float(np.dot(inp.p - self.p_start, self.direction))

@@ -14,6 +14,7 @@ class JointState:
     q: np.ndarray            # rad
     qd: np.ndarray           # rad/s
     seq: int = 0             # increments with every new measurement
+    tcp_twist: np.ndarray | None = None   # [v; w] world-aligned, m/s and rad/s, when the robot reports it
 
 
 @dataclass

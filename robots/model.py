@@ -14,6 +14,9 @@ IK_POS_GAIN_PER_S = 5.0     # feedback on Cartesian position error, 1/s
 IK_ROT_GAIN_PER_S = 5.0     # feedback on orientation error, 1/s
 IK_POSTURE_GAIN_PER_S = 0.5 # null-space pull towards the home posture, 1/s
 JOINT_LIMIT_MARGIN_RAD = 0.02
+IK_MAX_ITERATIONS = 300
+IK_STALL_ITERATIONS = 25    # no progress for this many iterations: unreachable
+IK_MAX_STEP_RAD = 0.2
 
 # Arms by name: URDF path under example-robot-data's robots/ and the flange frame.
 ARMS = {
@@ -121,6 +124,40 @@ class ArmModel:
         if scale > 1.0:
             qd /= scale
         return qd
+
+    def solve_ik(self, oMdes: pin.SE3, q0: np.ndarray, tol_m: float = 1e-5, tol_rad: float = 1e-4,
+                 max_iter: int = IK_MAX_ITERATIONS) -> tuple[np.ndarray, bool, float]:
+        """Joint positions reaching oMdes from q0 by damped least squares, within joint limits.
+
+        Returns (q, reached, position error m). An unreachable target (out of reach, against a
+        joint limit) ends with reached=False and the closest configuration found, never NaN.
+        """
+        q = np.clip(np.asarray(q0, dtype=float).copy(), self.q_min, self.q_max)
+        best_q, best_err = q.copy(), np.inf
+        stall = 0
+        for _ in range(max_iter):
+            oM = self.fk(q)
+            err_p = oMdes.translation - oM.translation
+            err_r = pin.log3(oMdes.rotation @ oM.rotation.T)
+            e_p, e_r = float(np.linalg.norm(err_p)), float(np.linalg.norm(err_r))
+            if e_p < tol_m and e_r < tol_rad:
+                return q, True, e_p
+            score = e_p + 0.1 * e_r
+            if score < best_err - 1e-9:
+                best_q, best_err, stall = q.copy(), score, 0
+            else:
+                stall += 1
+                if stall > IK_STALL_ITERATIONS:
+                    break
+            J = self.jacobian(q)
+            JJt = J @ J.T + (DLS_DAMPING ** 2) * np.eye(6)
+            dq = J.T @ np.linalg.solve(JJt, np.concatenate([err_p, err_r]))
+            step = np.max(np.abs(dq))
+            if step > IK_MAX_STEP_RAD:
+                dq *= IK_MAX_STEP_RAD / step
+            q = np.clip(q + dq, self.q_min, self.q_max)
+        oM = self.fk(best_q)
+        return best_q, False, float(np.linalg.norm(oMdes.translation - oM.translation))
 
     def servo_twist(self, oMtcp: pin.SE3, p_des: np.ndarray, v_des: np.ndarray, R_des: np.ndarray,
                     w_des: np.ndarray) -> np.ndarray:

@@ -26,6 +26,7 @@ class SimRobotParams:
     command_latency_s: float = 0.002
     tracking_tau_s: float = 0.01
     encoder_noise_rad: float = 5e-5
+    tcp_speed_noise: float = 2e-4      # m/s, noise of the reported TCP velocity
 
     @classmethod
     def from_config(cls, section, q_home: np.ndarray) -> "SimRobotParams":
@@ -35,6 +36,7 @@ class SimRobotParams:
             command_latency_s=section.getfloat("command_latency_s", 0.002, minval=0.0, maxval=0.1),
             tracking_tau_s=section.getfloat("tracking_tau_s", 0.01, minval=0.0, maxval=0.5),
             encoder_noise_rad=section.getfloat("encoder_noise_rad", 5e-5, minval=0.0),
+            tcp_speed_noise=section.getfloat("tcp_speed_noise", 2e-4, minval=0.0),
         )
 
 
@@ -48,14 +50,18 @@ class SimRobot:
     lag of `tracking_tau_s`.
     """
 
-    def __init__(self, model: ArmModel, params: SimRobotParams, world_factory=None, imu=None, seed: int = 0):
+    def __init__(self, model: ArmModel, params: SimRobotParams, world_factory=None, imu=None, seed: int = 0,
+                 clock=time.monotonic):
+        """`clock` is the time source (monotonic by default). For as-fast-as-possible runs pass a
+        manual clock and call `advance_to()` yourself instead of `start()`."""
+        self.clock = clock
         self.model = model.clone()
         self.p = params
         self.imu = imu
         self.rng = np.random.default_rng(seed + 1)
         self.q = params.q_home.copy()
         self.qd = np.zeros(model.nq)
-        self.t = None
+        self.t = clock()
         oMtcp, twist = self.model.fk_twist(self.q, self.qd)
         self.world = world_factory(oMtcp.translation.copy()) if world_factory else None
         self._v_prev = twist[:3].copy()
@@ -63,7 +69,7 @@ class SimRobot:
         self._pending: collections.deque = collections.deque()        # owned by the physics thread
         self._qd_cmd = np.zeros(model.nq)
         self._lock = threading.Lock()
-        self._state = JointState(t=time.monotonic(), q=self.q.copy(), qd=self.qd.copy(), seq=0)
+        self._state = JointState(t=clock(), q=self.q.copy(), qd=self.qd.copy(), seq=0, tcp_twist=twist.copy())
         self._truth = self._make_truth()
         self._next_proprio = 0.0
         self._stop = threading.Event()
@@ -85,14 +91,14 @@ class SimRobot:
         if qd.shape != (self.model.nq,) or not np.all(np.isfinite(qd)):
             raise ValueError(f"qd: expected {self.model.nq} finite joint rates")
         with self._lock:
-            self._cmds.append((time.monotonic() + self.p.command_latency_s, qd.copy()))
+            self._cmds.append((self.clock() + self.p.command_latency_s, qd.copy()))
 
     def hold(self) -> None:
         self.command_joint_velocity(np.zeros(self.model.nq))
 
     # -- lifecycle ----------------------------------------------------------
     def start(self) -> None:
-        self.t = time.monotonic()
+        self.t = self.clock()
         self._next_proprio = self.t
         self._thread = threading.Thread(target=self._run, name="sim-physics", daemon=True)
         self._thread.start()
@@ -107,7 +113,7 @@ class SimRobot:
         while not self._stop.is_set():
             t_next += PHYSICS_WAKE_S
             try:
-                self.advance_to(time.monotonic())
+                self.advance_to(self.clock())
             except Exception:
                 log.exception("sim physics failed")
                 raise
@@ -162,8 +168,11 @@ class SimRobot:
             if self.t >= self._next_proprio:
                 self._next_proprio += 1.0 / self.p.proprio_rate_hz
                 noisy_q = self.q + self.rng.normal(0.0, self.p.encoder_noise_rad, self.q.shape)
+                reported = twist.copy()
+                reported[:3] += self.rng.normal(0.0, self.p.tcp_speed_noise, 3)
                 with self._lock:
-                    self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1)
+                    self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
+                                             tcp_twist=reported)
         a_tcp[0] = a_tcp[1] if n >= 1 else 0.0
         with self._lock:
             self._truth = self._make_truth()

@@ -33,6 +33,7 @@ class ControlParams:
     workspace_min: tuple = (-1.0, -1.0, 0.0)
     workspace_max: tuple = (1.0, 1.0, 1.5)
     imu_stale_s: float = 0.05
+    max_tracking_error_m: float = 0.01
 
     @classmethod
     def from_config(cls, section, max_speed: float) -> "ControlParams":
@@ -45,6 +46,8 @@ class ControlParams:
             workspace_min=tuple(section.getvec3("workspace_min", list(d.workspace_min))),
             workspace_max=tuple(section.getvec3("workspace_max", list(d.workspace_max))),
             imu_stale_s=section.getfloat("imu_stale_s", d.imu_stale_s, above=0.0, maxval=1.0),
+            max_tracking_error_m=section.getfloat("max_tracking_error_m", d.max_tracking_error_m, above=0.0,
+                                                  maxval=0.1),
         )
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
             from tecdard.config import ConfigError
@@ -177,6 +180,8 @@ class ControlThread:
     def tick(self, now: float) -> None:
         js = self.robot.read_state()
         oMtcp, twist = self.model.fk_twist(js.q, js.qd)
+        if js.tcp_twist is not None:
+            twist = js.tcp_twist          # the robot's own report of its TCP velocity
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         v, w = twist[:3].copy(), twist[3:].copy()
         if js.seq != self._last_proprio_seq:
@@ -298,8 +303,11 @@ class ControlThread:
                                in_plane_std=est.in_plane_std)
         else:
             view = ContactView(tracking=False)
-        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest))
+        phase_before = task.status.phase
+        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position))
         st = task.status
+        if st.phase != phase_before and "arc" in (st.phase, phase_before):
+            self._put(("arc", st.phase == "arc"), self.to_estimator)
         if motion is None:
             if st.state == "done":
                 self._end_task("done", result=st.result)
@@ -307,11 +315,17 @@ class ControlThread:
                 self._end_task("failed", error=st.error)
             return self._brake_step()
         self._R_hold = motion.R
+        lag = float(np.linalg.norm(self.planner.position - p))
+        if lag > self.p.max_tracking_error_m:
+            # the arm is not following (a joint at its limit, an unreachable target, a collision)
+            self._protective_stop("tracking", f"TCP {lag * 1e3:.1f} mm from its planned position "
+                                              f"(limit {self.p.max_tracking_error_m * 1e3:.0f} mm)")
+            return self._brake_step()
         if np.any(motion.p < self.p.workspace_min) or np.any(motion.p > self.p.workspace_max):
             self._protective_stop("workspace", f"target {np.round(motion.p, 4).tolist()} leaves the workspace box")
             return self._brake_step()
         try:
-            return self.planner.step(motion.p, motion.v)
+            return self.planner.step(motion.p, motion.v, motion.min_duration_s)
         except PlannerError as exc:
             self._protective_stop("planner", str(exc))
             return self._brake_step()

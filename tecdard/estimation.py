@@ -46,6 +46,7 @@ def build_pipeline(section, R_tcp_imu: np.ndarray, odr_hz: float = 6667.0, metho
         eta_table=_eta_table(section),
         grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0),
         eta_rel_std_per_n=section.getfloat("eta_rel_std_per_n", 0.02, minval=0.0, maxval=1.0),
+        arc_radial_sigma=section.getfloat("arc_radial_sigma", 0.005, minval=0.0, maxval=1.0),
         ekf=ContactKfParams.from_config(section.section("ekf")),
         paper_ekf=PaperEkfParams.from_config(section.section("paper_ekf")),
     )

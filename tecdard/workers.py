@@ -61,6 +61,8 @@ class EstimatorThread:
                     pipe.add_proprio(*msg[1:])
                 elif msg[0] == "release":
                     pipe.release()
+                elif msg[0] == "arc":
+                    pipe.set_arc_following(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
             events, est = pipe.process(batch)
             for ev in events:
