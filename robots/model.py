@@ -27,6 +27,15 @@ ARMS = {
     "z1": ("z1_description/urdf/z1.urdf", "gripperStator"),
     "xarm7": ("xarm_description/urdf/xarm7.urdf", "link7"),
 }
+# A well-conditioned "ready" posture per arm (rad): smallest Jacobian singular value >= 0.1.
+READY_Q = {
+    "panda": (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785),
+    "ur3": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
+    "ur5": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
+    "ur10": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
+    "z1": (0.0, 1.2, -1.0, -0.3, 0.0, 0.0),
+    "xarm7": (0.0, -0.4, 0.0, 0.6, 0.0, 1.0, 0.0),
+}
 
 
 class UnknownRobotError(ValueError):
@@ -150,8 +159,14 @@ class ArmModel:
                 if stall > IK_STALL_ITERATIONS:
                     break
             J = self.jacobian(q)
-            JJt = J @ J.T + (DLS_DAMPING ** 2) * np.eye(6)
-            dq = J.T @ np.linalg.solve(JJt, np.concatenate([err_p, err_r]))
+            e = np.concatenate([err_p, err_r])
+            dq = J.T @ np.linalg.solve(J @ J.T + (DLS_DAMPING ** 2) * np.eye(6), e)
+            # joints pinned at a limit and pushed further: take them out and solve with the rest
+            pinned = ((q <= self.q_min + 1e-9) & (dq < 0)) | ((q >= self.q_max - 1e-9) & (dq > 0))
+            if pinned.any():
+                Jf = J.copy()
+                Jf[:, pinned] = 0.0
+                dq = Jf.T @ np.linalg.solve(Jf @ Jf.T + (DLS_DAMPING ** 2) * np.eye(6), e)
             step = np.max(np.abs(dq))
             if step > IK_MAX_STEP_RAD:
                 dq *= IK_MAX_STEP_RAD / step

@@ -71,7 +71,7 @@ class SimRobot:
         self._lock = threading.Lock()
         self._state = JointState(t=clock(), q=self.q.copy(), qd=self.qd.copy(), seq=0, tcp_twist=twist.copy())
         self._truth = self._make_truth()
-        self._next_proprio = 0.0
+        self._next_proprio = self.t          # the proprioception schedule starts at the robot's clock
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.overruns = 0

@@ -3,7 +3,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robots.model import ArmModel
+from robots.model import READY_Q, ArmModel
 
 POS_TOL_M = 1e-4
 ROT_TOL_RAD = 1e-3
@@ -55,3 +55,25 @@ def test_joint_limits_and_rates_are_respected():
 def test_unknown_arm_is_a_clear_error():
     with pytest.raises(ValueError, match="robot.model: unknown arm 'robbie'"):
         ArmModel("robbie")
+
+
+@pytest.mark.parametrize("name", ["panda", "ur3", "ur5", "ur10", "z1", "xarm7"])
+def test_every_arm_loads_and_solves_ik(name):
+    arm = ArmModel(name, tool_offset=[0.0, 0.0, 0.05])
+    q0 = np.array(READY_Q[name])
+    start = arm.fk(q0)
+    assert np.all(np.isfinite(start.translation))
+    target = pin.SE3(start.rotation, start.translation + np.array([0.02, -0.01, 0.015]))
+    q, reached, err = arm.solve_ik(target, q0)
+    assert reached, f"{name}: {err * 1e3:.2f} mm"
+    assert np.all(q >= arm.q_min - 1e-12) and np.all(q <= arm.q_max + 1e-12)
+
+
+def test_unreachable_target_is_reported_not_diverging():
+    arm = ArmModel("panda")
+    q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    far = pin.SE3(np.eye(3), np.array([2.5, 0.0, 0.5]))        # 2.5 m away: out of reach
+    q, reached, err = arm.solve_ik(far, q0)
+    assert not reached
+    assert np.all(np.isfinite(q)) and err > 1.0
+    assert np.all(q >= arm.q_min) and np.all(q <= arm.q_max)
