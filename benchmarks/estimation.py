@@ -32,10 +32,7 @@ TIME_BINS_S = np.array([0.005, 0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.18, 0.25, 0
 
 
 def to_recording(fields) -> Recording:
-    return Recording(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
-                                               "imu_in_tcp_quat")},
-                     grip_force=fields["grip_force"], plane_normal=fields["plane_normal"],
-                     tcp_vel=fields["tcp_vel"], meta=fields["meta"])
+    return Recording.from_fields(fields)
 
 
 def run_method(rec: Recording, truth: dict, method: str) -> dict:

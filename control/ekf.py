@@ -388,17 +388,6 @@ class ContactKF:
             return self.plane.lift(self.c), self.plane.lift_cov(self.P, UNOBSERVED_STD_M ** 2)
         return self.origin + self.c, self.P.copy()
 
-    def filter_covariance(self) -> np.ndarray:
-        """The filter's own covariance (statistical errors only), world frame."""
-        return self._lift()[1] * max(self.consistency, 1.0)
-
-    def covariance(self) -> np.ndarray:
-        """Reported covariance: filter P plus the radial eta floor, world frame."""
-        cov = self.filter_covariance()
-        r = self._r_last
-        r3 = r @ self.plane.E if self.plane is not None else r
-        return cov + (self.eta_rel_std ** 2) * np.outer(r3, r3)
-
     def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p_c, reported covariance with the eta floor, the filter's own covariance), world."""
         p_c, stat = self._lift()

@@ -78,10 +78,7 @@ def _cmd_sim_record(args) -> int:
     except ValueError as exc:
         print(f"tecdard sim-record: {exc}", file=sys.stderr)
         return 2
-    rec = Recording(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
-                                              "imu_in_tcp_quat")},
-                    grip_force=fields["grip_force"], plane_normal=fields["plane_normal"],
-                    tcp_vel=fields["tcp_vel"], meta=fields["meta"])
+    rec = Recording.from_fields(fields)
     save_recording(args.out, rec, truth)
     print(f"wrote {args.out}: {sc.kind}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
           f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {sc.rest_s:g} s")

@@ -31,6 +31,14 @@ class Recording:
     tcp_vel: np.ndarray | None = None       # (M, 3) m/s, world
     meta: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_fields(cls, fields: dict) -> "Recording":
+        """From a dict of the format's keys (e.g. robots.scenarios.generate); absent optionals are None."""
+        return cls(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
+                                             "imu_in_tcp_quat")},
+                   grip_force=fields.get("grip_force"), plane_normal=fields.get("plane_normal"),
+                   tcp_vel=fields.get("tcp_vel"), meta=fields.get("meta") or {})
+
     @property
     def imu_rate_hz(self) -> float:
         return float(1.0 / np.median(np.diff(self.imu_t)))
@@ -44,16 +52,23 @@ class Recording:
         return float(self.imu_t[-1] - self.imu_t[0])
 
 
-def _array(data, key: str, shape: tuple, required: bool = True):
-    """The key as float64 of `shape` (None entries: any length); RecordingError otherwise."""
+def _raw(data, key: str, required: bool, expected: str):
+    """The stored array for key, None when optional and absent; RecordingError otherwise."""
     if key not in data:
         if required:
             raise RecordingError(f"{key}: missing required key")
         return None
     try:
-        raw = data[key]
+        return data[key]
     except ValueError:
-        raise RecordingError(f"{key}: holds Python objects (pickled); expected a numeric array") from None
+        raise RecordingError(f"{key}: holds Python objects (pickled); expected {expected}") from None
+
+
+def _array(data, key: str, shape: tuple, required: bool = True):
+    """The key as float64 of `shape` (None entries: any length); RecordingError otherwise."""
+    raw = _raw(data, key, required, "a numeric array")
+    if raw is None:
+        return None
     if raw.dtype.kind not in "fiu":
         raise RecordingError(f"{key}: expected a numeric array, got dtype {raw.dtype}")
     arr = np.asarray(raw, dtype=np.float64)
@@ -68,14 +83,9 @@ def _array(data, key: str, shape: tuple, required: bool = True):
 
 
 def _string(data, key: str, required: bool) -> str | None:
-    if key not in data:
-        if required:
-            raise RecordingError(f"{key}: missing required key")
+    raw = _raw(data, key, required, "a string")
+    if raw is None:
         return None
-    try:
-        raw = data[key]
-    except ValueError:
-        raise RecordingError(f"{key}: holds Python objects (pickled); expected a string") from None
     if raw.ndim != 0 or raw.dtype.kind not in "US":
         raise RecordingError(f"{key}: expected a string scalar, got dtype {raw.dtype} shape {raw.shape}")
     value = raw.item()

@@ -15,10 +15,7 @@ LOCALIZE_TOL_M = 3e-3
 
 def scenario_file(path, **kw):
     fields, truth = generate(Scenario(**kw))
-    rec = Recording(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
-                                              "imu_in_tcp_quat")},
-                    grip_force=fields["grip_force"], plane_normal=fields["plane_normal"],
-                    tcp_vel=fields["tcp_vel"], meta=fields["meta"])
+    rec = Recording.from_fields(fields)
     save_recording(path, rec, truth)
     return path
 
