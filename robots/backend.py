@@ -15,6 +15,7 @@ class JointState:
     qd: np.ndarray           # rad/s
     seq: int = 0             # increments with every new measurement
     tcp_twist: np.ndarray | None = None   # [v; w] world-aligned, m/s and rad/s, when the robot reports it
+    tcp_force: np.ndarray | None = None   # external force on the TCP, world, N, when the robot estimates it
 
 
 @dataclass

@@ -63,7 +63,7 @@ class SimRobot:
         self.qd = np.zeros(model.nq)
         self.t = clock()
         oMtcp, twist = self.model.fk_twist(self.q, self.qd)
-        self.world = world_factory(oMtcp.translation.copy()) if world_factory else None
+        self.world = world_factory(oMtcp.translation.copy(), oMtcp.rotation.copy()) if world_factory else None
         self._v_prev = twist[:3].copy()
         self._cmds: collections.deque = collections.deque(maxlen=64)   # (t_effective, qd), from any thread
         self._pending: collections.deque = collections.deque()        # owned by the physics thread
@@ -158,10 +158,10 @@ class SimRobot:
             self._v_prev = twist[:3]
             Rs[k] = oMtcp.rotation
             if self.world is not None:
-                if k > 0 and self.world.step(oMtcp.translation, dt) and self.imu is not None:
-                    # the object starts to move (breakaway, impact): the fingertip rings
-                    self.imu.impact(self.t, self.world.tangent(oMtcp.translation),
-                                    amplitude_m_s2=self.world.p.breakaway_m_s2)
+                if k > 0 and self.world.step(oMtcp.translation, dt, oMtcp.rotation) and self.imu is not None:
+                    # the object is hit or starts to move: the fingertip rings
+                    direction, amplitude = self.world.ring(oMtcp.translation, twist[:3])
+                    self.imu.impact(self.t, direction, float(np.linalg.norm(twist[:3])), amplitude)
                 w_obj[k] = self.world.object_rate_world()
             else:
                 w_obj[k] = twist[3:]
@@ -170,9 +170,10 @@ class SimRobot:
                 noisy_q = self.q + self.rng.normal(0.0, self.p.encoder_noise_rad, self.q.shape)
                 reported = twist.copy()
                 reported[:3] += self.rng.normal(0.0, self.p.tcp_speed_noise, 3)
+                force = self.world.tcp_force() if self.world is not None else np.zeros(3)
                 with self._lock:
                     self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
-                                             tcp_twist=reported)
+                                             tcp_twist=reported, tcp_force=force)
         a_tcp[0] = a_tcp[1] if n >= 1 else 0.0
         with self._lock:
             self._truth = self._make_truth()
@@ -180,8 +181,4 @@ class SimRobot:
             self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs)
 
     def _make_truth(self) -> SimTruth | None:
-        if self.world is None:
-            return None
-        return SimTruth(hinge_point=self.world.hinge_now.copy(), hinge_axis=self.world.axis.copy(),
-                        handle_angle_rad=self.world.angle, base_displacement_m=self.world.base_displacement(),
-                        extra={"radius_m": self.world.radius, "hinge_point_initial": self.world.p.hinge_point.tolist()})
+        return SimTruth(**self.world.truth()) if self.world is not None else None

@@ -13,6 +13,26 @@ MOTION_START_RATE_RAD_S = 0.01   # handle rate that counts as "starts to move"
 REST_BEFORE_START_S = 0.2        # handle must have rested this long for a new start event
 
 
+class MotionStart:
+    """Detects an object starting to turn after resting (a breakaway, which rings the fingertip)."""
+
+    def __init__(self):
+        self._rest_s = REST_BEFORE_START_S
+        self._moving = False
+
+    def update(self, rate_rad_s: float, dt: float) -> bool:
+        started = False
+        if rate_rad_s > MOTION_START_RATE_RAD_S:
+            if not self._moving and self._rest_s >= REST_BEFORE_START_S:
+                started = True
+            self._moving = True
+            self._rest_s = 0.0
+        else:
+            self._moving = False
+            self._rest_s += dt
+        return started
+
+
 @dataclass
 class HingeParams:
     hinge_point: np.ndarray          # a point of the hinge axis, world, m (base at rest)
@@ -65,8 +85,7 @@ class HingeWorld:
         self.angle = 0.0
         self.rate = 0.0
         self.force = np.zeros(3)
-        self._rest_s = REST_BEFORE_START_S
-        self._moving = False
+        self._start = MotionStart()
 
     @property
     def hinge_now(self) -> np.ndarray:
@@ -83,7 +102,7 @@ class HingeWorld:
         g = h + self.along * self.axis + self.radius * u
         return p_tcp - g, u
 
-    def step(self, p_tcp: np.ndarray, dt: float) -> bool:
+    def step(self, p_tcp: np.ndarray, dt: float, R_tcp: np.ndarray | None = None) -> bool:
         """Advance by dt with the TCP at p_tcp; returns True when the handle starts to move."""
         k = self.p.grasp_stiffness_n_m
         f_static = self.p.friction_mu * self.p.base_mass_kg * GRAVITY_M_S2
@@ -101,16 +120,7 @@ class HingeWorld:
         angle = signed_angle(self.e0, u, self.axis)
         self.rate = (angle - self.angle) / dt
         self.angle = angle
-        started = False
-        if abs(self.rate) > MOTION_START_RATE_RAD_S:
-            if not self._moving and self._rest_s >= REST_BEFORE_START_S:
-                started = True
-            self._moving = True
-            self._rest_s = 0.0
-        else:
-            self._moving = False
-            self._rest_s += dt
-        return started
+        return self._start.update(abs(self.rate), dt)
 
     def object_rate_world(self) -> np.ndarray:
         """The handle's angular velocity, world, rad/s."""
@@ -119,3 +129,140 @@ class HingeWorld:
     def tangent(self, p_tcp: np.ndarray) -> np.ndarray:
         _, u = self._grasp_deviation(p_tcp)
         return np.cross(self.axis, u)
+
+    def ring(self, p_tcp: np.ndarray, v_tcp: np.ndarray) -> tuple[np.ndarray, float | None]:
+        """(direction, amplitude or None for speed-scaled) of the ring at a start event."""
+        return self.tangent(p_tcp), self.p.breakaway_m_s2
+
+    def tcp_force(self) -> np.ndarray:
+        """Force of the world on the TCP, N, world frame (the handle pulls back on the grasp)."""
+        return -self.force
+
+    def truth(self) -> dict:
+        return {"hinge_point": self.hinge_now.copy(), "hinge_axis": self.axis.copy(),
+                "handle_angle_rad": self.angle, "base_displacement_m": self.base_displacement(),
+                "extra": {"radius_m": self.radius, "hinge_point_initial": self.p.hinge_point.tolist()}}
+
+
+@dataclass
+class TableEdge:
+    """A table top at height `height` (world z) for x < `edge_x`: its edge is a line along world y."""
+    height: float
+    edge_x: float
+
+    def surface_z(self, x: float, y: float) -> float:
+        return self.height if x <= self.edge_x else -np.inf
+
+
+@dataclass
+class PivotParams:
+    tip_in_tcp: np.ndarray               # the tool tip in the TCP frame, m (a held block's far edge, a pen tip)
+    surface: TableEdge
+    grasp_stiffness_n_m: float = 3000.0  # along the tool: pushing compresses the grasp
+    slide_force_n: float = 6.0           # the tool slides in the grasp beyond this axial force
+    lift_off_m: float = 0.003            # the tip leaves the surface when pulled this far back (grasp preload)
+    breakaway_m_s2: float = 1.0          # fingertip ring when a resting tool starts to turn
+
+    @classmethod
+    def from_config(cls, section) -> "PivotParams":
+        return cls(tip_in_tcp=np.array(section.getvec3("tip_in_tcp", [0.0, 0.0, 0.12])),
+                   surface=TableEdge(section.getfloat("table_height", 0.30),
+                                     section.getfloat("edge_x", 10.0)),
+                   grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
+                   slide_force_n=section.getfloat("slide_force_n", 6.0, above=0.0),
+                   lift_off_m=section.getfloat("lift_off_m", 0.003, above=0.0),
+                   breakaway_m_s2=section.getfloat("breakaway_m_s2", 1.0, minval=0.0))
+
+
+class PivotWorld:
+    """A rigid tool held in soft fingertips meets a surface, then pivots about the point it touched.
+
+    Free: the tool moves with the gripper. Contact begins when the tip reaches the surface; the
+    tip is then pinned there (static friction) and the tool's direction follows the TCP:
+    d = (p_tcp - c) / |p_tcp - c|. The grasp holds the tool at length L from the TCP; pushing
+    along the tool compresses the grasp (force k * (L - |p_tcp - c|)) until it slides at
+    `slide_force_n`, which is how a translational probe changes the lever arm and how a blunt
+    push (no rotation possible) shows up as a force rise. Pulling back lifts the tip off.
+    """
+
+    def __init__(self, params: PivotParams, p_tcp0: np.ndarray, R_tcp0: np.ndarray):
+        self.p = params
+        self.R_tcp0 = np.asarray(R_tcp0, dtype=float)
+        self.tip_local = np.asarray(params.tip_in_tcp, dtype=float)
+        self.L = float(np.linalg.norm(self.tip_local))
+        if self.L < 0.01:
+            raise ValueError("pivot.tip_in_tcp: the tool must reach at least 1 cm beyond the TCP")
+        self.contact: np.ndarray | None = None
+        self.d = None                   # tool direction (TCP -> tip), world
+        self.rate = np.zeros(3)         # tool angular velocity, world
+        self.force = np.zeros(3)        # force of the surface on the tool (through the grasp), world
+        self.contacts = 0
+        self._d_prev = None
+        self._start = MotionStart()
+        self._impact = False
+
+    def tip(self, p_tcp: np.ndarray, R_tcp: np.ndarray) -> np.ndarray:
+        return p_tcp + R_tcp @ self.tip_local
+
+    def step(self, p_tcp: np.ndarray, dt: float, R_tcp: np.ndarray | None = None) -> bool:
+        """Advance by dt; returns True at the instant of impact."""
+        R_tcp = self.R_tcp0 if R_tcp is None else R_tcp
+        impact = False
+        if self.contact is None:
+            tip = self.tip(p_tcp, R_tcp)
+            z = self.p.surface.surface_z(tip[0], tip[1])
+            d = R_tcp @ self.tip_local / self.L
+            if tip[2] <= z:
+                # the tip is pinned where it met the surface; it cannot sink in
+                self.contact = np.array([tip[0], tip[1], z])
+                self.contacts += 1
+                impact = True
+            else:
+                self.rate = np.zeros(3) if self._d_prev is None else np.cross(self._d_prev, d) / dt
+                self._d_prev, self.d = d, d
+                self.force = np.zeros(3)
+                return False
+        r = p_tcp - self.contact                  # contact -> TCP
+        dist = float(np.linalg.norm(r))
+        d = -r / max(dist, 1e-9)                  # TCP -> tip
+        compression = self.L - dist
+        if compression < -self.p.lift_off_m:      # pulled away: the tip lifts off
+            # the tool keeps the attitude it had in the soft grasp (it does not snap back)
+            self.tip_local = R_tcp.T @ (self.d * self.L) if self.d is not None else self.tip_local
+            self.contact = None
+            self.force = np.zeros(3)
+            self.rate = np.zeros(3)
+            return False
+        f_axial = self.p.grasp_stiffness_n_m * max(compression, 0.0)
+        if f_axial > self.p.slide_force_n:        # the tool slides in the grasp: a shorter lever arm
+            self.L = dist + self.p.slide_force_n / self.p.grasp_stiffness_n_m
+            f_axial = self.p.slide_force_n
+        self.force = -f_axial * d                 # the surface pushes back along the tool
+        self.rate = np.zeros(3) if self._d_prev is None else np.cross(self._d_prev, d) / dt
+        self._d_prev, self.d = d, d
+        started = self._start.update(float(np.linalg.norm(self.rate)), dt)
+        self._impact = impact
+        return impact or started
+
+    def object_rate_world(self) -> np.ndarray:
+        return self.rate
+
+    def in_contact(self) -> bool:
+        return self.contact is not None
+
+    def ring(self, p_tcp: np.ndarray, v_tcp: np.ndarray) -> tuple[np.ndarray, float | None]:
+        """An impact rings along the motion, scaled by speed; a breakaway rings with its own amplitude."""
+        speed = float(np.linalg.norm(v_tcp))
+        direction = v_tcp / speed if speed > 1e-9 else np.array([0.0, 0.0, 1.0])
+        return direction, (None if self._impact else self.p.breakaway_m_s2)
+
+    def tcp_force(self) -> np.ndarray:
+        """Force of the world on the TCP, N, world frame (the surface pushes back through the grasp)."""
+        return self.force.copy()
+
+    def truth(self) -> dict:
+        c = self.contact if self.contact is not None else np.zeros(3)
+        return {"hinge_point": np.array(c), "hinge_axis": np.zeros(3), "handle_angle_rad": 0.0,
+                "base_displacement_m": 0.0,
+                "extra": {"contact": None if self.contact is None else self.contact.tolist(),
+                          "lever_arm_m": self.L, "force_n": self.force.tolist(), "contacts": self.contacts}}

@@ -19,7 +19,7 @@ from drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.model import ArmModel, UnknownRobotError
 from robots.sim import SimRobot, SimRobotParams
-from robots.world import HingeParams, HingeWorld
+from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
@@ -76,6 +76,9 @@ class Daemon:
         imu_params = SimImuParams.from_config(sim_imu, default_mount=mount)
         robot_params = SimRobotParams.from_config(sim.section("robot"), self.q_home)
         hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
+        pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
+        if hinge is not None and pivot is not None:
+            raise ConfigError("sim.pivot: give one world, sim.hinge or sim.pivot, not both")
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
@@ -101,7 +104,12 @@ class Daemon:
                 self.imu.mark_lost(str(exc))
         else:
             self.imu = self.sim_imu
-        factory = (lambda p_tcp: HingeWorld(hinge, p_tcp)) if hinge is not None else None
+        if hinge is not None:
+            factory = lambda p_tcp, R_tcp: HingeWorld(hinge, p_tcp)          # noqa: E731
+        elif pivot is not None:
+            factory = lambda p_tcp, R_tcp: PivotWorld(pivot, p_tcp, R_tcp)   # noqa: E731
+        else:
+            factory = None
         try:
             self.robot = SimRobot(self.model, robot_params, factory, self.sim_imu, seed=seed)
         except ValueError as exc:

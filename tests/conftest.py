@@ -20,14 +20,17 @@ DAEMON_START_TIMEOUT_S = 60.0
 
 
 def sim_config(**overrides) -> dict:
-    """configs/sim.yaml as a dict with dotted-path overrides, e.g. {"sim.seed": 3}."""
+    """configs/sim.yaml as a dict with dotted-path overrides, e.g. {"sim.seed": 3}; `...` deletes a key."""
     cfg = copy.deepcopy(yaml.safe_load(SIM_CONFIG.read_text()))
     for dotted, value in overrides.items():
         node = cfg
         *path, last = dotted.split(".")
         for key in path:
             node = node.setdefault(key, {})
-        node[last] = value
+        if value is ...:
+            node.pop(last, None)
+        else:
+            node[last] = value
     return cfg
 
 

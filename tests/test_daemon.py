@@ -134,3 +134,22 @@ def test_probe_localises_the_hinge(make_daemon):
     assert sim["base_displacement"] < ARC_BASE_MAX_M
     kinds = [e["kind"] for e in d.client.event_log]
     assert kinds.index("task_started") < kinds.index("contact_onset") < kinds.index("task_done")
+
+
+def test_rotate_about_a_table_edge_in_the_pivot_world(make_daemon):
+    """The paper's constrained line contact: a held block already on a table edge, turned about it."""
+    tool_m = 0.12
+    d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": [0.0, 0.0, tool_m],
+                                                       "table_height": 0.487 - tool_m, "edge_x": 0.5}})
+    reply = d.client.command("rotate", {"angle_deg": 10.0, "direction": [1.0, 0.0, 0.0]})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
+    res = ev["result"]
+    contact = np.array(res["sim"]["contact"])
+    assert abs(contact[2] - (0.487 - tool_m)) < 1e-3            # the tip touched the table top
+    axis = np.array(res["hinge"]["axis"])
+    assert abs(abs(axis[1]) - 1.0) < 0.05                        # turned about the edge direction (y)
+    err = distance_to_axis(np.array(res["hinge"]["p"]), contact, np.array([0.0, 1.0, 0.0]))
+    assert err < HINGE_TOL_M, f"contact error {err * 1e3:.2f} mm"
+    assert abs(res["sim"]["lever_arm_m"] - tool_m) < 1e-3        # no sliding on the arc

@@ -22,7 +22,7 @@ def run(seed, seconds=2.0, with_world=True):
     clock = ManualClock()
     arm = ArmModel("panda")
     imu = SimImu(SimImuParams(), seed=seed)
-    world = (lambda p: HingeWorld(HingeParams(np.array([0.157, 0.0, 0.487]), np.array([0.0, 1.0, 0.0])), p)) \
+    world = (lambda p, R: HingeWorld(HingeParams(np.array([0.157, 0.0, 0.487]), np.array([0.0, 1.0, 0.0])), p)) \
         if with_world else None
     robot = SimRobot(arm, SimRobotParams(q_home=Q_HOME.copy()), world, imu, seed=seed, clock=clock)
     states, chunks = [], []
