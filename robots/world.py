@@ -157,7 +157,7 @@ class TableEdge:
 @dataclass
 class PivotParams:
     tip_in_tcp: np.ndarray               # the tool tip in the TCP frame, m (a held block's far edge, a pen tip)
-    surface: TableEdge
+    surface: "TableEdge | HeightField"   # anything with surface_z(x, y)
     grasp_stiffness_n_m: float = 3000.0  # along the tool: pushing compresses the grasp
     slide_force_n: float = 6.0           # the tool slides in the grasp beyond this axial force
     lift_off_m: float = 0.003            # the tip leaves the surface when pulled this far back (grasp preload)
@@ -165,9 +165,15 @@ class PivotParams:
 
     @classmethod
     def from_config(cls, section) -> "PivotParams":
+        kind = section.getstr("surface", "table", choices=("table", "scene"))
+        if kind == "scene":
+            surface = mapping_scene(tuple(section.getfloats("scene_origin_xy", [0.30, -0.175], n=2)),
+                                    section.getfloat("scene_floor_z", 0.05),
+                                    seed=section.getint("scene_seed", 0, minval=0))
+        else:
+            surface = TableEdge(section.getfloat("table_height", 0.30), section.getfloat("edge_x", 10.0))
         return cls(tip_in_tcp=np.array(section.getvec3("tip_in_tcp", [0.0, 0.0, 0.12])),
-                   surface=TableEdge(section.getfloat("table_height", 0.30),
-                                     section.getfloat("edge_x", 10.0)),
+                   surface=surface,
                    grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
                    slide_force_n=section.getfloat("slide_force_n", 6.0, above=0.0),
                    lift_off_m=section.getfloat("lift_off_m", 0.003, above=0.0),
@@ -266,3 +272,67 @@ class PivotWorld:
                 "base_displacement_m": 0.0,
                 "extra": {"contact": None if self.contact is None else self.contact.tolist(),
                           "lever_arm_m": self.L, "force_n": self.force.tolist(), "contacts": self.contacts}}
+
+
+class HeightField:
+    """A surface given as heights on an x-y grid (world), for probing scenes; outside it: nothing."""
+
+    def __init__(self, origin_xy, cell_m: float, heights: np.ndarray):
+        self.origin = np.asarray(origin_xy, dtype=float)
+        self.cell = float(cell_m)
+        self.z = np.asarray(heights, dtype=float)        # (nx, ny), world z of the top surface
+
+    @property
+    def size_xy(self) -> np.ndarray:
+        return np.array(self.z.shape) * self.cell
+
+    def surface_z(self, x: float, y: float) -> float:
+        i = int(np.floor((x - self.origin[0]) / self.cell))
+        j = int(np.floor((y - self.origin[1]) / self.cell))
+        if 0 <= i < self.z.shape[0] and 0 <= j < self.z.shape[1]:
+            return float(self.z[i, j])
+        return -np.inf
+
+    def surface_z_many(self, xy: np.ndarray) -> np.ndarray:
+        """Vectorised surface_z for points (n, 2)."""
+        ij = np.floor((np.asarray(xy) - self.origin) / self.cell).astype(int)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < self.z.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < self.z.shape[1])
+        out = np.full(len(ij), -np.inf)
+        out[ok] = self.z[ij[ok, 0], ij[ok, 1]]
+        return out
+
+
+CONTAINER_M = (0.45, 0.35, 0.245)      # inner size of the paper's transparent container: x, y, wall height
+
+
+def mapping_scene(origin_xy=(0.30, -0.175), floor_z: float = 0.05, cell_m: float = 0.0025,
+                  seed: int = 0) -> HeightField:
+    """The paper's mapping scene: a 45 x 35 x 24.5 cm container holding boxes, cups and books.
+
+    Heights are world z of the top surface; the container floor is at floor_z and its walls rise
+    24.5 cm around it. Objects are placed at random (seeded) without overlapping the walls.
+    """
+    rng = np.random.default_rng(seed)
+    sx, sy, wall = CONTAINER_M
+    nx, ny = int(round(sx / cell_m)), int(round(sy / cell_m))
+    z = np.full((nx, ny), floor_z)
+    xs = (np.arange(nx) + 0.5) * cell_m
+    ys = (np.arange(ny) + 0.5) * cell_m
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    # two books lying flat, a box, two cups (rims) and a bowl
+    for _ in range(2):
+        w, d, h = rng.uniform(0.15, 0.22), rng.uniform(0.10, 0.15), rng.uniform(0.02, 0.04)
+        x0, y0 = rng.uniform(0.02, sx - w - 0.02), rng.uniform(0.02, sy - d - 0.02)
+        z = np.where((X >= x0) & (X < x0 + w) & (Y >= y0) & (Y < y0 + d), np.maximum(z, floor_z + h), z)
+    w, d, h = rng.uniform(0.08, 0.12), rng.uniform(0.06, 0.10), rng.uniform(0.06, 0.12)
+    x0, y0 = rng.uniform(0.02, sx - w - 0.02), rng.uniform(0.02, sy - d - 0.02)
+    z = np.where((X >= x0) & (X < x0 + w) & (Y >= y0) & (Y < y0 + d), np.maximum(z, floor_z + h), z)
+    for _ in range(2):
+        r, h = rng.uniform(0.035, 0.045), rng.uniform(0.09, 0.12)
+        cx, cy = rng.uniform(r + 0.02, sx - r - 0.02), rng.uniform(r + 0.02, sy - r - 0.02)
+        rho = np.hypot(X - cx, Y - cy)
+        z = np.where((rho <= r) & (rho >= r - 0.004), np.maximum(z, floor_z + h), z)     # the rim
+    # walls (one cell thick) at the border
+    z[0, :] = z[-1, :] = floor_z + wall
+    z[:, 0] = z[:, -1] = floor_z + wall
+    return HeightField(origin_xy, cell_m, z)

@@ -69,3 +69,21 @@ def test_run_refuses_missing_file_and_bad_yaml(tmp_path):
     assert res.returncode == 2 and "no such config file" in res.stderr
     res = run_with(tmp_path, "robot: [unclosed\n")
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_daemon_builds_the_mapping_scene_world():
+    from robots.world import HeightField, PivotWorld
+    from tecdard.daemon import Daemon
+    cfg = sim_config(**{"sim.hinge": ..., "sim.pivot": {"surface": "scene", "scene_seed": 2,
+                                                         "tip_in_tcp": [0.0, 0.06, 0.10]}})
+    d = Daemon(Config(cfg))
+    assert isinstance(d.robot.world, PivotWorld)
+    assert isinstance(d.robot.world.p.surface, HeightField)
+    assert not d.robot.world.in_contact()          # the tool starts above the container
+
+
+def test_two_worlds_are_refused():
+    from tecdard.daemon import Daemon
+    cfg = sim_config(**{"sim.pivot": {"surface": "table"}})
+    with pytest.raises(ConfigError, match="sim.pivot: give one world"):
+        Daemon(Config(cfg))

@@ -84,3 +84,34 @@ def test_beyond_the_edge_nothing_is_touched_and_pulling_back_lifts_off():
     approach(w2, p, np.array([0.0, 0.0, 0.02]), 0.3)
     assert not w2.in_contact()
     assert np.linalg.norm(w2.rate) < 1e-9                 # lifting off is no rotation spike
+
+
+def test_mapping_scene_has_the_container_and_objects():
+    from robots.world import CONTAINER_M, mapping_scene
+    scene = mapping_scene(seed=3)
+    assert np.allclose(scene.size_xy, CONTAINER_M[:2], atol=scene.cell)
+    floor = 0.05
+    assert scene.z.min() == pytest.approx(floor)
+    assert scene.z.max() == pytest.approx(floor + CONTAINER_M[2])             # the walls
+    inner = scene.z[2:-2, 2:-2]
+    assert 0.2 < np.mean(inner > floor + 1e-6) < 0.9                           # objects cover part of it
+    assert np.array_equal(mapping_scene(seed=3).z, scene.z)                    # seeded
+    assert scene.surface_z(0.0, 0.0) == -np.inf
+
+
+def test_probing_the_scene_pins_the_tip_at_the_surface_height():
+    from robots.world import mapping_scene
+    scene = mapping_scene(seed=1)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x = scene.origin[0] + rng.uniform(0.03, 0.42)
+        y = scene.origin[1] + rng.uniform(0.03, 0.32)
+        w = PivotWorld(PivotParams(tip_in_tcp=np.array([0.0, 0.0, L]), surface=scene),
+                       np.array([x, y, 0.50]), R_DOWN)
+        p = np.array([x, y, 0.50])
+        for k in range(10000):                     # up to 0.5 m down: deeper than the floor
+            p = p + np.array([0.0, 0.0, -0.05]) * DT_S
+            if w.step(p, DT_S):
+                break
+        assert w.in_contact()
+        assert w.contact[2] == pytest.approx(scene.surface_z(x, y))
