@@ -26,6 +26,7 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[test,bench]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
+	$(PY) -m benchmarks.sim
 	$(PY) -m benchmarks
 
 clean:

@@ -115,3 +115,55 @@ def test_probing_the_scene_pins_the_tip_at_the_surface_height():
                 break
         assert w.in_contact()
         assert w.contact[2] == pytest.approx(scene.surface_z(x, y))
+
+
+def test_point_contact_tip_stays_fixed_while_the_tcp_circles():
+    """The pen case: the tip in place, the TCP on a horizontal circle above it; the tool pivots about the tip."""
+    pen = 0.09
+    w = PivotWorld(PivotParams(tip_in_tcp=np.array([0.0, 0.0, pen]), surface=TableEdge(0.30, 1.0)),
+                   np.array([0.5, 0.0, 0.30 + pen + 0.002]), R_DOWN)
+    p, _ = approach(w, np.array([0.5, 0.0, 0.30 + pen + 0.002]), np.array([0.0, 0.0, -0.02]), 0.1 + 2 * DT_S)
+    tip = w.contact.copy()
+    a = 0.015                                            # circle radius of the TCP
+    h = np.sqrt(w.L ** 2 - a ** 2)
+    rates = []
+    for k in range(1, 1001):                             # one turn in 1 s
+        phi = 2 * np.pi * k / 1000
+        w.step(tip + np.array([a * np.cos(phi), a * np.sin(phi), h]), DT_S)
+        rates.append(w.rate.copy())
+    assert np.allclose(w.contact, tip)                   # the tip stays fixed
+    assert w.L == pytest.approx(np.hypot(a, h), abs=1e-6)
+    rates = np.array(rates[10:])
+    # the tool's rate sweeps two axes: a point contact is observable in 3D
+    assert np.linalg.matrix_rank(rates.T @ rates, tol=1e-6 * np.abs(rates).max() ** 2 * len(rates)) >= 2
+
+
+def test_ongoing_approach_hits_the_edge_and_keeps_moving():
+    """Moving down and along at constant speed: impact, then the block pivots and slides as the TCP goes on."""
+    w = world()
+    p0 = np.array([0.45, 0.0, 0.30 + L + 0.005])
+    v = np.array([0.015, 0.0, -0.015])
+    p, t_imp = approach(w, p0, v, 1.0)
+    assert t_imp == pytest.approx(0.005 / 0.015, abs=2 * DT_S)
+    assert w.in_contact()
+    assert w.rate[1] > 0                                 # pivoting about the edge direction
+    assert w.L < L                                       # and sliding in the grasp as it goes on
+
+
+def test_tilted_eraser_pivots_where_an_upright_one_only_pushes():
+    """The paper tilts the eraser 30 deg so a flat top makes it turn; upright, a flat top gives force (5 N abort)."""
+    eraser = 0.11
+    out = {}
+    for name, tilt in (("tilted", np.radians(30.0)), ("upright", 0.0)):
+        tip = eraser * np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+        p = np.array([0.45, 0.0, 0.30 + eraser * np.cos(tilt) + 0.005])
+        w = PivotWorld(PivotParams(tip_in_tcp=tip, surface=TableEdge(0.30, 1.0)), p, R_DOWN)
+        peak_rate = 0.0
+        for k in range(1000):                            # straight down at 20 mm/s, 15 mm past the touch
+            p = p + np.array([0.0, 0.0, -0.02]) * DT_S
+            w.step(p, DT_S)
+            peak_rate = max(peak_rate, float(np.linalg.norm(w.rate)))
+        out[name] = (peak_rate, float(np.linalg.norm(w.force)))
+    assert out["tilted"][0] > 0.05                       # it turns: a rotation the trigger and EKF can use
+    assert out["upright"][0] < 1e-6                      # no rotation at all
+    assert out["upright"][1] > 5.0                       # a force rise past the paper's 5 N abort
