@@ -9,6 +9,7 @@ TCP's coordinate at onset there and the reported one-sigma stays large.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -287,34 +288,41 @@ class ContactKF:
             # tangent u, and `radial_var` (distrust of the velocity along the lever arm, see
             # below) along rh = r/|r|. R is diagonal in (rh, uh), so R^-1, sum H^T R^-1 H
             # (H = -w_n J) and the NIS are closed forms, element-wise over the block.
+            # Per sample, in 1-D columns (x, y: plane coordinates); uh = J rh = (-rh_y, rh_x).
             w_n = w @ self.plane.n
-            r0 = self.plane.point2(p)                   # TCP relative to the onset TCP, plane coords
-            J = Plane.J
-            y = self.plane.vec2(v) - w_n[:, None] * ((r0 - self.c) @ J.T)
-            r = r0 - c_lin
-            a = corr * (var_v + prm.sigma_p ** 2 * w_n ** 2)
-            rr = (r * r).sum(axis=1)
-            rn = np.sqrt(np.maximum(rr, 1e-18))
-            rh = r / rn[:, None]
-            uh = rh @ J.T                               # J rh: the tangent
+            r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
+            v2 = v @ self.plane.E.T
+            r0x, r0y = r0[:, 0], r0[:, 1]
+            yx = v2[:, 0] + w_n * (r0y - self.c[1])     # y = v - w_n J (r0 - c)
+            yy = v2[:, 1] - w_n * (r0x - self.c[0])
+            rx, ry = r0x - c_lin[0], r0y - c_lin[1]
+            rr = rx * rx + ry * ry + 1e-18
+            rn = np.sqrt(rr)
+            a = corr * (var_v + prm.sigma_p ** 2 * w_n * w_n)
             inv_r = 1.0 / (a + corr * self.radial_var)           # along the lever arm
             inv_u = 1.0 / (a + (prm.sigma_w ** 2 + var_w) * rr)  # along the tangent
-            yr = (rh * y).sum(axis=1)
-            yu = (uh * y).sum(axis=1)
+            yr = (rx * yx + ry * yy) / rn
+            yu = (rx * yy - ry * yx) / rn
             gate = prm.gate_nis > 0 and self.steps > 0 and \
-                float(np.mean(w_n ** 2)) * float(np.trace(P)) < GATE_HPH_RATIO * 2 * float(a.min())
+                float(np.mean(w_n * w_n)) * float(P[0, 0] + P[1, 1]) < GATE_HPH_RATIO * 2 * float(a.min())
+            nis, keep = (yr * yr * inv_r + yu * yu * inv_u, None) if gate else (None, None)
             if gate:
-                nis = yr ** 2 * inv_r + yu ** 2 * inv_u
                 keep = nis <= prm.gate_nis
-            else:
-                nis, keep = None, None
-            k_ = slice(None) if keep is None else keep
-            w2 = (w_n ** 2)[k_]
-            # J^T rh rh^T J = uh uh^T and J^T uh uh^T J = rh rh^T
-            A = ((uh[k_] * (w2 * inv_r[k_])[:, None]).T @ uh[k_]
-                 + (rh[k_] * (w2 * inv_u[k_])[:, None]).T @ rh[k_])
-            # H^T R^-1 y = w_n J R^-1 y = w_n (uh (rh.y) inv_r - rh (uh.y) inv_u)
-            b = ((w_n * yr * inv_r)[k_, None] * uh[k_] - (w_n * yu * inv_u)[k_, None] * rh[k_]).sum(axis=0)
+                if not keep.all():
+                    w_n, rx, ry, rr, rn, inv_r, inv_u, yr, yu = (x[keep] for x in
+                                                                 (w_n, rx, ry, rr, rn, inv_r, inv_u, yr, yu))
+            al = w_n * w_n * inv_r / rr                 # weight of uh uh^T (J^T rh rh^T J)
+            be = w_n * w_n * inv_u / rr                 # weight of rh rh^T (J^T uh uh^T J)
+            sxx, syy, sxy = rx * rx, ry * ry, rx * ry
+            a11 = float(np.dot(al, syy) + np.dot(be, sxx))
+            a22 = float(np.dot(al, sxx) + np.dot(be, syy))
+            a12 = float(np.dot(be - al, sxy))
+            A = np.array([[a11, a12], [a12, a22]])
+            # H^T R^-1 y = w_n (uh (rh.y) inv_r - rh (uh.y) inv_u)
+            gr = w_n * yr * inv_r / rn
+            gu = w_n * yu * inv_u / rn
+            b = np.array([float(-np.dot(gr, ry) - np.dot(gu, rx)), float(np.dot(gr, rx) - np.dot(gu, ry))])
+            return self._commit_planar(P, A, b, n, keep, nis, r0, duration, commit)
         else:
             r0 = p - self.origin
             z = v - cross_rows(w, r0)
@@ -379,6 +387,93 @@ class ContactKF:
             # Joseph form, with the collapsed measurement's unit noise.
             Aj = np.eye(self.d) - K @ Heq
             self.c, self.P = c_new, Aj @ P @ Aj.T + K @ K.T
+            self.steps += n
+            self._r_last = (r0[-1] - c_new) if n else self._r_last
+        return c_new
+
+    def _commit_planar(self, P, A, b, n, keep, nis, r0, duration, commit) -> np.ndarray:
+        """The collapsed 2 x 2 update in plain floats (numpy's per-call cost dominates at this size).
+
+        Same algebra as the general path: H_eq from A (Cholesky when full rank, the principal
+        eigenvector when rank one), unit measurement noise, Joseph-form covariance.
+        """
+        a11, a12, a22 = float(A[0, 0]), float(A[0, 1]), float(A[1, 1])
+        b1, b2 = float(b[0]), float(b[1])
+        p11, p12, p22 = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
+        if commit:
+            if keep is not None:
+                self.rejected += int(n - np.count_nonzero(keep))
+            if nis is not None and len(nis):
+                self.nis = float(nis[-1])
+        tr = a11 + a22
+        det = a11 * a22 - a12 * a12
+        if tr <= 0.0:
+            if commit:
+                self.P = P
+            return self.c
+        if det > 1e-12 * tr * tr and a11 > 0.0:
+            # A = L L^T, H_eq = L^T (upper), y_eq = L^-1 b
+            l11 = math.sqrt(a11)
+            l21 = a12 / l11
+            l22 = math.sqrt(max(a22 - l21 * l21, 1e-300))
+            y1 = b1 / l11
+            y2 = (b2 - l21 * y1) / l22
+            # S = H P H^T + I with H = [[l11, l21], [0, l22]]
+            hp11 = l11 * p11 + l21 * p12
+            hp12 = l11 * p12 + l21 * p22
+            hp21 = l22 * p12
+            hp22 = l22 * p22
+            s11 = hp11 * l11 + hp12 * l21 + 1.0
+            s12 = hp12 * l22
+            s22 = hp22 * l22 + 1.0
+            sd = s11 * s22 - s12 * s12
+            i11, i12, i22 = s22 / sd, -s12 / sd, s11 / sd
+            # K = (H P)^T S^-1  (P symmetric)
+            k11 = hp11 * i11 + hp21 * i12
+            k12 = hp11 * i12 + hp21 * i22
+            k21 = hp12 * i11 + hp22 * i12
+            k22 = hp12 * i12 + hp22 * i22
+            dc1 = k11 * y1 + k12 * y2
+            dc2 = k21 * y1 + k22 * y2
+            ratio = (y1 * (i11 * y1 + i12 * y2) + y2 * (i12 * y1 + i22 * y2)) / 2.0
+            # I - K H
+            m11 = 1.0 - k11 * l11
+            m12 = -(k11 * l21 + k12 * l22)
+            m21 = -k21 * l11
+            m22 = 1.0 - (k21 * l21 + k22 * l22)
+            kk11, kk12, kk22 = k11 * k11 + k12 * k12, k11 * k21 + k12 * k22, k21 * k21 + k22 * k22
+        else:
+            # rank one: H_eq = sqrt(lam) u^T, y_eq = u.b / sqrt(lam)
+            lam = 0.5 * tr + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
+            ux, uy = (a12, lam - a11) if abs(a12) > 1e-300 else ((1.0, 0.0) if a11 >= a22 else (0.0, 1.0))
+            un = math.hypot(ux, uy)
+            ux, uy = ux / un, uy / un
+            sq = math.sqrt(lam)
+            h1, h2 = sq * ux, sq * uy
+            y1 = (ux * b1 + uy * b2) / sq
+            ph1 = p11 * h1 + p12 * h2
+            ph2 = p12 * h1 + p22 * h2
+            s = h1 * ph1 + h2 * ph2 + 1.0
+            k11, k21 = ph1 / s, ph2 / s
+            dc1, dc2 = k11 * y1, k21 * y1
+            ratio = y1 * y1 / s
+            m11, m12, m21, m22 = 1.0 - k11 * h1, -k11 * h2, -k21 * h1, 1.0 - k21 * h2
+            kk11, kk12, kk22 = k11 * k11, k11 * k21, k21 * k21
+        c_new = self.c + np.array([dc1, dc2])
+        if commit:
+            if self.steps > 0:
+                alpha = 1.0 - math.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
+                self.consistency += alpha * (ratio - self.consistency)
+            # Joseph form: M P M^T + K K^T
+            mp11 = m11 * p11 + m12 * p12
+            mp12 = m11 * p12 + m12 * p22
+            mp21 = m21 * p11 + m22 * p12
+            mp22 = m21 * p12 + m22 * p22
+            n11 = mp11 * m11 + mp12 * m12 + kk11
+            n12 = mp11 * m21 + mp12 * m22 + kk12
+            n22 = mp21 * m21 + mp22 * m22 + kk22
+            self.c = c_new
+            self.P = np.array([[n11, n12], [n12, n22]])
             self.steps += n
             self._r_last = (r0[-1] - c_new) if n else self._r_last
         return c_new
