@@ -17,7 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
-from control.geometry import quat_to_matrix  # noqa: E402
+from control.geometry import Plane, quat_to_matrix  # noqa: E402
 from control.pipeline import METHODS  # noqa: E402
 from robots.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
@@ -88,8 +88,8 @@ def bench_speed(n_blocks: int = 2000) -> dict:
     """Per-update cost of `ekf` (a block of samples) and `paper-ekf` (one sample)."""
     rng = np.random.default_rng(0)
     out = {}
-    for blk in (7, 33):
-        kf = ContactKF()
+    for blk, planar in ((7, False), (33, False), (7, True), (33, True)):
+        kf = ContactKF(plane=Plane(np.array([0.0, 1.0, 0.0])) if planar else None)
         kf.start(np.zeros(3), np.zeros(3))
         w = rng.normal(0, 0.1, (blk, 3)) + [0, 0.15, 0]
         p = rng.normal(0, 1e-3, (blk, 3)) + [0.12, 0, 0]
@@ -100,8 +100,9 @@ def bench_speed(n_blocks: int = 2000) -> dict:
             t0 = time.perf_counter()
             kf.update(dt, w, p, v)
             times[k] = time.perf_counter() - t0
-        out[f"ekf_block{blk}_us"] = float(np.median(times) * 1e6)
-        out[f"ekf_block{blk}_per_sample_us"] = float(np.median(times) * 1e6 / blk)
+        key = f"ekf{'_planar' if planar else ''}_block{blk}"
+        out[f"{key}_us"] = float(np.median(times) * 1e6)
+        out[f"{key}_per_sample_us"] = float(np.median(times) * 1e6 / blk)
     ekf = PaperEKF()
     ekf.start(np.zeros(3), np.zeros(3))
     times = np.empty(5000)
@@ -283,11 +284,13 @@ def main() -> int:
               f"max {np.max(latencies) * 1e3:.2f} ms", ""]
 
     speed = bench_speed()
-    lines += ["## Speed", "",
-              f"- `ekf` update, one block of 7 samples (1 kHz outputs): median {speed['ekf_block7_us']:.1f} us "
-              f"({speed['ekf_block7_per_sample_us']:.2f} us per IMU sample)",
-              f"- `ekf` update, one block of 33 samples (200 Hz outputs, the default): median "
-              f"{speed['ekf_block33_us']:.1f} us ({speed['ekf_block33_per_sample_us']:.2f} us per IMU sample)",
+    lines += ["## Speed", ""]
+    for key, label in (("ekf_planar", "planar"), ("ekf", "3D")):
+        lines += [f"- `ekf` {label} update, one block of 7 samples (1 kHz outputs): median "
+                  f"{speed[key + '_block7_us']:.1f} us ({speed[key + '_block7_per_sample_us']:.2f} us per IMU sample)",
+                  f"- `ekf` {label} update, one block of 33 samples (200 Hz outputs, the default): median "
+                  f"{speed[key + '_block33_us']:.1f} us ({speed[key + '_block33_per_sample_us']:.2f} us per IMU sample)"]
+    lines += [
               f"- `paper-ekf` step (one sample, 6/9-state): median {speed['paper_ekf_step_us']:.1f} us"]
     walls = [(r["duration"] / r["wall"]) for per in results.values() for r in per["ekf"] if r["detected"]]
     walls_p = [(r["duration"] / r["wall"]) for per in results.values() for r in per["paper-ekf"] if r["detected"]]
