@@ -217,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="how long to read (default 2)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cmd_imu)
+    from tecdard.client_cli import add_parsers
+    add_parsers(sub)
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")
     p.add_argument("--config", default="configs/sim.yaml")
     p.add_argument("--angle", type=float, default=30.0, help="rotation, degrees")

@@ -1,0 +1,129 @@
+"""`tecdard probe|rotate|point|approach|map|stop|status|cancel`: drive a running daemon over Zenoh."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from tecdard.client import Client, ClientError
+
+EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+BAR_WIDTH = 30
+
+
+def _vec(text: str) -> list[float]:
+    try:
+        out = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    return out
+
+
+def _ints(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+# verb -> [(option, payload field, type, help)]
+VERB_FIELDS = {
+    "probe": [("--direction", "direction", _vec, "unit vector x,y,z (world)"),
+              ("--distance", "distance", float, "m"), ("--speed", "speed", float, "m/s")],
+    "rotate": [("--angle-deg", "angle_deg", float, "required"), ("--speed", "speed", float, "m/s"),
+               ("--probe-distance", "probe_distance", float, "m"), ("--direction", "direction", _vec, "x,y,z"),
+               ("--strategy", "strategy", str, "arc (default) or straight")],
+    "point": [("--radius", "radius", float, "m"), ("--speed", "speed", float, "m/s"),
+              ("--turns", "turns", float, "")],
+    "approach": [("--direction", "direction", _vec, "required, x,y,z"), ("--speed", "speed", float, "m/s"),
+                 ("--max-distance", "max_distance", float, "m"), ("--stop-angle-deg", "stop_angle_deg", float, "")],
+    "map": [("--origin", "origin", _vec, "x,y,z"), ("--size", "size", _vec, "x,y (m)"),
+            ("--grid", "grid", _ints, "rows,cols"), ("--depth", "depth", float, "m"),
+            ("--orientations", "orientations", int, "")],
+    "stop": [], "status": [],
+    "cancel": [("--task", "task", str, "task id (default: the running task)")],
+}
+TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
+
+
+def add_parsers(sub) -> None:
+    for verb, fields in VERB_FIELDS.items():
+        p = sub.add_parser(verb, help=f"send '{verb}' to a running daemon")
+        p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"daemon endpoint (default {DEFAULT_ENDPOINT})")
+        p.add_argument("--robot", default="sim", help="robot name in the key expressions (default sim)")
+        p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the task to end")
+        p.add_argument("--json", action="store_true", help="print replies and events as JSON lines")
+        if verb in TASK_VERBS:
+            p.add_argument("--no-follow", action="store_true", help="return once the task is accepted")
+        for opt, _field, typ, help_ in fields:
+            p.add_argument(opt, type=typ, help=help_)
+        p.set_defaults(func=run_verb, verb=verb)
+
+
+def _progress(state: dict | None, out) -> None:
+    task = (state or {}).get("task")
+    if not task:
+        return
+    frac = max(0.0, min(1.0, float(task.get("progress", 0.0))))
+    filled = int(round(frac * BAR_WIDTH))
+    bar = "#" * filled + "." * (BAR_WIDTH - filled)
+    end = "\r" if out.isatty() else "\n"
+    print(f"[{bar}] {frac * 100:5.1f}% {task.get('phase', '')}", end=end, file=out, flush=True)
+
+
+def run_verb(args) -> int:
+    payload = {field: getattr(args, opt.lstrip("-").replace("-", "_"))
+               for opt, field, _t, _h in VERB_FIELDS[args.verb]
+               if getattr(args, opt.lstrip("-").replace("-", "_")) is not None}
+    try:
+        cli = Client(args.connect, robot=args.robot)
+    except Exception as exc:                      # zenoh refuses a malformed endpoint
+        print(f"tecdard {args.verb}: cannot open a session to {args.connect}: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    with cli:
+        try:
+            cli.wait_alive(min(args.timeout, 10.0))
+            reply = cli.command(args.verb, payload, timeout=min(args.timeout, 30.0))
+        except ClientError as exc:
+            print(f"tecdard {args.verb}: {exc}", file=sys.stderr)
+            return EXIT_NO_DAEMON
+        if args.json or args.verb == "status":
+            print(json.dumps(reply))
+        if not reply.get("ok"):
+            err = reply.get("error", {})
+            print(f"tecdard {args.verb}: refused: {err.get('code')}: {err.get('message')}", file=sys.stderr)
+            return EXIT_REFUSED
+        if args.verb not in TASK_VERBS:
+            if not args.json and args.verb != "status":
+                print(f"{args.verb}: ok")
+            return EXIT_DONE
+        task = reply["task"]
+        if not args.json:
+            print(f"{args.verb}: accepted as task {task}")
+        if args.no_follow:
+            return EXIT_DONE
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:
+            try:
+                ev = cli.wait_event(("task_done", "task_failed"), task, timeout=0.2)
+            except ClientError:
+                state = None
+                while not cli.states.empty():
+                    state = cli.states.get_nowait()
+                if not args.json:
+                    _progress(state, sys.stderr)
+                continue
+            if sys.stderr.isatty():
+                print(file=sys.stderr)
+            if args.json:
+                print(json.dumps(ev))
+            elif ev["kind"] == "task_done":
+                print(f"{args.verb} done: {json.dumps(ev.get('result', {}))}")
+            if ev["kind"] == "task_done":
+                return EXIT_DONE
+            print(f"tecdard {args.verb}: task failed: {ev.get('error')}", file=sys.stderr)
+            return EXIT_FAILED
+        print(f"tecdard {args.verb}: no task_done or task_failed within {args.timeout:g} s", file=sys.stderr)
+        return EXIT_FAILED
