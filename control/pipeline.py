@@ -4,6 +4,7 @@ Used by the daemon's estimator thread and by `tecdard localize` alike.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -141,12 +142,13 @@ class ContactEstimate:
     steps: int
     method: str = "ekf"
     in_plane_std: float = float("inf")   # statistical one-sigma in the plane of rotation, m
+    angle_rad: float = 0.0               # rotation of the object since onset, integrated from the gyro
     extra: dict = field(default_factory=dict)
 
     def to_json(self, method: str | None = None) -> dict:
         return {"t": self.t, "onset_t": self.onset_t, "p": self.p.tolist(), "std": self.std.tolist(),
                 "converged": self.converged, "method": method or self.method,
-                "axis": None if self.axis is None else self.axis.tolist()}
+                "axis": None if self.axis is None else self.axis.tolist(), "angle_deg": math.degrees(self.angle_rad)}
 
 
 @dataclass
@@ -200,6 +202,7 @@ class ContactPipeline:
         self._n_w = 0
         self._t_out = -np.inf
         self._dt_sample = 1.0 / 6667.0
+        self._angle = 0.0
         self.latest: ContactEstimate | None = None
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
@@ -256,6 +259,7 @@ class ContactPipeline:
             self._wwT[:] = 0.0
             self._w_sum[:] = 0.0
             self._n_w = 0
+            self._angle = 0.0
             self._t_out = -np.inf
             start = hit
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
@@ -293,6 +297,7 @@ class ContactPipeline:
                 self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl])
                 self._wwT += w_obj[sl].T @ w_obj[sl]
                 self._w_sum += w_obj[sl].sum(axis=0)
+                self._angle += float(np.sqrt((w_obj[sl] * w_obj[sl]).sum(axis=1)) @ dt[sl])
                 self._n_w += k1 - k0
                 self._t_prev = float(ts[k1 - 1])
                 if due < n:
@@ -338,4 +343,5 @@ class ContactPipeline:
             in_plane = float(np.sqrt(max(np.linalg.eigvalsh(stat)[-1], 0.0)))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
-                               nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane)
+                               nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
+                               angle_rad=self._angle)

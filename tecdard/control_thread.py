@@ -34,6 +34,8 @@ class ControlParams:
     workspace_max: tuple = (1.0, 1.0, 1.5)
     imu_stale_s: float = 0.05
     max_tracking_error_m: float = 0.01
+    max_force_n: float = 15.0          # protective stop above this force on the TCP
+    max_rotation_deg: float = 95.0     # protective stop when the object has turned more than this
 
     @classmethod
     def from_config(cls, section, max_speed: float) -> "ControlParams":
@@ -48,6 +50,8 @@ class ControlParams:
             imu_stale_s=section.getfloat("imu_stale_s", d.imu_stale_s, above=0.0, maxval=1.0),
             max_tracking_error_m=section.getfloat("max_tracking_error_m", d.max_tracking_error_m, above=0.0,
                                                   maxval=0.1),
+            max_force_n=section.getfloat("max_force_n", d.max_force_n, above=0.0, maxval=200.0),
+            max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=360.0),
         )
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
             from tecdard.config import ConfigError
@@ -189,6 +193,7 @@ class ControlThread:
             self._put(("proprio", js.t, p, v, R, w), self.to_estimator)
         est = self.contact.get()
         self._check_faults(now)
+        self._check_limits(js, est)
         self._handle_commands(p, v)
         p_plan = self.planner.position
         if self.task is not None and not self._braking:
@@ -227,6 +232,22 @@ class ControlThread:
         elif "imu_stale" in self.faults:
             self._clear_fault("imu_stale")
 
+    def _check_limits(self, js, est) -> None:
+        """Force and rotation thresholds: a protective stop of the running task."""
+        if self.task is None or self._braking:
+            return
+        if js.tcp_force is not None:
+            f = float(np.linalg.norm(js.tcp_force))
+            if f > self.p.max_force_n:
+                self._protective_stop("force", f"TCP force {f:.1f} N over the limit {self.p.max_force_n:.1f} N",
+                                      force_n=f)
+                return
+        if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
+            angle = math.degrees(est.angle_rad)
+            if angle > self.p.max_rotation_deg:
+                self._protective_stop("rotation", f"object turned {angle:.1f} deg, over the limit "
+                                                  f"{self.p.max_rotation_deg:.1f} deg", angle_deg=angle)
+
     def _set_fault(self, code: str, message: str) -> None:
         self.faults[code] = message
         self._event("fault", code=code, message=message)
@@ -236,11 +257,12 @@ class ControlThread:
         self.faults.pop(code, None)
         self._event("fault_cleared", code=code)
 
-    def _protective_stop(self, cause: str, message: str) -> None:
+    def _protective_stop(self, cause: str, message: str, **details) -> None:
         if self.task is not None or self._braking or self.mode == "busy":
-            self._event("protective_stop", cause=cause, message=message)
+            self._event("protective_stop", cause=cause, message=message, **details)
             self._end_task("failed", error=f"protective stop: {message}")
             self._braking = True
+            self.mode = "stopped"          # until the arm is at rest, then idle
 
     # -- commands ---------------------------------------------------------------
     def _handle_commands(self, p: np.ndarray, v: np.ndarray) -> None:

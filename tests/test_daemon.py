@@ -153,3 +153,29 @@ def test_rotate_about_a_table_edge_in_the_pivot_world(make_daemon):
     err = distance_to_axis(np.array(res["hinge"]["p"]), contact, np.array([0.0, 1.0, 0.0]))
     assert err < HINGE_TOL_M, f"contact error {err * 1e3:.2f} mm"
     assert abs(res["sim"]["lever_arm_m"] - tool_m) < 1e-3        # no sliding on the arc
+
+
+def test_force_over_the_limit_is_a_protective_stop(make_daemon):
+    """Probing straight down with an upright tool on a table: no rotation, the force rises: stop."""
+    tool_m = 0.12
+    d = make_daemon(**{"sim.hinge": ..., "control.max_force_n": 3.0,
+                       "sim.pivot": {"tip_in_tcp": [0.0, 0.0, tool_m], "table_height": 0.487 - tool_m,
+                                     "edge_x": 1.0}})
+    reply = d.client.command("probe", {"direction": [0.0, 0.0, -1.0], "distance": 0.01, "speed": 0.01})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_failed", "task_done"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_failed"
+    stops = [e for e in d.client.event_log if e["kind"] == "protective_stop"]
+    assert stops and stops[0]["cause"] == "force" and stops[0]["force_n"] > 3.0
+    assert d.client.command("status")["state"]["mode"] in ("idle", "stopped")
+
+
+def test_rotation_over_the_limit_is_a_protective_stop(make_daemon):
+    d = make_daemon(**{"control.max_rotation_deg": 8.0})
+    reply = d.client.command("rotate", {"angle_deg": 20.0})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_failed", "task_done"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_failed"
+    stop = next(e for e in d.client.event_log if e["kind"] == "protective_stop")
+    assert stop["cause"] == "rotation"
+    assert 8.0 < stop["angle_deg"] < 9.0              # caught within a tick of crossing the limit
