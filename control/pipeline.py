@@ -209,6 +209,11 @@ class ContactPipeline:
                     force: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, force)
 
+    def set_trigger_armed(self, armed: bool) -> None:
+        """Arm or disarm the onset trigger (an approach arms it once the arm moves at constant speed)."""
+        if not self.tracking:
+            self.detector.armed = armed
+
     def set_arc_following(self, on: bool) -> None:
         """The controller follows an arc about the estimate (True) or not: see ContactKF.radial_var."""
         if hasattr(self.estimator, "radial_var"):

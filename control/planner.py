@@ -98,6 +98,12 @@ class CartesianPlanner:
         self.out.pass_to_input(self.inp)
         return np.array(self.out.new_position), np.array(self.out.new_velocity)
 
+    def steady(self, speed: float, rel_tol: float = 0.05, accel_tol: float = 0.02) -> bool:
+        """Moving at `speed` (m/s) with no acceleration: the planned motion has settled."""
+        v = float(np.linalg.norm(self.inp.current_velocity))
+        a = float(np.linalg.norm(self.inp.current_acceleration))
+        return abs(v - speed) <= rel_tol * speed and a <= accel_tol
+
     @property
     def finished(self) -> bool:
         return self.result == ruckig.Result.Finished

@@ -24,6 +24,7 @@ class ContactView:
     axis: np.ndarray | None = None    # rotation axis estimate, world unit
     onset_t: float | None = None
     in_plane_std: float = float("inf")  # the estimator's statistical one-sigma in the plane of rotation, m
+    angle_rad: float = 0.0              # rotation of the object since onset (gyro), rad
 
 
 @dataclass
@@ -241,3 +242,55 @@ class ProbeTask(TwoPhaseTask):
         self.status.result = {"p": c.p.tolist(), "std": c.std.tolist(),
                               "axis": (self._axis_sign * c.axis).tolist(),
                               "angle_deg": math.degrees(self._angle), "radius": self._radius}
+
+
+class ApproachTask:
+    """Move along `direction` at `speed` until the trigger fires, keep tracking the contact during
+    the ongoing motion, and finish once the object has turned `stop_angle_rad` (the paper's
+    ongoing-movement case). Never travels beyond `max_distance`: without a contact by then the
+    task fails."""
+
+    kind = "approach"
+
+    def __init__(self, task_id: str, direction: np.ndarray, speed: float, max_distance: float,
+                 stop_angle_rad: float):
+        self.id = task_id
+        self.direction = unit(direction, "direction")
+        self.speed = speed
+        self.max_distance = max_distance
+        self.stop_angle_rad = stop_angle_rad
+        self.status = TaskStatus()
+        self.p_start: np.ndarray | None = None
+        self.R_hold: np.ndarray | None = None
+
+    def step(self, inp: TickInput) -> Motion | None:
+        st = self.status
+        if st.state != "running":
+            return None
+        if self.p_start is None:
+            self.p_start = inp.p.copy()
+            self.R_hold = inp.R.copy()
+            st.phase = "approach"
+        s = float(np.dot(inp.p - self.p_start, self.direction))
+        # how far the plan has gone: the arm trails it by a hair at the end of a paced move
+        s_plan = float(np.dot((inp.p if inp.p_plan is None else inp.p_plan) - self.p_start, self.direction))
+        c = inp.contact
+        if c.tracking and c.p is not None:
+            st.phase = "contact"
+            st.progress = 0.5 + 0.5 * min(c.angle_rad / self.stop_angle_rad, 1.0)
+            if c.angle_rad >= self.stop_angle_rad or s_plan >= self.max_distance - 1e-5:
+                st.state, st.progress = "done", 1.0
+                st.result = {"p": c.p.tolist(), "std": c.std.tolist(),
+                             "axis": None if c.axis is None else c.axis.tolist(),
+                             "angle_deg": math.degrees(c.angle_rad), "travel": s}
+                return None
+        else:
+            st.progress = 0.5 * min(max(s / self.max_distance, 0.0), 1.0)
+            if s_plan >= self.max_distance - 1e-5:
+                st.state, st.error = "failed", f"no contact within max_distance {self.max_distance:g} m"
+                return None
+        target = self.p_start + self.max_distance * self.direction
+        # constant speed all the way: the target is paced (Ruckig would otherwise race it)
+        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        remaining = max(float(np.dot(target - p_ref, self.direction)), 0.0)
+        return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)

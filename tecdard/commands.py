@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
 TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
-IMPLEMENTED = ("probe", "rotate", "stop", "status", "cancel")
+IMPLEMENTED = ("probe", "rotate", "approach", "stop", "status", "cancel")
 
 # Error codes of the reply {"ok": false, "error": {"code", "message"}}.
 BAD_JSON = "bad_json"
@@ -45,6 +45,8 @@ class Limits:
     default_speed: float = 0.02        # m/s
     default_probe_distance: float = 0.005
     default_direction: tuple = (0.0, 0.0, 1.0)
+    max_approach_distance: float = 0.2     # m
+    default_stop_angle_deg: float = 5.0
 
     @classmethod
     def from_config(cls, section) -> "Limits":
@@ -58,6 +60,10 @@ class Limits:
             default_speed=section.getfloat("default_speed", d.default_speed, above=0.0, maxval=max_speed),
             default_probe_distance=section.getfloat("default_probe_distance", d.default_probe_distance, above=0.0),
             default_direction=tuple(section.getvec3("default_direction", list(d.default_direction), unit=True)),
+            max_approach_distance=section.getfloat("max_approach_distance", d.max_approach_distance, above=0.0,
+                                                   maxval=1.0),
+            default_stop_angle_deg=section.getfloat("default_stop_angle_deg", d.default_stop_angle_deg, above=0.0,
+                                                    maxval=90.0),
         )
 
 
@@ -136,6 +142,16 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
             "distance": _number(obj, "distance", limits.default_probe_distance, 0.0005,
                                 limits.max_probe_distance, "m"),
             "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
+        }
+    if verb == "approach":
+        _check_fields(obj, verb, ("direction", "speed", "max_distance", "stop_angle_deg"))
+        return {
+            "direction": _direction(obj, "direction", None),
+            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
+            "max_distance": _number(obj, "max_distance", limits.max_approach_distance, 0.001,
+                                    limits.max_approach_distance, "m"),
+            "stop_angle_deg": _number(obj, "stop_angle_deg", limits.default_stop_angle_deg, 0.1,
+                                      limits.max_rotation_deg, "deg"),
         }
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.planner import CartesianPlanner, PlannerError
-from control.tasks import ContactView, ProbeTask, RotateTask, TickInput
+from control.tasks import ApproachTask, ContactView, ProbeTask, RotateTask, TickInput
 from control.geometry import matrix_to_quat
 from tecdard import commands as C
 
@@ -21,7 +21,8 @@ log = logging.getLogger("tecdar.control")
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
-IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
+IMU_STARTUP_GRACE_S = 1.0
+LEVER_ARM_ABSORBED = ("arc", "contact")     # task phases where the estimator distrusts lever-arm velocity     # no stale-IMU fault before the first sample until this long after start
 
 
 @dataclass
@@ -137,6 +138,7 @@ class ControlThread:
         self._last_proprio_seq = -1
         self._R_hold = None
         self._task_t0 = 0.0
+        self._trigger_armed = True
         self._t_boot = time.monotonic()
         self.first_tick = threading.Event()
         self.dropped = 0
@@ -306,6 +308,8 @@ class ControlThread:
                               f["strategy"])
         elif verb == "probe":
             task = ProbeTask(task_id, f["speed"], f["distance"], direction)
+        elif verb == "approach":
+            task = ApproachTask(task_id, direction, f["speed"], f["max_distance"], math.radians(f["stop_angle_deg"]))
         else:
             self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
             return
@@ -314,6 +318,11 @@ class ControlThread:
         self.mode = "busy"
         self.planner.reset(p, speed=f["speed"])
         self._put(("release",), self.to_estimator)     # fresh contact episode for this task
+        self._trigger_armed = verb != "approach"
+        if not self._trigger_armed:
+            # the arm's own acceleration at the start would look like an impact: the trigger is
+            # armed once the approach moves at constant speed (as the paper's ongoing case does)
+            self._put(("arm", False), self.to_estimator)
         self._event("task_started", task=task_id, verb=verb, params=f)
         self._reply(query, {"ok": True, "task": task_id})
 
@@ -322,14 +331,22 @@ class ControlThread:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
             view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
-                               in_plane_std=est.in_plane_std)
+                               in_plane_std=est.in_plane_std, angle_rad=est.angle_rad)
         else:
             view = ContactView(tracking=False)
         phase_before = task.status.phase
+        if task.kind == "approach" and task.status.phase == "approach":
+            # armed exactly while the arm moves steadily: starting and braking are not impacts
+            steady = self.planner.steady(task.speed)
+            if steady != self._trigger_armed:
+                self._trigger_armed = steady
+                self._put(("arm", steady), self.to_estimator)
         motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position))
         st = task.status
-        if st.phase != phase_before and "arc" in (st.phase, phase_before):
-            self._put(("arc", st.phase == "arc"), self.to_estimator)
+        # In these phases the TCP's motion along the lever arm is absorbed by the grasp (arc following
+        # about an estimate, or pushing on after an impact, where the object slides in the fingers).
+        if (st.phase in LEVER_ARM_ABSORBED) != (phase_before in LEVER_ARM_ABSORBED):
+            self._put(("arc", st.phase in LEVER_ARM_ABSORBED), self.to_estimator)
         if motion is None:
             if st.state == "done":
                 self._end_task("done", result=st.result)

@@ -63,6 +63,8 @@ class EstimatorThread:
                     pipe.release()
                 elif msg[0] == "arc":
                     pipe.set_arc_following(msg[1])
+                elif msg[0] == "arm":
+                    pipe.set_trigger_armed(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
             events, est = pipe.process(batch)
             for ev in events:

@@ -35,6 +35,8 @@ def test_rotate_defaults_and_normalisation():
     ("cancel", '{"task": 5}', C.BAD_TYPE, "task"),
     ("dance", "{}", C.UNKNOWN_VERB, "dance"),
     ("map", "{}", C.NOT_IMPLEMENTED, "map"),
+    ("approach", "{}", C.MISSING_FIELD, "direction"),
+    ("approach", "{\"direction\": [0, 0, -1], \"max_distance\": 5}", C.OUT_OF_LIMITS, "max_distance"),
 ])
 def test_bad_commands(verb, payload, code, field):
     with pytest.raises(C.CommandError) as info:

@@ -13,6 +13,7 @@ ARC_BASE_MAX_M = 0.002       # following the estimated arc leaves the base (near
 STRAIGHT_BASE_MIN_M = 0.010  # the paper's failure case: a straight pull drags the base
 TASK_TIMEOUT_S = 90.0
 STILL_M = 2e-4               # the TCP has not moved (encoder noise is ~0.03 mm)
+APPROACH_TOL_M = 0.025       # contact from an ongoing approach, estimated at the 5 deg stop
 
 
 def run_rotate(d, **fields):
@@ -179,3 +180,41 @@ def test_rotation_over_the_limit_is_a_protective_stop(make_daemon):
     stop = next(e for e in d.client.event_log if e["kind"] == "protective_stop")
     assert stop["cause"] == "rotation"
     assert 8.0 < stop["angle_deg"] < 9.0              # caught within a tick of crossing the limit
+
+
+def test_approach_finds_the_table_during_ongoing_motion_and_stops_at_the_angle(make_daemon):
+    """The paper's ongoing case: a block held nearly level comes down onto a table at constant speed,
+    hits it, pivots about its far edge while the arm keeps going, and the task stops at 5 deg."""
+    tool_m, tilt = 0.12, np.radians(10.0)
+    tip_tcp = [float(tool_m * np.cos(tilt)), 0.0, float(tool_m * np.sin(tilt))]   # ahead, a little below the TCP
+    tip_z = 0.487 - tool_m * np.sin(tilt)
+    table = float(tip_z - 0.012)
+    d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": tip_tcp, "table_height": table,
+                                                       "edge_x": 1.0}})
+    reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
+                                          "stop_angle_deg": 5.0})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
+    res = ev["result"]
+    assert res["angle_deg"] >= 5.0
+    assert res["travel"] < 0.08
+    contact = np.array(res["sim"]["contact"])
+    assert abs(contact[2] - table) < 1e-3
+    err = distance_to_axis(np.array(res["p"]), contact, np.array([0.0, 1.0, 0.0]))
+    # The paper reports ~11 mm in its ongoing experiment; here the block also slides in the grasp as
+    # it turns (about a quarter of the motion by the 5 deg stop), and we measure 17-18 mm.
+    assert err < APPROACH_TOL_M, f"contact error {err * 1e3:.1f} mm"
+    onset = next(e for e in d.client.event_log if e["kind"] == "contact_onset")
+    assert abs(onset["p_tcp"][2] - (0.487 - 0.012)) < 0.003       # fired at the impact, not at the start
+
+
+def test_approach_without_contact_fails_at_max_distance(make_daemon):
+    d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": [0.0, 0.0, 0.12], "table_height": 0.1,
+                                                       "edge_x": 0.1}})
+    reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.03, "max_distance": 0.03})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_failed" and "max_distance" in ev["error"]
+    p = np.array(d.client.command("status")["state"]["tcp"]["p"])
+    assert p[2] > 0.487 - 0.03 - 0.002                            # never beyond max_distance
