@@ -55,7 +55,35 @@ class TaskStatus:
     error: str = ""
 
 
-class TwoPhaseTask:
+class Task:
+    """What every task shares: its id, direction and speed, its status, and the TCP pose latched
+    on its first tick (the start position, and the orientation it holds)."""
+
+    kind = "task"
+
+    def __init__(self, task_id: str, direction: np.ndarray, speed: float):
+        self.id = task_id
+        self.direction = unit(direction, "direction")
+        self.speed = speed
+        self.status = TaskStatus()
+        self.p_start: np.ndarray | None = None
+        self.R_hold: np.ndarray | None = None
+
+    def _running(self, inp: TickInput) -> bool:
+        """False once done or failed; on the first tick, latches the start pose."""
+        if self.status.state != "running":
+            return False
+        if self.p_start is None:
+            self.p_start = inp.p.copy()
+            self.R_hold = inp.R.copy()
+            self._started(inp)
+        return True
+
+    def _started(self, inp: TickInput) -> None:
+        """Called once, on the first tick."""
+
+
+class TwoPhaseTask(Task):
     """Algorithm 2 of the paper.
 
     Phase 1 (`probe`): open-loop straight motion along `direction` for
@@ -77,17 +105,12 @@ class TwoPhaseTask:
                  direction: np.ndarray, strategy: str = "arc"):
         if strategy not in ("arc", "straight"):
             raise ValueError("strategy: expected 'arc' or 'straight'")
-        self.id = task_id
+        super().__init__(task_id, direction, speed)
         self.angle_rad = angle_rad
-        self.speed = speed
         # Phase 1 stays short (the paper's 5 mm): a straight probe changes the lever arm as the
         # object turns, which biases every estimator in proportion to the angle.
         self.probe_distance = probe_distance
-        self.direction = unit(direction, "direction")
         self.strategy = strategy
-        self.status = TaskStatus()
-        self.p_start: np.ndarray | None = None
-        self.R_hold: np.ndarray | None = None
         self._phase_t0 = 0.0
         self._axis_sign = 1.0
         self._straight_len = 0.0
@@ -105,15 +128,14 @@ class TwoPhaseTask:
         self.status.state = "failed"
         self.status.error = message
 
+    def _started(self, inp: TickInput) -> None:
+        self._enter("probe", inp.t)
+
     def step(self, inp: TickInput) -> Motion | None:
         """Advance the state machine; returns the motion target, or None to brake/hold."""
-        st = self.status
-        if st.state != "running":
+        if not self._running(inp):
             return None
-        if self.p_start is None:
-            self.p_start = inp.p.copy()
-            self.R_hold = inp.R.copy()
-            self._enter("probe", inp.t)
+        st = self.status
         if st.phase == "probe":
             return self._step_probe(inp)
         if st.phase == "arc":
@@ -244,7 +266,7 @@ class ProbeTask(TwoPhaseTask):
                               "angle_deg": math.degrees(self._angle), "radius": self._radius}
 
 
-class ApproachTask:
+class ApproachTask(Task):
     """Move along `direction` at `speed` until the trigger fires, keep tracking the contact during
     the ongoing motion, and finish once the object has turned `stop_angle_rad` (the paper's
     ongoing-movement case). Never travels beyond `max_distance`: without a contact by then the
@@ -254,23 +276,17 @@ class ApproachTask:
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float, max_distance: float,
                  stop_angle_rad: float):
-        self.id = task_id
-        self.direction = unit(direction, "direction")
-        self.speed = speed
+        super().__init__(task_id, direction, speed)
         self.max_distance = max_distance
         self.stop_angle_rad = stop_angle_rad
-        self.status = TaskStatus()
-        self.p_start: np.ndarray | None = None
-        self.R_hold: np.ndarray | None = None
+
+    def _started(self, inp: TickInput) -> None:
+        self.status.phase = "approach"
 
     def step(self, inp: TickInput) -> Motion | None:
-        st = self.status
-        if st.state != "running":
+        if not self._running(inp):
             return None
-        if self.p_start is None:
-            self.p_start = inp.p.copy()
-            self.R_hold = inp.R.copy()
-            st.phase = "approach"
+        st = self.status
         s = float(np.dot(inp.p - self.p_start, self.direction))
         # how far the plan has gone: the arm trails it by a hair at the end of a paced move
         s_plan = float(np.dot((inp.p if inp.p_plan is None else inp.p_plan) - self.p_start, self.direction))
