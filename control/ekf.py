@@ -120,8 +120,9 @@ class PaperEKF:
         self.steps += 1
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
-               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None) -> None:
-        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. var_v/var_w unused (fixed M)."""
+               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
+               fresh: np.ndarray | None = None) -> None:
+        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. var_v/var_w/fresh unused (fixed M)."""
         if self.plane is not None:
             w_n = w @ self.plane.n
             p2 = self.plane.point2(p)
@@ -165,6 +166,7 @@ class ContactKfParams:
     gate_nis: float = 16.3         # chi^2 (3 dof) at 0.999; 0 disables gating
     eta_rel_std: float = 0.05      # relative uncertainty of eta, reported as a radial floor
     max_block: int = 64            # samples per collapsed update
+    use_positions: bool = True     # TCP positions as evidence too (rigid-body displacement), see PositionEvidence
 
     @classmethod
     def from_config(cls, section) -> "ContactKfParams":
@@ -178,6 +180,7 @@ class ContactKfParams:
             gate_nis=section.getfloat("gate_nis", d.gate_nis, minval=0.0),
             eta_rel_std=section.getfloat("eta_rel_std", d.eta_rel_std, minval=0.0, maxval=1.0),
             max_block=section.getint("max_block", d.max_block, minval=1, maxval=4096),
+            use_positions=section.getbool("use_positions", d.use_positions),
         )
 
 
@@ -202,6 +205,145 @@ def _cross_cov(a: np.ndarray) -> np.ndarray:
     out[:, 1, 1] += sq
     out[:, 2, 2] += sq
     return out
+
+
+MIN_RESIDUAL_SAMPLES = 8       # position samples before the rigid-body residual test can speak
+POSITION_RESIDUAL_LIMIT = 4.0  # residual / expectation above which positions are no evidence (slide)
+
+
+class PositionEvidence:
+    """What the TCP's measured positions say about the contact beyond its velocities.
+
+    Integrating v = w x (r - c) from a reference time: r(t) - G(t) = q - Theta(t) x c,
+    with Theta = int w dt, G = int w x r dt (r: the TCP relative to the onset TCP) and
+    q the true TCP at the reference time, unknown. Each proprioception sample is then a
+    linear measurement of (c, q) with its own independent noise sigma_p. q is
+    marginalised in closed form (a regression on Theta with an intercept), so the
+    marginal information on c is a Schur complement of running sums; it only grows, and
+    each growth is handed to the filter as one exactly equivalent measurement. Reported
+    velocities and positions carry independent noise, so nothing is counted twice (the
+    gyro noise both share is small against either and is neglected).
+
+    Planar: Theta is the scalar angle and Theta x c is theta J c.
+
+    The regression's residual checks the rigid-body model: when the TCP moves relative
+    to the object (sliding in the grasp during a translational probe or an ongoing
+    motion) displacements integrate that motion without bound, the residual grows far
+    beyond the position noise, and the evidence is switched off for the episode.
+    """
+
+    def __init__(self, d: int, sigma_p: float):
+        self.d = d
+        self.var = max(sigma_p, 1e-7) ** 2
+        self.reset()
+        self.broken = False
+
+    def start(self) -> None:
+        self.reset()
+        self.broken = False
+
+    def reset(self) -> None:
+        d = self.d
+        self.theta = 0.0 if d == 2 else np.zeros(3)
+        self.g = np.zeros(d)
+        self.n = 0
+        self.s_th = 0.0 if d == 2 else np.zeros(3)
+        self.s_hh = 0.0 if d == 2 else np.zeros((3, 3))
+        self.s_y = np.zeros(d)
+        self.s_yy = 0.0
+        self.s_hy = np.zeros(d)
+        self.lam = np.zeros((d, d))
+        self.eta = np.zeros(d)
+
+    def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
+        """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
+        at the `fresh` samples (a new proprioception sample); True when any was taken."""
+        idx = np.flatnonzero(fresh)
+        if self.d == 2:
+            return self._add_planar(w * dt, r, idx)
+        wdt = w * dt[:, None]
+        if len(idx) == 0:
+            self.theta = self.theta + wdt.sum(axis=0)
+            self.g = self.g + cross_rows(wdt, r).sum(axis=0)
+            return False
+        th = self.theta + np.cumsum(wdt, axis=0)
+        g = self.g + np.cumsum(cross_rows(wdt, r), axis=0)
+        self.theta, self.g = th[-1], g[-1]
+        t_k, y_k = th[idx], r[idx] - g[idx]
+        self.n += len(idx)
+        self.s_yy += float((y_k * y_k).sum())
+        sq = (t_k * t_k).sum(axis=1)
+        self.s_th += t_k.sum(axis=0)
+        self.s_hh += sq.sum() * np.eye(3) - t_k.T @ t_k
+        self.s_y += y_k.sum(axis=0)
+        self.s_hy += cross_rows(t_k, y_k).sum(axis=0)
+        return True
+
+    def _add_planar(self, wdt: np.ndarray, r: np.ndarray, idx: np.ndarray) -> bool:
+        """The planar chunk in plain floats: a chunk holds a few proprioception samples at most."""
+        rx, ry = r[:, 0], r[:, 1]
+        th, gx, gy = self.theta, float(self.g[0]), float(self.g[1])
+        k0 = 0
+        for k in idx.tolist():
+            seg = wdt[k0:k + 1]
+            th += float(seg.sum())
+            gx -= float(seg @ ry[k0:k + 1])
+            gy += float(seg @ rx[k0:k + 1])
+            k0 = k + 1
+            yx, yy = float(rx[k]) - gx, float(ry[k]) - gy
+            self.n += 1
+            self.s_yy += yx * yx + yy * yy
+            self.s_th += th
+            self.s_hh += th * th
+            self.s_y[0] += yx
+            self.s_y[1] += yy
+            self.s_hy[0] += th * yx
+            self.s_hy[1] += th * yy
+        seg = wdt[k0:]
+        if len(seg):
+            th += float(seg.sum())
+            gx -= float(seg @ ry[k0:])
+            gy += float(seg @ rx[k0:])
+        self.theta = th
+        self.g[0], self.g[1] = gx, gy
+        return len(idx) > 0
+
+    def increment(self) -> tuple[np.ndarray, np.ndarray]:
+        """(dLambda, deta): the growth of the marginal information on c since the last call."""
+        n = max(self.n, 1)
+        if self.d == 2:
+            l_u = (self.s_hh - self.s_th * self.s_th / n) / self.var
+            lam = np.array([[l_u, 0.0], [0.0, l_u]])
+            v = self.s_hy - self.s_th * self.s_y / n
+            eta = np.array([-v[1], v[0]]) / self.var             # J v
+        else:
+            st = self.s_th
+            lam = (self.s_hh - ((st @ st) * np.eye(3) - np.outer(st, st)) / n) / self.var
+            eta = (self.s_hy - np.cross(st, self.s_y) / n) / self.var
+        d_lam, d_eta = lam - self.lam, eta - self.eta
+        self.lam, self.eta = lam, eta
+        return 0.5 * (d_lam + d_lam.T), d_eta
+
+    def residual_ratio(self) -> float:
+        """Least-squares residual of the (c, q) regression over its expectation (1 when the model holds)."""
+        n = self.n
+        if n < MIN_RESIDUAL_SAMPLES:
+            return 1.0
+        lam_u, eta_u = self.lam * self.var, self.eta * self.var
+        if self.d == 2:          # isotropic: lam_u = l I
+            l_u = float(lam_u[0, 0])
+            rank = 2 if l_u > 0.0 else 0
+            fit = float(eta_u @ eta_u) / l_u if rank else 0.0
+        else:
+            ev = np.linalg.eigvalsh(lam_u)
+            good = ev > 1e-9 * max(float(ev[-1]), 1e-300)
+            rank = int(np.count_nonzero(good))
+            fit = float(eta_u @ np.linalg.lstsq(lam_u, eta_u, rcond=1e-9)[0]) if rank else 0.0
+        dof = self.d * n - self.d - rank
+        if dof <= 0:
+            return 1.0
+        rss = self.s_yy - float(self.s_y @ self.s_y) / n - fit
+        return max(rss, 0.0) / (self.var * dof)
 
 
 class ContactKF:
@@ -246,11 +388,15 @@ class ContactKF:
         self.rejected = 0
         self.nis = 0.0
         self._r_last = np.zeros(self.d)
+        self._planar_chunk = (np.zeros(0), np.zeros((0, 2)))
+        self.positions = PositionEvidence(self.d, self.params.sigma_p) if self.params.use_positions else None
 
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
         self.origin = np.asarray(p_g, dtype=float).copy()
         if self.plane is not None:
             self.plane.origin = self.origin
+        if self.positions is not None:
+            self.positions.start()
         self.c = np.zeros(self.d)
         self.P = self.params.p0_c * np.eye(self.d)
         self.steps = 0
@@ -258,9 +404,11 @@ class ContactKF:
         self.consistency = 1.0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
-               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None) -> None:
+               var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
+               fresh: np.ndarray | None = None) -> None:
         """Chunk of samples: dt (n,), w/p/v (n, 3) world; var_v (m/s)^2 and var_w (rad/s)^2 are
-        per-sample extra variances of the velocity and the object rate (staleness)."""
+        per-sample extra variances of the velocity and the object rate (staleness); `fresh`
+        (n,) bool marks the samples whose p is a new proprioception sample (PositionEvidence)."""
         n = len(dt)
         if var_v is None:
             var_v = np.full(n, self.params.sigma_v ** 2)
@@ -276,6 +424,37 @@ class ContactKF:
                 c_lin = self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin,
                                     commit=False)
             self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin, commit=True)
+            if self.positions is not None:
+                if fresh is None:
+                    self.positions.reset()     # no position measurements here: restart the reference
+                else:
+                    self._position_update(dt[sl], w[sl], p[sl], fresh[sl])
+
+    def _position_update(self, dt, w, p, fresh) -> None:
+        ev = self.positions
+        if ev.broken:
+            return
+        if self.radial_var > 0:
+            # Following an arc: the grasp's compliance moves the TCP along the lever arm, which a
+            # displacement integrates without bound. Restart the reference instead of using it.
+            ev.reset()
+            return
+        if self.plane is not None:
+            w_n, r0 = self._planar_chunk
+            taken = ev.add(dt, w_n, r0, fresh)
+        else:
+            taken = ev.add(dt, w, p - self.origin, fresh)
+        if not taken:
+            return
+        d_lam, d_eta = ev.increment()
+        if ev.residual_ratio() > POSITION_RESIDUAL_LIMIT:
+            ev.broken = True        # the TCP moves relative to the object: displacements mislead
+            return
+        b = d_eta - d_lam @ self.c
+        if self.plane is not None:
+            self._commit_planar(self.P, d_lam, b, 0, None, None, None, 0.0, True, consistency=False)
+        else:
+            self._commit_general(self.P, d_lam, b, 0, None, None, None, 0.0, True, consistency=False)
 
     def _block(self, duration: float, w, p, v, var_v, var_w, c_lin: np.ndarray, commit: bool) -> np.ndarray:
         """One collapsed update from the current prior, noise linearised about c_lin; returns the posterior mean."""
@@ -291,6 +470,8 @@ class ContactKF:
             # Per sample, in 1-D columns (x, y: plane coordinates); uh = J rh = (-rh_y, rh_x).
             w_n = w @ self.plane.n
             r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
+            if commit:
+                self._planar_chunk = (w_n, r0)          # reused by the position evidence
             v2 = v @ self.plane.E.T
             r0x, r0y = r0[:, 0], r0[:, 1]
             yx = v2[:, 0] + w_n * (r0y - self.c[1])     # y = v - w_n J (r0 - c)
@@ -357,6 +538,10 @@ class ContactKF:
                 HtRi, H, y = HtRi[keep], H[keep], y[keep]
             A = (HtRi @ H).sum(axis=0)
             b = (HtRi @ y[:, :, None]).sum(axis=0)[:, 0]
+            return self._commit_general(P, A, b, n, keep, nis, r0, duration, commit)
+
+    def _commit_general(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
+        """The collapsed update for any dimension: H_eq from A's eigenvectors with data, unit noise, Joseph form."""
         lam, U = np.linalg.eigh(A)
         good = lam > 1e-12 * max(lam[-1], 1e-300)
         if commit:
@@ -376,7 +561,7 @@ class ContactKF:
         S_eq = HP @ Heq.T + np.eye(len(sq))
         K = np.linalg.solve(S_eq, HP).T
         c_new = self.c + K @ yeq
-        if commit and self.steps > 0:
+        if commit and consistency and self.steps > 0:
             # Block-level NIS of the collapsed measurement: chi^2 with len(sq) dof when the model
             # holds. A coherent bias (sliding in the grasp, a stale TCP rate) shows up here even
             # when each sample looks fine; its smoothed ratio scales the reported covariance.
@@ -391,7 +576,7 @@ class ContactKF:
             self._r_last = (r0[-1] - c_new) if n else self._r_last
         return c_new
 
-    def _commit_planar(self, P, A, b, n, keep, nis, r0, duration, commit) -> np.ndarray:
+    def _commit_planar(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
         """The collapsed 2 x 2 update in plain floats (numpy's per-call cost dominates at this size).
 
         Same algebra as the general path: H_eq from A (Cholesky when full rank, the principal
@@ -461,7 +646,7 @@ class ContactKF:
             kk11, kk12, kk22 = k11 * k11, k11 * k21, k21 * k21
         c_new = self.c + np.array([dc1, dc2])
         if commit:
-            if self.steps > 0:
+            if consistency and self.steps > 0:
                 alpha = 1.0 - math.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
                 self.consistency += alpha * (ratio - self.consistency)
             # Joseph form: M P M^T + K K^T

@@ -20,6 +20,8 @@ PROPRIO_HISTORY = 256         # proprioception samples kept for causal lookup
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma is below this
 MIN_AXIS_RATE_RAD_S = 1e-3
 SECOND_AXIS_RATIO = 0.05      # a rotation about a 2nd axis this strong (by variance) makes 3D observable
+TCP_TURNING_RAD_S = 0.01      # the gripper turns (its own rate from proprioception) above this
+FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than this is no position measurement
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
 
 
@@ -114,10 +116,11 @@ class ProprioTrack:
             self._rate_n = self.n
         return self._rate
 
-    def lookup(self, ts: np.ndarray):
+    def lookup(self, ts: np.ndarray, with_stamp: bool = False):
         """(p, v, R, w, var_v, var_w, force, ok) at times ts, extrapolated from the newest state at or before each.
 
-        var_w is the staleness variance of the TCP's own rate w, (rad/s)^2.
+        var_w is the staleness variance of the TCP's own rate w, (rad/s)^2. With `with_stamp`
+        the stamp of the state each time used is appended.
         """
         j = np.searchsorted(self.t[:self.n], ts, side="right") - 1
         ok = j >= 0
@@ -126,6 +129,8 @@ class ProprioTrack:
         p = self.p[j] + self.v[j] * age[:, None]
         var_v = self.var_v[j] + (self.a[j] * (ts - self.tv[j])) ** 2
         var_w = (self.alpha[j] * (ts - self.tw[j])) ** 2
+        if with_stamp:
+            return p, self.v[j], self.R[j], self.w[j], var_v, var_w, self.force[j], ok, self.t[j]
         return p, self.v[j], self.R[j], self.w[j], var_v, var_w, self.force[j], ok
 
 
@@ -203,6 +208,7 @@ class ContactPipeline:
         self._t_out = -np.inf
         self._dt_sample = 1.0 / 6667.0
         self._angle = 0.0
+        self._stamp_prev = np.nan
         self.latest: ContactEstimate | None = None
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
@@ -259,6 +265,7 @@ class ContactPipeline:
             self.cond.freeze_bias(True)
             self.estimator.start(p[0], v[0])
             self.tracking = True
+            self._stamp_prev = np.nan
             self.onset_t = float(t[hit])
             self._t_prev = float(t[hit])
             self._wwT[:] = 0.0
@@ -275,7 +282,12 @@ class ContactPipeline:
         # The causal low-pass delays the gyro by its group delay; take proprioception at the
         # same (earlier) instant so that w and v describe the same moment. Still causal.
         delay = self.cond.group_delay_samples * self._dt_sample
-        p, v, R, w_tcp, var_v, var_wt, force, ok = self.proprio.lookup(ts - delay)
+        p, v, R, w_tcp, var_v, var_wt, force, ok, stamp = self.proprio.lookup(ts - delay, with_stamp=True)
+        # A proprioception sample is a position measurement at the first IMU sample that sees it
+        # (extrapolated by less than one IMU period; later ones are not taken).
+        fresh = np.diff(stamp, prepend=self._stamp_prev) != 0
+        fresh &= (ts - delay - stamp) <= FRESH_MAX_AGE_S
+        self._stamp_prev = float(stamp[-1])
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
         eta = self.eta(force)
         w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
@@ -285,8 +297,11 @@ class ContactPipeline:
             # Away from the calibrated grip forces eta is extrapolated: say how much less it is known.
             self.estimator.eta_rel_std = self.params.ekf.eta_rel_std + \
                 self.params.eta_rel_std_per_n * self.eta.distance_n(float(force[-1]))
+        # While the gripper itself turns, its rate comes from held orientation samples; their lag
+        # integrates into the displacement model, so positions are then no evidence (see PositionEvidence).
+        tcp_turning = float(np.max(np.einsum("ij,ij->i", w_tcp, w_tcp))) > TCP_TURNING_RAD_S ** 2
         if not ok.all():
-            ts, w_obj, p, v, var_v, var_w = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok]
+            ts, w_obj, p, v, var_v, var_w, fresh = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok], fresh[ok]
         estimates: list[ContactEstimate] = []
         if len(ts):
             dt = np.maximum(np.diff(ts, prepend=self._t_prev), 1e-6)
@@ -299,7 +314,8 @@ class ContactPipeline:
                 due = int(np.searchsorted(ts, self._t_out + period, side="left"))
                 k1 = n if due >= n else max(due + 1, k0 + 1)
                 sl = slice(k0, k1)
-                self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl])
+                self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
+                                      None if tcp_turning else fresh[sl])
                 self._wwT += w_obj[sl].T @ w_obj[sl]
                 self._w_sum += w_obj[sl].sum(axis=0)
                 self._angle += float(np.sqrt((w_obj[sl] * w_obj[sl]).sum(axis=1)) @ dt[sl])
@@ -331,21 +347,27 @@ class ContactPipeline:
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator
         p_c, cov, stat = est.report()
-        axis, two_axes = self._excitation()
-        if self.plane is not None:
-            axis = self.plane.n if axis is None or np.dot(axis, self.plane.n) >= 0 else -self.plane.n
-        elif axis is not None and not two_axes:
-            # A rotation about one axis only: the contact is a line along it (edge, hinge),
-            # unobservable along the axis whatever the gyro noise suggests. Say so.
-            proj = np.eye(3) - np.outer(axis, axis)
-            cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * np.outer(axis, axis)
         # Converged: the statistical uncertainty in the plane of rotation is small
         # (systematic floors such as eta's are reported, but do not shrink with data).
-        if axis is not None:
-            proj = np.eye(3) - np.outer(axis, axis)
-            in_plane = float(np.sqrt(max(np.linalg.eigvalsh(proj @ stat @ proj)[-1], 0.0)))
+        if self.plane is not None:
+            # The axis is the plane's normal, signed as the rotation; the in-plane variance is
+            # the larger eigenvalue of the 2 x 2 in-plane covariance, in closed form.
+            axis = self.plane.n if float(self._w_sum @ self.plane.n) >= 0 else -self.plane.n
+            (s11, s12), (_, s22) = self.plane.E @ stat @ self.plane.E.T
+            top = 0.5 * (s11 + s22) + math.sqrt(0.25 * (s11 - s22) ** 2 + s12 * s12)
         else:
-            in_plane = float(np.sqrt(max(np.linalg.eigvalsh(stat)[-1], 0.0)))
+            axis, two_axes = self._excitation()
+            if axis is not None and not two_axes:
+                # A rotation about one axis only: the contact is a line along it (edge, hinge),
+                # unobservable along the axis whatever the gyro noise suggests. Say so.
+                proj = np.eye(3) - np.outer(axis, axis)
+                cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * np.outer(axis, axis)
+            if axis is not None:
+                proj = np.eye(3) - np.outer(axis, axis)
+                top = float(np.linalg.eigvalsh(proj @ stat @ proj)[-1])
+            else:
+                top = float(np.linalg.eigvalsh(stat)[-1])
+        in_plane = math.sqrt(max(top, 0.0))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
