@@ -17,6 +17,7 @@ import numpy as np
 from control.geometry import Plane, rotvec_to_matrix
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
+CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
 
 
 @dataclass
@@ -69,6 +70,7 @@ class PaperEKF:
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
         self.y = np.zeros(2 * d)
         self.nis = 0.0
+        self.consistency = 1.0     # NIS / its expectation, smoothed over CONSISTENCY_TAU_S
         self.steps = 0
         self.rejected = 0
         self._F = np.eye(n)
@@ -89,6 +91,7 @@ class PaperEKF:
         self.P = np.diag([p.m_p] * d + [p.m_v] * d + [p.p0_c] * d)
         self.steps = 0
         self.rejected = 0
+        self.consistency = 1.0
 
     def _step(self, dt: float, w: np.ndarray, z_p: np.ndarray, z_v: np.ndarray) -> None:
         d = self.d
@@ -112,6 +115,7 @@ class PaperEKF:
         S = H @ PHt + self.M
         self.y = y
         self.nis = float(y @ np.linalg.solve(S, y))
+        self.consistency += min(dt / CONSISTENCY_TAU_S, 1.0) * (self.nis / (2 * d) - self.consistency)
         K = np.linalg.solve(S, PHt.T).T
         self.x = x + K @ y
         # Joseph form keeps P symmetric positive definite through thousands of steps a second.
@@ -184,7 +188,6 @@ class ContactKfParams:
         )
 
 
-CONSISTENCY_TAU_S = 0.05      # smoothing of the block NIS ratio
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
 
 

@@ -148,12 +148,14 @@ class ContactEstimate:
     method: str = "ekf"
     in_plane_std: float = float("inf")   # statistical one-sigma in the plane of rotation, m
     angle_rad: float = 0.0               # rotation of the object since onset, integrated from the gyro
+    nis_ratio: float | None = None       # smoothed innovation NIS / its expectation (None: no innovations)
     extra: dict = field(default_factory=dict)
 
     def to_json(self, method: str | None = None) -> dict:
         return {"t": self.t, "onset_t": self.onset_t, "p": self.p.tolist(), "std": self.std.tolist(),
                 "converged": self.converged, "method": method or self.method,
-                "axis": None if self.axis is None else self.axis.tolist(), "angle_deg": math.degrees(self.angle_rad)}
+                "axis": None if self.axis is None else self.axis.tolist(), "angle_deg": math.degrees(self.angle_rad),
+                "nis_ratio": self.nis_ratio}
 
 
 @dataclass
@@ -371,4 +373,4 @@ class ContactPipeline:
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=self._angle)
+                               angle_rad=self._angle, nis_ratio=getattr(est, "consistency", None))

@@ -21,8 +21,8 @@ log = logging.getLogger("tecdar.control")
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
-IMU_STARTUP_GRACE_S = 1.0
-LEVER_ARM_ABSORBED = ("arc", "contact")     # task phases where the estimator distrusts lever-arm velocity     # no stale-IMU fault before the first sample until this long after start
+IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
+LEVER_ARM_ABSORBED = ("arc", "contact")     # task phases where the estimator distrusts lever-arm velocity
 
 
 @dataclass
@@ -37,6 +37,8 @@ class ControlParams:
     max_tracking_error_m: float = 0.01
     max_force_n: float = 15.0          # protective stop above this force on the TCP
     max_rotation_deg: float = 95.0     # protective stop when the object has turned more than this
+    max_nis_ratio: float = 10.0        # protective stop when the estimator's smoothed NIS ratio exceeds this
+    max_contact_jump_m: float = 0.02   # protective stop when a converged estimate moves this far in one tick
 
     @classmethod
     def from_config(cls, section, max_speed: float) -> "ControlParams":
@@ -53,6 +55,8 @@ class ControlParams:
                                                   maxval=0.1),
             max_force_n=section.getfloat("max_force_n", d.max_force_n, above=0.0, maxval=200.0),
             max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=360.0),
+            max_nis_ratio=section.getfloat("max_nis_ratio", d.max_nis_ratio, above=1.0),
+            max_contact_jump_m=section.getfloat("max_contact_jump_m", d.max_contact_jump_m, above=0.0, maxval=1.0),
         )
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
             from tecdard.config import ConfigError
@@ -139,6 +143,7 @@ class ControlThread:
         self._R_hold = None
         self._task_t0 = 0.0
         self._trigger_armed = True
+        self._last_est = None              # the contact estimate seen on the previous tick
         self._t_boot = time.monotonic()
         self.first_tick = threading.Event()
         self.dropped = 0
@@ -244,11 +249,28 @@ class ControlThread:
                 self._protective_stop("force", f"TCP force {f:.1f} N over the limit {self.p.max_force_n:.1f} N",
                                       force_n=f)
                 return
-        if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
-            angle = math.degrees(est.angle_rad)
-            if angle > self.p.max_rotation_deg:
-                self._protective_stop("rotation", f"object turned {angle:.1f} deg, over the limit "
-                                                  f"{self.p.max_rotation_deg:.1f} deg", angle_deg=angle)
+        if est is None or est.onset_t is None or est.onset_t < self._task_t0:
+            return
+        angle = math.degrees(est.angle_rad)
+        if angle > self.p.max_rotation_deg:
+            self._protective_stop("rotation", f"object turned {angle:.1f} deg, over the limit "
+                                              f"{self.p.max_rotation_deg:.1f} deg", angle_deg=angle)
+            return
+        if est.nis_ratio is not None and est.nis_ratio > self.p.max_nis_ratio:
+            # the measurements stopped fitting the contact model: a slip, a moving hinge, a bad sensor
+            self._protective_stop("divergence", f"estimator innovations {est.nis_ratio:.0f}x their expected size "
+                                                f"(limit {self.p.max_nis_ratio:.0f}x)", nis_ratio=est.nis_ratio)
+            return
+        prev, self._last_est = self._last_est, est
+        if prev is not None and prev.onset_t == est.onset_t and prev.converged and prev is not est:
+            d = est.p - prev.p
+            if est.axis is not None:
+                d = d - float(np.dot(d, est.axis)) * est.axis     # along a line contact: unobservable
+            jump = float(np.linalg.norm(d))
+            if jump > self.p.max_contact_jump_m:
+                self._protective_stop("contact_jump", f"contact estimate moved {jump * 1e3:.1f} mm in one tick "
+                                                      f"(limit {self.p.max_contact_jump_m * 1e3:.0f} mm)",
+                                      jump_m=jump)
 
     def _set_fault(self, code: str, message: str) -> None:
         self.faults[code] = message
@@ -314,6 +336,7 @@ class ControlThread:
             self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
             return
         self.task = task
+        self._last_est = None
         self._task_t0 = time.monotonic()
         self.mode = "busy"
         self.planner.reset(p, speed=f["speed"])

@@ -218,3 +218,15 @@ def test_approach_without_contact_fails_at_max_distance(make_daemon):
     assert ev["kind"] == "task_failed" and "max_distance" in ev["error"]
     p = np.array(d.client.command("status")["state"]["tcp"]["p"])
     assert p[2] > 0.487 - 0.03 - 0.002                            # never beyond max_distance
+
+
+def test_estimator_divergence_is_a_protective_stop(make_daemon):
+    """A straight pull drags the cutter's base: the hinge moves, and the innovations stop fitting the model
+    (smoothed NIS ratio up to about 2.6, against at most 1.0 while following the arc)."""
+    d = make_daemon(**{"control.max_nis_ratio": 1.5})
+    reply = d.client.command("rotate", {"angle_deg": 30.0, "strategy": "straight"})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_failed", "task_done"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_failed", ev
+    stop = next(e for e in d.client.event_log if e["kind"] == "protective_stop")
+    assert stop["cause"] == "divergence" and stop["nis_ratio"] > 1.5

@@ -1,0 +1,72 @@
+"""The control thread's estimator checks, fed estimates directly: divergence and contact jumps."""
+import queue
+
+import numpy as np
+import pytest
+
+from control.pipeline import ContactEstimate
+from control.tasks import ApproachTask
+from robots.backend import JointState
+from robots.model import READY_Q, ArmModel
+from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+
+AXIS = np.array([0.0, 1.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return ArmModel("panda")
+
+
+def control(model, **params):
+    ct = ControlThread(ControlParams(**params), model, robot=None, ring=None, contact=LatestValue(),
+                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+    ct.task = ApproachTask("approach-1", np.array([0.0, 0.0, -1.0]), 0.02, 0.05, 0.1)
+    ct._task_t0 = 0.0
+    return ct
+
+
+def estimate(p, converged=True, nis_ratio=0.5):
+    p = np.asarray(p, float)
+    return ContactEstimate(t=1.0, onset_t=0.5, p=p, std=np.full(3, 1e-3), cov=np.eye(3) * 1e-6, axis=AXIS,
+                           converged=converged, nis=1.0, steps=1000, nis_ratio=nis_ratio)
+
+
+def stops(ct):
+    out = []
+    while not ct.outbox.empty():
+        kind, *rest = ct.outbox.get_nowait()
+        if kind == "event" and rest[0]["kind"] == "protective_stop":
+            out.append(rest[0])
+    return out
+
+
+JS = JointState(t=0.0, q=READY_Q["panda"], qd=np.zeros(7), seq=0)
+
+
+def test_a_converged_estimate_that_jumps_is_a_protective_stop(model):
+    ct = control(model, max_contact_jump_m=0.02)
+    ct._check_limits(JS, estimate([0.50, 0.0, 0.20]))
+    ct._check_limits(JS, estimate([0.51, 0.0, 0.20]))        # 10 mm: within the limit
+    assert stops(ct) == []
+    ct._check_limits(JS, estimate([0.51, 0.0, 0.235]))       # 35 mm in one tick
+    (stop,) = stops(ct)
+    assert stop["cause"] == "contact_jump" and stop["jump_m"] == pytest.approx(0.035)
+    assert ct.task is None and ct.mode == "stopped"
+
+
+def test_jumps_before_convergence_or_along_the_edge_are_no_stop(model):
+    ct = control(model, max_contact_jump_m=0.02)
+    ct._check_limits(JS, estimate([0.50, 0.0, 0.20], converged=False))
+    ct._check_limits(JS, estimate([0.60, 0.0, 0.20]))        # the estimate was still converging
+    ct._check_limits(JS, estimate([0.60, 0.3, 0.20]))        # along the edge: unobservable, no evidence
+    assert stops(ct) == [] and ct.task is not None
+
+
+def test_innovations_far_beyond_their_expected_size_are_a_protective_stop(model):
+    ct = control(model, max_nis_ratio=10.0)
+    ct._check_limits(JS, estimate([0.5, 0.0, 0.2], nis_ratio=9.0))
+    assert stops(ct) == []
+    ct._check_limits(JS, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
+    (stop,) = stops(ct)
+    assert stop["cause"] == "divergence" and stop["nis_ratio"] == 40.0
