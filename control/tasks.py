@@ -310,3 +310,112 @@ class ApproachTask(Task):
         p_ref = inp.p if inp.p_plan is None else inp.p_plan
         remaining = max(float(np.dot(target - p_ref, self.direction)), 0.0)
         return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
+
+
+SPHERE_TRUST_STD_M = 0.01     # the point task follows the sphere about an estimate this certain on every axis
+POINT_RESOLVED_STD_M = 0.02   # a point result needs every axis known this well
+
+
+class PointTask(Task):
+    """Circular probing of a point contact (the paper's pen): a tool touching a point is tilted
+    outward by `radius` and its TCP then circles `turns` times about the vertical through the
+    start, which turns the rotation axis through every horizontal direction and makes all three
+    coordinates of the tip observable.
+
+    The controller does not know the tool's length: once the estimate is certain on every axis
+    the TCP follows the sphere about it (distance to the tip as at the start, so the grasp is
+    neither stretched nor pushed), with the correction bounded by `radius`.
+    """
+
+    kind = "point"
+
+    def __init__(self, task_id: str, radius: float, speed: float, turns: float):
+        super().__init__(task_id, np.array([1.0, 0.0, 0.0]), speed)
+        self.radius = radius
+        self.turns = turns
+        self.e2 = np.array([0.0, 1.0, 0.0])
+        self._psi = 0.0                 # angle travelled on the circle, rad (unwrapped)
+        self._psi_plan = 0.0
+        self._phase_t0 = 0.0
+        self._lever = None              # TCP-to-tip distance at the start, from the estimate
+
+    def _started(self, inp: TickInput) -> None:
+        self.status.phase = "out"
+        self._phase_t0 = inp.t
+
+    def _fail(self, message: str) -> None:
+        self.status.state, self.status.error = "failed", message
+
+    def _timed_out(self, t: float, nominal_s: float) -> bool:
+        return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
+
+    def _on_circle(self, psi: float, c: ContactView) -> np.ndarray:
+        """The circle point at angle psi, lifted onto the sphere about a trusted estimate."""
+        p = self.p_start + self.radius * (math.cos(psi) * self.direction + math.sin(psi) * self.e2)
+        if c.tracking and c.p is not None and c.std is not None and float(np.max(c.std)) < SPHERE_TRUST_STD_M:
+            if self._lever is None:
+                self._lever = float(np.linalg.norm(self.p_start - c.p))
+            horiz = p[:2] - c.p[:2]
+            h2 = self._lever ** 2 - float(horiz @ horiz)
+            if h2 > 0.0:
+                z = c.p[2] + math.copysign(math.sqrt(h2), self.p_start[2] - c.p[2])
+                p[2] = self.p_start[2] + float(np.clip(z - self.p_start[2], -self.radius, self.radius))
+        return p
+
+    def _angle_of(self, p: np.ndarray) -> float:
+        d = p - self.p_start
+        return math.atan2(float(d @ self.e2), float(d @ self.direction))
+
+    def step(self, inp: TickInput) -> Motion | None:
+        if not self._running(inp):
+            return None
+        st, c = self.status, inp.contact
+        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        total = 2.0 * math.pi * self.turns
+        if st.phase == "out":
+            s_plan = float(np.dot(p_ref - self.p_start, self.direction))
+            st.progress = 0.1 * min(max(s_plan / self.radius, 0.0), 1.0)
+            if s_plan >= self.radius - 1e-4:
+                st.phase, self._phase_t0 = "circle", inp.t
+                self._psi = self._psi_plan = 0.0
+            else:
+                if self._timed_out(inp.t, self.radius / self.speed):
+                    self._fail("tilting out to the circle did not finish in time")
+                    return None
+                target = self._on_circle(0.0, c)
+                remaining = max(float(np.linalg.norm(target - p_ref)), 0.0)
+                return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
+        # circle: unwrap the angle travelled, measured and planned
+        self._psi += _wrap(self._angle_of(inp.p) - self._psi)
+        self._psi_plan += _wrap(self._angle_of(p_ref) - self._psi_plan)
+        st.progress = 0.1 + 0.9 * min(max(self._psi / total, 0.0), 1.0)
+        if self._psi_plan >= total - ANGLE_TOL_RAD and inp.planner_at_rest:
+            self._finish(c)
+            return None
+        if self._timed_out(inp.t, total * self.radius / self.speed):
+            self._fail("circular probing did not complete in time")
+            return None
+        psi_t = min(self._psi_plan + self.speed * LOOKAHEAD_S / self.radius, total)
+        target = self._on_circle(psi_t, c)
+        tangent = -math.sin(psi_t) * self.direction + math.cos(psi_t) * self.e2
+        v = self.speed * tangent if psi_t < total else np.zeros(3)
+        return Motion(target, v, self.R_hold, min_duration_s=(psi_t - self._psi_plan) * self.radius / self.speed)
+
+    def _finish(self, c: ContactView) -> None:
+        st = self.status
+        if not c.tracking or c.p is None:
+            self._fail("no contact detected during circular probing")
+            return
+        worst = float(np.max(c.std))
+        if worst > POINT_RESOLVED_STD_M:
+            self._fail(f"point contact not resolved: one-sigma {worst * 1e3:.0f} mm on some axis "
+                       f"(a line contact, or slipping)")
+            return
+        st.state, st.progress = "done", 1.0
+        st.result = {"p": c.p.tolist(), "std": c.std.tolist(), "turns": self._psi / (2.0 * math.pi),
+                     "lever_arm": float(np.linalg.norm(self.p_start - c.p))}
+
+
+def _wrap(a: float) -> float:
+    """Angle wrapped to (-pi, pi]."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi

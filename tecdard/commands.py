@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
 TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
-IMPLEMENTED = ("probe", "rotate", "approach", "stop", "status", "cancel")
+IMPLEMENTED = ("probe", "rotate", "point", "approach", "stop", "status", "cancel")
 
 # Error codes of the reply {"ok": false, "error": {"code", "message"}}.
 BAD_JSON = "bad_json"
@@ -47,6 +47,9 @@ class Limits:
     default_direction: tuple = (0.0, 0.0, 1.0)
     max_approach_distance: float = 0.2     # m
     default_stop_angle_deg: float = 5.0
+    default_point_radius: float = 0.01     # m, circular probing
+    max_point_radius: float = 0.03         # m
+    max_point_turns: float = 5.0
 
     @classmethod
     def from_config(cls, section) -> "Limits":
@@ -64,6 +67,10 @@ class Limits:
                                                    maxval=1.0),
             default_stop_angle_deg=section.getfloat("default_stop_angle_deg", d.default_stop_angle_deg, above=0.0,
                                                     maxval=90.0),
+            default_point_radius=section.getfloat("default_point_radius", d.default_point_radius, above=0.0,
+                                                  maxval=0.1),
+            max_point_radius=section.getfloat("max_point_radius", d.max_point_radius, above=0.0, maxval=0.1),
+            max_point_turns=section.getfloat("max_point_turns", d.max_point_turns, minval=0.25, maxval=20.0),
         )
 
 
@@ -152,6 +159,13 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
                                     limits.max_approach_distance, "m"),
             "stop_angle_deg": _number(obj, "stop_angle_deg", limits.default_stop_angle_deg, 0.1,
                                       limits.max_rotation_deg, "deg"),
+        }
+    if verb == "point":
+        _check_fields(obj, verb, ("radius", "speed", "turns"))
+        return {
+            "radius": _number(obj, "radius", limits.default_point_radius, 0.002, limits.max_point_radius, "m"),
+            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
+            "turns": _number(obj, "turns", 1.0, 0.25, limits.max_point_turns, "turns"),
         }
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())

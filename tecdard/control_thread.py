@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.planner import CartesianPlanner, PlannerError
-from control.tasks import ApproachTask, ContactView, ProbeTask, RotateTask, TickInput
+from control.tasks import ApproachTask, ContactView, PointTask, ProbeTask, RotateTask, TickInput
 from control.geometry import matrix_to_quat
 from tecdard import commands as C
 
@@ -22,7 +22,7 @@ TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
-LEVER_ARM_ABSORBED = ("arc", "contact")     # task phases where the estimator distrusts lever-arm velocity
+LEVER_ARM_ABSORBED = ("arc", "contact", "out", "circle")     # task phases where the estimator distrusts lever-arm velocity
 
 
 @dataclass
@@ -324,14 +324,15 @@ class ControlThread:
             self._reply(query, C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply())
             return
         task_id = f"{verb}-{uuid.uuid4().hex[:8]}"
-        direction = np.array(f["direction"])
         if verb == "rotate":
-            task = RotateTask(task_id, math.radians(f["angle_deg"]), f["speed"], f["probe_distance"], direction,
-                              f["strategy"])
+            task = RotateTask(task_id, math.radians(f["angle_deg"]), f["speed"], f["probe_distance"],
+                              np.array(f["direction"]), f["strategy"])
         elif verb == "probe":
-            task = ProbeTask(task_id, f["speed"], f["distance"], direction)
+            task = ProbeTask(task_id, f["speed"], f["distance"], np.array(f["direction"]))
+        elif verb == "point":
+            task = PointTask(task_id, f["radius"], f["speed"], f["turns"])
         elif verb == "approach":
-            task = ApproachTask(task_id, direction, f["speed"], f["max_distance"], math.radians(f["stop_angle_deg"]))
+            task = ApproachTask(task_id, np.array(f["direction"]), f["speed"], f["max_distance"], math.radians(f["stop_angle_deg"]))
         else:
             self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
             return
