@@ -167,11 +167,19 @@ class ControlThread:
     # -- thread body --------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         t_next = time.monotonic()
+        failures = 0
         try:
             while not stop.is_set():
                 t_next += self.p.tick_s
                 t0 = time.monotonic()
-                self.tick(t0)
+                try:
+                    self.tick(t0)
+                    failures = 0
+                except Exception as exc:      # a bug must not leave the arm moving or the daemon deaf
+                    failures += 1
+                    if failures == 1 or failures % 50 == 0:
+                        log.exception("control tick failed (%d in a row)", failures)
+                    self._internal_fault(exc)
                 self.first_tick.set()
                 t1 = time.monotonic()
                 self.stats.add(t1 - t0, max(0.0, t0 - (t_next - self.p.tick_s)))
@@ -271,6 +279,18 @@ class ControlThread:
                 self._protective_stop("contact_jump", f"contact estimate moved {jump * 1e3:.1f} mm in one tick "
                                                       f"(limit {self.p.max_contact_jump_m * 1e3:.0f} mm)",
                                       jump_m=jump)
+
+    def _internal_fault(self, exc: Exception) -> None:
+        """A failed tick: hold the arm, end the task with a protective stop naming the error."""
+        try:
+            self.robot.hold()
+        except Exception:
+            log.exception("hold after a failed tick failed")
+        self.planner.reset(self.planner.position)
+        if self.task is not None:
+            self._protective_stop("internal", f"control error: {type(exc).__name__}: {exc}")
+        self._braking = False
+        self.mode = "idle" if self.task is None else self.mode
 
     def _set_fault(self, code: str, message: str) -> None:
         self.faults[code] = message

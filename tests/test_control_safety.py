@@ -70,3 +70,21 @@ def test_innovations_far_beyond_their_expected_size_are_a_protective_stop(model)
     ct._check_limits(JS, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
     (stop,) = stops(ct)
     assert stop["cause"] == "divergence" and stop["nis_ratio"] == 40.0
+
+
+class HoldingRobot:
+    def __init__(self):
+        self.holds = 0
+
+    def hold(self):
+        self.holds += 1
+
+
+def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
+    """A bug in a tick must neither leave the arm moving nor kill the control thread."""
+    ct = control(model)
+    ct.robot = HoldingRobot()
+    ct._internal_fault(KeyError("direction"))
+    (stop,) = stops(ct)
+    assert stop["cause"] == "internal" and "KeyError" in stop["message"]
+    assert ct.robot.holds == 1 and ct.task is None and ct.mode == "idle"
