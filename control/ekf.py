@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import Plane, rotvec_to_matrix
+from control.geometry import Plane, rotvec_to_matrix, sym2_max_eig
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -632,7 +632,7 @@ class ContactKF:
             kk11, kk12, kk22 = k11 * k11 + k12 * k12, k11 * k21 + k12 * k22, k21 * k21 + k22 * k22
         else:
             # rank one: H_eq = sqrt(lam) u^T, y_eq = u.b / sqrt(lam)
-            lam = 0.5 * tr + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
+            lam = sym2_max_eig(a11, a12, a22)
             ux, uy = (a12, lam - a11) if abs(a12) > 1e-300 else ((1.0, 0.0) if a11 >= a22 else (0.0, 1.0))
             un = math.hypot(ux, uy)
             ux, uy = ux / un, uy / un

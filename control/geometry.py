@@ -1,6 +1,8 @@
 """Rotation helpers in numpy: quaternions are (x, y, z, w), matrices map child -> parent."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -64,6 +66,11 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     if angle < 1e-8:
         return 0.5 * v
     return v * (angle / (2.0 * np.sin(angle)))
+
+
+def sym2_max_eig(a11: float, a12: float, a22: float) -> float:
+    """Larger eigenvalue of the symmetric 2 x 2 matrix [[a11, a12], [a12, a22]], in plain floats."""
+    return 0.5 * (a11 + a22) + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
 
 
 def unit(v: np.ndarray, name: str = "vector") -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
-from control.geometry import Plane, matrix_to_rotvec
+from control.geometry import Plane, matrix_to_rotvec, sym2_max_eig
 from control.onset import OnsetDetector
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
@@ -356,7 +356,7 @@ class ContactPipeline:
             # the larger eigenvalue of the 2 x 2 in-plane covariance, in closed form.
             axis = self.plane.n if float(self._w_sum @ self.plane.n) >= 0 else -self.plane.n
             (s11, s12), (_, s22) = self.plane.E @ stat @ self.plane.E.T
-            top = 0.5 * (s11 + s22) + math.sqrt(0.25 * (s11 - s22) ** 2 + s12 * s12)
+            top = sym2_max_eig(s11, s12, s22)
         else:
             axis, two_axes = self._excitation()
             if axis is not None and not two_axes:

@@ -68,6 +68,7 @@ class Task:
         self.status = TaskStatus()
         self.p_start: np.ndarray | None = None
         self.R_hold: np.ndarray | None = None
+        self._phase_t0 = 0.0
 
     def _running(self, inp: TickInput) -> bool:
         """False once done or failed; on the first tick, latches the start pose."""
@@ -81,6 +82,18 @@ class Task:
 
     def _started(self, inp: TickInput) -> None:
         """Called once, on the first tick."""
+
+    def _enter(self, phase: str, t: float) -> None:
+        self.status.phase = phase
+        self._phase_t0 = t
+
+    def _timed_out(self, t: float, nominal_s: float) -> bool:
+        """The current phase has taken far longer than its nominal duration."""
+        return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
+
+    def _fail(self, message: str) -> None:
+        self.status.state = "failed"
+        self.status.error = message
 
 
 class TwoPhaseTask(Task):
@@ -111,22 +124,10 @@ class TwoPhaseTask(Task):
         # object turns, which biases every estimator in proportion to the angle.
         self.probe_distance = probe_distance
         self.strategy = strategy
-        self._phase_t0 = 0.0
         self._axis_sign = 1.0
         self._straight_len = 0.0
         self._angle = 0.0
         self._radius = 0.0
-
-    def _timeout(self, t: float, nominal_s: float) -> bool:
-        return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
-
-    def _enter(self, phase: str, t: float) -> None:
-        self.status.phase = phase
-        self._phase_t0 = t
-
-    def _fail(self, message: str) -> None:
-        self.status.state = "failed"
-        self.status.error = message
 
     def _started(self, inp: TickInput) -> None:
         self._enter("probe", inp.t)
@@ -160,7 +161,7 @@ class TwoPhaseTask(Task):
                 return self._step_straight(inp)
             self._enter("arc", inp.t)
             return self._step_arc(inp)
-        if self._timeout(inp.t, self.probe_distance / self.speed):
+        if self._timed_out(inp.t, self.probe_distance / self.speed):
             self._fail("probing did not cover probe_distance in time")
             return None
         target = self.p_start + (self.probe_distance + PROBE_OVERSHOOT_M) * self.direction
@@ -201,7 +202,7 @@ class TwoPhaseTask(Task):
         if remaining <= ANGLE_TOL_RAD and inp.planner_at_rest:
             self._finish(c)
             return None
-        if self._timeout(inp.t, self.angle_rad * rho / self.speed):
+        if self._timed_out(inp.t, self.angle_rad * rho / self.speed):
             self._fail("arc following did not reach the angle in time")
             return None
         lookahead = self.speed * LOOKAHEAD_S / rho
@@ -224,7 +225,7 @@ class TwoPhaseTask(Task):
                 self._radius = self._radius_about(c.p, c.axis)
             self._finish(c)
             return None
-        if self._timeout(inp.t, self._straight_len / self.speed):
+        if self._timed_out(inp.t, self._straight_len / self.speed):
             self._fail("straight pull did not finish in time")
             return None
         return Motion(self.p_start + self._straight_len * self.direction, np.zeros(3), self.R_hold)
@@ -281,7 +282,7 @@ class ApproachTask(Task):
         self.stop_angle_rad = stop_angle_rad
 
     def _started(self, inp: TickInput) -> None:
-        self.status.phase = "approach"
+        self._enter("approach", inp.t)
 
     def step(self, inp: TickInput) -> Motion | None:
         if not self._running(inp):
@@ -303,7 +304,7 @@ class ApproachTask(Task):
         else:
             st.progress = 0.5 * min(max(s / self.max_distance, 0.0), 1.0)
             if s_plan >= self.max_distance - 1e-5:
-                st.state, st.error = "failed", f"no contact within max_distance {self.max_distance:g} m"
+                self._fail(f"no contact within max_distance {self.max_distance:g} m")
                 return None
         target = self.p_start + self.max_distance * self.direction
         # constant speed all the way: the target is paced (Ruckig would otherwise race it)
@@ -336,18 +337,10 @@ class PointTask(Task):
         self.e2 = np.array([0.0, 1.0, 0.0])
         self._psi = 0.0                 # angle travelled on the circle, rad (unwrapped)
         self._psi_plan = 0.0
-        self._phase_t0 = 0.0
         self._lever = None              # TCP-to-tip distance at the start, from the estimate
 
     def _started(self, inp: TickInput) -> None:
-        self.status.phase = "out"
-        self._phase_t0 = inp.t
-
-    def _fail(self, message: str) -> None:
-        self.status.state, self.status.error = "failed", message
-
-    def _timed_out(self, t: float, nominal_s: float) -> bool:
-        return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
+        self._enter("out", inp.t)
 
     def _on_circle(self, psi: float, c: ContactView) -> np.ndarray:
         """The circle point at angle psi, lifted onto the sphere about a trusted estimate."""
@@ -376,7 +369,7 @@ class PointTask(Task):
             s_plan = float(np.dot(p_ref - self.p_start, self.direction))
             st.progress = 0.1 * min(max(s_plan / self.radius, 0.0), 1.0)
             if s_plan >= self.radius - 1e-4:
-                st.phase, self._phase_t0 = "circle", inp.t
+                self._enter("circle", inp.t)
                 self._psi = self._psi_plan = 0.0
             else:
                 if self._timed_out(inp.t, self.radius / self.speed):
