@@ -30,11 +30,12 @@ class GyroConditioner:
         self._bias_ready = False
         self._bias_s = 0.0             # rest time averaged into the bias so far
         self.bias_frozen = False
+        self.bias_held = False         # the controller knows the tool touches something: hold the bias too
         self._hist = np.zeros((0, 3))  # last lpf_window-1 bias-free samples for the causal filter
 
     def track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
         """Update the rest bias from a batch taken while no contact is tracked."""
-        if self.bias_frozen or len(t) == 0:
+        if self.bias_frozen or self.bias_held or len(t) == 0:
             return
         dt = float(t[-1] - t[0]) + 1e-4
         if not self._bias_ready:

@@ -211,6 +211,7 @@ class ContactPipeline:
         self._dt_sample = 1.0 / 6667.0
         self._angle = 0.0
         self._stamp_prev = np.nan
+        self._begin_t: float | None = None
         self.latest: ContactEstimate | None = None
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
@@ -227,10 +228,32 @@ class ContactPipeline:
         if hasattr(self.estimator, "radial_var"):
             self.estimator.radial_var = self.params.arc_radial_sigma ** 2 if on else 0.0
 
+    def begin(self, t: float) -> None:
+        """Start a contact episode at the first sample at or after t (s), without waiting for the
+        trigger: the controller knows the tool touches and is about to move it (a tangential probe
+        from rest)."""
+        if not self.tracking:
+            self._begin_t = float(t)
+
+    def hold_bias(self, held: bool) -> None:
+        """The controller says whether the tool touches something outside a contact episode (settling
+        after a touch, backing off): its rotations then are not bias either."""
+        self.cond.bias_held = held
+
+    def _track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
+        """Bias tracking while idle, except while the gripper itself turns (its rate is not bias)."""
+        if len(t) == 0:
+            return
+        _, _, _, w_tcp, *_, ok = self.proprio.lookup(t[-1:])
+        if ok[0] and float(w_tcp[0] @ w_tcp[0]) > TCP_TURNING_RAD_S ** 2:
+            return
+        self.cond.track_bias(t, gyro)
+
     def release(self) -> None:
         """End the contact episode: back to bias tracking and an armed trigger."""
         self.tracking = False
         self.onset_t = None
+        self._begin_t = None
         self.cond.freeze_bias(False)
         self.detector.rearm()
         self.set_arc_following(False)
@@ -253,17 +276,22 @@ class ContactPipeline:
         t, gyro, accel = batch[:, 0], batch[:, 1:4], batch[:, 4:7]
         start = 0
         if not self.tracking:
-            hit = self.detector.process(t, accel, gyro)
+            if self._begin_t is not None:
+                hit = int(np.searchsorted(t, self._begin_t, side="left"))
+                hit = hit if hit < len(t) else -1
+            else:
+                hit = self.detector.process(t, accel, gyro)
             if hit < 0:
-                self.cond.track_bias(t, gyro)
+                self._track_bias(t, gyro)
                 self.cond.lowpass(gyro)      # keep the filter history warm
                 return events, []
-            self.cond.track_bias(t[:hit], gyro[:hit])
+            self._track_bias(t[:hit], gyro[:hit])
             p, v, *_, ok = self.proprio.lookup(t[hit:hit + 1])
             if not ok[0]:
                 self.detector.rearm()        # no proprioception yet: cannot start
                 self.cond.lowpass(gyro)
                 return events, []
+            commanded, self._begin_t = self._begin_t is not None, None
             self.cond.freeze_bias(True)
             self.estimator.start(p[0], v[0])
             self.tracking = True
@@ -276,7 +304,7 @@ class ContactPipeline:
             self._angle = 0.0
             self._t_out = -np.inf
             start = hit
-            events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist()})
+            events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist(), "commanded": commanded})
         w_f = self.cond.lowpass(gyro)[start:]
         ts = t[start:]
         if len(t) > 1:

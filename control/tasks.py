@@ -35,6 +35,7 @@ class TickInput:
     contact: ContactView
     planner_at_rest: bool
     p_plan: np.ndarray | None = None   # where the planner has the TCP now (None: use p)
+    force: np.ndarray | None = None    # force of the world on the TCP, world, N (None: not measured)
 
 
 @dataclass
@@ -44,6 +45,9 @@ class Motion:
     v: np.ndarray
     R: np.ndarray
     min_duration_s: float | None = None   # reach the target no sooner than this (paces look-ahead targets)
+    w: np.ndarray | None = None           # angular velocity feed-forward of the orientation target, world, rad/s
+    max_speed: float | None = None        # TCP speed cap for this motion, m/s (None: the task's speed)
+    straight: bool = False                # a straight move to p: its speed cap is shared out along it
 
 
 @dataclass
@@ -57,9 +61,19 @@ class TaskStatus:
 
 class Task:
     """What every task shares: its id, direction and speed, its status, and the TCP pose latched
-    on its first tick (the start position, and the orientation it holds)."""
+    on its first tick (the start position, and the orientation it holds).
+
+    `trigger_phase`: None, the onset trigger is armed for the whole task; or the phase in which
+    it is armed, and then only while the arm moves steadily at `speed` (its own acceleration
+    would look like an impact). `episode` counts contact episodes: the controller starts a
+    fresh one (the estimator released, older onsets ignored) whenever it changes, and with
+    `commanded_onset` set it starts the estimator at once instead of waiting for the trigger.
+    In `touching_phases` the gyro bias is held: the tool's rotations there are not bias.
+    """
 
     kind = "task"
+    trigger_phase: str | None = None
+    touching_phases: tuple = ()        # phases where the tool touches outside a contact episode
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float):
         self.id = task_id
@@ -68,6 +82,8 @@ class Task:
         self.status = TaskStatus()
         self.p_start: np.ndarray | None = None
         self.R_hold: np.ndarray | None = None
+        self.episode = 0
+        self.commanded_onset = False
         self._phase_t0 = 0.0
 
     def _running(self, inp: TickInput) -> bool:
@@ -274,6 +290,7 @@ class ApproachTask(Task):
     task fails."""
 
     kind = "approach"
+    trigger_phase = "approach"
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float, max_distance: float,
                  stop_angle_rad: float):

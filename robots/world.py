@@ -154,6 +154,43 @@ class TableEdge:
         return self.height if x <= self.edge_x else -np.inf
 
 
+class BoxScene:
+    """A floor at `floor_z` with boxes on it, each (x0, y0, x1, y1, top_z), world, m: a scene whose
+    height field is known exactly (for tests of mapping)."""
+
+    def __init__(self, floor_z: float, boxes: list[tuple[float, float, float, float, float]]):
+        self.floor_z = float(floor_z)
+        self.boxes = np.array(boxes, dtype=float).reshape(-1, 5)
+
+    def surface_z(self, x: float, y: float) -> float:
+        return float(self.surface_z_many(np.array([[x, y]]))[0])
+
+    def surface_z_many(self, xy: np.ndarray) -> np.ndarray:
+        """Heights at points (n, 2)."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        z = np.full(len(xy), self.floor_z)
+        for x0, y0, x1, y1, top in self.boxes:
+            inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
+            z = np.where(inside, np.maximum(z, top), z)
+        return z
+
+
+def _boxes(section) -> list:
+    raw = section._raw("boxes", [])
+    name = f"{section.path}.boxes"
+    if not isinstance(raw, list):
+        raise ValueError(f"{name}: expected a list of [x0, y0, x1, y1, top_z]")
+    out = []
+    for box in raw:
+        if (not isinstance(box, list) or len(box) != 5
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)):
+            raise ValueError(f"{name}: expected [x0, y0, x1, y1, top_z] numbers, got {box!r}")
+        if box[0] >= box[2] or box[1] >= box[3]:
+            raise ValueError(f"{name}: a box needs x0 < x1 and y0 < y1, got {box!r}")
+        out.append(tuple(float(v) for v in box))
+    return out
+
+
 @dataclass
 class PivotParams:
     tip_in_tcp: np.ndarray               # the tool tip in the TCP frame, m (a held block's far edge, a pen tip)
@@ -165,8 +202,10 @@ class PivotParams:
 
     @classmethod
     def from_config(cls, section) -> "PivotParams":
-        kind = section.getstr("surface", "table", choices=("table", "scene"))
-        if kind == "scene":
+        kind = section.getstr("surface", "table", choices=("table", "scene", "boxes"))
+        if kind == "boxes":
+            surface = BoxScene(section.getfloat("floor_z"), _boxes(section))
+        elif kind == "scene":
             surface = mapping_scene(tuple(section.getfloats("scene_origin_xy", [0.30, -0.175], n=2)),
                                     section.getfloat("scene_floor_z", 0.05),
                                     seed=section.getint("scene_seed", 0, minval=0))

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
 TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
-IMPLEMENTED = ("probe", "rotate", "point", "approach", "stop", "status", "cancel")
 
 # Error codes of the reply {"ok": false, "error": {"code", "message"}}.
 BAD_JSON = "bad_json"
@@ -50,6 +49,11 @@ class Limits:
     default_point_radius: float = 0.01     # m, circular probing
     max_point_radius: float = 0.03         # m
     max_point_turns: float = 5.0
+    default_map_size: tuple = (0.1, 0.1)   # m, x and y extent of a map region
+    max_map_size: float = 1.0              # m, per side
+    default_map_depth: float = 0.1         # m, deepest descent below the start height
+    max_map_depth: float = 0.4             # m
+    max_map_points: int = 400              # rows x cols
 
     @classmethod
     def from_config(cls, section) -> "Limits":
@@ -71,6 +75,12 @@ class Limits:
                                                   maxval=0.1),
             max_point_radius=section.getfloat("max_point_radius", d.max_point_radius, above=0.0, maxval=0.1),
             max_point_turns=section.getfloat("max_point_turns", d.max_point_turns, minval=0.25, maxval=20.0),
+            default_map_size=tuple(section.getfloats("default_map_size", list(d.default_map_size), n=2,
+                                                     minval=0.005, maxval=2.0)),
+            max_map_size=section.getfloat("max_map_size", d.max_map_size, above=0.0, maxval=2.0),
+            default_map_depth=section.getfloat("default_map_depth", d.default_map_depth, above=0.0, maxval=1.0),
+            max_map_depth=section.getfloat("max_map_depth", d.max_map_depth, above=0.0, maxval=1.0),
+            max_map_points=section.getint("max_map_points", d.max_map_points, minval=1, maxval=10000),
         )
 
 
@@ -117,6 +127,19 @@ def _direction(obj: dict, name: str, default) -> list[float]:
     if abs(norm - 1.0) > UNIT_TOL:
         raise CommandError(OUT_OF_LIMITS, f"{name}: expected a unit vector, |{name}| = {norm:.4g}")
     return [float(x) / norm for x in v]
+
+
+def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: str) -> list[float] | None:
+    """A list of n finite numbers within [lo, hi] (default when absent; None default: may be absent)."""
+    if name not in obj:
+        return None if default is None else [float(x) for x in default]
+    v = obj[name]
+    if not isinstance(v, list) or len(v) != n or not all(_is_num(x) and math.isfinite(float(x)) for x in v):
+        raise CommandError(BAD_TYPE, f"{name}: expected {n} finite numbers, got {json.dumps(v)}")
+    for x in v:
+        if x < lo or x > hi:
+            raise CommandError(OUT_OF_LIMITS, f"{name}: {x:g} {unit} is outside the configured limits [{lo:g}, {hi:g}]")
+    return [float(x) for x in v]
 
 
 def _check_fields(obj: dict, verb: str, allowed: tuple) -> None:
@@ -166,6 +189,27 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
             "radius": _number(obj, "radius", limits.default_point_radius, 0.002, limits.max_point_radius, "m"),
             "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
             "turns": _number(obj, "turns", 1.0, 0.25, limits.max_point_turns, "turns"),
+        }
+    if verb == "map":
+        _check_fields(obj, verb, ("origin", "size", "grid", "depth", "orientations", "speed"))
+        grid = obj.get("grid", [5, 6])
+        if (not isinstance(grid, list) or len(grid) != 2
+                or not all(isinstance(x, int) and not isinstance(x, bool) for x in grid)):
+            raise CommandError(BAD_TYPE, f"grid: expected [rows, cols] as two integers, got {json.dumps(grid)}")
+        if min(grid) < 1 or grid[0] * grid[1] > limits.max_map_points:
+            raise CommandError(OUT_OF_LIMITS, f"grid: {grid[0]} x {grid[1]} points is outside the configured limits "
+                                              f"(at least 1 x 1, at most {limits.max_map_points} points)")
+        orientations = obj.get("orientations", 2)
+        if orientations not in (1, 2) or isinstance(orientations, bool):
+            raise CommandError(BAD_TYPE, f"orientations: expected 1 or 2, got {json.dumps(orientations)}")
+        return {
+            "origin": _numbers(obj, "origin", None, 2, -10.0, 10.0, "m"),
+            "size": _numbers(obj, "size", limits.default_map_size, 2, 0.005, limits.max_map_size, "m"),
+            "grid": [int(grid[0]), int(grid[1])],
+            "depth": _number(obj, "depth", limits.default_map_depth, 0.005, limits.max_map_depth, "m"),
+            "orientations": int(orientations),
+            "speed": _number(obj, "speed", min(0.01, limits.default_speed), limits.min_speed, limits.max_speed,
+                             "m/s"),
         }
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())

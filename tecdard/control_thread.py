@@ -1,6 +1,7 @@
 """The 20 ms control thread: FK, safety, task state machine, Ruckig re-plan, DLS IK, joint commands."""
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import math
 import queue
@@ -12,9 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.planner import CartesianPlanner, PlannerError
+from control.mapping import MapParams, MapTask
 from control.tasks import ApproachTask, ContactView, PointTask, ProbeTask, RotateTask, TickInput
 from control.geometry import matrix_to_quat
 from tecdard import commands as C
+from tecdard.mapfiles import MapSettings, write_map
 
 log = logging.getLogger("tecdar.control")
 
@@ -119,7 +122,7 @@ class ControlThread:
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue,
                  to_estimator: queue.Queue, outbox: queue.Queue, q_home: np.ndarray, robot_name: str,
-                 notifier=None):
+                 notifier=None, map_settings: MapSettings | None = None):
         self.p = params
         self.model = model.clone()
         self.robot = robot
@@ -130,6 +133,9 @@ class ControlThread:
         self.q_home = q_home
         self.robot_name = robot_name
         self.notifier = notifier
+        self.map_settings = map_settings or MapSettings()
+        # map files are fused and written here, never on the 20 ms tick
+        self._writer = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-writer")
         self.inbox: queue.Queue = queue.Queue(maxsize=256)
         self.planner = CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk)
         self.stats = TickStats()
@@ -141,6 +147,9 @@ class ControlThread:
         self._seq = 0
         self._last_proprio_seq = -1
         self._R_hold = None
+        self._w_ff = np.zeros(3)           # angular velocity feed-forward of the orientation target
+        self._speed_cap = None             # the planner's current TCP speed cap, m/s
+        self._episode = 0
         self._task_t0 = 0.0
         self._trigger_armed = True
         self._last_est = None              # the contact estimate seen on the previous tick
@@ -195,6 +204,7 @@ class ControlThread:
                 self.robot.hold()
             except Exception:
                 log.exception("hold on exit failed")
+            self._writer.shutdown(wait=False, cancel_futures=True)
 
     def tick(self, now: float) -> None:
         js = self.robot.read_state()
@@ -212,7 +222,7 @@ class ControlThread:
         self._handle_commands(p, v)
         p_plan = self.planner.position
         if self.task is not None and not self._braking:
-            p_cmd, v_cmd = self._step_task(now, p, R, est)
+            p_cmd, v_cmd = self._step_task(now, p, R, est, js.tcp_force)
         elif self._braking or self.mode == "stopped":
             p_cmd, v_cmd = self._brake_step()
         else:
@@ -223,9 +233,10 @@ class ControlThread:
         if self.mode == "idle" and self.task is None and not self._braking:
             self.robot.hold()
             self._R_hold = R
+            self._w_ff = np.zeros(3)
         else:
             v_ff = (p_cmd - p_plan) / self.p.tick_s
-            tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, np.zeros(3))
+            tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, self._w_ff)
             speed = float(np.linalg.norm(tw[:3]))
             if speed > self.p.max_speed:       # hard TCP speed bound, whatever the planner said
                 tw[:3] *= self.p.max_speed / speed
@@ -353,6 +364,12 @@ class ControlThread:
             task = PointTask(task_id, f["radius"], f["speed"], f["turns"])
         elif verb == "approach":
             task = ApproachTask(task_id, np.array(f["direction"]), f["speed"], f["max_distance"], math.radians(f["stop_angle_deg"]))
+        elif verb == "map":
+            try:
+                task = self._map_task(task_id, f, p)
+            except C.CommandError as exc:
+                self._reply(query, exc.reply())
+                return
         else:
             self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
             return
@@ -361,8 +378,10 @@ class ControlThread:
         self._task_t0 = time.monotonic()
         self.mode = "busy"
         self.planner.reset(p, speed=f["speed"])
+        self._speed_cap = f["speed"]
+        self._episode = task.episode
         self._put(("release",), self.to_estimator)     # fresh contact episode for this task
-        self._trigger_armed = verb != "approach"
+        self._trigger_armed = task.trigger_phase is None
         if not self._trigger_armed:
             # the arm's own acceleration at the start would look like an impact: the trigger is
             # armed once the approach moves at constant speed (as the paper's ongoing case does)
@@ -370,8 +389,33 @@ class ControlThread:
         self._event("task_started", task=task_id, verb=verb, params=f)
         self._reply(query, {"ok": True, "task": task_id})
 
+    def _map_task(self, task_id: str, f: dict, p: np.ndarray) -> MapTask:
+        """A map run from the command; refused when any of its moves would leave the workspace box."""
+        ms = self.map_settings
+        size = np.array(f["size"])
+        origin = np.array(f["origin"]) if f["origin"] is not None else p[:2] - size / 2
+        params = MapParams(origin_xy=origin, size_xy=size, grid=tuple(f["grid"]), depth=f["depth"],
+                           orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed,
+                           probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
+                           max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp))
+        lo, hi = np.array(self.p.workspace_min), np.array(self.p.workspace_max)
+        reach = float(np.linalg.norm(np.array(ms.tool_tip_tcp)[:2])) + 0.01    # aiming offsets the TCP this much
+
+        def outside(q: np.ndarray) -> bool:
+            return bool(np.any(q[:2] < lo[:2] + reach) or np.any(q[:2] > hi[:2] - reach)
+                        or q[2] < lo[2] or q[2] > hi[2])
+
+        corners = [np.array([x, y]) for x in (origin[0], origin[0] + size[0]) for y in (origin[1], origin[1] + size[1])]
+        for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):
+            for xy in corners:
+                q = np.array([xy[0], xy[1], z])
+                if outside(q):
+                    raise C.CommandError(C.OUT_OF_LIMITS, f"{name}: the map reaches {np.round(q, 3).tolist()}, "
+                                                          f"outside the workspace box (with {reach:.2f} m for the tool)")
+        return MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
+
     # -- motion ---------------------------------------------------------------
-    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est) -> tuple[np.ndarray, np.ndarray]:
+    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> tuple[np.ndarray, np.ndarray]:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
             view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
@@ -379,18 +423,33 @@ class ControlThread:
         else:
             view = ContactView(tracking=False)
         phase_before = task.status.phase
-        if task.kind == "approach" and task.status.phase == "approach":
+        if task.trigger_phase is not None:
             # armed exactly while the arm moves steadily: starting and braking are not impacts
-            steady = self.planner.steady(task.speed)
+            steady = task.status.phase == task.trigger_phase and self.planner.steady(task.speed)
             if steady != self._trigger_armed:
                 self._trigger_armed = steady
                 self._put(("arm", steady), self.to_estimator)
-        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position))
+        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force))
         st = task.status
+        if task.episode != self._episode:
+            # the task starts a fresh contact episode: older onsets no longer count
+            self._episode = task.episode
+            self._task_t0 = now
+            self._last_est = None
+            self._put(("release",), self.to_estimator)
+            if task.commanded_onset:
+                task.commanded_onset = False
+                self._put(("begin", now), self.to_estimator)
+            elif task.trigger_phase is not None:
+                self._trigger_armed = False
+                self._put(("arm", False), self.to_estimator)
         # In these phases the TCP's motion along the lever arm is absorbed by the grasp (arc following
         # about an estimate, or pushing on after an impact, where the object slides in the fingers).
         if (st.phase in LEVER_ARM_ABSORBED) != (phase_before in LEVER_ARM_ABSORBED):
             self._put(("arc", st.phase in LEVER_ARM_ABSORBED), self.to_estimator)
+        touching = st.phase in task.touching_phases
+        if touching != (phase_before in task.touching_phases):
+            self._put(("hold_bias", touching), self.to_estimator)
         if motion is None:
             if st.state == "done":
                 self._end_task("done", result=st.result)
@@ -398,6 +457,15 @@ class ControlThread:
                 self._end_task("failed", error=st.error)
             return self._brake_step()
         self._R_hold = motion.R
+        self._w_ff = np.zeros(3) if motion.w is None else motion.w
+        cap = task.speed if motion.max_speed is None else motion.max_speed
+        ahead = motion.p - self.planner.position
+        if motion.straight and float(ahead @ ahead) > 1e-10:
+            self._speed_cap = None
+            self.planner.set_speed(cap, ahead / math.sqrt(float(ahead @ ahead)))
+        elif cap != self._speed_cap:
+            self._speed_cap = cap
+            self.planner.set_speed(cap)
         lag = float(np.linalg.norm(self.planner.position - p))
         if lag > self.p.max_tracking_error_m:
             # the arm is not following (a joint at its limit, an unreachable target, a collision)
@@ -414,6 +482,7 @@ class ControlThread:
             return self._brake_step()
 
     def _brake_step(self) -> tuple[np.ndarray, np.ndarray]:
+        self._w_ff = np.zeros(3)
         try:
             p_cmd, v_cmd = self.planner.brake()
         except PlannerError:
@@ -434,6 +503,8 @@ class ControlThread:
         self.task = None
         self._braking = True
         self._put(("release",), self.to_estimator)
+        if task.touching_phases:
+            self._put(("hold_bias", False), self.to_estimator)
         if outcome == "done":
             result = dict(result or {})
             truth = self.robot.truth() if hasattr(self.robot, "truth") else None

@@ -23,6 +23,7 @@ from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
+from tecdard.mapfiles import MapSettings
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop
@@ -59,6 +60,7 @@ class Daemon:
 
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
+        self.map_settings = MapSettings.from_config(cfg.section("map"))
 
         imu = cfg.section("imu")
         self.imu_source = imu.getstr("source", "sim", choices=("sim", "sim-wire", "serial"))
@@ -76,7 +78,10 @@ class Daemon:
         imu_params = SimImuParams.from_config(sim_imu, default_mount=mount)
         robot_params = SimRobotParams.from_config(sim.section("robot"), self.q_home)
         hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
-        pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
+        try:
+            pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         if hinge is not None and pivot is not None:
             raise ConfigError("sim.pivot: give one world, sim.hinge or sim.pivot, not both")
         cfg.check_unused()
@@ -121,7 +126,8 @@ class Daemon:
         self.notifier = Notifier()
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
-                                     self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier)
+                                     self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
+                                     self.map_settings)
         self.keys = Keys(self.robot_name)
         self.latest_state: dict | None = None
         self._threads: list[threading.Thread] = []

@@ -65,6 +65,10 @@ class EstimatorThread:
                     pipe.set_arc_following(msg[1])
                 elif msg[0] == "arm":
                     pipe.set_trigger_armed(msg[1])
+                elif msg[0] == "begin":
+                    pipe.begin(msg[1])
+                elif msg[0] == "hold_bias":
+                    pipe.hold_bias(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
             events, est = pipe.process(batch)
             for ev in events:

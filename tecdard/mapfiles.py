@@ -1,0 +1,151 @@
+"""Map output: fuse a finished map run into a depth raster and write depth.npy, points.csv, summary.json, depth.png."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import pathlib
+import struct
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from control.mapping import MapRecord, kernel_depth, raster_xy
+
+PNG_CELL_PX_MAX = 8           # a raster cell is drawn as at most this many pixels square
+PNG_TARGET_PX = 480           # the longer side of the heatmap aims at this many pixels
+COLORBAR_PX = 24
+NAN_RGB = (200, 200, 200)
+# viridis, sampled at eight points (matplotlib's, which the core does not depend on)
+_VIRIDIS = np.array([[68, 1, 84], [70, 50, 127], [54, 92, 141], [39, 127, 142], [31, 161, 135],
+                     [74, 194, 109], [159, 218, 58], [253, 231, 37]], dtype=float)
+
+
+def default_output_dir() -> str:
+    """systemd's StateDirectory when run as the service, else ./maps."""
+    state = os.environ.get("STATE_DIRECTORY")
+    return str(pathlib.Path(state.split(":")[0]) / "maps") if state else "maps"
+
+
+@dataclass
+class MapSettings:
+    """The `map` config section: how a run probes and how its map is fused and written."""
+    output_dir: str = "maps"
+    resolution_m: float = 0.005          # raster cell of depth.npy
+    kernel_k: int = 4                    # the paper's k
+    kernel_sigma_m: float = 0.022        # the paper's sigma = 2.2 (unit not given; cm fits its 7-9 cm grid)
+    abort_force_n: float = 5.0           # the paper's 5 N
+    max_point_std_m: float = 0.005
+    probe_distance_m: float = 0.005      # the paper's at most 5 mm of tangential probing
+    tool_tip_tcp: tuple = (0.0, 0.0, 0.1)
+
+    @classmethod
+    def from_config(cls, section) -> "MapSettings":
+        d = cls()
+        return cls(
+            output_dir=section.getstr("output_dir", default_output_dir()),
+            resolution_m=section.getfloat("resolution_m", d.resolution_m, minval=0.001, maxval=0.1),
+            kernel_k=section.getint("kernel_k", d.kernel_k, minval=1, maxval=64),
+            kernel_sigma_m=section.getfloat("kernel_sigma_m", d.kernel_sigma_m, above=0.0, maxval=1.0),
+            abort_force_n=section.getfloat("abort_force_n", d.abort_force_n, above=0.0, maxval=100.0),
+            max_point_std_m=section.getfloat("max_point_std_m", d.max_point_std_m, above=0.0, maxval=0.1),
+            probe_distance_m=section.getfloat("probe_distance_m", d.probe_distance_m, minval=0.001, maxval=0.02),
+            tool_tip_tcp=tuple(section.getvec3("tool_tip_tcp", list(d.tool_tip_tcp))),
+        )
+
+
+def fuse(record: MapRecord, settings: MapSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(query raster (ny, nx, 2), surface height (ny, nx)) from the valid points of every pass, m."""
+    m = record.params
+    valid = [pt for pt in record.points if pt.valid]
+    xy = np.array([pt.p[:2] for pt in valid]).reshape(-1, 2)
+    z = np.array([pt.p[2] for pt in valid])
+    query = raster_xy(m.origin_xy, m.size_xy, settings.resolution_m)
+    return query, kernel_depth(xy, z, query, settings.kernel_k, settings.kernel_sigma_m)
+
+
+def write_map(record: MapRecord, settings: MapSettings) -> dict:
+    """Fuse and write the four files into <output_dir>/<task id>/; returns the task result."""
+    m = record.params
+    out = pathlib.Path(settings.output_dir) / record.task_id
+    out.mkdir(parents=True, exist_ok=True)
+    query, height = fuse(record, settings)
+    np.save(out / "depth.npy", height)
+    rows = [pt.to_row() for pt in record.points]
+    with open(out / "points.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["pass"])
+        writer.writeheader()
+        writer.writerows(rows)
+    valid = [pt for pt in record.points if pt.valid]
+    reasons: dict[str, int] = {}
+    for pt in record.points:
+        if not pt.valid:
+            reasons[pt.reason] = reasons.get(pt.reason, 0) + 1
+    finite = height[np.isfinite(height)]
+    summary = {
+        "grid": list(m.grid), "origin": m.origin_xy.tolist(), "size": m.size_xy.tolist(),
+        "passes": len(record.yaw_rad), "yaw_deg": [float(np.degrees(y)) for y in record.yaw_rad],
+        "points": len(record.points), "valid": len(valid), "invalid": reasons,
+        "depth": {"file": "depth.npy", "quantity": "surface height, world z, m",
+                  "shape": list(height.shape), "rows": "+y", "cols": "+x",
+                  "first_cell_center": query[0, 0].tolist(), "resolution": settings.resolution_m,
+                  "z_min": float(finite.min()) if finite.size else None,
+                  "z_max": float(finite.max()) if finite.size else None},
+        "kernel": {"k": settings.kernel_k, "sigma": settings.kernel_sigma_m},
+        "median_std_z": float(np.median([pt.std[2] for pt in valid])) if valid else None,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_png(out / "depth.png", heatmap_rgb(height, query, valid, record.points, m))
+    files = {name: str(out / name) for name in ("depth.npy", "points.csv", "summary.json", "depth.png")}
+    return {"path": str(out), "files": files, "summary": summary}
+
+
+def colormap(t: np.ndarray) -> np.ndarray:
+    """Viridis RGB (..., 3) uint8 for t in [0, 1]; NaN -> grey."""
+    t = np.asarray(t, dtype=float)
+    x = np.clip(np.nan_to_num(t, nan=0.0), 0.0, 1.0) * (len(_VIRIDIS) - 1)
+    i = np.minimum(x.astype(int), len(_VIRIDIS) - 2)
+    f = (x - i)[..., None]
+    rgb = (1.0 - f) * _VIRIDIS[i] + f * _VIRIDIS[i + 1]
+    rgb[np.isnan(t)] = NAN_RGB
+    return rgb.astype(np.uint8)
+
+
+def heatmap_rgb(height: np.ndarray, query: np.ndarray, valid, points, m) -> np.ndarray:
+    """The height raster as an image (+y up), probe points marked (valid black, invalid red),
+    and a colour bar on the right (bottom: z_min, top: z_max; values in summary.json)."""
+    finite = height[np.isfinite(height)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    span = hi - lo if hi > lo else 1.0
+    ny, nx = height.shape
+    cell = int(max(1, min(PNG_CELL_PX_MAX, PNG_TARGET_PX // max(nx, ny))))
+    img = np.repeat(np.repeat(colormap((height - lo) / span), cell, axis=0), cell, axis=1)[::-1]
+
+    def mark(x, y, rgb) -> None:
+        j = int((x - m.origin_xy[0]) / m.size_xy[0] * nx * cell)
+        i = img.shape[0] - 1 - int((y - m.origin_xy[1]) / m.size_xy[1] * ny * cell)
+        img[max(i - 2, 0):i + 3, max(j - 2, 0):j + 3] = rgb
+
+    for pt in points:
+        if pt.valid:
+            mark(pt.p[0], pt.p[1], (0, 0, 0))
+        else:
+            mark(pt.grid_xy[0], pt.grid_xy[1], (220, 30, 30))
+    bar = colormap(np.linspace(1.0, 0.0, img.shape[0]))[:, None, :].repeat(COLORBAR_PX, axis=1)
+    gap = np.full((img.shape[0], 4, 3), 255, dtype=np.uint8)
+    return np.concatenate([img, gap, bar], axis=1)
+
+
+def write_png(path, rgb: np.ndarray) -> None:
+    """An 8-bit RGB PNG (h, w, 3) with zlib: no imaging library needed."""
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    h, w, _ = rgb.shape
+    raw = np.concatenate([np.zeros((h, 1), dtype=np.uint8), rgb.reshape(h, w * 3)], axis=1).tobytes()
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    pathlib.Path(path).write_bytes(png)
