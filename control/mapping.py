@@ -207,8 +207,10 @@ class MapTask(Task):
         self._enter("travel", t)
 
     def _progress(self, stage: float) -> None:
+        """Progress over every point of every pass, `stage` (0..1) into the current one; never backwards
+        (the measured descent jitters with the encoders)."""
         done = self._pass * self.grid.shape[0] * self.grid.shape[1] + self._index
-        self.status.progress = min(0.99 * (done + stage) / self.total_points, 0.99)
+        self.status.progress = max(self.status.progress, min(0.99 * (done + stage) / self.total_points, 0.99))
 
     def step(self, inp: TickInput) -> Motion | None:
         if not self._running(inp):

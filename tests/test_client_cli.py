@@ -21,7 +21,8 @@ def test_verbs_against_a_daemon(shared_daemon):
     assert "out_of_limits" in refused.stderr and "angle_deg" in refused.stderr
     missing = tecdard("rotate", "--connect", ep)
     assert missing.returncode == 2 and "missing_field" in missing.stderr
-    assert tecdard("map", "--connect", ep).returncode == 2          # not implemented yet: refused
+    bad_grid = tecdard("map", "--connect", ep, "--grid", "0,6")
+    assert bad_grid.returncode == 2 and "out_of_limits" in bad_grid.stderr and "grid" in bad_grid.stderr
     assert tecdard("cancel", "--connect", ep).returncode == 2       # no task to cancel
     done = tecdard("rotate", "--connect", ep, "--angle-deg", "10", "--json")
     assert done.returncode == 0, done.stderr

@@ -34,7 +34,7 @@ def test_rotate_defaults_and_normalisation():
     ("probe", '{"distance": 0.5}', C.OUT_OF_LIMITS, "distance"),
     ("cancel", '{"task": 5}', C.BAD_TYPE, "task"),
     ("dance", "{}", C.UNKNOWN_VERB, "dance"),
-    ("map", "{}", C.NOT_IMPLEMENTED, "map"),
+    ("map", '{"grid": [2, 2], "depth": 5}', C.OUT_OF_LIMITS, "depth"),
     ("approach", "{}", C.MISSING_FIELD, "direction"),
     ("approach", "{\"direction\": [0, 0, -1], \"max_distance\": 5}", C.OUT_OF_LIMITS, "max_distance"),
 ])

@@ -1,4 +1,5 @@
 """Whole daemon in simulation, started as a subprocess and driven over Zenoh as a client would."""
+import csv
 import signal
 import time
 
@@ -73,7 +74,8 @@ def tcp_now(cli):
     ("fly", "{}", "unknown_verb", "fly"),
     ("point", '{"radius": 0.2}', "out_of_limits", "radius"),
     ("point", '{"turns": 1, "direction": [1, 0, 0]}', "unknown_field", "direction"),
-    ("map", "{}", "not_implemented", "map"),
+    ("map", '{"origin": [3.0, 0.0]}', "out_of_limits", "origin"),          # outside the workspace box
+    ("map", '{"grid": [2, 2.5]}', "bad_type", "grid"),
     ("cancel", "{}", "no_task", "task"),
 ])
 def test_bad_commands_are_refused_without_motion(shared_daemon, verb, payload, code, field):
@@ -253,3 +255,53 @@ def test_point_localises_a_pen_tip_by_circular_probing(make_daemon, tool_m):
     assert np.all(np.abs(err) <= 3 * np.array(res["std"]) + 1e-4)      # the one-sigma covers it
     assert abs(res["turns"] - 1.0) < 0.02
     assert abs(res["lever_arm"] - res["sim"]["lever_arm_m"]) < 0.005
+
+
+MAP_POINT_TOL_M = 0.006      # measured 0-4.4 mm in z (the second pass reads 2-4 mm high), < 1.5 mm across
+MAP_SCENE = {"floor_z": 0.33, "boxes": [[0.33, -0.05, 0.40, 0.0, 0.35]]}    # a 2 cm box on a table
+
+
+def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(make_daemon, tmp_path):
+    """The paper's tactile mapping on a 2 x 2 grid: a block held 30 deg off the vertical probes a table
+    with a box on it, in two tool orientations; every point is valid and the map matches the scene."""
+    from robots.world import BoxScene
+    tilt, tool_m = np.radians(30.0), 0.12
+    tip_tcp = [float(tool_m * np.sin(tilt)), 0.0, float(tool_m * np.cos(tilt))]
+    d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": tip_tcp, "surface": "boxes", **MAP_SCENE},
+                       "map": {"output_dir": str(tmp_path / "maps"), "tool_tip_tcp": tip_tcp}})
+    scene = BoxScene(MAP_SCENE["floor_z"], MAP_SCENE["boxes"])
+    reply = d.client.command("map", {"origin": [0.32, -0.04], "size": [0.08, 0.08], "grid": [2, 2], "depth": 0.06,
+                                     "orientations": 2, "speed": 0.01})
+    assert reply["ok"] is True, reply
+    progress, phases, ev = [], set(), None
+    deadline = time.monotonic() + 2 * TASK_TIMEOUT_S
+    while ev is None and time.monotonic() < deadline:
+        try:
+            ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 0.5)
+        except Exception:
+            pass
+        while not d.client.states.empty():
+            task = d.client.states.get_nowait()["task"]
+            if task is not None:
+                progress.append(task["progress"])
+                phases.add(task["phase"])
+    assert ev is not None and ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
+    assert {"descend", "probe", "retract", "lift", "travel", "turn"} <= phases
+    assert progress and all(b >= a for a, b in zip(progress, progress[1:])), "progress went backwards"
+    res = ev["result"]
+    summary = res["summary"]
+    assert summary["points"] == 8 and summary["valid"] == 8 and summary["passes"] == 2
+    rows = list(csv.DictReader(open(res["files"]["points.csv"])))
+    grid = {(0, 0): (0.34, -0.02), (0, 1): (0.38, -0.02), (1, 0): (0.34, 0.02), (1, 1): (0.38, 0.02)}
+    for r in rows:
+        p = np.array([float(r["x"]), float(r["y"]), float(r["z"])])
+        assert abs(p[2] - scene.surface_z(p[0], p[1])) < MAP_POINT_TOL_M, r
+        # the tool tip was aimed at the grid point (from the tool model, refined by each probe)
+        assert np.linalg.norm(p[:2] - grid[int(r["row"]), int(r["col"])]) < 0.004, r
+    depth = np.load(res["files"]["depth.npy"])
+    assert depth.shape == (16, 16) and np.isfinite(depth).all()
+    # the fused map at the four grid points (raster rows along +y): the box and the table
+    for (row, col), (x, y) in grid.items():
+        i, j = int((y + 0.04) / 0.005), int((x - 0.32) / 0.005)
+        assert abs(depth[i, j] - scene.surface_z(x, y)) < MAP_POINT_TOL_M
+    assert open(res["files"]["depth.png"], "rb").read(8) == b"\x89PNG\r\n\x1a\n"

@@ -148,3 +148,51 @@ def test_plane_projection_and_lift(normal, origin, x):
     # w x r in the plane is w_n J r
     w_n, r2 = 0.7, plane.point2(x)
     assert np.allclose(plane.vec2(np.cross(w_n * plane.n, r2 @ E)), w_n * Plane.J @ r2, atol=1e-9)
+
+
+def idle_pipeline():
+    """A pipeline whose trigger never fires, at rest with proprioception up to t = 10 s."""
+    pipe = ContactPipeline(OnsetDetector(1e6, warmup_s=0.0), GyroConditioner(np.eye(3)), PipelineParams())
+    return pipe
+
+
+def feed(pipe, t0, t1, gyro, w_tcp=np.zeros(3)):
+    t = np.arange(t0, t1, 1 / ODR_HZ)
+    for tp in np.arange(t0, t1, 1 / PROPRIO_HZ):
+        pipe.add_proprio(tp, np.array([0.3, 0.0, 0.4]), np.zeros(3), np.eye(3), w_tcp)
+    accel = np.tile([0.0, 0.0, 9.81], (len(t), 1))
+    events = []
+    for k0 in range(0, len(t), 128):
+        sl = slice(k0, k0 + 128)
+        events += pipe.process(np.column_stack([t[sl], np.tile(gyro, (len(t[sl]), 1)), accel[sl]]))[0]
+    return events
+
+
+def test_commanded_onset_starts_at_the_first_sample_at_or_after_the_time():
+    pipe = idle_pipeline()
+    assert feed(pipe, 0.0, 0.3, np.zeros(3)) == []
+    pipe.begin(0.41234)
+    (ev,) = feed(pipe, 0.3, 0.6, np.array([0.0, 0.05, 0.0]))
+    assert ev["kind"] == "contact_onset" and ev["commanded"] is True
+    assert 0.41234 <= ev["t"] < 0.41234 + 1.5 / ODR_HZ
+    assert pipe.tracking
+    pipe.release()
+    assert not pipe.tracking and feed(pipe, 0.6, 0.8, np.zeros(3)) == []     # begin does not outlive its episode
+
+
+def test_gyro_bias_is_not_learnt_from_a_turning_gripper_nor_a_touching_tool():
+    bias = np.array([0.01, -0.004, 0.007])
+    pipe = idle_pipeline()
+    feed(pipe, 0.0, 1.0, bias)
+    assert pipe.cond.bias == pytest.approx(bias, abs=1e-9)
+    # the gripper turns about z at 0.5 rad/s (the map task's turn between passes): not bias
+    feed(pipe, 1.0, 3.0, bias + [0.0, 0.0, 0.5], w_tcp=np.array([0.0, 0.0, 0.5]))
+    assert pipe.cond.bias == pytest.approx(bias, abs=1e-9)
+    # the tool touches and turns in the grasp (settling after a touch, backing off): held
+    pipe.hold_bias(True)
+    feed(pipe, 3.0, 4.0, bias + [0.0, 0.08, 0.0])
+    assert pipe.cond.bias == pytest.approx(bias, abs=1e-9)
+    # free and still again: the bias is tracked (here a drift of 0.002 rad/s)
+    pipe.hold_bias(False)
+    feed(pipe, 4.0, 8.0, bias + [0.002, 0.0, 0.0])
+    assert pipe.cond.bias[0] == pytest.approx(bias[0] + 0.002, abs=1e-4)

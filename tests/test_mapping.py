@@ -1,0 +1,273 @@
+"""Tactile mapping: the kernel depth estimator, the map task's state machine, and the map files."""
+import concurrent.futures
+import csv
+import json
+import math
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from control.geometry import rotvec_to_matrix
+from control.mapping import MapParams, MapRecord, MapTask, kernel_depth, raster_xy
+from control.planner import CartesianPlanner
+from control.tasks import ContactView, TickInput
+from robots.world import BoxScene
+from tecdard import commands as C
+from tecdard.mapfiles import MapSettings, colormap, write_map
+
+TICK_S = 0.02
+R_TOOL_DOWN = np.diag([1.0, -1.0, -1.0])        # the TCP frame of the Panda's home pose
+TIP_TCP = np.array([0.06, 0.0, 0.104])          # a block held 30 deg off the vertical, 12 cm
+STIFFNESS_N_M = 3000.0                          # the grasp along the tool, as the simulator's
+POINT_TOL_M = 1e-6                              # the fake estimator is exact
+
+
+def done_now(result):
+    fut = concurrent.futures.Future()
+    fut.set_result(result)
+    return fut
+
+
+# -- kernel depth ------------------------------------------------------------------
+
+def test_kernel_depth_is_the_gaussian_weighted_mean_of_the_k_nearest():
+    xy = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1], [0.1, 0.1], [1.0, 1.0]])
+    d = np.array([1.0, 2.0, 3.0, 4.0, 100.0])
+    sigma = 0.05
+    q = np.array([0.02, 0.03])
+    got = kernel_depth(xy, d, q, k=4, sigma=sigma)
+    r2 = ((xy[:4] - q) ** 2).sum(axis=1)
+    w = np.exp(-r2 / (2 * sigma ** 2))
+    assert got == pytest.approx(float(w @ d[:4] / w.sum()), rel=1e-12)      # the far point is not among the 4
+    # at a probe point with a narrow kernel the estimate is that probe's depth
+    assert kernel_depth(xy, d, xy[1], k=4, sigma=0.005) == pytest.approx(2.0, abs=1e-9)
+    # k = 1 is nearest-neighbour; more neighbours than points use them all
+    assert kernel_depth(xy, d, np.array([0.95, 0.9]), k=1) == 100.0
+    assert np.isfinite(kernel_depth(xy[:2], d[:2], np.zeros(2), k=4))
+    assert np.isnan(kernel_depth(np.zeros((0, 2)), np.zeros(0), np.zeros((3, 2)))).all()
+
+
+def test_kernel_depth_does_not_underflow_far_from_every_probe():
+    xy = np.array([[0.0, 0.0], [0.01, 0.0]])
+    got = kernel_depth(xy, np.array([1.0, 3.0]), np.array([5.0, 0.0]), k=2, sigma=0.001)
+    assert got == pytest.approx(3.0)          # the nearer of the two dominates, no NaN
+
+
+def test_raster_covers_the_region_rows_along_y():
+    q = raster_xy(np.array([0.3, -0.1]), np.array([0.2, 0.1]), 0.01)
+    assert q.shape == (10, 20, 2)
+    assert q[0, 0].tolist() == pytest.approx([0.305, -0.095])
+    assert q[0, 1, 0] > q[0, 0, 0] and q[1, 0, 1] > q[0, 0, 1]
+
+
+# -- the map task against a fake arm and estimator ------------------------------------
+
+class FakeRig:
+    """Planner-driven TCP (the control thread's moves), a rigid tool over a BoxScene, and an estimator
+    that reports the true touch point once an episode runs. `trigger` False: impacts go unnoticed."""
+
+    def __init__(self, scene: BoxScene, p0: np.ndarray, trigger: bool = True):
+        self.scene = scene
+        self.planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
+        self.planner.reset(p0)
+        self.p = p0.copy()
+        self.R = R_TOOL_DOWN.copy()
+        self.trigger = trigger
+        self.t = 0.0
+        self.episode = 0
+        self.touch = None            # pinned tip while the tool touches
+        self.tracking = False
+        self.phases = []
+        self.lowest_tip = np.inf
+
+    def tip(self) -> np.ndarray:
+        return self.p + self.R @ TIP_TCP
+
+    def force(self) -> np.ndarray:
+        if self.touch is None:
+            return np.zeros(3)
+        pen = self.touch[2] - self.tip()[2]
+        return np.array([0.0, 0.0, STIFFNESS_N_M * max(pen, 0.0)])
+
+    def run(self, task: MapTask, max_ticks: int = 200000) -> MapTask:
+        for _ in range(max_ticks):
+            self.t += TICK_S
+            tip = self.tip()
+            self.lowest_tip = min(self.lowest_tip, tip[2])
+            if self.touch is None and tip[2] <= self.scene.surface_z(tip[0], tip[1]):
+                self.touch = np.array([tip[0], tip[1], self.scene.surface_z(tip[0], tip[1])])
+                if self.trigger and task.status.phase == "descend":
+                    self.tracking = True
+            elif self.touch is not None and tip[2] > self.touch[2] + 0.003:
+                self.touch = None
+            view = ContactView(tracking=self.tracking, p=self.touch, std=np.full(3, 1e-3),
+                               axis=np.array([0.0, 1.0, 0.0]), in_plane_std=1e-3) if self.tracking \
+                else ContactView(tracking=False)
+            motion = task.step(TickInput(self.t, self.p.copy(), self.R.copy(), view, self.planner.at_rest,
+                                         self.planner.position, self.force()))
+            if not self.phases or self.phases[-1] != task.status.phase:
+                self.phases.append(task.status.phase)
+            if task.episode != self.episode:
+                self.episode = task.episode
+                self.tracking = bool(task.commanded_onset and self.touch is not None)
+                task.commanded_onset = False
+            if task.status.state != "running":
+                return task
+            if motion is None:
+                self.p, _ = self.planner.brake()
+                continue
+            ahead = motion.p - self.planner.position
+            n = float(np.linalg.norm(ahead))
+            self.planner.set_speed(motion.max_speed or task.speed, ahead / n if motion.straight and n > 1e-5 else None)
+            self.p, _ = self.planner.step(motion.p, motion.v, motion.min_duration_s)
+            self.R = motion.R
+        raise AssertionError(f"map task still running in phase {task.status.phase}")
+
+
+def map_params(**kw) -> MapParams:
+    base = dict(origin_xy=np.array([0.32, -0.04]), size_xy=np.array([0.08, 0.08]), grid=(2, 2), depth=0.06,
+                orientations=2, speed=0.01, travel_speed=0.05, tool_tip_tcp=TIP_TCP)
+    base.update(kw)
+    return MapParams(**base)
+
+
+SCENE = BoxScene(0.33, [(0.33, -0.05, 0.40, 0.0, 0.35)])
+P0 = np.array([0.307, 0.0, 0.487])
+
+
+def test_map_probes_every_grid_point_in_two_orientations_and_hands_the_record_to_the_writer():
+    records = []
+    task = MapTask("map-1", map_params(), lambda rec: records.append(rec) or done_now({"path": "x"}))
+    progress = []
+    rig = FakeRig(SCENE, P0)
+    orig_step = task.step
+
+    def step(inp):
+        m = orig_step(inp)
+        progress.append(task.status.progress)
+        return m
+    task.step = step
+    rig.run(task)
+    assert task.status.state == "done", task.status.error
+    assert task.status.result == {"path": "x"}
+    assert np.all(np.diff(progress) >= -1e-12) and progress[-1] == 1.0
+    for stage in ("travel", "descend", "settle", "probe", "retract", "lift", "turn", "write"):
+        assert stage in rig.phases
+    (rec,) = records
+    assert isinstance(rec, MapRecord) and len(rec.points) == 8 and rec.yaw_rad == [0.0, math.pi / 2]
+    grid = task.grid
+    for pt in rec.points:
+        assert pt.valid, pt
+        # the tool tip was aimed at the grid point, and the fake estimator reports where it touched
+        assert np.linalg.norm(pt.p[:2] - grid[pt.row, pt.col]) < 2e-3
+        assert pt.p[2] == pytest.approx(SCENE.surface_z(*pt.p[:2]), abs=POINT_TOL_M)
+        assert pt.max_force_n < 5.0
+    # the second pass turned the tool 90 deg about world z
+    assert np.allclose(rig.R, rotvec_to_matrix(np.array([0, 0, math.pi / 2])) @ R_TOOL_DOWN, atol=1e-9)
+    assert {(pt.row, pt.col) for pt in rec.points if pt.pass_index == 1} == {(0, 0), (0, 1), (1, 0), (1, 1)}
+
+
+def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
+    records = []
+    task = MapTask("map-2", map_params(orientations=1), lambda rec: records.append(rec) or done_now({}))
+    rig = FakeRig(SCENE, P0, trigger=False)
+    rig.run(task)
+    assert task.status.state == "done"
+    (rec,) = records
+    assert [pt.reason for pt in rec.points] == ["force"] * 4
+    assert not any(pt.valid for pt in rec.points)
+    # it stopped pushing soon after 5 N: the tip went at most a few mm into the (rigid) fake surface
+    assert rig.lowest_tip > SCENE.floor_z - 0.004
+    assert "probe" not in rig.phases
+
+
+def test_nothing_within_depth_is_no_contact():
+    records = []
+    task = MapTask("map-3", map_params(orientations=1, grid=(1, 2), depth=0.02),
+                   lambda rec: records.append(rec) or done_now({}))
+    FakeRig(SCENE, P0).run(task)
+    assert [pt.reason for pt in records[0].points] == ["no_contact", "no_contact"]
+
+
+def test_a_failing_writer_fails_the_task():
+    def writer(rec):
+        fut = concurrent.futures.Future()
+        fut.set_exception(OSError("disk full"))
+        return fut
+    task = MapTask("map-4", map_params(orientations=1, grid=(1, 1)), writer)
+    FakeRig(SCENE, P0).run(task)
+    assert task.status.state == "failed" and "disk full" in task.status.error
+
+
+# -- files ---------------------------------------------------------------------------
+
+def read_png(path) -> np.ndarray:
+    data = open(path, "rb").read()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, w, h = 8, b"", None, None
+    while pos < len(data):
+        n, tag = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + n]
+        assert struct.unpack(">I", data[pos + 8 + n:pos + 12 + n])[0] == zlib.crc32(tag + body) & 0xFFFFFFFF
+        if tag == b"IHDR":
+            w, h = struct.unpack(">II", body[:8])
+        elif tag == b"IDAT":
+            idat += body
+        pos += 12 + n
+    raw = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(h, 1 + 3 * w)
+    assert np.all(raw[:, 0] == 0)
+    return raw[:, 1:].reshape(h, w, 3)
+
+
+def test_write_map_writes_the_four_files(tmp_path):
+    records = []
+    task = MapTask("map-5", map_params(), lambda rec: records.append(rec) or done_now({}))
+    FakeRig(SCENE, P0).run(task)
+    settings = MapSettings(output_dir=str(tmp_path), resolution_m=0.005, kernel_sigma_m=0.022)
+    res = write_map(records[0], settings)
+    out = tmp_path / "map-5"
+    assert res["path"] == str(out) and set(res["files"]) == {"depth.npy", "points.csv", "summary.json", "depth.png"}
+    depth = np.load(out / "depth.npy")
+    assert depth.shape == (16, 16) and np.isfinite(depth).all()
+    # the box (z 0.35) covers y < 0: the lower half of the map is higher than the upper half
+    assert depth[:4].mean() > 0.345 and depth[-4:].mean() < 0.335
+    rows = list(csv.DictReader(open(out / "points.csv")))
+    assert len(rows) == 8 and {r["valid"] for r in rows} == {"1"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["valid"] == 8 and summary["depth"]["shape"] == [16, 16] and summary["kernel"]["k"] == 4
+    assert res["summary"] == summary
+    img = read_png(out / "depth.png")
+    assert img.shape[0] == 16 * 8 and img.shape[1] > 16 * 8
+
+
+def test_colormap_marks_unknown_cells_grey():
+    rgb = colormap(np.array([0.0, 1.0, np.nan]))
+    assert rgb[0].tolist() == [68, 1, 84] and rgb[1].tolist() == [253, 231, 37] and rgb[2].tolist() == [200, 200, 200]
+
+
+# -- commands --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("payload, code, field", [
+    ({"grid": [5]}, C.BAD_TYPE, "grid"),
+    ({"grid": [5.0, 6]}, C.BAD_TYPE, "grid"),
+    ({"grid": [0, 6]}, C.OUT_OF_LIMITS, "grid"),
+    ({"grid": [100, 100]}, C.OUT_OF_LIMITS, "grid"),
+    ({"orientations": 3}, C.BAD_TYPE, "orientations"),
+    ({"orientations": True}, C.BAD_TYPE, "orientations"),
+    ({"size": [0.1]}, C.BAD_TYPE, "size"),
+    ({"size": [0.1, 5.0]}, C.OUT_OF_LIMITS, "size"),
+    ({"origin": [0.1, "a"]}, C.BAD_TYPE, "origin"),
+    ({"depth": 2.0}, C.OUT_OF_LIMITS, "depth"),
+    ({"spacing": 0.1}, C.UNKNOWN_FIELD, "spacing"),
+])
+def test_bad_map_commands_are_refused_naming_the_field(payload, code, field):
+    with pytest.raises(C.CommandError) as err:
+        C.validate("map", payload, C.Limits())
+    assert err.value.code == code and err.value.message.startswith(field)
+
+
+def test_map_defaults_are_the_papers_grid_in_two_orientations():
+    f = C.validate("map", {}, C.Limits())
+    assert f["grid"] == [5, 6] and f["orientations"] == 2 and f["origin"] is None
