@@ -163,6 +163,14 @@ class MapTask(Task):
     def total_points(self) -> int:
         return len(self.yaws) * self.grid.shape[0] * self.grid.shape[1]
 
+    def planned_tcp_xy(self, R_start: np.ndarray) -> np.ndarray:
+        """(n, 2) TCP x-y of every probe of every pass, aimed with the nominal tool model."""
+        out = []
+        for yaw in self.yaws:
+            tip_w = _yaw(yaw) @ R_start @ np.asarray(self.m.tool_tip_tcp, dtype=float)
+            out.append(self.grid.reshape(-1, 2) - tip_w[:2])
+        return np.concatenate(out)
+
     def _pass_axes(self) -> tuple[np.ndarray, np.ndarray]:
         """(e, a): the horizontal probing direction of this pass and the probe's rotation axis."""
         tip_w = self._R_pass @ self.tip_tcp

@@ -25,6 +25,7 @@ TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
+MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
 LEVER_ARM_ABSORBED = ("arc", "contact", "out", "circle")     # task phases where the estimator distrusts lever-arm velocity
 
 
@@ -398,21 +399,17 @@ class ControlThread:
                            orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed,
                            probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
                            max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp))
+        task = MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
         lo, hi = np.array(self.p.workspace_min), np.array(self.p.workspace_max)
-        reach = float(np.linalg.norm(np.array(ms.tool_tip_tcp)[:2])) + 0.01    # aiming offsets the TCP this much
-
-        def outside(q: np.ndarray) -> bool:
-            return bool(np.any(q[:2] < lo[:2] + reach) or np.any(q[:2] > hi[:2] - reach)
-                        or q[2] < lo[2] or q[2] > hi[2])
-
-        corners = [np.array([x, y]) for x in (origin[0], origin[0] + size[0]) for y in (origin[1], origin[1] + size[1])]
         for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):
-            for xy in corners:
+            for xy in task.planned_tcp_xy(self._R_hold if self._R_hold is not None else np.eye(3)):
                 q = np.array([xy[0], xy[1], z])
-                if outside(q):
-                    raise C.CommandError(C.OUT_OF_LIMITS, f"{name}: the map reaches {np.round(q, 3).tolist()}, "
-                                                          f"outside the workspace box (with {reach:.2f} m for the tool)")
-        return MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
+                # the tool model aims the TCP; what each probe measures refines it by millimetres
+                if np.any(q < lo + [MAP_AIM_MARGIN_M, MAP_AIM_MARGIN_M, 0.0]) or \
+                        np.any(q > hi - [MAP_AIM_MARGIN_M, MAP_AIM_MARGIN_M, 0.0]):
+                    raise C.CommandError(C.OUT_OF_LIMITS, f"{name}: the map takes the TCP to "
+                                                          f"{np.round(q, 3).tolist()}, outside the workspace box")
+        return task
 
     # -- motion ---------------------------------------------------------------
     def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> tuple[np.ndarray, np.ndarray]:
