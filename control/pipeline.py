@@ -244,9 +244,10 @@ class ContactPipeline:
         """Bias tracking while idle, except while the gripper itself turns (its rate is not bias)."""
         if len(t) == 0:
             return
-        _, _, _, w_tcp, *_, ok = self.proprio.lookup(t[-1:])
-        if ok[0] and float(w_tcp[0] @ w_tcp[0]) > TCP_TURNING_RAD_S ** 2:
-            return
+        if self.proprio.n:
+            _, _, _, w_tcp, *_, ok = self.proprio.lookup(t[-1:])
+            if ok[0] and float(w_tcp[0] @ w_tcp[0]) > TCP_TURNING_RAD_S ** 2:
+                return
         self.cond.track_bias(t, gyro)
 
     def release(self) -> None:
