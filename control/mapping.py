@@ -14,6 +14,7 @@ ARRIVE_TOL_M = 5e-4           # a travel/lift/retract target counts as reached w
 TURN_TOL_RAD = math.radians(0.5)
 TURN_RATE_RAD_S = 0.5         # peak yaw rate of the tool turn between passes
 TOOL_MODEL_STD_M = 0.005     # one-sigma of the tool model's tip along a probe's rotation axis
+TIP_UPDATE_MAX_M = 0.02       # a probe refines the tool model only when it lands this close to it
 TRAVEL_SLACK_S = 5.0          # travel phases may take this much longer than their nominal duration
 
 
@@ -318,8 +319,11 @@ class MapTask(Task):
             pt.reason = "unresolved"
             return
         pt.valid = True
-        # the measured tip refines the tool model for aiming and for the next probes
-        self.tip_tcp = self._R_pass.T @ (p - self._p_detect)
+        # the measured tip refines the tool model for aiming and for the next probes, unless it is
+        # far from the model (the tool slid in the grasp, or a poor estimate): then the model stays
+        tip = self._R_pass.T @ (p - self._p_detect)
+        if float(np.linalg.norm(tip - self.tip_tcp)) < TIP_UPDATE_MAX_M:
+            self.tip_tcp = tip
 
     def _end_probe(self, inp: TickInput, next_phase: str) -> None:
         """The contact episode of this point is over: the estimate no longer describes what moves."""
