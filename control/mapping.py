@@ -172,6 +172,12 @@ class MapTask(Task):
             out.append(self.grid.reshape(-1, 2) - tip_w[:2])
         return np.concatenate(out)
 
+    def partial_record(self) -> MapRecord | None:
+        """The points probed so far (a run that was stopped or failed), or None if there are none."""
+        if not self.points or self.status.phase == "write":
+            return None
+        return MapRecord(self.id, self.m, list(self.points), self.yaws[:self._pass + 1])
+
     def _pass_axes(self) -> tuple[np.ndarray, np.ndarray]:
         """(e, a): the horizontal probing direction of this pass and the probe's rotation axis."""
         tip_w = self._R_pass @ self.tip_tcp

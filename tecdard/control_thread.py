@@ -4,6 +4,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import math
+import pathlib
 import queue
 import threading
 import time
@@ -514,7 +515,13 @@ class ControlThread:
                                  "base_displacement": truth.base_displacement_m, **truth.extra}
             self._event("task_done", task=task.id, verb=task.kind, result=result)
         else:
-            self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase)
+            extra = {}
+            partial = task.partial_record() if isinstance(task, MapTask) else None
+            if partial is not None:
+                # nothing is lost: the points probed so far are fused and written all the same
+                self._writer.submit(write_map, partial, self.map_settings)
+                extra["map_path"] = str(pathlib.Path(self.map_settings.output_dir) / task.id)
+            self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
 
     # -- state ----------------------------------------------------------------
     def _publish_state(self, now: float, p, R, v, est) -> None:

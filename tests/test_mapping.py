@@ -91,8 +91,10 @@ class FakeRig:
         pen = self.touch[2] - self.tip()[2]
         return np.array([0.0, 0.0, STIFFNESS_N_M * max(pen, 0.0)])
 
-    def run(self, task: MapTask, max_ticks: int = 200000) -> MapTask:
+    def run(self, task: MapTask, max_ticks: int = 200000, until=None) -> MapTask:
         for _ in range(max_ticks):
+            if until is not None and until(task):
+                return task
             self.t += TICK_S
             tip = self.tip()
             self.lowest_tip = min(self.lowest_tip, tip[2])
@@ -199,6 +201,29 @@ def test_a_failing_writer_fails_the_task():
     task = MapTask("map-4", map_params(orientations=1, grid=(1, 1)), writer)
     FakeRig(SCENE, P0).run(task)
     assert task.status.state == "failed" and "disk full" in task.status.error
+
+
+def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
+    import queue
+    from robots.model import READY_Q, ArmModel
+    from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+    ct = ControlThread(ControlParams(), ArmModel("panda"), robot=None, ring=None, contact=LatestValue(),
+                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim",
+                       map_settings=MapSettings(output_dir=str(tmp_path)))
+    task = MapTask("map-6", map_params(), lambda rec: done_now({}))
+    FakeRig(SCENE, P0).run(task, until=lambda t: len(t.points) == 3)
+    ct.task = task
+    ct._end_task("failed", error="stopped by command")
+    ct._writer.shutdown(wait=True)
+    events = []
+    while not ct.outbox.empty():
+        kind, *rest = ct.outbox.get_nowait()
+        if kind == "event":
+            events.append(rest[0])
+    (failed,) = [e for e in events if e["kind"] == "task_failed"]
+    assert failed["map_path"] == str(tmp_path / "map-6")
+    rows = list(csv.DictReader(open(tmp_path / "map-6" / "points.csv")))
+    assert len(rows) == 3 and json.loads((tmp_path / "map-6" / "summary.json").read_text())["passes"] == 1
 
 
 # -- files ---------------------------------------------------------------------------
