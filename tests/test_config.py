@@ -54,6 +54,10 @@ def run_with(tmp_path, cfg) -> subprocess.CompletedProcess:
     ({"robot.model": "robbie"}, "robot.model: unknown arm 'robbie'"),
     ({"estimator.onset.accel_threshold": -1}, "estimator.onset.accel_threshold"),
     ({"robot.q_home": [0, 0, 0]}, "robot.q_home: expected 7 numbers"),
+    ({"map.kernel_k": 0}, "map.kernel_k"),
+    ({"map.kernel_sigma": 0.02}, "map.kernel_sigma: unknown option"),
+    ({"sim.hinge": ..., "sim.pivot": {"surface": "boxes", "floor_z": 0.3, "boxes": [[0.1, 0.1, 0.0, 0.2, 0.4]]}},
+     "sim.pivot.boxes: a box needs x0 < x1"),
 ])
 def test_run_refuses_bad_config_with_one_line(tmp_path, overrides, key):
     res = run_with(tmp_path, sim_config(**overrides))
