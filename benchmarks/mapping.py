@@ -66,7 +66,8 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
         finally:
             stop_daemon(proc)
     if ev["kind"] != "task_done":
-        raise RuntimeError(f"map failed: {ev.get('error')}")
+        tail = (out_dir / "log").read_text().splitlines()[-30:]
+        raise RuntimeError(f"map failed: {ev.get('error')} (phase {ev.get('phase')})\n" + "\n".join(tail))
     scene = mapping_scene(SCENE_ORIGIN_XY, floor_z, seed=seed)
     return {"result": ev["result"], "elapsed_s": elapsed, "scene": scene, "floor_z": floor_z}
 

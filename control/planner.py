@@ -105,7 +105,9 @@ class CartesianPlanner:
         try:
             result = self.otg.update(self.inp, self.out)
         except ruckig.RuckigError as exc:   # raised instead of returned for invalid input
-            raise PlannerError(f"ruckig: ErrorInvalidInput: {str(exc).strip().splitlines()[-1]}") from None
+            lines = str(exc).strip().splitlines()
+            reason = next((ln for ln in lines if ln.startswith("[ruckig]")), lines[-1] if lines else "")
+            raise PlannerError(f"ruckig: ErrorInvalidInput: {reason.removeprefix('[ruckig]').strip()}") from None
         if result not in _OK:
             raise PlannerError(f"ruckig: {result.name}")
         self.result = result

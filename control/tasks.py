@@ -330,19 +330,20 @@ class ApproachTask(Task):
         return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
 
 
-SPHERE_TRUST_STD_M = 0.01     # the point task follows the sphere about an estimate this certain on every axis
 POINT_RESOLVED_STD_M = 0.02   # a point result needs every axis known this well
 
 
 class PointTask(Task):
     """Circular probing of a point contact (the paper's pen): a tool touching a point is tilted
-    outward by `radius` and its TCP then circles `turns` times about the vertical through the
-    start, which turns the rotation axis through every horizontal direction and makes all three
+    outward by `radius` and its TCP then circles `turns` times at constant height about the
+    vertical through the start (the paper's in-plane circle). The tool sweeps a cone about its
+    tip, which turns the rotation axis through every horizontal direction and makes all three
     coordinates of the tip observable.
 
-    The controller does not know the tool's length: once the estimate is certain on every axis
-    the TCP follows the sphere about it (distance to the tip as at the start, so the grasp is
-    neither stretched nor pushed), with the correction bounded by `radius`.
+    On the circle the distance from the TCP to the tip of an upright tool stays constant, so the
+    estimator trusts the TCP velocity along the tool there: that component is what resolves the
+    tip's horizontal coordinates. While tilting out it does not (the grasp stretches a little).
+    A tool tilted in the grasp breaks the cone: see docs/zenoh-api.md.
     """
 
     kind = "point"
@@ -354,23 +355,13 @@ class PointTask(Task):
         self.e2 = np.array([0.0, 1.0, 0.0])
         self._psi = 0.0                 # angle travelled on the circle, rad (unwrapped)
         self._psi_plan = 0.0
-        self._lever = None              # TCP-to-tip distance at the start, from the estimate
 
     def _started(self, inp: TickInput) -> None:
         self._enter("out", inp.t)
 
-    def _on_circle(self, psi: float, c: ContactView) -> np.ndarray:
-        """The circle point at angle psi, lifted onto the sphere about a trusted estimate."""
-        p = self.p_start + self.radius * (math.cos(psi) * self.direction + math.sin(psi) * self.e2)
-        if c.tracking and c.p is not None and c.std is not None and float(np.max(c.std)) < SPHERE_TRUST_STD_M:
-            if self._lever is None:
-                self._lever = float(np.linalg.norm(self.p_start - c.p))
-            horiz = p[:2] - c.p[:2]
-            h2 = self._lever ** 2 - float(horiz @ horiz)
-            if h2 > 0.0:
-                z = c.p[2] + math.copysign(math.sqrt(h2), self.p_start[2] - c.p[2])
-                p[2] = self.p_start[2] + float(np.clip(z - self.p_start[2], -self.radius, self.radius))
-        return p
+    def _on_circle(self, psi: float) -> np.ndarray:
+        """The circle point at angle psi, at the start height."""
+        return self.p_start + self.radius * (math.cos(psi) * self.direction + math.sin(psi) * self.e2)
 
     def _angle_of(self, p: np.ndarray) -> float:
         d = p - self.p_start
@@ -392,7 +383,7 @@ class PointTask(Task):
                 if self._timed_out(inp.t, self.radius / self.speed):
                     self._fail("tilting out to the circle did not finish in time")
                     return None
-                target = self._on_circle(0.0, c)
+                target = self._on_circle(0.0)
                 remaining = max(float(np.linalg.norm(target - p_ref)), 0.0)
                 return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
         # circle: unwrap the angle travelled, measured and planned
@@ -406,7 +397,7 @@ class PointTask(Task):
             self._fail("circular probing did not complete in time")
             return None
         psi_t = min(self._psi_plan + self.speed * LOOKAHEAD_S / self.radius, total)
-        target = self._on_circle(psi_t, c)
+        target = self._on_circle(psi_t)
         tangent = -math.sin(psi_t) * self.direction + math.cos(psi_t) * self.e2
         v = self.speed * tangent if psi_t < total else np.zeros(3)
         return Motion(target, v, self.R_hold, min_duration_s=(psi_t - self._psi_plan) * self.radius / self.speed)

@@ -27,7 +27,7 @@ TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
-LEVER_ARM_ABSORBED = ("arc", "contact", "out", "circle")     # task phases where the estimator distrusts lever-arm velocity
+LEVER_ARM_ABSORBED = ("arc", "contact", "out")     # task phases where the estimator distrusts lever-arm velocity
 
 
 @dataclass
