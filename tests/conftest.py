@@ -39,6 +39,7 @@ class DaemonProcess:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         cfg = copy.deepcopy(cfg)
         cfg["zenoh"]["listen"] = [self.endpoint]
+        cfg.setdefault("map", {}).setdefault("output_dir", str(tmp_path / "maps"))    # never into the checkout
         self.config_path = tmp_path / "tecdard.yaml"
         self.config_path.write_text(yaml.safe_dump(cfg))
         self.log_path = tmp_path / "tecdard.log"
