@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim
 	$(PY) -m benchmarks
+	$(PY) -m benchmarks.mapping
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -1,4 +1,4 @@
-"""`make bench` (last step): whole-daemon accuracy, CPU and ticks on the simulated robot; writes benchmarks/RESULTS.md."""
+"""`make bench`: whole-daemon accuracy, CPU and ticks on the simulated robot; writes benchmarks/RESULTS.md."""
 from __future__ import annotations
 
 import argparse
