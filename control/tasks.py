@@ -131,7 +131,7 @@ class TwoPhaseTask(Task):
     kind = "rotate"
 
     def __init__(self, task_id: str, angle_rad: float, speed: float, probe_distance: float,
-                 direction: np.ndarray, strategy: str = "arc"):
+                 direction: np.ndarray, strategy: str = "arc", turn_tool: bool = False):
         if strategy not in ("arc", "straight"):
             raise ValueError("strategy: expected 'arc' or 'straight'")
         super().__init__(task_id, direction, speed)
@@ -144,6 +144,9 @@ class TwoPhaseTask(Task):
         self._straight_len = 0.0
         self._angle = 0.0
         self._radius = 0.0
+        self.turn_tool = turn_tool
+        self._phi0 = None               # planned arc angle where phase 2 began, rad
+        self._phi_prev = (0.0, 0.0)     # (t, planned arc angle) of the previous tick
 
     def _started(self, inp: TickInput) -> None:
         self._enter("probe", inp.t)
@@ -227,9 +230,22 @@ class TwoPhaseTask(Task):
         target = c.p + Rot @ r0
         tangent = np.cross(a, Rot @ r0_perp) / rho
         v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
+        R, w = self._tool_on_arc(inp.t, phi_plan, a)
         # Ruckig's limits are per axis: without a duration it would race a look-ahead target
         # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
-        return Motion(target, v, self.R_hold, min_duration_s=(phi_t - phi_plan) * rho / self.speed)
+        return Motion(target, v, R, min_duration_s=(phi_t - phi_plan) * rho / self.speed, w=w)
+
+    def _tool_on_arc(self, t: float, phi_plan: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The tool's orientation on the arc: held, or (turn_tool) turned with the arc about the
+        estimated axis by the planned angle since phase 2 began, with its rate as feed-forward."""
+        if not self.turn_tool:
+            return self.R_hold, None
+        if self._phi0 is None:
+            self._phi0, self._phi_prev = phi_plan, (t, phi_plan)
+        t_prev, phi_prev = self._phi_prev
+        rate = (phi_plan - phi_prev) / (t - t_prev) if t > t_prev else 0.0
+        self._phi_prev = (t, phi_plan)
+        return rotvec_to_matrix(a * (phi_plan - self._phi0)) @ self.R_hold, a * rate
 
     def _step_straight(self, inp: TickInput) -> Motion | None:
         s = float(np.dot(inp.p - self.p_start, self.direction))
@@ -261,7 +277,13 @@ class TwoPhaseTask(Task):
 
 
 class RotateTask(TwoPhaseTask):
+    """Opens an articulated object; on the arc the tool turns with it (the grasp stays in stick)."""
+
     kind = "rotate"
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("turn_tool", True)
+        super().__init__(*args, **kwargs)
 
 
 class ProbeTask(TwoPhaseTask):

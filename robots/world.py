@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import signed_angle, unit
+from control.geometry import matrix_to_rotvec, signed_angle, unit
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4
@@ -42,6 +42,7 @@ class HingeParams:
     grasp_stiffness_n_m: float = 3000.0
     table_normal: np.ndarray = None  # unit, world (default +z)
     breakaway_m_s2: float = 2.0      # fingertip ring when the handle breaks away from rest
+    twist_stick_deg: float | None = None   # the fingertips twist this far, then slip (None: never)
 
     @classmethod
     def from_config(cls, section) -> "HingeParams":
@@ -53,6 +54,7 @@ class HingeParams:
             grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
             table_normal=np.array(section.getvec3("table_normal", [0.0, 0.0, 1.0], unit=True)),
             breakaway_m_s2=section.getfloat("breakaway_m_s2", 2.0, minval=0.0),
+            twist_stick_deg=section.getoptfloat("twist_stick_deg", None, above=0.0, maxval=180.0),
         )
 
 
@@ -67,9 +69,15 @@ class HingeWorld:
     vertical part is taken by the table). Following the true arc leaves the
     spring relaxed and the base still; a straight pull stretches it and drags
     the base, as in the paper's failure case.
+
+    The soft fingertips twist with the handle's rotation relative to the gripper
+    (about the hinge axis) up to `twist_stick_deg`, then slip (gross slip): the
+    fingertip, and so the IMU, then no longer follows the handle. What the IMU
+    feels is `object_rate_world()`: the gripper's own rate plus the rate of the
+    fingertip's twist, which equals the handle's rate while the grasp sticks.
     """
 
-    def __init__(self, params: HingeParams, p_tcp0: np.ndarray):
+    def __init__(self, params: HingeParams, p_tcp0: np.ndarray, R_tcp0: np.ndarray | None = None):
         self.p = params
         self.axis = unit(params.hinge_axis, "hinge.axis")
         self.n_table = unit(params.table_normal if params.table_normal is not None else np.array([0, 0, 1.0]),
@@ -86,6 +94,12 @@ class HingeWorld:
         self.rate = 0.0
         self.force = np.zeros(3)
         self._start = MotionStart()
+        self._R0 = None if R_tcp0 is None else np.array(R_tcp0, dtype=float)   # gripper orientation at the start
+        self._R_prev = self._R0
+        self._w_tcp = np.zeros(3)       # the gripper's own rate, world
+        self._twist = 0.0               # the fingertips' twist about the axis, rad
+        self._twist_rate = 0.0
+        self.slip = 0.0                 # handle rotation the grasp has slipped by, rad
 
     @property
     def hinge_now(self) -> np.ndarray:
@@ -120,11 +134,31 @@ class HingeWorld:
         angle = signed_angle(self.e0, u, self.axis)
         self.rate = (angle - self.angle) / dt
         self.angle = angle
+        self._step_grasp_twist(R_tcp, dt)
         return self._start.update(abs(self.rate), dt)
 
+    def _step_grasp_twist(self, R_tcp: np.ndarray | None, dt: float) -> None:
+        if R_tcp is None:
+            self._w_tcp = np.zeros(3)
+            gripper = 0.0
+        else:
+            if self._R0 is None:
+                self._R0 = self._R_prev = np.array(R_tcp, dtype=float)
+            self._w_tcp = matrix_to_rotvec(R_tcp @ self._R_prev.T) / dt
+            self._R_prev = np.array(R_tcp, dtype=float)
+            gripper = float(matrix_to_rotvec(R_tcp @ self._R0.T) @ self.axis)
+        twist = self.angle - gripper - self.slip
+        limit = np.radians(self.p.twist_stick_deg) if self.p.twist_stick_deg is not None else np.inf
+        if abs(twist) > limit:
+            self.slip += twist - np.copysign(limit, twist)
+            twist = float(np.copysign(limit, twist))
+        self._twist_rate = (twist - self._twist) / dt
+        self._twist = twist
+
     def object_rate_world(self) -> np.ndarray:
-        """The handle's angular velocity, world, rad/s."""
-        return self.rate * self.axis
+        """The rotation the fingertip IMU feels, world, rad/s: the gripper's own rate plus the
+        fingertips' twist about the axis (the handle's rate while the grasp sticks)."""
+        return self._w_tcp + self._twist_rate * self.axis
 
     def tangent(self, p_tcp: np.ndarray) -> np.ndarray:
         _, u = self._grasp_deviation(p_tcp)
@@ -141,7 +175,9 @@ class HingeWorld:
     def truth(self) -> dict:
         return {"hinge_point": self.hinge_now.copy(), "hinge_axis": self.axis.copy(),
                 "handle_angle_rad": self.angle, "base_displacement_m": self.base_displacement(),
-                "extra": {"radius_m": self.radius, "hinge_point_initial": self.p.hinge_point.tolist()}}
+                "extra": {"radius_m": self.radius, "hinge_point_initial": self.p.hinge_point.tolist(),
+                          "grasp_slip_deg": float(np.degrees(self.slip)),
+                          "grasp_twist_deg": float(np.degrees(self._twist))}}
 
 
 @dataclass

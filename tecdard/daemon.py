@@ -110,7 +110,7 @@ class Daemon:
         else:
             self.imu = self.sim_imu
         if hinge is not None:
-            factory = lambda p_tcp, R_tcp: HingeWorld(hinge, p_tcp)          # noqa: E731
+            factory = lambda p_tcp, R_tcp: HingeWorld(hinge, p_tcp, R_tcp)   # noqa: E731
         elif pivot is not None:
             factory = lambda p_tcp, R_tcp: PivotWorld(pivot, p_tcp, R_tcp)   # noqa: E731
         else:
