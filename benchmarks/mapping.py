@@ -22,13 +22,26 @@ from tecdard.client import Client  # noqa: E402
 from tecdard.demo import free_port, start_daemon, stop_daemon  # noqa: E402
 from tecdard.mapfiles import colormap, write_png  # noqa: E402
 
-HOME_TCP = np.array([0.307, 0.0, 0.487])
+HOME_TCP = np.array([0.307, 0.0, 0.52])      # start pose: tool down, above the container
 TOOL_LENGTH_M = 0.12            # the paper's eraser, 11 cm, held 30 deg off the vertical
 TOOL_TILT_DEG = 30.0
 WALL_CLEARANCE_M = 0.01         # the tool tip clears the container walls by this much at the start height
-SCENE_ORIGIN_XY = (0.30, -0.175)
+SCENE_ORIGIN_XY = (0.27, -0.175)  # a Panda reaches the whole container from here in both passes
 INSET_M = 0.01                  # the map region stays this far inside the walls
 TASK_TIMEOUT_S = 3600.0
+
+
+def home_q(cfg: dict) -> list[float]:
+    """Joint angles putting the TCP at HOME_TCP, tool down, near the configured home posture."""
+    import pinocchio as pin
+    from robots.model import ArmModel
+    model = ArmModel(cfg["robot"]["model"])
+    q0 = np.array(cfg["robot"]["q_home"], dtype=float)
+    oMtcp = model.fk(q0)
+    q, ok, err = model.solve_ik(pin.SE3(oMtcp.rotation, HOME_TCP), q0)
+    if not ok:
+        raise RuntimeError(f"start pose {HOME_TCP.tolist()} unreachable ({err * 1e3:.1f} mm)")
+    return [float(x) for x in q]
 
 
 def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path) -> dict:
@@ -44,7 +57,8 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
     # a brisker stop after the touch than the default 0.5 m/s^2, so that 2 cm/s descents stay under 5 N
     cfg["control"]["max_accel"] = 2.0
     cfg["control"]["max_jerk"] = 40.0
-    cfg["map"] = {"output_dir": str(out_dir / "maps"), "tool_tip_tcp": tip_tcp}
+    cfg["map"] = {"output_dir": str(out_dir / "maps"), "tool_tip_tcp": tip_tcp, "turn_deg": -90.0}
+    cfg["robot"]["q_home"] = home_q(cfg)
     origin = [SCENE_ORIGIN_XY[0] + INSET_M, SCENE_ORIGIN_XY[1] + INSET_M]
     size = [CONTAINER_M[0] - 2 * INSET_M, CONTAINER_M[1] - 2 * INSET_M]
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -399,7 +399,8 @@ class ControlThread:
         params = MapParams(origin_xy=origin, size_xy=size, grid=tuple(f["grid"]), depth=f["depth"],
                            orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed,
                            probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
-                           max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp))
+                           max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp),
+                           turn_yaw_rad=math.radians(ms.turn_deg))
         task = MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
         lo, hi = np.array(self.p.workspace_min), np.array(self.p.workspace_max)
         for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):

@@ -39,6 +39,7 @@ class MapSettings:
     max_point_std_m: float = 0.005
     probe_distance_m: float = 0.005      # the paper's at most 5 mm of tangential probing
     tool_tip_tcp: tuple = (0.0, 0.0, 0.1)
+    turn_deg: float = 90.0               # the second pass turns the tool this much about world z
 
     @classmethod
     def from_config(cls, section) -> "MapSettings":
@@ -52,6 +53,7 @@ class MapSettings:
             max_point_std_m=section.getfloat("max_point_std_m", d.max_point_std_m, above=0.0, maxval=0.1),
             probe_distance_m=section.getfloat("probe_distance_m", d.probe_distance_m, minval=0.001, maxval=0.02),
             tool_tip_tcp=tuple(section.getvec3("tool_tip_tcp", list(d.tool_tip_tcp))),
+            turn_deg=section.getfloat("turn_deg", d.turn_deg, minval=-180.0, maxval=180.0),
         )
 
 
