@@ -27,7 +27,7 @@ class MapParams:
     depth: float                          # the deepest a probe descends below the start height, m
     orientations: int = 2                 # 1, or 2: a second pass with the tool turned 90 deg about world z
     speed: float = 0.01                   # descent, probe and retract speed, m/s
-    travel_speed: float = 0.05            # travel, lift and turn moves, m/s
+    travel_speed: float = 0.035           # travel, lift and turn moves, m/s per axis
     probe_distance: float = 0.005         # tangential probe length (the paper's at most 5 mm), m
     abort_force_n: float = 5.0            # a point is abandoned above this TCP force, N
     max_point_std_m: float = 0.005        # a point is valid when the in-plane one-sigma is below this, m
@@ -257,7 +257,7 @@ class MapTask(Task):
         if self._timed_out(inp.t, nominal_s + TRAVEL_SLACK_S):
             self._fail(f"{self.status.phase}: did not reach {np.round(target, 4).tolist()} in time")
             return None
-        return Motion(target, np.zeros(3), self._R_pass, max_speed=speed, straight=True)
+        return Motion(target, np.zeros(3), self._R_pass, max_speed=speed)
 
     def _step_travel(self, inp: TickInput) -> Motion | None:
         target = np.array([self._xy[0], self._xy[1], self._z_travel])

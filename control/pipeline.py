@@ -67,6 +67,7 @@ class ProprioTrack:
         self.tw = np.zeros(size)           # time the TCP rate belongs to
         self.R = np.tile(np.eye(3), (size, 1, 1))
         self.w = np.zeros((size, 3))
+        self.wdot = np.zeros((size, 3))    # angular acceleration of a reported TCP rate, rad/s^2 (0: derived)
         self.force = np.full(size, np.nan)
         self.n = 0
         self._rate = np.nan
@@ -87,6 +88,7 @@ class ProprioTrack:
                 v, tv, var_v = np.zeros(3), t, DERIVED_V_FIRST_VAR
         else:
             tv, var_v = t, self.sigma_v ** 2
+        wdot = np.zeros(3)
         if w is None:
             # Backward difference of orientations: it belongs to the middle of the interval.
             if n:
@@ -96,15 +98,19 @@ class ProprioTrack:
                 w, tw = np.zeros(3), t
         else:
             tw = t
+            if n and self.tw[n - 1] == self.t[n - 1]:
+                # two reported rates: extrapolate the rate between samples, not hold it
+                wdot = (w - self.w[n - 1]) / (t - self.t[n - 1])
         a = float(np.linalg.norm(v - self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6)) if n else 0.0
         alpha = float(np.linalg.norm(w - self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6)) if n else 0.0
         if n == self.size:
             for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.alpha, self.tw, self.R, self.w,
-                        self.force):
+                        self.wdot, self.force):
                 arr[:-1] = arr[1:]
             n -= 1
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
         self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
+        self.wdot[n] = wdot
         self.n = n + 1
 
     def rate_hz(self) -> float:
@@ -129,9 +135,12 @@ class ProprioTrack:
         p = self.p[j] + self.v[j] * age[:, None]
         var_v = self.var_v[j] + (self.a[j] * (ts - self.tv[j])) ** 2
         var_w = (self.alpha[j] * (ts - self.tw[j])) ** 2
+        # a reported TCP rate is extrapolated with its last change (a turning gripper's rate ramps;
+        # held for up to a proprioception period it would enter the object rate times (eta - 1))
+        w = self.w[j] + self.wdot[j] * (ts - self.tw[j])[:, None]
         if with_stamp:
-            return p, self.v[j], self.R[j], self.w[j], var_v, var_w, self.force[j], ok, self.t[j]
-        return p, self.v[j], self.R[j], self.w[j], var_v, var_w, self.force[j], ok
+            return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok, self.t[j]
+        return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok
 
 
 @dataclass

@@ -10,7 +10,6 @@ class PlannerError(RuntimeError):
 
 
 _OK = (ruckig.Result.Working, ruckig.Result.Finished)
-SPEED_FLOOR_FRACTION = 0.05   # per-axis speed cap across a straight move, as a fraction of its speed
 
 
 class CartesianPlanner:
@@ -45,18 +44,9 @@ class CartesianPlanner:
         self.inp.max_acceleration = [self.max_accel] * 3
         self.inp.max_jerk = [self.max_jerk] * 3
 
-    def set_speed(self, speed: float, direction: np.ndarray | None = None) -> None:
-        """Cap the TCP speed of what follows (m/s, at most the configured maximum). With a
-        `direction` (unit, the straight move ahead) the per-axis caps are shared out along it, so
-        that the move's Cartesian speed stays within `speed` however diagonal it is; a small
-        floor on every axis leaves room for corrections across it."""
-        if direction is None:
-            self._set_limits(speed)
-            return
-        s = min(speed, self.max_speed)
-        self.inp.max_velocity = list(map(float, np.maximum(s * np.abs(direction), SPEED_FLOOR_FRACTION * s)))
-        self.inp.max_acceleration = [self.max_accel] * 3
-        self.inp.max_jerk = [self.max_jerk] * 3
+    def set_speed(self, speed: float) -> None:
+        """Cap the TCP speed of what follows (m/s per axis, at most the configured maximum)."""
+        self._set_limits(speed)
 
     def reset(self, p: np.ndarray, v: np.ndarray | None = None, a: np.ndarray | None = None,
               speed: float | None = None) -> None:

@@ -13,6 +13,7 @@ PROBE_OVERSHOOT_M = 0.002     # phase-1 target lies beyond the probe distance so
 ANGLE_TOL_RAD = math.radians(0.2)
 PHASE_TIMEOUT_FACTOR = 4.0    # a phase may take this many times its nominal duration (+ slack)
 PHASE_TIMEOUT_SLACK_S = 2.0
+TOOL_TURN_RAMP_S = 0.5        # rotate: the tool's turning with the arc fades in over this long
 
 
 @dataclass
@@ -47,7 +48,6 @@ class Motion:
     min_duration_s: float | None = None   # reach the target no sooner than this (paces look-ahead targets)
     w: np.ndarray | None = None           # angular velocity feed-forward of the orientation target, world, rad/s
     max_speed: float | None = None        # TCP speed cap for this motion, m/s (None: the task's speed)
-    straight: bool = False                # a straight move to p: its speed cap is shared out along it
 
 
 @dataclass
@@ -237,15 +237,22 @@ class TwoPhaseTask(Task):
 
     def _tool_on_arc(self, t: float, phi_plan: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The tool's orientation on the arc: held, or (turn_tool) turned with the arc about the
-        estimated axis by the planned angle since phase 2 began, with its rate as feed-forward."""
+        estimated axis by the planned angle since phase 2 began, with its rate as feed-forward.
+        The turning fades in over TOOL_TURN_RAMP_S: a gripper rate that jumps would be seen late
+        by 65 Hz proprioception, and the estimator takes the gripper's rate from it."""
         if not self.turn_tool:
             return self.R_hold, None
         if self._phi0 is None:
-            self._phi0, self._phi_prev = phi_plan, (t, phi_plan)
-        t_prev, phi_prev = self._phi_prev
-        rate = (phi_plan - phi_prev) / (t - t_prev) if t > t_prev else 0.0
-        self._phi_prev = (t, phi_plan)
-        return rotvec_to_matrix(a * (phi_plan - self._phi0)) @ self.R_hold, a * rate
+            self._phi0, self._phi_prev = phi_plan, (t, 0.0)
+            self._turn_t0 = t
+        x = min((t - self._turn_t0) / TOOL_TURN_RAMP_S, 1.0)
+        ramp = x * x * (3.0 - 2.0 * x)                       # smoothstep: no jump in rate
+        turn = ramp * (phi_plan - self._phi0)
+        t_prev, turn_prev = self._phi_prev
+        rate = (turn - turn_prev) / (t - t_prev) if t > t_prev else 0.0
+        self._phi_prev = (t, turn)
+        return rotvec_to_matrix(a * turn) @ self.R_hold, a * rate
+
 
     def _step_straight(self, inp: TickInput) -> Motion | None:
         s = float(np.dot(inp.p - self.p_start, self.direction))

@@ -396,8 +396,9 @@ class ControlThread:
         ms = self.map_settings
         size = np.array(f["size"])
         origin = np.array(f["origin"]) if f["origin"] is not None else p[:2] - size / 2
+        # Ruckig caps each axis: a diagonal travel at max_speed / sqrt(2) stays within max_speed
         params = MapParams(origin_xy=origin, size_xy=size, grid=tuple(f["grid"]), depth=f["depth"],
-                           orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed,
+                           orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed / math.sqrt(2.0),
                            probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
                            max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp),
                            turn_yaw_rad=math.radians(ms.turn_deg))
@@ -458,11 +459,7 @@ class ControlThread:
         self._R_hold = motion.R
         self._w_ff = np.zeros(3) if motion.w is None else motion.w
         cap = task.speed if motion.max_speed is None else motion.max_speed
-        ahead = motion.p - self.planner.position
-        if motion.straight and float(ahead @ ahead) > 1e-10:
-            self._speed_cap = None
-            self.planner.set_speed(cap, ahead / math.sqrt(float(ahead @ ahead)))
-        elif cap != self._speed_cap:
+        if cap != self._speed_cap:
             self._speed_cap = cap
             self.planner.set_speed(cap)
         lag = float(np.linalg.norm(self.planner.position - p))

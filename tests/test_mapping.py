@@ -120,9 +120,7 @@ class FakeRig:
             if motion is None:
                 self.p, _ = self.planner.brake()
                 continue
-            ahead = motion.p - self.planner.position
-            n = float(np.linalg.norm(ahead))
-            self.planner.set_speed(motion.max_speed or task.speed, ahead / n if motion.straight and n > 1e-5 else None)
+            self.planner.set_speed(motion.max_speed or task.speed)
             self.p, _ = self.planner.step(motion.p, motion.v, motion.min_duration_s)
             self.R = motion.R
         raise AssertionError(f"map task still running in phase {task.status.phase}")
@@ -130,7 +128,7 @@ class FakeRig:
 
 def map_params(**kw) -> MapParams:
     base = dict(origin_xy=np.array([0.32, -0.04]), size_xy=np.array([0.08, 0.08]), grid=(2, 2), depth=0.06,
-                orientations=2, speed=0.01, travel_speed=0.05, tool_tip_tcp=TIP_TCP)
+                orientations=2, speed=0.01, travel_speed=0.035, tool_tip_tcp=TIP_TCP)
     base.update(kw)
     return MapParams(**base)
 
