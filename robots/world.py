@@ -156,9 +156,11 @@ class HingeWorld:
         self._twist = twist
 
     def object_rate_world(self) -> np.ndarray:
-        """The rotation the fingertip IMU feels, world, rad/s: the gripper's own rate plus the
-        fingertips' twist about the axis (the handle's rate while the grasp sticks)."""
-        return self._w_tcp + self._twist_rate * self.axis
+        """The handle's rotation as the fingertip passes it on, world, rad/s: about the hinge axis
+        only (a hinge cannot turn any other way; a gripper turning off the axis twists the
+        fingertips the other way), at the gripper's rate about the axis plus the fingertips'
+        twist, which is the handle's rate while the grasp sticks."""
+        return (float(self._w_tcp @ self.axis) + self._twist_rate) * self.axis
 
     def tangent(self, p_tcp: np.ndarray) -> np.ndarray:
         _, u = self._grasp_deviation(p_tcp)

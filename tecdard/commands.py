@@ -153,10 +153,13 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
     if verb not in VERBS:
         raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{verb}' (known: {', '.join(VERBS)})")
     if verb == "rotate":
-        _check_fields(obj, verb, ("angle_deg", "speed", "probe_distance", "direction", "strategy"))
+        _check_fields(obj, verb, ("angle_deg", "speed", "probe_distance", "direction", "strategy", "turn_tool"))
         strategy = obj.get("strategy", "arc")
         if strategy not in ("arc", "straight"):
             raise CommandError(BAD_TYPE, f"strategy: expected \"arc\" or \"straight\", got {json.dumps(strategy)}")
+        turn_tool = obj.get("turn_tool", True)
+        if not isinstance(turn_tool, bool):
+            raise CommandError(BAD_TYPE, f"turn_tool: expected true or false, got {json.dumps(turn_tool)}")
         return {
             "angle_deg": _number(obj, "angle_deg", None, 0.1, limits.max_rotation_deg, "deg"),
             "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
@@ -164,6 +167,7 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
                                       limits.max_probe_distance, "m"),
             "direction": _direction(obj, "direction", limits.default_direction),
             "strategy": strategy,
+            "turn_tool": turn_tool,
         }
     if verb == "probe":
         _check_fields(obj, verb, ("direction", "distance", "speed"))

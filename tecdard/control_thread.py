@@ -359,7 +359,7 @@ class ControlThread:
         task_id = f"{verb}-{uuid.uuid4().hex[:8]}"
         if verb == "rotate":
             task = RotateTask(task_id, math.radians(f["angle_deg"]), f["speed"], f["probe_distance"],
-                              np.array(f["direction"]), f["strategy"])
+                              np.array(f["direction"]), f["strategy"], turn_tool=f["turn_tool"])
         elif verb == "probe":
             task = ProbeTask(task_id, f["speed"], f["distance"], np.array(f["direction"]))
         elif verb == "point":
