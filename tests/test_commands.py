@@ -30,6 +30,7 @@ def test_rotate_defaults_and_normalisation():
     ("rotate", '{"angle_deg": 30, "direction": [0, 0, 2]}', C.OUT_OF_LIMITS, "direction"),
     ("rotate", '{"angle_deg": 30, "direction": [0, 1]}', C.BAD_TYPE, "direction"),
     ("rotate", '{"angle_deg": 30, "strategy": "zigzag"}', C.BAD_TYPE, "strategy"),
+    ("rotate", '{"angle_deg": 30, "turn_tool": "yes"}', C.BAD_TYPE, "turn_tool"),
     ("rotate", '{"angle_deg": 30, "angle": 3}', C.UNKNOWN_FIELD, "angle"),
     ("probe", '{"distance": 0.5}', C.OUT_OF_LIMITS, "distance"),
     ("cancel", '{"task": 5}', C.BAD_TYPE, "task"),
