@@ -294,3 +294,11 @@ def test_bad_map_commands_are_refused_naming_the_field(payload, code, field):
 def test_map_defaults_are_the_papers_grid_in_two_orientations():
     f = C.validate("map", {}, C.Limits())
     assert f["grid"] == [5, 6] and f["orientations"] == 2 and f["origin"] is None
+
+
+def test_maps_go_to_the_state_directory_under_systemd(monkeypatch):
+    from tecdard.mapfiles import default_output_dir
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/tecdar")
+    assert default_output_dir() == "/var/lib/tecdar/maps"
+    monkeypatch.delenv("STATE_DIRECTORY")
+    assert default_output_dir() == "maps"
