@@ -145,8 +145,10 @@ class TwoPhaseTask(Task):
         self._angle = 0.0
         self._radius = 0.0
         self.turn_tool = turn_tool
-        self._phi0 = None               # planned arc angle where phase 2 began, rad
-        self._phi_prev = (0.0, 0.0)     # (t, planned arc angle) of the previous tick
+        self._turn = 0.0                # how far the tool has turned on the arc, rad
+        self._turn_t0 = None            # when it began to turn
+        self._phi_last = 0.0            # planned arc angle and time of the previous tick
+        self._t_last = None
 
     def _started(self, inp: TickInput) -> None:
         self._enter("probe", inp.t)
@@ -237,22 +239,22 @@ class TwoPhaseTask(Task):
 
     def _tool_on_arc(self, t: float, phi_plan: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The tool's orientation on the arc: held, or (turn_tool) turned with the arc about the
-        estimated axis by the planned angle since phase 2 began, with its rate as feed-forward.
-        The turning fades in over TOOL_TURN_RAMP_S: a gripper rate that jumps would be seen late
-        by 65 Hz proprioception, and the estimator takes the gripper's rate from it."""
+        estimated axis, with its rate as feed-forward. The turning rate fades in over
+        TOOL_TURN_RAMP_S (smoothstep) to the planned arc rate: a gripper rate that jumps would be
+        seen late by 65 Hz proprioception, from which the estimator takes the gripper's rate. The
+        tool then trails the handle by a constant angle (half the ramp times the arc rate: 1.1 to
+        2.9 deg over radii 25 to 10 cm at 2 cm/s), well inside the fingertips' stick range."""
         if not self.turn_tool:
             return self.R_hold, None
-        if self._phi0 is None:
-            self._phi0, self._phi_prev = phi_plan, (t, 0.0)
-            self._turn_t0 = t
+        if self._turn_t0 is None:
+            self._turn_t0, self._phi_last = t, phi_plan
         x = min((t - self._turn_t0) / TOOL_TURN_RAMP_S, 1.0)
-        ramp = x * x * (3.0 - 2.0 * x)                       # smoothstep: no jump in rate
-        turn = ramp * (phi_plan - self._phi0)
-        t_prev, turn_prev = self._phi_prev
-        rate = (turn - turn_prev) / (t - t_prev) if t > t_prev else 0.0
-        self._phi_prev = (t, turn)
-        return rotvec_to_matrix(a * turn) @ self.R_hold, a * rate
-
+        fade = x * x * (3.0 - 2.0 * x)
+        step = fade * (phi_plan - self._phi_last)
+        dt = t - self._t_last if self._t_last is not None else 0.0
+        self._turn += step
+        self._phi_last, self._t_last = phi_plan, t
+        return rotvec_to_matrix(a * self._turn) @ self.R_hold, a * (step / dt if dt > 0 else 0.0)
 
     def _step_straight(self, inp: TickInput) -> Motion | None:
         s = float(np.dot(inp.p - self.p_start, self.direction))

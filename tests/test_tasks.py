@@ -1,0 +1,69 @@
+"""Task state machines against a planner-driven TCP and an exact contact view (no threads, no simulator)."""
+import math
+
+import numpy as np
+import pytest
+
+from control.geometry import matrix_to_rotvec
+from control.planner import CartesianPlanner
+from control.tasks import TOOL_TURN_RAMP_S, ContactView, RotateTask, TickInput
+
+TICK_S = 0.02
+HINGE = np.array([0.157, 0.0, 0.487])
+AXIS = np.array([0.0, -1.0, 0.0])            # the handle opens upwards: a positive turn about -y
+P0 = np.array([0.307, 0.0, 0.487])
+R0 = np.diag([1.0, -1.0, -1.0])
+
+
+def run_rotate(turn_tool: bool, angle_deg: float = 30.0):
+    """Rotate about an exactly known hinge; returns the task and, per tick, (t, planned arc angle,
+    commanded orientation, angular feed-forward)."""
+    task = RotateTask("rotate-1", math.radians(angle_deg), 0.02, 0.005, np.array([0.0, 0.0, 1.0]),
+                      turn_tool=turn_tool)
+    planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
+    planner.reset(P0, speed=0.02)
+    p, t, log = P0.copy(), 0.0, []
+    view = ContactView(tracking=True, p=HINGE, std=np.full(3, 1e-3), axis=AXIS, onset_t=0.0, in_plane_std=1e-3)
+    for _ in range(5000):
+        t += TICK_S
+        motion = task.step(TickInput(t, p.copy(), R0, view, planner.at_rest, planner.position))
+        if motion is None:
+            if task.status.state != "running":
+                return task, log
+            p, _ = planner.brake()
+            continue
+        r = planner.position - HINGE
+        phi = math.atan2(float(np.cross(P0 - HINGE, r) @ AXIS), float((P0 - HINGE) @ r))
+        log.append((t, task.status.phase, phi, motion.R, motion.w))
+        p, _ = planner.step(motion.p, motion.v, motion.min_duration_s)
+    raise AssertionError("rotate did not finish")
+
+
+def test_the_tool_turns_with_the_arc_fading_in_without_a_jump():
+    task, log = run_rotate(turn_tool=True)
+    assert task.status.state == "done"
+    arc = [row for row in log if row[1] == "arc"]
+    t0, phi0 = arc[0][0], arc[0][2]
+    cruise = 0.02 / np.linalg.norm(P0 - HINGE)
+    lag = 0.5 * TOOL_TURN_RAMP_S * cruise            # the fade-in leaves the tool this far behind the handle
+    for t, _, phi, R, w in arc:
+        turned = matrix_to_rotvec(R @ R0.T)
+        assert np.linalg.norm(np.cross(turned, AXIS)) < 1e-9             # about the hinge axis only
+        if t - t0 >= TOOL_TURN_RAMP_S:
+            # after the fade-in the tool turns with the planned arc, trailing it by a constant angle
+            assert float(turned @ AXIS) == pytest.approx(phi - phi0 - lag, abs=math.radians(0.3))
+    rates = np.array([float(w @ AXIS) for *_, w in arc])
+    fading = np.array([t - t0 < TOOL_TURN_RAMP_S for t, *_ in arc])
+    assert abs(rates[0]) < 1e-9 and np.max(np.abs(np.diff(rates[fading]))) < 0.01     # no jump in rate
+    # the feed-forward is the planned arc's rate once faded in (no overshoot), and below it before
+    ts, phis = np.array([row[0] for row in arc]), np.array([row[2] for row in arc])
+    planned = np.diff(phis) / np.diff(ts)
+    assert np.all(rates[1:] <= planned + 1e-9)
+    assert rates[1:][~fading[1:]] == pytest.approx(planned[~fading[1:]], abs=1e-9)
+    assert np.median(rates[len(rates) // 3: 2 * len(rates) // 3]) == pytest.approx(cruise, rel=0.05)
+
+
+def test_with_turn_tool_off_the_orientation_is_held():
+    task, log = run_rotate(turn_tool=False)
+    assert task.status.state == "done"
+    assert all(np.array_equal(R, R0) and w is None for *_, R, w in log)
