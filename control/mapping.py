@@ -246,11 +246,11 @@ class MapTask(Task):
         return getattr(self, f"_step_{phase}")(inp)
 
     def _hold(self, inp: TickInput) -> Motion:
-        p = inp.p if inp.p_plan is None else inp.p_plan
+        p = inp.p_ref
         return Motion(p.copy(), np.zeros(3), self._R_pass)
 
     def _arrived(self, inp: TickInput, target: np.ndarray) -> bool:
-        p = inp.p if inp.p_plan is None else inp.p_plan
+        p = inp.p_ref
         return inp.planner_at_rest and float(np.linalg.norm(p - target)) < ARRIVE_TOL_M
 
     def _move(self, inp: TickInput, target: np.ndarray, speed: float, nominal_s: float) -> Motion | None:
@@ -365,7 +365,7 @@ class MapTask(Task):
         if self._pass < len(self.yaws):
             self._R_from = self._R_pass.copy()
             self._enter("turn", inp.t)
-            self._turn_p = (inp.p if inp.p_plan is None else inp.p_plan).copy()
+            self._turn_p = inp.p_ref.copy()
             return self._step_turn(inp)
         self._enter("write", inp.t)
         self.status.progress = 0.99

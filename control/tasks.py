@@ -38,6 +38,11 @@ class TickInput:
     p_plan: np.ndarray | None = None   # where the planner has the TCP now (None: use p)
     force: np.ndarray | None = None    # force of the world on the TCP, world, N (None: not measured)
 
+    @property
+    def p_ref(self) -> np.ndarray:
+        """Where the planner has the TCP now (the measured position when there is no plan)."""
+        return self.p if self.p_plan is None else self.p_plan
+
 
 @dataclass
 class Motion:
@@ -68,12 +73,15 @@ class Task:
     would look like an impact). `episode` counts contact episodes: the controller starts a
     fresh one (the estimator released, older onsets ignored) whenever it changes, and with
     `commanded_onset` set it starts the estimator at once instead of waiting for the trigger.
-    In `touching_phases` the gyro bias is held: the tool's rotations there are not bias.
+    In `touching_phases` the gyro bias is held: the tool's rotations there are not bias. In
+    `absorbed_phases` the estimator distrusts the TCP velocity along the lever arm (arc following
+    about an estimate, pushing on after an impact, tilting a tool out).
     """
 
     kind = "task"
     trigger_phase: str | None = None
     touching_phases: tuple = ()        # phases where the tool touches outside a contact episode
+    absorbed_phases: tuple = ()        # phases where the grasp absorbs the TCP's motion along the lever arm
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float):
         self.id = task_id
@@ -129,6 +137,7 @@ class TwoPhaseTask(Task):
     """
 
     kind = "rotate"
+    absorbed_phases = ("arc",)
 
     def __init__(self, task_id: str, angle_rad: float, speed: float, probe_distance: float,
                  direction: np.ndarray, strategy: str = "arc", turn_tool: bool = False):
@@ -216,7 +225,7 @@ class TwoPhaseTask(Task):
         # The look-ahead advances from the *planned* position: the arm runs a little ahead of or
         # behind the plan, and a target placed from the measured TCP would run away (or stall),
         # making the planner cut across the arc.
-        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        p_ref = inp.p_ref
         phi_plan = signed_angle(r0, p_ref - c.p, a)
         self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
         remaining = self.angle_rad - phi
@@ -322,6 +331,7 @@ class ApproachTask(Task):
 
     kind = "approach"
     trigger_phase = "approach"
+    absorbed_phases = ("contact",)
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float, max_distance: float,
                  stop_angle_rad: float):
@@ -338,7 +348,7 @@ class ApproachTask(Task):
         st = self.status
         s = float(np.dot(inp.p - self.p_start, self.direction))
         # how far the plan has gone: the arm trails it by a hair at the end of a paced move
-        s_plan = float(np.dot((inp.p if inp.p_plan is None else inp.p_plan) - self.p_start, self.direction))
+        s_plan = float(np.dot(inp.p_ref - self.p_start, self.direction))
         c = inp.contact
         if c.tracking and c.p is not None:
             st.phase = "contact"
@@ -356,7 +366,7 @@ class ApproachTask(Task):
                 return None
         target = self.p_start + self.max_distance * self.direction
         # constant speed all the way: the target is paced (Ruckig would otherwise race it)
-        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        p_ref = inp.p_ref
         remaining = max(float(np.dot(target - p_ref, self.direction)), 0.0)
         return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
 
@@ -378,6 +388,7 @@ class PointTask(Task):
     """
 
     kind = "point"
+    absorbed_phases = ("out",)
 
     def __init__(self, task_id: str, radius: float, speed: float, turns: float):
         super().__init__(task_id, np.array([1.0, 0.0, 0.0]), speed)
@@ -402,7 +413,7 @@ class PointTask(Task):
         if not self._running(inp):
             return None
         st, c = self.status, inp.contact
-        p_ref = inp.p if inp.p_plan is None else inp.p_plan
+        p_ref = inp.p_ref
         total = 2.0 * math.pi * self.turns
         if st.phase == "out":
             s_plan = float(np.dot(p_ref - self.p_start, self.direction))

@@ -27,7 +27,6 @@ TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
-LEVER_ARM_ABSORBED = ("arc", "contact", "out")     # task phases where the estimator distrusts lever-arm velocity
 
 
 @dataclass
@@ -443,10 +442,10 @@ class ControlThread:
             elif task.trigger_phase is not None:
                 self._trigger_armed = False
                 self._put(("arm", False), self.to_estimator)
-        # In these phases the TCP's motion along the lever arm is absorbed by the grasp (arc following
-        # about an estimate, or pushing on after an impact, where the object slides in the fingers).
-        if (st.phase in LEVER_ARM_ABSORBED) != (phase_before in LEVER_ARM_ABSORBED):
-            self._put(("arc", st.phase in LEVER_ARM_ABSORBED), self.to_estimator)
+        # the task says where its TCP motion along the lever arm is absorbed by the grasp
+        absorbed = st.phase in task.absorbed_phases
+        if absorbed != (phase_before in task.absorbed_phases):
+            self._put(("arc", absorbed), self.to_estimator)
         touching = st.phase in task.touching_phases
         if touching != (phase_before in task.touching_phases):
             self._put(("hold_bias", touching), self.to_estimator)
