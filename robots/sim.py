@@ -27,6 +27,7 @@ class SimRobotParams:
     tracking_tau_s: float = 0.01
     encoder_noise_rad: float = 5e-5
     tcp_speed_noise: float = 2e-4      # m/s, noise of the reported TCP velocity
+    command_timeout_s: float = 0.1     # no command for this long: the arm stops on its own (0: never)
 
     @classmethod
     def from_config(cls, section, q_home: np.ndarray) -> "SimRobotParams":
@@ -37,6 +38,7 @@ class SimRobotParams:
             tracking_tau_s=section.getfloat("tracking_tau_s", 0.01, minval=0.0, maxval=0.5),
             encoder_noise_rad=section.getfloat("encoder_noise_rad", 5e-5, minval=0.0),
             tcp_speed_noise=section.getfloat("tcp_speed_noise", 2e-4, minval=0.0),
+            command_timeout_s=section.getfloat("command_timeout_s", 0.1, minval=0.0, maxval=10.0),
         )
 
 
@@ -47,7 +49,9 @@ class SimRobot:
     daemon's threads see only the latest proprioception (published at
     `proprio_rate_hz` with encoder noise) and hand in joint velocity commands,
     which take effect after `command_latency_s` through a first-order tracking
-    lag of `tracking_tau_s`.
+    lag of `tracking_tau_s`. Like a real arm's velocity interface, it stops by itself
+    when commands cease for `command_timeout_s` (a stalled controller must not leave it
+    moving); `watchdog_stops` counts those.
     """
 
     def __init__(self, model: ArmModel, params: SimRobotParams, world_factory=None, imu=None, seed: int = 0,
@@ -68,6 +72,7 @@ class SimRobot:
         self._cmds: collections.deque = collections.deque(maxlen=64)   # (t_effective, qd), from any thread
         self._pending: collections.deque = collections.deque()        # owned by the physics thread
         self._qd_cmd = np.zeros(model.nq)
+        self._t_cmd = self.t                 # when the command in force took effect
         self._lock = threading.Lock()
         self._state = JointState(t=clock(), q=self.q.copy(), qd=self.qd.copy(), seq=0, tcp_twist=twist.copy())
         self._truth = self._make_truth()
@@ -75,6 +80,7 @@ class SimRobot:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.overruns = 0
+        self.watchdog_stops = 0
 
     # -- RobotReceive -------------------------------------------------------
     def read_state(self) -> JointState:
@@ -141,12 +147,17 @@ class SimRobot:
             self._pending.extend(self._cmds)
             self._cmds.clear()
         pending = self._pending
+        timeout = self.p.command_timeout_s
         alpha = 1.0 if self.p.tracking_tau_s <= 0 else 1.0 - np.exp(-dt / self.p.tracking_tau_s)
         for k in range(n + 1):
             if k > 0:
                 t = self.t + dt
                 while pending and pending[0][0] <= t:
-                    self._qd_cmd = pending.popleft()[1]
+                    self._t_cmd, self._qd_cmd = pending.popleft()
+                if timeout > 0 and t - self._t_cmd > timeout and self._qd_cmd.any():
+                    self._qd_cmd = np.zeros(self.model.nq)      # the arm's own stop: the controller went quiet
+                    self.watchdog_stops += 1
+                    log.warning("sim: no joint command for %.0f ms, the arm stops", (t - self._t_cmd) * 1e3)
                 self.qd += alpha * (self._qd_cmd - self.qd)
                 self.qd = np.clip(self.qd, -self.model.qd_max, self.model.qd_max)
                 self.q = np.clip(self.q + self.qd * dt, self.model.q_min, self.model.q_max)

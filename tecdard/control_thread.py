@@ -500,25 +500,32 @@ class ControlThread:
         self._put(("release",), self.to_estimator)
         if task.touching_phases:
             self._put(("hold_bias", False), self.to_estimator)
+        sim = self._sim_truth(result)
         if outcome == "done":
             result = dict(result or {})
-            truth = self.robot.truth() if hasattr(self.robot, "truth") else None
-            if truth is not None:
-                # The true handle angle, signed about the axis the task rotated about.
-                axis = np.asarray(result.get("hinge", result).get("axis", truth.hinge_axis))
-                sign = 1.0 if float(np.dot(axis, truth.hinge_axis)) >= 0 else -1.0
-                result["sim"] = {"hinge_point": truth.hinge_point.tolist(), "hinge_axis": truth.hinge_axis.tolist(),
-                                 "angle_deg": sign * math.degrees(truth.handle_angle_rad),
-                                 "base_displacement": truth.base_displacement_m, **truth.extra}
+            if sim is not None:
+                result["sim"] = sim
             self._event("task_done", task=task.id, verb=task.kind, result=result)
         else:
-            extra = {}
+            extra = {} if sim is None else {"sim": sim}
             partial = task.partial_record() if isinstance(task, MapTask) else None
             if partial is not None:
                 # nothing is lost: the points probed so far are fused and written all the same
                 self._writer.submit(write_map, partial, self.map_settings)
                 extra["map_path"] = str(pathlib.Path(self.map_settings.output_dir) / task.id)
             self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
+
+    def _sim_truth(self, result: dict | None) -> dict | None:
+        """The simulated world's truth for benchmarks and tests (None on a real robot)."""
+        truth = self.robot.truth() if hasattr(self.robot, "truth") else None
+        if truth is None:
+            return None
+        # the true handle angle, signed about the axis the task rotated about
+        axis = np.asarray((result or {}).get("hinge", result or {}).get("axis", truth.hinge_axis))
+        sign = 1.0 if float(np.dot(axis, truth.hinge_axis)) >= 0 else -1.0
+        return {"hinge_point": truth.hinge_point.tolist(), "hinge_axis": truth.hinge_axis.tolist(),
+                "angle_deg": sign * math.degrees(truth.handle_angle_rad),
+                "base_displacement": truth.base_displacement_m, **truth.extra}
 
     # -- state ----------------------------------------------------------------
     def _publish_state(self, now: float, p, R, v, est) -> None:

@@ -11,7 +11,7 @@ from tecdard.demo import distance_to_axis
 HINGE_TOL_M = 0.010          # issue 2: hinge estimate within 10 mm of the true axis
 ANGLE_TOL_DEG = 2.0
 ARC_BASE_MAX_M = 0.002       # following the estimated arc leaves the base (nearly) still
-STRAIGHT_BASE_MIN_M = 0.010  # the paper's failure case: a straight pull drags the base
+STRAIGHT_BASE_MIN_M = 0.020  # issue 6: the paper's failure case, a straight pull, drags the base more than this
 TASK_TIMEOUT_S = 90.0
 STILL_M = 2e-4               # the TCP has not moved (encoder noise is ~0.03 mm)
 APPROACH_TOL_M = 0.025
@@ -44,9 +44,12 @@ def test_rotate_follows_the_arc_and_the_straight_pull_drags_the_base(make_daemon
     # the tool turned as far as the handle, less the twist the fingertips hold
     assert abs(turned - (sim["angle_deg"] - abs(sim["grasp_twist_deg"]))) < 1.0, f"tool turned {turned:.1f} deg"
 
-    # The cutter is now open; a second daemon starts from a closed one for the straight pull.
+    # The cutter is now open; a second daemon starts from a closed one for the straight pull. At 45 deg
+    # (a 12 cm path at this 15 cm radius; the paper's is 15 cm) the handle end leaves the circle by
+    # r (sqrt(1 + theta^2) - 1) = 41 mm, which the base absorbs. (Over the paper's full 15 cm the
+    # drag ends in a protective stop on force: benchmarks/RESULTS.md.)
     d2 = make_daemon()
-    res2 = run_rotate(d2, strategy="straight")
+    res2 = run_rotate(d2, strategy="straight", angle_deg=45.0)
     assert res2["sim"]["base_displacement"] > STRAIGHT_BASE_MIN_M, res2["sim"]
     assert abs(res2["sim"]["grasp_slip_deg"]) > 1.0, res2["sim"]          # held orientation: the grasp slipped
 

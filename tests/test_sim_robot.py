@@ -80,3 +80,26 @@ def test_commands_take_effect_after_latency_through_the_lag():
     clock.t += 0.021                                        # 20 ms after it took effect: one time constant
     robot.advance_to(clock.t)
     assert robot.read_state().qd[0] == pytest.approx(0.1 * (1 - np.exp(-1)), rel=0.1)
+
+
+def test_the_arm_stops_by_itself_when_commands_cease():
+    """A stalled controller must not leave the arm moving: like a real velocity interface, the
+    simulated arm zeroes its command after command_timeout_s without a new one."""
+    clock = ManualClock()
+    arm = ArmModel("panda")
+    robot = SimRobot(arm, SimRobotParams(q_home=Q_HOME.copy(), encoder_noise_rad=0.0), clock=clock)
+    qd = np.zeros(7)
+    qd[0] = 0.2
+    for _ in range(10):                       # commanded every 20 ms: it keeps turning
+        robot.command_joint_velocity(qd)
+        clock.t += 0.02
+        robot.advance_to(clock.t)
+    assert robot.read_state().qd[0] == pytest.approx(0.2, rel=1e-3) and robot.watchdog_stops == 0
+    q_quiet = robot.read_state().q[0]
+    clock.t += 1.0                            # then the controller goes quiet for a second
+    robot.advance_to(clock.t)
+    js = robot.read_state()
+    assert robot.watchdog_stops == 1
+    assert abs(js.qd[0]) < 1e-6
+    # it coasted for about the timeout (0.1 s) and the tracking lag, not the whole second
+    assert 0.2 * 0.1 < js.q[0] - q_quiet < 0.2 * 0.15
