@@ -1,4 +1,4 @@
-"""`make bench`: whole-daemon accuracy, CPU and ticks on the simulated robot; writes benchmarks/RESULTS.md."""
+"""`make bench`: whole-daemon accuracy, CPU and ticks on the simulated robot; writes benchmarks/daemon.md."""
 from __future__ import annotations
 
 import argparse
@@ -87,7 +87,7 @@ def main() -> int:
     args = ap.parse_args()
     lines = [f"# Benchmarks ({time.strftime('%Y-%m-%d')}, {platform.processor() or platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()})", ""]
-    lines += ["Estimator accuracy and speed: [estimation.md](estimation.md); serial driver: [serial.md](serial.md).", ""]
+    lines += ["Estimator accuracy and speed: [README.md](README.md); serial driver: [serial.md](serial.md).", ""]
     print("\n".join(lines), flush=True)
     runs = []
     # (radius, seed, strategy, angle): 30 deg at every radius; then the paper's cutter run, a gripper
@@ -129,7 +129,7 @@ def main() -> int:
                   "over the paper's 15 cm gripper path (its Case 2; at 10 cm radius 70 deg, 12 cm, as the Panda's elbow "
                   "reaches its limit near 75 deg there) it is 41-62 mm. A pull that drags the base hard ends "
                   "in a protective stop on force (15 N) or tracking; the base moved is then where it stopped."]
-    out = ROOT / "benchmarks" / "RESULTS.md"
+    out = ROOT / "benchmarks" / "daemon.md"
     out.write_text("\n".join(lines) + "\n")
     print(f"\nwritten {out}")
     return 0

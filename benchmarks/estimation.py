@@ -1,6 +1,7 @@
 """Estimator benchmark (issue 3): the paper's method comparison on simulated recordings, speed, filterpy peer.
 
-`python -m benchmarks.estimation` writes benchmarks/estimation.md and PNG plots beside it.
+`python -m benchmarks.estimation` writes benchmarks/README.md (the landing page of `make bench`: these
+results, and links to the others) and PNG plots beside it.
 """
 from __future__ import annotations
 
@@ -237,6 +238,10 @@ def main() -> int:
 
     lines = [f"# Contact estimation benchmark ({time.strftime('%Y-%m-%d')}, {platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()})", "",
+             "`make bench` runs, in order: this estimator benchmark (`python -m benchmarks.estimation`, below);",
+             "the serial driver, [serial.md](serial.md); the simulator, [sim.md](sim.md); the whole daemon's",
+             "`rotate` on the simulated paper cutter, [daemon.md](daemon.md); and the tactile map of the",
+             "paper's container, [mapping.md](mapping.md). Every page is written by its benchmark.", "",
              "Simulated recordings (`robots/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
              "6667 Hz), encoder-grade TCP noise (0.05 mm) at 65 Hz with reported TCP velocity (1 mm/s noise), "
              "eta 2.0 assumed (calibrated at 30 N); every method gets the same conditioned gyro and the same causal "
@@ -356,7 +361,7 @@ def main() -> int:
     axs[0].legend()
     fig.tight_layout()
     fig.savefig(OUT / "estimation_sweeps.png", dpi=110)
-    (OUT / "estimation.md").write_text("\n".join(lines) + "\n")
+    (OUT / "README.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

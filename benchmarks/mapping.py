@@ -78,13 +78,16 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
                     raise RuntimeError(f"map refused: {reply}")
                 ev = cli.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
                 elapsed = time.monotonic() - t0
+                ticks = cli.command("status")["state"]["control"]
         finally:
             stop_daemon(proc)
     if ev["kind"] != "task_done":
         tail = (out_dir / "log").read_text().splitlines()[-30:]
         raise RuntimeError(f"map failed: {ev.get('error')} (phase {ev.get('phase')})\n" + "\n".join(tail))
     scene = mapping_scene(SCENE_ORIGIN_XY, floor_z, seed=seed)
-    return {"result": ev["result"], "elapsed_s": elapsed, "scene": scene, "floor_z": floor_z}
+    stalls = sum("the arm stops" in line for line in (out_dir / "log").read_text().splitlines())
+    return {"result": ev["result"], "elapsed_s": elapsed, "scene": scene, "floor_z": floor_z, "ticks": ticks,
+            "watchdog_stops": stalls}
 
 
 def evaluate(out: dict) -> dict:
@@ -116,7 +119,8 @@ def evaluate(out: dict) -> dict:
         "map_rmse_mm": float(np.sqrt(np.nanmean((depth - truth) ** 2)) * 1e3),
         "ideal_map_rmse_mm": float(np.sqrt(np.nanmean((ideal - truth) ** 2)) * 1e3),
         "map_vs_ideal_rmse_mm": float(np.sqrt(np.nanmean((depth - ideal) ** 2)) * 1e3),
-        "elapsed_s": out["elapsed_s"], "truth": truth, "depth": depth,
+        "elapsed_s": out["elapsed_s"], "truth": truth, "depth": depth, "ticks": out["ticks"],
+        "watchdog_stops": out["watchdog_stops"],
     }
 
 
@@ -153,7 +157,10 @@ def main() -> int:
         f"| map RMSE against the true height field | {m['map_rmse_mm']:.1f} mm |",
         f"| the same kernel estimator fed the true heights at the probe points | {m['ideal_map_rmse_mm']:.1f} mm |",
         f"| map against that ideal map | {m['map_vs_ideal_rmse_mm']:.1f} mm |",
-        f"| wall time | {m['elapsed_s'] / 60:.1f} min ({m['elapsed_s'] / max(m['points'], 1):.1f} s per point) |", "",
+        f"| wall time | {m['elapsed_s'] / 60:.1f} min ({m['elapsed_s'] / max(m['points'], 1):.1f} s per point) |",
+        f"| control ticks: overruns over the run; lateness p99 / max over the last 1000 | {m['ticks'].get('overruns')},"
+        f" {m['ticks'].get('late_ms_p99')} / {m['ticks'].get('late_ms_max')} ms |",
+        f"| simulated arm stopped by its command watchdog (control thread stalled > 0.1 s) | {m['watchdog_stops']} |", "",
         "The map's RMSE is mostly sampling: a 7 cm grid cannot resolve 4 mm cup rims or the edges of",
         "books, and the ideal map (true heights at the same points) has nearly the same RMSE. The",
         "per-point error is what the touch itself adds. Probes that land on an edge (a box's, a cup's",
