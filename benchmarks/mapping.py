@@ -58,6 +58,10 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
     # a brisker stop after the touch than the default 0.5 m/s^2, so that 2 cm/s descents stay under 5 N
     cfg["control"]["max_accel"] = 2.0
     cfg["control"]["max_jerk"] = 40.0
+    # The simulated IMU is fed by the physics thread, which a loaded shared machine can hold up for
+    # 50 ms now and then (one such stall stopped a run at point 26): over a 22 min run the bench
+    # measures the map, so it tolerates 0.25 s. The 50 ms stop itself is tested (tests/test_serial_imu.py, unplugging).
+    cfg["control"]["imu_stale_s"] = 0.25
     cfg["map"] = {"output_dir": str(out_dir / "maps"), "tool_tip_tcp": tip_tcp, "turn_deg": -90.0}
     cfg["robot"]["q_home"] = home_q(cfg)
     origin = [SCENE_ORIGIN_XY[0] + INSET_M, SCENE_ORIGIN_XY[1] + INSET_M]
@@ -147,7 +151,7 @@ def main() -> int:
         f"Experiment C (45 x 35 x 24.5 cm, seed {args.seed}: two books, a box, two cups) with a block held",
         f"{TOOL_TILT_DEG:.0f} deg off the vertical, {TOOL_LENGTH_M * 100:.0f} cm. Grid {grid[0]} x {grid[1]},"
         f" {args.orientations} orientation(s), descent and probe at {args.speed * 1e3:.0f} mm/s"
-        " (control.max_accel 2 m/s^2, max_jerk 40 m/s^3).", "",
+        " (control.max_accel 2 m/s^2, max_jerk 40 m/s^3, imu_stale_s 0.25 s).", "",
         "| figure | value |", "|---|---|",
         f"| points probed / valid | {m['points']} / {m['valid']} (invalid: {json.dumps(m['invalid'])}) |",
         f"| per-point height error at the estimated x-y: RMSE, max, mean | {m['point_rmse_mm']:.1f} mm,"

@@ -161,3 +161,39 @@ def test_daemon_rotates_through_the_whole_serial_path_in_simulation(make_daemon)
     a = np.array(sim["hinge_axis"])
     assert np.linalg.norm(p - np.dot(p, a) * a) < 0.010
     assert all(e["kind"] != "fault" for e in d.client.event_log)
+
+
+def test_unplugging_the_imu_during_a_task_is_a_protective_stop_on_stale_data(make_daemon, pty):
+    """Issue 6: IMU stale for more than 50 ms (here the board is unplugged mid-motion) stops the
+    running task with a decelerating stop; once the board is back the daemon returns to idle."""
+    streamer = StreamThread(pty, Board()).start()
+    try:
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
+        cli = d.client
+        time.sleep(0.5)
+        reply = cli.command("rotate", {"angle_deg": 30.0})      # phase 1 moves the TCP at once
+        assert reply["ok"] is True, reply
+        t_end = time.monotonic() + 5.0
+        while np.linalg.norm(cli.command("status")["state"]["tcp"]["v"]) < 0.01 and time.monotonic() < t_end:
+            time.sleep(0.02)
+        pty.unplug()
+        stop = cli.wait_event(("protective_stop",), timeout=5.0)
+        assert stop["cause"] == "imu_stale" and "no IMU sample" in stop["message"]
+        failed = cli.wait_event(("task_failed",), reply["task"], timeout=5.0)
+        assert failed["error"].startswith("protective stop: no IMU sample")
+        # a decelerating stop: the TCP comes to rest and stays there
+        t_end = time.monotonic() + 5.0
+        while np.linalg.norm(cli.command("status")["state"]["tcp"]["v"]) > 1e-3 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        p_rest = np.array(cli.command("status")["state"]["tcp"]["p"])
+        time.sleep(0.3)
+        assert np.linalg.norm(np.array(cli.command("status")["state"]["tcp"]["p"]) - p_rest) < 2e-4
+        pty.replug()
+        t_end = time.monotonic() + 10.0
+        while cli.command("status")["state"]["mode"] != "idle" and time.monotonic() < t_end:
+            time.sleep(0.1)
+        state = cli.command("status")["state"]
+        assert state["mode"] == "idle" and state["faults"] == []
+        assert d.proc.poll() is None
+    finally:
+        streamer.join()
