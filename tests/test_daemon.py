@@ -54,6 +54,22 @@ def test_rotate_follows_the_arc_and_the_straight_pull_drags_the_base(make_daemon
     assert abs(res2["sim"]["grasp_slip_deg"]) > 1.0, res2["sim"]          # held orientation: the grasp slipped
 
 
+@pytest.mark.parametrize("radius", [0.10, 0.25])
+def test_rotate_opens_a_cutter_whose_handle_rises_from_the_hinge(make_daemon, radius):
+    """Another hinge pose: the handle rises 20 deg from the hinge to the grasp. Probing along the
+    handle's tangent (Algorithm 2 of the paper), the arc leaves the base still."""
+    tcp, e = np.array([0.307, 0.0, 0.487]), np.radians(20.0)
+    hinge = tcp - radius * np.array([np.cos(e), 0.0, np.sin(e)])
+    d = make_daemon(**{"sim.hinge.point": hinge.tolist()})
+    res = run_rotate(d, direction=[-np.sin(e), 0.0, np.cos(e)])
+    sim = res["sim"]
+    err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
+    summary = f"hinge error {err * 1e3:.2f} mm, angle {sim['angle_deg']:.2f} deg, base {sim['base_displacement'] * 1e3:.2f} mm"
+    assert err < HINGE_TOL_M, summary
+    assert abs(sim["angle_deg"] - 30.0) < ANGLE_TOL_DEG, summary
+    assert sim["base_displacement"] < ARC_BASE_MAX_M, summary
+
+
 def test_status_state_and_events_follow_the_spec(shared_daemon):
     cli = shared_daemon.client
     reply = cli.command("status")
