@@ -14,6 +14,8 @@ ANGLE_TOL_RAD = math.radians(0.2)
 PHASE_TIMEOUT_FACTOR = 4.0    # a phase may take this many times its nominal duration (+ slack)
 PHASE_TIMEOUT_SLACK_S = 2.0
 TOOL_TURN_RAMP_S = 0.5        # rotate: the tool's turning with the arc fades in over this long
+ARC_ADMITTANCE_M_NS = 0.003   # arc radius correction per newton of radial grasp force, m/(N s)
+ARC_RADIAL_MAX_M = 0.02       # the radius correction stays within this
 
 
 @dataclass
@@ -127,8 +129,10 @@ class TwoPhaseTask(Task):
     `probe_distance` while the contact estimator converges. Phase 2 (`arc`):
     each tick, a target on the circle about the current hinge estimate,
     through the TCP's start position, `LOOKAHEAD_S` ahead at `speed`, with the
-    tangential target velocity, until the rotation reaches `angle_rad`.
-    With strategy `straight` phase 2 is instead a straight pull of the same
+    tangential target velocity, until the rotation reaches `angle_rad`. The
+    circle's radius follows the grasp force along the lever arm (a radial
+    admittance, not in the paper), so an estimate a little off does not drag
+    the object's base. With strategy `straight` phase 2 is instead a straight pull of the same
     length as the arc (the paper's failure case).
 
     Unlike the paper's pseudo-code, which computes the phase-1 direction from
@@ -158,6 +162,9 @@ class TwoPhaseTask(Task):
         self._turn_t0 = None            # when it began to turn
         self._phi_last = 0.0            # planned arc angle and time of the previous tick
         self._t_last = None
+        self._f0 = None                 # TCP force at the start (the robot's bias and the grasp's preload)
+        self._radial = 0.0              # arc radius correction from the grasp force, m
+        self._t_radial = None
 
     def _started(self, inp: TickInput) -> None:
         self._enter("probe", inp.t)
@@ -166,6 +173,8 @@ class TwoPhaseTask(Task):
         """Advance the state machine; returns the motion target, or None to brake/hold."""
         if not self._running(inp):
             return None
+        if self._f0 is None and inp.force is not None:
+            self._f0 = np.asarray(inp.force, dtype=float).copy()
         st = self.status
         if st.phase == "probe":
             return self._step_probe(inp)
@@ -238,13 +247,32 @@ class TwoPhaseTask(Task):
         lookahead = self.speed * LOOKAHEAD_S / rho
         phi_t = min(phi_plan + lookahead, self.angle_rad)
         Rot = rotvec_to_matrix(a * phi_t)
-        target = c.p + Rot @ r0
+        target = c.p + Rot @ r0 + self._radius_correction(inp, c.p, a) * (Rot @ r0_perp) / rho
         tangent = np.cross(a, Rot @ r0_perp) / rho
         v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
         R, w = self._tool_on_arc(inp.t, phi_plan, a)
         # Ruckig's limits are per axis: without a duration it would race a look-ahead target
         # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
         return Motion(target, v, R, min_duration_s=(phi_t - phi_plan) * rho / self.speed, w=w)
+
+    def _radius_correction(self, inp: TickInput, p_c: np.ndarray, a: np.ndarray) -> float:
+        """Radial admittance: the handle's true circle is where the grasp force has no radial part.
+        Off it, the soft grasp stretches (the force pulls the TCP towards the hinge) or compresses;
+        the arc's radius moves with that force, so an estimate whose radius or centre is a little
+        off does not drag the object's base. The estimator distrusts the velocity along the lever
+        arm on the arc, so the correction does not feed back into the estimate."""
+        if inp.force is None or self._f0 is None:
+            return self._radial
+        dt = 0.0 if self._t_radial is None else inp.t - self._t_radial
+        self._t_radial = inp.t
+        r = inp.p - p_c
+        r = r - float(r @ a) * a
+        n = float(np.linalg.norm(r))
+        if n > 1e-6 and dt > 0:
+            f_r = float((np.asarray(inp.force, dtype=float) - self._f0) @ (r / n))
+            self._radial = min(max(self._radial + ARC_ADMITTANCE_M_NS * f_r * dt, -ARC_RADIAL_MAX_M),
+                               ARC_RADIAL_MAX_M)
+        return self._radial
 
     def _tool_on_arc(self, t: float, phi_plan: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The tool's orientation on the arc: held, or (turn_tool) turned with the arc about the

@@ -67,3 +67,44 @@ def test_with_turn_tool_off_the_orientation_is_held():
     task, log = run_rotate(turn_tool=False)
     assert task.status.state == "done"
     assert all(np.array_equal(R, R0) and w is None for *_, R, w in log)
+
+
+def arc_with_a_wrong_radius(with_force: bool) -> list[float]:
+    """Rotate about a hinge estimate 10 mm too far from the handle; the soft grasp (3000 N/m) pulls
+    the TCP towards the true circle. Over 90 deg the estimate's circle (through the start) ends
+    sqrt((R + e)^2 + e^2) - R = 10.3 mm off the true one. Returns the TCP's distance from the true
+    hinge along the arc."""
+    k = 3000.0
+    radius = float(np.linalg.norm(P0 - HINGE))
+    estimate = HINGE - 0.010 * (P0 - HINGE) / radius
+    task = RotateTask("rotate-1", math.radians(90.0), 0.02, 0.005, np.array([0.0, 0.0, 1.0]))
+    planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
+    planner.reset(P0, speed=0.02)
+    p, t, dist = P0.copy(), 0.0, []
+    view = ContactView(tracking=True, p=estimate, std=np.full(3, 1e-3), axis=AXIS, onset_t=0.0, in_plane_std=1e-3)
+    for _ in range(5000):
+        t += TICK_S
+        r = p - HINGE
+        force = -k * (np.linalg.norm(r) - radius) * r / np.linalg.norm(r) if with_force else None
+        motion = task.step(TickInput(t, p.copy(), R0, view, planner.at_rest, planner.position, force))
+        if motion is None:
+            if task.status.state != "running":
+                assert task.status.state == "done"
+                return dist
+            p, _ = planner.brake()
+            continue
+        p, _ = planner.step(motion.p, motion.v, motion.min_duration_s)
+        if task.status.phase == "arc":
+            dist.append(float(np.linalg.norm(p - HINGE)))
+    raise AssertionError("rotate did not finish")
+
+
+def test_the_arc_radius_follows_the_grasp_force():
+    """Radial admittance: with the grasp force the arc settles on the handle's true circle, so a
+    slightly wrong estimate does not drag the base; without a force reading it follows the estimate."""
+    radius = float(np.linalg.norm(P0 - HINGE))
+    blind = arc_with_a_wrong_radius(with_force=False)
+    felt = arc_with_a_wrong_radius(with_force=True)
+    assert blind[-1] - radius == pytest.approx(math.hypot(radius + 0.010, 0.010) - radius, abs=1e-3)
+    assert abs(felt[-1] - radius) < 1e-3                              # back on the true circle
+    assert max(abs(d - radius) for d in felt) < 0.005                 # never stretched by the full error
