@@ -169,8 +169,8 @@ def main() -> int:
                   "20 deg from the hinge, its axis yawed 30 deg, beside the gripper with its axis along x. Every run "
                   "probes along the handle's tangent at the grasp (`direction`), as Algorithm 2 of the paper "
                   "does. Off the tangent the grasp absorbs the probe's component along the handle, the "
-                  "estimate takes that for rotation about another centre, and the arc about it drags the "
-                  "base: the rows 'probe N deg off the tangent' measure that sensitivity."]
+                  "estimate takes that for rotation about another centre; the arc's radial admittance (grasp force) "
+                  "keeps the base still, and the rows 'probe N deg off the tangent' measure what the estimate keeps."]
     out = ROOT / "benchmarks" / "daemon.md"
     out.write_text("\n".join(lines) + "\n")
     print(f"\nwritten {out}")
