@@ -31,12 +31,13 @@ def proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+HOME_TCP = np.array([0.307, 0.0, 0.487])   # the TCP at configs/sim.yaml's home pose
 POSES = ("behind, axis y", "handle 20 deg up", "axis yawed 30 deg", "beside, axis x")
 
 
 def hinge_pose(name: str, radius: float) -> dict:
-    """Where the simulated cutter's hinge is, `radius` from the TCP at home (0.307, 0, 0.487)."""
-    tcp = np.array([0.307, 0.0, 0.487])
+    """Where the simulated cutter's hinge is, `radius` from the TCP at home."""
+    tcp = HOME_TCP
     if name == "behind, axis y":
         return {"point": (tcp - [radius, 0.0, 0.0]).tolist(), "axis": [0.0, 1.0, 0.0]}
     if name == "handle 20 deg up":       # the handle rises 20 deg from the hinge to the TCP
@@ -55,7 +56,7 @@ def probe_direction(name: str, radius: float, off_deg: float = 0.0) -> list[floa
     """The handle's tangent at the grasp, upwards (what Algorithm 2 of the paper probes along), tilted
     `off_deg` outwards along the handle: an operator's error in `direction`."""
     h = hinge_pose(name, radius)
-    e0 = np.array([0.307, 0.0, 0.487]) - np.array(h["point"])
+    e0 = HOME_TCP - np.array(h["point"])
     e0 /= np.linalg.norm(e0)
     t = np.cross(np.array(h["axis"]), e0)
     t = t if t[2] >= 0 else -t

@@ -15,18 +15,23 @@ P0 = np.array([0.307, 0.0, 0.487])
 R0 = np.diag([1.0, -1.0, -1.0])
 
 
-def run_rotate(turn_tool: bool, angle_deg: float = 30.0):
-    """Rotate about an exactly known hinge; returns the task and, per tick, (t, planned arc angle,
-    commanded orientation, angular feed-forward)."""
+def run_rotate(turn_tool: bool, angle_deg: float = 30.0, estimate: np.ndarray = HINGE,
+               grasp_k: float | None = None):
+    """Rotate about a hinge estimate (exact by default); with `grasp_k` (N/m) a soft grasp pulls the
+    TCP towards the true handle circle and the task reads that force. Returns the task and, per
+    tick, (t, phase, planned arc angle, commanded orientation, angular feed-forward, TCP)."""
     task = RotateTask("rotate-1", math.radians(angle_deg), 0.02, 0.005, np.array([0.0, 0.0, 1.0]),
                       turn_tool=turn_tool)
     planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
     planner.reset(P0, speed=0.02)
+    radius = float(np.linalg.norm(P0 - HINGE))
     p, t, log = P0.copy(), 0.0, []
-    view = ContactView(tracking=True, p=HINGE, std=np.full(3, 1e-3), axis=AXIS, onset_t=0.0, in_plane_std=1e-3)
+    view = ContactView(tracking=True, p=estimate, std=np.full(3, 1e-3), axis=AXIS, onset_t=0.0, in_plane_std=1e-3)
     for _ in range(5000):
         t += TICK_S
-        motion = task.step(TickInput(t, p.copy(), R0, view, planner.at_rest, planner.position))
+        r = p - HINGE
+        force = None if grasp_k is None else -grasp_k * (np.linalg.norm(r) - radius) * r / np.linalg.norm(r)
+        motion = task.step(TickInput(t, p.copy(), R0, view, planner.at_rest, planner.position, force))
         if motion is None:
             if task.status.state != "running":
                 return task, log
@@ -34,8 +39,8 @@ def run_rotate(turn_tool: bool, angle_deg: float = 30.0):
             continue
         r = planner.position - HINGE
         phi = math.atan2(float(np.cross(P0 - HINGE, r) @ AXIS), float((P0 - HINGE) @ r))
-        log.append((t, task.status.phase, phi, motion.R, motion.w))
         p, _ = planner.step(motion.p, motion.v, motion.min_duration_s)
+        log.append((t, task.status.phase, phi, motion.R, motion.w, p.copy()))
     raise AssertionError("rotate did not finish")
 
 
@@ -46,13 +51,13 @@ def test_the_tool_turns_with_the_arc_fading_in_without_a_jump():
     t0, phi0 = arc[0][0], arc[0][2]
     cruise = 0.02 / np.linalg.norm(P0 - HINGE)
     lag = 0.5 * TOOL_TURN_RAMP_S * cruise            # the fade-in leaves the tool this far behind the handle
-    for t, _, phi, R, w in arc:
+    for t, _, phi, R, w, _ in arc:
         turned = matrix_to_rotvec(R @ R0.T)
         assert np.linalg.norm(np.cross(turned, AXIS)) < 1e-9             # about the hinge axis only
         if t - t0 >= TOOL_TURN_RAMP_S:
             # after the fade-in the tool turns with the planned arc, trailing it by a constant angle
             assert float(turned @ AXIS) == pytest.approx(phi - phi0 - lag, abs=math.radians(0.3))
-    rates = np.array([float(w @ AXIS) for *_, w in arc])
+    rates = np.array([float(w @ AXIS) for *_, w, _ in arc])
     fading = np.array([t - t0 < TOOL_TURN_RAMP_S for t, *_ in arc])
     assert abs(rates[0]) < 1e-9 and np.max(np.abs(np.diff(rates[fading]))) < 0.01     # no jump in rate
     # the feed-forward is the planned arc's rate once faded in (no overshoot), and below it before
@@ -66,37 +71,19 @@ def test_the_tool_turns_with_the_arc_fading_in_without_a_jump():
 def test_with_turn_tool_off_the_orientation_is_held():
     task, log = run_rotate(turn_tool=False)
     assert task.status.state == "done"
-    assert all(np.array_equal(R, R0) and w is None for *_, R, w in log)
+    assert all(np.array_equal(R, R0) and w is None for *_, R, w, _ in log)
 
 
 def arc_with_a_wrong_radius(with_force: bool) -> list[float]:
-    """Rotate about a hinge estimate 10 mm too far from the handle; the soft grasp (3000 N/m) pulls
-    the TCP towards the true circle. Over 90 deg the estimate's circle (through the start) ends
+    """Rotate 90 deg about a hinge estimate 10 mm too far from the handle, with a soft grasp
+    (3000 N/m) felt or not. The estimate's circle (through the start) ends
     sqrt((R + e)^2 + e^2) - R = 10.3 mm off the true one. Returns the TCP's distance from the true
     hinge along the arc."""
-    k = 3000.0
     radius = float(np.linalg.norm(P0 - HINGE))
     estimate = HINGE - 0.010 * (P0 - HINGE) / radius
-    task = RotateTask("rotate-1", math.radians(90.0), 0.02, 0.005, np.array([0.0, 0.0, 1.0]))
-    planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
-    planner.reset(P0, speed=0.02)
-    p, t, dist = P0.copy(), 0.0, []
-    view = ContactView(tracking=True, p=estimate, std=np.full(3, 1e-3), axis=AXIS, onset_t=0.0, in_plane_std=1e-3)
-    for _ in range(5000):
-        t += TICK_S
-        r = p - HINGE
-        force = -k * (np.linalg.norm(r) - radius) * r / np.linalg.norm(r) if with_force else None
-        motion = task.step(TickInput(t, p.copy(), R0, view, planner.at_rest, planner.position, force))
-        if motion is None:
-            if task.status.state != "running":
-                assert task.status.state == "done"
-                return dist
-            p, _ = planner.brake()
-            continue
-        p, _ = planner.step(motion.p, motion.v, motion.min_duration_s)
-        if task.status.phase == "arc":
-            dist.append(float(np.linalg.norm(p - HINGE)))
-    raise AssertionError("rotate did not finish")
+    task, log = run_rotate(False, 90.0, estimate, 3000.0 if with_force else None)
+    assert task.status.state == "done"
+    return [float(np.linalg.norm(p - HINGE)) for _, phase, *_, p in log if phase == "arc"]
 
 
 def test_the_arc_radius_follows_the_grasp_force():
