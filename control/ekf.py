@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import Plane, rotvec_to_matrix, sym2_max_eig
+from control.geometry import Plane, rotvec_to_matrix
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -125,8 +125,9 @@ class PaperEKF:
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
-               fresh: np.ndarray | None = None) -> None:
-        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. var_v/var_w/fresh unused (fixed M)."""
+               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None) -> None:
+        """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. The rest is unused (fixed M, eta as
+        scheduled)."""
         if self.plane is not None:
             w_n = w @ self.plane.n
             p2 = self.plane.point2(p)
@@ -168,9 +169,11 @@ class ContactKfParams:
     q_c: float = 1e-8              # m^2/s, contact random walk
     p0_c: float = UNOBSERVED_STD_M ** 2
     gate_nis: float = 16.3         # chi^2 (3 dof) at 0.999; 0 disables gating
-    eta_rel_std: float = 0.05      # relative uncertainty of eta, reported as a radial floor
+    eta_rel_std: float = 0.05      # relative uncertainty of eta at its calibration (prior of the eta state)
     max_block: int = 64            # samples per collapsed update
     use_positions: bool = True     # TCP positions as evidence too (rigid-body displacement), see PositionEvidence
+    estimate_eta: bool = True      # carry eta's error as a state, see ContactKF
+    eta_test_sigma: float = 3.0    # the data must reject the calibrated eta by this many sigma to be used
 
     @classmethod
     def from_config(cls, section) -> "ContactKfParams":
@@ -185,10 +188,15 @@ class ContactKfParams:
             eta_rel_std=section.getfloat("eta_rel_std", d.eta_rel_std, minval=0.0, maxval=1.0),
             max_block=section.getint("max_block", d.max_block, minval=1, maxval=4096),
             use_positions=section.getbool("use_positions", d.use_positions),
+            estimate_eta=section.getbool("estimate_eta", d.estimate_eta),
+            eta_test_sigma=section.getfloat("eta_test_sigma", d.eta_test_sigma, minval=0.0),
         )
 
 
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
+K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
+ETA_BLEND_SIGMA = 1.0          # the free-eta estimate is blended in over this many more sigma of evidence
+ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigmas from 1 is a model failure
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -210,6 +218,13 @@ def _cross_cov(a: np.ndarray) -> np.ndarray:
     return out
 
 
+def _neg_skew_rows(a: np.ndarray, out: np.ndarray) -> None:
+    """out[:, :3, :3] = -[a]x for rows of a (n, 3); -[a]x m = m x a."""
+    out[:, 0, 1], out[:, 0, 2] = a[:, 2], -a[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = -a[:, 2], a[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = a[:, 1], -a[:, 0]
+
+
 MIN_RESIDUAL_SAMPLES = 8       # position samples before the rigid-body residual test can speak
 POSITION_RESIDUAL_LIMIT = 4.0  # residual / expectation above which positions are no evidence (slide)
 
@@ -217,17 +232,21 @@ POSITION_RESIDUAL_LIMIT = 4.0  # residual / expectation above which positions ar
 class PositionEvidence:
     """What the TCP's measured positions say about the contact beyond its velocities.
 
-    Integrating v = w x (r - c) from a reference time: r(t) - G(t) = q - Theta(t) x c,
+    Integrating v = k w x (r - c) from a reference time (w: the object rate at the
+    scheduled eta, k: the eta ratio, see ContactKF) gives
+        r(t) = q + k G(t) - Theta(t) x m,    m = k c,
     with Theta = int w dt, G = int w x r dt (r: the TCP relative to the onset TCP) and
     q the true TCP at the reference time, unknown. Each proprioception sample is then a
-    linear measurement of (c, q) with its own independent noise sigma_p. q is
-    marginalised in closed form (a regression on Theta with an intercept), so the
-    marginal information on c is a Schur complement of running sums; it only grows, and
-    each growth is handed to the filter as one exactly equivalent measurement. Reported
-    velocities and positions carry independent noise, so nothing is counted twice (the
-    gyro noise both share is small against either and is neglected).
+    linear measurement of the filter's state (m, k) and of q, with its own independent
+    noise sigma_p. q is marginalised in closed form (a regression with an intercept), so
+    the marginal information on (m, k) is a Schur complement of running sums; it only
+    grows, and each growth is handed to the filter as one exactly equivalent measurement.
+    Reported velocities and positions carry independent noise, so nothing is counted
+    twice (the gyro noise both share is small against either and is neglected). The
+    k column is the curvature of the TCP's path against the gyro's angle: what tells a
+    longer lever arm from a weaker fingertip once the object has turned a few degrees.
 
-    Planar: Theta is the scalar angle and Theta x c is theta J c.
+    Planar: Theta is the scalar angle and Theta x m is theta J m.
 
     The regression's residual checks the rigid-body model: when the TCP moves relative
     to the object (sliding in the grasp during a translational probe or an ongoing
@@ -246,128 +265,116 @@ class PositionEvidence:
         self.broken = False
 
     def reset(self) -> None:
-        d = self.d
+        d, nx = self.d, self.d + 1
         self.theta = 0.0 if d == 2 else np.zeros(3)
         self.g = np.zeros(d)
         self.n = 0
-        self.s_th = 0.0 if d == 2 else np.zeros(3)
-        self.s_hh = 0.0 if d == 2 else np.zeros((3, 3))
+        self.s_x = np.zeros((d, nx))       # sum of regressors X_k (d x (d+1))
+        self.s_xx = np.zeros((nx, nx))     # sum of X_k^T X_k
+        self.s_xy = np.zeros(nx)           # sum of X_k^T y_k
         self.s_y = np.zeros(d)
         self.s_yy = 0.0
-        self.s_hy = np.zeros(d)
-        self.lam = np.zeros((d, d))
-        self.eta = np.zeros(d)
+        self.lam = np.zeros((nx, nx))
+        self.eta = np.zeros(nx)
 
     def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
         """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
         at the `fresh` samples (a new proprioception sample); True when any was taken."""
         idx = np.flatnonzero(fresh)
         if self.d == 2:
-            return self._add_planar(w * dt, r, idx)
-        wdt = w * dt[:, None]
+            wdt = w * dt
+            dg = np.stack([-wdt * r[:, 1], wdt * r[:, 0]], axis=1)     # w dt J r
+        else:
+            wdt = w * dt[:, None]
+            dg = cross_rows(wdt, r)
         if len(idx) == 0:
             self.theta = self.theta + wdt.sum(axis=0)
-            self.g = self.g + cross_rows(wdt, r).sum(axis=0)
+            self.g = self.g + dg.sum(axis=0)
             return False
         th = self.theta + np.cumsum(wdt, axis=0)
-        g = self.g + np.cumsum(cross_rows(wdt, r), axis=0)
+        g = self.g + np.cumsum(dg, axis=0)
         self.theta, self.g = th[-1], g[-1]
-        t_k, y_k = th[idx], r[idx] - g[idx]
+        X = self._regressors(th[idx], g[idx])
+        y = r[idx]
         self.n += len(idx)
-        self.s_yy += float((y_k * y_k).sum())
-        sq = (t_k * t_k).sum(axis=1)
-        self.s_th += t_k.sum(axis=0)
-        self.s_hh += sq.sum() * np.eye(3) - t_k.T @ t_k
-        self.s_y += y_k.sum(axis=0)
-        self.s_hy += cross_rows(t_k, y_k).sum(axis=0)
+        self.s_x += X.sum(axis=0)
+        self.s_xx += np.einsum("kij,kil->jl", X, X)
+        self.s_xy += np.einsum("kij,ki->j", X, y)
+        self.s_y += y.sum(axis=0)
+        self.s_yy += float((y * y).sum())
         return True
 
-    def _add_planar(self, wdt: np.ndarray, r: np.ndarray, idx: np.ndarray) -> bool:
-        """The planar chunk in plain floats: a chunk holds a few proprioception samples at most."""
-        rx, ry = r[:, 0], r[:, 1]
-        th, gx, gy = self.theta, float(self.g[0]), float(self.g[1])
-        k0 = 0
-        for k in idx.tolist():
-            seg = wdt[k0:k + 1]
-            th += float(seg.sum())
-            gx -= float(seg @ ry[k0:k + 1])
-            gy += float(seg @ rx[k0:k + 1])
-            k0 = k + 1
-            yx, yy = float(rx[k]) - gx, float(ry[k]) - gy
-            self.n += 1
-            self.s_yy += yx * yx + yy * yy
-            self.s_th += th
-            self.s_hh += th * th
-            self.s_y[0] += yx
-            self.s_y[1] += yy
-            self.s_hy[0] += th * yx
-            self.s_hy[1] += th * yy
-        seg = wdt[k0:]
-        if len(seg):
-            th += float(seg.sum())
-            gx -= float(seg @ ry[k0:])
-            gy += float(seg @ rx[k0:])
-        self.theta = th
-        self.g[0], self.g[1] = gx, gy
-        return len(idx) > 0
+    def _regressors(self, th: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """X_k with r_k = q + X_k [m, k]: the columns -[Theta_k]x and G_k."""
+        d = self.d
+        X = np.zeros((len(g), d, d + 1))
+        if d == 2:
+            X[:, 0, 1], X[:, 1, 0] = th, -th           # -theta J
+        else:
+            _neg_skew_rows(th, X)
+        X[:, :, d] = g
+        return X
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
-        """(dLambda, deta): the growth of the marginal information on c since the last call."""
+        """(dLambda, deta): the growth of the marginal information on (m, k) since the last call."""
         n = max(self.n, 1)
-        if self.d == 2:
-            l_u = (self.s_hh - self.s_th * self.s_th / n) / self.var
-            lam = np.array([[l_u, 0.0], [0.0, l_u]])
-            v = self.s_hy - self.s_th * self.s_y / n
-            eta = np.array([-v[1], v[0]]) / self.var             # J v
-        else:
-            st = self.s_th
-            lam = (self.s_hh - ((st @ st) * np.eye(3) - np.outer(st, st)) / n) / self.var
-            eta = (self.s_hy - np.cross(st, self.s_y) / n) / self.var
+        lam = (self.s_xx - self.s_x.T @ self.s_x / n) / self.var
+        eta = (self.s_xy - self.s_x.T @ self.s_y / n) / self.var
         d_lam, d_eta = lam - self.lam, eta - self.eta
         self.lam, self.eta = lam, eta
         return 0.5 * (d_lam + d_lam.T), d_eta
 
-    def residual_ratio(self) -> float:
-        """Least-squares residual of the (c, q) regression over its expectation (1 when the model holds)."""
-        n = self.n
+    def residual_ratio(self, k: float = 1.0) -> float:
+        """Least-squares residual of the (q, m) regression at the eta ratio k, over its expectation (1 when
+        the model holds). k is held, not fitted: a free k would absorb part of a slip in the grasp."""
+        n, d = self.n, self.d
         if n < MIN_RESIDUAL_SAMPLES:
             return 1.0
-        lam_u, eta_u = self.lam * self.var, self.eta * self.var
-        if self.d == 2:          # isotropic: lam_u = l I
-            l_u = float(lam_u[0, 0])
-            rank = 2 if l_u > 0.0 else 0
-            fit = float(eta_u @ eta_u) / l_u if rank else 0.0
-        else:
-            ev = np.linalg.eigvalsh(lam_u)
-            good = ev > 1e-9 * max(float(ev[-1]), 1e-300)
-            rank = int(np.count_nonzero(good))
-            fit = float(eta_u @ np.linalg.lstsq(lam_u, eta_u, rcond=1e-9)[0]) if rank else 0.0
-        dof = self.d * n - self.d - rank
+        sx_m, sx_g = self.s_x[:, :d], self.s_x[:, d]
+        s_yy = self.s_yy - 2.0 * k * self.s_xy[d] + k * k * self.s_xx[d, d]     # y' = y - k G
+        s_y = self.s_y - k * sx_g
+        lam_u = self.s_xx[:d, :d] - sx_m.T @ sx_m / n
+        eta_u = self.s_xy[:d] - k * self.s_xx[:d, d] - sx_m.T @ s_y / n
+        ev = np.linalg.eigvalsh(lam_u)
+        good = ev > 1e-9 * max(float(ev[-1]), 1e-300)
+        rank = int(np.count_nonzero(good))
+        fit = float(eta_u @ np.linalg.lstsq(lam_u, eta_u, rcond=1e-9)[0]) if rank else 0.0
+        dof = d * n - d - rank
         if dof <= 0:
             return 1.0
-        rss = self.s_yy - float(self.s_y @ self.s_y) / n - fit
+        rss = s_yy - float(s_y @ s_y) / n - fit
         return max(rss, 0.0) / (self.var * dof)
 
 
 class ContactKF:
     """`ekf`: our filter on the same constraint, built for accuracy, honesty and speed.
 
+    State x = [m, k]: k = eta_true / eta_used is the error of the scheduled eta and
+    m = k c, with c the contact relative to the TCP at onset (plane coordinates when
+    planar). The object's true rate is w_tcp + k (w - w_tcp) for the rate w computed
+    with the scheduled eta, so with the gripper still
+        v = k w x r0 - w x m
+    is linear in the state (r0: the TCP relative to its onset position); a turning
+    gripper adds w_tcp x (r0 - m / k), linearised about the estimate.
+
     Levers (see docs/estimation.md):
-    - The state is the contact point alone. The TCP position and velocity are
-      measured inputs (reported `tcp_vel` when the robot gives it) whose noise
-      enters the measurement model, instead of states driven by large process
-      noise. Given w the model is linear, so H is exact.
+    - The TCP position and velocity are measured inputs (reported `tcp_vel` when the
+      robot gives it) whose noise enters the measurement model, instead of states
+      driven by large process noise.
     - A consistent measurement noise per sample: velocity noise including the
       staleness of causal proprioception, gyro noise through [r]x and position
       noise through [w]x, inflated by the number of IMU samples that share one
       proprioception sample (their errors are one error, not many).
+    - Positions as evidence too (PositionEvidence).
     - Onset initialisation from the first block by an iterated update, and
       NIS gating of outliers.
+    - Eta's error as a state with the calibration's uncertainty as its prior. The
+      reported contact is the calibrated one (k = 1, plus eta's uncertainty as a radial
+      floor) until the data reject k = 1 by `eta_test_sigma`; then the free-eta
+      estimate is blended in over ETA_BLEND_SIGMA, so the output does not jump.
     - Updates collapse each block of samples into one exactly equivalent
       measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form: per
       sample work is vectorised.
-    - The reported covariance adds the radial effect of eta's uncertainty, a
-      systematic error no amount of averaging removes.
     """
 
     method = "ekf"
@@ -376,11 +383,13 @@ class ContactKF:
         self.params = params or ContactKfParams()
         self.plane = plane
         self.d = 2 if plane is not None else 3
-        self.c = np.zeros(self.d)        # contact relative to the TCP at onset (plane coords if planar)
-        self.P = np.eye(self.d)
+        self.x = np.zeros(self.d + 1)    # [m, k]
+        self.x[-1] = 1.0
+        self.P = np.eye(self.d + 1)
         self.origin = np.zeros(3)
         self.corr_samples = 1.0          # IMU samples per proprioception sample
         self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
+        self.k_prior_var = 0.0
         self.consistency = 1.0           # smoothed block NIS / its expectation (>= 1 scales the report)
         # Extra variance, (m/s)^2, of the TCP velocity along the lever arm. Set while a controller
         # follows an arc about the estimate: its own path error then moves the TCP along the lever
@@ -394,24 +403,39 @@ class ContactKF:
         self._planar_chunk = (np.zeros(0), np.zeros((0, 2)))
         self.positions = PositionEvidence(self.d, self.params.sigma_p) if self.params.use_positions else None
 
+    @property
+    def k(self) -> float:
+        """The eta ratio eta_true / eta_used, floored for division."""
+        return max(float(self.x[-1]), K_MIN)
+
+    @property
+    def c(self) -> np.ndarray:
+        """The contact relative to the onset TCP with eta free (plane coordinates if planar), m."""
+        return self.x[:-1] / self.k
+
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
+        """Start an episode at the TCP state at onset; eta's prior is `eta_rel_std` as set now."""
+        d = self.d
         self.origin = np.asarray(p_g, dtype=float).copy()
         if self.plane is not None:
             self.plane.origin = self.origin
         if self.positions is not None:
             self.positions.start()
-        self.c = np.zeros(self.d)
-        self.P = self.params.p0_c * np.eye(self.d)
+        self.x = np.zeros(d + 1)
+        self.x[-1] = 1.0
+        self.k_prior_var = self.eta_rel_std ** 2 if self.params.estimate_eta else 0.0
+        self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var])
         self.steps = 0
         self.rejected = 0
         self.consistency = 1.0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
-               fresh: np.ndarray | None = None) -> None:
+               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None) -> None:
         """Chunk of samples: dt (n,), w/p/v (n, 3) world; var_v (m/s)^2 and var_w (rad/s)^2 are
         per-sample extra variances of the velocity and the object rate (staleness); `fresh`
-        (n,) bool marks the samples whose p is a new proprioception sample (PositionEvidence)."""
+        (n,) bool marks the samples whose p is a new proprioception sample (PositionEvidence);
+        w_tcp (n, 3) is the gripper's own rate when it turns (None: still)."""
         n = len(dt)
         if var_v is None:
             var_v = np.full(n, self.params.sigma_v ** 2)
@@ -420,13 +444,14 @@ class ContactKF:
         mb = self.params.max_block
         for k0 in range(0, n, mb):
             sl = slice(k0, k0 + mb)
+            wt = None if w_tcp is None else w_tcp[sl]
+            duration = float(np.sum(dt[sl]))
             # At onset the noise model is linearised about a guess; iterate once on the
             # first block (from the same prior) so it is linearised about the data's answer.
-            c_lin = self.c
+            x_lin = self.x
             for _ in range(2 if self.steps == 0 else 0):
-                c_lin = self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin,
-                                    commit=False)
-            self._block(float(np.sum(dt[sl])), w[sl], p[sl], v[sl], var_v[sl], var_w[sl], c_lin, commit=True)
+                x_lin = self._block(duration, w[sl], wt, p[sl], v[sl], var_v[sl], var_w[sl], x_lin, commit=False)
+            self._block(duration, w[sl], wt, p[sl], v[sl], var_v[sl], var_w[sl], x_lin, commit=True)
             if self.positions is not None:
                 if fresh is None:
                     self.positions.reset()     # no position measurements here: restart the reference
@@ -450,74 +475,90 @@ class ContactKF:
         if not taken:
             return
         d_lam, d_eta = ev.increment()
-        if ev.residual_ratio() > POSITION_RESIDUAL_LIMIT:
+        if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
             ev.broken = True        # the TCP moves relative to the object: displacements mislead
             return
-        b = d_eta - d_lam @ self.c
-        if self.plane is not None:
-            self._commit_planar(self.P, d_lam, b, 0, None, None, None, 0.0, True, consistency=False)
-        else:
-            self._commit_general(self.P, d_lam, b, 0, None, None, None, 0.0, True, consistency=False)
+        self._commit(self.P, d_lam, d_eta - d_lam @ self.x, 0, None, None, None, 0.0, True, consistency=False)
 
-    def _block(self, duration: float, w, p, v, var_v, var_w, c_lin: np.ndarray, commit: bool) -> np.ndarray:
-        """One collapsed update from the current prior, noise linearised about c_lin; returns the posterior mean."""
+    def _block(self, duration: float, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
+        """One collapsed update from the current prior, noise linearised about x_lin; returns the posterior mean."""
         prm = self.params
         corr = max(self.corr_samples, 1.0)
+        d = self.d
         n = len(w)
-        P = self.P + prm.q_c * duration * np.eye(self.d)
+        P = self.P.copy()
+        P[:d, :d] += prm.q_c * duration * np.eye(d)
+        k = self.k
+        c = self.x[:d] / k
+        k_lin = max(float(x_lin[d]), K_MIN)
+        c_lin = x_lin[:d] / k_lin
         if self.plane is not None:
             # In the plane R = a I + b u u^T + c rh rh^T with u = J r: gyro noise acts along the
-            # tangent u, and `radial_var` (distrust of the velocity along the lever arm, see
-            # below) along rh = r/|r|. R is diagonal in (rh, uh), so R^-1, sum H^T R^-1 H
-            # (H = -w_n J) and the NIS are closed forms, element-wise over the block.
-            # Per sample, in 1-D columns (x, y: plane coordinates); uh = J rh = (-rh_y, rh_x).
+            # tangent u, and `radial_var` (distrust of the velocity along the lever arm) along
+            # rh = r/|r|. R is diagonal in (rh, uh), so R^-1, sum H^T R^-1 H and the NIS are
+            # closed forms over the block, in 1-D columns (x, y: plane coordinates).
             w_n = w @ self.plane.n
             r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
             if commit:
                 self._planar_chunk = (w_n, r0)          # reused by the position evidence
             v2 = v @ self.plane.E.T
             r0x, r0y = r0[:, 0], r0[:, 1]
-            yx = v2[:, 0] + w_n * (r0y - self.c[1])     # y = v - w_n J (r0 - c)
-            yy = v2[:, 1] - w_n * (r0x - self.c[0])
+            if w_tcp is None:
+                rel, w_true, a_n = w_n, k * w_n, w_n
+                hkx, hky = -w_n * r0y, w_n * r0x        # dh/dk = w J r0
+                w_lin = k_lin * w_n
+            else:
+                t_n = w_tcp @ self.plane.n
+                rel = w_n - t_n
+                w_true, a_n = t_n + k * rel, rel + t_n / k
+                hkx, hky = -(rel * r0y + t_n * c[1] / k), rel * r0x + t_n * c[0] / k
+                w_lin = t_n + k_lin * rel
+            # y = v - w_true J (r0 - c); H = [-a_n J, (hkx, hky)]
+            yx = v2[:, 0] + w_true * (r0y - c[1])
+            yy = v2[:, 1] - w_true * (r0x - c[0])
             rx, ry = r0x - c_lin[0], r0y - c_lin[1]
             rr = rx * rx + ry * ry + 1e-18
             rn = np.sqrt(rr)
-            a = corr * (var_v + prm.sigma_p ** 2 * w_n * w_n)
+            ex, ey = rx / rn, ry / rn                   # rh; uh = J rh = (-ey, ex)
+            a = corr * (var_v + prm.sigma_p ** 2 * w_lin * w_lin)
             inv_r = 1.0 / (a + corr * self.radial_var)           # along the lever arm
             inv_u = 1.0 / (a + (prm.sigma_w ** 2 + var_w) * rr)  # along the tangent
-            yr = (rx * yx + ry * yy) / rn
-            yu = (rx * yy - ry * yx) / rn
-            gate = prm.gate_nis > 0 and self.steps > 0 and \
-                float(np.mean(w_n * w_n)) * float(P[0, 0] + P[1, 1]) < GATE_HPH_RATIO * 2 * float(a.min())
-            nis, keep = (yr * yr * inv_r + yu * yu * inv_u, None) if gate else (None, None)
-            if gate:
+            yr = ex * yx + ey * yy
+            yu = ex * yy - ey * yx
+            # H's columns on (rh, uh): -a_n J e1 = (0, -a_n), -a_n J e2 = (a_n, 0), dh/dk.
+            Cr = np.stack([-a_n * ey, a_n * ex, ex * hkx + ey * hky])
+            Cu = np.stack([-a_n * ex, -a_n * ey, ex * hky - ey * hkx])
+            hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1]) + \
+                float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
+            nis = keep = None
+            if prm.gate_nis > 0 and self.steps > 0 and hph < GATE_HPH_RATIO * 2 * float(a.min()):
+                # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
+                # reject the very samples that carry the information.
+                nis = yr * yr * inv_r + yu * yu * inv_u
                 keep = nis <= prm.gate_nis
                 if not keep.all():
-                    w_n, rx, ry, rr, rn, inv_r, inv_u, yr, yu = (x[keep] for x in
-                                                                 (w_n, rx, ry, rr, rn, inv_r, inv_u, yr, yu))
-            al = w_n * w_n * inv_r / rr                 # weight of uh uh^T (J^T rh rh^T J)
-            be = w_n * w_n * inv_u / rr                 # weight of rh rh^T (J^T uh uh^T J)
-            sxx, syy, sxy = rx * rx, ry * ry, rx * ry
-            a11 = float(np.dot(al, syy) + np.dot(be, sxx))
-            a22 = float(np.dot(al, sxx) + np.dot(be, syy))
-            a12 = float(np.dot(be - al, sxy))
-            A = np.array([[a11, a12], [a12, a22]])
-            # H^T R^-1 y = w_n (uh (rh.y) inv_r - rh (uh.y) inv_u)
-            gr = w_n * yr * inv_r / rn
-            gu = w_n * yu * inv_u / rn
-            b = np.array([float(-np.dot(gr, ry) - np.dot(gu, rx)), float(np.dot(gr, rx) - np.dot(gu, ry))])
-            return self._commit_planar(P, A, b, n, keep, nis, r0, duration, commit)
+                    Cr, Cu, inv_r, inv_u, yr, yu = Cr[:, keep], Cu[:, keep], inv_r[keep], inv_u[keep], \
+                        yr[keep], yu[keep]
+            Wr, Wu = Cr * inv_r, Cu * inv_u
+            A = Wr @ Cr.T + Wu @ Cu.T
+            b = Wr @ yr + Wu @ yu
         else:
             r0 = p - self.origin
-            z = v - cross_rows(w, r0)
-            H = np.zeros((n, 3, 3))
-            H[:, 0, 1], H[:, 0, 2] = w[:, 2], -w[:, 1]
-            H[:, 1, 0], H[:, 1, 2] = -w[:, 2], w[:, 0]
-            H[:, 2, 0], H[:, 2, 1] = w[:, 1], -w[:, 0]      # H = -[w]x
-            y = z + cross_rows(w, np.broadcast_to(self.c, w.shape))
+            H = np.zeros((n, 3, 4))
+            if w_tcp is None:
+                w_true, a3 = k * w, w
+                H[:, :, 3] = cross_rows(w, r0)
+                w_lin = k_lin * w
+            else:
+                rel = w - w_tcp
+                w_true, a3 = w_tcp + k * rel, rel + w_tcp / k
+                H[:, :, 3] = cross_rows(rel, r0) + cross_rows(w_tcp, np.broadcast_to(c / k, w.shape))
+                w_lin = w_tcp + k_lin * rel
+            _neg_skew_rows(a3, H)
+            y = v - cross_rows(w_true, r0 - c)
             r = r0 - c_lin
             R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r) \
-                + (corr * prm.sigma_p ** 2) * _cross_cov(w)
+                + (corr * prm.sigma_p ** 2) * _cross_cov(w_lin)
             if self.radial_var > 0:
                 rh = r / np.maximum(np.linalg.norm(r, axis=1), 1e-9)[:, None]
                 R += (corr * self.radial_var) * (rh[:, :, None] * rh[:, None, :])
@@ -528,23 +569,20 @@ class ContactKF:
             Rinv = np.linalg.inv(R)
             HtRi = H.transpose(0, 2, 1) @ Rinv
             Hm = H.mean(axis=0)
+            nis = keep = None
             if prm.gate_nis > 0 and self.steps > 0 and np.trace(Hm @ P @ Hm.T) < GATE_HPH_RATIO * 3 * float(iso.min()):
-                # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
-                # reject the very samples that carry the information. (H removes the unobservable
-                # direction along w, so a line contact's large along-edge variance does not count.)
+                # As in the plane. (H removes the unobservable direction along w, so a line
+                # contact's large along-edge variance does not count.)
                 nis = np.einsum("ni,nij,nj->n", y, Rinv, y)
                 keep = nis <= prm.gate_nis
-            else:
-                nis = None
-                keep = None
-            if keep is not None and not keep.all():
-                HtRi, H, y = HtRi[keep], H[keep], y[keep]
+                if not keep.all():
+                    HtRi, H, y = HtRi[keep], H[keep], y[keep]
             A = (HtRi @ H).sum(axis=0)
             b = (HtRi @ y[:, :, None]).sum(axis=0)[:, 0]
-            return self._commit_general(P, A, b, n, keep, nis, r0, duration, commit)
+        return self._commit(P, A, b, n, keep, nis, r0, duration, commit)
 
-    def _commit_general(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
-        """The collapsed update for any dimension: H_eq from A's eigenvectors with data, unit noise, Joseph form."""
+    def _commit(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
+        """The collapsed update: H_eq from A's eigenvectors with data, unit noise, Joseph form."""
         lam, U = np.linalg.eigh(A)
         good = lam > 1e-12 * max(lam[-1], 1e-300)
         if commit:
@@ -555,129 +593,87 @@ class ContactKF:
         if not np.any(good):
             if commit:
                 self.P = P
-            return self.c
+            return self.x
         sq = np.sqrt(lam[good])
         Ug = U[:, good]
-        Heq = sq[:, None] * Ug.T                       # (r, d): Heq^T Heq = A
+        Heq = sq[:, None] * Ug.T                       # (r, d+1): Heq^T Heq = A
         yeq = (Ug.T @ b) / sq                           # Heq^T yeq = b
         HP = Heq @ P
         S_eq = HP @ Heq.T + np.eye(len(sq))
         K = np.linalg.solve(S_eq, HP).T
-        c_new = self.c + K @ yeq
-        if commit and consistency and self.steps > 0:
-            # Block-level NIS of the collapsed measurement: chi^2 with len(sq) dof when the model
-            # holds. A coherent bias (sliding in the grasp, a stale TCP rate) shows up here even
-            # when each sample looks fine; its smoothed ratio scales the reported covariance.
-            ratio = float(yeq @ np.linalg.solve(S_eq, yeq)) / len(sq)
-            alpha = 1.0 - np.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
-            self.consistency += alpha * (ratio - self.consistency)
-        if commit:
-            # Joseph form, with the collapsed measurement's unit noise.
-            Aj = np.eye(self.d) - K @ Heq
-            self.c, self.P = c_new, Aj @ P @ Aj.T + K @ K.T
-            self.steps += n
-            self._r_last = (r0[-1] - c_new) if n else self._r_last
-        return c_new
-
-    def _commit_planar(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
-        """The collapsed 2 x 2 update in plain floats (numpy's per-call cost dominates at this size).
-
-        Same algebra as the general path: H_eq from A (Cholesky when full rank, the principal
-        eigenvector when rank one), unit measurement noise, Joseph-form covariance.
-        """
-        a11, a12, a22 = float(A[0, 0]), float(A[0, 1]), float(A[1, 1])
-        b1, b2 = float(b[0]), float(b[1])
-        p11, p12, p22 = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
-        if commit:
-            if keep is not None:
-                self.rejected += int(n - np.count_nonzero(keep))
-            if nis is not None and len(nis):
-                self.nis = float(nis[-1])
-        tr = a11 + a22
-        det = a11 * a22 - a12 * a12
-        if tr <= 0.0:
-            if commit:
-                self.P = P
-            return self.c
-        if det > 1e-12 * tr * tr and a11 > 0.0:
-            # A = L L^T, H_eq = L^T (upper), y_eq = L^-1 b
-            l11 = math.sqrt(a11)
-            l21 = a12 / l11
-            l22 = math.sqrt(max(a22 - l21 * l21, 1e-300))
-            y1 = b1 / l11
-            y2 = (b2 - l21 * y1) / l22
-            # S = H P H^T + I with H = [[l11, l21], [0, l22]]
-            hp11 = l11 * p11 + l21 * p12
-            hp12 = l11 * p12 + l21 * p22
-            hp21 = l22 * p12
-            hp22 = l22 * p22
-            s11 = hp11 * l11 + hp12 * l21 + 1.0
-            s12 = hp12 * l22
-            s22 = hp22 * l22 + 1.0
-            sd = s11 * s22 - s12 * s12
-            i11, i12, i22 = s22 / sd, -s12 / sd, s11 / sd
-            # K = (H P)^T S^-1  (P symmetric)
-            k11 = hp11 * i11 + hp21 * i12
-            k12 = hp11 * i12 + hp21 * i22
-            k21 = hp12 * i11 + hp22 * i12
-            k22 = hp12 * i12 + hp22 * i22
-            dc1 = k11 * y1 + k12 * y2
-            dc2 = k21 * y1 + k22 * y2
-            ratio = (y1 * (i11 * y1 + i12 * y2) + y2 * (i12 * y1 + i22 * y2)) / 2.0
-            # I - K H
-            m11 = 1.0 - k11 * l11
-            m12 = -(k11 * l21 + k12 * l22)
-            m21 = -k21 * l11
-            m22 = 1.0 - (k21 * l21 + k22 * l22)
-            kk11, kk12, kk22 = k11 * k11 + k12 * k12, k11 * k21 + k12 * k22, k21 * k21 + k22 * k22
-        else:
-            # rank one: H_eq = sqrt(lam) u^T, y_eq = u.b / sqrt(lam)
-            lam = sym2_max_eig(a11, a12, a22)
-            ux, uy = (a12, lam - a11) if abs(a12) > 1e-300 else ((1.0, 0.0) if a11 >= a22 else (0.0, 1.0))
-            un = math.hypot(ux, uy)
-            ux, uy = ux / un, uy / un
-            sq = math.sqrt(lam)
-            h1, h2 = sq * ux, sq * uy
-            y1 = (ux * b1 + uy * b2) / sq
-            ph1 = p11 * h1 + p12 * h2
-            ph2 = p12 * h1 + p22 * h2
-            s = h1 * ph1 + h2 * ph2 + 1.0
-            k11, k21 = ph1 / s, ph2 / s
-            dc1, dc2 = k11 * y1, k21 * y1
-            ratio = y1 * y1 / s
-            m11, m12, m21, m22 = 1.0 - k11 * h1, -k11 * h2, -k21 * h1, 1.0 - k21 * h2
-            kk11, kk12, kk22 = k11 * k11, k11 * k21, k21 * k21
-        c_new = self.c + np.array([dc1, dc2])
+        x_new = self.x + K @ yeq
         if commit:
             if consistency and self.steps > 0:
+                # Block-level NIS of the collapsed measurement: chi^2 with len(sq) dof when the model
+                # holds. A coherent bias (sliding in the grasp, a stale TCP rate) shows up here even
+                # when each sample looks fine; its smoothed ratio scales the reported covariance.
+                ratio = float(yeq @ np.linalg.solve(S_eq, yeq)) / len(sq)
                 alpha = 1.0 - math.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
                 self.consistency += alpha * (ratio - self.consistency)
-            # Joseph form: M P M^T + K K^T
-            mp11 = m11 * p11 + m12 * p12
-            mp12 = m11 * p12 + m12 * p22
-            mp21 = m21 * p11 + m22 * p12
-            mp22 = m21 * p12 + m22 * p22
-            n11 = mp11 * m11 + mp12 * m12 + kk11
-            n12 = mp11 * m21 + mp12 * m22 + kk12
-            n22 = mp21 * m21 + mp22 * m22 + kk22
-            self.c = c_new
-            self.P = np.array([[n11, n12], [n12, n22]])
+            # Joseph form, with the collapsed measurement's unit noise: stays symmetric positive
+            # definite whatever the gain's rounding.
+            Aj = np.eye(self.d + 1) - K @ Heq
+            self.x, self.P = x_new, Aj @ P @ Aj.T + K @ K.T
             self.steps += n
-            self._r_last = (r0[-1] - c_new) if n else self._r_last
-        return c_new
+            if n:
+                self._r_last = r0[-1] - self.c
+        return x_new
 
-    def _lift(self) -> tuple[np.ndarray, np.ndarray]:
-        if self.plane is not None:
-            return self.plane.lift(self.c), self.plane.lift_cov(self.P, UNOBSERVED_STD_M ** 2)
-        return self.origin + self.c, self.P.copy()
+    def eta_evidence(self) -> tuple[float, float]:
+        """(k from the data alone, sigmas by which the data reject k = 1); (1, 0) without evidence."""
+        d = self.d
+        pkk = float(self.P[d, d])
+        if self.k_prior_var <= 0.0 or pkk <= 0.0:
+            return 1.0, 0.0
+        info = 1.0 / pkk - 1.0 / self.k_prior_var     # posterior information less the prior's
+        if info <= 1e-12 / self.k_prior_var:
+            return 1.0, 0.0
+        k_data = (float(self.x[d]) / pkk - 1.0 / self.k_prior_var) / info
+        return k_data, abs(k_data - 1.0) * math.sqrt(info)
+
+    def eta_weight(self) -> float:
+        """Weight of the free-eta estimate in the report: 0 while the data do not reject the calibration,
+        and 0 when the eta they ask for is implausible (more than ETA_PRIOR_LIMIT of the calibration's
+        sigmas off): that is the rigid pivot failing, not eta. An object sliding in the grasp while the
+        TCP runs straight reads as k -> 0 (no curvature at all)."""
+        k_data, z = self.eta_evidence()
+        if abs(k_data - 1.0) > ETA_PRIOR_LIMIT * math.sqrt(self.k_prior_var):
+            return 0.0
+        return min(max((z - self.params.eta_test_sigma) / ETA_BLEND_SIGMA, 0.0), 1.0)
+
+    def _report_d(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(c, reported covariance, statistical covariance) in the filter's coordinates."""
+        d = self.d
+        x, P = self.x, self.P
+        scale = max(self.consistency, 1.0)
+        pkk = float(P[d, d])
+        m, pmk = x[:d], P[:d, d]
+        # Calibrated: the state conditioned on k = 1 (eta as scheduled).
+        if pkk > 0.0:
+            c0 = m + pmk * (1.0 - float(x[d])) / pkk
+            s0 = P[:d, :d] - np.outer(pmk, pmk) / pkk
+        else:
+            c0, s0 = m.copy(), P[:d, :d].copy()
+        s0 = s0 * scale
+        rep0 = s0 + (self.eta_rel_std ** 2) * np.outer(self._r_last, self._r_last)
+        wgt = self.eta_weight()
+        if wgt <= 0.0:
+            return c0, rep0, s0
+        # Eta free: c = m / k, covariance through the Jacobian [I / k, -m / k^2].
+        k = self.k
+        J = np.hstack([np.eye(d) / k, (-m / (k * k))[:, None]])
+        c1, s1 = m / k, (J @ P @ J.T) * scale
+        dc = c1 - c0
+        spread = wgt * (1.0 - wgt) * np.outer(dc, dc)
+        return c0 + wgt * dc, (1.0 - wgt) * rep0 + wgt * s1 + spread, (1.0 - wgt) * s0 + wgt * s1 + spread
 
     def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p_c, reported covariance with the eta floor, the filter's own covariance), world."""
-        p_c, stat = self._lift()
-        stat = stat * max(self.consistency, 1.0)
-        r = self._r_last
-        r3 = r @ self.plane.E if self.plane is not None else r
-        return p_c, stat + (self.eta_rel_std ** 2) * np.outer(r3, r3), stat
+        c, rep, stat = self._report_d()
+        if self.plane is not None:
+            return (self.plane.lift(c), self.plane.lift_cov(rep, UNOBSERVED_STD_M ** 2),
+                    self.plane.lift_cov(stat, UNOBSERVED_STD_M ** 2))
+        return self.origin + c, rep, stat
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         p_c, cov, _ = self.report()

@@ -249,6 +249,14 @@ class ContactPipeline:
         after a touch, backing off): its rotations then are not bias either."""
         self.cond.bias_held = held
 
+    def _set_eta_uncertainty(self, force_n: float) -> None:
+        """Away from the calibrated grip forces eta is extrapolated: tell the estimator how much less it is known."""
+        if hasattr(self.estimator, "eta_rel_std"):
+            if force_n != force_n:                   # NaN: no grip force measured
+                force_n = self.params.grip_force_n
+            self.estimator.eta_rel_std = self.params.ekf.eta_rel_std + \
+                self.params.eta_rel_std_per_n * self.eta.distance_n(force_n)
+
     def _track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
         """Bias tracking while idle, except while the gripper itself turns (its rate is not bias)."""
         if len(t) == 0:
@@ -296,13 +304,14 @@ class ContactPipeline:
                 self.cond.lowpass(gyro)      # keep the filter history warm
                 return events, []
             self._track_bias(t[:hit], gyro[:hit])
-            p, v, *_, ok = self.proprio.lookup(t[hit:hit + 1])
+            p, v, *_, force_on, ok = self.proprio.lookup(t[hit:hit + 1])
             if not ok[0]:
                 self.detector.rearm()        # no proprioception yet: cannot start
                 self.cond.lowpass(gyro)
                 return events, []
             commanded, self._begin_t = self._begin_t is not None, None
             self.cond.freeze_bias(True)
+            self._set_eta_uncertainty(float(force_on[0]))    # eta's prior for the episode
             self.estimator.start(p[0], v[0])
             self.tracking = True
             self._stamp_prev = np.nan
@@ -333,15 +342,15 @@ class ContactPipeline:
         w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
         # A stale gripper rate enters the object rate as (1 - eta) * its error.
         var_w = (eta - 1.0) ** 2 * var_wt
-        if hasattr(self.estimator, "eta_rel_std"):
-            # Away from the calibrated grip forces eta is extrapolated: say how much less it is known.
-            self.estimator.eta_rel_std = self.params.ekf.eta_rel_std + \
-                self.params.eta_rel_std_per_n * self.eta.distance_n(float(force[-1]))
+        self._set_eta_uncertainty(float(force[-1]))
         # While the gripper itself turns, its rate comes from held orientation samples; their lag
         # integrates into the displacement model, so positions are then no evidence (see PositionEvidence).
+        # The estimator then also needs the gripper's rate: eta's error scales only the object's
+        # rotation relative to the gripper.
         tcp_turning = float(np.max(np.einsum("ij,ij->i", w_tcp, w_tcp))) > TCP_TURNING_RAD_S ** 2
         if not ok.all():
-            ts, w_obj, p, v, var_v, var_w, fresh = ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok], fresh[ok]
+            ts, w_obj, p, v, var_v, var_w, fresh, w_tcp = (ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok],
+                                                           fresh[ok], w_tcp[ok])
         estimates: list[ContactEstimate] = []
         if len(ts):
             dt = np.maximum(np.diff(ts, prepend=self._t_prev), 1e-6)
@@ -355,7 +364,7 @@ class ContactPipeline:
                 k1 = n if due >= n else max(due + 1, k0 + 1)
                 sl = slice(k0, k1)
                 self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
-                                      None if tcp_turning else fresh[sl])
+                                      None if tcp_turning else fresh[sl], w_tcp[sl] if tcp_turning else None)
                 self._wwT += w_obj[sl].T @ w_obj[sl]
                 self._w_sum += w_obj[sl].sum(axis=0)
                 self._angle += float(np.sqrt((w_obj[sl] * w_obj[sl]).sum(axis=1)) @ dt[sl])

@@ -142,15 +142,18 @@ def test_paper_ekf_covariance_stays_symmetric_positive():
     assert np.all(np.linalg.eigvalsh(est.P) > 0)
 
 
+@pytest.mark.parametrize("k_true", [1.0, 1.25, 0.85])
 @pytest.mark.parametrize("planar", [True, False])
-def test_position_evidence_alone_gives_the_exact_centre(planar):
-    """Displacements alone (r - int w x r = q - Theta x c) pin the contact, the unknown start marginalised."""
+def test_position_evidence_alone_gives_the_exact_centre_and_eta_ratio(planar, k_true):
+    """Displacements alone (r = q + k G - Theta x m, m = k c) pin the contact and the eta ratio k (the
+    path's curvature against the gyro's angle), the unknown start marginalised; the gyro here reads
+    the rate at a scheduled eta that is k_true too small."""
     axis = unit(np.array([0.2, 1.0, -0.3]))
     center = np.array([0.4, -0.1, 0.3])
     r0 = unit(np.cross(axis, [0.3, 0.7, 0.1])) * 0.12
     t = np.arange(3000) / ODR_HZ
     p, _ = arc(center, axis, center + r0, 0.2, t)
-    w = np.tile(0.2 * axis, (len(t), 1))
+    w = np.tile(0.2 / k_true * axis, (len(t), 1))
     fresh = np.zeros(len(t), bool)
     fresh[::100] = True
     origin = p[0]
@@ -164,10 +167,13 @@ def test_position_evidence_alone_gives_the_exact_centre(planar):
         else:
             ev.add(dt[sl], w[sl], p[sl] - origin, fresh[sl])
     lam, eta = ev.increment()
-    c = np.linalg.lstsq(lam, eta, rcond=1e-9)[0]
+    x = np.linalg.lstsq(lam, eta, rcond=1e-9)[0]
+    m, k_est = x[:-1], x[-1]
+    c = m / k_est
     c_world = origin + (c @ plane.E if planar else c)
+    assert abs(k_est - k_true) < 1e-3
     assert in_plane_error(c_world, center, axis) < 1e-5     # rectangle-rule integrals at 6.7 kHz
-    assert ev.residual_ratio() < 0.1            # noise-free: nothing left unexplained
+    assert ev.residual_ratio(k_est) < 0.1       # noise-free: nothing left unexplained at the fitted k
 
 
 def test_positions_sharpen_the_estimate_at_low_speed():
@@ -217,3 +223,61 @@ def test_positions_are_dropped_when_the_object_slips_in_the_grasp():
         run(est, t, np.tile(rate * axis, (len(t), 1)) + rng.normal(0, 0.01, (len(t), 3)), pm, vm, fresh)
         broken[slide] = est.positions.broken
     assert broken == {0.0: False, 0.005: True}
+
+
+ETA_SEEDS = (1, 2, 3)
+ETA_MISMATCH_GAIN = 0.6     # the free-eta estimate at least this much nearer than the calibrated one
+
+
+def _replay_end(kind, grip_force, seed, estimate_eta):
+    """End error (m, in the plane of rotation) and the filter of one simulated recording through the pipeline."""
+    from robots.scenarios import Scenario, generate
+    from tecdard.config import Config
+    from tecdard.estimation import build_pipeline
+    from tecdard.localize import replay
+    from tecdard.recording import Recording
+    from control.geometry import quat_to_matrix
+
+    fields, truth = generate(Scenario(kind=kind, radius=0.12, grip_force=grip_force, seed=seed))
+    rec = Recording.from_fields(fields)
+    cfg = Config({"estimator": {"ekf": {"estimate_eta": estimate_eta}}}).section("estimator")
+    pipe = build_pipeline(cfg, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, plane_normal=rec.plane_normal)
+    rows, _, _ = replay(rec, pipe, 200.0)
+    return in_plane_error(rows[-1, 1:4], truth["p_c"], truth["axis"]), pipe.estimator
+
+
+@pytest.mark.parametrize("grip_force", [20.0, 40.0])
+def test_eta_state_learns_a_grip_force_off_the_calibration(grip_force):
+    """eta calibrated at 30 N, the grasp at 20 or 40 N (true eta 2.5 or 1.7): once the object has turned
+    about 9 deg the path's curvature rejects the scheduled eta, and the estimate moves most of the way
+    to the truth; the eta ratio found lies within 3 sigma of the true one."""
+    fixed = [_replay_end("edge-arc", grip_force, s, False)[0] for s in ETA_SEEDS]
+    free, ks = [], []
+    for s in ETA_SEEDS:
+        err, kf = _replay_end("edge-arc", grip_force, s, True)
+        free.append(err)
+        k_true = {20.0: 2.5, 40.0: 1.7}[grip_force] / 2.0
+        assert abs(kf.x[-1] - k_true) < 3 * np.sqrt(kf.P[-1, -1])
+        ks.append(kf.eta_weight())
+    assert min(fixed) > 0.015                            # the calibrated eta alone: 18-30 mm off
+    assert np.median(free) < ETA_MISMATCH_GAIN * np.median(fixed)
+    assert max(ks) == 1.0
+
+
+def test_eta_state_keeps_the_calibrated_estimate_at_the_calibrated_force():
+    """At the calibrated grip force the data never reject eta: the output is the calibrated filter's."""
+    for s in ETA_SEEDS:
+        e_fixed, _ = _replay_end("edge-arc", 30.0, s, False)
+        e_free, kf = _replay_end("edge-arc", 30.0, s, True)
+        assert kf.eta_weight() == 0.0
+        assert e_free == pytest.approx(e_fixed, abs=1e-4)
+
+
+def test_eta_state_ignores_a_straight_path():
+    """An ongoing motion into an edge: the object slides in the grasp and the TCP runs straight, which
+    reads as eta -> infinity. That is the rigid pivot failing, not eta: the calibrated estimate stays."""
+    for s in ETA_SEEDS:
+        _, kf = _replay_end("edge-ongoing", 30.0, s, True)
+        k_data, z = kf.eta_evidence()
+        assert k_data < 0.5 and z > kf.params.eta_test_sigma   # the data do reject eta ...
+        assert kf.eta_weight() == 0.0                          # ... implausibly far: not used
