@@ -487,7 +487,7 @@ class ContactKF:
         d = self.d
         n = len(w)
         P = self.P.copy()
-        P[:d, :d] += prm.q_c * duration * np.eye(d)
+        P.flat[0:d * (d + 2):d + 2] += prm.q_c * duration      # the contact's random walk, on m
         k = self.k
         c = self.x[:d] / k
         k_lin = max(float(x_lin[d]), K_MIN)
@@ -599,7 +599,8 @@ class ContactKF:
         Heq = sq[:, None] * Ug.T                       # (r, d+1): Heq^T Heq = A
         yeq = (Ug.T @ b) / sq                           # Heq^T yeq = b
         HP = Heq @ P
-        S_eq = HP @ Heq.T + np.eye(len(sq))
+        S_eq = HP @ Heq.T
+        S_eq.flat[::len(sq) + 1] += 1.0
         K = np.linalg.solve(S_eq, HP).T
         x_new = self.x + K @ yeq
         if commit:
@@ -612,7 +613,8 @@ class ContactKF:
                 self.consistency += alpha * (ratio - self.consistency)
             # Joseph form, with the collapsed measurement's unit noise: stays symmetric positive
             # definite whatever the gain's rounding.
-            Aj = np.eye(self.d + 1) - K @ Heq
+            Aj = -(K @ Heq)
+            Aj.flat[::self.d + 2] += 1.0
             self.x, self.P = x_new, Aj @ P @ Aj.T + K @ K.T
             self.steps += n
             if n:
