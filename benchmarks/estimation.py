@@ -214,7 +214,7 @@ def _first_linearisation(prm, p, v, w, sl):
     for _ in range(2):
         x = kf._block(0.0, w[sl], None, p[sl], v[sl], np.full(len(w[sl]), prm.sigma_v ** 2), np.zeros(len(w[sl])),
                       x, commit=False)
-    return x[:3] / x[3]
+    return x[:3]
 
 
 def main() -> int:

@@ -383,9 +383,9 @@ class ContactKF:
         self.params = params or ContactKfParams()
         self.plane = plane
         self.d = 2 if plane is not None else 3
-        self.x = np.zeros(self.d + 1)    # [m, k]
-        self.x[-1] = 1.0
-        self.P = np.eye(self.d + 1)
+        self.nk = 1 if self.params.estimate_eta else 0   # k is a state, or held at 1 (the cheaper filter)
+        self.x = np.zeros(self.d)        # [m] or [m, k]
+        self.P = np.eye(self.d)
         self.origin = np.zeros(3)
         self.corr_samples = 1.0          # IMU samples per proprioception sample
         self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
@@ -405,13 +405,13 @@ class ContactKF:
 
     @property
     def k(self) -> float:
-        """The eta ratio eta_true / eta_used, floored for division."""
-        return max(float(self.x[-1]), K_MIN)
+        """The eta ratio eta_true / eta_used, floored for division (1 when not a state)."""
+        return max(float(self.x[self.d]), K_MIN) if self.nk else 1.0
 
     @property
     def c(self) -> np.ndarray:
         """The contact relative to the onset TCP with eta free (plane coordinates if planar), m."""
-        return self.x[:-1] / self.k
+        return self.x[:self.d] / self.k
 
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
         """Start an episode at the TCP state at onset; eta's prior is `eta_rel_std` as set now."""
@@ -421,10 +421,11 @@ class ContactKF:
             self.plane.origin = self.origin
         if self.positions is not None:
             self.positions.start()
-        self.x = np.zeros(d + 1)
-        self.x[-1] = 1.0
-        self.k_prior_var = self.eta_rel_std ** 2 if self.params.estimate_eta else 0.0
-        self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var])
+        self.x = np.zeros(d + self.nk)
+        self.k_prior_var = self.eta_rel_std ** 2 if self.nk else 0.0
+        if self.nk:
+            self.x[d] = 1.0
+        self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
         self.steps = 0
         self.rejected = 0
         self.consistency = 1.0
@@ -478,7 +479,9 @@ class ContactKF:
         if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
             ev.broken = True        # the TCP moves relative to the object: displacements mislead
             return
-        self._commit(self.P, d_lam, d_eta - d_lam @ self.x, 0, None, None, None, 0.0, True, consistency=False)
+        b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
+        n = self.d + self.nk                 # with k held at 1, its column is part of the measurement
+        self._commit(self.P, d_lam[:n, :n], b[:n], 0, None, None, None, 0.0, True, consistency=False)
 
     def _block(self, duration: float, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
         """One collapsed update from the current prior, noise linearised about x_lin; returns the posterior mean."""
@@ -490,7 +493,7 @@ class ContactKF:
         P.flat[0:d * (d + 2):d + 2] += prm.q_c * duration      # the contact's random walk, on m
         k = self.k
         c = self.x[:d] / k
-        k_lin = max(float(x_lin[d]), K_MIN)
+        k_lin = max(float(x_lin[d]), K_MIN) if self.nk else 1.0
         c_lin = x_lin[:d] / k_lin
         if self.plane is not None:
             # In the plane R = a I + b u u^T + c rh rh^T with u = J r: gyro noise acts along the
@@ -526,10 +529,15 @@ class ContactKF:
             yr = ex * yx + ey * yy
             yu = ex * yy - ey * yx
             # H's columns on (rh, uh): -a_n J e1 = (0, -a_n), -a_n J e2 = (a_n, 0), dh/dk.
-            Cr = np.stack([-a_n * ey, a_n * ex, ex * hkx + ey * hky])
-            Cu = np.stack([-a_n * ex, -a_n * ey, ex * hky - ey * hkx])
-            hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1]) + \
-                float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
+            if self.nk:
+                Cr = np.stack([-a_n * ey, a_n * ex, ex * hkx + ey * hky])
+                Cu = np.stack([-a_n * ex, -a_n * ey, ex * hky - ey * hkx])
+                hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1]) + \
+                    float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
+            else:
+                Cr = np.stack([-a_n * ey, a_n * ex])
+                Cu = np.stack([-a_n * ex, -a_n * ey])
+                hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1])
             nis = keep = None
             if prm.gate_nis > 0 and self.steps > 0 and hph < GATE_HPH_RATIO * 2 * float(a.min()):
                 # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
@@ -544,15 +552,17 @@ class ContactKF:
             b = Wr @ yr + Wu @ yu
         else:
             r0 = p - self.origin
-            H = np.zeros((n, 3, 4))
+            H = np.zeros((n, 3, 3 + self.nk))
             if w_tcp is None:
                 w_true, a3 = k * w, w
-                H[:, :, 3] = cross_rows(w, r0)
+                if self.nk:
+                    H[:, :, 3] = cross_rows(w, r0)
                 w_lin = k_lin * w
             else:
                 rel = w - w_tcp
                 w_true, a3 = w_tcp + k * rel, rel + w_tcp / k
-                H[:, :, 3] = cross_rows(rel, r0) + cross_rows(w_tcp, np.broadcast_to(c / k, w.shape))
+                if self.nk:
+                    H[:, :, 3] = cross_rows(rel, r0) + cross_rows(w_tcp, np.broadcast_to(c / k, w.shape))
                 w_lin = w_tcp + k_lin * rel
             _neg_skew_rows(a3, H)
             y = v - cross_rows(w_true, r0 - c)
@@ -614,7 +624,7 @@ class ContactKF:
             # Joseph form, with the collapsed measurement's unit noise: stays symmetric positive
             # definite whatever the gain's rounding.
             Aj = -(K @ Heq)
-            Aj.flat[::self.d + 2] += 1.0
+            Aj.flat[::len(self.x) + 1] += 1.0
             self.x, self.P = x_new, Aj @ P @ Aj.T + K @ K.T
             self.steps += n
             if n:
@@ -624,9 +634,9 @@ class ContactKF:
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject k = 1); (1, 0) without evidence."""
         d = self.d
-        pkk = float(self.P[d, d])
-        if self.k_prior_var <= 0.0 or pkk <= 0.0:
+        if not self.nk or self.k_prior_var <= 0.0 or float(self.P[d, d]) <= 0.0:
             return 1.0, 0.0
+        pkk = float(self.P[d, d])
         info = 1.0 / pkk - 1.0 / self.k_prior_var     # posterior information less the prior's
         if info <= 1e-12 / self.k_prior_var:
             return 1.0, 0.0
@@ -648,10 +658,11 @@ class ContactKF:
         d = self.d
         x, P = self.x, self.P
         scale = max(self.consistency, 1.0)
-        pkk = float(P[d, d])
-        m, pmk = x[:d], P[:d, d]
+        pkk = float(P[d, d]) if self.nk else 0.0
+        m, pmk = x[:d], P[:d, d:]
         # Calibrated: the state conditioned on k = 1 (eta as scheduled).
         if pkk > 0.0:
+            pmk = pmk[:, 0]
             c0 = m + pmk * (1.0 - float(x[d])) / pkk
             s0 = P[:d, :d] - np.outer(pmk, pmk) / pkk
         else:
