@@ -507,16 +507,12 @@ class ContactKF:
             v2 = v @ self.plane.E.T
             r0x, r0y = r0[:, 0], r0[:, 1]
             if w_tcp is None:
-                rel, w_true, a_n = w_n, k * w_n, w_n
-                hkx, hky = -w_n * r0y, w_n * r0x        # dh/dk = w J r0
-                w_lin = k_lin * w_n
+                rel, t_n, w_true, a_n, w_lin = w_n, 0.0, k * w_n, w_n, k_lin * w_n
             else:
                 t_n = w_tcp @ self.plane.n
                 rel = w_n - t_n
-                w_true, a_n = t_n + k * rel, rel + t_n / k
-                hkx, hky = -(rel * r0y + t_n * c[1] / k), rel * r0x + t_n * c[0] / k
-                w_lin = t_n + k_lin * rel
-            # y = v - w_true J (r0 - c); H = [-a_n J, (hkx, hky)]
+                w_true, a_n, w_lin = t_n + k * rel, rel + t_n / k, t_n + k_lin * rel
+            # y = v - w_true J (r0 - c); H = [-a_n J, dh/dk]
             yx = v2[:, 0] + w_true * (r0y - c[1])
             yy = v2[:, 1] - w_true * (r0x - c[0])
             rx, ry = r0x - c_lin[0], r0y - c_lin[1]
@@ -529,15 +525,15 @@ class ContactKF:
             yr = ex * yx + ey * yy
             yu = ex * yy - ey * yx
             # H's columns on (rh, uh): -a_n J e1 = (0, -a_n), -a_n J e2 = (a_n, 0), dh/dk.
+            Cr, Cu = [-a_n * ey, a_n * ex], [-a_n * ex, -a_n * ey]
+            hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1])
             if self.nk:
-                Cr = np.stack([-a_n * ey, a_n * ex, ex * hkx + ey * hky])
-                Cu = np.stack([-a_n * ex, -a_n * ey, ex * hky - ey * hkx])
-                hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1]) + \
-                    float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
-            else:
-                Cr = np.stack([-a_n * ey, a_n * ex])
-                Cu = np.stack([-a_n * ex, -a_n * ey])
-                hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1])
+                # dh/dk = rel J r0 + t_n J c / k
+                hkx, hky = -(rel * r0y + t_n * c[1] / k), rel * r0x + t_n * c[0] / k
+                Cr.append(ex * hkx + ey * hky)
+                Cu.append(ex * hky - ey * hkx)
+                hph += float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
+            Cr, Cu = np.stack(Cr), np.stack(Cu)
             nis = keep = None
             if prm.gate_nis > 0 and self.steps > 0 and hph < GATE_HPH_RATIO * 2 * float(a.min()):
                 # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
