@@ -190,12 +190,14 @@ class SimImu:
             return
         ts = self._next_t + self.period * np.arange(n)
         self._next_t = float(ts[-1] + self.period)
+        # Linear interpolation of all nine kinematic columns at once (np.interp per column cost
+        # more than the physics step it served).
         ts_c = np.clip(ts, t[0], t[-1])
-
-        def interp(arr):
-            return np.stack([np.interp(ts_c, t, arr[:, i]) for i in range(3)], axis=1)
-
-        raw, gyro, accel = self.signal.sample(ts, interp(w_tcp), interp(w_obj), interp(a_tcp), R_world_tcp[-1])
+        j = np.clip(np.searchsorted(t, ts_c, side="right") - 1, 0, len(t) - 2)
+        frac = ((ts_c - t[j]) / (t[j + 1] - t[j]))[:, None]
+        kin = np.concatenate((w_tcp, w_obj, a_tcp), axis=1)
+        kin = kin[j] + frac * (kin[j + 1] - kin[j])
+        raw, gyro, accel = self.signal.sample(ts, kin[:, 0:3], kin[:, 3:6], kin[:, 6:9], R_world_tcp[-1])
         self.samples += n
         if self.wire is not None:
             board, device = self.wire

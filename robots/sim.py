@@ -73,7 +73,7 @@ class SimRobot:
         self._pending: collections.deque = collections.deque()        # owned by the physics thread
         self._qd_cmd = np.zeros(model.nq)
         self._t_cmd = self.t                 # when the command in force took effect
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()   # guards commands, state and truth; notified on each new state
         self._state = JointState(t=clock(), q=self.q.copy(), qd=self.qd.copy(), seq=0, tcp_twist=twist.copy())
         self._truth = self._make_truth()
         self._next_proprio = self.t          # the proprioception schedule starts at the robot's clock
@@ -91,13 +91,23 @@ class SimRobot:
         with self._lock:
             return self._truth
 
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        """The latest state, once its seq differs from `seq` or after `timeout` s."""
+        with self._lock:
+            self._lock.wait_for(lambda: self._state.seq != seq, timeout)
+            return self._state
+
     # -- RobotControl -------------------------------------------------------
     def command_joint_velocity(self, qd: np.ndarray) -> None:
+        self.command_at(self.clock(), qd)
+
+    def command_at(self, t_issued: float, qd: np.ndarray) -> None:
+        """A command issued at `t_issued` (this clock): it takes effect command_latency_s later."""
         qd = np.asarray(qd, dtype=float)
         if qd.shape != (self.model.nq,) or not np.all(np.isfinite(qd)):
             raise ValueError(f"qd: expected {self.model.nq} finite joint rates")
         with self._lock:
-            self._cmds.append((self.clock() + self.p.command_latency_s, qd.copy()))
+            self._cmds.append((t_issued + self.p.command_latency_s, qd.copy()))
 
     def hold(self) -> None:
         self.command_joint_velocity(np.zeros(self.model.nq))
@@ -185,6 +195,7 @@ class SimRobot:
                 with self._lock:
                     self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
                                              tcp_twist=reported, tcp_force=force)
+                    self._lock.notify_all()
         a_tcp[0] = a_tcp[1] if n >= 1 else 0.0
         with self._lock:
             self._truth = self._make_truth()

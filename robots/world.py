@@ -1,11 +1,12 @@
 """Simulated world: a paper cutter whose handle is hinged to a base that rests on friction."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import matrix_to_rotvec, signed_angle, unit
+from control.geometry import unit
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4
@@ -31,6 +32,27 @@ class MotionStart:
             self._moving = False
             self._rest_s += dt
         return started
+
+
+def _signed_angle(a: tuple, b: tuple, axis: tuple) -> float:
+    """control.geometry.signed_angle in plain floats: a onto b about the unit axis."""
+    ax, ay, az = axis
+    sa, sb = a[0] * ax + a[1] * ay + a[2] * az, b[0] * ax + b[1] * ay + b[2] * az
+    a0, a1, a2 = a[0] - sa * ax, a[1] - sa * ay, a[2] - sa * az
+    b0, b1, b2 = b[0] - sb * ax, b[1] - sb * ay, b[2] - sb * az
+    c = (a1 * b2 - a2 * b1) * ax + (a2 * b0 - a0 * b2) * ay + (a0 * b1 - a1 * b0) * az
+    return math.atan2(c, a0 * b0 + a1 * b1 + a2 * b2)
+
+
+def _relative_rotvec(R: list, R_ref: list) -> tuple:
+    """control.geometry.matrix_to_rotvec(R @ R_ref.T) in plain floats, for nested-list rotations."""
+    def e(i, j):           # (R R_ref^T)[i][j] = row i of R . row j of R_ref
+        return R[i][0] * R_ref[j][0] + R[i][1] * R_ref[j][1] + R[i][2] * R_ref[j][2]
+    tr = e(0, 0) + e(1, 1) + e(2, 2)
+    v = (e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1))
+    angle = math.acos(min(max((tr - 1.0) / 2.0, -1.0), 1.0))
+    f = 0.5 if angle < 1e-8 else angle / (2.0 * math.sin(angle))
+    return (f * v[0], f * v[1], f * v[2])
 
 
 @dataclass
@@ -82,7 +104,7 @@ class HingeWorld:
         self.axis = unit(params.hinge_axis, "hinge.axis")
         self.n_table = unit(params.table_normal if params.table_normal is not None else np.array([0, 0, 1.0]),
                             "hinge.table_normal")
-        self.base_offset = np.zeros(3)
+        self._base = (0.0, 0.0, 0.0)    # how far the base has slid, world, m
         r = np.asarray(p_tcp0, dtype=float) - params.hinge_point
         r_perp = r - np.dot(r, self.axis) * self.axis
         self.radius = float(np.linalg.norm(r_perp))
@@ -90,48 +112,71 @@ class HingeWorld:
             raise ValueError("hinge.point: the TCP must be at least 2 cm from the hinge axis")
         self.along = float(np.dot(r, self.axis))   # grasp position along the axis, m
         self.e0 = r_perp / self.radius
+        self._axis, self._e0, self._n_table = tuple(self.axis.tolist()), tuple(self.e0.tolist()), tuple(self.n_table.tolist())
+        self._hinge0 = tuple(np.asarray(params.hinge_point, dtype=float).tolist())
         self.angle = 0.0
         self.rate = 0.0
         self.force = np.zeros(3)
         self._start = MotionStart()
-        self._R0 = None if R_tcp0 is None else np.array(R_tcp0, dtype=float)   # gripper orientation at the start
+        self._R0 = None if R_tcp0 is None else np.asarray(R_tcp0, dtype=float).tolist()   # gripper at the start
         self._R_prev = self._R0
-        self._w_tcp = np.zeros(3)       # the gripper's own rate, world
+        self._w_tcp = (0.0, 0.0, 0.0)   # the gripper's own rate, world
         self._twist = 0.0               # the fingertips' twist about the axis, rad
         self._twist_rate = 0.0
         self.slip = 0.0                 # handle rotation the grasp has slipped by, rad
+
+    @property
+    def base_offset(self) -> np.ndarray:
+        return np.array(self._base)
 
     @property
     def hinge_now(self) -> np.ndarray:
         return self.p.hinge_point + self.base_offset
 
     def base_displacement(self) -> float:
-        return float(np.linalg.norm(self.base_offset))
+        return math.sqrt(sum(b * b for b in self._base))
 
     def _grasp_deviation(self, p_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h = self.hinge_now
-        r = p_tcp - h
-        r_perp = r - np.dot(r, self.axis) * self.axis
-        u = r_perp / max(np.linalg.norm(r_perp), 1e-9)
-        g = h + self.along * self.axis + self.radius * u
-        return p_tcp - g, u
+        d, u = self._deviation(*map(float, p_tcp))
+        return np.array(d), np.array(u)
+
+    # The physics steps at 1 kHz, so the per-step geometry is in plain floats: numpy's per-call
+    # overhead on 3-vectors made a step of the sliding base cost more than half a millisecond.
+    def _deviation(self, px: float, py: float, pz: float) -> tuple[tuple, tuple]:
+        """(TCP minus the grasp point on the handle circle, unit radial direction u), world."""
+        ax, ay, az = self._axis
+        hx, hy, hz = self._hinge0
+        bx, by, bz = self._base
+        rx, ry, rz = px - hx - bx, py - hy - by, pz - hz - bz
+        s = rx * ax + ry * ay + rz * az
+        rx, ry, rz = rx - s * ax, ry - s * ay, rz - s * az
+        n = max(math.sqrt(rx * rx + ry * ry + rz * rz), 1e-9)
+        u = (rx / n, ry / n, rz / n)
+        a, rad = self.along, self.radius
+        d = (px - (hx + bx + a * ax + rad * u[0]), py - (hy + by + a * ay + rad * u[1]),
+             pz - (hz + bz + a * az + rad * u[2]))
+        return d, u
 
     def step(self, p_tcp: np.ndarray, dt: float, R_tcp: np.ndarray | None = None) -> bool:
         """Advance by dt with the TCP at p_tcp; returns True when the handle starts to move."""
         k = self.p.grasp_stiffness_n_m
         f_static = self.p.friction_mu * self.p.base_mass_kg * GRAVITY_M_S2
+        nx, ny, nz = self._n_table
+        px, py, pz = map(float, p_tcp)
         for _ in range(BASE_SLIDE_ITERATIONS):
-            d, u = self._grasp_deviation(p_tcp)
-            F = k * d
-            F_h = F - np.dot(F, self.n_table) * self.n_table
-            f_h = float(np.linalg.norm(F_h))
+            (dx, dy, dz), _ = self._deviation(px, py, pz)
+            fn = k * (dx * nx + dy * ny + dz * nz)
+            hx, hy, hz = k * dx - fn * nx, k * dy - fn * ny, k * dz - fn * nz
+            f_h = math.sqrt(hx * hx + hy * hy + hz * hz)
             if f_h <= f_static:
                 break
             # Slide just far enough that the horizontal pull equals kinetic friction.
-            self.base_offset += (f_h - f_static) / k * (F_h / f_h)
-        d, u = self._grasp_deviation(p_tcp)
-        self.force = k * d
-        angle = signed_angle(self.e0, u, self.axis)
+            c = (f_h - f_static) / k / f_h
+            bx, by, bz = self._base
+            self._base = (bx + c * hx, by + c * hy, bz + c * hz)
+        d, u = self._deviation(px, py, pz)
+        self.force = np.array((k * d[0], k * d[1], k * d[2]))
+        angle = _signed_angle(self._e0, u, self._axis)
         self.rate = (angle - self.angle) / dt
         self.angle = angle
         self._step_grasp_twist(R_tcp, dt)
@@ -139,19 +184,23 @@ class HingeWorld:
 
     def _step_grasp_twist(self, R_tcp: np.ndarray | None, dt: float) -> None:
         if R_tcp is None:
-            self._w_tcp = np.zeros(3)
+            self._w_tcp = (0.0, 0.0, 0.0)
             gripper = 0.0
         else:
+            R = R_tcp.tolist()
             if self._R0 is None:
-                self._R0 = self._R_prev = np.array(R_tcp, dtype=float)
-            self._w_tcp = matrix_to_rotvec(R_tcp @ self._R_prev.T) / dt
-            self._R_prev = np.array(R_tcp, dtype=float)
-            gripper = float(matrix_to_rotvec(R_tcp @ self._R0.T) @ self.axis)
+                self._R0 = self._R_prev = R
+            w = _relative_rotvec(R, self._R_prev)
+            self._w_tcp = (w[0] / dt, w[1] / dt, w[2] / dt)
+            self._R_prev = R
+            g = _relative_rotvec(R, self._R0)
+            ax, ay, az = self._axis
+            gripper = g[0] * ax + g[1] * ay + g[2] * az
         twist = self.angle - gripper - self.slip
-        limit = np.radians(self.p.twist_stick_deg) if self.p.twist_stick_deg is not None else np.inf
+        limit = math.radians(self.p.twist_stick_deg) if self.p.twist_stick_deg is not None else math.inf
         if abs(twist) > limit:
-            self.slip += twist - np.copysign(limit, twist)
-            twist = float(np.copysign(limit, twist))
+            self.slip += twist - math.copysign(limit, twist)
+            twist = math.copysign(limit, twist)
         self._twist_rate = (twist - self._twist) / dt
         self._twist = twist
 
@@ -160,7 +209,9 @@ class HingeWorld:
         only (a hinge cannot turn any other way; a gripper turning off the axis twists the
         fingertips the other way), at the gripper's rate about the axis plus the fingertips'
         twist, which is the handle's rate while the grasp sticks."""
-        return (float(self._w_tcp @ self.axis) + self._twist_rate) * self.axis
+        ax, ay, az = self._axis
+        wx, wy, wz = self._w_tcp
+        return (wx * ax + wy * ay + wz * az + self._twist_rate) * self.axis
 
     def tangent(self, p_tcp: np.ndarray) -> np.ndarray:
         _, u = self._grasp_deviation(p_tcp)

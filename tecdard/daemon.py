@@ -14,12 +14,13 @@ import zenoh
 
 from control.geometry import quat_to_matrix
 from drivers.ring import SampleRing
-from drivers.imu_emulator import Board, BoardParams, PtyDevice
+from drivers.imu_emulator import BoardParams
 from drivers.serial_imu import PortError, SerialImuSource, SerialParams
-from drivers.sim_imu import SimImu, SimImuParams
+from drivers.sim_imu import SimImuParams
 from robots.model import ArmModel, UnknownRobotError
-from robots.sim import SimRobot, SimRobotParams
-from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
+from robots.sim import SimRobotParams
+from robots.sim_process import SimProcess, SimSpec
+from robots.world import HingeParams, PivotParams
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
@@ -46,8 +47,9 @@ class Daemon:
         model_name = robot.getstr("model", "panda")
         backend = robot.getstr("backend", "sim", choices=("sim",))
         try:
-            self.model = ArmModel(model_name, robot.getvec3("tool_offset", [0.0, 0.0, 0.0]),
-                                  robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0]))
+            tool_offset = robot.getvec3("tool_offset", [0.0, 0.0, 0.0])
+            tool_quat = robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0])
+            self.model = ArmModel(model_name, tool_offset, tool_quat)
         except UnknownRobotError as exc:
             raise ConfigError(str(exc)) from None
         self.q_home = np.array(robot.getfloats("q_home", n=self.model.nq))
@@ -87,38 +89,28 @@ class Daemon:
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
-        wire = None
+        self.sim_spec = SimSpec(arm=model_name, tool_offset=list(tool_offset), tool_quat=list(tool_quat),
+                                robot=robot_params, imu=imu_params,
+                                seed=seed, hinge=hinge, pivot=pivot,
+                                imu_out={"sim": "pipe", "sim-wire": "wire", "serial": "none"}[self.imu_source])
         if self.imu_source == "sim-wire":
             # The simulated fingertip speaks tecdar-imu/1 on a pseudo-terminal and the real
             # serial driver reads it: parser, scaling and clock sync all run in simulation.
             self._pty_dir = tempfile.mkdtemp(prefix="tecdar-imu-")
-            device = PtyDevice(os.path.join(self._pty_dir, "ttyIMU"))
-            board = Board(BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
-                                      accel_fs_g=imu_params.accel_fs_g))
-            wire = (board, device)
-            serial_params = SerialParams(port=str(device.link), odr_hz=board.p.odr_hz,
-                                         gyro_fs_dps=board.p.gyro_fs_dps, accel_fs_g=board.p.accel_fs_g)
-        self.sim_imu = SimImu(imu_params, seed=seed, wire=wire)
-        if serial_params is not None:
-            # The real fingertip board: the simulated arm still runs, its IMU signal is unused.
-            self.imu = SerialImuSource(serial_params)
-            try:
-                self.imu.open()
-            except PortError as exc:
-                log.warning("%s; retrying in the background", exc)
-                self.imu.mark_lost(str(exc))
-        else:
-            self.imu = self.sim_imu
-        if hinge is not None:
-            factory = lambda p_tcp, R_tcp: HingeWorld(hinge, p_tcp, R_tcp)   # noqa: E731
-        elif pivot is not None:
-            factory = lambda p_tcp, R_tcp: PivotWorld(pivot, p_tcp, R_tcp)   # noqa: E731
-        else:
-            factory = None
+            self.sim_spec.pty_link = os.path.join(self._pty_dir, "ttyIMU")
+            self.sim_spec.board = BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
+                                              accel_fs_g=imu_params.accel_fs_g)
+            serial_params = SerialParams(port=self.sim_spec.pty_link, odr_hz=self.sim_spec.board.odr_hz,
+                                         gyro_fs_dps=self.sim_spec.board.gyro_fs_dps,
+                                         accel_fs_g=self.sim_spec.board.accel_fs_g)
         try:
-            self.robot = SimRobot(self.model, robot_params, factory, self.sim_imu, seed=seed)
+            self.sim_spec.build()      # the world is checked here, so a bad one never half-starts the daemon
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        # The simulated arm, world and IMU run in a process of their own, as a real arm and board do
+        # (robots/sim_process.py): the daemon's threads never starve them of the GIL.
+        self.robot = SimProcess(self.sim_spec, self.model.nq)
+        self.imu = SerialImuSource(serial_params) if serial_params is not None else self.robot
         del backend
         self.stop_event = threading.Event()
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
@@ -138,6 +130,13 @@ class Daemon:
 
     def _start_threads(self) -> None:
         self.robot.start()
+        if isinstance(self.imu, SerialImuSource):
+            # the real board, or (sim-wire) the child's pty, which exists once the child has started
+            try:
+                self.imu.open()
+            except PortError as exc:
+                log.warning("%s; retrying in the background", exc)
+                self.imu.mark_lost(str(exc))
         specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("control", lambda: self.control.run(self.stop_event))]
@@ -155,7 +154,7 @@ class Daemon:
                 th.join(THREAD_JOIN_S)
             except Exception:
                 log.exception("joining %s", th.name)
-        for step in (self.robot.hold, self.robot.stop, self.imu.close, self.sim_imu.close):
+        for step in (self.robot.hold, self.robot.stop, self.imu.close):
             try:
                 step()
             except Exception:

@@ -81,9 +81,10 @@ def test_daemon_builds_the_mapping_scene_world():
     cfg = sim_config(**{"sim.hinge": ..., "sim.pivot": {"surface": "scene", "scene_seed": 2,
                                                          "tip_in_tcp": [0.0, 0.06, 0.10]}})
     d = Daemon(Config(cfg))
-    assert isinstance(d.robot.world, PivotWorld)
-    assert isinstance(d.robot.world.p.surface, HeightField)
-    assert not d.robot.world.in_contact()          # the tool starts above the container
+    world = d.sim_spec.build().world               # what the simulation process builds
+    assert isinstance(world, PivotWorld)
+    assert isinstance(world.p.surface, HeightField)
+    assert not world.in_contact()                  # the tool starts above the container
 
 
 def test_two_worlds_are_refused():

@@ -53,8 +53,11 @@ def test_rotate_follows_the_arc_and_the_straight_pull_drags_the_base(make_daemon
     # The cutter is now open; a second daemon starts from a closed one for the straight pull. At 45 deg
     # (a 12 cm path at this 15 cm radius; the paper's is 15 cm) the handle end leaves the circle by
     # r (sqrt(1 + theta^2) - 1) = 41 mm, which the base absorbs. (Over the paper's full 15 cm the
-    # drag ends in a protective stop on force: benchmarks/daemon.md.)
-    d2 = make_daemon()
+    # drag ends in a protective stop on force: benchmarks/daemon.md.) Once the handle has turned the
+    # fingertips past their stick limit the grasp slips, the IMU stops following the handle and the
+    # estimator's innovations grow to 3-25x their expected size: the divergence stop, which has its
+    # own test below, would end the pull before it shows the drag, so it is set out of the way here.
+    d2 = make_daemon(**{"control.max_nis_ratio": 1000.0})
     res2 = run_rotate(d2, strategy="straight", angle_deg=45.0)
     assert res2["sim"]["base_displacement"] > STRAIGHT_BASE_MIN_M, res2["sim"]
     assert abs(res2["sim"]["grasp_slip_deg"]) > 1.0, res2["sim"]          # held orientation: the grasp slipped

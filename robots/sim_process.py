@@ -1,0 +1,246 @@
+"""The simulated arm, its world and its fingertip IMU in a process of their own.
+
+A real arm's controller and the fingertip board are devices apart from the daemon: however busy
+the daemon is, the arm keeps integrating and the board keeps streaming. The simulation must
+behave the same way, or the daemon's stale-IMU stop measures the simulator's stalls. In one
+Python process the 1 kHz physics, the 6.7 kHz IMU synthesis, the estimator and the control loop
+all take turns on one GIL, and on a busy 2-core machine the physics thread was seen starved for
+50-60 ms. So the daemon runs the simulation in a child process (`SimProcess`), which looks to the
+daemon like any robot backend (read_state, command_joint_velocity, hold) and, with
+`imu.source: sim`, like an IMU source (read). With `sim-wire` the child writes the board's
+`tecdar-imu/1` stream to a pseudo-terminal that the daemon's serial driver reads.
+
+Links, each a one-way pipe:
+- commands, daemon -> child: (t_issued, qd), time-stamped on the shared monotonic clock, so the
+  simulated command latency does not include the pipe's;
+- state, child -> daemon: each new proprioception sample with the world's truth (latest wins);
+- IMU, child -> daemon: sample chunks (t, gyro, accel), only with `imu.source: sim`.
+The child stops when the daemon says so or when the daemon's end of the command pipe closes.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.imu_emulator import Board, BoardParams, PtyDevice
+from drivers.sim_imu import SimImu, SimImuParams
+from robots.backend import JointState, SimTruth
+from robots.model import ArmModel
+from robots.sim import SimRobot, SimRobotParams
+from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
+
+log = logging.getLogger("tecdar.sim")
+
+START_TIMEOUT_S = 60.0       # a cold child imports numpy and Pinocchio and loads the URDF
+STOP_TIMEOUT_S = 2.0
+IMU_FORWARD_WAIT_S = 0.05
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class SimProcessError(RuntimeError):
+    """The simulation process could not start or has gone."""
+
+
+@dataclass
+class SimSpec:
+    """Everything the child needs to build the simulation (picklable)."""
+    arm: str
+    tool_offset: list
+    tool_quat: list
+    robot: SimRobotParams
+    imu: SimImuParams
+    seed: int = 0
+    hinge: HingeParams | None = None
+    pivot: PivotParams | None = None
+    imu_out: str = "pipe"            # "pipe": samples to the daemon; "wire": tecdar-imu/1 on a pty; "none"
+    pty_link: str | None = None      # with "wire": the board's stable device path
+    board: BoardParams | None = None
+
+    def world_factory(self):
+        if self.hinge is not None:
+            return lambda p_tcp, R_tcp: HingeWorld(self.hinge, p_tcp, R_tcp)
+        if self.pivot is not None:
+            return lambda p_tcp, R_tcp: PivotWorld(self.pivot, p_tcp, R_tcp)
+        return None
+
+    def build(self, wire=None, clock=time.monotonic) -> SimRobot:
+        """The simulated arm with its world and IMU, not started. Raises ValueError on a world
+        that cannot be built (the daemon builds one in its constructor to check the config)."""
+        model = ArmModel(self.arm, np.array(self.tool_offset, float), self.tool_quat)
+        imu = None if self.imu_out == "none" else SimImu(self.imu, seed=self.seed, wire=wire)
+        return SimRobot(model, self.robot, self.world_factory(), imu, seed=self.seed, clock=clock)
+
+
+def _forward_imu(imu: SimImu, conn, stop: threading.Event) -> None:
+    while not stop.is_set():
+        chunk = imu.read(IMU_FORWARD_WAIT_S)
+        if chunk is not None:
+            conn.send(chunk)
+
+
+def _forward_state(robot: SimRobot, conn, stop: threading.Event) -> None:
+    seq = -1
+    while not stop.is_set():
+        js = robot.wait_state(seq, 0.1)
+        if js is not None and js.seq != seq:
+            seq = js.seq
+            conn.send(("state", js, robot.truth()))
+
+
+def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) -> None:
+    """The child process: build, start, forward, and take commands until told to stop."""
+    logging.basicConfig(level=log_level, format=LOG_FORMAT)
+    stop = threading.Event()
+    device = None
+    try:
+        wire = None
+        if spec.imu_out == "wire":
+            device = PtyDevice(spec.pty_link)
+            wire = (Board(spec.board), device)
+        robot = spec.build(wire=wire)
+    except Exception as exc:
+        state_conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        raise
+    robot.start()
+    forwarders = [threading.Thread(target=_forward_state, args=(robot, state_conn, stop), daemon=True)]
+    if spec.imu_out == "pipe":
+        forwarders.append(threading.Thread(target=_forward_imu, args=(robot.imu, imu_conn, stop), daemon=True))
+    state_conn.send(("ready", robot.read_state(), robot.truth()))
+    for th in forwarders:
+        th.start()
+    try:
+        while True:
+            try:
+                msg = cmd_conn.recv()
+            except (EOFError, OSError):
+                log.warning("sim: the daemon has gone; stopping")
+                break
+            if msg[0] == "cmd":
+                robot.command_at(msg[1], msg[2])
+            elif msg[0] == "stop":
+                break
+    finally:
+        stop.set()
+        robot.hold()
+        robot.stop()
+        if device is not None:
+            device.close()
+        for th in forwarders:
+            th.join(STOP_TIMEOUT_S)
+
+
+class SimProcess:
+    """The daemon's handle on the simulation child: a robot backend and, with imu_out "pipe", an IMU source."""
+
+    def __init__(self, spec: SimSpec, nq: int):
+        self.spec = spec
+        self.nq = nq
+        self._proc = None
+        self._cmd = self._state_rx = self._imu_rx = None
+        self._send_lock = threading.Lock()
+        self._state: JointState | None = None
+        self._truth: SimTruth | None = None
+        self._reader: threading.Thread | None = None
+        self.exited = threading.Event()
+
+    # -- lifecycle ----------------------------------------------------------
+    def start(self) -> None:
+        """Start the child and wait until it publishes its first state (SimProcessError if it cannot)."""
+        ctx = multiprocessing.get_context("spawn")   # never fork a process that already runs Zenoh's threads
+        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
+        self._state_rx, state_tx = ctx.Pipe(duplex=False)
+        self._imu_rx, imu_tx = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=child_main, name="tecdar-sim", daemon=True,
+                                 args=(self.spec, cmd_rx, state_tx, imu_tx, logging.getLogger().getEffectiveLevel()))
+        self._proc.start()
+        for end in (cmd_rx, state_tx, imu_tx):
+            end.close()      # the child holds its own copies: EOF on either side means the other has gone
+        if not self._state_rx.poll(START_TIMEOUT_S):
+            self._kill()
+            raise SimProcessError(f"the simulation process did not start within {START_TIMEOUT_S:.0f} s")
+        try:
+            msg = self._state_rx.recv()
+        except EOFError:
+            self._kill()
+            raise SimProcessError(f"the simulation process exited at start (code {self._proc.exitcode})") from None
+        if msg[0] != "ready":
+            self._kill()
+            raise SimProcessError(f"the simulation process failed at start: {msg[1]}")
+        _, self._state, self._truth = msg
+        self._reader = threading.Thread(target=self._read_states, name="sim-link", daemon=True)
+        self._reader.start()
+
+    def stop(self) -> None:
+        if self._proc is None:
+            return
+        try:
+            with self._send_lock:
+                self._cmd.send(("stop",))
+        except (OSError, ValueError):
+            pass
+        self._proc.join(STOP_TIMEOUT_S)
+        self._kill()
+        for conn in (self._cmd, self._state_rx, self._imu_rx):
+            conn.close()
+        self._proc = None
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(STOP_TIMEOUT_S)
+
+    def _read_states(self) -> None:
+        while True:
+            try:
+                msg = self._state_rx.recv()
+            except (EOFError, OSError):
+                break
+            if msg[0] == "state":
+                _, self._state, self._truth = msg
+        self.exited.set()
+        if self._proc is not None and self._proc.exitcode not in (None, 0):
+            log.error("the simulation process exited (code %s)", self._proc.exitcode)
+
+    # -- RobotReceive / RobotControl ------------------------------------------
+    def read_state(self) -> JointState:
+        if self._state is None:
+            raise SimProcessError("the simulation process is not running")
+        return self._state
+
+    def truth(self) -> SimTruth | None:
+        return self._truth
+
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        qd = np.asarray(qd, dtype=float)
+        if qd.shape != (self.nq,) or not np.all(np.isfinite(qd)):
+            raise ValueError(f"qd: expected {self.nq} finite joint rates")
+        t_issued = time.monotonic()
+        try:
+            with self._send_lock:
+                self._cmd.send(("cmd", t_issued, qd.copy()))
+        except (OSError, ValueError, AttributeError):
+            raise SimProcessError("the simulation process is not running") from None
+
+    def hold(self) -> None:
+        self.command_joint_velocity(np.zeros(self.nq))
+
+    # -- IMU source (imu_out "pipe") -----------------------------------------
+    def read(self, timeout: float = 0.05):
+        """Next chunk (t (n,), gyro (n,3), accel (n,3)) or None after `timeout` seconds."""
+        conn = self._imu_rx
+        try:
+            if conn is not None and conn.poll(timeout):
+                return conn.recv()
+        except (EOFError, OSError):
+            pass
+        if conn is None or self.exited.is_set():
+            time.sleep(timeout)      # the child has gone: no samples, and no busy loop
+        return None
+
+    def close(self) -> None:
+        """The IMU source's close: the process itself is stopped by `stop()`."""
