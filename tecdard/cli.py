@@ -17,7 +17,12 @@ def _cmd_run(args) -> int:
     except ConfigError as exc:
         print(f"tecdard: config error: {exc}", file=sys.stderr)
         return 2
-    return daemon.run()
+    from robots.sim_process import SimProcessError
+    try:
+        return daemon.run()
+    except SimProcessError as exc:
+        print(f"tecdard: {exc}", file=sys.stderr)
+        return 1
 
 
 def _cmd_localize(args) -> int:
