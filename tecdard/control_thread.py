@@ -148,6 +148,7 @@ class ControlThread:
         self._braking = False
         self._stop_waiters: list = []
         self._seq = 0
+        self._last_proprio_seq = -1
         self._R_hold = None
         self._w_ff = np.zeros(3)           # angular velocity feed-forward of the orientation target
         self._speed_cap = None             # the planner's current TCP speed cap, m/s
@@ -215,6 +216,9 @@ class ControlThread:
             twist = js.tcp_twist          # the robot's own report of its TCP velocity
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         v, w = twist[:3].copy(), twist[3:].copy()
+        if js.seq != self._last_proprio_seq:
+            self._last_proprio_seq = js.seq
+            self._put(("proprio", js.t, p, v, R, w), self.to_estimator)
         est = self.contact.get()
         self._check_faults(now)
         self._check_limits(js, est)

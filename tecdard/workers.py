@@ -32,20 +32,13 @@ def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: qu
 
 
 class EstimatorThread:
-    """Owns the contact pipeline. It reads proprioception from the robot itself, before each
-    batch; the controller's notices (`release`, `arm`, `begin`, ...) arrive on `inbox`;
+    """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
     estimates leave through the `contact` latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue,
-                 robot, model, min_batch: int = 1):
+                 min_batch: int = 1):
         self.pipeline = pipeline
         self.ring = ring
-        # Every proprioception sample, at most a batch late. (Forwarded by the 20 ms control tick,
-        # a quarter of the 65 Hz samples never reached the estimator and the rest came up to a tick
-        # late, more on a loaded machine: the pipeline then extrapolated the TCP much further.)
-        self.robot = robot
-        self.model = model               # this thread's own clone (one pin.Data per thread)
-        self._proprio_seq = -1
         # Samples to wait for (up to POP_TIMEOUT_S) before a batch. The pipeline's fixed cost is per
         # batch (some fifty numpy calls), and a source delivers a few samples at a time (a 2 ms
         # slice from the simulator, 8-sample packets from the board): the daemon waits for one
@@ -62,17 +55,6 @@ class EstimatorThread:
         except queue.Full:
             self.dropped += 1
 
-    def _read_proprio(self) -> None:
-        js = self.robot.read_state()
-        if js.seq == self._proprio_seq:
-            return
-        self._proprio_seq = js.seq
-        oMtcp, twist = self.model.fk_twist(js.q, js.qd)
-        if js.tcp_twist is not None:
-            twist = js.tcp_twist          # the robot's own report of its TCP velocity
-        self.pipeline.add_proprio(js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
-                                  twist[3:].copy())
-
     def run(self, stop: threading.Event) -> None:
         pipe = self.pipeline
         while not stop.is_set():
@@ -81,7 +63,9 @@ class EstimatorThread:
                     msg = self.inbox.get_nowait()
                 except queue.Empty:
                     break
-                if msg[0] == "release":
+                if msg[0] == "proprio":
+                    pipe.add_proprio(*msg[1:])
+                elif msg[0] == "release":
                     pipe.release()
                 elif msg[0] == "arc":
                     pipe.set_arc_following(msg[1])
@@ -92,7 +76,6 @@ class EstimatorThread:
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
-            self._read_proprio()
             events, est = pipe.process(batch)
             for ev in events:
                 self._put(("event", ev))
