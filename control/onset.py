@@ -84,7 +84,6 @@ class OnsetDetector:
         self._seen_s = 0.0
         self._last_true = {}
         self.armed = True
-        self.armed_from = -math.inf    # samples before this time (s) never fire: see arm_from()
 
     @classmethod
     def from_config(cls, section, odr_hz: float = 6667.0) -> "OnsetDetector":
@@ -109,13 +108,6 @@ class OnsetDetector:
         except ValueError as exc:
             from tecdard.config import ConfigError
             raise ConfigError(f"{section.path}.{exc}") from None
-
-    def arm_from(self, t: float) -> None:
-        """Arm for samples at or after t (s). The controller arms when its plan moves steadily; a
-        batch processed after that may still hold earlier samples, from the end of the arm's
-        acceleration, and they must not fire."""
-        self.armed = True
-        self.armed_from = float(t)
 
     def rearm(self) -> None:
         """Start looking for the next onset; rest levels keep their last values."""
@@ -149,7 +141,7 @@ class OnsetDetector:
         hit = -1
         if self.armed and self._seen_s >= self.warmup_s and conds:
             if self.mode == "any":
-                fired = np.logical_or.reduce(list(conds.values())) & (t >= self.armed_from)
+                fired = np.logical_or.reduce(list(conds.values()))
                 idx = np.flatnonzero(fired)
                 hit = int(idx[0]) if len(idx) else -1
             else:
@@ -170,7 +162,7 @@ class OnsetDetector:
         names = list(conds)
         last = np.empty((len(names), len(t)))
         for i, name in enumerate(names):
-            true_t = np.where(conds[name] & (t >= self.armed_from), t, -np.inf)   # nothing counts before arming
+            true_t = np.where(conds[name], t, -np.inf)
             prev = self._last_true.get(name, -np.inf)
             last[i] = np.maximum.accumulate(np.concatenate([[prev], true_t]))[1:]
             self._last_true[name] = last[i, -1]

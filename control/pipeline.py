@@ -227,14 +227,10 @@ class ContactPipeline:
                     force: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, force)
 
-    def set_trigger_armed(self, armed: bool, t_from: float = -np.inf) -> None:
-        """Arm the onset trigger for samples at or after t_from (s), or disarm it now (an approach arms
-        it once the arm moves at constant speed)."""
+    def set_trigger_armed(self, armed: bool) -> None:
+        """Arm or disarm the onset trigger (an approach arms it once the arm moves at constant speed)."""
         if not self.tracking:
-            if armed:
-                self.detector.arm_from(t_from)
-            else:
-                self.detector.armed = False
+            self.detector.armed = armed
 
     def set_arc_following(self, on: bool) -> None:
         """The controller follows an arc about the estimate (True) or not: see ContactKF.radial_var."""

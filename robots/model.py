@@ -174,13 +174,6 @@ class ArmModel:
         oM = self.fk(best_q)
         return best_q, False, float(np.linalg.norm(oMdes.translation - oM.translation))
 
-    @staticmethod
-    def carried(oMtcp: pin.SE3, v: np.ndarray, w: np.ndarray, dt: float) -> pin.SE3:
-        """The TCP pose dt seconds on at constant twist (v, w: world-aligned, m/s and rad/s)."""
-        if dt <= 0.0:
-            return oMtcp
-        return pin.SE3(pin.exp3(np.asarray(w, float) * dt) @ oMtcp.rotation, oMtcp.translation + np.asarray(v, float) * dt)
-
     def servo_twist(self, oMtcp: pin.SE3, p_des: np.ndarray, v_des: np.ndarray, R_des: np.ndarray,
                     w_des: np.ndarray) -> np.ndarray:
         """Feed-forward twist plus proportional correction towards (p_des, R_des)."""

@@ -25,8 +25,6 @@ log = logging.getLogger("tecdar.control")
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
-SERVO_EXTRAPOLATE_MAX_S = 0.1 # the servo carries the measured TCP forward by its age, up to this
-TRIGGER_SETTLE_S = 0.05       # an approach's trigger counts samples from this long after its plan is steady
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
 
@@ -239,14 +237,7 @@ class ControlThread:
             self._w_ff = np.zeros(3)
         else:
             v_ff = (p_cmd - p_plan) / self.p.tick_s
-            # The joint state is up to a proprioception period old (65 Hz), more on a loaded machine.
-            # Servoing the plan's position now against the TCP as it was then commands a velocity
-            # error of gain * v * age, which jumps with the age from tick to tick; through the arm's
-            # tracking lag that is an acceleration the onset trigger sees (0.4 m/s^2 at 20 mm/s and
-            # 40 ms). So the feedback compares with the TCP carried forward to now at its reported rate.
-            age = min(max(now - js.t, 0.0), SERVO_EXTRAPOLATE_MAX_S)
-            oM_now = self.model.carried(oMtcp, v, w, age)
-            tw = self.model.servo_twist(oM_now, p_plan, v_ff, self._R_hold, self._w_ff)
+            tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, self._w_ff)
             speed = float(np.linalg.norm(tw[:3]))
             if speed > self.p.max_speed:       # hard TCP speed bound, whatever the planner said
                 tw[:3] *= self.p.max_speed / speed
@@ -436,9 +427,7 @@ class ControlThread:
             steady = task.status.phase == task.trigger_phase and self.planner.steady(task.speed)
             if steady != self._trigger_armed:
                 self._trigger_armed = steady
-                # The plan is steady now; the arm follows it through its command latency and tracking
-                # lag, so the trigger counts samples from TRIGGER_SETTLE_S later.
-                self._put(("arm", steady, now + TRIGGER_SETTLE_S), self.to_estimator)
+                self._put(("arm", steady), self.to_estimator)
         motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force))
         st = task.status
         if task.episode != self._episode:

@@ -35,15 +35,9 @@ class EstimatorThread:
     """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
     estimates leave through the `contact` latest-value slot and the outbox."""
 
-    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue,
-                 min_batch: int = 1):
+    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue):
         self.pipeline = pipeline
         self.ring = ring
-        # Samples to wait for (up to POP_TIMEOUT_S) before a batch. The pipeline's fixed cost is per
-        # batch (some fifty numpy calls), and a source delivers a few samples at a time (a 2 ms
-        # slice from the simulator, 8-sample packets from the board): the daemon waits for one
-        # output period's worth, which costs at most that much latency.
-        self.min_batch = min_batch
         self.contact = contact
         self.outbox = outbox
         self.inbox: queue.Queue = queue.Queue(maxsize=1024)
@@ -70,12 +64,12 @@ class EstimatorThread:
                 elif msg[0] == "arc":
                     pipe.set_arc_following(msg[1])
                 elif msg[0] == "arm":
-                    pipe.set_trigger_armed(*msg[1:])
+                    pipe.set_trigger_armed(msg[1])
                 elif msg[0] == "begin":
                     pipe.begin(msg[1])
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
-            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
+            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
             events, est = pipe.process(batch)
             for ev in events:
                 self._put(("event", ev))

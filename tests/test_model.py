@@ -77,13 +77,3 @@ def test_unreachable_target_is_reported_not_diverging():
     assert not reached
     assert np.all(np.isfinite(q)) and err > 1.0
     assert np.all(q >= arm.q_min) and np.all(q <= arm.q_max)
-
-
-def test_carried_moves_the_pose_on_at_its_world_twist():
-    """The servo compares the plan with the measured TCP carried forward by the measurement's age."""
-    oM = pin.SE3(pin.exp3(np.array([0.0, 0.3, 0.0])), np.array([0.4, 0.0, 0.5]))
-    v, w = np.array([0.02, 0.0, -0.01]), np.array([0.0, 0.0, 0.5])
-    on = ArmModel.carried(oM, v, w, 0.04)
-    assert np.allclose(on.translation, oM.translation + 0.04 * v)
-    assert np.allclose(on.rotation, pin.exp3(0.04 * w) @ oM.rotation)
-    assert ArmModel.carried(oM, v, w, 0.0) is oM

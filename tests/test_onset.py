@@ -35,23 +35,6 @@ def test_accel_threshold_fires_on_the_spike_not_on_noise():
     assert feed(det, a2, t0=3.0) >= 0
 
 
-@pytest.mark.parametrize("mode", ["any", "all"])
-def test_armed_from_a_time_ignores_the_samples_before_it(mode):
-    """An approach arms the trigger when its plan is steady; a batch still holding the end of the
-    arm's acceleration (before that time) must not fire, a spike after it must."""
-    rng = np.random.default_rng(4)
-    det = OnsetDetector(accel_threshold=0.4, gyro_threshold=0.3 if mode == "all" else None, mode=mode,
-                        warmup_s=0.05)
-    assert feed(det, quiet(1000, rng)) == -1
-    a, g = quiet(600, rng), np.zeros((600, 3))
-    a[100:150] += [0.0, 0.0, 0.6]               # acceleration before the arming time (t0 + 0.03 s = sample 200)
-    g[100:150] += [0.5, 0.0, 0.0]
-    a[400:] += [0.0, 0.0, 0.8]                  # the impact, after it
-    g[400:] += [0.5, 0.0, 0.0]
-    det.arm_from(1.0 + 200 / ODR_HZ)
-    assert feed(det, a, g, chunk=600, t0=1.0) == 400
-
-
 def test_accel_axis_ignores_other_axes():
     rng = np.random.default_rng(1)
     det = OnsetDetector(accel_threshold=0.4, accel_axis=[0, 0, 1], warmup_s=0.05)
