@@ -58,9 +58,9 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
     # a brisker stop after the touch than the default 0.5 m/s^2, so that 2 cm/s descents stay under 5 N
     cfg["control"]["max_accel"] = 2.0
     cfg["control"]["max_jerk"] = 40.0
-    # The simulated IMU is fed by the physics thread, which a loaded shared machine can hold up for
-    # 50 ms now and then (one such stall stopped a run at point 26): over a 22 min run the bench
-    # measures the map, so it tolerates 0.25 s. The 50 ms stop itself is tested (tests/test_serial_imu.py, unplugging).
+    # A loaded shared machine can hold up the simulation process or the daemon for 50 ms now and
+    # then (one such stall stopped a run at point 26): over a 22 min run the bench measures the
+    # map, so it tolerates 0.25 s. The 50 ms stop itself is tested (tests/test_serial_imu.py, unplugging).
     cfg["control"]["imu_stale_s"] = 0.25
     cfg["map"] = {"output_dir": str(out_dir / "maps"), "tool_tip_tcp": tip_tcp, "turn_deg": -90.0}
     cfg["robot"]["q_home"] = home_q(cfg)
