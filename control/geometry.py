@@ -68,6 +68,18 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return v * (angle / (2.0 * np.sin(angle)))
 
 
+def relative_rotvec(R, R_ref) -> tuple[float, float, float]:
+    """matrix_to_rotvec(R @ R_ref.T) in plain floats, for 3 x 3 nested lists (e.g. `R.tolist()`):
+    a 1 kHz loop on 3-vectors pays more for numpy's per-call overhead than for the arithmetic."""
+    def e(i, j):           # (R R_ref^T)[i][j] = row i of R . row j of R_ref
+        return R[i][0] * R_ref[j][0] + R[i][1] * R_ref[j][1] + R[i][2] * R_ref[j][2]
+    tr = e(0, 0) + e(1, 1) + e(2, 2)
+    v = (e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1))
+    angle = math.acos(min(max((tr - 1.0) / 2.0, -1.0), 1.0))
+    f = 0.5 if angle < 1e-8 else angle / (2.0 * math.sin(angle))
+    return (f * v[0], f * v[1], f * v[2])
+
+
 def sym2_max_eig(a11: float, a12: float, a22: float) -> float:
     """Larger eigenvalue of the symmetric 2 x 2 matrix [[a11, a12], [a12, a22]], in plain floats."""
     return 0.5 * (a11 + a22) + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
@@ -82,11 +94,17 @@ def unit(v: np.ndarray, name: str = "vector") -> np.ndarray:
     return v / n
 
 
-def signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
-    """Angle (rad) rotating a onto b about the unit `axis`, both projected on its normal plane."""
-    a_p = a - np.dot(a, axis) * axis
-    b_p = b - np.dot(b, axis) * axis
-    return float(np.arctan2(np.dot(np.cross(a_p, b_p), axis), np.dot(a_p, b_p)))
+def signed_angle(a, b, axis) -> float:
+    """Angle (rad) rotating a onto b about the unit `axis`, both projected on its normal plane.
+    In plain floats (any 3-sequences): the simulated hinge calls it at 1 kHz."""
+    ax, ay, az = (float(x) for x in axis)
+    a0, a1, a2 = (float(x) for x in a)
+    b0, b1, b2 = (float(x) for x in b)
+    sa, sb = a0 * ax + a1 * ay + a2 * az, b0 * ax + b1 * ay + b2 * az
+    a0, a1, a2 = a0 - sa * ax, a1 - sa * ay, a2 - sa * az
+    b0, b1, b2 = b0 - sb * ax, b1 - sb * ay, b2 - sb * az
+    c = (a1 * b2 - a2 * b1) * ax + (a2 * b0 - a0 * b2) * ay + (a0 * b1 - a1 * b0) * az
+    return math.atan2(c, a0 * b0 + a1 * b1 + a2 * b2)
 
 
 class Plane:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import unit
+from control.geometry import relative_rotvec, signed_angle, unit
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4
@@ -32,27 +32,6 @@ class MotionStart:
             self._moving = False
             self._rest_s += dt
         return started
-
-
-def _signed_angle(a: tuple, b: tuple, axis: tuple) -> float:
-    """control.geometry.signed_angle in plain floats: a onto b about the unit axis."""
-    ax, ay, az = axis
-    sa, sb = a[0] * ax + a[1] * ay + a[2] * az, b[0] * ax + b[1] * ay + b[2] * az
-    a0, a1, a2 = a[0] - sa * ax, a[1] - sa * ay, a[2] - sa * az
-    b0, b1, b2 = b[0] - sb * ax, b[1] - sb * ay, b[2] - sb * az
-    c = (a1 * b2 - a2 * b1) * ax + (a2 * b0 - a0 * b2) * ay + (a0 * b1 - a1 * b0) * az
-    return math.atan2(c, a0 * b0 + a1 * b1 + a2 * b2)
-
-
-def _relative_rotvec(R: list, R_ref: list) -> tuple:
-    """control.geometry.matrix_to_rotvec(R @ R_ref.T) in plain floats, for nested-list rotations."""
-    def e(i, j):           # (R R_ref^T)[i][j] = row i of R . row j of R_ref
-        return R[i][0] * R_ref[j][0] + R[i][1] * R_ref[j][1] + R[i][2] * R_ref[j][2]
-    tr = e(0, 0) + e(1, 1) + e(2, 2)
-    v = (e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1))
-    angle = math.acos(min(max((tr - 1.0) / 2.0, -1.0), 1.0))
-    f = 0.5 if angle < 1e-8 else angle / (2.0 * math.sin(angle))
-    return (f * v[0], f * v[1], f * v[2])
 
 
 @dataclass
@@ -176,7 +155,7 @@ class HingeWorld:
             self._base = (bx + c * hx, by + c * hy, bz + c * hz)
         d, u = self._deviation(px, py, pz)
         self.force = np.array((k * d[0], k * d[1], k * d[2]))
-        angle = _signed_angle(self._e0, u, self._axis)
+        angle = signed_angle(self._e0, u, self._axis)
         self.rate = (angle - self.angle) / dt
         self.angle = angle
         self._step_grasp_twist(R_tcp, dt)
@@ -190,10 +169,10 @@ class HingeWorld:
             R = R_tcp.tolist()
             if self._R0 is None:
                 self._R0 = self._R_prev = R
-            w = _relative_rotvec(R, self._R_prev)
+            w = relative_rotvec(R, self._R_prev)
             self._w_tcp = (w[0] / dt, w[1] / dt, w[2] / dt)
             self._R_prev = R
-            g = _relative_rotvec(R, self._R0)
+            g = relative_rotvec(R, self._R0)
             ax, ay, az = self._axis
             gripper = g[0] * ax + g[1] * ay + g[2] * az
         twist = self.angle - gripper - self.slip

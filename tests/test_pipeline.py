@@ -4,7 +4,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from control.conditioning import GyroConditioner
-from control.geometry import Plane, matrix_to_quat, quat_to_matrix, rotvec_to_matrix, unit
+from control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, relative_rotvec, rotvec_to_matrix,
+                              signed_angle, unit)
 from control.onset import OnsetDetector
 from control.pipeline import ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
 
@@ -123,6 +124,28 @@ def test_quaternion_matrix_round_trip(q):
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
     q2 = matrix_to_quat(R)
     assert np.allclose(q2, q, atol=1e-7) or np.allclose(q2, -q, atol=1e-7)
+
+
+@settings(max_examples=200, deadline=None)
+@given(quats, vecs.filter(lambda v: 1e-3 < np.linalg.norm(v) < 3.0))
+def test_float_relative_rotvec_matches_the_numpy_one(q_ref, phi):
+    """The simulator's plain-float relative rotation is matrix_to_rotvec(R @ R_ref.T)."""
+    R_ref = quat_to_matrix(q_ref)
+    R = rotvec_to_matrix(phi) @ R_ref
+    assert np.allclose(relative_rotvec(R.tolist(), R_ref.tolist()), matrix_to_rotvec(R @ R_ref.T), atol=1e-7)
+    assert np.allclose(relative_rotvec(R.tolist(), R_ref.tolist()), phi, atol=1e-6)
+
+
+@settings(max_examples=200, deadline=None)
+@given(vecs.filter(lambda n: np.linalg.norm(n) > 0.1), vecs, st.floats(-3.1, 3.1), st.floats(-2.0, 2.0))
+def test_signed_angle_recovers_a_rotation_about_the_axis(axis, a, angle, along):
+    """Any a (off the axis), turned by `angle` about the axis and moved along it, is `angle` from a."""
+    n = unit(axis)
+    if np.linalg.norm(a - (a @ n) * n) < 1e-3:
+        return
+    b = rotvec_to_matrix(angle * n) @ a + along * n
+    assert signed_angle(a, b, n) == pytest.approx(angle, abs=1e-9)
+    assert signed_angle(tuple(a), tuple(b), tuple(n)) == signed_angle(a, b, n)
 
 
 @settings(max_examples=200, deadline=None)
