@@ -87,7 +87,7 @@ def _forward_state(robot: SimRobot, conn, stop: threading.Event) -> None:
     seq = -1
     while not stop.is_set():
         js = robot.wait_state(seq, 0.1)
-        if js is not None and js.seq != seq:
+        if js.seq != seq:
             seq = js.seq
             conn.send(("state", js, robot.truth()))
 

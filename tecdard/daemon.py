@@ -103,10 +103,14 @@ class Daemon:
             serial_params = SerialParams(port=self.sim_spec.pty_link, odr_hz=self.sim_spec.board.odr_hz,
                                          gyro_fs_dps=self.sim_spec.board.gyro_fs_dps,
                                          accel_fs_g=self.sim_spec.board.accel_fs_g)
-        try:
-            self.sim_spec.build()      # the world is checked here, so a bad one never half-starts the daemon
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+        factory = self.sim_spec.world_factory()
+        if factory is not None:
+            # the world is built once here, at the home pose, so a bad one never half-starts the daemon
+            oMtcp = self.model.fk(self.q_home)
+            try:
+                factory(oMtcp.translation, oMtcp.rotation)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
         # The simulated arm, world and IMU run in a process of their own, as a real arm and board do
         # (robots/sim_process.py): the daemon's threads never starve them of the GIL.
         self.robot = SimProcess(self.sim_spec, self.model.nq)

@@ -92,3 +92,11 @@ def test_two_worlds_are_refused():
     cfg = sim_config(**{"sim.pivot": {"surface": "table"}})
     with pytest.raises(ConfigError, match="sim.pivot: give one world"):
         Daemon(Config(cfg))
+
+
+def test_a_world_that_cannot_be_built_is_a_config_error():
+    """The daemon builds its world once at the home pose before anything starts."""
+    from tecdard.daemon import Daemon
+    cfg = sim_config(**{"sim.hinge.point": [0.307, 0.0, 0.48]})      # 7 mm from the home TCP
+    with pytest.raises(ConfigError, match="hinge.point: the TCP must be at least 2 cm"):
+        Daemon(Config(cfg))
