@@ -18,10 +18,15 @@ APPROACH_TOL_M = 0.025
 POINT_TOL_M = 0.003          # issue 6; measured 0.2-0.85 mm over 8 runs (pens of 9 and 14 cm)
 
 
-def run_rotate(d, **fields):
+def rotate_until_it_ends(d, **fields) -> dict:
+    """A rotate (30 deg unless given): its task_done or task_failed event."""
     reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
     assert reply["ok"] is True, reply
-    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    return d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+
+
+def run_rotate(d, **fields):
+    ev = rotate_until_it_ends(d, **fields)
     assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
     return ev["result"]
 
@@ -60,9 +65,7 @@ def test_rotate_follows_the_arc_and_the_straight_pull_drags_the_base(make_daemon
     # The dragged base's friction also loads the grasp towards the 15 N force stop by the pull's end;
     # the pull either completes or ends in that stop, after the drag either way.
     d2 = make_daemon(**{"control.max_nis_ratio": 1000.0})
-    reply = d2.client.command("rotate", {"angle_deg": 45.0, "strategy": "straight"})
-    assert reply["ok"] is True, reply
-    ev = d2.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    ev = rotate_until_it_ends(d2, strategy="straight", angle_deg=45.0)
     if ev["kind"] == "task_failed":
         stop = next(e for e in d2.client.event_log if e["kind"] == "protective_stop")
         assert stop["cause"] == "force", f"{ev}\n{d2.log()[-3000:]}"
