@@ -6,7 +6,7 @@ import pytest
 
 from control.pipeline import ContactEstimate
 from control.tasks import ApproachTask
-from robots.backend import JointState
+from robots.backend import JointState, SimTruth
 from robots.model import READY_Q, ArmModel
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 
@@ -32,13 +32,17 @@ def estimate(p, converged=True, nis_ratio=0.5):
                            converged=converged, nis=1.0, steps=1000, nis_ratio=nis_ratio)
 
 
-def stops(ct):
+def drained_events(ct, *kinds):
     out = []
     while not ct.outbox.empty():
         kind, *rest = ct.outbox.get_nowait()
-        if kind == "event" and rest[0]["kind"] == "protective_stop":
+        if kind == "event" and rest[0]["kind"] in kinds:
             out.append(rest[0])
     return out
+
+
+def stops(ct):
+    return drained_events(ct, "protective_stop")
 
 
 JS = JointState(t=0.0, q=READY_Q["panda"], qd=np.zeros(7), seq=0)
@@ -88,3 +92,36 @@ def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
     (stop,) = stops(ct)
     assert stop["cause"] == "internal" and "KeyError" in stop["message"]
     assert ct.robot.holds == 1 and ct.task is None and ct.mode == "idle"
+
+
+class SimTruthRobot(HoldingRobot):
+    def __init__(self, truth):
+        super().__init__()
+        self._truth = truth
+
+    def truth(self):
+        if isinstance(self._truth, Exception):
+            raise self._truth
+        return self._truth
+
+
+def ended(ct):
+    return drained_events(ct, "task_done", "task_failed")
+
+
+def test_a_point_contact_result_ends_the_task_with_the_sim_truth(model):
+    """An approach that ends on a point contact reports no axis; its end event still carries the truth.
+    (It once raised in the truth and the task vanished without an end event.)"""
+    ct = control(model)
+    ct.robot = SimTruthRobot(SimTruth(np.array([0.3, 0.0, 0.3]), np.zeros(3), 0.0, 0.0, {"contacts": 1}))
+    ct._end_task("done", result={"p": [0.3, 0.0, 0.3], "axis": None})
+    (ev,) = ended(ct)
+    assert ev["kind"] == "task_done" and ev["result"]["sim"]["contacts"] == 1 and ct.task is None
+
+
+def test_a_failing_sim_truth_never_costs_the_task_its_end_event(model):
+    ct = control(model)
+    ct.robot = SimTruthRobot(RuntimeError("world gone"))
+    ct._end_task("failed", error="no contact within max_distance 0.05 m")
+    (ev,) = ended(ct)
+    assert ev["kind"] == "task_failed" and "sim" not in ev and ct.task is None

@@ -261,7 +261,7 @@ def test_approach_without_contact_fails_at_max_distance(make_daemon):
     reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.03, "max_distance": 0.03})
     assert reply["ok"] is True
     ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
-    assert ev["kind"] == "task_failed" and "max_distance" in ev["error"]
+    assert ev["kind"] == "task_failed" and "max_distance" in ev["error"], f"{ev}\n{d.log()[-4000:]}"
     p = np.array(d.client.command("status")["state"]["tcp"]["p"])
     assert p[2] > 0.487 - 0.03 - 0.002                            # never beyond max_distance
 
