@@ -12,12 +12,18 @@ class PlannerError(RuntimeError):
 _OK = (ruckig.Result.Working, ruckig.Result.Finished)
 
 
+MAX_ADVANCE_TICKS = 5     # a tick later than this many periods advances the plan by this much only
+
+
 class CartesianPlanner:
     """Owns Ruckig's InputParameter/OutputParameter for the TCP position (3 DOF, world, m).
 
     Each tick: `step(target_p, target_v)` runs `update()` then `pass_to_input()`,
-    so the next plan starts from where this one says the TCP is now. Never uses
-    intermediate waypoints (that path is not real-time).
+    so the next plan starts from where this one says the TCP is one period later.
+    Ticks do not come exactly one period apart on a loaded machine: `advance(now)`
+    at the start of a tick moves the plan to where its last trajectory is at `now`,
+    so the plan keeps wall time and rates taken from it (per wall second) stay true.
+    Never uses intermediate waypoints (that path is not real-time).
     """
 
     def __init__(self, tick_s: float, max_speed: float, max_accel: float, max_jerk: float):
@@ -32,6 +38,8 @@ class CartesianPlanner:
         self.out = ruckig.OutputParameter(3)
         self._set_limits(max_speed)
         self.result = ruckig.Result.Finished
+        self._t_now: float | None = None      # the time of the current tick (advance)
+        self._t_plan: float | None = None     # when the trajectory in `out` started (None: none to follow)
 
     def _set_limits(self, speed: float) -> None:
         # Ruckig limits are per axis. Targets here always carry a velocity of norm
@@ -56,6 +64,21 @@ class CartesianPlanner:
         self.inp.current_acceleration = [0.0] * 3 if a is None else list(map(float, a))
         self.inp.control_interface = ruckig.ControlInterface.Position
         self._set_limits(self.max_speed if speed is None else speed)
+        self._t_plan = None
+
+    def advance(self, now: float) -> None:
+        """Start a tick at `now` (s, monotonic): the plan's state becomes its last trajectory's at
+        the time since that trajectory began (one period on time; more after a late tick, less
+        in the tick that catches up), at most MAX_ADVANCE_TICKS periods."""
+        if self._t_plan is not None:
+            elapsed = min(max(now - self._t_plan, 0.0), MAX_ADVANCE_TICKS * self.tick_s)
+            if abs(elapsed - self.tick_s) > 1e-6:
+                # out.time is where the last new state lies on the trajectory (Ruckig follows an
+                # unchanged input's trajectory on without re-planning it)
+                p, v, a = self.out.trajectory.at_time(self.out.time - self.tick_s + elapsed)
+                self.inp.current_position, self.inp.current_velocity, self.inp.current_acceleration = p, v, a
+        self._t_plan = None
+        self._t_now = now
 
     @property
     def position(self) -> np.ndarray:
@@ -102,6 +125,7 @@ class CartesianPlanner:
             raise PlannerError(f"ruckig: {result.name}")
         self.result = result
         self.out.pass_to_input(self.inp)
+        self._t_plan = self._t_now
         return np.array(self.out.new_position), np.array(self.out.new_velocity)
 
     def steady(self, speed: float, rel_tol: float = 0.05, accel_tol: float = 0.02) -> bool:

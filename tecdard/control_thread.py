@@ -197,9 +197,10 @@ class ControlThread:
                 if delay > 0:
                     stop.wait(delay)
                 else:
+                    # Late: the next tick runs now, and the periods missed altogether are skipped
+                    # (the plan follows wall time, so a burst of catch-up ticks would only cost CPU).
                     self.stats.overruns += 1
-                    if delay < -10 * self.p.tick_s:
-                        t_next = time.monotonic()   # far behind: re-anchor rather than burst
+                    t_next += math.floor(-delay / self.p.tick_s) * self.p.tick_s
         finally:
             try:
                 self.robot.hold()
@@ -208,6 +209,7 @@ class ControlThread:
             self._writer.shutdown(wait=False, cancel_futures=True)
 
     def tick(self, now: float) -> None:
+        self.planner.advance(now)
         js = self.robot.read_state()
         oMtcp, twist = self.model.fk_twist(js.q, js.qd)
         if js.tcp_twist is not None:

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from control.planner import CartesianPlanner, PlannerError
+from control.planner import MAX_ADVANCE_TICKS, CartesianPlanner, PlannerError
 
 TICK_S = 0.02
 
@@ -47,3 +47,37 @@ def test_invalid_input_is_a_named_error():
     pl.reset(np.zeros(3))
     with pytest.raises(PlannerError, match="ruckig: ErrorInvalidInput: .*target position nan"):
         pl.step(np.array([np.nan, 0.0, 0.0]))
+
+
+def test_a_late_tick_advances_the_plan_by_the_time_that_passed():
+    """Ticks on time follow the plan period by period; a late tick takes the plan's state at its
+    own time, and the tick that catches up advances it by what little time passed since."""
+    def cruise(gaps):
+        pl = CartesianPlanner(TICK_S, max_speed=0.05, max_accel=0.5, max_jerk=5.0)
+        pl.reset(np.zeros(3), v=np.array([0.02, 0.0, 0.0]), speed=0.02)
+        t, out = 0.0, []
+        for gap in gaps:
+            t += gap
+            pl.advance(t)
+            out.append((t, pl.position[0], pl.velocity[0]))
+            pl.step(np.array([1.0, 0.0, 0.0]), np.array([0.02, 0.0, 0.0]))
+        return out
+
+    on_time = cruise([TICK_S] * 6)
+    assert [x for _, x, _ in on_time] == pytest.approx([0.02 * TICK_S * k for k in range(6)], abs=1e-12)
+    late = cruise([TICK_S, TICK_S, 0.055, 0.005, TICK_S])
+    for t, x, v in late:
+        assert x == pytest.approx(0.02 * (t - TICK_S), abs=1e-12) and v == pytest.approx(0.02)
+    # a stall longer than MAX_ADVANCE_TICKS periods advances the plan by that much only
+    stalled = cruise([TICK_S, 1.0])
+    assert stalled[1][1] == pytest.approx(0.02 * MAX_ADVANCE_TICKS * TICK_S, abs=1e-12)
+
+
+def test_a_reset_plan_does_not_advance():
+    pl = CartesianPlanner(TICK_S, max_speed=0.05, max_accel=0.5, max_jerk=5.0)
+    pl.advance(0.0)
+    pl.reset(np.zeros(3), v=np.array([0.02, 0.0, 0.0]), speed=0.02)
+    pl.step(np.array([1.0, 0.0, 0.0]), np.array([0.02, 0.0, 0.0]))
+    pl.reset(np.array([0.5, 0.0, 0.0]))
+    pl.advance(0.08)
+    assert pl.position[0] == 0.5 and pl.velocity[0] == 0.0
