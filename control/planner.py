@@ -10,6 +10,10 @@ class PlannerError(RuntimeError):
 
 
 _OK = (ruckig.Result.Working, ruckig.Result.Finished)
+# Ruckig's own numerical failures on valid input (pantor/ruckig#160), raised by this build:
+# step 1 is an axis's fastest profile, step 2 the synchronisation of the axes.
+_RETRY = (ruckig.Result.ErrorSynchronizationCalculation, ruckig.Result.ErrorExecutionTimeCalculation)
+_CALC_FAILURES = ("error in step 1", "error in step 2", "error in time synchronization")
 
 
 MAX_ADVANCE_TICKS = 5     # a tick later than this many periods advances the plan by this much only
@@ -40,6 +44,7 @@ class CartesianPlanner:
         self.result = ruckig.Result.Finished
         self._t_now: float | None = None      # the time of the current tick (advance)
         self._t_plan: float | None = None     # when the trajectory in `out` started (None: none to follow)
+        self.fallbacks = 0                    # cycles planned axis by axis after a Ruckig failure (_update)
 
     def _set_limits(self, speed: float) -> None:
         # Ruckig limits are per axis. Targets here always carry a velocity of norm
@@ -101,7 +106,7 @@ class CartesianPlanner:
         lim = self.inp.max_velocity[0]
         peak = float(np.max(np.abs(tv)))
         if peak > lim:
-            tv = tv * (lim / peak)
+            tv = tv * (lim * (1.0 - 1e-9) / peak)    # rounding must not leave it a hair over the limit
         self.inp.target_velocity = list(map(float, tv))
         self.inp.target_acceleration = [0.0] * 3
         return self._update()
@@ -114,13 +119,37 @@ class CartesianPlanner:
         self.inp.target_acceleration = [0.0] * 3
         return self._update()
 
-    def _update(self) -> tuple[np.ndarray, np.ndarray]:
+    def _calculate(self) -> ruckig.Result:
         try:
-            result = self.otg.update(self.inp, self.out)
+            return self.otg.update(self.inp, self.out)
         except ruckig.RuckigError as exc:   # raised instead of returned for invalid input
             lines = str(exc).strip().splitlines()
             reason = next((ln for ln in lines if ln.startswith("[ruckig]")), lines[-1] if lines else "")
-            raise PlannerError(f"ruckig: ErrorInvalidInput: {reason.removeprefix('[ruckig]').strip()}") from None
+            reason = reason.removeprefix("[ruckig]").strip()
+            if any(s in reason for s in _CALC_FAILURES):
+                return ruckig.Result.ErrorExecutionTimeCalculation if "step 1" in reason \
+                    else ruckig.Result.ErrorSynchronizationCalculation
+            raise PlannerError(f"ruckig: ErrorInvalidInput: {reason}") from None
+
+    def _update(self) -> tuple[np.ndarray, np.ndarray]:
+        result = self._calculate()
+        if result in _RETRY:
+            # Ruckig fails numerically on rare valid inputs, at a knife edge of its root finding
+            # (about 1 in 10^4 random re-plans here; pantor/ruckig#160). Plan this one cycle with
+            # each axis on its own and no minimum duration, and if that fails too, from a state
+            # a part in 10^9 slower: the next tick re-plans the full path from where this one ends.
+            duration, self.inp.minimum_duration = self.inp.minimum_duration, None
+            self.inp.synchronization = ruckig.Synchronization.No
+            try:
+                result = self._calculate()
+                if result in _RETRY:
+                    self.inp.current_velocity = [x * (1.0 - 1e-9) for x in self.inp.current_velocity]
+                    self.inp.current_acceleration = [x * (1.0 - 1e-9) for x in self.inp.current_acceleration]
+                    result = self._calculate()
+            finally:
+                self.inp.synchronization = ruckig.Synchronization.Time
+                self.inp.minimum_duration = duration
+            self.fallbacks += 1
         if result not in _OK:
             raise PlannerError(f"ruckig: {result.name}")
         self.result = result

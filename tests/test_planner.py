@@ -81,3 +81,35 @@ def test_a_reset_plan_does_not_advance():
     pl.reset(np.array([0.5, 0.0, 0.0]))
     pl.advance(0.08)
     assert pl.position[0] == 0.5 and pl.velocity[0] == 0.0
+
+
+# Valid re-plans on which this Ruckig build fails numerically (found by fuzzing re-plans with
+# late ticks; pantor/ruckig#160): (current p, v, a, target p, speed cap, minimum duration).
+RUCKIG_KNIFE_EDGES = [
+    ([0.011814658068259903, 0.006143566382140092, 0.04556597114478244], [0.01, 0.003067565918213409, -0.008704797156921316],
+     [0.0, 0.0, 0.03798636413774537], [0.16321175401302596, 0.05264682811569868, -0.0840665147676603], 0.01,
+     0.572348030420526),
+    ([0.012064492092250525, -0.0003565576834306997, 0.026244434403546166],
+     [-0.0025273641322374504, 0.003571749083406619, 0.012799028247729966],
+     [0.13915026628232308, 0.40531778787259487, 0.26834626422348495],
+     [0.09931742218308653, 0.14199343573164003, -0.060176300396991955], 0.02, 0.31588560762232043),
+]
+
+
+@pytest.mark.parametrize("p, v, a, target, speed, duration", RUCKIG_KNIFE_EDGES)
+def test_a_ruckig_calculation_failure_on_valid_input_is_planned_axis_by_axis_for_one_cycle(p, v, a, target, speed,
+                                                                                          duration):
+    import ruckig
+    pl = CartesianPlanner(TICK_S, max_speed=0.05, max_accel=0.5, max_jerk=5.0)
+    pl.reset(np.array(p), v=np.array(v), a=np.array(a), speed=speed)
+    pl.inp.minimum_duration, pl.inp.target_position = duration, target
+    with pytest.raises(ruckig.RuckigError, match="error in step"):
+        pl.otg.update(pl.inp, pl.out)           # Ruckig alone fails here
+    pl.reset(np.array(p), v=np.array(v), a=np.array(a), speed=speed)
+    p1, v1 = pl.step(np.array(target), None, duration)
+    assert pl.fallbacks == 1 and np.all(np.abs(v1) <= speed + 1e-12)
+    assert np.linalg.norm(p1 - p) < 0.05 * TICK_S            # one cycle's motion at most
+    assert pl.inp.synchronization == ruckig.Synchronization.Time and pl.inp.minimum_duration == duration
+    for _ in range(5):                                        # and the next cycles plan normally
+        pl.step(np.array(target), None, duration)
+    assert pl.fallbacks == 1
