@@ -4,6 +4,7 @@ Used by the tests (on a pseudo-terminal) and by the simulator to drive the whole
 """
 from __future__ import annotations
 
+import errno
 import os
 import pathlib
 import select
@@ -103,14 +104,23 @@ class PtyDevice:
         if self.link.is_symlink():
             self.link.unlink()
 
+    def _fd(self) -> int:
+        """The master's descriptor, read once: `unplug` may run in another thread at any moment
+        (a write on the closed descriptor then fails with OSError, as on a pulled cable)."""
+        fd = self.master
+        if fd is None:
+            raise OSError(errno.ENODEV, "the emulated board is unplugged")
+        return fd
+
     def write(self, data: bytes) -> None:
         """Blocking write of everything (for tests that inject exact byte sequences)."""
+        fd = self._fd()
         view = memoryview(data)
         while view:
             try:
-                n = os.write(self.master, view)
+                n = os.write(fd, view)
             except BlockingIOError:
-                select.select([], [self.master], [], 1.0)
+                select.select([], [fd], [], 1.0)
                 continue
             view = view[n:]
 
@@ -118,9 +128,10 @@ class PtyDevice:
         """Write whole frames without blocking, as a board does: when the host does not read and
         the buffer is full, the rest are dropped (returns how many). A frame cut short by a
         partial write is dropped too, and the reader's parser resynchronises."""
+        fd = self._fd()
         for i, fr in enumerate(frames):
             try:
-                n = os.write(self.master, fr)
+                n = os.write(fd, fr)
             except BlockingIOError:
                 self.dropped_frames += len(frames) - i
                 return len(frames) - i
@@ -158,7 +169,7 @@ class StreamThread:
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
             frames = self.board.packets(gyro, accel)
             if self.device.master is not None:
-                try:
+                try:        # OSError: unplugged meanwhile
                     if self.mutate is not None:
                         self.device.write(self.mutate(b"".join(frames)))
                     else:

@@ -59,6 +59,19 @@ def test_round_trip_with_every_corruption(pty):
     assert np.all(np.abs(gyro) < 1.0)
 
 
+def test_writing_to_an_unplugged_board_is_an_os_error(pty):
+    """The emulator's stream thread may write just as a test unplugs the board: that is an
+    OSError it survives (as on a pulled cable), never a TypeError that ends the thread."""
+    board = Board(BoardParams())
+    frames = board.packets(np.zeros((4, 3)), np.tile([0.0, 0.0, 9.81], (4, 1)))
+    assert pty.write_frames(frames) == 0
+    pty.unplug()
+    with pytest.raises(OSError, match="unplugged"):
+        pty.write_frames(frames)
+    with pytest.raises(OSError, match="unplugged"):
+        pty.write(b"".join(frames))
+
+
 def test_unplug_and_replug(pty):
     board = Board()
     streamer = StreamThread(pty, board).start()
