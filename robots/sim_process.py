@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -39,6 +40,8 @@ log = logging.getLogger("tecdar.sim")
 START_TIMEOUT_S = 60.0       # a cold child imports numpy and Pinocchio and loads the URDF
 STOP_TIMEOUT_S = 2.0
 IMU_FORWARD_WAIT_S = 0.05
+GIL_SWITCH_INTERVAL_S = 0.001
+IMU_FORWARD_PERIOD_S = 0.004  # IMU samples go to the daemon in messages at most this often
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
@@ -77,10 +80,23 @@ class SimSpec:
 
 
 def _forward_imu(imu: SimImu, conn, stop: threading.Event) -> None:
+    """IMU chunks to the daemon, at most one message per IMU_FORWARD_PERIOD_S. Each message
+    costs the daemon's reader a few GIL hand-overs (poll, header, body); on a loaded machine
+    each can wait a whole switch interval, and one physics slice per message then arrived
+    slower than the physics made them: a backlog of 50-70 ms, a stale-IMU stop."""
+    t_sent = 0.0
     while not stop.is_set():
         chunk = imu.read(IMU_FORWARD_WAIT_S)
-        if chunk is not None:
-            conn.send(chunk)
+        if chunk is None:
+            continue
+        wait = t_sent + IMU_FORWARD_PERIOD_S - time.monotonic()
+        if wait > 0:
+            stop.wait(wait)
+        chunks = [chunk]
+        while (more := imu.read(0.0)) is not None:
+            chunks.append(more)
+        conn.send(chunk if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks)))
+        t_sent = time.monotonic()
 
 
 def _forward_state(robot: SimRobot, conn, stop: threading.Event) -> None:
@@ -95,6 +111,7 @@ def _forward_state(robot: SimRobot, conn, stop: threading.Event) -> None:
 def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) -> None:
     """The child process: build, start, forward, and take commands until told to stop."""
     logging.basicConfig(level=log_level, format=LOG_FORMAT)
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)     # the forwarders hand over to the physics thread often
     stop = threading.Event()
     device = None
     try:
