@@ -55,11 +55,12 @@ class SampleRing:
             self.last_t = float(t[-1])
             self._cond.notify()
 
-    def pop(self, max_n: int = 1024, timeout: float = 0.05) -> np.ndarray:
-        """Up to max_n oldest unread samples as an (n, 7) copy; empty after `timeout` s without data."""
+    def pop(self, max_n: int = 1024, timeout: float = 0.05, min_n: int = 1) -> np.ndarray:
+        """Up to max_n oldest unread samples as an (n, 7) copy, once at least min_n are there or
+        after `timeout` s with what there is (empty without data)."""
         with self._cond:
-            if self._head == self._tail:
-                self._cond.wait(timeout)
+            if self._head - self._tail < min_n:
+                self._cond.wait_for(lambda: self._head - self._tail >= min_n, timeout)
             n = min(self._head - self._tail, max_n)
             if n <= 0:
                 return self._buf[:0].copy()

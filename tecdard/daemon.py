@@ -122,7 +122,9 @@ class Daemon:
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
         self.contact = LatestValue()
         self.notifier = Notifier()
-        self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox)
+        source_odr_hz = serial_params.odr_hz if serial_params is not None else odr_hz
+        self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
+                                         min_batch=max(1, int(source_odr_hz * self.pipeline.params.output_period_s)))
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings)

@@ -35,9 +35,14 @@ class EstimatorThread:
     """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
     estimates leave through the `contact` latest-value slot and the outbox."""
 
-    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue):
+    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1):
         self.pipeline = pipeline
         self.ring = ring
+        # Samples to wait for (up to POP_TIMEOUT_S) before a batch. The pipeline's fixed cost is per
+        # batch (some fifty numpy calls), and a source delivers a few samples at a time (8-sample
+        # packets from the board): the daemon waits for one output period's worth, which delays
+        # an estimate by at most that much.
+        self.min_batch = min_batch
         self.contact = contact
         self.outbox = outbox
         self.inbox: queue.Queue = queue.Queue(maxsize=1024)
@@ -69,7 +74,7 @@ class EstimatorThread:
                     pipe.begin(msg[1])
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
-            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S)
+            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
             events, est = pipe.process(batch)
             for ev in events:
                 self._put(("event", ev))

@@ -40,3 +40,20 @@ def test_pop_waits_for_data():
     th.join()
     assert len(out) == 5
     assert len(ring.pop(10, timeout=0.0)) == 0
+
+
+def test_pop_waits_for_a_minimum_batch_and_gives_what_there_is_at_the_timeout():
+    ring = SampleRing(256)
+
+    def produce():
+        for k in range(4):
+            ring.push(*batch(8 * k, 8))       # 8-sample packets, as the board sends them
+            threading.Event().wait(0.02)
+
+    th = threading.Thread(target=produce)
+    th.start()
+    out = ring.pop(100, timeout=5.0, min_n=20)
+    th.join()
+    assert len(out) >= 20 and np.array_equal(out[:, 0], np.arange(len(out), dtype=float))
+    rest = ring.pop(100, timeout=0.05, min_n=100)    # fewer than asked: returned after the timeout
+    assert len(out) + len(rest) == 32
