@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import yaml
 
@@ -17,6 +18,13 @@ from tecdard.demo import free_port
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
+
+
+STILL_M = 2e-4               # the TCP has not moved (encoder noise is ~0.03 mm)
+
+
+def tcp_now(cli) -> np.ndarray:
+    return np.array(cli.command("status")["state"]["tcp"]["p"])
 
 
 def sim_config(**overrides) -> dict:
