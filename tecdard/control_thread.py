@@ -16,7 +16,7 @@ import numpy as np
 from control.planner import CartesianPlanner, PlannerError
 from control.mapping import MapParams, MapTask
 from control.tasks import ApproachTask, ContactView, PointTask, ProbeTask, RotateTask, TickInput
-from control.geometry import matrix_to_quat
+from control.geometry import matrix_to_quat, rotvec_to_matrix
 from tecdard import commands as C
 from tecdard.mapfiles import MapSettings, write_map
 
@@ -26,6 +26,7 @@ TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
+SERVO_MAX_AGE_S = 0.1         # the servo compares a measurement with the plan this far back at most
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
 
 
@@ -223,14 +224,14 @@ class ControlThread:
         self._check_faults(now)
         self._check_limits(js, est)
         self._handle_commands(p, v)
-        p_plan = self.planner.position
+        p_plan, v_plan = self.planner.position, self.planner.velocity
         if self.task is not None and not self._braking:
             p_cmd, v_cmd = self._step_task(now, p, R, est, js.tcp_force)
         elif self._braking or self.mode == "stopped":
             p_cmd, v_cmd = self._brake_step()
         else:
             self.planner.reset(p)
-            p_plan, p_cmd, v_cmd = p, p, np.zeros(3)
+            p_plan, v_plan, p_cmd, v_cmd = p, np.zeros(3), p, np.zeros(3)
             if self._R_hold is None:
                 self._R_hold = R
         if self.mode == "idle" and self.task is None and not self._braking:
@@ -239,7 +240,14 @@ class ControlThread:
             self._w_ff = np.zeros(3)
         else:
             v_ff = (p_cmd - p_plan) / self.p.tick_s
-            tw = self.model.servo_twist(oMtcp, p_plan, v_ff, self._R_hold, self._w_ff)
+            # The plan is at `now`, the measurement at js.t, a proprioception period or more
+            # earlier: the servo compares it with the plan at that time. Against the plan at
+            # `now` the feedback would add gain * v * age, which changes with the age each tick
+            # (a sawtooth of velocity steps that the IMU's trigger can feel).
+            age = min(max(now - js.t, 0.0), SERVO_MAX_AGE_S)
+            p_ref = p_plan - v_plan * age
+            R_ref = rotvec_to_matrix(-self._w_ff * age) @ self._R_hold
+            tw = self.model.servo_twist(oMtcp, p_ref, v_ff, R_ref, self._w_ff)
             speed = float(np.linalg.norm(tw[:3]))
             if speed > self.p.max_speed:       # hard TCP speed bound, whatever the planner said
                 tw[:3] *= self.p.max_speed / speed

@@ -1,4 +1,4 @@
-"""The control thread's estimator checks, fed estimates directly: divergence and contact jumps."""
+"""The control thread, ticked directly: its estimator checks (divergence, contact jumps), faults, and the servo."""
 import queue
 
 import numpy as np
@@ -125,3 +125,63 @@ def test_a_failing_sim_truth_never_costs_the_task_its_end_event(model):
     ct._end_task("failed", error="no contact within max_distance 0.05 m")
     (ev,) = ended(ct)
     assert ev["kind"] == "task_failed" and "sim" not in ev and ct.task is None
+
+
+class LaggingArm:
+    """A perfect velocity-controlled arm whose joint state reaches the controller `age` late,
+    the age changing from tick to tick as 65 Hz samples met by 50 Hz ticks (and a loaded machine) do."""
+
+    def __init__(self, q0, ages):
+        self.q, self.qd, self.t = q0.copy(), np.zeros(len(q0)), 0.0
+        self.history = [(0.0, q0.copy(), np.zeros(len(q0)))]
+        self.ages = ages
+        self.seq = 0
+
+    def advance(self, t):
+        self.q = self.q + self.qd * (t - self.t)
+        self.t = t
+        self.history.append((t, self.q.copy(), self.qd.copy()))
+
+    def read_state(self):
+        t_meas = max(self.t - next(self.ages), 0.0)
+        t0, q0, qd = next(h for h in reversed(self.history) if h[0] <= t_meas)
+        self.seq += 1
+        return JointState(t=t_meas, q=q0 + qd * (t_meas - t0), qd=qd, seq=self.seq)
+
+    def command_joint_velocity(self, qd):
+        self.qd = np.asarray(qd, float).copy()
+
+    def hold(self):
+        self.qd = np.zeros(len(self.q))
+
+
+class FreshRing:
+    total, last_t = 1, 0.0
+
+
+def cruise_tcp_speeds(model, ages):
+    """A free approach down at 20 mm/s, ticked exactly every 20 ms; the TCP speeds it commands in cruise."""
+    ct = ControlThread(ControlParams(), model, robot=None, ring=FreshRing(), contact=LatestValue(),
+                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+    arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), ages)
+    ct.inbox.put(("start", "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
+                                         "stop_angle_deg": 10.0}, None))
+    speeds = []
+    for k in range(1, 90):
+        now = 0.02 * k
+        arm.advance(now)
+        FreshRing.last_t = now
+        ct.tick(now)
+        speeds.append(float(-model.fk_twist(arm.q, arm.qd)[1][2]))
+    assert ct.task is not None and ct.task.status.phase == "approach"
+    return np.array(speeds[40:])
+
+
+def test_the_servo_compares_a_late_measurement_with_the_plan_at_its_time(model):
+    """The plan is at the tick's time, the joint state up to tens of ms older. Compared with the
+    plan at `now` the feedback adds gain * v * age, a velocity step each tick the age changes,
+    which the IMU's trigger feels as an impact; compared at the measurement's time it adds nothing."""
+    rng = np.random.default_rng(1)
+    ages = iter(lambda: float(rng.uniform(0.0, 0.035)), None)
+    speeds = cruise_tcp_speeds(model, ages)
+    assert np.all(np.abs(speeds - 0.02) < 2e-4), (speeds.min(), speeds.max())
