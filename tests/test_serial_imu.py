@@ -10,7 +10,9 @@ import pytest
 from drivers import imu_wire as W
 from drivers.imu_emulator import Board, BoardParams, PtyDevice, StreamThread
 from drivers.serial_imu import PortError, SerialImuSource, SerialParams
-from tests.conftest import ROOT
+from tests.conftest import ROOT, sim_config
+
+PRODUCT_IMU_STALE_S = sim_config()["control"]["imu_stale_s"]     # 50 ms, issue 6
 
 READ_DEADLINE_S = 10.0
 
@@ -129,7 +131,8 @@ def test_tecdard_imu_bad_port_exits_nonzero(tmp_path):
 def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
     streamer = StreamThread(pty, Board()).start()
     try:
-        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
+                         "control.imu_stale_s": PRODUCT_IMU_STALE_S})
         cli = d.client
         time.sleep(0.5)
         assert cli.command("status")["state"]["faults"] == []
@@ -181,7 +184,8 @@ def test_unplugging_the_imu_during_a_task_is_a_protective_stop_on_stale_data(mak
     running task with a decelerating stop; once the board is back the daemon returns to idle."""
     streamer = StreamThread(pty, Board()).start()
     try:
-        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
+                         "control.imu_stale_s": PRODUCT_IMU_STALE_S})
         cli = d.client
         time.sleep(0.5)
         reply = cli.command("rotate", {"angle_deg": 30.0})      # phase 1 moves the TCP at once
