@@ -481,7 +481,12 @@ class ControlThread:
             self._protective_stop("workspace", f"target {np.round(motion.p, 4).tolist()} leaves the workspace box")
             return self._brake_step()
         try:
-            return self.planner.step(motion.p, motion.v, motion.min_duration_s)
+            fallbacks = self.planner.fallbacks
+            out = self.planner.step(motion.p, motion.v, motion.min_duration_s)
+            if self.planner.fallbacks != fallbacks:
+                log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
+                            self.planner.fallbacks)
+            return out
         except PlannerError as exc:
             self._protective_stop("planner", str(exc))
             return self._brake_step()
@@ -557,6 +562,6 @@ class ControlThread:
             "contact": None if est is None else est.to_json(),
             "task": task,
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
-            "control": self.stats.snapshot(),
+            "control": {**self.stats.snapshot(), "planner_fallbacks": self.planner.fallbacks},
         }
         self._put(("state", state))
