@@ -83,7 +83,7 @@ def _forward_imu(imu: SimImu, conn, stop: threading.Event) -> None:
     """IMU chunks to the daemon, at most one message per IMU_FORWARD_PERIOD_S. Each message
     costs the daemon's reader a few GIL hand-overs (poll, header, body); on a loaded machine
     each can wait a whole switch interval, and one physics slice per message then arrived
-    slower than the physics made them: a backlog of 50-70 ms, a stale-IMU stop."""
+    slower than the physics made them: a backlog of 45-60 ms, a stale-IMU stop."""
     t_sent = 0.0
     while not stop.is_set():
         chunk = imu.read(IMU_FORWARD_WAIT_S)
