@@ -28,6 +28,14 @@ class SimTruth:
     extra: dict = field(default_factory=dict)
 
 
+def joint_rates(qd, nq: int) -> np.ndarray:
+    """A joint velocity command as an array, or ValueError naming what is wrong with it."""
+    qd = np.asarray(qd, dtype=float)
+    if qd.shape != (nq,) or not np.all(np.isfinite(qd)):
+        raise ValueError(f"qd: expected {nq} finite joint rates")
+    return qd
+
+
 class RobotReceive(Protocol):
     """Reading side: latest proprioception."""
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.backend import JointState, SimTruth
+from robots.backend import JointState, SimTruth, joint_rates
 from robots.model import ArmModel
 from robots.world import HingeWorld
 
@@ -103,9 +103,7 @@ class SimRobot:
 
     def command_at(self, t_issued: float, qd: np.ndarray) -> None:
         """A command issued at `t_issued` (this clock): it takes effect command_latency_s later."""
-        qd = np.asarray(qd, dtype=float)
-        if qd.shape != (self.model.nq,) or not np.all(np.isfinite(qd)):
-            raise ValueError(f"qd: expected {self.model.nq} finite joint rates")
+        qd = joint_rates(qd, self.model.nq)
         with self._lock:
             self._cmds.append((t_issued + self.p.command_latency_s, qd.copy()))
 

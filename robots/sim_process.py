@@ -30,7 +30,7 @@ import numpy as np
 
 from drivers.imu_emulator import Board, BoardParams, PtyDevice
 from drivers.sim_imu import SimImu, SimImuParams
-from robots.backend import JointState, SimTruth
+from robots.backend import JointState, SimTruth, joint_rates
 from robots.model import ArmModel
 from robots.sim import SimRobot, SimRobotParams
 from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
@@ -233,9 +233,7 @@ class SimProcess:
         return self._truth
 
     def command_joint_velocity(self, qd: np.ndarray) -> None:
-        qd = np.asarray(qd, dtype=float)
-        if qd.shape != (self.nq,) or not np.all(np.isfinite(qd)):
-            raise ValueError(f"qd: expected {self.nq} finite joint rates")
+        qd = joint_rates(qd, self.nq)
         t_issued = time.monotonic()
         try:
             with self._send_lock:
