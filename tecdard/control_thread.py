@@ -225,6 +225,7 @@ class ControlThread:
         self._check_limits(js, est)
         self._handle_commands(p, v)
         p_plan, v_plan = self.planner.position, self.planner.velocity
+        fallbacks = self.planner.fallbacks
         if self.task is not None and not self._braking:
             p_cmd, v_cmd = self._step_task(now, p, R, est, js.tcp_force)
         elif self._braking or self.mode == "stopped":
@@ -234,6 +235,9 @@ class ControlThread:
             p_plan, v_plan, p_cmd, v_cmd = p, np.zeros(3), p, np.zeros(3)
             if self._R_hold is None:
                 self._R_hold = R
+        if self.planner.fallbacks != fallbacks:     # a task's step or a brake
+            log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
+                        self.planner.fallbacks)
         if self.mode == "idle" and self.task is None and not self._braking:
             self.robot.hold()
             self._R_hold = R
@@ -481,12 +485,7 @@ class ControlThread:
             self._protective_stop("workspace", f"target {np.round(motion.p, 4).tolist()} leaves the workspace box")
             return self._brake_step()
         try:
-            fallbacks = self.planner.fallbacks
-            out = self.planner.step(motion.p, motion.v, motion.min_duration_s)
-            if self.planner.fallbacks != fallbacks:
-                log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
-                            self.planner.fallbacks)
-            return out
+            return self.planner.step(motion.p, motion.v, motion.min_duration_s)
         except PlannerError as exc:
             self._protective_stop("planner", str(exc))
             return self._brake_step()
