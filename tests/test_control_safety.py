@@ -18,9 +18,14 @@ def model():
     return ArmModel("panda")
 
 
+def control_thread(model, ring=None, **params):
+    return ControlThread(ControlParams(**params), model, robot=None, ring=ring, contact=LatestValue(),
+                         to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+
+
 def control(model, **params):
-    ct = ControlThread(ControlParams(**params), model, robot=None, ring=None, contact=LatestValue(),
-                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+    """A control thread with an approach running (its task set directly, no tick yet)."""
+    ct = control_thread(model, **params)
     ct.task = ApproachTask("approach-1", np.array([0.0, 0.0, -1.0]), 0.02, 0.05, 0.1)
     ct._task_t0 = 0.0
     return ct
@@ -161,8 +166,7 @@ class FreshRing:
 
 def cruise_tcp_speeds(model, ages):
     """A free approach down at 20 mm/s, ticked exactly every 20 ms; the TCP speeds it commands in cruise."""
-    ct = ControlThread(ControlParams(), model, robot=None, ring=FreshRing(), contact=LatestValue(),
-                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+    ct = control_thread(model, ring=FreshRing())
     arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), ages)
     ct.inbox.put(("start", "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
                                          "stop_angle_deg": 10.0}, None))
