@@ -18,6 +18,7 @@ from control.geometry import Plane, rotvec_to_matrix
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
+CONSISTENCY_WINDOW_S = 0.01  # the NIS ratio's window: at least the longest block (64 samples at 6.7 kHz)
 
 
 @dataclass
@@ -390,7 +391,11 @@ class ContactKF:
         self.corr_samples = 1.0          # IMU samples per proprioception sample
         self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
         self.k_prior_var = 0.0
-        self.consistency = 1.0           # smoothed block NIS / its expectation (>= 1 scales the report)
+        self.consistency = 1.0           # smoothed window NIS / its expectation (>= 1 scales the report)
+        self._win_n, self._win_t = 0, 0.0    # the consistency window: blocks in it, seconds
+        self._win_gated, self._win_samples = [], 0   # its gated blocks' per-sample NIS; samples with a NIS
+        self._win_x0 = self._win_b = np.zeros(self.d)
+        self._win_P0 = self._win_A = np.eye(self.d)
         # Extra variance, (m/s)^2, of the TCP velocity along the lever arm. Set while a controller
         # follows an arc about the estimate: its own path error then moves the TCP along the lever
         # arm, the compliant grasp absorbs it, and that component is no evidence about the contact.
@@ -429,6 +434,7 @@ class ContactKF:
         self.steps = 0
         self.rejected = 0
         self.consistency = 1.0
+        self._win_n, self._win_t, self._win_gated, self._win_samples = 0, 0.0, [], 0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
@@ -588,44 +594,90 @@ class ContactKF:
         return self._commit(P, A, b, n, keep, nis, r0, duration, commit)
 
     def _commit(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
-        """The collapsed update: H_eq from A's eigenvectors with data, unit noise, Joseph form."""
-        lam, U = np.linalg.eigh(A)
-        good = lam > 1e-12 * max(lam[-1], 1e-300)
-        if commit:
-            if keep is not None:
-                self.rejected += int(n - np.count_nonzero(keep))
-            if nis is not None and len(nis):
-                self.nis = float(nis[-1])
-        if not np.any(good):
-            if commit:
-                self.P = P
-            return self.x
-        sq = np.sqrt(lam[good])
-        Ug = U[:, good]
-        Heq = sq[:, None] * Ug.T                       # (r, d+1): Heq^T Heq = A
-        yeq = (Ug.T @ b) / sq                           # Heq^T yeq = b
-        HP = Heq @ P
-        S_eq = HP @ Heq.T
-        S_eq.flat[::len(sq) + 1] += 1.0
-        K = np.linalg.solve(S_eq, HP).T
-        x_new = self.x + K @ yeq
-        if commit:
-            if consistency and self.steps > 0:
-                # Block-level NIS of the collapsed measurement: chi^2 with len(sq) dof when the model
-                # holds. A coherent bias (sliding in the grasp, a stale TCP rate) shows up here even
-                # when each sample looks fine; its smoothed ratio scales the reported covariance.
-                ratio = float(yeq @ np.linalg.solve(S_eq, yeq)) / len(sq)
-                alpha = 1.0 - math.exp(-max(duration, 1e-4) / CONSISTENCY_TAU_S)
-                self.consistency += alpha * (ratio - self.consistency)
-            # Joseph form, with the collapsed measurement's unit noise: stays symmetric positive
-            # definite whatever the gain's rounding.
-            Aj = -(K @ Heq)
-            Aj.flat[::len(self.x) + 1] += 1.0
-            self.x, self.P = x_new, Aj @ P @ Aj.T + K @ K.T
-            self.steps += n
-            if n:
-                self._r_last = r0[-1] - self.c
+        """The collapsed update in Joseph form, from A = sum H^T R^-1 H and b = sum H^T R^-1 y.
+
+        A collapsed measurement H_eq (H_eq^T H_eq = A, unit noise, H_eq^T y_eq = b) has the gain
+        K = P H_eq^T (H_eq P H_eq^T + I)^-1; by the push-through identity K H_eq = G A and K y_eq = G b
+        with G = P (A P + I)^-1, and K K^T = G A G^T. So the Joseph form
+        (I - K H_eq) P (I - K H_eq)^T + K K^T needs one solve and no factorisation of A, whose rank
+        may be short (the unobservable direction along a line contact)."""
+        nx = len(self.x)
+        M = A @ P
+        M.flat[::nx + 1] += 1.0
+        G = np.linalg.solve(M.T, P).T           # P (A P + I)^-1; M^T = P A + I as P, A are symmetric
+        x_new = self.x + G @ b
+        if not commit:
+            return x_new
+        if keep is not None:
+            self.rejected += int(n - np.count_nonzero(keep))
+        if nis is not None and len(nis):
+            self.nis = float(nis[-1])
+        if consistency and self.steps > 0:
+            self._window_add(P, A, b, duration, nis, keep)
+        GA = G @ A
+        Aj = -GA
+        Aj.flat[::nx + 1] += 1.0
+        self.x, self.P = x_new, Aj @ P @ Aj.T + GA @ G.T
+        self.steps += n
+        if n:
+            self._r_last = r0[-1] - self.c
         return x_new
+
+    def _window_add(self, P, A, b, duration: float, nis, keep) -> None:
+        """Add one block's information to the consistency window; close the window once it spans
+        CONSISTENCY_WINDOW_S.
+
+        The window's data are one collapsed measurement of the state at the window's start:
+        each block's b is about the state before that block, and b + A (x_before - x_start) is
+        the same data about x_start (exact for the linearised model). Its NIS against the prior
+        at the start, with the window's rank r as its degrees of freedom, is chi^2(r) while the
+        model holds, whatever the blocks were: a coherent model error (sliding in the grasp, a
+        stale TCP rate) adds to it in proportion to the window's length, which is fixed, so the
+        divergence limit means the same for the daemon's batches and for an offline replay.
+
+        Samples the NIS gate rejected carry no information, so a gross failure (the grasp sliding
+        fast) could hide behind the gate: a window whose samples are mostly rejected reads at
+        least the median per-sample NIS over its degrees of freedom.
+        """
+        if nis is not None and keep is not None and not keep.all():
+            self._win_gated.append(nis)
+        self._win_samples += len(nis) if nis is not None else 0
+        if self._win_n == 0:
+            self._win_x0 = self.x.copy()
+            self._win_P0 = P.copy()
+            self._win_A = A.copy()
+            self._win_b = b.copy()
+        else:
+            self._win_A += A
+            self._win_b += b + A @ (self.x - self._win_x0)
+        self._win_n += 1
+        self._win_t += duration
+        if self._win_t < CONSISTENCY_WINDOW_S:
+            return
+        A_w, b_w, P0, t_w = self._win_A, self._win_b, self._win_P0, self._win_t
+        gated, n_samples = self._win_gated, self._win_samples
+        self._win_n, self._win_t, self._win_gated, self._win_samples = 0, 0.0, [], 0
+        ratio = 0.0
+        lam, U = np.linalg.eigh(A_w)
+        good = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+        rank = int(np.count_nonzero(good))
+        if rank:
+            ub = U[:, good].T @ b_w
+            fit = float(ub @ (ub / lam[good]))     # y_eq^T y_eq = b^T A^+ b
+            M = A_w @ P0
+            M.flat[::len(b_w) + 1] += 1.0
+            nis = fit - float(b_w @ np.linalg.solve(M.T, P0) @ b_w)  # Woodbury: y_eq^T (H_eq P0 H_eq^T + I)^-1 y_eq
+            # A window closes at the first block end past CONSISTENCY_WINDOW_S; its excess over the
+            # expectation is referred to the nominal length so that the batching cannot change it.
+            ratio = 1.0 + (max(nis, 0.0) / rank - 1.0) * (CONSISTENCY_WINDOW_S / t_w)
+        if gated:
+            all_nis = np.concatenate(gated)
+            if 2 * int(np.count_nonzero(all_nis > self.params.gate_nis)) > n_samples:
+                ratio = max(ratio, float(np.median(all_nis)) / self.d)
+        if not rank and ratio <= 0.0:
+            return
+        alpha = 1.0 - math.exp(-t_w / CONSISTENCY_TAU_S)
+        self.consistency += alpha * (ratio - self.consistency)
 
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject k = 1); (1, 0) without evidence."""

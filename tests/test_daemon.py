@@ -220,15 +220,18 @@ def test_approach_without_contact_fails_at_max_distance(make_daemon):
 
 
 def test_estimator_divergence_is_a_protective_stop(make_daemon):
-    """A straight pull drags the cutter's base: the hinge moves, and the innovations stop fitting the model
-    (smoothed NIS ratio up to about 2.6, against at most 1.0 while following the arc)."""
-    d = make_daemon(**{"control.max_nis_ratio": 1.5})
+    """A straight pull turns the handle past the fingertips' stick limit (10 deg); the grasp slips and the
+    innovations stop fitting the model: the smoothed NIS ratio reads 23-32, against at most 2.5 (3.9 with
+    the other core busy) while following the arc. The product's default limit (10) stops it."""
+    d = make_daemon()
     reply = d.client.command("rotate", {"angle_deg": 30.0, "strategy": "straight"})
     assert reply["ok"] is True
     ev = d.client.wait_event(("task_failed", "task_done"), reply["task"], TASK_TIMEOUT_S)
     assert ev["kind"] == "task_failed", ev
     stop = next(e for e in d.client.event_log if e["kind"] == "protective_stop")
-    assert stop["cause"] == "divergence" and stop["nis_ratio"] > 1.5
+    assert stop["cause"] == "divergence" and stop["nis_ratio"] > 10.0
+    sim = ev["sim"]
+    assert sim["angle_deg"] < 20.0 and sim["base_displacement"] < 5e-3, sim
 
 
 @pytest.mark.parametrize("tool_m", [0.14, 0.09])

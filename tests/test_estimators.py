@@ -281,3 +281,41 @@ def test_eta_state_ignores_a_straight_path():
         k_data, z = kf.eta_evidence()
         assert k_data < 0.5 and z > kf.params.eta_test_sigma   # the data do reject eta ...
         assert kf.eta_weight() == 0.0                          # ... implausibly far: not used
+
+
+def _consistency_trace(block, slide_m_s, seed=5):
+    """The ekf's smoothed NIS ratio after each block, on a noisy arc (the filter's own noise model);
+    from 0.3 s the TCP also slides outwards along the lever arm at slide_m_s (the grasp giving way).
+    The converged estimate explains that only by jumping, so its innovations stop fitting."""
+    rng = np.random.default_rng(seed)
+    axis, center = np.array([0.0, -1.0, 0.0]), np.array([0.2, 0.0, 0.5])
+    t = np.arange(int(0.6 * ODR_HZ)) / ODR_HZ
+    p, v = arc(center, axis, center + [0.12, 0, 0], 0.02 / 0.12, t)
+    w = 0.02 / 0.12 * axis + rng.normal(0, 0.01, (len(t), 3))
+    pm = p + rng.normal(0, 5e-5, p.shape)
+    vm = v + rng.normal(0, 1e-3, v.shape) + slide_m_s * (t[:, None] > 0.3) * (p - center) / 0.12
+    est = ContactKF(plane=Plane(axis))
+    est.start(pm[0], vm[0])
+    dt = np.diff(t, prepend=t[0])
+    trace = []
+    for k in range(0, len(t), block):
+        sl = slice(k, k + block)
+        est.update(dt[sl], w[sl], pm[sl], vm[sl])
+        trace.append((t[sl][-1], est.consistency))
+    trace = np.array(trace)
+    return trace[(trace[:, 0] > 0.2) & ((trace[:, 0] < 0.3) | (slide_m_s > 0.0)), 1]
+
+
+@pytest.mark.parametrize("slide_mm_s", [0.0, 3.0, 10.0])
+def test_consistency_ratio_does_not_depend_on_the_block_length(slide_mm_s):
+    """The divergence statistic: about 1 or below while the model holds, and a coherent model error
+    (a slide along the lever arm) reads the same whether the samples come one at a time or in
+    blocks of 5 ms, so the daemon's batching cannot move the divergence stop. At 10 mm/s the gate
+    rejects nearly every sample, which must not hide the failure."""
+    one, blocks = _consistency_trace(1, slide_mm_s * 1e-3), _consistency_trace(33, slide_mm_s * 1e-3)
+    if slide_mm_s == 0.0:
+        assert 0.3 < np.median(one) < 1.5 and 0.3 < np.median(blocks) < 1.5
+        assert max(one.max(), blocks.max()) < 3.0
+    else:
+        assert np.median(one) > 5.0
+        assert abs(np.median(blocks) / np.median(one) - 1.0) < 0.2
