@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from control.kernels import (collapsed_update, pinv_quadratic, planar_information, position_sums,
+                                 spatial_information, window_add, window_nis)
 from control.geometry import Plane, rotvec_to_matrix
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
@@ -194,7 +196,6 @@ class ContactKfParams:
         )
 
 
-GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
 K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
 ETA_BLEND_SIGMA = 1.0          # the free-eta estimate is blended in over this many more sigma of evidence
 ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigmas from 1 is a model failure
@@ -207,23 +208,6 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     return out
-
-
-def _cross_cov(a: np.ndarray) -> np.ndarray:
-    """[a]x [a]x^T = |a|^2 I - a a^T for rows of a (n, 3) -> (n, 3, 3)."""
-    out = -(a[:, :, None] * a[:, None, :])
-    sq = (a * a).sum(axis=1)
-    out[:, 0, 0] += sq
-    out[:, 1, 1] += sq
-    out[:, 2, 2] += sq
-    return out
-
-
-def _neg_skew_rows(a: np.ndarray, out: np.ndarray) -> None:
-    """out[:, :3, :3] = -[a]x for rows of a (n, 3); -[a]x m = m x a."""
-    out[:, 0, 1], out[:, 0, 2] = a[:, 2], -a[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = -a[:, 2], a[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = a[:, 1], -a[:, 0]
 
 
 MIN_RESIDUAL_SAMPLES = 8       # position samples before the rigid-body residual test can speak
@@ -267,7 +251,7 @@ class PositionEvidence:
 
     def reset(self) -> None:
         d, nx = self.d, self.d + 1
-        self.theta = 0.0 if d == 2 else np.zeros(3)
+        self.theta = np.zeros(1 if d == 2 else 3)    # the angle (planar) or rotation vector integrated
         self.g = np.zeros(d)
         self.n = 0
         self.s_x = np.zeros((d, nx))       # sum of regressors X_k (d x (d+1))
@@ -281,40 +265,11 @@ class PositionEvidence:
     def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
         """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
         at the `fresh` samples (a new proprioception sample); True when any was taken."""
-        idx = np.flatnonzero(fresh)
-        if self.d == 2:
-            wdt = w * dt
-            dg = np.stack([-wdt * r[:, 1], wdt * r[:, 0]], axis=1)     # w dt J r
-        else:
-            wdt = w * dt[:, None]
-            dg = cross_rows(wdt, r)
-        if len(idx) == 0:
-            self.theta = self.theta + wdt.sum(axis=0)
-            self.g = self.g + dg.sum(axis=0)
-            return False
-        th = self.theta + np.cumsum(wdt, axis=0)
-        g = self.g + np.cumsum(dg, axis=0)
-        self.theta, self.g = th[-1], g[-1]
-        X = self._regressors(th[idx], g[idx])
-        y = r[idx]
-        self.n += len(idx)
-        self.s_x += X.sum(axis=0)
-        self.s_xx += np.einsum("kij,kil->jl", X, X)
-        self.s_xy += np.einsum("kij,ki->j", X, y)
-        self.s_y += y.sum(axis=0)
-        self.s_yy += float((y * y).sum())
-        return True
-
-    def _regressors(self, th: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """X_k with r_k = q + X_k [m, k]: the columns -[Theta_k]x and G_k."""
-        d = self.d
-        X = np.zeros((len(g), d, d + 1))
-        if d == 2:
-            X[:, 0, 1], X[:, 1, 0] = th, -th           # -theta J
-        else:
-            _neg_skew_rows(th, X)
-        X[:, :, d] = g
-        return X
+        taken, s_yy = position_sums(self.theta, self.g, dt, w.reshape(len(dt), -1), r, fresh, self.s_x,
+                                    self.s_xx, self.s_xy, self.s_y)
+        self.n += taken
+        self.s_yy += s_yy
+        return taken > 0
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
         """(dLambda, deta): the growth of the marginal information on (m, k) since the last call."""
@@ -336,10 +291,7 @@ class PositionEvidence:
         s_y = self.s_y - k * sx_g
         lam_u = self.s_xx[:d, :d] - sx_m.T @ sx_m / n
         eta_u = self.s_xy[:d] - k * self.s_xx[:d, d] - sx_m.T @ s_y / n
-        ev = np.linalg.eigvalsh(lam_u)
-        good = ev > 1e-9 * max(float(ev[-1]), 1e-300)
-        rank = int(np.count_nonzero(good))
-        fit = float(eta_u @ np.linalg.lstsq(lam_u, eta_u, rcond=1e-9)[0]) if rank else 0.0
+        fit, rank = pinv_quadratic(lam_u, eta_u, 1e-9)     # the fitted m's share of the sum of squares
         dof = d * n - d - rank
         if dof <= 0:
             return 1.0
@@ -501,111 +453,31 @@ class ContactKF:
         c = self.x[:d] / k
         k_lin = max(float(x_lin[d]), K_MIN) if self.nk else 1.0
         c_lin = x_lin[:d] / k_lin
+        gate = prm.gate_nis > 0 and self.steps > 0
         if self.plane is not None:
-            # In the plane R = a I + b u u^T + c rh rh^T with u = J r: gyro noise acts along the
-            # tangent u, and `radial_var` (distrust of the velocity along the lever arm) along
-            # rh = r/|r|. R is diagonal in (rh, uh), so R^-1, sum H^T R^-1 H and the NIS are
-            # closed forms over the block, in 1-D columns (x, y: plane coordinates).
             w_n = w @ self.plane.n
             r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
             if commit:
                 self._planar_chunk = (w_n, r0)          # reused by the position evidence
-            v2 = v @ self.plane.E.T
-            r0x, r0y = r0[:, 0], r0[:, 1]
-            if w_tcp is None:
-                rel, t_n, w_true, a_n, w_lin = w_n, 0.0, k * w_n, w_n, k_lin * w_n
-            else:
-                t_n = w_tcp @ self.plane.n
-                rel = w_n - t_n
-                w_true, a_n, w_lin = t_n + k * rel, rel + t_n / k, t_n + k_lin * rel
-            # y = v - w_true J (r0 - c); H = [-a_n J, dh/dk]
-            yx = v2[:, 0] + w_true * (r0y - c[1])
-            yy = v2[:, 1] - w_true * (r0x - c[0])
-            rx, ry = r0x - c_lin[0], r0y - c_lin[1]
-            rr = rx * rx + ry * ry + 1e-18
-            rn = np.sqrt(rr)
-            ex, ey = rx / rn, ry / rn                   # rh; uh = J rh = (-ey, ex)
-            a = corr * (var_v + prm.sigma_p ** 2 * w_lin * w_lin)
-            inv_r = 1.0 / (a + corr * self.radial_var)           # along the lever arm
-            inv_u = 1.0 / (a + (prm.sigma_w ** 2 + var_w) * rr)  # along the tangent
-            yr = ex * yx + ey * yy
-            yu = ex * yy - ey * yx
-            # H's columns on (rh, uh): -a_n J e1 = (0, -a_n), -a_n J e2 = (a_n, 0), dh/dk.
-            Cr, Cu = [-a_n * ey, a_n * ex], [-a_n * ex, -a_n * ey]
-            hph = float(np.mean(a_n * a_n)) * float(P[0, 0] + P[1, 1])
-            if self.nk:
-                # dh/dk = rel J r0 + t_n J c / k
-                hkx, hky = -(rel * r0y + t_n * c[1] / k), rel * r0x + t_n * c[0] / k
-                Cr.append(ex * hkx + ey * hky)
-                Cu.append(ex * hky - ey * hkx)
-                hph += float(np.mean(hkx * hkx + hky * hky)) * float(P[2, 2])
-            Cr, Cu = np.stack(Cr), np.stack(Cu)
-            nis = keep = None
-            if prm.gate_nis > 0 and self.steps > 0 and hph < GATE_HPH_RATIO * 2 * float(a.min()):
-                # Once converged H P H^T << R, so y^T R^-1 y is the NIS; gating before that would
-                # reject the very samples that carry the information.
-                nis = yr * yr * inv_r + yu * yu * inv_u
-                keep = nis <= prm.gate_nis
-                if not keep.all():
-                    Cr, Cu, inv_r, inv_u, yr, yu = Cr[:, keep], Cu[:, keep], inv_r[keep], inv_u[keep], \
-                        yr[keep], yu[keep]
-            Wr, Wu = Cr * inv_r, Cu * inv_u
-            A = Wr @ Cr.T + Wu @ Cu.T
-            b = Wr @ yr + Wu @ yu
+            t_n = np.zeros(n) if w_tcp is None else w_tcp @ self.plane.n
+            A, b, gated, nis, rejected = planar_information(
+                w_n, t_n, r0, v @ self.plane.E.T, var_v, var_w, k, float(c[0]), float(c[1]), k_lin,
+                float(c_lin[0]), float(c_lin[1]), corr, prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var),
+                self.nk, float(P[0, 0] + P[1, 1]), float(P[2, 2]) if self.nk else 0.0, prm.gate_nis, gate)
         else:
             r0 = p - self.origin
-            H = np.zeros((n, 3, 3 + self.nk))
-            if w_tcp is None:
-                w_true, a3 = k * w, w
-                if self.nk:
-                    H[:, :, 3] = cross_rows(w, r0)
-                w_lin = k_lin * w
-            else:
-                rel = w - w_tcp
-                w_true, a3 = w_tcp + k * rel, rel + w_tcp / k
-                if self.nk:
-                    H[:, :, 3] = cross_rows(rel, r0) + cross_rows(w_tcp, np.broadcast_to(c / k, w.shape))
-                w_lin = w_tcp + k_lin * rel
-            _neg_skew_rows(a3, H)
-            y = v - cross_rows(w_true, r0 - c)
-            r = r0 - c_lin
-            R = (prm.sigma_w ** 2 + var_w)[:, None, None] * _cross_cov(r) \
-                + (corr * prm.sigma_p ** 2) * _cross_cov(w_lin)
-            if self.radial_var > 0:
-                rh = r / np.maximum(np.linalg.norm(r, axis=1), 1e-9)[:, None]
-                R += (corr * self.radial_var) * (rh[:, :, None] * rh[:, None, :])
-            iso = corr * var_v
-            R[:, 0, 0] += iso
-            R[:, 1, 1] += iso
-            R[:, 2, 2] += iso
-            Rinv = np.linalg.inv(R)
-            HtRi = H.transpose(0, 2, 1) @ Rinv
-            Hm = H.mean(axis=0)
-            nis = keep = None
-            if prm.gate_nis > 0 and self.steps > 0 and np.trace(Hm @ P @ Hm.T) < GATE_HPH_RATIO * 3 * float(iso.min()):
-                # As in the plane. (H removes the unobservable direction along w, so a line
-                # contact's large along-edge variance does not count.)
-                nis = np.einsum("ni,nij,nj->n", y, Rinv, y)
-                keep = nis <= prm.gate_nis
-                if not keep.all():
-                    HtRi, H, y = HtRi[keep], H[keep], y[keep]
-            A = (HtRi @ H).sum(axis=0)
-            b = (HtRi @ y[:, :, None]).sum(axis=0)[:, 0]
+            A, b, gated, nis, rejected = spatial_information(
+                w, np.zeros((n, 3)) if w_tcp is None else w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr,
+                prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var), self.nk, P, prm.gate_nis, gate)
+        keep = (nis <= prm.gate_nis) if gated else None
+        if not gated:
+            nis = None
         return self._commit(P, A, b, n, keep, nis, r0, duration, commit)
 
     def _commit(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
-        """The collapsed update in Joseph form, from A = sum H^T R^-1 H and b = sum H^T R^-1 y.
-
-        A collapsed measurement H_eq (H_eq^T H_eq = A, unit noise, H_eq^T y_eq = b) has the gain
-        K = P H_eq^T (H_eq P H_eq^T + I)^-1; by the push-through identity K H_eq = G A and K y_eq = G b
-        with G = P (A P + I)^-1, and K K^T = G A G^T. So the Joseph form
-        (I - K H_eq) P (I - K H_eq)^T + K K^T needs one solve and no factorisation of A, whose rank
-        may be short (the unobservable direction along a line contact)."""
-        nx = len(self.x)
-        M = A @ P
-        M.flat[::nx + 1] += 1.0
-        G = np.linalg.solve(M.T, P).T           # P (A P + I)^-1; M^T = P A + I as P, A are symmetric
-        x_new = self.x + G @ b
+        """The collapsed update from A = sum H^T R^-1 H and b = sum H^T R^-1 y, in Joseph form
+        (kernels.collapsed_update); commit: keep it and count it."""
+        x_new, P_new = collapsed_update(self.x, P, A, b, commit)
         if not commit:
             return x_new
         if keep is not None:
@@ -614,10 +486,7 @@ class ContactKF:
             self.nis = float(nis[-1])
         if consistency and self.steps > 0:
             self._window_add(P, A, b, duration, nis, keep)
-        GA = G @ A
-        Aj = -GA
-        Aj.flat[::nx + 1] += 1.0
-        self.x, self.P = x_new, Aj @ P @ Aj.T + GA @ G.T
+        self.x, self.P = x_new, P_new
         self.steps += n
         if n:
             self._r_last = r0[-1] - self.c
@@ -648,8 +517,7 @@ class ContactKF:
             self._win_A = A.copy()
             self._win_b = b.copy()
         else:
-            self._win_A += A
-            self._win_b += b + A @ (self.x - self._win_x0)
+            window_add(self._win_A, self._win_b, self._win_x0, self.x, A, b)
         self._win_n += 1
         self._win_t += duration
         if self._win_t < CONSISTENCY_WINDOW_S:
@@ -658,15 +526,8 @@ class ContactKF:
         gated, n_samples = self._win_gated, self._win_samples
         self._win_n, self._win_t, self._win_gated, self._win_samples = 0, 0.0, [], 0
         ratio = 0.0
-        lam, U = np.linalg.eigh(A_w)
-        good = lam > 1e-12 * max(float(lam[-1]), 1e-300)
-        rank = int(np.count_nonzero(good))
+        nis, rank = window_nis(A_w, b_w, P0)
         if rank:
-            ub = U[:, good].T @ b_w
-            fit = float(ub @ (ub / lam[good]))     # y_eq^T y_eq = b^T A^+ b
-            M = A_w @ P0
-            M.flat[::len(b_w) + 1] += 1.0
-            nis = fit - float(b_w @ np.linalg.solve(M.T, P0) @ b_w)  # Woodbury: y_eq^T (H_eq P0 H_eq^T + I)^-1 y_eq
             # A window closes at the first block end past CONSISTENCY_WINDOW_S; its excess over the
             # expectation is referred to the nominal length so that the batching cannot change it.
             ratio = 1.0 + (max(nis, 0.0) / rank - 1.0) * (CONSISTENCY_WINDOW_S / t_w)
@@ -712,11 +573,12 @@ class ContactKF:
         if pkk > 0.0:
             pmk = pmk[:, 0]
             c0 = m + pmk * (1.0 - float(x[d])) / pkk
-            s0 = P[:d, :d] - np.outer(pmk, pmk) / pkk
+            s0 = P[:d, :d] - pmk[:, None] * (pmk / pkk)
         else:
             c0, s0 = m.copy(), P[:d, :d].copy()
         s0 = s0 * scale
-        rep0 = s0 + (self.eta_rel_std ** 2) * np.outer(self._r_last, self._r_last)
+        r = self._r_last
+        rep0 = s0 + r[:, None] * ((self.eta_rel_std ** 2) * r)
         wgt = self.eta_weight()
         if wgt <= 0.0:
             return c0, rep0, s0

@@ -12,6 +12,7 @@ import numpy as np
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
+from control.kernels import rate_moments, sym_eig
 from control.geometry import Plane, matrix_to_rotvec, sym2_max_eig
 from control.onset import OnsetDetector
 
@@ -365,9 +366,7 @@ class ContactPipeline:
                 sl = slice(k0, k1)
                 self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
                                       None if tcp_turning else fresh[sl], w_tcp[sl] if tcp_turning else None)
-                self._wwT += w_obj[sl].T @ w_obj[sl]
-                self._w_sum += w_obj[sl].sum(axis=0)
-                self._angle += float(np.sqrt((w_obj[sl] * w_obj[sl]).sum(axis=1)) @ dt[sl])
+                self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
                 self._n_w += k1 - k0
                 self._t_prev = float(ts[k1 - 1])
                 if due < n:
@@ -385,8 +384,9 @@ class ContactPipeline:
         """(principal rotation axis or None, whether a second axis was excited)."""
         if self._n_w == 0:
             return None, False
-        sigma_w2 = self.params.ekf.sigma_w ** 2
-        lam, vecs = np.linalg.eigh(self._wwT / self._n_w - sigma_w2 * np.eye(3))
+        S = self._wwT / self._n_w
+        S.flat[::4] -= self.params.ekf.sigma_w ** 2
+        lam, vecs = sym_eig(S)
         if lam[-1] < MIN_AXIS_RATE_RAD_S ** 2:
             return None, False
         axis = vecs[:, -1]
@@ -406,16 +406,17 @@ class ContactPipeline:
             top = sym2_max_eig(s11, s12, s22)
         else:
             axis, two_axes = self._excitation()
-            if axis is not None and not two_axes:
-                # A rotation about one axis only: the contact is a line along it (edge, hinge),
-                # unobservable along the axis whatever the gyro noise suggests. Say so.
-                proj = np.eye(3) - np.outer(axis, axis)
-                cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * np.outer(axis, axis)
             if axis is not None:
-                proj = np.eye(3) - np.outer(axis, axis)
-                top = float(np.linalg.eigvalsh(proj @ stat @ proj)[-1])
+                aaT = np.outer(axis, axis)
+                proj = -aaT
+                proj.flat[::4] += 1.0
+                if not two_axes:
+                    # A rotation about one axis only: the contact is a line along it (edge, hinge),
+                    # unobservable along the axis whatever the gyro noise suggests. Say so.
+                    cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * aaT
+                top = float(sym_eig(proj @ stat @ proj)[0][-1])
             else:
-                top = float(np.linalg.eigvalsh(stat)[-1])
+                top = float(sym_eig(stat)[0][-1])
         in_plane = math.sqrt(max(top, 0.0))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,

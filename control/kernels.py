@@ -1,0 +1,494 @@
+"""Compiled per-sample loops of the contact estimator: `ekf` blocks to their information (A, b), its
+small linear algebra, and the pipeline's rate moments.
+
+`ContactKF._block` (control/ekf.py) owns the model; these loops only evaluate it sample by
+sample. One block is tens of samples; as numpy calls on such short arrays it cost ~60 calls
+(300-400 us), as one compiled loop a few microseconds. They release the GIL (the daemon's
+acquisition and control threads run meanwhile) and cache their machine code beside this file
+(`__pycache__`). They are compiled when this module is imported, for the signatures given
+(any array layout), so no call can compile mid-episode: the first import after an install takes
+about 15 s on a 2-core machine, later ones under a second. NUMBA_DISABLE_JIT=1 runs them as
+plain Python, for debugging.
+
+The two block loops (planar_information, spatial_information) return (A, b, gated, nis, rejected): A = sum H^T R^-1 H and b = sum H^T R^-1 y over the
+samples the NIS gate kept, whether the gate was armed, each sample's NIS y^T R^-1 y (when armed)
+and the number it rejected. The gate arms once H P H^T is small against R
+(GATE_HPH_RATIO): before that it would reject the very samples that carry the information.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
+# IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError.
+JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@njit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:], float64[:], float64[:, :], "
+       "float64[:, :], float64[:], float64[:], float64, float64, float64, float64, float64, float64, float64, "
+       "float64, float64, float64, int64, float64, float64, float64, boolean)", **JIT)
+def planar_information(w_n, t_n, r0, v2, var_v, var_w, k, c0, c1, k_lin, cl0, cl1, corr, var_p, var_wn,
+                       radial_var, nk, p_mm, p_kk, gate_nis, gate_allowed):
+    """Planar block. w_n (n,): object rate about the plane normal at the scheduled eta; t_n (n,): the
+    gripper's own rate (zeros when still); r0 (n, 2): TCP relative to the onset TCP; v2 (n, 2): TCP
+    velocity; var_v, var_w (n,): extra velocity and rate variances. k, (c0, c1): the estimate;
+    k_lin, (cl0, cl1): where the noise is linearised; var_p, var_wn: sigma_p^2, sigma_w^2; nk: 1 when
+    eta's ratio k is a state; p_mm = P[0,0] + P[1,1], p_kk = P[2,2] (for H P H^T).
+
+    In the plane R = a I + b u u^T + c rh rh^T with u = J r: gyro noise acts along the tangent u and
+    `radial_var` along rh = r/|r|. R is diagonal in (rh, uh), so each sample is two scalar rows."""
+    n = w_n.shape[0]
+    nx = 2 + nk
+    yr = np.empty(n)
+    yu = np.empty(n)
+    inv_r = np.empty(n)
+    inv_u = np.empty(n)
+    cr = np.empty((n, 3))
+    cu = np.empty((n, 3))
+    a_min = np.inf
+    s_a2 = 0.0
+    s_hk2 = 0.0
+    for i in range(n):
+        tn = t_n[i]
+        rel = w_n[i] - tn
+        w_true = tn + k * rel
+        a_n = rel + tn / k
+        w_lin = tn + k_lin * rel
+        r0x = r0[i, 0]
+        r0y = r0[i, 1]
+        # y = v - w_true J (r0 - c); H = [-a_n J, dh/dk]
+        yx = v2[i, 0] + w_true * (r0y - c1)
+        yy = v2[i, 1] - w_true * (r0x - c0)
+        rx = r0x - cl0
+        ry = r0y - cl1
+        rr = rx * rx + ry * ry + 1e-18
+        rn = math.sqrt(rr)
+        ex = rx / rn
+        ey = ry / rn
+        a = corr * (var_v[i] + var_p * w_lin * w_lin)
+        if a < a_min:
+            a_min = a
+        inv_r[i] = 1.0 / (a + corr * radial_var)          # along the lever arm
+        inv_u[i] = 1.0 / (a + (var_wn + var_w[i]) * rr)   # along the tangent
+        yr[i] = ex * yx + ey * yy
+        yu[i] = ex * yy - ey * yx
+        # H's columns on (rh, uh): -a_n J e1 = (0, -a_n), -a_n J e2 = (a_n, 0), dh/dk.
+        cr[i, 0] = -a_n * ey
+        cr[i, 1] = a_n * ex
+        cu[i, 0] = -a_n * ex
+        cu[i, 1] = -a_n * ey
+        s_a2 += a_n * a_n
+        if nk:
+            # dh/dk = rel J r0 + t_n J c / k
+            hkx = -(rel * r0y + tn * c1 / k)
+            hky = rel * r0x + tn * c0 / k
+            cr[i, 2] = ex * hkx + ey * hky
+            cu[i, 2] = ex * hky - ey * hkx
+            s_hk2 += hkx * hkx + hky * hky
+    hph = s_a2 / n * p_mm
+    if nk:
+        hph += s_hk2 / n * p_kk
+    gated = gate_allowed and hph < GATE_HPH_RATIO * 2.0 * a_min
+    nis = np.empty(n if gated else 0)
+    A = np.zeros((nx, nx))
+    b = np.zeros(nx)
+    rejected = 0
+    for i in range(n):
+        if gated:
+            e = yr[i] * yr[i] * inv_r[i] + yu[i] * yu[i] * inv_u[i]
+            nis[i] = e
+            if not e <= gate_nis:
+                rejected += 1
+                continue
+        for p in range(nx):
+            wr = cr[i, p] * inv_r[i]
+            wu = cu[i, p] * inv_u[i]
+            b[p] += wr * yr[i] + wu * yu[i]
+            for q in range(nx):
+                A[p, q] += wr * cr[i, q] + wu * cu[i, q]
+    return A, b, gated, nis, rejected
+
+
+@njit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:, :], float64[:, :], float64[:, :], "
+       "float64[:, :], float64[:], float64[:], float64, float64[:], float64, float64[:], float64, float64, float64, "
+       "float64, int64, float64[:, :], float64, boolean)", **JIT)
+def spatial_information(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var,
+                        nk, P, gate_nis, gate_allowed):
+    """3D block. w (n, 3): object rate at the scheduled eta; w_tcp (n, 3): the gripper's own rate
+    (zeros when still); r0, v (n, 3): TCP relative to the onset TCP, and its velocity; c, c_lin (3,):
+    the estimate and the linearisation point; P: the prior (3 + nk square). Per sample
+    R = (sigma_w^2 + var_w) [r]x[r]x^T + corr sigma_p^2 [w]x[w]x^T + corr radial_var rh rh^T
+    + corr var_v I, inverted in closed form."""
+    n = w.shape[0]
+    nx = 3 + nk
+    H = np.zeros((n, 3, 4))
+    y = np.empty((n, 3))
+    Ri = np.empty((n, 3, 3))
+    hm = np.zeros((3, 4))
+    iso_min = np.inf
+    R = np.empty((3, 3))
+    ck = c / k
+    for i in range(n):
+        rel0 = w[i, 0] - w_tcp[i, 0]
+        rel1 = w[i, 1] - w_tcp[i, 1]
+        rel2 = w[i, 2] - w_tcp[i, 2]
+        wt0 = w_tcp[i, 0] + k * rel0
+        wt1 = w_tcp[i, 1] + k * rel1
+        wt2 = w_tcp[i, 2] + k * rel2
+        a0 = rel0 + w_tcp[i, 0] / k
+        a1 = rel1 + w_tcp[i, 1] / k
+        a2 = rel2 + w_tcp[i, 2] / k
+        wl0 = w_tcp[i, 0] + k_lin * rel0
+        wl1 = w_tcp[i, 1] + k_lin * rel1
+        wl2 = w_tcp[i, 2] + k_lin * rel2
+        x0 = r0[i, 0]
+        x1 = r0[i, 1]
+        x2 = r0[i, 2]
+        # -[a]x: H m = m x a
+        H[i, 0, 1] = a2
+        H[i, 0, 2] = -a1
+        H[i, 1, 0] = -a2
+        H[i, 1, 2] = a0
+        H[i, 2, 0] = a1
+        H[i, 2, 1] = -a0
+        if nk:
+            # dh/dk = rel x r0 + w_tcp x c / k
+            H[i, 0, 3] = rel1 * x2 - rel2 * x1 + w_tcp[i, 1] * ck[2] - w_tcp[i, 2] * ck[1]
+            H[i, 1, 3] = rel2 * x0 - rel0 * x2 + w_tcp[i, 2] * ck[0] - w_tcp[i, 0] * ck[2]
+            H[i, 2, 3] = rel0 * x1 - rel1 * x0 + w_tcp[i, 0] * ck[1] - w_tcp[i, 1] * ck[0]
+        # y = v - w_true x (r0 - c)
+        d0 = x0 - c[0]
+        d1 = x1 - c[1]
+        d2 = x2 - c[2]
+        y[i, 0] = v[i, 0] - (wt1 * d2 - wt2 * d1)
+        y[i, 1] = v[i, 1] - (wt2 * d0 - wt0 * d2)
+        y[i, 2] = v[i, 2] - (wt0 * d1 - wt1 * d0)
+        r_0 = x0 - c_lin[0]
+        r_1 = x1 - c_lin[1]
+        r_2 = x2 - c_lin[2]
+        gw = var_wn + var_w[i]
+        gp = corr * var_p
+        rsq = r_0 * r_0 + r_1 * r_1 + r_2 * r_2
+        wsq = wl0 * wl0 + wl1 * wl1 + wl2 * wl2
+        rv = (r_0, r_1, r_2)
+        wv = (wl0, wl1, wl2)
+        for p in range(3):
+            for q in range(3):
+                R[p, q] = -gw * rv[p] * rv[q] - gp * wv[p] * wv[q]
+        iso = corr * var_v[i]
+        if iso < iso_min:
+            iso_min = iso
+        for p in range(3):
+            R[p, p] += gw * rsq + gp * wsq + iso
+        if radial_var > 0.0:
+            rnorm = max(math.sqrt(rsq), 1e-9)
+            g = corr * radial_var / (rnorm * rnorm)
+            for p in range(3):
+                for q in range(3):
+                    R[p, q] += g * rv[p] * rv[q]
+        # Symmetric 3x3 inverse by cofactors.
+        m00 = R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]
+        m01 = R[0, 2] * R[2, 1] - R[0, 1] * R[2, 2]
+        m02 = R[0, 1] * R[1, 2] - R[0, 2] * R[1, 1]
+        det = R[0, 0] * m00 + R[1, 0] * m01 + R[2, 0] * m02
+        Ri[i, 0, 0] = m00 / det
+        Ri[i, 0, 1] = m01 / det
+        Ri[i, 0, 2] = m02 / det
+        Ri[i, 1, 0] = Ri[i, 0, 1]
+        Ri[i, 1, 1] = (R[0, 0] * R[2, 2] - R[0, 2] * R[2, 0]) / det
+        Ri[i, 1, 2] = (R[0, 2] * R[1, 0] - R[0, 0] * R[1, 2]) / det
+        Ri[i, 2, 0] = Ri[i, 0, 2]
+        Ri[i, 2, 1] = Ri[i, 1, 2]
+        Ri[i, 2, 2] = (R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]) / det
+        for p in range(3):
+            for q in range(nx):
+                hm[p, q] += H[i, p, q]
+    # Gate once trace(Hm P Hm^T) is small against the velocity noise. (H removes the unobservable
+    # direction along w, so a line contact's large along-edge variance does not count.)
+    hph = 0.0
+    for p in range(3):
+        for q in range(nx):
+            s = 0.0
+            for r in range(nx):
+                s += P[q, r] * hm[p, r]
+            hph += hm[p, q] * s
+    hph /= n * n
+    gated = gate_allowed and hph < GATE_HPH_RATIO * 3.0 * iso_min
+    nis = np.empty(n if gated else 0)
+    A = np.zeros((nx, nx))
+    b = np.zeros(nx)
+    hr = np.empty((4, 3))
+    rejected = 0
+    for i in range(n):
+        if gated:
+            e = 0.0
+            for p in range(3):
+                for q in range(3):
+                    e += y[i, p] * Ri[i, p, q] * y[i, q]
+            nis[i] = e
+            if not e <= gate_nis:
+                rejected += 1
+                continue
+        for p in range(nx):             # H^T R^-1
+            for q in range(3):
+                hr[p, q] = H[i, 0, p] * Ri[i, 0, q] + H[i, 1, p] * Ri[i, 1, q] + H[i, 2, p] * Ri[i, 2, q]
+        for p in range(nx):
+            b[p] += hr[p, 0] * y[i, 0] + hr[p, 1] * y[i, 1] + hr[p, 2] * y[i, 2]
+            for q in range(nx):
+                A[p, q] += hr[p, 0] * H[i, 0, q] + hr[p, 1] * H[i, 1, q] + hr[p, 2] * H[i, 2, q]
+    return A, b, gated, nis, rejected
+
+
+@njit("float64[:, :](float64[:, :], float64[:, :])", **JIT)
+def _solve_small(M, B):
+    """X with M X = B for a small square M (Gaussian elimination, partial pivoting); M, B are copied."""
+    n = M.shape[0]
+    a = M.copy()
+    x = B.copy()
+    m = x.shape[1]
+    for col in range(n):
+        piv = col
+        for r in range(col + 1, n):
+            if abs(a[r, col]) > abs(a[piv, col]):
+                piv = r
+        if piv != col:
+            for j in range(n):
+                a[col, j], a[piv, j] = a[piv, j], a[col, j]
+            for j in range(m):
+                x[col, j], x[piv, j] = x[piv, j], x[col, j]
+        inv = 1.0 / a[col, col]
+        for r in range(col + 1, n):
+            f = a[r, col] * inv
+            if f != 0.0:
+                for j in range(col, n):
+                    a[r, j] -= f * a[col, j]
+                for j in range(m):
+                    x[r, j] -= f * x[col, j]
+    for col in range(n - 1, -1, -1):
+        inv = 1.0 / a[col, col]
+        for j in range(m):
+            s = x[col, j]
+            for r in range(col + 1, n):
+                s -= a[col, r] * x[r, j]
+            x[col, j] = s * inv
+    return x
+
+
+@njit("float64[:, :](float64[:, :], float64[:, :])", **JIT)
+def _mm(a, b):
+    """a @ b for small matrices (numba's @ needs SciPy's BLAS)."""
+    out = np.zeros((a.shape[0], b.shape[1]))
+    for i in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            f = a[i, k]
+            for j in range(b.shape[1]):
+                out[i, j] += f * b[k, j]
+    return out
+
+
+@njit("Tuple((float64[:], float64[:, :]))(float64[:], float64[:, :], float64[:, :], float64[:], boolean)", **JIT)
+def collapsed_update(x, P, A, b, commit):
+    """The collapsed measurement's update from its information A, b; returns (x_new, P_new).
+
+    A collapsed measurement H_eq (H_eq^T H_eq = A, unit noise, H_eq^T y_eq = b) has the gain
+    K = P H_eq^T (H_eq P H_eq^T + I)^-1; by the push-through identity K H_eq = G A and K y_eq = G b
+    with G = P (A P + I)^-1, and K K^T = G A G^T. Joseph form (I - K H) P (I - K H)^T + K K^T keeps
+    P symmetric positive definite whatever the gain's rounding, with one small solve and no
+    factorisation of A, whose rank may be short (the unobservable direction along a line contact).
+    P_new is only formed when commit (else P is returned)."""
+    n = x.shape[0]
+    Mt = _mm(P, A)                    # (A P + I)^T = P A + I, as P and A are symmetric
+    for i in range(n):
+        Mt[i, i] += 1.0
+    G = _solve_small(Mt, P).T        # P (A P + I)^-1
+    x_new = x.copy()
+    for i in range(n):
+        for j in range(n):
+            x_new[i] += G[i, j] * b[j]
+    if not commit:
+        return x_new, P
+    GA = _mm(G, A)
+    Aj = -GA
+    for i in range(n):
+        Aj[i, i] += 1.0
+    return x_new, _mm(_mm(Aj, P), Aj.T) + _mm(GA, G.T)
+
+
+@njit("Tuple((float64[:], float64[:, :]))(float64[:, :])", **JIT)
+def sym_eig(S):
+    """Eigenvalues (ascending) and eigenvectors (columns) of a small symmetric matrix, by cyclic Jacobi
+    rotations: accurate in relative terms across the information matrices' wide range."""
+    n = S.shape[0]
+    a = S.copy()
+    V = np.eye(n)
+    for _ in range(60):
+        off = 0.0
+        diag = 0.0
+        for p in range(n):
+            diag += a[p, p] * a[p, p]
+            for q in range(p + 1, n):
+                off += a[p, q] * a[p, q]
+        if off <= 1e-32 * diag or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):
+                    akp = a[k, p]
+                    akq = a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(n):
+                    apk = a[p, k]
+                    aqk = a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(n):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    lam = np.empty(n)
+    for p in range(n):
+        lam[p] = a[p, p]
+    order = np.argsort(lam)
+    return lam[order], V[:, order]
+
+
+@njit("Tuple((float64, int64))(float64[:, :], float64[:], float64)", **JIT)
+def pinv_quadratic(S, b, rcond):
+    """(b^T S^+ b, rank) for a small symmetric positive semi-definite S, eigenvalues below
+    rcond x the largest taken as zero."""
+    lam, U = sym_eig(S)
+    top = max(lam[-1], 1e-300)
+    fit = 0.0
+    rank = 0
+    for j in range(lam.shape[0]):
+        if lam[j] > rcond * top:
+            ub = 0.0
+            for i in range(b.shape[0]):
+                ub += U[i, j] * b[i]
+            fit += ub * ub / lam[j]
+            rank += 1
+    return fit, rank
+
+
+@njit("void(float64[:, :], float64[:], float64[:], float64[:], float64[:, :], float64[:])", **JIT)
+def window_add(A_w, b_w, x0, x, A, b):
+    """A_w += A; b_w += b + A (x - x0), in place: one block's data about the window's start state x0."""
+    n = x.shape[0]
+    for i in range(n):
+        s = b[i]
+        for j in range(n):
+            A_w[i, j] += A[i, j]
+            s += A[i, j] * (x[j] - x0[j])
+        b_w[i] += s
+
+
+@njit("Tuple((float64, int64))(float64[:, :], float64[:], float64[:, :])", **JIT)
+def window_nis(A, b, P0):
+    """(NIS, rank) of a window's collapsed measurement (information A, b) against its prior P0:
+    y_eq^T (H_eq P0 H_eq^T + I)^-1 y_eq = b^T A^+ b - b^T (P0^-1 + A)^-1 b (Woodbury)."""
+    fit, rank = pinv_quadratic(A, b, 1e-12)
+    if rank == 0:
+        return 0.0, 0
+    n = b.shape[0]
+    Mt = _mm(P0, A)
+    for i in range(n):
+        Mt[i, i] += 1.0
+    G = _solve_small(Mt, P0)         # (P0 A + I)^-1 P0 = (P0^-1 + A)^-1
+    q = 0.0
+    for i in range(n):
+        for j in range(n):
+            q += b[i] * G[i, j] * b[j]
+    return fit - q, rank
+
+
+@njit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
+       "float64[:, :], float64[:, :], float64[:], float64[:])", **JIT)
+def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
+    """PositionEvidence's running sums over a chunk, in place; returns (samples taken, sum of y^T y).
+
+    theta (1,) planar angle or (3,) rotation vector, and g (d,): the integrals Theta = int w dt and
+    G = int w x r dt, advanced sample by sample; w (n, 1) or (n, 3); r (n, d). At each `fresh`
+    sample the regressor X = [-[Theta]x, G] (d x (d+1); planar -theta J) and y = r enter the sums."""
+    n = dt.shape[0]
+    d = r.shape[1]
+    taken = 0
+    s_yy = 0.0
+    X = np.zeros((d, d + 1))
+    for i in range(n):
+        if d == 2:
+            wdt = w[i, 0] * dt[i]
+            theta[0] += wdt
+            g[0] -= wdt * r[i, 1]
+            g[1] += wdt * r[i, 0]
+        else:
+            w0 = w[i, 0] * dt[i]
+            w1 = w[i, 1] * dt[i]
+            w2 = w[i, 2] * dt[i]
+            theta[0] += w0
+            theta[1] += w1
+            theta[2] += w2
+            g[0] += w1 * r[i, 2] - w2 * r[i, 1]
+            g[1] += w2 * r[i, 0] - w0 * r[i, 2]
+            g[2] += w0 * r[i, 1] - w1 * r[i, 0]
+        if not fresh[i]:
+            continue
+        if d == 2:
+            X[0, 1] = theta[0]
+            X[1, 0] = -theta[0]
+        else:
+            X[0, 1] = theta[2]
+            X[0, 2] = -theta[1]
+            X[1, 0] = -theta[2]
+            X[1, 2] = theta[0]
+            X[2, 0] = theta[1]
+            X[2, 1] = -theta[0]
+        for j in range(d):
+            X[j, d] = g[j]
+        taken += 1
+        for j in range(d):
+            s_y[j] += r[i, j]
+            s_yy += r[i, j] * r[i, j]
+            for a in range(d + 1):
+                s_x[j, a] += X[j, a]
+                s_xy[a] += X[j, a] * r[i, j]
+                for b in range(d + 1):
+                    s_xx[a, b] += X[j, a] * X[j, b]
+    return taken, s_yy
+
+
+@njit("float64(float64[:, :], float64[:], float64[:, :], float64[:])", **JIT)
+def rate_moments(w, dt, wwT, w_sum):
+    """wwT += sum w w^T and w_sum += sum w over a block, in place; returns sum |w| dt (the angle turned)."""
+    angle = 0.0
+    for i in range(w.shape[0]):
+        w0 = w[i, 0]
+        w1 = w[i, 1]
+        w2 = w[i, 2]
+        w_sum[0] += w0
+        w_sum[1] += w1
+        w_sum[2] += w2
+        wwT[0, 0] += w0 * w0
+        wwT[0, 1] += w0 * w1
+        wwT[0, 2] += w0 * w2
+        wwT[1, 1] += w1 * w1
+        wwT[1, 2] += w1 * w2
+        wwT[2, 2] += w2 * w2
+        angle += math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) * dt[i]
+    wwT[1, 0] = wwT[0, 1]
+    wwT[2, 0] = wwT[0, 2]
+    wwT[2, 1] = wwT[1, 2]
+    return angle
