@@ -129,6 +129,11 @@ class OnsetDetector:
             out["band"] = self.band.process(accel - self.rest_accel) > self.band_threshold ** 2
         return out
 
+    @property
+    def warm(self) -> bool:
+        """Rest levels set from `warmup_s` of data: an onset can fire from the next batch on."""
+        return self.rest_accel is not None and self._seen_s >= self.warmup_s
+
     def process(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None) -> int:
         """Index into the batch of the first sample that fires, or -1."""
         n = len(t)

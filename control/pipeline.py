@@ -228,6 +228,11 @@ class ContactPipeline:
                     force: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, force)
 
+    @property
+    def warm(self) -> bool:
+        """The onset detector has its rest levels (OnsetDetector.warm): a contact can be detected."""
+        return self.detector.warm
+
     def set_trigger_armed(self, armed: bool) -> None:
         """Arm or disarm the onset trigger (an approach arms it once the arm moves at constant speed)."""
         if not self.tracking:

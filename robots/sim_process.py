@@ -19,6 +19,7 @@ The child stops when the daemon says so or when the daemon's end of the command 
 """
 from __future__ import annotations
 
+import gc
 import logging
 import multiprocessing
 import sys
@@ -123,6 +124,8 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
     except Exception as exc:
         state_conn.send(("error", f"{type(exc).__name__}: {exc}"))
         raise
+    gc.collect()
+    gc.freeze()        # the model and world live as long as the child: no full collection walks them (a stall)
     robot.start()
     forwarders = [threading.Thread(target=_forward_state, args=(robot, state_conn, stop), daemon=True)]
     if spec.imu_out == "pipe":

@@ -47,6 +47,7 @@ class EstimatorThread:
         self.outbox = outbox
         self.inbox: queue.Queue = queue.Queue(maxsize=1024)
         self.dropped = 0
+        self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
 
     def _put(self, item) -> None:
         try:
@@ -76,6 +77,8 @@ class EstimatorThread:
                     pipe.hold_bias(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
             events, est = pipe.process(batch)
+            if not self.warm.is_set() and pipe.warm:
+                self.warm.set()
             for ev in events:
                 self._put(("event", ev))
             if est is not None:

@@ -98,3 +98,17 @@ def test_all_mode_needs_every_condition_within_the_coincidence_window():
 def test_detector_needs_a_condition():
     with pytest.raises(ValueError, match="enable at least one"):
         OnsetDetector(accel_threshold=None)
+
+
+def test_detector_is_warm_once_it_has_seen_its_warm_up_at_rest():
+    """The daemon declares itself alive only once this holds: a spike before it is not an onset."""
+    rng = np.random.default_rng(1)
+    det = OnsetDetector(accel_threshold=0.4, warmup_s=0.1)
+    assert not det.warm
+    a = quiet(400, rng)
+    a[300:] += [0.0, 1.5, 0.0]                   # 45 ms in: still warming up
+    assert feed(det, a) == -1 and not det.warm
+    assert feed(det, quiet(400, rng), t0=1.0) == -1 and det.warm
+    spike = quiet(100, rng)
+    spike[20:] += [0.0, 1.5, 0.0]
+    assert feed(det, spike, t0=2.0) == 20
