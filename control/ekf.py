@@ -439,7 +439,7 @@ class ContactKF:
             return
         b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
         n = self.d + self.nk                 # with k held at 1, its column is part of the measurement
-        self._commit(self.P, d_lam[:n, :n], b[:n], 0, None, None, None, 0.0, True, consistency=False)
+        self._commit(self.P, d_lam[:n, :n], b[:n], 0, 0, None, None, 0.0, True, consistency=False)
 
     def _block(self, duration: float, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
         """One collapsed update from the current prior, noise linearised about x_lin; returns the posterior mean."""
@@ -469,30 +469,28 @@ class ContactKF:
             A, b, gated, nis, rejected = spatial_information(
                 w, np.zeros((n, 3)) if w_tcp is None else w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr,
                 prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var), self.nk, P, prm.gate_nis, gate)
-        keep = (nis <= prm.gate_nis) if gated else None
         if not gated:
             nis = None
-        return self._commit(P, A, b, n, keep, nis, r0, duration, commit)
+        return self._commit(P, A, b, n, rejected, nis, r0, duration, commit)
 
-    def _commit(self, P, A, b, n, keep, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
+    def _commit(self, P, A, b, n, rejected, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
         """The collapsed update from A = sum H^T R^-1 H and b = sum H^T R^-1 y, in Joseph form
         (kernels.collapsed_update); commit: keep it and count it."""
         x_new, P_new = collapsed_update(self.x, P, A, b, commit)
         if not commit:
             return x_new
-        if keep is not None:
-            self.rejected += int(n - np.count_nonzero(keep))
+        self.rejected += rejected
         if nis is not None and len(nis):
             self.nis = float(nis[-1])
         if consistency and self.steps > 0:
-            self._window_add(P, A, b, duration, nis, keep)
+            self._window_add(P, A, b, duration, nis, rejected)
         self.x, self.P = x_new, P_new
         self.steps += n
         if n:
             self._r_last = r0[-1] - self.c
         return x_new
 
-    def _window_add(self, P, A, b, duration: float, nis, keep) -> None:
+    def _window_add(self, P, A, b, duration: float, nis, rejected: int) -> None:
         """Add one block's information to the consistency window; close the window once it spans
         CONSISTENCY_WINDOW_S.
 
@@ -508,7 +506,7 @@ class ContactKF:
         fast) could hide behind the gate: a window whose samples are mostly rejected reads at
         least the median per-sample NIS over its degrees of freedom.
         """
-        if nis is not None and keep is not None and not keep.all():
+        if rejected:
             self._win_gated.append(nis)
         self._win_samples += len(nis) if nis is not None else 0
         if self._win_n == 0:

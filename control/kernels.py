@@ -3,17 +3,17 @@ small linear algebra, and the pipeline's rate moments.
 
 `ContactKF._block` (control/ekf.py) owns the model; these loops only evaluate it sample by
 sample. One block is tens of samples; as numpy calls on such short arrays it cost ~60 calls
-(300-400 us), as one compiled loop a few microseconds. They release the GIL (the daemon's
-acquisition and control threads run meanwhile) and cache their machine code beside this file
-(`__pycache__`). They are compiled when this module is imported, for the signatures given
-(any array layout), so no call can compile mid-episode: the first import after an install takes
-about 15 s on a 2-core machine, later ones under a second. NUMBA_DISABLE_JIT=1 runs them as
+(300-400 us), as one compiled loop a few microseconds. They release the GIL and cache their
+machine code beside this file (`__pycache__`). They are compiled when this module is imported,
+for the signatures given (any array layout), so no call can compile mid-episode: the first
+import after an install takes about 15 s on a 2-core machine, later ones under a second. NUMBA_DISABLE_JIT=1 runs them as
 plain Python, for debugging.
 
-The two block loops (planar_information, spatial_information) return (A, b, gated, nis, rejected): A = sum H^T R^-1 H and b = sum H^T R^-1 y over the
-samples the NIS gate kept, whether the gate was armed, each sample's NIS y^T R^-1 y (when armed)
-and the number it rejected. The gate arms once H P H^T is small against R
-(GATE_HPH_RATIO): before that it would reject the very samples that carry the information.
+The two block loops (planar_information, spatial_information) return (A, b, gated, nis,
+rejected): A = sum H^T R^-1 H and b = sum H^T R^-1 y over the samples the NIS gate kept, whether
+the gate was armed, each sample's NIS y^T R^-1 y (when armed) and the number it rejected. The gate
+arms once H P H^T is small against R (GATE_HPH_RATIO): before that it would reject the very
+samples that carry the information.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
-# IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError.
+# IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError; the GIL released meanwhile.
 JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
