@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.kernels import (collapsed_update, pinv_quadratic, planar_information, position_sums,
-                                 spatial_information, window_add, window_nis)
 from control.geometry import Plane, rotvec_to_matrix
+from control.kernels import (collapsed_update, pinv_quadratic, planar_information, position_sums,
+                             spatial_information, window_add, window_nis)
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -326,8 +326,8 @@ class ContactKF:
       floor) until the data reject k = 1 by `eta_test_sigma`; then the free-eta
       estimate is blended in over ETA_BLEND_SIGMA, so the output does not jump.
     - Updates collapse each block of samples into one exactly equivalent
-      measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form: per
-      sample work is vectorised.
+      measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form; the
+      per-sample work is a compiled loop (control/kernels.py).
     """
 
     method = "ekf"
@@ -462,8 +462,9 @@ class ContactKF:
             t_n = np.zeros(n) if w_tcp is None else w_tcp @ self.plane.n
             A, b, gated, nis, rejected = planar_information(
                 w_n, t_n, r0, v @ self.plane.E.T, var_v, var_w, k, float(c[0]), float(c[1]), k_lin,
-                float(c_lin[0]), float(c_lin[1]), corr, prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var),
-                self.nk, float(P[0, 0] + P[1, 1]), float(P[2, 2]) if self.nk else 0.0, prm.gate_nis, gate)
+                float(c_lin[0]), float(c_lin[1]), corr, prm.sigma_p ** 2, prm.sigma_w ** 2,
+                float(self.radial_var), self.nk, float(P[0, 0] + P[1, 1]), float(P[2, 2]) if self.nk else 0.0,
+                prm.gate_nis, gate)
         else:
             r0 = p - self.origin
             A, b, gated, nis, rejected = spatial_information(
