@@ -24,12 +24,26 @@ from numba import njit
 
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
 # IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError; the GIL released meanwhile.
-JIT = dict(cache=True, nogil=True, error_model="numpy")
+JIT = dict(nogil=True, error_model="numpy")
 
 
-@njit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:], float64[:], float64[:, :], "
+def jit(signature: str):
+    """njit for `signature`, cached when numba finds a writable place for it (the source's
+    __pycache__, NUMBA_CACHE_DIR, or the user's cache). In a read-only install with neither (a
+    hardened service without NUMBA_CACHE_DIR) numba refuses to cache at all: compile each start."""
+    def wrap(fn):
+        try:
+            return njit(signature, cache=True, **JIT)(fn)
+        except RuntimeError as exc:
+            if "cannot cache" not in str(exc):
+                raise
+            return njit(signature, cache=False, **JIT)(fn)
+    return wrap
+
+
+@jit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:], float64[:], float64[:, :], "
        "float64[:, :], float64[:], float64[:], float64, float64, float64, float64, float64, float64, float64, "
-       "float64, float64, float64, int64, float64, float64, float64, boolean)", **JIT)
+       "float64, float64, float64, int64, float64, float64, float64, boolean)")
 def planar_information(w_n, t_n, r0, v2, var_v, var_w, k, c0, c1, k_lin, cl0, cl1, corr, var_p, var_wn,
                        radial_var, nk, p_mm, p_kk, gate_nis, gate_allowed):
     """Planar block. w_n (n,): object rate about the plane normal at the scheduled eta; t_n (n,): the
@@ -112,9 +126,9 @@ def planar_information(w_n, t_n, r0, v2, var_v, var_w, k, c0, c1, k_lin, cl0, cl
     return A, b, gated, nis, rejected
 
 
-@njit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:, :], float64[:, :], float64[:, :], "
+@jit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:, :], float64[:, :], float64[:, :], "
        "float64[:, :], float64[:], float64[:], float64, float64[:], float64, float64[:], float64, float64, float64, "
-       "float64, int64, float64[:, :], float64, boolean)", **JIT)
+       "float64, int64, float64[:, :], float64, boolean)")
 def spatial_information(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var,
                         nk, P, gate_nis, gate_allowed):
     """3D block. w (n, 3): object rate at the scheduled eta; w_tcp (n, 3): the gripper's own rate
@@ -242,7 +256,7 @@ def spatial_information(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr,
     return A, b, gated, nis, rejected
 
 
-@njit("float64[:, :](float64[:, :], float64[:, :])", **JIT)
+@jit("float64[:, :](float64[:, :], float64[:, :])")
 def _solve_small(M, B):
     """X with M X = B for a small square M (Gaussian elimination, partial pivoting); M, B are copied."""
     n = M.shape[0]
@@ -277,7 +291,7 @@ def _solve_small(M, B):
     return x
 
 
-@njit("float64[:, :](float64[:, :], float64[:, :])", **JIT)
+@jit("float64[:, :](float64[:, :], float64[:, :])")
 def _mm(a, b):
     """a @ b for small matrices (numba's @ needs SciPy's BLAS)."""
     out = np.zeros((a.shape[0], b.shape[1]))
@@ -289,7 +303,7 @@ def _mm(a, b):
     return out
 
 
-@njit("Tuple((float64[:], float64[:, :]))(float64[:], float64[:, :], float64[:, :], float64[:], boolean)", **JIT)
+@jit("Tuple((float64[:], float64[:, :]))(float64[:], float64[:, :], float64[:, :], float64[:], boolean)")
 def collapsed_update(x, P, A, b, commit):
     """The collapsed measurement's update from its information A, b; returns (x_new, P_new).
 
@@ -317,7 +331,7 @@ def collapsed_update(x, P, A, b, commit):
     return x_new, _mm(_mm(Aj, P), Aj.T) + _mm(GA, G.T)
 
 
-@njit("Tuple((float64[:], float64[:, :]))(float64[:, :])", **JIT)
+@jit("Tuple((float64[:], float64[:, :]))(float64[:, :])")
 def sym_eig(S):
     """Eigenvalues (ascending) and eigenvectors (columns) of a small symmetric matrix, by cyclic Jacobi
     rotations: accurate in relative terms across the information matrices' wide range."""
@@ -366,7 +380,7 @@ def sym_eig(S):
     return lam[order], V[:, order]
 
 
-@njit("Tuple((float64, int64))(float64[:, :], float64[:], float64)", **JIT)
+@jit("Tuple((float64, int64))(float64[:, :], float64[:], float64)")
 def pinv_quadratic(S, b, rcond):
     """(b^T S^+ b, rank) for a small symmetric positive semi-definite S, eigenvalues below
     rcond x the largest taken as zero."""
@@ -384,7 +398,7 @@ def pinv_quadratic(S, b, rcond):
     return fit, rank
 
 
-@njit("void(float64[:, :], float64[:], float64[:], float64[:], float64[:, :], float64[:])", **JIT)
+@jit("void(float64[:, :], float64[:], float64[:], float64[:], float64[:, :], float64[:])")
 def window_add(A_w, b_w, x0, x, A, b):
     """A_w += A; b_w += b + A (x - x0), in place: one block's data about the window's start state x0."""
     n = x.shape[0]
@@ -396,7 +410,7 @@ def window_add(A_w, b_w, x0, x, A, b):
         b_w[i] += s
 
 
-@njit("Tuple((float64, int64))(float64[:, :], float64[:], float64[:, :])", **JIT)
+@jit("Tuple((float64, int64))(float64[:, :], float64[:], float64[:, :])")
 def window_nis(A, b, P0):
     """(NIS, rank) of a window's collapsed measurement (information A, b) against its prior P0:
     y_eq^T (H_eq P0 H_eq^T + I)^-1 y_eq = b^T A^+ b - b^T (P0^-1 + A)^-1 b (Woodbury)."""
@@ -415,8 +429,8 @@ def window_nis(A, b, P0):
     return fit - q, rank
 
 
-@njit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
-       "float64[:, :], float64[:, :], float64[:], float64[:])", **JIT)
+@jit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
+       "float64[:, :], float64[:, :], float64[:], float64[:])")
 def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
     """PositionEvidence's running sums over a chunk, in place; returns (samples taken, sum of y^T y).
 
@@ -470,7 +484,7 @@ def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
     return taken, s_yy
 
 
-@njit("float64(float64[:, :], float64[:], float64[:, :], float64[:])", **JIT)
+@jit("float64(float64[:, :], float64[:], float64[:, :], float64[:])")
 def rate_moments(w, dt, wwT, w_sum):
     """wwT += sum w w^T and w_sum += sum w over a block, in place; returns sum |w| dt (the angle turned)."""
     angle = 0.0

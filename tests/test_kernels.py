@@ -155,3 +155,12 @@ def test_kernels_divide_by_zero_as_numpy_does():
     A, b, *_ = K.spatial_information(zeros, zeros, zeros, zeros, np.zeros(n), np.zeros(n), 1.0, np.zeros(3), 1.0,
                                      np.zeros(3), 1.0, 0.0, 0.0, 0.0, 1, np.eye(4), 16.3, False)
     assert A.shape == (4, 4)
+
+
+def test_jit_compiles_where_numba_cannot_cache():
+    """A read-only install without NUMBA_CACHE_DIR: numba refuses cache=True; the loops still compile."""
+    ns = {}
+    exec("def twice(x):\n    return 2.0 * x\n", ns)        # no source file: nowhere to cache
+    with pytest.raises(RuntimeError, match="cannot cache"):
+        K.njit("float64(float64)", cache=True)(ns["twice"])
+    assert K.jit("float64(float64)")(ns["twice"])(1.5) == 3.0

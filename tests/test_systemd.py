@@ -43,3 +43,5 @@ def test_unit_file_declares_notify_watchdog_and_hardening():
     assert "tecdard run --config" in svc["ExecStart"]
     text = (ROOT / "systemd" / "tecdard.service").read_text()
     assert "DeviceAllow=char-ttyACM rw" in text
+    # numba finds no writable cache in a read-only install: it must be given one
+    assert svc["CacheDirectory"] == "tecdar" and "NUMBA_CACHE_DIR=/var/cache/tecdar" in svc["Environment"]
