@@ -42,8 +42,8 @@ def jit(signature: str):
 
 
 @jit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:], float64[:], float64[:, :], "
-       "float64[:, :], float64[:], float64[:], float64, float64, float64, float64, float64, float64, float64, "
-       "float64, float64, float64, int64, float64, float64, float64, boolean)")
+     "float64[:, :], float64[:], float64[:], float64, float64, float64, float64, float64, float64, float64, "
+     "float64, float64, float64, int64, float64, float64, float64, boolean)")
 def planar_information(w_n, t_n, r0, v2, var_v, var_w, k, c0, c1, k_lin, cl0, cl1, corr, var_p, var_wn,
                        radial_var, nk, p_mm, p_kk, gate_nis, gate_allowed):
     """Planar block. w_n (n,): object rate about the plane normal at the scheduled eta; t_n (n,): the
@@ -127,8 +127,8 @@ def planar_information(w_n, t_n, r0, v2, var_v, var_w, k, c0, c1, k_lin, cl0, cl
 
 
 @jit("Tuple((float64[:, :], float64[:], boolean, float64[:], int64))(float64[:, :], float64[:, :], float64[:, :], "
-       "float64[:, :], float64[:], float64[:], float64, float64[:], float64, float64[:], float64, float64, float64, "
-       "float64, int64, float64[:, :], float64, boolean)")
+     "float64[:, :], float64[:], float64[:], float64, float64[:], float64, float64[:], float64, float64, float64, "
+     "float64, int64, float64[:, :], float64, boolean)")
 def spatial_information(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var,
                         nk, P, gate_nis, gate_allowed):
     """3D block. w (n, 3): object rate at the scheduled eta; w_tcp (n, 3): the gripper's own rate
@@ -430,7 +430,7 @@ def window_nis(A, b, P0):
 
 
 @jit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
-       "float64[:, :], float64[:, :], float64[:], float64[:])")
+     "float64[:, :], float64[:, :], float64[:], float64[:])")
 def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
     """PositionEvidence's running sums over a chunk, in place; returns (samples taken, sum of y^T y).
 
