@@ -221,7 +221,7 @@ def test_approach_without_contact_fails_at_max_distance(make_daemon):
 
 def test_estimator_divergence_is_a_protective_stop(make_daemon):
     """A straight pull turns the handle past the fingertips' stick limit (10 deg); the grasp slips and the
-    innovations stop fitting the model: the smoothed NIS ratio reads 23-32, against at most 2.5 (3.9 with
+    innovations stop fitting the model: the smoothed NIS ratio reads 25-32, against at most 1.9 (3.9 with
     the other core busy) while following the arc. The product's default limit (10) stops it."""
     d = make_daemon()
     reply = d.client.command("rotate", {"angle_deg": 30.0, "strategy": "straight"})
