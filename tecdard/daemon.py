@@ -204,9 +204,12 @@ class Daemon:
             # Alive and READY once a contact can be detected: the onset detector needs its warm-up of
             # IMU data at rest (estimator.onset.warmup_s). A task sent before that would probe blind
             # for its first tens of milliseconds and localise from a late onset.
-            if not self.estimator.warm.wait(IMU_WARM_TIMEOUT_S):
-                log.warning("the IMU has not streamed its onset warm-up within %.0f s; contacts are not detected "
-                            "until it has", IMU_WARM_TIMEOUT_S)
+            warm_by = time.monotonic() + IMU_WARM_TIMEOUT_S
+            while not self.estimator.warm.wait(0.05) and not self.stop_event.is_set():
+                if time.monotonic() > warm_by:
+                    log.warning("the IMU has not streamed its onset warm-up within %.0f s; contacts are not "
+                                "detected until it has", IMU_WARM_TIMEOUT_S)
+                    break
             token = session.liveliness().declare_token(self.keys.alive)
             self.notifier.notify("READY=1")
             log.info("tecdard ready: robot %s (%s), listening on %s", self.robot_name, self.model.name,

@@ -214,3 +214,18 @@ def test_unplugging_the_imu_during_a_task_is_a_protective_stop_on_stale_data(mak
         assert d.proc.poll() is None
     finally:
         streamer.join()
+
+
+def test_daemon_without_imu_data_comes_up_after_the_warm_up_timeout(make_daemon, pty):
+    """The daemon is alive only once the onset detector has its IMU warm-up, but a silent board must not
+    keep it down: it comes up after IMU_WARM_TIMEOUT_S, says why, and refuses tasks on stale data."""
+    from tecdard.daemon import IMU_WARM_TIMEOUT_S
+
+    t0 = time.monotonic()
+    d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
+                       "control.imu_stale_s": PRODUCT_IMU_STALE_S})
+    assert time.monotonic() - t0 >= IMU_WARM_TIMEOUT_S
+    assert "has not streamed its onset warm-up" in d.log()
+    assert "imu_stale" in {f["code"] for f in d.client.command("status")["state"]["faults"]}
+    refused = d.client.command("rotate", {"angle_deg": 10})
+    assert refused["ok"] is False and refused["error"]["code"] == "fault"
