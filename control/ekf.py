@@ -357,7 +357,7 @@ class ContactKF:
         self.rejected = 0
         self.nis = 0.0
         self._r_last = np.zeros(self.d)
-        self._planar_chunk = (np.zeros(0), np.zeros((0, 2)))
+        self._chunk = (np.zeros(0), np.zeros((0, self.d)))   # last committed block: (rate, r0), for positions
         self.positions = PositionEvidence(self.d, self.params.sigma_p) if self.params.use_positions else None
 
     @property
@@ -415,9 +415,9 @@ class ContactKF:
                 if fresh is None:
                     self.positions.reset()     # no position measurements here: restart the reference
                 else:
-                    self._position_update(dt[sl], w[sl], p[sl], fresh[sl])
+                    self._position_update(dt[sl], fresh[sl])
 
-    def _position_update(self, dt, w, p, fresh) -> None:
+    def _position_update(self, dt, fresh) -> None:
         ev = self.positions
         if ev.broken:
             return
@@ -426,11 +426,8 @@ class ContactKF:
             # displacement integrates without bound. Restart the reference instead of using it.
             ev.reset()
             return
-        if self.plane is not None:
-            w_n, r0 = self._planar_chunk
-            taken = ev.add(dt, w_n, r0, fresh)
-        else:
-            taken = ev.add(dt, w, p - self.origin, fresh)
+        w_d, r0 = self._chunk              # the block just committed, in the filter's coordinates
+        taken = ev.add(dt, w_d, r0, fresh)
         if not taken:
             return
         d_lam, d_eta = ev.increment()
@@ -458,7 +455,7 @@ class ContactKF:
             w_n = w @ self.plane.n
             r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
             if commit:
-                self._planar_chunk = (w_n, r0)          # reused by the position evidence
+                self._chunk = (w_n, r0)                 # reused by the position evidence
             t_n = np.zeros(n) if w_tcp is None else w_tcp @ self.plane.n
             A, b, gated, nis, rejected = planar_information(
                 w_n, t_n, r0, v @ self.plane.E.T, var_v, var_w, k, float(c[0]), float(c[1]), k_lin,
@@ -467,6 +464,8 @@ class ContactKF:
                 prm.gate_nis, gate)
         else:
             r0 = p - self.origin
+            if commit:
+                self._chunk = (w, r0)
             A, b, gated, nis, rejected = spatial_information(
                 w, np.zeros((n, 3)) if w_tcp is None else w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr,
                 prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var), self.nk, P, prm.gate_nis, gate)
