@@ -11,14 +11,22 @@ def skew(a):
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
-def spatial_reference(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var, nk):
-    """sum H^T R^-1 H and sum H^T R^-1 y of ContactKF's 3D model, sample by sample in numpy."""
-    nx = 3 + nk
+def information(samples, nx):
+    """sum H^T R^-1 H and sum H^T R^-1 y over (H, y, R) per sample."""
     A, b = np.zeros((nx, nx)), np.zeros(nx)
+    for H, y, R in samples:
+        Ri = np.linalg.inv(R)
+        A += H.T @ Ri @ H
+        b += H.T @ Ri @ y
+    return A, b
+
+
+def spatial_samples(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var, nk):
+    """(H, y, R) of ContactKF's 3D model, sample by sample in numpy."""
     for i in range(len(w)):
         rel = w[i] - w_tcp[i]
         w_true, a3, w_lin = w_tcp[i] + k * rel, rel + w_tcp[i] / k, w_tcp[i] + k_lin * rel
-        H = np.zeros((3, nx))
+        H = np.zeros((3, 3 + nk))
         H[:, :3] = -skew(a3)
         if nk:
             H[:, 3] = np.cross(rel, r0[i]) + np.cross(w_tcp[i], c / k)
@@ -29,21 +37,16 @@ def spatial_reference(w, w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr, v
         if radial_var > 0:
             rh = r / np.linalg.norm(r)
             R += corr * radial_var * np.outer(rh, rh)
-        Ri = np.linalg.inv(R)
-        A += H.T @ Ri @ H
-        b += H.T @ Ri @ y
-    return A, b
+        yield H, y, R
 
 
-def planar_reference(w_n, t_n, r0, v2, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var, nk):
+def planar_samples(w_n, t_n, r0, v2, var_v, var_w, k, c, k_lin, c_lin, corr, var_p, var_wn, radial_var, nk):
     """The same in a plane: w x r = w_n J r, gyro noise along the tangent, radial_var along the lever arm."""
     J = np.array([[0.0, -1.0], [1.0, 0.0]])
-    nx = 2 + nk
-    A, b = np.zeros((nx, nx)), np.zeros(nx)
     for i in range(len(w_n)):
         rel = w_n[i] - t_n[i]
         w_true, a_n, w_lin = t_n[i] + k * rel, rel + t_n[i] / k, t_n[i] + k_lin * rel
-        H = np.zeros((2, nx))
+        H = np.zeros((2, 2 + nk))
         H[:, :2] = -a_n * J
         if nk:
             H[:, 2] = rel * J @ r0[i] + t_n[i] * J @ c / k
@@ -52,10 +55,12 @@ def planar_reference(w_n, t_n, r0, v2, var_v, var_w, k, c, k_lin, c_lin, corr, v
         u = J @ r
         R = corr * (var_v[i] + var_p * w_lin ** 2) * np.eye(2) + (var_wn + var_w[i]) * np.outer(u, u) \
             + corr * radial_var * np.outer(r, r) / (r @ r)
-        Ri = np.linalg.inv(R)
-        A += H.T @ Ri @ H
-        b += H.T @ Ri @ y
-    return A, b
+        yield H, y, R
+
+
+def assert_same_information(A, b, A_ref, b_ref):
+    np.testing.assert_allclose(A, A_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(A_ref).max())
+    np.testing.assert_allclose(b, b_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(b_ref).max())
 
 
 def block(rng, n=33):
@@ -76,9 +81,8 @@ def test_spatial_information_matches_numpy(turning, radial_var, nk):
             radial_var, nk)
     A, b, gated, nis, rejected = K.spatial_information(w, w_tcp, r0, v, var_v, var_w, *args, np.eye(3 + nk),
                                                        16.3, False)
-    A_ref, b_ref = spatial_reference(w, w_tcp, r0, v, var_v, var_w, *args)
-    np.testing.assert_allclose(A, A_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(A_ref).max())
-    np.testing.assert_allclose(b, b_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(b_ref).max())
+    A_ref, b_ref = information(spatial_samples(w, w_tcp, r0, v, var_v, var_w, *args), 3 + nk)
+    assert_same_information(A, b, A_ref, b_ref)
     assert not gated and len(nis) == 0 and rejected == 0
 
 
@@ -94,10 +98,9 @@ def test_planar_information_matches_numpy(turning, radial_var, nk):
     A, b, gated, nis, rejected = K.planar_information(
         w_n, t_n, r2, v2, var_v, var_w, 1.1, c[0], c[1], 1.05, c_lin[0], c_lin[1], 3.0, 2.5e-9, 1e-4, radial_var,
         nk, 1.0, 1.0, 16.3, False)
-    A_ref, b_ref = planar_reference(w_n, t_n, r2, v2, var_v, var_w, 1.1, c, 1.05, c_lin, 3.0, 2.5e-9, 1e-4,
-                                    radial_var, nk)
-    np.testing.assert_allclose(A, A_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(A_ref).max())
-    np.testing.assert_allclose(b, b_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(b_ref).max())
+    A_ref, b_ref = information(planar_samples(w_n, t_n, r2, v2, var_v, var_w, 1.1, c, 1.05, c_lin, 3.0, 2.5e-9,
+                                              1e-4, radial_var, nk), 2 + nk)
+    assert_same_information(A, b, A_ref, b_ref)
 
 
 def test_gate_rejects_an_outlier_once_armed():
