@@ -12,8 +12,8 @@ import numpy as np
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
-from control.kernels import rate_moments, sym_eig
 from control.geometry import Plane, matrix_to_rotvec, sym2_max_eig
+from control.kernels import rate_moments, sym_eig
 from control.onset import OnsetDetector
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
@@ -413,8 +413,7 @@ class ContactPipeline:
             axis, two_axes = self._excitation()
             if axis is not None:
                 aaT = np.outer(axis, axis)
-                proj = -aaT
-                proj.flat[::4] += 1.0
+                proj = np.eye(3) - aaT
                 if not two_axes:
                     # A rotation about one axis only: the contact is a line along it (edge, hinge),
                     # unobservable along the axis whatever the gyro noise suggests. Say so.
