@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.geometry import Plane, rotvec_to_matrix
-from control.kernels import (collapsed_update, pinv_quadratic, planar_information, position_sums,
-                             spatial_information, window_add, window_nis)
+from control.kernels import (K_MIN, block_update, collapsed_update, eta_evidence, eta_weight, pinv_quadratic,
+                             position_sums, report_state, window_add, window_nis)
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -196,9 +196,9 @@ class ContactKfParams:
         )
 
 
-K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
-ETA_BLEND_SIGMA = 1.0          # the free-eta estimate is blended in over this many more sigma of evidence
-ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigmas from 1 is a model failure
+_IDENTITY = np.eye(3)
+_NO_NORMAL = np.zeros(3)
+_NO_ALONG = np.zeros(9)         # 3D: no variance added along a plane normal
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -324,7 +324,7 @@ class ContactKF:
     - Eta's error as a state with the calibration's uncertainty as its prior. The
       reported contact is the calibrated one (k = 1, plus eta's uncertainty as a radial
       floor) until the data reject k = 1 by `eta_test_sigma`; then the free-eta
-      estimate is blended in over ETA_BLEND_SIGMA, so the output does not jump.
+      estimate is blended in over kernels.ETA_BLEND_SIGMA, so the output does not jump.
     - Updates collapse each block of samples into one exactly equivalent
       measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form; the
       per-sample work is a compiled loop (control/kernels.py).
@@ -336,6 +336,8 @@ class ContactKF:
         self.params = params or ContactKfParams()
         self.plane = plane
         self.d = 2 if plane is not None else 3
+        # the report's variance along the plane's normal (unobservable), flattened for the kernel
+        self._along_var = (UNOBSERVED_STD_M ** 2 * plane.nnT).ravel() if plane is not None else _NO_ALONG
         self.nk = 1 if self.params.estimate_eta else 0   # k is a state, or held at 1 (the cheaper filter)
         self.x = np.zeros(self.d)        # [m] or [m, k]
         self.P = np.eye(self.d)
@@ -436,49 +438,30 @@ class ContactKF:
             return
         b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
         n = self.d + self.nk                 # with k held at 1, its column is part of the measurement
-        self._commit(self.P, d_lam[:n, :n], b[:n], 0, 0, None, None, 0.0, True, consistency=False)
+        A = d_lam[:n, :n]
+        x_new, P_new = collapsed_update(self.x, self.P, A, b[:n], True)
+        self._account(x_new, P_new, self.P, A, b[:n], 0, 0, None, None, 0.0, consistency=False)
 
     def _block(self, duration: float, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
-        """One collapsed update from the current prior, noise linearised about x_lin; returns the posterior mean."""
+        """One collapsed update from the current prior, noise linearised about x_lin (kernels.block_update);
+        returns the posterior mean."""
         prm = self.params
-        corr = max(self.corr_samples, 1.0)
-        d = self.d
-        n = len(w)
-        P = self.P.copy()
-        P.flat[0:d * (d + 2):d + 2] += prm.q_c * duration      # the contact's random walk, on m
-        k = self.k
-        c = self.x[:d] / k
-        k_lin = max(float(x_lin[d]), K_MIN) if self.nk else 1.0
-        c_lin = x_lin[:d] / k_lin
-        gate = prm.gate_nis > 0 and self.steps > 0
         if self.plane is not None:
-            w_n = w @ self.plane.n
-            r0 = (p - self.origin) @ self.plane.E.T     # TCP relative to the onset TCP, plane coords
-            if commit:
-                self._chunk = (w_n, r0)                 # reused by the position evidence
-            t_n = np.zeros(n) if w_tcp is None else w_tcp @ self.plane.n
-            A, b, gated, nis, rejected = planar_information(
-                w_n, t_n, r0, v @ self.plane.E.T, var_v, var_w, k, float(c[0]), float(c[1]), k_lin,
-                float(c_lin[0]), float(c_lin[1]), corr, prm.sigma_p ** 2, prm.sigma_w ** 2,
-                float(self.radial_var), self.nk, float(P[0, 0] + P[1, 1]), float(P[2, 2]) if self.nk else 0.0,
-                prm.gate_nis, gate)
+            E, nrm = self.plane.E, self.plane.n
         else:
-            r0 = p - self.origin
-            if commit:
-                self._chunk = (w, r0)
-            A, b, gated, nis, rejected = spatial_information(
-                w, np.zeros((n, 3)) if w_tcp is None else w_tcp, r0, v, var_v, var_w, k, c, k_lin, c_lin, corr,
-                prm.sigma_p ** 2, prm.sigma_w ** 2, float(self.radial_var), self.nk, P, prm.gate_nis, gate)
-        if not gated:
-            nis = None
-        return self._commit(P, A, b, n, rejected, nis, r0, duration, commit)
-
-    def _commit(self, P, A, b, n, rejected, nis, r0, duration, commit, consistency: bool = True) -> np.ndarray:
-        """The collapsed update from A = sum H^T R^-1 H and b = sum H^T R^-1 y, in Joseph form
-        (kernels.collapsed_update); commit: keep it and count it."""
-        x_new, P_new = collapsed_update(self.x, P, A, b, commit)
+            E, nrm = _IDENTITY, _NO_NORMAL
+        x_new, P_new, P, A, b, gated, nis, rejected, w_d, r0 = block_update(
+            self.x, self.P, x_lin, w, np.zeros((len(w), 3)) if w_tcp is None else w_tcp, p, v, var_v, var_w, E, nrm,
+            self.origin, prm.q_c * duration, max(self.corr_samples, 1.0), prm.sigma_p ** 2, prm.sigma_w ** 2,
+            float(self.radial_var), prm.gate_nis, K_MIN, prm.gate_nis > 0 and self.steps > 0, commit)
         if not commit:
             return x_new
+        self._chunk = (w_d, r0)                 # reused by the position evidence
+        self._account(x_new, P_new, P, A, b, len(w), rejected, nis if gated else None, r0, duration)
+        return x_new
+
+    def _account(self, x_new, P_new, P, A, b, n, rejected, nis, r0, duration, consistency: bool = True) -> None:
+        """Keep a committed update (prior P, information A and b, posterior x_new and P_new) and count it."""
         self.rejected += rejected
         if nis is not None and len(nis):
             self.nis = float(nis[-1])
@@ -488,7 +471,6 @@ class ContactKF:
         self.steps += n
         if n:
             self._r_last = r0[-1] - self.c
-        return x_new
 
     def _window_add(self, P, A, b, duration: float, nis, rejected: int) -> None:
         """Add one block's information to the consistency window; close the window once it spans
@@ -540,61 +522,33 @@ class ContactKF:
 
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject k = 1); (1, 0) without evidence."""
-        d = self.d
-        if not self.nk or self.k_prior_var <= 0.0 or float(self.P[d, d]) <= 0.0:
+        if not self.nk:
             return 1.0, 0.0
-        pkk = float(self.P[d, d])
-        info = 1.0 / pkk - 1.0 / self.k_prior_var     # posterior information less the prior's
-        if info <= 1e-12 / self.k_prior_var:
-            return 1.0, 0.0
-        k_data = (float(self.x[d]) / pkk - 1.0 / self.k_prior_var) / info
-        return k_data, abs(k_data - 1.0) * math.sqrt(info)
+        return eta_evidence(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_var)
 
     def eta_weight(self) -> float:
         """Weight of the free-eta estimate in the report: 0 while the data do not reject the calibration,
         and 0 when the eta they ask for is implausible (more than ETA_PRIOR_LIMIT of the calibration's
         sigmas off): that is the rigid pivot failing, not eta. An object sliding in the grasp while the
         TCP runs straight reads as k -> 0 (no curvature at all)."""
-        k_data, z = self.eta_evidence()
-        if abs(k_data - 1.0) > ETA_PRIOR_LIMIT * math.sqrt(self.k_prior_var):
+        if not self.nk:
             return 0.0
-        return min(max((z - self.params.eta_test_sigma) / ETA_BLEND_SIGMA, 0.0), 1.0)
-
-    def _report_d(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(c, reported covariance, statistical covariance) in the filter's coordinates."""
-        d = self.d
-        x, P = self.x, self.P
-        scale = max(self.consistency, 1.0)
-        pkk = float(P[d, d]) if self.nk else 0.0
-        m, pmk = x[:d], P[:d, d:]
-        # Calibrated: the state conditioned on k = 1 (eta as scheduled).
-        if pkk > 0.0:
-            pmk = pmk[:, 0]
-            c0 = m + pmk * (1.0 - float(x[d])) / pkk
-            s0 = P[:d, :d] - pmk[:, None] * (pmk / pkk)
-        else:
-            c0, s0 = m.copy(), P[:d, :d].copy()
-        s0 = s0 * scale
-        r = self._r_last
-        rep0 = s0 + r[:, None] * ((self.eta_rel_std ** 2) * r)
-        wgt = self.eta_weight()
-        if wgt <= 0.0:
-            return c0, rep0, s0
-        # Eta free: c = m / k, covariance through the Jacobian [I / k, -m / k^2].
-        k = self.k
-        J = np.hstack([np.eye(d) / k, (-m / (k * k))[:, None]])
-        c1, s1 = m / k, (J @ P @ J.T) * scale
-        dc = c1 - c0
-        spread = wgt * (1.0 - wgt) * np.outer(dc, dc)
-        return c0 + wgt * dc, (1.0 - wgt) * rep0 + wgt * s1 + spread, (1.0 - wgt) * s0 + wgt * s1 + spread
+        return eta_weight(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_var,
+                          self.params.eta_test_sigma)
 
     def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(p_c, reported covariance with the eta floor, the filter's own covariance), world."""
-        c, rep, stat = self._report_d()
+        """(p_c, reported covariance with the eta floor, the filter's own covariance), world.
+
+        The calibrated estimate (k = 1: the state conditioned on it, eta's uncertainty as a radial
+        floor) until the data reject k = 1; then the free-eta estimate c = m / k is blended in
+        (kernels.report_state)."""
         if self.plane is not None:
-            return (self.plane.lift(c), self.plane.lift_cov(rep, UNOBSERVED_STD_M ** 2),
-                    self.plane.lift_cov(stat, UNOBSERVED_STD_M ** 2))
-        return self.origin + c, rep, stat
+            E, along = self.plane.E, self._along_var
+        else:
+            E, along = _IDENTITY, _NO_ALONG
+        return report_state(self.x, self.P, self.d, max(self.consistency, 1.0), self._r_last,
+                            self.eta_rel_std ** 2, self.k_prior_var, self.params.eta_test_sigma, E,
+                            self.origin, along)
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         p_c, cov, _ = self.report()

@@ -124,7 +124,7 @@ class Plane:
         e2 = np.cross(n, e1)
         self.n = n
         self.E = np.vstack([e1, e2])            # (2, 3): world -> plane
-        self._nnT = np.outer(n, n)
+        self.nnT = np.outer(n, n)
         self.origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=float).copy()
 
     def point2(self, p: np.ndarray) -> np.ndarray:
@@ -140,4 +140,4 @@ class Plane:
 
     def lift_cov(self, P2: np.ndarray, along_var: float) -> np.ndarray:
         """In-plane covariance (2, 2) to world (3, 3), with `along_var` along the normal."""
-        return self.E.T @ P2 @ self.E + along_var * self._nnT
+        return self.E.T @ P2 @ self.E + along_var * self.nnT

@@ -331,6 +331,62 @@ def collapsed_update(x, P, A, b, commit):
     return x_new, _mm(_mm(Aj, P), Aj.T) + _mm(GA, G.T)
 
 
+@jit("Tuple((float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:], boolean, float64[:], int64, "
+     "float64[:, :], float64[:, :]))(float64[:], float64[:, :], float64[:], float64[:, :], float64[:, :], "
+     "float64[:, :], float64[:, :], float64[:], float64[:], float64[:, :], float64[:], float64[:], float64, "
+     "float64, float64, float64, float64, float64, float64, boolean, boolean)")
+def block_update(x, P, x_lin, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_add, corr, var_p, var_wn,
+                 radial_var, gate_nis, k_min, gate, commit):
+    """One `ekf` block (ContactKF._block): from the world-frame samples to the updated state.
+
+    x = [m] or [m, k] and P: the state before the block; the contact's random walk q_add is added to
+    P's m block first (P_prior). x_lin: where the noise is linearised. w, w_tcp, p, v (n, 3) world:
+    object rate at the scheduled eta, the gripper's own rate (zeros when still), TCP position and
+    velocity; var_v, var_w (n,). E (d x 3): the plane's basis, or the identity in 3D; nrm: the
+    plane's normal (unused in 3D); origin: the onset TCP.
+
+    Returns (x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0): the posterior (P_prior
+    again unless commit), the block's information (planar_information, spatial_information),
+    and the rate (n, 1) about the normal or (n, 3), and the TCP relative to the onset TCP (n, d),
+    in the filter's coordinates."""
+    n = w.shape[0]
+    d = E.shape[0]
+    nk = x.shape[0] - d
+    P_prior = P.copy()
+    for i in range(d):
+        P_prior[i, i] += q_add
+    k = max(x[d], k_min) if nk else 1.0
+    k_lin = max(x_lin[d], k_min) if nk else 1.0
+    r0 = np.empty((n, d))
+    for i in range(n):
+        for a in range(d):
+            s = 0.0
+            for j in range(3):
+                s += (p[i, j] - origin[j]) * E[a, j]
+            r0[i, a] = s
+    if d == 2:
+        w_d = np.empty((n, 1))
+        t_n = np.empty(n)
+        v2 = np.empty((n, 2))
+        for i in range(n):
+            w_d[i, 0] = w[i, 0] * nrm[0] + w[i, 1] * nrm[1] + w[i, 2] * nrm[2]
+            t_n[i] = w_tcp[i, 0] * nrm[0] + w_tcp[i, 1] * nrm[1] + w_tcp[i, 2] * nrm[2]
+            for a in range(2):
+                v2[i, a] = v[i, 0] * E[a, 0] + v[i, 1] * E[a, 1] + v[i, 2] * E[a, 2]
+        p_kk = P_prior[2, 2] if nk else 0.0
+        A, b, gated, nis, rejected = planar_information(
+            w_d[:, 0], t_n, r0, v2, var_v, var_w, k, x[0] / k, x[1] / k, k_lin, x_lin[0] / k_lin,
+            x_lin[1] / k_lin, corr, var_p, var_wn, radial_var, nk, P_prior[0, 0] + P_prior[1, 1], p_kk,
+            gate_nis, gate)
+    else:
+        w_d = w.copy()
+        A, b, gated, nis, rejected = spatial_information(
+            w, w_tcp, r0, v, var_v, var_w, k, x[:3] / k, k_lin, x_lin[:3] / k_lin, corr, var_p, var_wn,
+            radial_var, nk, P_prior, gate_nis, gate)
+    x_new, P_new = collapsed_update(x, P_prior, A, b, commit)
+    return x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0
+
+
 @jit("Tuple((float64[:], float64[:, :]))(float64[:, :])")
 def sym_eig(S):
     """Eigenvalues (ascending) and eigenvectors (columns) of a small symmetric matrix, by cyclic Jacobi
@@ -378,6 +434,133 @@ def sym_eig(S):
         lam[p] = a[p, p]
     order = np.argsort(lam)
     return lam[order], V[:, order]
+
+
+ETA_BLEND_SIGMA = 1.0          # the free-eta estimate is blended in over this many more sigma of evidence
+ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigmas from 1 is a model failure
+K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
+
+
+@jit("Tuple((float64, float64))(float64, float64, float64)")
+def eta_evidence(x_k, pkk, k_prior_var):
+    """(k from the data alone, sigmas by which the data reject k = 1) for the eta ratio's estimate x_k,
+    its variance pkk and its prior's variance; (1, 0) without evidence."""
+    if k_prior_var <= 0.0 or pkk <= 0.0:
+        return 1.0, 0.0
+    info = 1.0 / pkk - 1.0 / k_prior_var     # posterior information less the prior's
+    if info <= 1e-12 / k_prior_var:
+        return 1.0, 0.0
+    k_data = (x_k / pkk - 1.0 / k_prior_var) / info
+    return k_data, abs(k_data - 1.0) * math.sqrt(info)
+
+
+@jit("float64(float64, float64, float64, float64)")
+def eta_weight(x_k, pkk, k_prior_var, test_sigma):
+    """Weight of the free-eta estimate in the report (ContactKF.eta_weight)."""
+    k_data, z = eta_evidence(x_k, pkk, k_prior_var)
+    if abs(k_data - 1.0) > ETA_PRIOR_LIMIT * math.sqrt(k_prior_var):
+        return 0.0
+    return min(max((z - test_sigma) / ETA_BLEND_SIGMA, 0.0), 1.0)
+
+
+@jit("float64[:, :](float64[:, :], float64[:, :], float64[:])")
+def _lift(S, E, nnT_var):
+    """E^T S E, plus nnT_var (a flattened 3 x 3) added."""
+    out = _mm(_mm(E.T, S), E)
+    for a in range(3):
+        for b in range(3):
+            out[a, b] += nnT_var[3 * a + b]
+    return out
+
+
+@jit("Tuple((float64[:], float64[:, :], float64[:, :]))(float64[:], float64[:, :], int64, float64, float64[:], "
+     "float64, float64, float64, float64[:, :], float64[:], float64[:])")
+def report_state(x, P, d, scale, r_last, eta_var, k_prior_var, test_sigma, E, origin, nnT_var):
+    """ContactKF's report, lifted to the world: (p_c, reported covariance, statistical covariance).
+
+    The state is x = [m] or [m, k] (d = len(m)), P its covariance, scaled by `scale` (the
+    consistency ratio, at least 1). The calibrated estimate is the state conditioned on k = 1, with
+    eta's relative variance `eta_var` as a radial floor along the lever arm `r_last`; once the data
+    reject k = 1 (eta_weight) the free-eta estimate m / k (covariance through the Jacobian
+    [I / k, -m / k^2]) is blended in, with the spread between the two. The filter's coordinates
+    map to the world by p = origin + c E (E: d x 3, the plane's basis, or the identity) and
+    S -> E^T S E + nnT_var (the variance along the plane's normal, zeros in 3D)."""
+    nk = x.shape[0] - d
+    pkk = P[d, d] if nk else 0.0
+    c = np.empty(d)
+    s0 = np.empty((d, d))
+    if pkk > 0.0:
+        f = 1.0 - x[d]
+        for i in range(d):
+            c[i] = x[i] + P[i, d] * f / pkk
+            for j in range(d):
+                s0[i, j] = (P[i, j] - P[i, d] * (P[j, d] / pkk)) * scale
+    else:
+        for i in range(d):
+            c[i] = x[i]
+            for j in range(d):
+                s0[i, j] = P[i, j] * scale
+    rep = np.empty((d, d))
+    for i in range(d):
+        for j in range(d):
+            rep[i, j] = s0[i, j] + r_last[i] * (eta_var * r_last[j])
+    wgt = eta_weight(x[d], pkk, k_prior_var, test_sigma) if nk else 0.0
+    stat = s0
+    if wgt > 0.0:
+        k = max(x[d], K_MIN)
+        J = np.zeros((d, d + 1))
+        dc = np.empty(d)
+        for i in range(d):
+            J[i, i] = 1.0 / k
+            J[i, d] = -x[i] / (k * k)
+            dc[i] = x[i] / k - c[i]
+        s1 = _mm(_mm(J, P), J.T)
+        for i in range(d):
+            c[i] += wgt * dc[i]
+            for j in range(d):
+                shared = wgt * s1[i, j] * scale + wgt * (1.0 - wgt) * dc[i] * dc[j]
+                rep[i, j] = (1.0 - wgt) * rep[i, j] + shared
+                stat[i, j] = (1.0 - wgt) * stat[i, j] + shared
+    p = origin.copy()
+    for a in range(3):
+        for i in range(d):
+            p[a] += c[i] * E[i, a]
+    return p, _lift(rep, E, nnT_var), _lift(stat, E, nnT_var)
+
+
+@jit("Tuple((float64[:], int64, float64[:, :], float64))(float64[:, :], float64[:], int64, float64, float64[:, :], "
+     "float64[:, :], float64, float64, float64)")
+def rotation_axes(wwT, w_sum, n_w, var_w, cov, stat, min_rate2, second_ratio, unobserved_var):
+    """The 3D report's rotation axis from the rate moments (rate_moments): (axis, axes, cov, top).
+
+    The principal axis of the mean w w^T, less the gyro noise var_w, signed as the rotation; axes is
+    0 while no rate reaches min_rate2, 2 when a second axis reaches second_ratio of the first (a
+    point contact is then observable), else 1: a line contact (edge, hinge), unobservable along the
+    axis, where cov is replaced by its projection on the plane of rotation plus unobserved_var along
+    the axis. top is the largest eigenvalue of stat in the plane of rotation (of stat without an
+    axis)."""
+    axis = np.zeros(3)
+    if n_w > 0:
+        S = wwT / n_w
+        for i in range(3):
+            S[i, i] -= var_w
+        lam, vecs = sym_eig(S)
+        if lam[2] >= min_rate2:
+            sign = 1.0 if vecs[0, 2] * w_sum[0] + vecs[1, 2] * w_sum[1] + vecs[2, 2] * w_sum[2] >= 0.0 else -1.0
+            for i in range(3):
+                axis[i] = sign * vecs[i, 2]
+            proj = np.eye(3)
+            for i in range(3):
+                for j in range(3):
+                    proj[i, j] -= axis[i] * axis[j]
+            axes = 2 if lam[1] > second_ratio * lam[2] else 1
+            if axes == 1:
+                cov = _mm(_mm(proj, cov), proj)
+                for i in range(3):
+                    for j in range(3):
+                        cov[i, j] += unobserved_var * axis[i] * axis[j]
+            return axis, axes, cov, sym_eig(_mm(_mm(proj, stat), proj))[0][2]
+    return axis, 0, cov, sym_eig(stat)[0][2]
 
 
 @jit("Tuple((float64, int64))(float64[:, :], float64[:], float64)")

@@ -13,7 +13,7 @@ from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
 from control.geometry import Plane, matrix_to_rotvec, sym2_max_eig
-from control.kernels import rate_moments, sym_eig
+from control.kernels import rate_moments, rotation_axes
 from control.onset import OnsetDetector
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
@@ -385,19 +385,6 @@ class ContactPipeline:
             self.latest = estimates[-1]
         return events, estimates
 
-    def _excitation(self) -> tuple[np.ndarray | None, bool]:
-        """(principal rotation axis or None, whether a second axis was excited)."""
-        if self._n_w == 0:
-            return None, False
-        S = self._wwT / self._n_w
-        S.flat[::4] -= self.params.ekf.sigma_w ** 2
-        lam, vecs = sym_eig(S)
-        if lam[-1] < MIN_AXIS_RATE_RAD_S ** 2:
-            return None, False
-        axis = vecs[:, -1]
-        axis = axis if np.dot(axis, self._w_sum) >= 0 else -axis
-        return axis, lam[-2] > SECOND_AXIS_RATIO * lam[-1]
-
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator
         p_c, cov, stat = est.report()
@@ -410,17 +397,12 @@ class ContactPipeline:
             (s11, s12), (_, s22) = self.plane.E @ stat @ self.plane.E.T
             top = sym2_max_eig(s11, s12, s22)
         else:
-            axis, two_axes = self._excitation()
-            if axis is not None:
-                aaT = np.outer(axis, axis)
-                proj = np.eye(3) - aaT
-                if not two_axes:
-                    # A rotation about one axis only: the contact is a line along it (edge, hinge),
-                    # unobservable along the axis whatever the gyro noise suggests. Say so.
-                    cov = proj @ cov @ proj + UNOBSERVED_STD_M ** 2 * aaT
-                top = float(sym_eig(proj @ stat @ proj)[0][-1])
-            else:
-                top = float(sym_eig(stat)[0][-1])
+            # A rotation about one axis only: the contact is a line along it (edge, hinge),
+            # unobservable along the axis whatever the gyro noise suggests; the covariance says so.
+            axis, axes, cov, top = rotation_axes(self._wwT, self._w_sum, self._n_w, self.params.ekf.sigma_w ** 2, cov,
+                                                 stat, MIN_AXIS_RATE_RAD_S ** 2, SECOND_AXIS_RATIO,
+                                                 UNOBSERVED_STD_M ** 2)
+            axis = axis if axes else None
         in_plane = math.sqrt(max(top, 0.0))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
