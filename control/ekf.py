@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.geometry import Plane, rotvec_to_matrix
-from control.kernels import (K_MIN, block_update, collapsed_update, eta_evidence, eta_weight, pinv_quadratic,
-                             position_sums, report_state, window_add, window_nis)
+from control.kernels import (K_MIN, block_update, collapsed_update, eta_evidence, eta_weight, position_increment,
+                             position_residual, position_sums, report_state, window_add, window_nis)
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -273,30 +273,13 @@ class PositionEvidence:
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
         """(dLambda, deta): the growth of the marginal information on (m, k) since the last call."""
-        n = max(self.n, 1)
-        lam = (self.s_xx - self.s_x.T @ self.s_x / n) / self.var
-        eta = (self.s_xy - self.s_x.T @ self.s_y / n) / self.var
-        d_lam, d_eta = lam - self.lam, eta - self.eta
-        self.lam, self.eta = lam, eta
-        return 0.5 * (d_lam + d_lam.T), d_eta
+        return position_increment(self.s_x, self.s_xx, self.s_xy, self.s_y, self.n, self.var, self.lam, self.eta)
 
     def residual_ratio(self, k: float = 1.0) -> float:
         """Least-squares residual of the (q, m) regression at the eta ratio k, over its expectation (1 when
         the model holds). k is held, not fitted: a free k would absorb part of a slip in the grasp."""
-        n, d = self.n, self.d
-        if n < MIN_RESIDUAL_SAMPLES:
-            return 1.0
-        sx_m, sx_g = self.s_x[:, :d], self.s_x[:, d]
-        s_yy = self.s_yy - 2.0 * k * self.s_xy[d] + k * k * self.s_xx[d, d]     # y' = y - k G
-        s_y = self.s_y - k * sx_g
-        lam_u = self.s_xx[:d, :d] - sx_m.T @ sx_m / n
-        eta_u = self.s_xy[:d] - k * self.s_xx[:d, d] - sx_m.T @ s_y / n
-        fit, rank = pinv_quadratic(lam_u, eta_u, 1e-9)     # the fitted m's share of the sum of squares
-        dof = d * n - d - rank
-        if dof <= 0:
-            return 1.0
-        rss = s_yy - float(s_y @ s_y) / n - fit
-        return max(rss, 0.0) / (self.var * dof)
+        return position_residual(self.s_x, self.s_xx, self.s_xy, self.s_y, self.s_yy, self.n, self.var, k,
+                                 MIN_RESIDUAL_SAMPLES)
 
 
 class ContactKF:
@@ -405,14 +388,13 @@ class ContactKF:
         mb = self.params.max_block
         for k0 in range(0, n, mb):
             sl = slice(k0, k0 + mb)
-            wt = None if w_tcp is None else w_tcp[sl]
-            duration = float(np.sum(dt[sl]))
+            block = (dt[sl], w[sl], None if w_tcp is None else w_tcp[sl], p[sl], v[sl], var_v[sl], var_w[sl])
             # At onset the noise model is linearised about a guess; iterate once on the
             # first block (from the same prior) so it is linearised about the data's answer.
             x_lin = self.x
             for _ in range(2 if self.steps == 0 else 0):
-                x_lin = self._block(duration, w[sl], wt, p[sl], v[sl], var_v[sl], var_w[sl], x_lin, commit=False)
-            self._block(duration, w[sl], wt, p[sl], v[sl], var_v[sl], var_w[sl], x_lin, commit=True)
+                x_lin = self._block(*block, x_lin, commit=False)
+            self._block(*block, x_lin, commit=True)
             if self.positions is not None:
                 if fresh is None:
                     self.positions.reset()     # no position measurements here: restart the reference
@@ -436,13 +418,15 @@ class ContactKF:
         if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
             ev.broken = True        # the TCP moves relative to the object: displacements mislead
             return
-        b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
+        x_mk = np.append(self.x[:self.d], self.k) if self.nk == 0 else self.x.copy()
+        x_mk[self.d] = self.k                # k floored, as in the blocks
+        b = d_eta - d_lam @ x_mk
         n = self.d + self.nk                 # with k held at 1, its column is part of the measurement
         A = d_lam[:n, :n]
         x_new, P_new = collapsed_update(self.x, self.P, A, b[:n], True)
         self._account(x_new, P_new, self.P, A, b[:n], 0, 0, None, None, 0.0, consistency=False)
 
-    def _block(self, duration: float, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
+    def _block(self, dt, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
         """One collapsed update from the current prior, noise linearised about x_lin (kernels.block_update);
         returns the posterior mean."""
         prm = self.params
@@ -450,9 +434,9 @@ class ContactKF:
             E, nrm = self.plane.E, self.plane.n
         else:
             E, nrm = _IDENTITY, _NO_NORMAL
-        x_new, P_new, P, A, b, gated, nis, rejected, w_d, r0 = block_update(
-            self.x, self.P, x_lin, w, np.zeros((len(w), 3)) if w_tcp is None else w_tcp, p, v, var_v, var_w, E, nrm,
-            self.origin, prm.q_c * duration, max(self.corr_samples, 1.0), prm.sigma_p ** 2, prm.sigma_w ** 2,
+        x_new, P_new, P, A, b, gated, nis, rejected, w_d, r0, duration = block_update(
+            self.x, self.P, x_lin, dt, w, np.zeros((len(w), 3)) if w_tcp is None else w_tcp, p, v, var_v, var_w, E,
+            nrm, self.origin, prm.q_c, max(self.corr_samples, 1.0), prm.sigma_p ** 2, prm.sigma_w ** 2,
             float(self.radial_var), prm.gate_nis, K_MIN, prm.gate_nis > 0 and self.steps > 0, commit)
         if not commit:
             return x_new

@@ -80,11 +80,6 @@ def relative_rotvec(R, R_ref) -> tuple[float, float, float]:
     return (f * v[0], f * v[1], f * v[2])
 
 
-def sym2_max_eig(a11: float, a12: float, a22: float) -> float:
-    """Larger eigenvalue of the symmetric 2 x 2 matrix [[a11, a12], [a12, a22]], in plain floats."""
-    return 0.5 * (a11 + a22) + math.sqrt(max(0.25 * (a11 - a22) ** 2 + a12 * a12, 0.0))
-
-
 def unit(v: np.ndarray, name: str = "vector") -> np.ndarray:
     """v / |v|; ValueError naming `name` if v is (near) zero."""
     v = np.asarray(v, dtype=float)

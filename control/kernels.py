@@ -332,29 +332,33 @@ def collapsed_update(x, P, A, b, commit):
 
 
 @jit("Tuple((float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:], boolean, float64[:], int64, "
-     "float64[:, :], float64[:, :]))(float64[:], float64[:, :], float64[:], float64[:, :], float64[:, :], "
-     "float64[:, :], float64[:, :], float64[:], float64[:], float64[:, :], float64[:], float64[:], float64, "
-     "float64, float64, float64, float64, float64, float64, boolean, boolean)")
-def block_update(x, P, x_lin, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_add, corr, var_p, var_wn,
+     "float64[:, :], float64[:, :], float64))(float64[:], float64[:, :], float64[:], float64[:], float64[:, :], "
+     "float64[:, :], float64[:, :], float64[:, :], float64[:], float64[:], float64[:, :], float64[:], float64[:], "
+     "float64, float64, float64, float64, float64, float64, float64, boolean, boolean)")
+def block_update(x, P, x_lin, dt, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_c, corr, var_p, var_wn,
                  radial_var, gate_nis, k_min, gate, commit):
     """One `ekf` block (ContactKF._block): from the world-frame samples to the updated state.
 
-    x = [m] or [m, k] and P: the state before the block; the contact's random walk q_add is added to
-    P's m block first (P_prior). x_lin: where the noise is linearised. w, w_tcp, p, v (n, 3) world:
+    x = [m] or [m, k] and P: the state before the block; the contact's random walk (q_c m^2/s over the
+    block's duration, the sum of dt) is added to P's m block first (P_prior). x_lin: where the noise is
+    linearised. w, w_tcp, p, v (n, 3) world:
     object rate at the scheduled eta, the gripper's own rate (zeros when still), TCP position and
     velocity; var_v, var_w (n,). E (d x 3): the plane's basis, or the identity in 3D; nrm: the
     plane's normal (unused in 3D); origin: the onset TCP.
 
-    Returns (x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0): the posterior (P_prior
-    again unless commit), the block's information (planar_information, spatial_information),
-    and the rate (n, 1) about the normal or (n, 3), and the TCP relative to the onset TCP (n, d),
-    in the filter's coordinates."""
+    Returns (x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration): the posterior
+    (P_prior again unless commit), the block's information (planar_information,
+    spatial_information), the rate (n, 1) about the normal or (n, 3) and the TCP relative to the
+    onset TCP (n, d) in the filter's coordinates, and the block's duration."""
     n = w.shape[0]
     d = E.shape[0]
     nk = x.shape[0] - d
+    duration = 0.0
+    for i in range(n):
+        duration += dt[i]
     P_prior = P.copy()
     for i in range(d):
-        P_prior[i, i] += q_add
+        P_prior[i, i] += q_c * duration
     k = max(x[d], k_min) if nk else 1.0
     k_lin = max(x_lin[d], k_min) if nk else 1.0
     r0 = np.empty((n, d))
@@ -384,7 +388,7 @@ def block_update(x, P, x_lin, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_ad
             w, w_tcp, r0, v, var_v, var_w, k, x[:3] / k, k_lin, x_lin[:3] / k_lin, corr, var_p, var_wn,
             radial_var, nk, P_prior, gate_nis, gate)
     x_new, P_new = collapsed_update(x, P_prior, A, b, commit)
-    return x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0
+    return x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration
 
 
 @jit("Tuple((float64[:], float64[:, :]))(float64[:, :])")
@@ -563,6 +567,23 @@ def rotation_axes(wwT, w_sum, n_w, var_w, cov, stat, min_rate2, second_ratio, un
     return axis, 0, cov, sym_eig(stat)[0][2]
 
 
+@jit("Tuple((float64, float64))(float64[:, :], float64[:, :], float64[:], float64[:])")
+def plane_rotation(stat, E, nrm, w_sum):
+    """The planar report's rotation: (sign, top). sign is +1 when the summed rate w_sum turns about
+    the plane's normal nrm, else -1; top is the larger eigenvalue of stat (world, 3 x 3) in the plane
+    (E stat E^T, E: the plane's 2 x 3 basis), in closed form."""
+    s = np.zeros((2, 2))
+    for a in range(2):
+        for b in range(2):
+            for i in range(3):
+                for j in range(3):
+                    s[a, b] += E[a, i] * stat[i, j] * E[b, j]
+    half = 0.5 * (s[0, 0] - s[1, 1])
+    top = 0.5 * (s[0, 0] + s[1, 1]) + math.sqrt(max(half * half + s[0, 1] * s[0, 1], 0.0))
+    sign = 1.0 if w_sum[0] * nrm[0] + w_sum[1] * nrm[1] + w_sum[2] * nrm[2] >= 0.0 else -1.0
+    return sign, top
+
+
 @jit("Tuple((float64, int64))(float64[:, :], float64[:], float64)")
 def pinv_quadratic(S, b, rcond):
     """(b^T S^+ b, rank) for a small symmetric positive semi-definite S, eigenvalues below
@@ -665,6 +686,72 @@ def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
                 for b in range(d + 1):
                     s_xx[a, b] += X[j, a] * X[j, b]
     return taken, s_yy
+
+
+@jit("Tuple((float64[:, :], float64[:]))(float64[:, :], float64[:, :], float64[:], float64[:], int64, float64, "
+     "float64[:, :], float64[:])")
+def position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta):
+    """PositionEvidence.increment: the marginal information on (m, k), the intercept q eliminated
+    (Lambda = (S_xx - S_x^T S_x / n) / var, eta = (S_xy - S_x^T S_y / n) / var), returned as its
+    growth since lam, eta, which are updated in place. The growth is symmetrised."""
+    d, nx = s_x.shape[0], s_x.shape[1]
+    nn = max(n, 1)
+    new = np.empty((nx, nx))
+    d_eta = np.empty(nx)
+    for a in range(nx):
+        for b in range(nx):
+            sxx = 0.0
+            for j in range(d):
+                sxx += s_x[j, a] * s_x[j, b]
+            new[a, b] = (s_xx[a, b] - sxx / nn) / var
+        sxy = 0.0
+        for j in range(d):
+            sxy += s_x[j, a] * s_y[j]
+        e = (s_xy[a] - sxy / nn) / var
+        d_eta[a] = e - eta[a]
+        eta[a] = e
+    d_lam = np.empty((nx, nx))
+    for a in range(nx):
+        for b in range(nx):
+            d_lam[a, b] = 0.5 * ((new[a, b] - lam[a, b]) + (new[b, a] - lam[b, a]))
+    for a in range(nx):
+        for b in range(nx):
+            lam[a, b] = new[a, b]
+    return d_lam, d_eta
+
+
+@jit("float64(float64[:, :], float64[:, :], float64[:], float64[:], float64, int64, float64, float64, int64)")
+def position_residual(s_x, s_xx, s_xy, s_y, s_yy, n, var, k, min_samples):
+    """PositionEvidence.residual_ratio: the (q, m) regression's residual at the held eta ratio k
+    (y' = y - k G), over its expectation var * dof; 1 below min_samples or without dof."""
+    d = s_x.shape[0]
+    if n < min_samples:
+        return 1.0
+    syy = s_yy - 2.0 * k * s_xy[d] + k * k * s_xx[d, d]
+    sy = np.empty(d)
+    for j in range(d):
+        sy[j] = s_y[j] - k * s_x[j, d]
+    lam_u = np.empty((d, d))
+    eta_u = np.empty(d)
+    for a in range(d):
+        for b in range(d):
+            sxx = 0.0
+            for j in range(d):
+                sxx += s_x[j, a] * s_x[j, b]
+            lam_u[a, b] = s_xx[a, b] - sxx / n
+        sxy = 0.0
+        for j in range(d):
+            sxy += s_x[j, a] * sy[j]
+        eta_u[a] = s_xy[a] - k * s_xx[a, d] - sxy / n
+    fit, rank = pinv_quadratic(lam_u, eta_u, 1e-9)     # the fitted m's share of the sum of squares
+    dof = d * n - d - rank
+    if dof <= 0:
+        return 1.0
+    sy2 = 0.0
+    for j in range(d):
+        sy2 += sy[j] * sy[j]
+    rss = syy - sy2 / n - fit
+    return max(rss, 0.0) / (var * dof)
 
 
 @jit("float64(float64[:, :], float64[:], float64[:, :], float64[:])")

@@ -12,8 +12,8 @@ import numpy as np
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
-from control.geometry import Plane, matrix_to_rotvec, sym2_max_eig
-from control.kernels import rate_moments, rotation_axes
+from control.geometry import Plane, relative_rotvec
+from control.kernels import plane_rotation, rate_moments, rotation_axes
 from control.onset import OnsetDetector
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
@@ -94,7 +94,7 @@ class ProprioTrack:
             # Backward difference of orientations: it belongs to the middle of the interval.
             if n:
                 dt = t - self.t[n - 1]
-                w, tw = matrix_to_rotvec(R @ self.R[n - 1].T) / dt, t - dt / 2
+                w, tw = np.array(relative_rotvec(R.tolist(), self.R[n - 1].tolist())) / dt, t - dt / 2
             else:
                 w, tw = np.zeros(3), t
         else:
@@ -102,8 +102,8 @@ class ProprioTrack:
             if n and self.tw[n - 1] == self.t[n - 1]:
                 # two reported rates: extrapolate the rate between samples, not hold it
                 wdot = (w - self.w[n - 1]) / (t - self.t[n - 1])
-        a = float(np.linalg.norm(v - self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6)) if n else 0.0
-        alpha = float(np.linalg.norm(w - self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6)) if n else 0.0
+        a = math.dist(v, self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6) if n else 0.0
+        alpha = math.dist(w, self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6) if n else 0.0
         if n == self.size:
             for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.alpha, self.tw, self.R, self.w,
                         self.wdot, self.force):
@@ -392,10 +392,9 @@ class ContactPipeline:
         # (systematic floors such as eta's are reported, but do not shrink with data).
         if self.plane is not None:
             # The axis is the plane's normal, signed as the rotation; the in-plane variance is
-            # the larger eigenvalue of the 2 x 2 in-plane covariance, in closed form.
-            axis = self.plane.n if float(self._w_sum @ self.plane.n) >= 0 else -self.plane.n
-            (s11, s12), (_, s22) = self.plane.E @ stat @ self.plane.E.T
-            top = sym2_max_eig(s11, s12, s22)
+            # the larger eigenvalue of the 2 x 2 in-plane covariance.
+            sign, top = plane_rotation(stat, self.plane.E, self.plane.n, self._w_sum)
+            axis = self.plane.n if sign > 0 else -self.plane.n
         else:
             # A rotation about one axis only: the contact is a line along it (edge, hinge),
             # unobservable along the axis whatever the gyro noise suggests; the covariance says so.
