@@ -167,3 +167,172 @@ def test_jit_compiles_where_numba_cannot_cache():
     with pytest.raises(RuntimeError, match="cannot cache"):
         K.njit("float64(float64)", cache=True)(ns["twice"])
     assert K.jit("float64(float64)")(ns["twice"])(1.5) == 3.0
+
+
+def random_cov(rng, n, scale):
+    L = rng.normal(size=(n, n))
+    return L @ L.T * scale + 1e-3 * scale * np.eye(n)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("nk", [0, 1])
+def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(planar, nk):
+    """World-frame samples in, the updated state out: projection on a skewed plane, the contact's random
+    walk over the block's duration, the model's information (numpy, sample by sample), the update."""
+    rng = np.random.default_rng(6)
+    w, r0, v, var_v, var_w = block(rng)
+    origin = np.array([0.3, -0.2, 0.5])
+    p, dt = origin + r0, rng.uniform(1e-4, 2e-4, len(w))
+    d = 2 if planar else 3
+    n = np.array([0.2, 1.0, -0.3]) / np.linalg.norm([0.2, 1.0, -0.3])
+    e1 = np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    E = np.vstack([e1, np.cross(n, e1)]) if planar else np.eye(3)
+    x = np.append(rng.normal(0, 0.05, d), [1.08] * nk)
+    x_lin = x + np.append(rng.normal(0, 0.005, d), [0.02] * nk)
+    P = random_cov(rng, d + nk, 1e-4)
+    q_c, corr, var_p, var_wn, radial_var = 1e-6, 3.0, 2.5e-9, 1e-4, 2.5e-5
+    x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = K.block_update(
+        x, P, x_lin, dt, w, np.zeros_like(w), p, v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
+        radial_var, 16.3, K.K_MIN, False, True)
+    P_ref = P.copy()
+    P_ref[range(d), range(d)] += q_c * dt.sum()
+    k, k_lin = (x[d], x_lin[d]) if nk else (1.0, 1.0)
+    model = (k, x[:d] / k, k_lin, x_lin[:d] / k_lin, corr, var_p, var_wn, radial_var, nk)
+    if planar:
+        w_n = w @ n
+        samples = planar_samples(w_n, np.zeros(len(w)), r0 @ E.T, v @ E.T, var_v, var_w, *model)
+        np.testing.assert_allclose(w_d[:, 0], w_n, rtol=1e-12)
+    else:
+        samples = spatial_samples(w, np.zeros_like(w), r0, v, var_v, var_w, *model)
+        np.testing.assert_allclose(w_d, w, rtol=1e-12)
+    A_ref, b_ref = information(samples, d + nk)
+    assert_same_information(A, b, A_ref, b_ref)
+    np.testing.assert_allclose(r_d, r0 @ E.T, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(P_prior, P_ref, rtol=1e-12)
+    assert duration == pytest.approx(dt.sum(), rel=1e-12)
+    x_ref, P_new_ref = K.collapsed_update(x, P_ref, A_ref, b_ref, True)
+    np.testing.assert_allclose(x_new, x_ref, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(P_new, P_new_ref, rtol=1e-7, atol=1e-15)
+    assert not gated and rejected == 0
+
+
+def report_reference(x, P, d, scale, r_last, eta_var, wgt):
+    """ContactKF's report in numpy: calibrated (the state conditioned on k = 1, eta's radial floor),
+    blended with the free-eta estimate m / k by wgt."""
+    m = x[:d]
+    if len(x) > d:
+        pmk, pkk = P[:d, d], P[d, d]
+        c0, s0 = m + pmk * (1.0 - x[d]) / pkk, P[:d, :d] - np.outer(pmk, pmk) / pkk
+    else:
+        c0, s0 = m.copy(), P[:d, :d].copy()
+    s0 = s0 * scale
+    rep0 = s0 + eta_var * np.outer(r_last, r_last)
+    if wgt <= 0.0:
+        return c0, rep0, s0
+    k = x[d]
+    J = np.hstack([np.eye(d) / k, (-m / k ** 2)[:, None]])
+    c1, s1 = m / k, J @ P @ J.T * scale
+    spread = wgt * (1.0 - wgt) * np.outer(c1 - c0, c1 - c0)
+    return c0 + wgt * (c1 - c0), (1 - wgt) * rep0 + wgt * s1 + spread, (1 - wgt) * s0 + wgt * s1 + spread
+
+
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("z", [None, 1.0, 3.4, 5.0])
+def test_report_state_matches_numpy(planar, z):
+    """Without eta (None), calibrated (z = 1 sigma of evidence), half blended (3.4) and free (5)."""
+    rng = np.random.default_rng(7)
+    d = 2 if planar else 3
+    origin = np.array([0.3, -0.2, 0.5])
+    E = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) if planar else np.eye(3)
+    along = (0.25 * np.outer([0.0, 1.0, 0.0], [0.0, 1.0, 0.0])).ravel() if planar else np.zeros(9)
+    k_prior_var, r_last = 0.0625, rng.normal(0, 0.1, d)
+    if z is None:
+        x, P = rng.normal(0, 0.1, d), random_cov(rng, d, 1e-5)
+    else:
+        P = random_cov(rng, d + 1, 1e-5)
+        P[d, :d] = P[:d, d] = 0.3 * np.sqrt(P[d, d] * P.diagonal()[:d])
+        info = 1.0 / P[d, d] - 1.0 / k_prior_var
+        k_data = 1.0 + z / np.sqrt(info)                 # the data reject k = 1 by z sigma
+        x = np.append(rng.normal(0, 0.1, d), P[d, d] * (k_data * info + 1.0 / k_prior_var))
+        assert K.eta_evidence(x[d], P[d, d], k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
+    wgt = K.eta_weight(x[d], P[d, d], k_prior_var, 3.0) if z is not None else 0.0
+    assert wgt == (0.0 if z in (None, 1.0) else pytest.approx(min(max(z - 3.0, 0.0), 1.0)))
+    p, rep, stat = K.report_state(x, P, d, 1.7, r_last, 0.0025, k_prior_var, 3.0, E, origin, along)
+    c_ref, rep_ref, stat_ref = report_reference(x, P, d, 1.7, r_last, 0.0025, wgt)
+    np.testing.assert_allclose(p, origin + c_ref @ E, rtol=1e-12)
+    np.testing.assert_allclose(rep, E.T @ rep_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
+    np.testing.assert_allclose(stat, E.T @ stat_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
+
+
+def test_eta_weight_ignores_an_implausible_eta():
+    """Evidence for an eta ratio more than ETA_PRIOR_LIMIT prior sigmas from 1 is the pivot failing."""
+    k_prior_var, pkk = 0.0025, 1e-5
+    info = 1.0 / pkk - 1.0 / k_prior_var
+    for k_data, expected in ((1.15, 1.0), (1.25, 0.0)):   # 3 and 5 prior sigmas off
+        x_k = pkk * (k_data * info + 1.0 / k_prior_var)
+        assert K.eta_weight(x_k, pkk, k_prior_var, 3.0) == expected
+
+
+@pytest.mark.parametrize("rates", [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.3, 0.2, 0.0]])
+def test_rotation_axes_match_numpy(rates):
+    """No rotation yet, one axis (a line contact: the covariance projected, 0.5 m along the axis) and two."""
+    rng = np.random.default_rng(8)
+    Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    w = (rng.normal(size=(500, 3)) * np.array(rates) + 1e-6 * rng.normal(size=(500, 3))) @ Q.T
+    w += 0.5 * np.array(rates) @ Q.T                    # a mean rate to sign the axis
+    wwT, w_sum = np.zeros((3, 3)), np.zeros(3)
+    K.rate_moments(w, np.full(len(w), 1e-3), wwT, w_sum)
+    cov, stat = random_cov(rng, 3, 1e-6), random_cov(rng, 3, 1e-6)
+    axis, axes, cov_out, top = K.rotation_axes(wwT, w_sum, len(w), 1e-12, cov, stat, 1e-6, 0.05, 0.25)
+    lam, V = np.linalg.eigh(w.T @ w / len(w) - 1e-12 * np.eye(3))
+    assert axes == (0 if lam[-1] < 1e-6 else 2 if lam[-2] > 0.05 * lam[-1] else 1)
+    if axes == 0:
+        assert top == pytest.approx(np.linalg.eigvalsh(stat)[-1], rel=1e-9)
+        np.testing.assert_array_equal(cov_out, cov)
+        return
+    a = V[:, -1] * np.sign(V[:, -1] @ w_sum)
+    np.testing.assert_allclose(axis, a, atol=1e-9)
+    proj = np.eye(3) - np.outer(a, a)
+    assert top == pytest.approx(np.linalg.eigvalsh(proj @ stat @ proj)[-1], rel=1e-9)
+    expected = proj @ cov @ proj + 0.25 * np.outer(a, a) if axes == 1 else cov
+    np.testing.assert_allclose(cov_out, expected, rtol=1e-9, atol=1e-15)
+
+
+def test_plane_rotation_matches_numpy():
+    rng = np.random.default_rng(9)
+    n = np.array([0.2, 1.0, -0.3]) / np.linalg.norm([0.2, 1.0, -0.3])
+    e1 = np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    E = np.vstack([e1, np.cross(n, e1)])
+    stat = random_cov(rng, 3, 1e-6)
+    for w_sum, sign in ((2.0 * n, 1.0), (-0.5 * n + 0.1 * e1, -1.0)):
+        s, top = K.plane_rotation(stat, E, n, w_sum)
+        assert s == sign and top == pytest.approx(np.linalg.eigvalsh(E @ stat @ E.T)[-1], rel=1e-12)
+
+
+def test_position_increment_and_residual_match_numpy():
+    """The marginal information on (m, k) with the intercept eliminated, and the regression's residual
+    at a held k, from the running sums of a random regression."""
+    rng = np.random.default_rng(10)
+    d, nx, n, var = 3, 4, 40, 2.5e-9
+    X = rng.normal(size=(n, d, nx))
+    y = rng.normal(size=(n, d)) * 1e-3
+    s_x, s_xx, s_xy, s_y = X.sum(0), np.einsum("ija,ijb->ab", X, X), np.einsum("ija,ij->a", X, y), y.sum(0)
+    lam, eta = np.eye(nx), np.ones(nx)
+    lam0, eta0 = lam.copy(), eta.copy()
+    d_lam, d_eta = K.position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta)
+    lam_ref = (s_xx - s_x.T @ s_x / n) / var
+    np.testing.assert_allclose(lam, lam_ref, rtol=1e-12)
+    np.testing.assert_allclose(eta, (s_xy - s_x.T @ s_y / n) / var, rtol=1e-12)
+    np.testing.assert_allclose(d_lam, lam_ref - lam0, rtol=1e-12)
+    np.testing.assert_allclose(d_eta, eta - eta0, rtol=1e-12)
+    k = 1.1
+    ratio = K.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), n, var, k, 8)
+    # regression of y - k G on [I (intercept q), -[Theta]x] per sample
+    Z = np.concatenate([np.tile(np.eye(d), (n, 1)), X[:, :, :d].reshape(n * d, d)], axis=1)
+    resid = (y - k * X[:, :, d]).ravel()
+    fit = np.linalg.lstsq(Z, resid, rcond=None)
+    rss = float(np.sum((resid - Z @ fit[0]) ** 2))
+    assert ratio == pytest.approx(rss / (var * (d * n - d - np.linalg.matrix_rank(Z[:, d:]))), rel=1e-7)
+    assert K.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), 5, var, k, 8) == 1.0
