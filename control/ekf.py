@@ -326,7 +326,11 @@ class ContactKF:
         self.P = np.eye(self.d)
         self.origin = np.zeros(3)
         self.corr_samples = 1.0          # IMU samples per proprioception sample
-        self.eta_rel_std = self.params.eta_rel_std   # the pipeline raises it away from eta's calibration
+        # eta's prior as the pipeline sets it from the grip force: the mean of k and its relative one-sigma
+        # (raised away from eta's calibration, the mean moved off 1 outside the calibrated forces)
+        self.eta_prior_mean = 1.0
+        self.eta_rel_std = self.params.eta_rel_std
+        self.k_prior_mean = 1.0          # as read at onset: k's prior, or the value k is held at
         self.k_prior_var = 0.0
         self.consistency = 1.0           # smoothed window NIS / its expectation (>= 1 scales the report)
         self._win_n, self._win_t = 0, 0.0    # the consistency window: blocks in it, seconds
@@ -347,8 +351,8 @@ class ContactKF:
 
     @property
     def k(self) -> float:
-        """The eta ratio eta_true / eta_used, floored for division (1 when not a state)."""
-        return max(float(self.x[self.d]), K_MIN) if self.nk else 1.0
+        """The eta ratio eta_true / eta_used, floored for division (its prior mean when not a state)."""
+        return max(float(self.x[self.d]), K_MIN) if self.nk else self.k_prior_mean
 
     @property
     def c(self) -> np.ndarray:
@@ -356,7 +360,7 @@ class ContactKF:
         return self.x[:self.d] / self.k
 
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
-        """Start an episode at the TCP state at onset; eta's prior is `eta_rel_std` as set now."""
+        """Start an episode at the TCP state at onset; eta's prior is `eta_prior_mean`, `eta_rel_std` as set now."""
         d = self.d
         self.origin = np.asarray(p_g, dtype=float).copy()
         if self.plane is not None:
@@ -364,9 +368,10 @@ class ContactKF:
         if self.positions is not None:
             self.positions.start()
         self.x = np.zeros(d + self.nk)
+        self.k_prior_mean = self.eta_prior_mean
         self.k_prior_var = self.eta_rel_std ** 2 if self.nk else 0.0
         if self.nk:
-            self.x[d] = 1.0
+            self.x[d] = self.k_prior_mean
         self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
         self.steps = 0
         self.rejected = 0
@@ -437,7 +442,7 @@ class ContactKF:
         x_new, P_new, P, A, b, gated, nis, rejected, w_d, r0, duration = block_update(
             self.x, self.P, x_lin, dt, w, np.zeros((len(w), 3)) if w_tcp is None else w_tcp, p, v, var_v, var_w, E,
             nrm, self.origin, prm.q_c, max(self.corr_samples, 1.0), prm.sigma_p ** 2, prm.sigma_w ** 2,
-            float(self.radial_var), prm.gate_nis, K_MIN, prm.gate_nis > 0 and self.steps > 0, commit)
+            float(self.radial_var), prm.gate_nis, K_MIN, self.k_prior_mean, prm.gate_nis > 0 and self.steps > 0, commit)
         if not commit:
             return x_new
         self._chunk = (w_d, r0)                 # reused by the position evidence
@@ -505,10 +510,11 @@ class ContactKF:
         self.consistency += alpha * (ratio - self.consistency)
 
     def eta_evidence(self) -> tuple[float, float]:
-        """(k from the data alone, sigmas by which the data reject k = 1); (1, 0) without evidence."""
+        """(k from the data alone, sigmas by which the data reject its prior mean); (the mean, 0) without
+        evidence."""
         if not self.nk:
-            return 1.0, 0.0
-        return eta_evidence(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_var)
+            return self.k_prior_mean, 0.0
+        return eta_evidence(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_mean, self.k_prior_var)
 
     def eta_weight(self) -> float:
         """Weight of the free-eta estimate in the report: 0 while the data do not reject the calibration,
@@ -517,22 +523,22 @@ class ContactKF:
         TCP runs straight reads as k -> 0 (no curvature at all)."""
         if not self.nk:
             return 0.0
-        return eta_weight(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_var,
+        return eta_weight(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_mean, self.k_prior_var,
                           self.params.eta_test_sigma)
 
     def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p_c, reported covariance with the eta floor, the filter's own covariance), world.
 
-        The calibrated estimate (k = 1: the state conditioned on it, eta's uncertainty as a radial
-        floor) until the data reject k = 1; then the free-eta estimate c = m / k is blended in
+        The scheduled estimate (k at its prior mean: the state conditioned on it, eta's uncertainty as
+        a radial floor) until the data reject that; then the free-eta estimate c = m / k is blended in
         (kernels.report_state)."""
         if self.plane is not None:
             E, along = self.plane.E, self._along_var
         else:
             E, along = _IDENTITY, _NO_ALONG
         return report_state(self.x, self.P, self.d, max(self.consistency, 1.0), self._r_last,
-                            self.eta_rel_std ** 2, self.k_prior_var, self.params.eta_test_sigma, E,
-                            self.origin, along)
+                            (self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
+                            self.params.eta_test_sigma, E, self.origin, along)
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         p_c, cov, _ = self.report()

@@ -334,12 +334,12 @@ def collapsed_update(x, P, A, b, commit):
 @jit("Tuple((float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:], boolean, float64[:], int64, "
      "float64[:, :], float64[:, :], float64))(float64[:], float64[:, :], float64[:], float64[:], float64[:, :], "
      "float64[:, :], float64[:, :], float64[:, :], float64[:], float64[:], float64[:, :], float64[:], float64[:], "
-     "float64, float64, float64, float64, float64, float64, float64, boolean, boolean)")
+     "float64, float64, float64, float64, float64, float64, float64, float64, boolean, boolean)")
 def block_update(x, P, x_lin, dt, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_c, corr, var_p, var_wn,
-                 radial_var, gate_nis, k_min, gate, commit):
+                 radial_var, gate_nis, k_min, k_held, gate, commit):
     """One `ekf` block (ContactKF._block): from the world-frame samples to the updated state.
 
-    x = [m] or [m, k] and P: the state before the block; the contact's random walk (q_c m^2/s over the
+    x = [m] or [m, k] and P: the state before the block (k held at k_held when not a state); the contact's random walk (q_c m^2/s over the
     block's duration, the sum of dt) is added to P's m block first (P_prior). x_lin: where the noise is
     linearised. w, w_tcp, p, v (n, 3) world:
     object rate at the scheduled eta, the gripper's own rate (zeros when still), TCP position and
@@ -359,8 +359,8 @@ def block_update(x, P, x_lin, dt, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, 
     P_prior = P.copy()
     for i in range(d):
         P_prior[i, i] += q_c * duration
-    k = max(x[d], k_min) if nk else 1.0
-    k_lin = max(x_lin[d], k_min) if nk else 1.0
+    k = max(x[d], k_min) if nk else k_held
+    k_lin = max(x_lin[d], k_min) if nk else k_held
     r0 = np.empty((n, d))
     for i in range(n):
         for a in range(d):
@@ -445,24 +445,24 @@ ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigma
 K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
 
 
-@jit("Tuple((float64, float64))(float64, float64, float64)")
-def eta_evidence(x_k, pkk, k_prior_var):
-    """(k from the data alone, sigmas by which the data reject k = 1) for the eta ratio's estimate x_k,
-    its variance pkk and its prior's variance; (1, 0) without evidence."""
+@jit("Tuple((float64, float64))(float64, float64, float64, float64)")
+def eta_evidence(x_k, pkk, k_mean, k_prior_var):
+    """(k from the data alone, sigmas by which the data reject the prior's k_mean) for the eta ratio's
+    estimate x_k, its variance pkk and its prior N(k_mean, k_prior_var); (k_mean, 0) without evidence."""
     if k_prior_var <= 0.0 or pkk <= 0.0:
-        return 1.0, 0.0
+        return k_mean, 0.0
     info = 1.0 / pkk - 1.0 / k_prior_var     # posterior information less the prior's
     if info <= 1e-12 / k_prior_var:
-        return 1.0, 0.0
-    k_data = (x_k / pkk - 1.0 / k_prior_var) / info
-    return k_data, abs(k_data - 1.0) * math.sqrt(info)
+        return k_mean, 0.0
+    k_data = (x_k / pkk - k_mean / k_prior_var) / info
+    return k_data, abs(k_data - k_mean) * math.sqrt(info)
 
 
-@jit("float64(float64, float64, float64, float64)")
-def eta_weight(x_k, pkk, k_prior_var, test_sigma):
+@jit("float64(float64, float64, float64, float64, float64)")
+def eta_weight(x_k, pkk, k_mean, k_prior_var, test_sigma):
     """Weight of the free-eta estimate in the report (ContactKF.eta_weight)."""
-    k_data, z = eta_evidence(x_k, pkk, k_prior_var)
-    if abs(k_data - 1.0) > ETA_PRIOR_LIMIT * math.sqrt(k_prior_var):
+    k_data, z = eta_evidence(x_k, pkk, k_mean, k_prior_var)
+    if abs(k_data - k_mean) > ETA_PRIOR_LIMIT * math.sqrt(k_prior_var):
         return 0.0
     return min(max((z - test_sigma) / ETA_BLEND_SIGMA, 0.0), 1.0)
 
@@ -478,37 +478,39 @@ def _lift(S, E, nnT_var):
 
 
 @jit("Tuple((float64[:], float64[:, :], float64[:, :]))(float64[:], float64[:, :], int64, float64, float64[:], "
-     "float64, float64, float64, float64[:, :], float64[:], float64[:])")
-def report_state(x, P, d, scale, r_last, eta_var, k_prior_var, test_sigma, E, origin, nnT_var):
+     "float64, float64, float64, float64, float64[:, :], float64[:], float64[:])")
+def report_state(x, P, d, scale, r_last, eta_var, k_mean, k_prior_var, test_sigma, E, origin, nnT_var):
     """ContactKF's report, lifted to the world: (p_c, reported covariance, statistical covariance).
 
     The state is x = [m] or [m, k] (d = len(m)), P its covariance, scaled by `scale` (the
-    consistency ratio, at least 1). The calibrated estimate is the state conditioned on k = 1, with
-    eta's relative variance `eta_var` as a radial floor along the lever arm `r_last`; once the data
-    reject k = 1 (eta_weight) the free-eta estimate m / k (covariance through the Jacobian
-    [I / k, -m / k^2]) is blended in, with the spread between the two. The filter's coordinates
+    consistency ratio, at least 1). The scheduled estimate is m / k_mean with the state conditioned
+    on k = k_mean (eta's prior; k is held there when it is not a state), with eta's relative
+    variance `eta_var` as a radial floor along the lever arm `r_last`; once the data reject k_mean
+    (eta_weight) the free-eta estimate m / k (covariance through the Jacobian [I / k, -m / k^2]) is
+    blended in, with the spread between the two. The filter's coordinates
     map to the world by p = origin + c E (E: d x 3, the plane's basis, or the identity) and
     S -> E^T S E + nnT_var (the variance along the plane's normal, zeros in 3D)."""
     nk = x.shape[0] - d
     pkk = P[d, d] if nk else 0.0
     c = np.empty(d)
     s0 = np.empty((d, d))
+    inv = 1.0 / k_mean
     if pkk > 0.0:
-        f = 1.0 - x[d]
+        f = k_mean - x[d]
         for i in range(d):
-            c[i] = x[i] + P[i, d] * f / pkk
+            c[i] = (x[i] + P[i, d] * f / pkk) * inv
             for j in range(d):
-                s0[i, j] = (P[i, j] - P[i, d] * (P[j, d] / pkk)) * scale
+                s0[i, j] = (P[i, j] - P[i, d] * (P[j, d] / pkk)) * scale * inv * inv
     else:
         for i in range(d):
-            c[i] = x[i]
+            c[i] = x[i] * inv
             for j in range(d):
-                s0[i, j] = P[i, j] * scale
+                s0[i, j] = P[i, j] * scale * inv * inv
     rep = np.empty((d, d))
     for i in range(d):
         for j in range(d):
             rep[i, j] = s0[i, j] + r_last[i] * (eta_var * r_last[j])
-    wgt = eta_weight(x[d], pkk, k_prior_var, test_sigma) if nk else 0.0
+    wgt = eta_weight(x[d], pkk, k_mean, k_prior_var, test_sigma) if nk else 0.0
     stat = s0
     if wgt > 0.0:
         k = max(x[d], K_MIN)

@@ -43,6 +43,26 @@ class EtaSchedule:
         """How far (N) a grip force lies from the nearest calibrated force."""
         return float(np.min(np.abs(self.force - force_n)))
 
+    def prior(self, force_n: float, rel_std: float, rel_std_per_n: float) -> tuple[float, float]:
+        """(mean, one-sigma) of k = eta_true / eta_scheduled at a grip force, from eta's relative
+        uncertainty at a calibrated force and its growth per N away from one.
+
+        Eta falls monotonically toward 1 as the grip force rises (the paper's calibration, Fig. 4c),
+        so outside the calibrated forces the schedule, clamped at the nearest one, is known to be off
+        in one direction: eta is larger below the lowest force and smaller above the highest. That
+        part of the error is taken as half-normal, scale s = rel_std_per_n x distance, in the known
+        direction: mean 1 +- s sqrt(2/pi), one-sigma rel_std + s sqrt(1 - 2/pi). Above the highest
+        force the mean stays halfway above the bound eta >= 1. Between calibrated forces (interpolated)
+        the error has no known sign: mean 1, one-sigma rel_std + s."""
+        s = rel_std_per_n * self.distance_n(force_n)
+        side = 1.0 if force_n < self.force[0] else -1.0 if force_n > self.force[-1] else 0.0
+        if side == 0.0 or s == 0.0:
+            return 1.0, rel_std + s
+        mean = 1.0 + side * s * math.sqrt(2.0 / math.pi)
+        if side < 0:
+            mean = max(mean, 0.5 * (1.0 + 1.0 / self.eta[-1]))
+        return mean, rel_std + s * math.sqrt(1.0 - 2.0 / math.pi)
+
 
 class ProprioTrack:
     """Recent TCP states for causal lookup: an IMU sample at time t sees only states stamped at or before t.
@@ -256,12 +276,13 @@ class ContactPipeline:
         self.cond.bias_held = held
 
     def _set_eta_uncertainty(self, force_n: float) -> None:
-        """Away from the calibrated grip forces eta is extrapolated: tell the estimator how much less it is known."""
+        """Away from the calibrated grip forces eta is extrapolated: tell the estimator how much less it is
+        known, and which way it is off (EtaSchedule.prior)."""
         if hasattr(self.estimator, "eta_rel_std"):
             if force_n != force_n:                   # NaN: no grip force measured
                 force_n = self.params.grip_force_n
-            self.estimator.eta_rel_std = self.params.ekf.eta_rel_std + \
-                self.params.eta_rel_std_per_n * self.eta.distance_n(force_n)
+            self.estimator.eta_prior_mean, self.estimator.eta_rel_std = self.eta.prior(
+                force_n, self.params.ekf.eta_rel_std, self.params.eta_rel_std_per_n)
 
     def _track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
         """Bias tracking while idle, except while the gripper itself turns (its rate is not bias)."""

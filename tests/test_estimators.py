@@ -229,8 +229,9 @@ ETA_SEEDS = (1, 2, 3)
 ETA_MISMATCH_GAIN = 0.6     # the free-eta estimate at least this much nearer than the calibrated one
 
 
-def _replay_end(kind, grip_force, seed, estimate_eta):
-    """End error (m, in the plane of rotation) and the filter of one simulated recording through the pipeline."""
+def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
+    """End error (m, in the plane of rotation) and the filter of one simulated recording through the pipeline;
+    `estimator` overrides keys of the config's estimator section."""
     from robots.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
@@ -240,21 +241,43 @@ def _replay_end(kind, grip_force, seed, estimate_eta):
 
     fields, truth = generate(Scenario(kind=kind, radius=0.12, grip_force=grip_force, seed=seed))
     rec = Recording.from_fields(fields)
-    cfg = Config({"estimator": {"ekf": {"estimate_eta": estimate_eta}}}).section("estimator")
+    cfg = Config({"estimator": {**estimator, "ekf": {"estimate_eta": estimate_eta}}}).section("estimator")
     pipe = build_pipeline(cfg, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, plane_normal=rec.plane_normal)
     rows, _, _ = replay(rec, pipe, 200.0)
-    return in_plane_error(rows[-1, 1:4], truth["p_c"], truth["axis"]), pipe.estimator
+    return in_plane_error(rows[-1, 1:4], truth["p_c"], truth["axis"]), pipe.estimator, rows[-1, 4:7]
+
+
+@pytest.mark.parametrize("grip_force", [20.0, 40.0])
+def test_eta_prior_leans_the_way_eta_moves_off_the_calibration(grip_force):
+    """eta calibrated at 30 N only, the grasp at 20 or 40 N (true eta 2.5 or 1.7), eta held: the schedule
+    clamped at 2.0 puts the contact 18-30 mm off. Eta falls with grip force, so below the calibration it
+    is larger and above it smaller; the prior's mean leans that way (EtaSchedule.prior) and the estimate
+    is several times nearer, within 3 sigma of what it reports."""
+    clamped = [_replay_end("edge-arc", grip_force, s, False, eta_rel_std_per_n=0.0)[0] for s in ETA_SEEDS]
+    leaning = []
+    for s in ETA_SEEDS:
+        err, kf, std = _replay_end("edge-arc", grip_force, s, False)
+        assert (kf.k_prior_mean - 1.0) * (30.0 - grip_force) > 0
+        assert err < 3 * np.max(std[std < 0.1])
+        leaning.append(err)
+    assert min(clamped) > 0.015
+    assert np.median(leaning) < 0.5 * np.median(clamped)
+
+
+# A calibration that says eta is flat (2.0 from 10 to 50 N) while the true eta follows grip force:
+# between calibrated forces the error has no known sign, and only the data can find it.
+FLAT_ETA_TABLE = [[10.0, 2.0], [30.0, 2.0], [50.0, 2.0]]
 
 
 @pytest.mark.parametrize("grip_force", [20.0, 40.0])
 def test_eta_state_learns_a_grip_force_off_the_calibration(grip_force):
-    """eta calibrated at 30 N, the grasp at 20 or 40 N (true eta 2.5 or 1.7): once the object has turned
+    """The grasp at 20 or 40 N (true eta 2.5 or 1.7) under the flat calibration: once the object has turned
     about 9 deg the path's curvature rejects the scheduled eta, and the estimate moves most of the way
     to the truth; the eta ratio found lies within 3 sigma of the true one."""
-    fixed = [_replay_end("edge-arc", grip_force, s, False)[0] for s in ETA_SEEDS]
+    fixed = [_replay_end("edge-arc", grip_force, s, False, eta_table=FLAT_ETA_TABLE)[0] for s in ETA_SEEDS]
     free, ks = [], []
     for s in ETA_SEEDS:
-        err, kf = _replay_end("edge-arc", grip_force, s, True)
+        err, kf, _ = _replay_end("edge-arc", grip_force, s, True, eta_table=FLAT_ETA_TABLE)
         free.append(err)
         k_true = {20.0: 2.5, 40.0: 1.7}[grip_force] / 2.0
         assert abs(kf.x[-1] - k_true) < 3 * np.sqrt(kf.P[-1, -1])
@@ -267,8 +290,8 @@ def test_eta_state_learns_a_grip_force_off_the_calibration(grip_force):
 def test_eta_state_keeps_the_calibrated_estimate_at_the_calibrated_force():
     """At the calibrated grip force the data never reject eta: the output is the calibrated filter's."""
     for s in ETA_SEEDS:
-        e_fixed, _ = _replay_end("edge-arc", 30.0, s, False)
-        e_free, kf = _replay_end("edge-arc", 30.0, s, True)
+        e_fixed, _, _ = _replay_end("edge-arc", 30.0, s, False)
+        e_free, kf, _ = _replay_end("edge-arc", 30.0, s, True)
         assert kf.eta_weight() == 0.0
         assert e_free == pytest.approx(e_fixed, abs=1e-4)
 
@@ -277,7 +300,7 @@ def test_eta_state_ignores_a_straight_path():
     """An ongoing motion into an edge: the object slides in the grasp and the TCP runs straight, which
     reads as eta -> infinity. That is the rigid pivot failing, not eta: the calibrated estimate stays."""
     for s in ETA_SEEDS:
-        _, kf = _replay_end("edge-ongoing", 30.0, s, True)
+        _, kf, _ = _replay_end("edge-ongoing", 30.0, s, True)
         k_data, z = kf.eta_evidence()
         assert k_data < 0.5 and z > kf.params.eta_test_sigma   # the data do reject eta ...
         assert kf.eta_weight() == 0.0                          # ... implausibly far: not used

@@ -194,10 +194,10 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     q_c, corr, var_p, var_wn, radial_var = 1e-6, 3.0, 2.5e-9, 1e-4, 2.5e-5
     x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = K.block_update(
         x, P, x_lin, dt, w, np.zeros_like(w), p, v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
-        radial_var, 16.3, K.K_MIN, False, True)
+        radial_var, 16.3, K.K_MIN, 1.2, False, True)
     P_ref = P.copy()
     P_ref[range(d), range(d)] += q_c * dt.sum()
-    k, k_lin = (x[d], x_lin[d]) if nk else (1.0, 1.0)
+    k, k_lin = (x[d], x_lin[d]) if nk else (1.2, 1.2)          # k held at 1.2 when not a state
     model = (k, x[:d] / k, k_lin, x_lin[:d] / k_lin, corr, var_p, var_wn, radial_var, nk)
     if planar:
         w_n = w @ n
@@ -217,16 +217,16 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     assert not gated and rejected == 0
 
 
-def report_reference(x, P, d, scale, r_last, eta_var, wgt):
-    """ContactKF's report in numpy: calibrated (the state conditioned on k = 1, eta's radial floor),
-    blended with the free-eta estimate m / k by wgt."""
+def report_reference(x, P, d, scale, r_last, eta_var, k_mean, wgt):
+    """ContactKF's report in numpy: scheduled (m / k_mean, the state conditioned on k = k_mean, eta's
+    radial floor), blended with the free-eta estimate m / k by wgt."""
     m = x[:d]
     if len(x) > d:
         pmk, pkk = P[:d, d], P[d, d]
-        c0, s0 = m + pmk * (1.0 - x[d]) / pkk, P[:d, :d] - np.outer(pmk, pmk) / pkk
+        c0, s0 = m + pmk * (k_mean - x[d]) / pkk, P[:d, :d] - np.outer(pmk, pmk) / pkk
     else:
         c0, s0 = m.copy(), P[:d, :d].copy()
-    s0 = s0 * scale
+    c0, s0 = c0 / k_mean, s0 * scale / k_mean ** 2
     rep0 = s0 + eta_var * np.outer(r_last, r_last)
     if wgt <= 0.0:
         return c0, rep0, s0
@@ -239,8 +239,10 @@ def report_reference(x, P, d, scale, r_last, eta_var, wgt):
 
 @pytest.mark.parametrize("planar", [False, True])
 @pytest.mark.parametrize("z", [None, 1.0, 3.4, 5.0])
-def test_report_state_matches_numpy(planar, z):
-    """Without eta (None), calibrated (z = 1 sigma of evidence), half blended (3.4) and free (5)."""
+@pytest.mark.parametrize("k_mean", [1.0, 1.16])
+def test_report_state_matches_numpy(planar, z, k_mean):
+    """Without eta (None), scheduled (z = 1 sigma of evidence against eta's prior mean k_mean), half
+    blended (3.4) and free (5)."""
     rng = np.random.default_rng(7)
     d = 2 if planar else 3
     origin = np.array([0.3, -0.2, 0.5])
@@ -253,25 +255,25 @@ def test_report_state_matches_numpy(planar, z):
         P = random_cov(rng, d + 1, 1e-5)
         P[d, :d] = P[:d, d] = 0.3 * np.sqrt(P[d, d] * P.diagonal()[:d])
         info = 1.0 / P[d, d] - 1.0 / k_prior_var
-        k_data = 1.0 + z / np.sqrt(info)                 # the data reject k = 1 by z sigma
-        x = np.append(rng.normal(0, 0.1, d), P[d, d] * (k_data * info + 1.0 / k_prior_var))
-        assert K.eta_evidence(x[d], P[d, d], k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
-    wgt = K.eta_weight(x[d], P[d, d], k_prior_var, 3.0) if z is not None else 0.0
+        k_data = k_mean + z / np.sqrt(info)              # the data reject k = k_mean by z sigma
+        x = np.append(rng.normal(0, 0.1, d), P[d, d] * (k_data * info + k_mean / k_prior_var))
+        assert K.eta_evidence(x[d], P[d, d], k_mean, k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
+    wgt = K.eta_weight(x[d], P[d, d], k_mean, k_prior_var, 3.0) if z is not None else 0.0
     assert wgt == (0.0 if z in (None, 1.0) else pytest.approx(min(max(z - 3.0, 0.0), 1.0)))
-    p, rep, stat = K.report_state(x, P, d, 1.7, r_last, 0.0025, k_prior_var, 3.0, E, origin, along)
-    c_ref, rep_ref, stat_ref = report_reference(x, P, d, 1.7, r_last, 0.0025, wgt)
+    p, rep, stat = K.report_state(x, P, d, 1.7, r_last, 0.0025, k_mean, k_prior_var, 3.0, E, origin, along)
+    c_ref, rep_ref, stat_ref = report_reference(x, P, d, 1.7, r_last, 0.0025, k_mean, wgt)
     np.testing.assert_allclose(p, origin + c_ref @ E, rtol=1e-12)
     np.testing.assert_allclose(rep, E.T @ rep_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
     np.testing.assert_allclose(stat, E.T @ stat_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
 
 
 def test_eta_weight_ignores_an_implausible_eta():
-    """Evidence for an eta ratio more than ETA_PRIOR_LIMIT prior sigmas from 1 is the pivot failing."""
+    """Evidence for an eta ratio more than ETA_PRIOR_LIMIT prior sigmas from its mean is the pivot failing."""
     k_prior_var, pkk = 0.0025, 1e-5
     info = 1.0 / pkk - 1.0 / k_prior_var
     for k_data, expected in ((1.15, 1.0), (1.25, 0.0)):   # 3 and 5 prior sigmas off
         x_k = pkk * (k_data * info + 1.0 / k_prior_var)
-        assert K.eta_weight(x_k, pkk, k_prior_var, 3.0) == expected
+        assert K.eta_weight(x_k, pkk, 1.0, k_prior_var, 3.0) == expected
 
 
 @pytest.mark.parametrize("rates", [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.3, 0.2, 0.0]])

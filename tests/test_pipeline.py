@@ -92,6 +92,20 @@ def test_eta_schedule_interpolates_and_clamps():
     assert eta(10.0) == pytest.approx(2.6) and eta(60.0) == pytest.approx(1.6)
 
 
+def test_eta_prior_is_centred_between_calibrations_and_one_sided_outside():
+    """k = eta_true / eta_scheduled: no known sign between calibrated forces; outside them eta is off the
+    clamped schedule the way it falls with force (larger below, smaller above, never below 1)."""
+    eta = EtaSchedule([(20.0, 2.6), (30.0, 2.0), (40.0, 1.6)])
+    assert eta.prior(30.0, 0.05, 0.02) == (1.0, 0.05)
+    assert eta.prior(25.0, 0.05, 0.02) == pytest.approx((1.0, 0.15))
+    half_mean, half_std = np.sqrt(2 / np.pi), np.sqrt(1 - 2 / np.pi)      # of a unit half-normal
+    assert eta.prior(10.0, 0.05, 0.02) == pytest.approx((1.0 + 0.2 * half_mean, 0.05 + 0.2 * half_std))
+    assert eta.prior(50.0, 0.05, 0.02) == pytest.approx((1.0 - 0.2 * half_mean, 0.05 + 0.2 * half_std))
+    mean, _ = eta.prior(100.0, 0.05, 0.02)
+    assert mean == pytest.approx(0.5 * (1.0 + 1.0 / 1.6))                 # halfway above eta = 1
+    assert eta.prior(10.0, 0.05, 0.0) == (1.0, 0.05)
+
+
 def test_proprio_lookup_is_causal():
     track = ProprioTrack()
     track.add(0.0, np.zeros(3), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))
