@@ -237,8 +237,9 @@ def _first_linearisation(prm, p, v, w, sl):
     kf.start(p[0], v[0])
     x = kf.x
     for _ in range(2):
-        x = kf._block(0.0, w[sl], None, p[sl], v[sl], np.full(len(w[sl]), prm.sigma_v ** 2), np.zeros(len(w[sl])),
-                      x, commit=False)
+        n = len(w[sl])
+        x = kf._block(np.full(n, 1 / 6667), w[sl], None, p[sl], v[sl], np.full(n, prm.sigma_v ** 2), np.zeros(n), x,
+                      commit=False)
     return x[:3]
 
 
