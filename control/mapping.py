@@ -33,6 +33,7 @@ class MapParams:
     max_point_std_m: float = 0.005        # a point is valid when the in-plane one-sigma is below this, m
     tool_tip_tcp: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.1]))  # nominal, TCP frame, m
     turn_yaw_rad: float = math.pi / 2     # tool turn between the passes, about world z
+    release_distance: float = 0.008       # the lift first pulls the tool out along its axis this far, m
 
     def grid_xy(self) -> np.ndarray:
         """(rows, cols, 2) cell centres of the grid, world x-y, m."""
@@ -121,8 +122,9 @@ class MapTask(Task):
 
     At each grid location, five stages: `descend` from the start height until the onset trigger
     fires (armed only while descending steadily); `settle` to rest; `probe` tangentially for
-    `probe_distance` while the estimator, started as the probe starts, localises the contact; `retract` back along the probe (the tool turns
-    back in the grasp); `lift` vertically; `travel` to the next location. A TCP force above
+    `probe_distance` while the estimator, started as the probe starts, localises the contact;
+    `retract` back along the probe (the tool turns back in the grasp); `lift`: out along the tool's
+    axis by `release_distance`, then vertically; `travel` to the next location. A TCP force above
     `abort_force_n` abandons the point (marked invalid) and lifts. Between passes the tool
     turns by `turn_yaw_rad` about world z (`turn`), which swaps the horizontal axis that a
     probe resolves. When every point is done, `writer(record)` fuses and writes the map off the
@@ -156,6 +158,8 @@ class MapTask(Task):
         self._xy = np.zeros(2)          # TCP x-y for the current point
         self._point: MapPoint | None = None
         self._p_detect = None
+        self._p_release = None          # where the lift's pull along the tool's axis ends
+        self._released = False
         self._t_dir = None
         self._future = None
 
@@ -346,16 +350,30 @@ class MapTask(Task):
         return self._move(inp, self._p_detect, self.m.speed, self.m.probe_distance / self.m.speed)
 
     def _step_lift(self, inp: TickInput) -> Motion | None:
-        """Straight up from where the probe began (or was abandoned) to the travel height."""
+        """From where the probe began (or was abandoned): out along the tool's axis, away from the tip,
+        by `release_distance`, then straight up to the travel height.
+
+        Pulled out along its axis, the tool leaves the surface without levering in the grasp. Lifted
+        straight up with its tip pinned, it would turn in the soft grasp until the grasp's preload let
+        go, and keep part of that turn. A straight probe does not see the tool's attitude (the contact
+        is found along the normal of the commanded tangent), so the tool model would lag every such
+        turn and the probes' estimates with it."""
         self._progress(0.9)
-        target = np.array([self._p_detect[0], self._p_detect[1], self._z_travel])
+        if self._p_release is None:
+            self._p_release = self._p_detect - self.m.release_distance * unit(self._R_pass @ self.tip_tcp)
+            self._released = False
+        if not self._released:
+            if not self._arrived(inp, self._p_release):
+                return self._move(inp, self._p_release, self.m.speed, self.m.release_distance / self.m.speed)
+            self._released = True
+        target = np.array([self._p_release[0], self._p_release[1], self._z_travel])
         if self._arrived(inp, target):
             return self._next_point(inp)
         return self._move(inp, target, self.m.travel_speed, self.m.depth / self.m.travel_speed)
 
     def _next_point(self, inp: TickInput) -> Motion | None:
         self.points.append(self._point)
-        self._point, self._p_detect = None, None
+        self._point, self._p_detect, self._p_release = None, None, None
         self._index += 1
         if self._index < self.grid.shape[0] * self.grid.shape[1]:
             self._begin_point(inp.t)

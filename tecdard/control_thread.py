@@ -414,7 +414,7 @@ class ControlThread:
                            orientations=f["orientations"], speed=f["speed"], travel_speed=self.p.max_speed / math.sqrt(2.0),
                            probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
                            max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp),
-                           turn_yaw_rad=math.radians(ms.turn_deg))
+                           turn_yaw_rad=math.radians(ms.turn_deg), release_distance=ms.release_distance_m)
         task = MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
         lo, hi = np.array(self.p.workspace_min), np.array(self.p.workspace_max)
         for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):

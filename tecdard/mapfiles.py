@@ -40,6 +40,7 @@ class MapSettings:
     probe_distance_m: float = 0.005      # the paper's at most 5 mm of tangential probing
     tool_tip_tcp: tuple = (0.0, 0.0, 0.1)
     turn_deg: float = 90.0               # the second pass turns the tool this much about world z
+    release_distance_m: float = 0.008    # each lift first pulls the tool out along its axis this far
 
     @classmethod
     def from_config(cls, section) -> "MapSettings":
@@ -54,6 +55,7 @@ class MapSettings:
             probe_distance_m=section.getfloat("probe_distance_m", d.probe_distance_m, minval=0.001, maxval=0.02),
             tool_tip_tcp=tuple(section.getvec3("tool_tip_tcp", list(d.tool_tip_tcp))),
             turn_deg=section.getfloat("turn_deg", d.turn_deg, minval=-180.0, maxval=180.0),
+            release_distance_m=section.getfloat("release_distance_m", d.release_distance_m, minval=0.0, maxval=0.05),
         )
 
 

@@ -80,6 +80,7 @@ class FakeRig:
         self.touch = None            # pinned tip while the tool touches
         self.tracking = False
         self.phases = []
+        self.trace = []              # (phase, TCP, R) per tick
         self.lowest_tip = np.inf
 
     def tip(self) -> np.ndarray:
@@ -111,6 +112,7 @@ class FakeRig:
                                          self.planner.position, self.force()))
             if not self.phases or self.phases[-1] != task.status.phase:
                 self.phases.append(task.status.phase)
+            self.trace.append((task.status.phase, self.p.copy(), self.R.copy()))
             if task.episode != self.episode:
                 self.episode = task.episode
                 self.tracking = bool(task.commanded_onset and self.touch is not None)
@@ -167,6 +169,28 @@ def test_map_probes_every_grid_point_in_two_orientations_and_hands_the_record_to
     # the second pass turned the tool 90 deg about world z
     assert np.allclose(rig.R, rotvec_to_matrix(np.array([0, 0, math.pi / 2])) @ R_TOOL_DOWN, atol=1e-9)
     assert {(pt.row, pt.col) for pt in rec.points if pt.pass_index == 1} == {(0, 0), (0, 1), (1, 0), (1, 1)}
+
+
+def test_each_lift_pulls_the_tool_out_along_its_axis_before_rising():
+    """Lifted straight up with its tip pinned, a tool levers in a soft grasp; pulled out along its own
+    axis it leaves the surface as it is. Every lift goes release_distance away from the tip along the
+    tool, then straight up to the travel height."""
+    task = MapTask("map-1", map_params(release_distance=0.008), lambda rec: done_now({}))
+    rig = FakeRig(SCENE, P0)
+    rig.run(task)
+    assert task.status.state == "done", task.status.error
+    phases = [ph for ph, _, _ in rig.trace]
+    starts = [i for i in range(1, len(phases)) if phases[i] == "lift" and phases[i - 1] != "lift"]
+    assert len(starts) == 8
+    for i0 in starts:
+        i1 = next(i for i in range(i0, len(phases)) if phases[i] != "lift")
+        path = np.array([p for _, p, _ in rig.trace[i0 - 1:i1]])
+        out = path - path[0]
+        k = int(np.argmax(np.linalg.norm(out, axis=1) >= 0.008 - 1e-4))
+        tool = rig.trace[i0][2] @ TIP_TCP / np.linalg.norm(TIP_TCP)     # TCP -> tip, world
+        assert out[k] @ -tool / np.linalg.norm(out[k]) > np.cos(np.radians(1.0))    # away from the tip
+        assert np.linalg.norm(path[k:, :2] - path[k, :2], axis=1).max() < 5e-4      # then straight up
+        assert path[-1, 2] == pytest.approx(P0[2], abs=1e-3)
 
 
 def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
