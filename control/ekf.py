@@ -304,9 +304,10 @@ class ContactKF:
     - Positions as evidence too (PositionEvidence).
     - Onset initialisation from the first block by an iterated update, and
       NIS gating of outliers.
-    - Eta's error as a state with the calibration's uncertainty as its prior. The
-      reported contact is the calibrated one (k = 1, plus eta's uncertainty as a radial
-      floor) until the data reject k = 1 by `eta_test_sigma`; then the free-eta
+    - Eta's error as a state with the calibration's uncertainty as its prior, leaning the
+      way eta moves outside the calibrated grip forces (EtaSchedule.prior). The reported
+      contact is the scheduled one (k at its prior mean, plus eta's uncertainty as a
+      radial floor) until the data reject that by `eta_test_sigma`; then the free-eta
       estimate is blended in over kernels.ETA_BLEND_SIGMA, so the output does not jump.
     - Updates collapse each block of samples into one exactly equivalent
       measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form; the
@@ -321,7 +322,7 @@ class ContactKF:
         self.d = 2 if plane is not None else 3
         # the report's variance along the plane's normal (unobservable), flattened for the kernel
         self._along_var = (UNOBSERVED_STD_M ** 2 * plane.nnT).ravel() if plane is not None else _NO_ALONG
-        self.nk = 1 if self.params.estimate_eta else 0   # k is a state, or held at 1 (the cheaper filter)
+        self.nk = 1 if self.params.estimate_eta else 0   # k is a state, or held at its prior mean (cheaper)
         self.x = np.zeros(self.d)        # [m] or [m, k]
         self.P = np.eye(self.d)
         self.origin = np.zeros(3)
@@ -423,10 +424,8 @@ class ContactKF:
         if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
             ev.broken = True        # the TCP moves relative to the object: displacements mislead
             return
-        x_mk = np.append(self.x[:self.d], self.k) if self.nk == 0 else self.x.copy()
-        x_mk[self.d] = self.k                # k floored, as in the blocks
-        b = d_eta - d_lam @ x_mk
-        n = self.d + self.nk                 # with k held at 1, its column is part of the measurement
+        b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
+        n = self.d + self.nk                 # with k held, its column is part of the measurement
         A = d_lam[:n, :n]
         x_new, P_new = collapsed_update(self.x, self.P, A, b[:n], True)
         self._account(x_new, P_new, self.P, A, b[:n], 0, 0, None, None, 0.0, consistency=False)
