@@ -24,6 +24,7 @@ SECOND_AXIS_RATIO = 0.05      # a rotation about a 2nd axis this strong (by vari
 TCP_TURNING_RAD_S = 0.01      # the gripper turns (its own rate from proprioception) above this
 FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than this is no position measurement
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
+WDOT_MAX_AGE_S = 0.05         # a reported TCP rate's last change is extrapolated at most this far
 
 
 class EtaSchedule:
@@ -157,8 +158,9 @@ class ProprioTrack:
         var_v = self.var_v[j] + (self.a[j] * (ts - self.tv[j])) ** 2
         var_w = (self.alpha[j] * (ts - self.tw[j])) ** 2
         # a reported TCP rate is extrapolated with its last change (a turning gripper's rate ramps;
-        # held for up to a proprioception period it would enter the object rate times (eta - 1))
-        w = self.w[j] + self.wdot[j] * (ts - self.tw[j])[:, None]
+        # held for up to a proprioception period it would enter the object rate times (eta - 1)), but
+        # not without bound: when proprioception stalls, the rate is held after WDOT_MAX_AGE_S
+        w = self.w[j] + self.wdot[j] * np.minimum(ts - self.tw[j], WDOT_MAX_AGE_S)[:, None]
         if with_stamp:
             return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok, self.t[j]
         return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok

@@ -117,6 +117,17 @@ def test_proprio_lookup_is_causal():
     assert p[3][0] == pytest.approx(0.01 + 0.1 * 0.099)      # never sees the sample at 0.2
 
 
+def test_a_reported_tcp_rate_is_extrapolated_with_its_last_change_for_a_while_only():
+    """Between samples a turning gripper's reported rate ramps on (its last change); if proprioception
+    stalls, the ramp stops after WDOT_MAX_AGE_S instead of growing without bound."""
+    from control.pipeline import WDOT_MAX_AGE_S
+    track = ProprioTrack()
+    track.add(0.00, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.10]))
+    track.add(0.01, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.12]))      # 2 rad/s^2
+    w = track.lookup(np.array([0.015, 0.01 + WDOT_MAX_AGE_S, 1.0]))[3]
+    assert w[:, 2] == pytest.approx([0.13, 0.12 + 2.0 * WDOT_MAX_AGE_S, 0.12 + 2.0 * WDOT_MAX_AGE_S])
+
+
 def test_derived_velocity_when_the_robot_reports_none():
     track = ProprioTrack(sigma_p=1e-4)
     for k in range(5):
