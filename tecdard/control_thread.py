@@ -28,6 +28,9 @@ REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 SERVO_MAX_AGE_S = 0.1         # the servo compares a measurement with the plan this far back at most
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
+# The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan
+# with a lag, and its own acceleration at the start of a descent must not read as an impact.
+TRIGGER_SETTLE_S = 0.1
 
 
 @dataclass
@@ -154,6 +157,7 @@ class ControlThread:
         self._episode = 0
         self._task_t0 = 0.0
         self._trigger_armed = True
+        self._steady_since = None          # when the plan last became steady in the trigger's phase
         self._last_est = None              # the contact estimate seen on the previous tick
         self._t_boot = time.monotonic()
         self.first_tick = threading.Event()
@@ -437,8 +441,14 @@ class ControlThread:
             view = ContactView(tracking=False)
         phase_before = task.status.phase
         if task.trigger_phase is not None:
-            # armed exactly while the arm moves steadily: starting and braking are not impacts
+            # armed while the arm moves steadily (TRIGGER_SETTLE_S after the plan does): starting and
+            # braking are not impacts
             steady = task.status.phase == task.trigger_phase and self.planner.steady(task.speed)
+            if not steady:
+                self._steady_since = None
+            elif self._steady_since is None:
+                self._steady_since = now
+            steady = steady and now - self._steady_since >= TRIGGER_SETTLE_S
             if steady != self._trigger_armed:
                 self._trigger_armed = steady
                 self._put(("arm", steady), self.to_estimator)

@@ -189,3 +189,27 @@ def test_the_servo_compares_a_late_measurement_with_the_plan_at_its_time(model):
     ages = iter(lambda: float(rng.uniform(0.0, 0.035)), None)
     speeds = cruise_tcp_speeds(model, ages)
     assert np.all(np.abs(speeds - 0.02) < 2e-4), (speeds.min(), speeds.max())
+
+
+def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(model):
+    """An approach from rest: the arm follows the plan with a lag, so the trigger arms TRIGGER_SETTLE_S
+    after the plan reaches its constant speed, not at once; its start is no impact."""
+    from tecdard.control_thread import TRIGGER_SETTLE_S
+    ct = control_thread(model, ring=FreshRing())
+    arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
+    ct.inbox.put(("start", "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
+                                         "stop_angle_deg": 10.0}, None))
+    steady_at = armed_at = None
+    for k in range(1, 60):
+        now = 0.02 * k
+        arm.advance(now)
+        FreshRing.last_t = now
+        ct.tick(now)
+        if steady_at is None and ct.planner.steady(0.02):
+            steady_at = now
+        while not ct.to_estimator.empty():
+            msg = ct.to_estimator.get_nowait()
+            if msg[0] == "arm" and msg[1] and armed_at is None:
+                armed_at = now
+    assert steady_at is not None and armed_at is not None
+    assert TRIGGER_SETTLE_S <= armed_at - steady_at <= TRIGGER_SETTLE_S + 0.021
