@@ -131,9 +131,10 @@ class MapTask(Task):
     control thread; it returns a future whose result is the summary for `task_done` (`write`).
 
     A probe turns the tool about a horizontal axis, so it resolves the contact in the vertical
-    plane of the probe; the coordinate along the axis comes from the tool model (`tool_tip_tcp`,
-    then what the previous probes measured). The tool tip is aimed at each grid location with
-    the same model.
+    plane of the probe; the coordinate along the axis comes from the tool model. The tool tip is
+    aimed at each grid location with the same model: `tool_tip_tcp`, turned with the tool as the arm
+    settles after each touch (the tip stays pinned, so the TCP's motion from the onset turns the
+    tool about it), its length set to each valid probe's measured reach.
     """
 
     kind = "map"
@@ -158,6 +159,7 @@ class MapTask(Task):
         self._xy = np.zeros(2)          # TCP x-y for the current point
         self._point: MapPoint | None = None
         self._p_detect = None
+        self._p_touch = None            # the TCP when the tip touched (the onset's, else the first tick's)
         self._p_release = None          # where the lift's pull along the tool's axis ends
         self._released = False
         self._t_dir = None
@@ -281,6 +283,7 @@ class MapTask(Task):
         if c.tracking:
             # touched: come to rest first, so that the probe's estimate sees only the tangential motion
             self._point.p_tcp = inp.p.copy()
+            self._p_touch = inp.p.copy() if c.onset_p_tcp is None else np.asarray(c.onset_p_tcp, float).copy()
             self.episode += 1
             self._enter("settle", inp.t)
             return None
@@ -297,6 +300,12 @@ class MapTask(Task):
                 self._fail("settle: the arm did not come to rest after the touch")
             return None
         self._p_detect = inp.p.copy()
+        if self._p_touch is not None:
+            # The tip stayed where it touched while the arm braked, so the tool turned in the grasp
+            # about it: the model follows that turn (its reach stays).
+            tip_w = self._R_pass @ self.tip_tcp
+            c_touch = self._p_touch + tip_w
+            self.tip_tcp = self._R_pass.T @ (unit(c_touch - self._p_detect) * float(np.linalg.norm(tip_w)))
         self._t_dir = self._tangent()
         self.episode += 1
         self.commanded_onset = True
@@ -329,9 +338,13 @@ class MapTask(Task):
             pt.reason = "unresolved"
             return
         pt.valid = True
-        # the measured tip refines the tool model for aiming and for the next probes, unless it is
-        # far from the model (the tool slid in the grasp, or a poor estimate): then the model stays
-        tip = self._R_pass.T @ (p - self._p_detect)
+        # The measured reach (TCP to contact) refines the tool model's length for aiming and for the
+        # next probes, unless it is far from the model (the tool slid in the grasp, or a poor
+        # estimate). Not its direction: a straight probe finds the contact on the normal of the
+        # commanded tangent, which the model set, so the direction it reports is the model's own
+        # plus the estimate's bias, and fed back each probe that bias would accumulate.
+        reach = float(np.linalg.norm(p - self._p_detect))
+        tip = self.tip_tcp * (reach / float(np.linalg.norm(self.tip_tcp)))
         if float(np.linalg.norm(tip - self.tip_tcp)) < TIP_UPDATE_MAX_M:
             self.tip_tcp = tip
 
@@ -373,7 +386,7 @@ class MapTask(Task):
 
     def _next_point(self, inp: TickInput) -> Motion | None:
         self.points.append(self._point)
-        self._point, self._p_detect, self._p_release = None, None, None
+        self._point, self._p_detect, self._p_touch, self._p_release = None, None, None, None
         self._index += 1
         if self._index < self.grid.shape[0] * self.grid.shape[1]:
             self._begin_point(inp.t)

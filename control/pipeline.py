@@ -181,6 +181,7 @@ class ContactEstimate:
     in_plane_std: float = float("inf")   # statistical one-sigma in the plane of rotation, m
     angle_rad: float = 0.0               # rotation of the object since onset, integrated from the gyro
     nis_ratio: float | None = None       # smoothed innovation NIS / its expectation (None: no innovations)
+    onset_p_tcp: np.ndarray | None = None    # the TCP at the onset sample, world, m
     extra: dict = field(default_factory=dict)
 
     def to_json(self, method: str | None = None) -> dict:
@@ -235,6 +236,7 @@ class ContactPipeline:
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.ekf.sigma_p, sigma_v=self.params.ekf.sigma_v)
         self.tracking = False
         self.onset_t: float | None = None
+        self.onset_p_tcp: np.ndarray | None = None
         self._t_prev: float | None = None
         self._wwT = np.zeros((3, 3))
         self._w_sum = np.zeros(3)
@@ -300,6 +302,7 @@ class ContactPipeline:
         """End the contact episode: back to bias tracking and an armed trigger."""
         self.tracking = False
         self.onset_t = None
+        self.onset_p_tcp = None
         self._begin_t = None
         self.cond.freeze_bias(False)
         self.detector.rearm()
@@ -345,6 +348,7 @@ class ContactPipeline:
             self.tracking = True
             self._stamp_prev = np.nan
             self.onset_t = float(t[hit])
+            self.onset_p_tcp = p[0].copy()
             self._t_prev = float(t[hit])
             self._wwT[:] = 0.0
             self._w_sum[:] = 0.0
@@ -429,4 +433,5 @@ class ContactPipeline:
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=self._angle, nis_ratio=getattr(est, "consistency", None))
+                               angle_rad=self._angle, nis_ratio=getattr(est, "consistency", None),
+                               onset_p_tcp=self.onset_p_tcp)

@@ -28,6 +28,7 @@ class ContactView:
     onset_t: float | None = None
     in_plane_std: float = float("inf")  # the estimator's statistical one-sigma in the plane of rotation, m
     angle_rad: float = 0.0              # rotation of the object since onset (gyro), rad
+    onset_p_tcp: np.ndarray | None = None   # the TCP at the onset sample (proprioception, causal), world, m
 
 
 @dataclass

@@ -436,6 +436,7 @@ class ControlThread:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
             view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
+                               onset_p_tcp=est.onset_p_tcp,
                                in_plane_std=est.in_plane_std, angle_rad=est.angle_rad)
         else:
             view = ContactView(tracking=False)

@@ -65,8 +65,11 @@ def test_raster_covers_the_region_rows_along_y():
 # -- the map task against a fake arm and estimator ------------------------------------
 
 class FakeRig:
-    """Planner-driven TCP (the control thread's moves), a rigid tool over a BoxScene, and an estimator
-    that reports the true touch point once an episode runs. `trigger` False: impacts go unnoticed."""
+    """Planner-driven TCP (the control thread's moves), a rigid tool in a soft grasp over a BoxScene, and
+    an estimator that reports the true touch point once an episode runs. `trigger` False: impacts go
+    unnoticed. As in the simulator (robots.world.PivotWorld), a touching tip stays pinned and the tool
+    turns in the grasp about it, compressing the grasp along the tool; it lifts off 3 mm beyond its
+    length and keeps the attitude it had."""
 
     def __init__(self, scene: BoxScene, p0: np.ndarray, trigger: bool = True):
         self.scene = scene
@@ -78,19 +81,23 @@ class FakeRig:
         self.t = 0.0
         self.episode = 0
         self.touch = None            # pinned tip while the tool touches
+        self.tip_tcp = TIP_TCP.copy()    # the tool in the grasp, TCP frame
+        self.p_touch = None
+        self.length = float(np.linalg.norm(TIP_TCP))
         self.tracking = False
         self.phases = []
-        self.trace = []              # (phase, TCP, R) per tick
+        self.trace = []              # (phase, TCP, R, the tool in the grasp) per tick
         self.lowest_tip = np.inf
 
     def tip(self) -> np.ndarray:
-        return self.p + self.R @ TIP_TCP
+        return self.p + self.R @ self.tip_tcp
 
     def force(self) -> np.ndarray:
         if self.touch is None:
             return np.zeros(3)
-        pen = self.touch[2] - self.tip()[2]
-        return np.array([0.0, 0.0, STIFFNESS_N_M * max(pen, 0.0)])
+        r = self.touch - self.p                    # TCP -> pinned tip
+        dist = float(np.linalg.norm(r))
+        return STIFFNESS_N_M * max(self.length - dist, 0.0) * r / dist
 
     def run(self, task: MapTask, max_ticks: int = 200000, until=None) -> MapTask:
         for _ in range(max_ticks):
@@ -101,18 +108,23 @@ class FakeRig:
             self.lowest_tip = min(self.lowest_tip, tip[2])
             if self.touch is None and tip[2] <= self.scene.surface_z(tip[0], tip[1]):
                 self.touch = np.array([tip[0], tip[1], self.scene.surface_z(tip[0], tip[1])])
+                self.p_touch = self.p + (self.touch - tip)      # the TCP at the instant of impact (the onset's)
                 if self.trigger and task.status.phase == "descend":
                     self.tracking = True
-            elif self.touch is not None and tip[2] > self.touch[2] + 0.003:
-                self.touch = None
-            view = ContactView(tracking=self.tracking, p=self.touch, std=np.full(3, 1e-3),
+            elif self.touch is not None:
+                r = self.touch - self.p
+                dist = float(np.linalg.norm(r))
+                self.tip_tcp = self.R.T @ (r / dist * self.length)      # the tool turns about its tip
+                if dist > self.length + 0.003:
+                    self.touch = None                                 # lifted off, keeping that attitude
+            view = ContactView(tracking=self.tracking, p=self.touch, std=np.full(3, 1e-3), onset_p_tcp=self.p_touch,
                                axis=np.array([0.0, 1.0, 0.0]), in_plane_std=1e-3) if self.tracking \
                 else ContactView(tracking=False)
             motion = task.step(TickInput(self.t, self.p.copy(), self.R.copy(), view, self.planner.at_rest,
                                          self.planner.position, self.force()))
             if not self.phases or self.phases[-1] != task.status.phase:
                 self.phases.append(task.status.phase)
-            self.trace.append((task.status.phase, self.p.copy(), self.R.copy()))
+            self.trace.append((task.status.phase, self.p.copy(), self.R.copy(), self.tip_tcp.copy()))
             if task.episode != self.episode:
                 self.episode = task.episode
                 self.tracking = bool(task.commanded_onset and self.touch is not None)
@@ -179,18 +191,34 @@ def test_each_lift_pulls_the_tool_out_along_its_axis_before_rising():
     rig = FakeRig(SCENE, P0)
     rig.run(task)
     assert task.status.state == "done", task.status.error
-    phases = [ph for ph, _, _ in rig.trace]
+    phases = [ph for ph, *_ in rig.trace]
     starts = [i for i in range(1, len(phases)) if phases[i] == "lift" and phases[i - 1] != "lift"]
     assert len(starts) == 8
     for i0 in starts:
         i1 = next(i for i in range(i0, len(phases)) if phases[i] != "lift")
-        path = np.array([p for _, p, _ in rig.trace[i0 - 1:i1]])
+        path = np.array([p for _, p, *_ in rig.trace[i0 - 1:i1]])
         out = path - path[0]
         k = int(np.argmax(np.linalg.norm(out, axis=1) >= 0.008 - 1e-4))
-        tool = rig.trace[i0][2] @ TIP_TCP / np.linalg.norm(TIP_TCP)     # TCP -> tip, world
+        _, _, R, tip = rig.trace[i0]
+        tool = R @ tip / np.linalg.norm(tip)                           # TCP -> tip, world
         assert out[k] @ -tool / np.linalg.norm(out[k]) > np.cos(np.radians(1.0))    # away from the tip
         assert np.linalg.norm(path[k:, :2] - path[k, :2], axis=1).max() < 5e-4      # then straight up
         assert path[-1, 2] == pytest.approx(P0[2], abs=1e-3)
+
+
+def test_the_tool_model_follows_the_tool_turning_in_the_grasp():
+    """The arm brakes after each touch with the tip pinned, so the tool turns in the soft grasp; the model
+    turns with it (from the TCP's motion about the touched point) and takes each probe's reach, not the
+    direction the probe reports. After every point of both passes it still points where the tool does."""
+    task = MapTask("map-5", map_params(), lambda rec: done_now({}))
+    rig = FakeRig(SCENE, P0)
+    rig.run(task)
+    assert task.status.state == "done", task.status.error
+    turned = np.degrees(np.arccos(rig.tip_tcp @ TIP_TCP / (np.linalg.norm(rig.tip_tcp) * np.linalg.norm(TIP_TCP))))
+    assert turned > 0.3                                      # the tool did turn in the grasp
+    off = np.degrees(np.arccos(task.tip_tcp @ rig.tip_tcp / (np.linalg.norm(task.tip_tcp) * rig.length)))
+    assert off < 0.1
+    assert abs(np.linalg.norm(task.tip_tcp) - rig.length) < 0.002      # the reach, less the grasp's compression
 
 
 def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
