@@ -418,7 +418,9 @@ class ContactKF:
             return
         w_d, r0 = self._chunk              # the block just committed, in the filter's coordinates
         taken = ev.add(dt, w_d, r0, fresh)
-        if not taken:
+        if not taken or ev.n < MIN_RESIDUAL_SAMPLES:
+            # the sums keep growing; they count once the rigid-body residual can check them (an
+            # object sliding in the grasp from onset would otherwise pull the first estimates along)
             return
         d_lam, d_eta = ev.increment()
         if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
