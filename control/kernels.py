@@ -690,69 +690,73 @@ def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
     return taken, s_yy
 
 
+@jit("Tuple((float64[:, :], float64[:], float64))(float64[:, :], float64[:, :], float64[:], float64[:], float64, "
+     "int64)")
+def _centred_sums(s_x, s_xx, s_xy, s_y, s_yy, n):
+    """PositionEvidence's running sums with the regression's intercept q eliminated:
+    (S_xx - S_x^T S_x / n, S_xy - S_x^T S_y / n, S_yy - S_y^T S_y / n), n at least 1."""
+    d, nx = s_x.shape[0], s_x.shape[1]
+    nn = max(n, 1)
+    lam = np.empty((nx, nx))
+    eta = np.empty(nx)
+    for a in range(nx):
+        for b in range(nx):
+            sxx = 0.0
+            for j in range(d):
+                sxx += s_x[j, a] * s_x[j, b]
+            lam[a, b] = s_xx[a, b] - sxx / nn
+        sxy = 0.0
+        for j in range(d):
+            sxy += s_x[j, a] * s_y[j]
+        eta[a] = s_xy[a] - sxy / nn
+    syy = 0.0
+    for j in range(d):
+        syy += s_y[j] * s_y[j]
+    return lam, eta, s_yy - syy / nn
+
+
 @jit("Tuple((float64[:, :], float64[:]))(float64[:, :], float64[:, :], float64[:], float64[:], int64, float64, "
      "float64[:, :], float64[:])")
 def position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta):
     """PositionEvidence.increment: the marginal information on (m, k), the intercept q eliminated
     (Lambda = (S_xx - S_x^T S_x / n) / var, eta = (S_xy - S_x^T S_y / n) / var), returned as its
     growth since lam, eta, which are updated in place. The growth is symmetrised."""
-    d, nx = s_x.shape[0], s_x.shape[1]
-    nn = max(n, 1)
-    new = np.empty((nx, nx))
+    new, e, _ = _centred_sums(s_x, s_xx, s_xy, s_y, 0.0, n)
+    nx = new.shape[0]
+    d_lam = np.empty((nx, nx))
     d_eta = np.empty(nx)
     for a in range(nx):
+        d_eta[a] = e[a] / var - eta[a]
+        eta[a] = e[a] / var
         for b in range(nx):
-            sxx = 0.0
-            for j in range(d):
-                sxx += s_x[j, a] * s_x[j, b]
-            new[a, b] = (s_xx[a, b] - sxx / nn) / var
-        sxy = 0.0
-        for j in range(d):
-            sxy += s_x[j, a] * s_y[j]
-        e = (s_xy[a] - sxy / nn) / var
-        d_eta[a] = e - eta[a]
-        eta[a] = e
-    d_lam = np.empty((nx, nx))
+            d_lam[a, b] = 0.5 * ((new[a, b] + new[b, a]) / var - lam[a, b] - lam[b, a])
     for a in range(nx):
         for b in range(nx):
-            d_lam[a, b] = 0.5 * ((new[a, b] - lam[a, b]) + (new[b, a] - lam[b, a]))
-    for a in range(nx):
-        for b in range(nx):
-            lam[a, b] = new[a, b]
+            lam[a, b] = new[a, b] / var
     return d_lam, d_eta
 
 
 @jit("float64(float64[:, :], float64[:, :], float64[:], float64[:], float64, int64, float64, float64, int64)")
 def position_residual(s_x, s_xx, s_xy, s_y, s_yy, n, var, k, min_samples):
     """PositionEvidence.residual_ratio: the (q, m) regression's residual at the held eta ratio k
-    (y' = y - k G), over its expectation var * dof; 1 below min_samples or without dof."""
+    (y' = y - k G), over its expectation var * dof; 1 below min_samples or without dof.
+
+    With the intercept eliminated (_centred_sums: L, e, c) and y' = y - k G (G: the last regressor),
+    the m block is L[:d, :d], its right-hand side e[:d] - k L[:d, d], and y'^T y' is
+    c - 2 k e[d] + k^2 L[d, d]."""
     d = s_x.shape[0]
     if n < min_samples:
         return 1.0
-    syy = s_yy - 2.0 * k * s_xy[d] + k * k * s_xx[d, d]
-    sy = np.empty(d)
-    for j in range(d):
-        sy[j] = s_y[j] - k * s_x[j, d]
-    lam_u = np.empty((d, d))
+    lam, e, c = _centred_sums(s_x, s_xx, s_xy, s_y, s_yy, n)
+    lam_u = lam[:d, :d].copy()
     eta_u = np.empty(d)
     for a in range(d):
-        for b in range(d):
-            sxx = 0.0
-            for j in range(d):
-                sxx += s_x[j, a] * s_x[j, b]
-            lam_u[a, b] = s_xx[a, b] - sxx / n
-        sxy = 0.0
-        for j in range(d):
-            sxy += s_x[j, a] * sy[j]
-        eta_u[a] = s_xy[a] - k * s_xx[a, d] - sxy / n
+        eta_u[a] = e[a] - k * lam[a, d]
     fit, rank = pinv_quadratic(lam_u, eta_u, 1e-9)     # the fitted m's share of the sum of squares
     dof = d * n - d - rank
     if dof <= 0:
         return 1.0
-    sy2 = 0.0
-    for j in range(d):
-        sy2 += sy[j] * sy[j]
-    rss = syy - sy2 / n - fit
+    rss = c - 2.0 * k * e[d] + k * k * lam[d, d] - fit
     return max(rss, 0.0) / (var * dof)
 
 
