@@ -574,12 +574,7 @@ def plane_rotation(stat, E, nrm, w_sum):
     """The planar report's rotation: (sign, top). sign is +1 when the summed rate w_sum turns about
     the plane's normal nrm, else -1; top is the larger eigenvalue of stat (world, 3 x 3) in the plane
     (E stat E^T, E: the plane's 2 x 3 basis), in closed form."""
-    s = np.zeros((2, 2))
-    for a in range(2):
-        for b in range(2):
-            for i in range(3):
-                for j in range(3):
-                    s[a, b] += E[a, i] * stat[i, j] * E[b, j]
+    s = _mm(_mm(E, stat), E.T)
     half = 0.5 * (s[0, 0] - s[1, 1])
     top = 0.5 * (s[0, 0] + s[1, 1]) + math.sqrt(max(half * half + s[0, 1] * s[0, 1], 0.0))
     sign = 1.0 if w_sum[0] * nrm[0] + w_sum[1] * nrm[1] + w_sum[2] * nrm[2] >= 0.0 else -1.0
