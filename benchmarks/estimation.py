@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 
 from control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
 from control.geometry import Plane, quat_to_matrix  # noqa: E402
+from control.kernels import K_MIN, block_update  # noqa: E402
 from control.pipeline import METHODS  # noqa: E402
 from robots.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
@@ -232,14 +233,16 @@ def filterpy_peer() -> dict:
 
 
 def _first_linearisation(prm, p, v, w, sl):
-    """Reproduce the onset block's linearisation point (two non-committed passes)."""
+    """Reproduce the onset block's linearisation point (the two uncommitted passes of
+    kernels.ekf_advance's first block)."""
     kf = ContactKF(prm)
     kf.start(p[0], v[0])
     x = kf.x
+    n = len(w[sl])
     for _ in range(2):
-        n = len(w[sl])
-        x = kf._block(np.full(n, 1 / 6667), w[sl], None, p[sl], v[sl], np.full(n, prm.sigma_v ** 2), np.zeros(n), x,
-                      commit=False)
+        x = block_update(kf.x, kf.P, x, np.full(n, 1 / 6667), w[sl], np.zeros((n, 3)), p[sl], v[sl],
+                         np.full(n, prm.sigma_v ** 2), np.zeros(n), np.eye(3), np.zeros(3), kf.origin, prm.q_c, 1.0,
+                         prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, K_MIN, kf.k_prior_mean, False, False)[0]
     return x[:3]
 
 

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.geometry import Plane, rotvec_to_matrix
-from control.kernels import (K_MIN, block_update, collapsed_update, eta_evidence, eta_weight, position_increment,
-                             position_residual, position_sums, report_state, window_add, window_nis)
+from control import kernels as K
+from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
+                             position_sums, report_state)
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)
@@ -199,6 +200,9 @@ class ContactKfParams:
 _IDENTITY = np.eye(3)
 _NO_NORMAL = np.zeros(3)
 _NO_ALONG = np.zeros(9)         # 3D: no variance added along a plane normal
+_NO_FRESH = np.zeros(0, dtype=bool)
+_NO_RUN = np.zeros(4)
+_NO_WWT = np.zeros((3, 3))
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -208,6 +212,11 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     return out
+
+
+def _position_var(sigma_p: float) -> float:
+    """The position evidence's noise variance, m^2 (floored: a noise-free rig still has rounding)."""
+    return max(sigma_p, 1e-7) ** 2
 
 
 MIN_RESIDUAL_SAMPLES = 8       # position samples before the rigid-body residual test can speak
@@ -241,34 +250,51 @@ class PositionEvidence:
 
     def __init__(self, d: int, sigma_p: float):
         self.d = d
-        self.var = max(sigma_p, 1e-7) ** 2
-        self.reset()
-        self.broken = False
-
-    def start(self) -> None:
-        self.reset()
-        self.broken = False
-
-    def reset(self) -> None:
-        d, nx = self.d, self.d + 1
+        nx = d + 1
+        self.var = _position_var(sigma_p)
+        self.st = np.zeros(K.EV_SIZE)           # samples taken, sum of y^T y, broken (kernels.EV_*)
         self.theta = np.zeros(1 if d == 2 else 3)    # the angle (planar) or rotation vector integrated
         self.g = np.zeros(d)
-        self.n = 0
         self.s_x = np.zeros((d, nx))       # sum of regressors X_k (d x (d+1))
         self.s_xx = np.zeros((nx, nx))     # sum of X_k^T X_k
         self.s_xy = np.zeros(nx)           # sum of X_k^T y_k
         self.s_y = np.zeros(d)
-        self.s_yy = 0.0
-        self.lam = np.zeros((nx, nx))
+        self.lam = np.zeros((nx, nx))      # the marginal information handed over so far
         self.eta = np.zeros(nx)
+
+    @property
+    def n(self) -> int:
+        """Position samples in the sums."""
+        return int(self.st[K.EV_N])
+
+    @property
+    def s_yy(self) -> float:
+        return float(self.st[K.EV_SYY])
+
+    @property
+    def broken(self) -> bool:
+        """The rigid-body residual failed this episode: positions are no evidence until the next start."""
+        return bool(self.st[K.EV_BROKEN])
+
+    def arrays(self) -> tuple:
+        """The state as the compiled run takes it (kernels.ekf_advance's ev_*)."""
+        return self.st, self.theta, self.g, self.s_x, self.s_xx, self.s_xy, self.s_y, self.lam, self.eta
+
+    def start(self) -> None:
+        self.reset()
+        self.st[K.EV_BROKEN] = 0.0
+
+    def reset(self) -> None:
+        """Restart the reference: no samples, integrals and sums zero (broken is kept)."""
+        position_reset(*self.arrays())
 
     def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
         """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
         at the `fresh` samples (a new proprioception sample); True when any was taken."""
         taken, s_yy = position_sums(self.theta, self.g, dt, w.reshape(len(dt), -1), r, fresh, self.s_x,
                                     self.s_xx, self.s_xy, self.s_y)
-        self.n += taken
-        self.s_yy += s_yy
+        self.st[K.EV_N] += taken
+        self.st[K.EV_SYY] += s_yy
         return taken > 0
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
@@ -281,6 +307,10 @@ class PositionEvidence:
         return position_residual(self.s_x, self.s_xx, self.s_xy, self.s_y, self.s_yy, self.n, self.var, k,
                                  MIN_RESIDUAL_SAMPLES)
 
+
+
+# the compiled run's position-evidence arguments for a filter without it (never read)
+_NO_EVIDENCE = {d: PositionEvidence(d, 1.0).arrays() for d in (2, 3)}
 
 class ContactKF:
     """`ekf`: our filter on the same constraint, built for accuracy, honesty and speed.
@@ -319,12 +349,15 @@ class ContactKF:
     def __init__(self, params: ContactKfParams | None = None, plane: Plane | None = None):
         self.params = params or ContactKfParams()
         self.plane = plane
-        self.d = 2 if plane is not None else 3
+        self.d = d = 2 if plane is not None else 3
         # the report's variance along the plane's normal (unobservable), flattened for the kernel
         self._along_var = (UNOBSERVED_STD_M ** 2 * plane.nnT).ravel() if plane is not None else _NO_ALONG
+        self._E = plane.E if plane is not None else _IDENTITY
+        self._normal = plane.n if plane is not None else _NO_NORMAL
         self.nk = 1 if self.params.estimate_eta else 0   # k is a state, or held at its prior mean (cheaper)
-        self.x = np.zeros(self.d)        # [m] or [m, k]
-        self.P = np.eye(self.d)
+        nx = d + self.nk
+        self.x = np.zeros(nx)            # [m] or [m, k]
+        self.P = np.eye(nx)
         self.origin = np.zeros(3)
         self.corr_samples = 1.0          # IMU samples per proprioception sample
         # eta's prior as the pipeline sets it from the grip force: the mean of k and its relative one-sigma
@@ -333,22 +366,43 @@ class ContactKF:
         self.eta_rel_std = self.params.eta_rel_std
         self.k_prior_mean = 1.0          # as read at onset: k's prior, or the value k is held at
         self.k_prior_var = 0.0
-        self.consistency = 1.0           # smoothed window NIS / its expectation (>= 1 scales the report)
-        self._win_n, self._win_t = 0, 0.0    # the consistency window: blocks in it, seconds
-        self._win_gated, self._win_samples = [], 0   # its gated blocks' per-sample NIS; samples with a NIS
-        self._win_x0 = self._win_b = np.zeros(self.d)
-        self._win_P0 = self._win_A = np.eye(self.d)
         # Extra variance, (m/s)^2, of the TCP velocity along the lever arm. Set while a controller
         # follows an arc about the estimate: its own path error then moves the TCP along the lever
         # arm, the compliant grasp absorbs it, and that component is no evidence about the contact.
         # The tangential component (|v| = w |r|) stays, and the turning lever arm triangulates.
         self.radial_var = 0.0
-        self.steps = 0
-        self.rejected = 0
-        self.nis = 0.0
-        self._r_last = np.zeros(self.d)
-        self._chunk = (np.zeros(0), np.zeros((0, self.d)))   # last committed block: (rate, r0), for positions
-        self.positions = PositionEvidence(self.d, self.params.sigma_p) if self.params.use_positions else None
+        # The compiled run's state (kernels.ekf_advance): the scalars (kernels.ST_*: steps, rejected,
+        # the last NIS, the consistency ratio, the open window's counts), the lever arm at the last
+        # sample, and the consistency window: its start state and prior, its information, and the
+        # per-sample NIS of its gated blocks.
+        self._st = np.zeros(K.ST_SIZE)
+        self._st[K.ST_CONSISTENCY] = 1.0
+        self._r_last = np.zeros(d)
+        self._win = (np.zeros(nx), np.eye(nx), np.eye(nx), np.zeros(nx))
+        self._gated = np.empty(256)
+        self.positions = PositionEvidence(d, self.params.sigma_p) if self.params.use_positions else None
+        self._ev = self.positions.arrays() if self.positions is not None else _NO_EVIDENCE[d]
+
+    @property
+    def steps(self) -> int:
+        """IMU samples taken this episode."""
+        return int(self._st[K.ST_STEPS])
+
+    @property
+    def rejected(self) -> int:
+        """Samples the NIS gate rejected this episode."""
+        return int(self._st[K.ST_REJECTED])
+
+    @property
+    def nis(self) -> float:
+        """The last gated sample's NIS."""
+        return float(self._st[K.ST_NIS])
+
+    @property
+    def consistency(self) -> float:
+        """The smoothed window NIS over its expectation (about 1 while the model holds; >= 1 scales the
+        report, and the daemon's divergence stop reads it)."""
+        return float(self._st[K.ST_CONSISTENCY])
 
     @property
     def k(self) -> float:
@@ -374,10 +428,8 @@ class ContactKF:
         if self.nk:
             self.x[d] = self.k_prior_mean
         self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
-        self.steps = 0
-        self.rejected = 0
-        self.consistency = 1.0
-        self._win_n, self._win_t, self._win_gated, self._win_samples = 0, 0.0, [], 0
+        self._st[:] = 0.0
+        self._st[K.ST_CONSISTENCY] = 1.0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
@@ -391,124 +443,42 @@ class ContactKF:
             var_v = np.full(n, self.params.sigma_v ** 2)
         if var_w is None:
             var_w = np.zeros(n)
-        mb = self.params.max_block
-        for k0 in range(0, n, mb):
-            sl = slice(k0, k0 + mb)
-            block = (dt[sl], w[sl], None if w_tcp is None else w_tcp[sl], p[sl], v[sl], var_v[sl], var_w[sl])
-            # At onset the noise model is linearised about a guess; iterate once on the
-            # first block (from the same prior) so it is linearised about the data's answer.
-            x_lin = self.x
-            for _ in range(2 if self.steps == 0 else 0):
-                x_lin = self._block(*block, x_lin, commit=False)
-            self._block(*block, x_lin, commit=True)
-            if self.positions is not None:
-                if fresh is None:
-                    self.positions.reset()     # no position measurements here: restart the reference
-                else:
-                    self._position_update(dt[sl], fresh[sl])
+        self._advance(dt, dt, w, p, v, var_v, var_w, fresh, w_tcp, None)
 
-    def _position_update(self, dt, fresh) -> None:
-        ev = self.positions
-        if ev.broken:
-            return
-        if self.radial_var > 0:
-            # Following an arc: the grasp's compliance moves the TCP along the lever arm, which a
-            # displacement integrates without bound. Restart the reference instead of using it.
-            ev.reset()
-            return
-        w_d, r0 = self._chunk              # the block just committed, in the filter's coordinates
-        taken = ev.add(dt, w_d, r0, fresh)
-        if not taken or ev.n < MIN_RESIDUAL_SAMPLES:
-            # the sums keep growing; they count once the rigid-body residual can check them (an
-            # object sliding in the grasp from onset would otherwise pull the first estimates along)
-            return
-        d_lam, d_eta = ev.increment()
-        if ev.residual_ratio(self.k) > POSITION_RESIDUAL_LIMIT:
-            ev.broken = True        # the TCP moves relative to the object: displacements mislead
-            return
-        b = d_eta - d_lam @ np.append(self.x[:self.d], self.k)
-        n = self.d + self.nk                 # with k held, its column is part of the measurement
-        A = d_lam[:n, :n]
-        x_new, P_new = collapsed_update(self.x, self.P, A, b[:n], True)
-        self._account(x_new, P_new, self.P, A, b[:n], 0, 0, None, None, 0.0, consistency=False)
+    def advance(self, ts: np.ndarray, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
+                var_v: np.ndarray, var_w: np.ndarray, fresh: np.ndarray | None, w_tcp: np.ndarray | None,
+                schedule: tuple) -> np.ndarray:
+        """`update` over a batch cut at each due output, as ContactPipeline.process_all does, with the
+        reports in the same compiled call: returns their rows (m, kernels.ROW_SIZE).
 
-    def _block(self, dt, w, w_tcp, p, v, var_v, var_w, x_lin: np.ndarray, commit: bool) -> np.ndarray:
-        """One collapsed update from the current prior, noise linearised about x_lin (kernels.block_update);
-        returns the posterior mean."""
+        ts (n,) are the samples' times, s; schedule = (period_s, run, wwT, w_sum, rate_params): the
+        output period, the pipeline's bookkeeping (kernels.RUN_*) and rate moments, updated in
+        place, and its report constants (rotation axes: minimum rate^2, second-axis ratio)."""
+        return self._advance(ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule)
+
+    def _run_params(self, rate_params) -> np.ndarray:
         prm = self.params
-        if self.plane is not None:
-            E, nrm = self.plane.E, self.plane.n
+        min_rate2, second_ratio = rate_params
+        return np.array([prm.q_c, self.corr_samples, prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var, prm.gate_nis,
+                         self.k_prior_mean, self.k_prior_var, (self.eta_rel_std / self.k_prior_mean) ** 2,
+                         prm.eta_test_sigma, prm.max_block, _position_var(prm.sigma_p), CONSISTENCY_WINDOW_S,
+                         CONSISTENCY_TAU_S, min_rate2, second_ratio, UNOBSERVED_STD_M ** 2, MIN_RESIDUAL_SAMPLES,
+                         POSITION_RESIDUAL_LIMIT])
+
+    def _advance(self, ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule) -> np.ndarray:
+        n = len(dt)
+        if w_tcp is None:
+            w_tcp = np.zeros((n, 3))
+        if schedule is None:
+            period, run, wwT, w_sum, rate_params = 0.0, _NO_RUN, _NO_WWT, _NO_NORMAL, (0.0, 0.0)
         else:
-            E, nrm = _IDENTITY, _NO_NORMAL
-        x_new, P_new, P, A, b, gated, nis, rejected, w_d, r0, duration = block_update(
-            self.x, self.P, x_lin, dt, w, np.zeros((len(w), 3)) if w_tcp is None else w_tcp, p, v, var_v, var_w, E,
-            nrm, self.origin, prm.q_c, max(self.corr_samples, 1.0), prm.sigma_p ** 2, prm.sigma_w ** 2,
-            float(self.radial_var), prm.gate_nis, K_MIN, self.k_prior_mean, prm.gate_nis > 0 and self.steps > 0, commit)
-        if not commit:
-            return x_new
-        self._chunk = (w_d, r0)                 # reused by the position evidence
-        self._account(x_new, P_new, P, A, b, len(w), rejected, nis if gated else None, r0, duration)
-        return x_new
-
-    def _account(self, x_new, P_new, P, A, b, n, rejected, nis, r0, duration, consistency: bool = True) -> None:
-        """Keep a committed update (prior P, information A and b, posterior x_new and P_new) and count it."""
-        self.rejected += rejected
-        if nis is not None and len(nis):
-            self.nis = float(nis[-1])
-        if consistency and self.steps > 0:
-            self._window_add(P, A, b, duration, nis, rejected)
-        self.x, self.P = x_new, P_new
-        self.steps += n
-        if n:
-            self._r_last = r0[-1] - self.c
-
-    def _window_add(self, P, A, b, duration: float, nis, rejected: int) -> None:
-        """Add one block's information to the consistency window; close the window once it spans
-        CONSISTENCY_WINDOW_S.
-
-        The window's data are one collapsed measurement of the state at the window's start:
-        each block's b is about the state before that block, and b + A (x_before - x_start) is
-        the same data about x_start (exact for the linearised model). Its NIS against the prior
-        at the start, with the window's rank r as its degrees of freedom, is chi^2(r) while the
-        model holds, whatever the blocks were: a coherent model error (sliding in the grasp, a
-        stale TCP rate) adds to it in proportion to the window's length, which is fixed, so the
-        divergence limit means the same for the daemon's batches and for an offline replay.
-
-        Samples the NIS gate rejected carry no information, so a gross failure (the grasp sliding
-        fast) could hide behind the gate: a window whose samples are mostly rejected reads at
-        least the median per-sample NIS over its degrees of freedom.
-        """
-        if rejected:
-            self._win_gated.append(nis)
-        self._win_samples += len(nis) if nis is not None else 0
-        if self._win_n == 0:
-            self._win_x0 = self.x.copy()
-            self._win_P0 = P.copy()
-            self._win_A = A.copy()
-            self._win_b = b.copy()
-        else:
-            window_add(self._win_A, self._win_b, self._win_x0, self.x, A, b)
-        self._win_n += 1
-        self._win_t += duration
-        if self._win_t < CONSISTENCY_WINDOW_S:
-            return
-        A_w, b_w, P0, t_w = self._win_A, self._win_b, self._win_P0, self._win_t
-        gated, n_samples = self._win_gated, self._win_samples
-        self._win_n, self._win_t, self._win_gated, self._win_samples = 0, 0.0, [], 0
-        ratio = 0.0
-        nis, rank = window_nis(A_w, b_w, P0)
-        if rank:
-            # A window closes at the first block end past CONSISTENCY_WINDOW_S; its excess over the
-            # expectation is referred to the nominal length so that the batching cannot change it.
-            ratio = 1.0 + (max(nis, 0.0) / rank - 1.0) * (CONSISTENCY_WINDOW_S / t_w)
-        if gated:
-            all_nis = np.concatenate(gated)
-            if 2 * int(np.count_nonzero(all_nis > self.params.gate_nis)) > n_samples:
-                ratio = max(ratio, float(np.median(all_nis)) / self.d)
-        if not rank and ratio <= 0.0:
-            return
-        alpha = 1.0 - math.exp(-t_w / CONSISTENCY_TAU_S)
-        self.consistency += alpha * (ratio - self.consistency)
+            period, run, wwT, w_sum, rate_params = schedule
+        self._gated, rows = K.ekf_advance(
+            self.x, self.P, self._st, self._r_last, *self._win, self._gated, self.positions is not None, *self._ev,
+            ts, dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh, fresh is not None,
+            self._E, self._normal, self.origin, self._along_var, self._run_params(rate_params), schedule is not None,
+            period, run, wwT, w_sum)
+        return rows
 
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject its prior mean); (the mean, 0) without
@@ -533,13 +503,9 @@ class ContactKF:
         The scheduled estimate (k at its prior mean: the state conditioned on it, eta's uncertainty as
         a radial floor) until the data reject that; then the free-eta estimate c = m / k is blended in
         (kernels.report_state)."""
-        if self.plane is not None:
-            E, along = self.plane.E, self._along_var
-        else:
-            E, along = _IDENTITY, _NO_ALONG
         return report_state(self.x, self.P, self.d, max(self.consistency, 1.0), self._r_last,
                             (self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
-                            self.params.eta_test_sigma, E, self.origin, along)
+                            self.params.eta_test_sigma, self._E, self.origin, self._along_var)
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         p_c, cov, _ = self.report()

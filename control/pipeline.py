@@ -13,6 +13,7 @@ from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
 from control.geometry import Plane, relative_rotvec
+from control import kernels as K
 from control.kernels import plane_rotation, rate_moments, rotation_axes
 from control.onset import OnsetDetector
 
@@ -232,6 +233,9 @@ class ContactPipeline:
         self.method = self.params.method
         self.plane = Plane(self.params.plane_normal) if self.params.plane_normal is not None else None
         self.estimator = make_estimator(self.params, self.plane)
+        # `ekf` runs a whole batch, reports included, in one compiled call (ContactKF.advance)
+        self._fused = isinstance(self.estimator, ContactKF)
+        self._rate_params = (MIN_AXIS_RATE_RAD_S ** 2, SECOND_AXIS_RATIO)
         self.eta = EtaSchedule(self.params.eta_table)
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.ekf.sigma_p, sigma_v=self.params.ekf.sigma_v)
         self.tracking = False
@@ -391,7 +395,9 @@ class ContactPipeline:
             if rate == rate and hasattr(self.estimator, "corr_samples"):       # not NaN
                 self.estimator.corr_samples = max(1.0, 1.0 / (self._dt_sample * rate))
             period = self.params.output_period_s
-            k0, n = 0, len(ts)
+            if self._fused:
+                estimates = self._advance_fused(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
+            k0, n = 0, 0 if self._fused else len(ts)
             while k0 < n:
                 due = int(np.searchsorted(ts, self._t_out + period, side="left"))
                 k1 = n if due >= n else max(due + 1, k0 + 1)
@@ -411,6 +417,29 @@ class ContactPipeline:
         if estimates:
             self.latest = estimates[-1]
         return events, estimates
+
+    def _advance_fused(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
+                       period: float) -> list[ContactEstimate]:
+        """`ekf`: the loop of process_all (sub-blocks ending at each output time, the rate moments, the
+        reports) in one compiled call (ContactKF.advance); the same numbers, without Python per output."""
+        run = np.array([self._t_prev, self._t_out, self._angle, self._n_w])
+        rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
+                                      w_tcp if tcp_turning else None,
+                                      (period, run, self._wwT, self._w_sum, self._rate_params))
+        self._t_prev, self._t_out, self._angle = float(run[K.RUN_T_PREV]), float(run[K.RUN_T_OUT]), float(run[K.RUN_ANGLE])
+        self._n_w = int(run[K.RUN_N_W])
+        return [self._row_estimate(row) for row in rows]
+
+    def _row_estimate(self, row: np.ndarray) -> ContactEstimate:
+        """A report row of the compiled run (kernels.ROW_*) as a ContactEstimate."""
+        in_plane, steps = float(row[K.ROW_IN_PLANE]), int(row[K.ROW_STEPS])
+        return ContactEstimate(t=float(row[K.ROW_T]), onset_t=self.onset_t, p=row[K.ROW_P:K.ROW_P + 3],
+                               std=row[K.ROW_STD:K.ROW_STD + 3], cov=row[K.ROW_COV:K.ROW_COV + 9].reshape(3, 3),
+                               axis=row[K.ROW_AXIS:K.ROW_AXIS + 3] if row[K.ROW_AXES] else None,
+                               converged=in_plane < CONVERGED_STD_M and steps > 100, nis=float(row[K.ROW_NIS]),
+                               steps=steps, method=self.method, in_plane_std=in_plane,
+                               angle_rad=float(row[K.ROW_ANGLE]), nis_ratio=float(row[K.ROW_CONSISTENCY]),
+                               onset_p_tcp=self.onset_p_tcp)
 
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator
