@@ -426,8 +426,8 @@ class ContactPipeline:
         rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
                                       w_tcp if tcp_turning else None,
                                       (period, run, self._wwT, self._w_sum, self._rate_params))
-        self._t_prev, self._t_out, self._angle = float(run[K.RUN_T_PREV]), float(run[K.RUN_T_OUT]), float(run[K.RUN_ANGLE])
-        self._n_w = int(run[K.RUN_N_W])
+        self._t_prev, self._t_out = float(run[K.RUN_T_PREV]), float(run[K.RUN_T_OUT])
+        self._angle, self._n_w = float(run[K.RUN_ANGLE]), int(run[K.RUN_N_W])
         return [self._row_estimate(row) for row in rows]
 
     def _row_estimate(self, row: np.ndarray) -> ContactEstimate:
