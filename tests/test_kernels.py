@@ -338,3 +338,139 @@ def test_position_increment_and_residual_match_numpy():
     rss = float(np.sum((resid - Z @ fit[0]) ** 2))
     assert ratio == pytest.approx(rss / (var * (d * n - d - np.linalg.matrix_rank(Z[:, d:]))), rel=1e-7)
     assert K.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), 5, var, k, 8) == 1.0
+
+
+class ReferenceKF:
+    """ContactKF.update written as Python around the block kernels (what the filter was before its run
+    was fused into kernels.ekf_advance): each block, the consistency window with its gated NIS in a
+    list, and the position evidence; the reference the compiled run must equal."""
+
+    WINDOW_S, TAU_S, EV_MIN, EV_LIMIT = 0.01, 0.05, 8, 4.0
+
+    def __init__(self, kf):
+        prm = kf.params
+        self.prm, self.d, self.nk = prm, kf.d, kf.nk
+        self.E, self.nrm, self.origin = kf._E, kf._normal, kf.origin.copy()
+        self.x, self.P = kf.x.copy(), kf.P.copy()
+        self.k_mean, self.corr, self.var_ev = kf.k_prior_mean, kf.corr_samples, max(prm.sigma_p, 1e-7) ** 2
+        self.steps = self.rejected = 0
+        self.nis, self.consistency = 0.0, 1.0
+        self.win = None
+        d = self.d
+        self.ev = dict(theta=np.zeros(1 if d == 2 else 3), g=np.zeros(d), sx=np.zeros((d, d + 1)),
+                       sxx=np.zeros((d + 1, d + 1)), sxy=np.zeros(d + 1), sy=np.zeros(d), lam=np.zeros((d + 1, d + 1)),
+                       eta=np.zeros(d + 1))
+        self.ev_n, self.ev_syy, self.broken = 0, 0.0, False
+
+    def k(self):
+        return max(self.x[self.d], K.K_MIN) if self.nk else self.k_mean
+
+    def update(self, dt, w, p, v, var_v, var_w, fresh):
+        prm = self.prm
+        for k0 in range(0, len(dt), prm.max_block):
+            sl = slice(k0, k0 + prm.max_block)
+            args = (dt[sl], w[sl], np.zeros((len(dt[sl]), 3)), p[sl], v[sl], var_v[sl], var_w[sl], self.E, self.nrm,
+                    self.origin, prm.q_c, self.corr, prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, K.K_MIN,
+                    self.k_mean, prm.gate_nis > 0 and self.steps > 0)
+            x_lin = self.x
+            for _ in range(2 if self.steps == 0 else 0):
+                x_lin = K.block_update(self.x, self.P, x_lin, *args, False)[0]
+            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = K.block_update(
+                self.x, self.P, x_lin, *args, True)
+            self.rejected += rejected
+            if gated:
+                self.nis = float(nis[-1])
+            if self.steps > 0:
+                self.window(P_prior, A, b, duration, nis if gated else None, rejected)
+            self.x, self.P = x_new, P_new
+            self.steps += len(dt[sl])
+            if not self.broken:
+                self.positions(dt[sl], w_d, r0, fresh[sl])
+
+    def window(self, P_prior, A, b, duration, nis, rejected):
+        if self.win is None:
+            self.win = dict(x0=self.x.copy(), P0=P_prior.copy(), A=A.copy(), b=b.copy(), t=0.0, gated=[], n=0)
+        else:
+            w = self.win
+            w["b"] = w["b"] + b + A @ (self.x - w["x0"])
+            w["A"] = w["A"] + A
+        w = self.win
+        w["t"] += duration
+        w["n"] += 0 if nis is None else len(nis)
+        if rejected:
+            w["gated"].append(nis)
+        if w["t"] < self.WINDOW_S:
+            return
+        self.win = None
+        ratio = 0.0
+        nis_w, rank = K.window_nis(w["A"], w["b"], w["P0"])
+        if rank:
+            ratio = 1.0 + (max(nis_w, 0.0) / rank - 1.0) * (self.WINDOW_S / w["t"])
+        if w["gated"]:
+            every = np.concatenate(w["gated"])
+            if 2 * np.count_nonzero(every > self.prm.gate_nis) > w["n"]:
+                ratio = max(ratio, float(np.median(every)) / self.d)
+        if rank or ratio > 0.0:
+            self.consistency += (1.0 - np.exp(-w["t"] / self.TAU_S)) * (ratio - self.consistency)
+
+    def positions(self, dt, w_d, r0, fresh):
+        e = self.ev
+        taken, s_yy = K.position_sums(e["theta"], e["g"], dt, w_d, r0, fresh, e["sx"], e["sxx"], e["sxy"], e["sy"])
+        self.ev_n += taken
+        self.ev_syy += s_yy
+        if not taken or self.ev_n < self.EV_MIN:
+            return
+        d_lam, d_eta = K.position_increment(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_n, self.var_ev, e["lam"],
+                                            e["eta"])
+        if K.position_residual(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_syy, self.ev_n, self.var_ev, self.k(),
+                               self.EV_MIN) > self.EV_LIMIT:
+            self.broken = True
+            return
+        n = self.d + self.nk
+        b = d_eta - d_lam @ np.append(self.x[:self.d], self.k())
+        self.x, self.P = K.collapsed_update(self.x, self.P, d_lam[:n, :n].copy(), b[:n], True)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("nk", [0, 1])
+@pytest.mark.parametrize("chunk", [7, 33, 150])
+def test_the_compiled_run_equals_python_around_the_block_kernels(planar, nk, chunk):
+    """An arc at 12 cm with 65 Hz positions, gyro outliers, a burst and a slip from 0.5 s: the compiled run
+    (ContactKF.update) keeps the state, the counts, the consistency ratio and the slide flag of the
+    Python reference after every chunk (chunks of 150 are cut into blocks of max_block)."""
+    from control.ekf import ContactKF, ContactKfParams
+    from control.geometry import Plane
+    rng = np.random.default_rng(11)
+    axis = np.array([0.0, -1.0, 0.0])
+    t = np.arange(6000) / 6667.0
+    ang = 0.02 / 0.12 * t
+    lever = np.stack([np.cos(ang), np.zeros_like(ang), np.sin(ang)], axis=1)
+    slip = 0.005 * np.maximum(t - 0.5, 0.0)
+    p = np.array([0.2, 0.0, 0.5]) + (0.12 + slip)[:, None] * lever
+    v = np.cross(0.02 / 0.12 * axis, 0.12 * lever) + (0.005 * (t > 0.5))[:, None] * lever
+    held = np.floor(t * 65.0).astype(int)
+    first = np.searchsorted(held, np.arange(held[-1] + 1))
+    fresh = np.zeros(len(t), bool)
+    fresh[first] = True
+    pm = (p[first] + rng.normal(0, 5e-5, (len(first), 3)))[held] + v[first][held] * (t - t[first][held])[:, None]
+    vm = (v[first] + rng.normal(0, 1e-3, (len(first), 3)))[held]
+    w = 0.02 / 0.12 * axis + rng.normal(0, 0.01, (len(t), 3))
+    w[200::50] += 0.8                       # outliers for the NIS gate
+    w[3000:3200] += 0.6                     # a 30 ms burst: windows the gate mostly rejects
+    dt = np.diff(t, prepend=t[0])
+    var_v, var_w = np.full(len(t), 1e-6) + (t - t[first][held]) ** 2 * 1e-4, np.zeros(len(t))
+    kf = ContactKF(ContactKfParams(estimate_eta=bool(nk)), Plane(axis) if planar else None)
+    kf.corr_samples = 6667.0 / 65.0
+    kf.eta_prior_mean = 1.1
+    kf.start(pm[0], vm[0])
+    ref = ReferenceKF(kf)
+    for k0 in range(0, len(t), chunk):
+        sl = slice(k0, k0 + chunk)
+        kf.update(dt[sl], w[sl], pm[sl], vm[sl], var_v[sl], var_w[sl], fresh[sl])
+        ref.update(dt[sl], w[sl], pm[sl], vm[sl], var_v[sl], var_w[sl], fresh[sl])
+        assert (kf.steps, kf.rejected, kf.positions.broken) == (ref.steps, ref.rejected, ref.broken)
+        np.testing.assert_allclose(kf.x, ref.x, rtol=REL_TOL, atol=1e-15)
+        np.testing.assert_allclose(kf.P, ref.P, rtol=REL_TOL, atol=1e-18)
+        assert kf.consistency == pytest.approx(ref.consistency, rel=REL_TOL)
+        assert kf.nis == pytest.approx(ref.nis, rel=REL_TOL)
+    assert ref.rejected > 0 and ref.broken and ref.consistency != 1.0   # the rarer branches were taken
