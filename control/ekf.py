@@ -340,8 +340,10 @@ class ContactKF:
       radial floor) until the data reject that by `eta_test_sigma`; then the free-eta
       estimate is blended in over kernels.ETA_BLEND_SIGMA, so the output does not jump.
     - Updates collapse each block of samples into one exactly equivalent
-      measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form; the
-      per-sample work is a compiled loop (control/kernels.py).
+      measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form. A whole
+      chunk of blocks, with the consistency window and the position evidence, is one
+      compiled call (kernels.ekf_advance); `advance` adds the pipeline's output schedule
+      and reports to it.
     """
 
     method = "ekf"

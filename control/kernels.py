@@ -1,12 +1,14 @@
 """Compiled per-sample loops of the contact estimator: `ekf` blocks to their information (A, b), its
-small linear algebra, and the pipeline's rate moments.
+small linear algebra, the pipeline's rate moments, and the whole `ekf` run of a batch.
 
-`ContactKF._block` (control/ekf.py) owns the model; these loops only evaluate it sample by
-sample. One block is tens of samples; as numpy calls on such short arrays it cost ~60 calls
-(300-400 us), as one compiled loop a few microseconds. They release the GIL and cache their
-machine code beside this file (`__pycache__`). They are compiled when this module is imported,
-for the signatures given (any array layout), so no call can compile mid-episode: the first
-import after an install takes about 15 s on a 2-core machine, later ones under a second. NUMBA_DISABLE_JIT=1 runs them as
+`ContactKF` (control/ekf.py) owns the model; these loops only evaluate it sample by sample. One
+block is tens of samples; as numpy calls on such short arrays it cost ~60 calls (300-400 us), as
+one compiled loop a few microseconds. `ekf_advance` runs a whole batch (every block, the
+consistency window, the position evidence, the rate moments and each due report) in one call, so
+that no Python runs per output. They release the GIL and cache their machine code beside this file
+(`__pycache__`, or NUMBA_CACHE_DIR). They are compiled when this module is imported, for the
+signatures given (any array layout), so no call can compile mid-episode: the first import after an
+install takes about 50 s on a 2-core machine, later ones about 2 s. NUMBA_DISABLE_JIT=1 runs them as
 plain Python, for debugging.
 
 The two block loops (planar_information, spatial_information) return (A, b, gated, nis,
