@@ -1033,4 +1033,4 @@ def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta
                 report_row(rows[m], x, P, st, r_last, run, wwT, w_sum, E, nrm, origin, along, prm)
                 m += 1
         k0 = k1
-    return gbuf, rows[:m]
+    return gbuf, rows[:m].copy()       # the estimates keep their rows, not a row per sample
