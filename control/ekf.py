@@ -9,13 +9,12 @@ TCP's coordinate at onset there and the reported one-sigma stays large.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import Plane, rotvec_to_matrix
 from control import kernels as K
+from control.geometry import Plane, rotvec_to_matrix
 from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
                              position_sums, report_state)
 
@@ -308,9 +307,9 @@ class PositionEvidence:
                                  MIN_RESIDUAL_SAMPLES)
 
 
-
 # the compiled run's position-evidence arguments for a filter without it (never read)
 _NO_EVIDENCE = {d: PositionEvidence(d, 1.0).arrays() for d in (2, 3)}
+
 
 class ContactKF:
     """`ekf`: our filter on the same constraint, built for accuracy, honesty and speed.

@@ -9,11 +9,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from control import kernels as K
 from control.baselines import BASELINES, BaselineParams, make_baseline
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
 from control.geometry import Plane, relative_rotvec
-from control import kernels as K
 from control.kernels import plane_rotation, rate_moments, rotation_axes
 from control.onset import OnsetDetector
 
@@ -395,22 +395,8 @@ class ContactPipeline:
             if rate == rate and hasattr(self.estimator, "corr_samples"):       # not NaN
                 self.estimator.corr_samples = max(1.0, 1.0 / (self._dt_sample * rate))
             period = self.params.output_period_s
-            if self._fused:
-                estimates = self._advance_fused(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
-            k0, n = 0, 0 if self._fused else len(ts)
-            while k0 < n:
-                due = int(np.searchsorted(ts, self._t_out + period, side="left"))
-                k1 = n if due >= n else max(due + 1, k0 + 1)
-                sl = slice(k0, k1)
-                self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
-                                      None if tcp_turning else fresh[sl], w_tcp[sl] if tcp_turning else None)
-                self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
-                self._n_w += k1 - k0
-                self._t_prev = float(ts[k1 - 1])
-                if due < n:
-                    self._t_out = self._t_prev
-                    estimates.append(self._estimate(self._t_prev))
-                k0 = k1
+            advance = self._advance_fused if self._fused else self._advance_loop
+            estimates = advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
         if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
             estimates.append(self._estimate(self._t_prev))
@@ -418,10 +404,30 @@ class ContactPipeline:
             self.latest = estimates[-1]
         return events, estimates
 
+    def _advance_loop(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
+                      period: float) -> list[ContactEstimate]:
+        """Advance the estimator in sub-blocks that end at each output time, and report at each."""
+        estimates: list[ContactEstimate] = []
+        k0, n = 0, len(ts)
+        while k0 < n:
+            due = int(np.searchsorted(ts, self._t_out + period, side="left"))
+            k1 = n if due >= n else max(due + 1, k0 + 1)
+            sl = slice(k0, k1)
+            self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
+                                  None if tcp_turning else fresh[sl], w_tcp[sl] if tcp_turning else None)
+            self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
+            self._n_w += k1 - k0
+            self._t_prev = float(ts[k1 - 1])
+            if due < n:
+                self._t_out = self._t_prev
+                estimates.append(self._estimate(self._t_prev))
+            k0 = k1
+        return estimates
+
     def _advance_fused(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
                        period: float) -> list[ContactEstimate]:
-        """`ekf`: the loop of process_all (sub-blocks ending at each output time, the rate moments, the
-        reports) in one compiled call (ContactKF.advance); the same numbers, without Python per output."""
+        """`ekf`: _advance_loop (sub-blocks ending at each output time, the rate moments, the reports) in
+        one compiled call (ContactKF.advance); the same numbers, without Python per output."""
         run = np.array([self._t_prev, self._t_out, self._angle, self._n_w])
         rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
                                       w_tcp if tcp_turning else None,
