@@ -41,6 +41,11 @@ class RobotReceive(Protocol):
 
     def read_state(self) -> JointState: ...
 
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        """The latest state, once its seq differs from `seq` or after `timeout` s (every new
+        measurement, for the estimator, at the robot's own rate)."""
+        ...
+
 
 class RobotControl(Protocol):
     """Commanding side: joint velocity streaming, and a hold."""

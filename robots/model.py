@@ -114,6 +114,12 @@ class ArmModel:
         oMtcp = self.fk(q)
         return oMtcp, self.jacobian(q) @ qd
 
+    def measured(self, js) -> tuple[pin.SE3, np.ndarray]:
+        """oMtcp and the TCP twist [v; w] of a JointState (robots.backend): the twist the robot
+        reports when it reports one, else from the joint rates."""
+        oMtcp, twist = self.fk_twist(js.q, js.qd)
+        return oMtcp, (twist if js.tcp_twist is None else js.tcp_twist)
+
     def dls_velocity(self, q: np.ndarray, twist: np.ndarray, q_home: np.ndarray | None = None) -> np.ndarray:
         """Joint velocity for a desired TCP twist [v; w] (world-aligned) by damped least squares.
 

@@ -165,6 +165,7 @@ class SimProcess:
         self._send_lock = threading.Lock()
         self._state: JointState | None = None
         self._truth: SimTruth | None = None
+        self._new_state = threading.Condition()    # notified with each state from the child, and at its exit
         self._reader: threading.Thread | None = None
         self.exited = threading.Event()
 
@@ -221,8 +222,12 @@ class SimProcess:
             except (EOFError, OSError):
                 break
             if msg[0] == "state":
-                _, self._state, self._truth = msg
-        self.exited.set()
+                with self._new_state:
+                    _, self._state, self._truth = msg
+                    self._new_state.notify_all()
+        with self._new_state:
+            self.exited.set()
+            self._new_state.notify_all()
         if self._proc is not None and self._proc.exitcode not in (None, 0):
             log.error("the simulation process exited (code %s)", self._proc.exitcode)
 
@@ -231,6 +236,16 @@ class SimProcess:
         if self._state is None:
             raise SimProcessError("the simulation process is not running")
         return self._state
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        """The latest state, once its seq differs from `seq` or after `timeout` s; SimProcessError once
+        the child has gone."""
+        with self._new_state:
+            self._new_state.wait_for(
+                lambda: self.exited.is_set() or (self._state is not None and self._state.seq != seq), timeout)
+        if self.exited.is_set():
+            raise SimProcessError("the simulation process is not running")
+        return self.read_state()
 
     def truth(self) -> SimTruth | None:
         return self._truth

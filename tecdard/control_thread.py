@@ -122,7 +122,9 @@ class TickStats:
 class ControlThread:
     """Owns the task, the planner and the robot commands. Everything else reaches it
     through `inbox` (commands from the Zenoh thread) and hands results out
-    through `outbox` (state, events, deferred replies) and `to_estimator`.
+    through `outbox` (state, events, deferred replies) and `to_estimator` (the task's
+    wishes of the estimator: release, arm, begin, arc, hold_bias; proprioception reaches
+    the estimator from its own thread, tecdard.workers.proprio_loop).
     """
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue,
@@ -150,7 +152,6 @@ class ControlThread:
         self._braking = False
         self._stop_waiters: list = []
         self._seq = 0
-        self._last_proprio_seq = -1
         self._R_hold = None
         self._w_ff = np.zeros(3)           # angular velocity feed-forward of the orientation target
         self._speed_cap = None             # the planner's current TCP speed cap, m/s
@@ -216,14 +217,9 @@ class ControlThread:
     def tick(self, now: float) -> None:
         self.planner.advance(now)
         js = self.robot.read_state()
-        oMtcp, twist = self.model.fk_twist(js.q, js.qd)
-        if js.tcp_twist is not None:
-            twist = js.tcp_twist          # the robot's own report of its TCP velocity
+        oMtcp, twist = self.model.measured(js)
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         v, w = twist[:3].copy(), twist[3:].copy()
-        if js.seq != self._last_proprio_seq:
-            self._last_proprio_seq = js.seq
-            self._put(("proprio", js.t, p, v, R, w), self.to_estimator)
         est = self.contact.get()
         self._check_faults(now)
         self._check_limits(js, est)

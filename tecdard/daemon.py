@@ -29,7 +29,7 @@ from tecdard.estimation import build_pipeline
 from tecdard.mapfiles import MapSettings
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
-from tecdard.workers import EstimatorThread, acquisition_loop
+from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
 from tecdard.zenoh_io import JSON, Keys, dumps, session_config
 
 log = logging.getLogger("tecdar")
@@ -147,7 +147,10 @@ class Daemon:
             except PortError as exc:
                 log.warning("%s; retrying in the background", exc)
                 self.imu.mark_lost(str(exc))
+        proprio_model = self.model.clone()      # the proprioception thread's own pinocchio Data
         specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
+                 ("proprioception", lambda: proprio_loop(self.robot, proprio_model, self.estimator.inbox,
+                                                         self.stop_event)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:

@@ -1,4 +1,5 @@
-"""The acquisition and estimator thread bodies: IMU source -> ring buffer -> contact pipeline."""
+"""The acquisition, proprioception and estimator thread bodies: IMU source -> ring buffer -> contact
+pipeline, and the robot's proprioception -> the pipeline."""
 from __future__ import annotations
 
 import logging
@@ -29,6 +30,35 @@ def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: qu
                     outbox.put_nowait(("event", {"t": time.monotonic(), **ev}))
                 except queue.Full:
                     pass
+
+
+PROPRIO_WAIT_S = 0.05
+
+
+def proprio_loop(robot, model, inbox: queue.Queue, stop: threading.Event) -> None:
+    """Transport: every new proprioception sample to the estimator's inbox as the robot reports it,
+    at the robot's rate (not the 20 ms control tick's), as TCP pose and twist. `model` is this
+    thread's own ArmModel (its own pinocchio Data). A full inbox drops the sample (counted and
+    logged): the estimator only ever needs the newest ones."""
+    seq, dropped = -1, 0
+    while not stop.is_set():
+        try:
+            js = robot.wait_state(seq, PROPRIO_WAIT_S)
+        except Exception as exc:          # the backend has gone: the control thread's faults say so
+            log.debug("proprioception: %s", exc)
+            stop.wait(PROPRIO_WAIT_S)
+            continue
+        if js.seq == seq:
+            continue
+        seq = js.seq
+        oMtcp, twist = model.measured(js)
+        try:
+            inbox.put_nowait(("proprio", js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
+                              twist[3:].copy()))
+        except queue.Full:
+            dropped += 1
+            if dropped == 1 or dropped % 1000 == 0:
+                log.warning("estimator inbox full: %d proprioception samples dropped", dropped)
 
 
 class EstimatorThread:

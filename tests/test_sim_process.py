@@ -2,10 +2,11 @@
 import time
 
 import numpy as np
+import pytest
 
 from drivers.sim_imu import SimImuParams
 from robots.sim import SimRobotParams
-from robots.sim_process import SimProcess, SimSpec
+from robots.sim_process import SimProcess, SimProcessError, SimSpec
 from robots.world import HingeParams
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
@@ -36,6 +37,14 @@ def test_the_child_streams_state_and_imu_follows_commands_and_stops():
         assert js1.seq > js0.seq and abs(js1.t - time.monotonic()) < 0.1     # the shared monotonic clock
         assert js1.q[0] - js0.q[0] > 0.05                                    # 0.2 rad/s for about 0.5 s
         assert samples > 0.3 * 6667
+        # wait_state hands over each new state as it comes (the estimator's proprioception thread)
+        seqs, t_end = [js1.seq], time.monotonic() + 0.3
+        while time.monotonic() < t_end:
+            seqs.append(sim.wait_state(seqs[-1], 0.2).seq)
+        assert np.all(np.diff(seqs) > 0)
+        assert len(seqs) - 1 >= 0.7 * 0.3 * spec.robot.proprio_rate_hz
     finally:
         sim.stop()
     assert sim.exited.wait(2.0)
+    with pytest.raises(SimProcessError):
+        sim.wait_state(seqs[-1], 0.2)

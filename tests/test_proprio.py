@@ -1,0 +1,72 @@
+"""The proprioception thread: every joint state the robot reports reaches the estimator, as TCP pose and twist."""
+import queue
+import threading
+
+import numpy as np
+
+from robots.backend import JointState
+from robots.model import ArmModel
+from tecdard.workers import proprio_loop
+
+Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+JOIN_S = 2.0
+
+
+class ScriptedArm:
+    """A robot that has reported `states` (seq 1, 2, ...): wait_state hands over the next one after
+    `seq`, fails `failures` times first, and after the last one waits out its timeout."""
+
+    def __init__(self, states, failures=0):
+        self.states = states
+        self.failures = failures
+        self.done = threading.Event()
+
+    def wait_state(self, seq, timeout):
+        if self.failures:
+            self.failures -= 1
+            raise RuntimeError("the link is down")
+        later = [js for js in self.states if js.seq > seq]
+        if later:
+            return later[0]
+        self.done.set()
+        threading.Event().wait(timeout)
+        return self.states[-1]
+
+
+def states(n, twist=None):
+    rng = np.random.default_rng(4)
+    return [JointState(t=0.01 * k, q=Q_HOME + rng.normal(0, 0.05, 7), qd=rng.normal(0, 0.1, 7), seq=k + 1,
+                       tcp_twist=twist) for k in range(n)]
+
+
+def run(arm, inbox):
+    stop = threading.Event()
+    th = threading.Thread(target=proprio_loop, args=(arm, ArmModel("panda"), inbox, stop), daemon=True)
+    th.start()
+    assert arm.done.wait(JOIN_S * 5)
+    stop.set()
+    th.join(JOIN_S)
+    assert not th.is_alive()           # the stop event ends it
+    return [inbox.get_nowait() for _ in range(inbox.qsize())]
+
+
+def test_every_state_arrives_once_in_order_as_tcp_pose_and_twist():
+    reported = states(20)
+    got = run(ScriptedArm(reported, failures=2), queue.Queue())   # a failing link is waited out, not fatal
+    model = ArmModel("panda")
+    assert [m[0] for m in got] == ["proprio"] * 20
+    assert [m[1] for m in got] == [js.t for js in reported]
+    for (_, t, p, v, R, w), js in zip(got, reported):
+        oMtcp, twist = model.fk_twist(js.q, js.qd)
+        np.testing.assert_allclose(p, oMtcp.translation, atol=1e-12)
+        np.testing.assert_allclose(R, oMtcp.rotation, atol=1e-12)
+        np.testing.assert_allclose(np.r_[v, w], twist, atol=1e-12)
+
+
+def test_a_reported_tcp_twist_is_used_and_a_full_inbox_drops_without_blocking():
+    twist = np.array([0.01, 0.0, -0.02, 0.0, 0.1, 0.0])
+    got = run(ScriptedArm(states(10, twist)), queue.Queue(maxsize=4))
+    assert len(got) == 4                                    # the rest were dropped; the loop went on
+    assert [m[1] for m in got] == [0.0, 0.01, 0.02, 0.03]
+    for _, _, _, v, _, w in got:
+        np.testing.assert_array_equal(np.r_[v, w], twist)
