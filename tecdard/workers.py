@@ -32,7 +32,7 @@ def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: qu
                     pass
 
 
-PROPRIO_WAIT_S = 0.05
+PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
 
 
 def proprio_loop(robot, model, inbox: queue.Queue, stop: threading.Event) -> None:
@@ -51,7 +51,11 @@ def proprio_loop(robot, model, inbox: queue.Queue, stop: threading.Event) -> Non
         if js.seq == seq:
             continue
         seq = js.seq
-        oMtcp, twist = model.measured(js)
+        try:
+            oMtcp, twist = model.measured(js)
+        except Exception:                 # a malformed state: skipped, never the end of the thread
+            log.exception("proprioception: joint state %d skipped", js.seq)
+            continue
         try:
             inbox.put_nowait(("proprio", js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
                               twist[3:].copy()))

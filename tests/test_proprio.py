@@ -70,3 +70,10 @@ def test_a_reported_tcp_twist_is_used_and_a_full_inbox_drops_without_blocking():
     assert [m[1] for m in got] == [0.0, 0.01, 0.02, 0.03]
     for _, _, _, v, _, w in got:
         np.testing.assert_array_equal(np.r_[v, w], twist)
+
+
+def test_a_malformed_state_is_skipped_and_the_rest_still_arrive():
+    reported = states(5)
+    reported[2] = JointState(t=0.02, q=np.zeros(3), qd=np.zeros(3), seq=3)     # wrong shape: FK raises
+    got = run(ScriptedArm(reported), queue.Queue())
+    assert [m[1] for m in got] == [0.0, 0.01, 0.03, 0.04]
