@@ -200,7 +200,7 @@ _IDENTITY = np.eye(3)
 _NO_NORMAL = np.zeros(3)
 _NO_ALONG = np.zeros(9)         # 3D: no variance added along a plane normal
 _NO_FRESH = np.zeros(0, dtype=bool)
-_NO_RUN = np.zeros(4)
+_NO_RUN = np.zeros(K.RUN_SIZE)
 _NO_WWT = np.zeros((3, 3))
 
 
@@ -444,7 +444,7 @@ class ContactKF:
             var_v = np.full(n, self.params.sigma_v ** 2)
         if var_w is None:
             var_w = np.zeros(n)
-        self._advance(dt, dt, w, p, v, var_v, var_w, fresh, w_tcp, None)
+        self._advance(dt, dt, w, p, v, var_v, var_w, fresh, w_tcp, None)     # (times unused without a schedule)
 
     def advance(self, ts: np.ndarray, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                 var_v: np.ndarray, var_w: np.ndarray, fresh: np.ndarray | None, w_tcp: np.ndarray | None,
@@ -458,13 +458,20 @@ class ContactKF:
         return self._advance(ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule)
 
     def _run_params(self, rate_params) -> np.ndarray:
+        """The compiled run's parameters (kernels.PRM_*) as they stand now."""
         prm = self.params
-        min_rate2, second_ratio = rate_params
-        return np.array([prm.q_c, self.corr_samples, prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var, prm.gate_nis,
-                         self.k_prior_mean, self.k_prior_var, (self.eta_rel_std / self.k_prior_mean) ** 2,
-                         prm.eta_test_sigma, prm.max_block, _position_var(prm.sigma_p), CONSISTENCY_WINDOW_S,
-                         CONSISTENCY_TAU_S, min_rate2, second_ratio, UNOBSERVED_STD_M ** 2, MIN_RESIDUAL_SAMPLES,
-                         POSITION_RESIDUAL_LIMIT])
+        out = np.empty(K.PRM_SIZE)
+        out[K.PRM_Q_C], out[K.PRM_CORR] = prm.q_c, self.corr_samples
+        out[K.PRM_VAR_P], out[K.PRM_VAR_WN], out[K.PRM_RADIAL_VAR] = prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
+        out[K.PRM_GATE_NIS], out[K.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
+        out[K.PRM_K_MEAN], out[K.PRM_K_PRIOR_VAR] = self.k_prior_mean, self.k_prior_var
+        out[K.PRM_ETA_VAR], out[K.PRM_TEST_SIGMA] = (self.eta_rel_std / self.k_prior_mean) ** 2, prm.eta_test_sigma
+        out[K.PRM_EV_VAR], out[K.PRM_EV_MIN_SAMPLES] = _position_var(prm.sigma_p), MIN_RESIDUAL_SAMPLES
+        out[K.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
+        out[K.PRM_WINDOW_S], out[K.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
+        out[K.PRM_MIN_RATE2], out[K.PRM_SECOND_RATIO] = rate_params
+        out[K.PRM_UNOBSERVED_VAR] = UNOBSERVED_STD_M ** 2
+        return out
 
     def _advance(self, ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule) -> np.ndarray:
         n = len(dt)

@@ -991,18 +991,17 @@ def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta
             b1 = min(b0 + mb, k1)
             steps = st[ST_STEPS]
             gate = gate_nis > 0 and steps > 0
+            # at onset the noise model is linearised about a guess: two uncommitted passes on the first
+            # block (from the same prior) linearise it about the data's own answer
+            passes = 3 if steps == 0 else 1
             x_lin = x
-            if steps == 0:
-                # at onset the noise model is linearised about a guess: iterate on the first block
-                for _ in range(2):
-                    x_lin = block_update(x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1],
-                                         var_v[b0:b1], var_w[b0:b1], E, nrm, origin, prm[PRM_Q_C], corr,
-                                         prm[PRM_VAR_P], prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR], gate_nis, K_MIN,
-                                         prm[PRM_K_MEAN], gate, False)[0]
-            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = block_update(
-                x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1], var_v[b0:b1], var_w[b0:b1],
-                E, nrm, origin, prm[PRM_Q_C], corr, prm[PRM_VAR_P], prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR],
-                gate_nis, K_MIN, prm[PRM_K_MEAN], gate, True)
+            for i in range(passes):
+                out = block_update(x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1],
+                                   var_v[b0:b1], var_w[b0:b1], E, nrm, origin, prm[PRM_Q_C], corr, prm[PRM_VAR_P],
+                                   prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR], gate_nis, K_MIN, prm[PRM_K_MEAN], gate,
+                                   i == passes - 1)
+                x_lin = out[0]
+            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = out
             st[ST_REJECTED] += rejected
             if nis.shape[0]:
                 st[ST_NIS] = nis[-1]

@@ -428,7 +428,9 @@ class ContactPipeline:
                        period: float) -> list[ContactEstimate]:
         """`ekf`: _advance_loop (sub-blocks ending at each output time, the rate moments, the reports) in
         one compiled call (ContactKF.advance); the same numbers, without Python per output."""
-        run = np.array([self._t_prev, self._t_out, self._angle, self._n_w])
+        run = np.empty(K.RUN_SIZE)
+        run[K.RUN_T_PREV], run[K.RUN_T_OUT], run[K.RUN_ANGLE], run[K.RUN_N_W] = (self._t_prev, self._t_out,
+                                                                               self._angle, self._n_w)
         rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
                                       w_tcp if tcp_turning else None,
                                       (period, run, self._wwT, self._w_sum, self._rate_params))
