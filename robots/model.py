@@ -92,6 +92,7 @@ class ArmModel:
         self.q_min = model.lowerPositionLimit.copy()
         self.q_max = model.upperPositionLimit.copy()
         self.qd_max = model.velocityLimit.copy()
+        self.qd_min = -self.qd_max
         self.data = model.createData()
 
     def clone(self) -> "ArmModel":

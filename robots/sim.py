@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -16,7 +17,15 @@ from robots.world import HingeWorld
 log = logging.getLogger("tecdar.sim")
 
 PHYSICS_RATE_HZ = 1000.0
-PHYSICS_WAKE_S = 0.002     # the physics thread integrates in slices of this length
+# The physics integrates in slices of this length. Each slice has a fixed cost (the IMU synthesis
+# of its samples, some fifty numpy calls, the truth and the bookkeeping) of about 1 ms on a shared
+# 2-core machine: at 2 ms slices that was most of the simulation's CPU, and a loaded machine then
+# saw the physics fall behind real time (slices of 150-200 ms, stale IMU data). Paced in real
+# time, the simulation alone takes 29 % of a core at 5 ms slices and 18 % at 10 ms. Commands and
+# proprioception keep their own stamps, so a longer slice delays only when a state or an IMU
+# chunk is handed on (by at most one slice, 5 ms on average), not what it says.
+PHYSICS_WAKE_S = 0.01
+STATE_BACKLOG = 256        # proprioception samples kept for `drain_states` between two drains
 
 
 @dataclass
@@ -75,6 +84,7 @@ class SimRobot:
         self._t_cmd = self.t                 # when the command in force took effect
         self._lock = threading.Condition()   # guards commands, state and truth; notified on each new state
         self._state = JointState(t=clock(), q=self.q.copy(), qd=self.qd.copy(), seq=0, tcp_twist=twist.copy())
+        self._new_states: collections.deque = collections.deque(maxlen=STATE_BACKLOG)
         self._truth = self._make_truth()
         self._next_proprio = self.t          # the proprioception schedule starts at the robot's clock
         self._stop = threading.Event()
@@ -90,6 +100,13 @@ class SimRobot:
     def truth(self) -> SimTruth | None:
         with self._lock:
             return self._truth
+
+    def drain_states(self) -> list[JointState]:
+        """Every proprioception sample published since the last drain (at most STATE_BACKLOG), oldest first."""
+        with self._lock:
+            out = list(self._new_states)
+            self._new_states.clear()
+        return out
 
     def wait_state(self, seq: int, timeout: float) -> JointState:
         """The latest state, once its seq differs from `seq` or after `timeout` s."""
@@ -111,9 +128,14 @@ class SimRobot:
         self.command_joint_velocity(np.zeros(self.model.nq))
 
     # -- lifecycle ----------------------------------------------------------
-    def start(self) -> None:
+    def sync_clock(self) -> None:
+        """Start the physics (and the proprioception schedule) from the clock's now, for a caller
+        that drives `advance_to` itself in real time."""
         self.t = self.clock()
         self._next_proprio = self.t
+
+    def start(self) -> None:
+        self.sync_clock()
         self._thread = threading.Thread(target=self._run, name="sim-physics", daemon=True)
         self._thread.start()
 
@@ -156,7 +178,8 @@ class SimRobot:
             self._cmds.clear()
         pending = self._pending
         timeout = self.p.command_timeout_s
-        alpha = 1.0 if self.p.tracking_tau_s <= 0 else 1.0 - np.exp(-dt / self.p.tracking_tau_s)
+        alpha = 1.0 if self.p.tracking_tau_s <= 0 else 1.0 - math.exp(-dt / self.p.tracking_tau_s)
+        model = self.model
         for k in range(n + 1):
             if k > 0:
                 t = self.t + dt
@@ -166,9 +189,12 @@ class SimRobot:
                     self._qd_cmd = np.zeros(self.model.nq)      # the arm's own stop: the controller went quiet
                     self.watchdog_stops += 1
                     log.warning("sim: no joint command for %.0f ms, the arm stops", (t - self._t_cmd) * 1e3)
-                self.qd += alpha * (self._qd_cmd - self.qd)
-                self.qd = np.clip(self.qd, -self.model.qd_max, self.model.qd_max)
-                self.q = np.clip(self.q + self.qd * dt, self.model.q_min, self.model.q_max)
+                # np.minimum/np.maximum in place: np.clip's Python wrapper costs ten times more on 7 joints
+                qd = self.qd
+                qd += alpha * (self._qd_cmd - qd)
+                np.minimum(np.maximum(qd, model.qd_min, out=qd), model.qd_max, out=qd)
+                q = self.q + qd * dt
+                self.q = np.minimum(np.maximum(q, model.q_min, out=q), model.q_max, out=q)
                 self.t = t
             oMtcp, twist = self.model.fk_twist(self.q, self.qd)
             ts[k] = self.t
@@ -193,6 +219,7 @@ class SimRobot:
                 with self._lock:
                     self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
                                              tcp_twist=reported, tcp_force=force)
+                    self._new_states.append(self._state)
                     self._lock.notify_all()
         a_tcp[0] = a_tcp[1] if n >= 1 else 0.0
         with self._lock:

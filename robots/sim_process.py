@@ -13,19 +13,23 @@ daemon like any robot backend (read_state, command_joint_velocity, hold) and, wi
 Links, each a one-way pipe:
 - commands, daemon -> child: (t_issued, qd), time-stamped on the shared monotonic clock, so the
   simulated command latency does not include the pipe's;
-- state, child -> daemon: each new proprioception sample with the world's truth (latest wins);
-- IMU, child -> daemon: sample chunks (t, gyro, accel), only with `imu.source: sim`.
+- state, child -> daemon: every proprioception sample with the world's truth;
+- IMU, child -> daemon: sample chunks (t, gyro, accel), one per physics slice, only with
+  `imu.source: sim`.
 The child stops when the daemon says so or when the daemon's end of the command pipe closes.
 """
 from __future__ import annotations
 
+import fcntl
 import gc
 import logging
 import multiprocessing
-import sys
+import struct
+import termios
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.reduction import ForkingPickler
 
 import numpy as np
 
@@ -33,16 +37,17 @@ from drivers.imu_emulator import Board, BoardParams, PtyDevice
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.backend import JointState, SimTruth, joint_rates
 from robots.model import ArmModel
-from robots.sim import SimRobot, SimRobotParams
+from robots.sim import PHYSICS_WAKE_S, SimRobot, SimRobotParams
 from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
 
 log = logging.getLogger("tecdar.sim")
 
 START_TIMEOUT_S = 60.0       # a cold child imports numpy and Pinocchio and loads the URDF
 STOP_TIMEOUT_S = 2.0
-IMU_FORWARD_WAIT_S = 0.05
-GIL_SWITCH_INTERVAL_S = 0.001
-IMU_FORWARD_PERIOD_S = 0.004  # IMU samples go to the daemon in messages at most this often
+MAX_BEHIND_S = 0.1            # a child this far behind its schedule resumes from now
+PIPE_CAPACITY_BYTES = 1 << 20  # asked of the kernel for each child -> daemon pipe (about 2 s of IMU)
+MESSAGE_HEADER_BYTES = 16     # multiprocessing's length prefix, with room to spare
+F_SETPIPE_SZ, F_GETPIPE_SZ = 1031, 1032     # fcntl(2), Linux
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
@@ -80,40 +85,50 @@ class SimSpec:
         return SimRobot(model, self.robot, self.world_factory(), imu, seed=self.seed, clock=clock)
 
 
-def _forward_imu(imu: SimImu, conn, stop: threading.Event) -> None:
-    """IMU chunks to the daemon, at most one message per IMU_FORWARD_PERIOD_S. Each message
-    costs the daemon's reader a few GIL hand-overs (poll, header, body); on a loaded machine
-    each can wait a whole switch interval, and one physics slice per message then arrived
-    slower than the physics made them: a backlog of 45-60 ms, a stale-IMU stop."""
-    t_sent = 0.0
-    while not stop.is_set():
-        chunk = imu.read(IMU_FORWARD_WAIT_S)
-        if chunk is None:
-            continue
-        wait = t_sent + IMU_FORWARD_PERIOD_S - time.monotonic()
-        if wait > 0:
-            stop.wait(wait)
-        chunks = [chunk]
-        while (more := imu.read(0.0)) is not None:
-            chunks.append(more)
-        conn.send(chunk if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks)))
-        t_sent = time.monotonic()
+class PipeSender:
+    """Sends pickled messages on a pipe without ever blocking: a message that does not fit in the
+    pipe's free space is dropped and counted. The child's one thread must keep real time however
+    slowly the daemon reads (or if it has stopped reading)."""
+
+    def __init__(self, conn, capacity: int = PIPE_CAPACITY_BYTES):
+        self.conn = conn
+        self.dropped = 0
+        try:
+            fcntl.fcntl(conn.fileno(), F_SETPIPE_SZ, capacity)
+        except OSError:
+            pass                                  # the system's limit is lower: keep its default
+        self.capacity = fcntl.fcntl(conn.fileno(), F_GETPIPE_SZ)
+
+    def send(self, obj) -> bool:
+        data = ForkingPickler.dumps(obj)
+        unread = struct.unpack("i", fcntl.ioctl(self.conn.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
+        if len(data) + MESSAGE_HEADER_BYTES > self.capacity - unread:
+            self.dropped += 1
+            return False
+        self.conn.send_bytes(data)
+        return True
 
 
-def _forward_state(robot: SimRobot, conn, stop: threading.Event) -> None:
-    seq = -1
-    while not stop.is_set():
-        js = robot.wait_state(seq, 0.1)
-        if js.seq != seq:
-            seq = js.seq
-            conn.send(("state", js, robot.truth()))
+def _drain_imu(imu: SimImu):
+    """Every IMU chunk synthesised since the last call, as one (t, gyro, accel), or None."""
+    chunks = []
+    while (chunk := imu.read(0.0)) is not None:
+        chunks.append(chunk)
+    if not chunks:
+        return None
+    return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
 
 
 def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) -> None:
-    """The child process: build, start, forward, and take commands until told to stop."""
+    """The child process: build the simulation, then run it until told to stop.
+
+    One thread does everything, slice by slice on an absolute schedule: take the commands that
+    have arrived, integrate the physics up to now, send the IMU samples and the proprioception
+    samples that the slice made. With the physics, two forwarders and the command reader in
+    threads of their own, the child spent much of its CPU handing the GIL between them, and on a
+    loaded 2-core machine its physics fell behind real time.
+    """
     logging.basicConfig(level=log_level, format=LOG_FORMAT)
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)     # the forwarders hand over to the physics thread often
-    stop = threading.Event()
     device = None
     try:
         wire = None
@@ -126,32 +141,52 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
         raise
     gc.collect()
     gc.freeze()        # the model and world live as long as the child: no full collection walks them (a stall)
-    robot.start()
-    forwarders = [threading.Thread(target=_forward_state, args=(robot, state_conn, stop), daemon=True)]
-    if spec.imu_out == "pipe":
-        forwarders.append(threading.Thread(target=_forward_imu, args=(robot.imu, imu_conn, stop), daemon=True))
+    robot.sync_clock()
     state_conn.send(("ready", robot.read_state(), robot.truth()))
-    for th in forwarders:
-        th.start()
+    imu = robot.imu if spec.imu_out == "pipe" else None
+    imu_tx, state_tx = PipeSender(imu_conn), PipeSender(state_conn)
+    t_next = time.monotonic()
     try:
         while True:
             try:
-                msg = cmd_conn.recv()
+                while cmd_conn.poll():
+                    msg = cmd_conn.recv()
+                    if msg[0] == "cmd":
+                        robot.command_at(msg[1], msg[2])
+                    elif msg[0] == "stop":
+                        return
             except (EOFError, OSError):
                 log.warning("sim: the daemon has gone; stopping")
-                break
-            if msg[0] == "cmd":
-                robot.command_at(msg[1], msg[2])
-            elif msg[0] == "stop":
-                break
+                return
+            robot.advance_to(time.monotonic())
+            try:
+                # the slice's proprioception before its IMU samples, so that the daemon's estimator
+                # has the states when it takes the samples they cover
+                states = robot.drain_states()
+                if states:
+                    truth = robot.truth()
+                    for js in states:
+                        state_tx.send(("state", js, truth))
+                if imu is not None and (chunk := _drain_imu(imu)) is not None:
+                    imu_tx.send(chunk)
+            except (BrokenPipeError, OSError):
+                log.warning("sim: the daemon has gone; stopping")
+                return
+            t_next += PHYSICS_WAKE_S
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                robot.overruns += 1
+                if delay < -MAX_BEHIND_S:
+                    t_next = time.monotonic()       # far behind: resume from now, not in a burst
     finally:
-        stop.set()
         robot.hold()
-        robot.stop()
         if device is not None:
             device.close()
-        for th in forwarders:
-            th.join(STOP_TIMEOUT_S)
+        if imu_tx.dropped or state_tx.dropped:
+            log.warning("sim: the daemon did not read: %d IMU and %d state messages dropped",
+                        imu_tx.dropped, state_tx.dropped)
 
 
 class SimProcess:

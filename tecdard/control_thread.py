@@ -27,6 +27,10 @@ TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
 SERVO_MAX_AGE_S = 0.1         # the servo compares a measurement with the plan this far back at most
+# A tick that starts this late means the daemon itself was stalled (the machine, the GIL): the IMU's
+# samples may be waiting in the acquisition thread's queue, so staleness is judged on the next tick
+# (once; a second late tick judges it all the same).
+STALE_JUDGE_LATE_S = 0.01
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
 # The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan
 # with a lag, and its own acceleration at the start of a descent must not read as an impact.
@@ -163,6 +167,8 @@ class ControlThread:
         self._t_boot = time.monotonic()
         self.first_tick = threading.Event()
         self.dropped = 0
+        self._late_s = 0.0                 # how late the current tick started, s
+        self._stale_deferred = False
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
         self._wd_last = 0.0
 
@@ -188,6 +194,7 @@ class ControlThread:
             while not stop.is_set():
                 t_next += self.p.tick_s
                 t0 = time.monotonic()
+                self._late_s = max(0.0, t0 - (t_next - self.p.tick_s))
                 try:
                     self.tick(t0)
                     failures = 0
@@ -198,7 +205,7 @@ class ControlThread:
                     self._internal_fault(exc)
                 self.first_tick.set()
                 t1 = time.monotonic()
-                self.stats.add(t1 - t0, max(0.0, t0 - (t_next - self.p.tick_s)))
+                self.stats.add(t1 - t0, self._late_s)
                 delay = t_next - time.monotonic()
                 if delay > 0:
                     stop.wait(delay)
@@ -267,11 +274,18 @@ class ControlThread:
         if self.ring.total == 0 and now - self._t_boot < IMU_STARTUP_GRACE_S:
             return     # the first samples are still on their way
         age = now - self.ring.last_t
-        if age > self.p.imu_stale_s:
-            if "imu_stale" not in self.faults:
-                self._set_fault("imu_stale", f"no IMU sample for {age * 1e3:.0f} ms (limit {self.p.imu_stale_s * 1e3:.0f} ms)")
-        elif "imu_stale" in self.faults:
-            self._clear_fault("imu_stale")
+        if age <= self.p.imu_stale_s:
+            self._stale_deferred = False
+            if "imu_stale" in self.faults:
+                self._clear_fault("imu_stale")
+            return
+        if "imu_stale" in self.faults:
+            return
+        if self._late_s > STALE_JUDGE_LATE_S and not self._stale_deferred:
+            self._stale_deferred = True            # our own stall: judge on the next tick
+            return
+        self._stale_deferred = False
+        self._set_fault("imu_stale", f"no IMU sample for {age * 1e3:.0f} ms (limit {self.p.imu_stale_s * 1e3:.0f} ms)")
 
     def _check_limits(self, js, est) -> None:
         """Force and rotation thresholds: a protective stop of the running task."""

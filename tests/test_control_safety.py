@@ -213,3 +213,26 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
                 armed_at = now
     assert steady_at is not None and armed_at is not None
     assert TRIGGER_SETTLE_S <= armed_at - steady_at <= TRIGGER_SETTLE_S + 0.021
+
+
+def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
+    """A tick that starts late means the daemon itself stalled, and the IMU's samples may still be
+    queued behind it: the stale-IMU stop waits one tick, then stops all the same if they stay away."""
+    from tecdard.control_thread import STALE_JUDGE_LATE_S
+
+    class Ring:
+        total, last_t = 1, 0.0
+
+    ct = control(model, imu_stale_s=0.05, ring=Ring())
+    ct._late_s = STALE_JUDGE_LATE_S + 0.05
+    ct._check_faults(0.08)                       # 80 ms without a sample, but this tick is late
+    assert "imu_stale" not in ct.faults and stops(ct) == []
+    Ring.last_t = 0.09                           # the samples were only queued: no fault at all
+    ct._late_s = 0.0
+    ct._check_faults(0.10)
+    assert "imu_stale" not in ct.faults and stops(ct) == []
+    ct._late_s = STALE_JUDGE_LATE_S + 0.05       # late again, and this time the IMU has gone
+    ct._check_faults(0.20)
+    assert "imu_stale" not in ct.faults
+    ct._check_faults(0.22)                       # a second late tick judges it: a protective stop
+    assert "imu_stale" in ct.faults and [s["cause"] for s in stops(ct)] == ["imu_stale"]
