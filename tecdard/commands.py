@@ -1,9 +1,18 @@
-"""Validation of `tecdar/1` command payloads: JSON in, normalised fields or a coded one-line error out."""
+"""Validation of `tecdar/1` command payloads: bytes in, normalised fields or a coded one-line error out.
+
+Every payload is untrusted: its size is checked before it is decoded, it is parsed with bounded
+nesting and number lengths (tecdard.safejson), every number is converted with range and
+finiteness checks, and anything a sender wrote is echoed back escaped and truncated.
+"""
 from __future__ import annotations
 
-import json
+import logging
 import math
 from dataclasses import dataclass
+
+from tecdard.safejson import JsonLimitError, loads, show, show_name
+
+log = logging.getLogger("tecdar.commands")
 
 VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
 TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
@@ -20,8 +29,13 @@ NOT_IMPLEMENTED = "not_implemented"
 NO_TASK = "no_task"
 FAULT = "fault"
 INTERNAL = "internal"
+BAD_REQUEST = "bad_request"              # the request could not be handled (a bug of ours: logged)
+PAYLOAD_TOO_LARGE = "payload_too_large"
+RATE_LIMITED = "rate_limited"
 
 UNIT_TOL = 1e-3   # a direction must have |d| within this of 1
+MAX_PAYLOAD_BYTES = 16384     # a command payload is refused unread beyond this (the largest real one is ~200 B)
+MAX_TASK_ID_CHARS = 64
 
 
 class CommandError(Exception):
@@ -84,21 +98,56 @@ class Limits:
         )
 
 
-def parse_payload(raw: str | None) -> dict:
-    """The command's JSON object ({} for an empty payload)."""
-    if raw is None or raw.strip() == "":
+def parse_payload(raw: str | bytes | None) -> dict:
+    """The command's JSON object ({} for an empty payload); CommandError for anything else: a
+    payload over MAX_PAYLOAD_BYTES (checked before decoding), bytes that are not UTF-8, malformed
+    or too deeply nested JSON, over-long or non-finite numbers, or a JSON value that is no object."""
+    if raw is None:
+        return {}
+    if len(raw) > MAX_PAYLOAD_BYTES:
+        raise CommandError(PAYLOAD_TOO_LARGE, f"payload: {len(raw)} bytes, at most {MAX_PAYLOAD_BYTES}")
+    if isinstance(raw, (bytes, bytearray, memoryview)):
+        try:
+            raw = bytes(raw).decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise CommandError(BAD_JSON, f"payload: not valid UTF-8 (byte {exc.start})") from None
+    if raw.strip() == "":
         return {}
     try:
-        obj = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CommandError(BAD_JSON, f"payload: malformed JSON ({exc.msg} at char {exc.pos})") from None
+        obj = loads(raw)
+    except JsonLimitError as exc:
+        raise CommandError(BAD_JSON, f"payload: {exc}") from None
     if not isinstance(obj, dict):
         raise CommandError(BAD_JSON, f"payload: expected a JSON object, got {type(obj).__name__}")
     return obj
 
 
+def admit(verb: str, raw: str | bytes | None, limits: "Limits") -> dict:
+    """parse_payload then validate, as one boundary: CommandError for a bad command, and for any
+    other exception (a bug in validation) CommandError BAD_REQUEST with the traceback logged."""
+    try:
+        return validate(verb, parse_payload(raw), limits)
+    except CommandError:
+        raise
+    except Exception as exc:
+        log.exception("validating a '%s' command failed", show_name(verb))
+        raise CommandError(BAD_REQUEST, f"{show_name(verb)}: the request could not be handled "
+                                        f"({type(exc).__name__}, logged)") from None
+
+
 def _is_num(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _finite(v) -> float | None:
+    """v as a finite float, or None (not a number, too large for a float, NaN or inf)."""
+    if not _is_num(v):
+        return None
+    try:
+        f = float(v)
+    except (OverflowError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
 
 
 def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> float:
@@ -106,10 +155,9 @@ def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> f
         if default is None:
             raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
         return float(default)
-    v = obj[name]
-    if not _is_num(v) or not math.isfinite(float(v)):
-        raise CommandError(BAD_TYPE, f"{name}: expected a finite number, got {json.dumps(v)}")
-    v = float(v)
+    v = _finite(obj[name])
+    if v is None:
+        raise CommandError(BAD_TYPE, f"{name}: expected a finite number, got {show(obj[name])}")
     if v < lo or v > hi:
         raise CommandError(OUT_OF_LIMITS, f"{name}: {v:g} {unit} is outside the configured limits [{lo:g}, {hi:g}]")
     return v
@@ -121,12 +169,13 @@ def _direction(obj: dict, name: str, default) -> list[float]:
             raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
         return list(default)
     v = obj[name]
-    if not isinstance(v, list) or len(v) != 3 or not all(_is_num(x) and math.isfinite(float(x)) for x in v):
-        raise CommandError(BAD_TYPE, f"{name}: expected a unit vector [x, y, z], got {json.dumps(v)}")
-    norm = math.sqrt(sum(float(x) ** 2 for x in v))
-    if abs(norm - 1.0) > UNIT_TOL:
+    xs = [_finite(x) for x in v] if isinstance(v, list) and len(v) == 3 else None
+    if xs is None or any(x is None for x in xs):
+        raise CommandError(BAD_TYPE, f"{name}: expected a unit vector [x, y, z], got {show(v)}")
+    norm = math.hypot(*xs)          # no overflow for components near the float64 range
+    if not abs(norm - 1.0) <= UNIT_TOL:
         raise CommandError(OUT_OF_LIMITS, f"{name}: expected a unit vector, |{name}| = {norm:.4g}")
-    return [float(x) / norm for x in v]
+    return [x / norm for x in xs]
 
 
 def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: str) -> list[float] | None:
@@ -134,32 +183,34 @@ def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: 
     if name not in obj:
         return None if default is None else [float(x) for x in default]
     v = obj[name]
-    if not isinstance(v, list) or len(v) != n or not all(_is_num(x) and math.isfinite(float(x)) for x in v):
-        raise CommandError(BAD_TYPE, f"{name}: expected {n} finite numbers, got {json.dumps(v)}")
-    for x in v:
+    xs = [_finite(x) for x in v] if isinstance(v, list) and len(v) == n else None
+    if xs is None or any(x is None for x in xs):
+        raise CommandError(BAD_TYPE, f"{name}: expected {n} finite numbers, got {show(v)}")
+    for x in xs:
         if x < lo or x > hi:
             raise CommandError(OUT_OF_LIMITS, f"{name}: {x:g} {unit} is outside the configured limits [{lo:g}, {hi:g}]")
-    return [float(x) for x in v]
+    return xs
 
 
 def _check_fields(obj: dict, verb: str, allowed: tuple) -> None:
     for key in obj:
         if key not in allowed:
-            raise CommandError(UNKNOWN_FIELD, f"{key}: not a field of '{verb}' (fields: {', '.join(allowed) or 'none'})")
+            raise CommandError(UNKNOWN_FIELD, f"{show_name(key)}: not a field of '{verb}' "
+                                              f"(fields: {', '.join(allowed) or 'none'})")
 
 
 def validate(verb: str, obj: dict, limits: Limits) -> dict:
     """Normalised command fields with defaults applied; CommandError on anything wrong."""
     if verb not in VERBS:
-        raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{verb}' (known: {', '.join(VERBS)})")
+        raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{show_name(verb)}' (known: {', '.join(VERBS)})")
     if verb == "rotate":
         _check_fields(obj, verb, ("angle_deg", "speed", "probe_distance", "direction", "strategy", "turn_tool"))
         strategy = obj.get("strategy", "arc")
-        if strategy not in ("arc", "straight"):
-            raise CommandError(BAD_TYPE, f"strategy: expected \"arc\" or \"straight\", got {json.dumps(strategy)}")
+        if not isinstance(strategy, str) or strategy not in ("arc", "straight"):
+            raise CommandError(BAD_TYPE, f"strategy: expected \"arc\" or \"straight\", got {show(strategy)}")
         turn_tool = obj.get("turn_tool", True)
         if not isinstance(turn_tool, bool):
-            raise CommandError(BAD_TYPE, f"turn_tool: expected true or false, got {json.dumps(turn_tool)}")
+            raise CommandError(BAD_TYPE, f"turn_tool: expected true or false, got {show(turn_tool)}")
         return {
             "angle_deg": _number(obj, "angle_deg", None, 0.1, limits.max_rotation_deg, "deg"),
             "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
@@ -199,13 +250,13 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
         grid = obj.get("grid", [5, 6])
         if (not isinstance(grid, list) or len(grid) != 2
                 or not all(isinstance(x, int) and not isinstance(x, bool) for x in grid)):
-            raise CommandError(BAD_TYPE, f"grid: expected [rows, cols] as two integers, got {json.dumps(grid)}")
+            raise CommandError(BAD_TYPE, f"grid: expected [rows, cols] as two integers, got {show(grid)}")
         if min(grid) < 1 or grid[0] * grid[1] > limits.max_map_points:
             raise CommandError(OUT_OF_LIMITS, f"grid: {grid[0]} x {grid[1]} points is outside the configured limits "
                                               f"(at least 1 x 1, at most {limits.max_map_points} points)")
         orientations = obj.get("orientations", 2)
-        if orientations not in (1, 2) or isinstance(orientations, bool):
-            raise CommandError(BAD_TYPE, f"orientations: expected 1 or 2, got {json.dumps(orientations)}")
+        if not _is_num(orientations) or orientations not in (1, 2):
+            raise CommandError(BAD_TYPE, f"orientations: expected 1 or 2, got {show(orientations)}")
         return {
             "origin": _numbers(obj, "origin", None, 2, -10.0, 10.0, "m"),
             "size": _numbers(obj, "size", limits.default_map_size, 2, 0.005, limits.max_map_size, "m"),
@@ -221,7 +272,8 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
     if verb == "cancel":
         _check_fields(obj, verb, ("task",))
         task = obj.get("task")
-        if task is not None and not isinstance(task, str):
-            raise CommandError(BAD_TYPE, f"task: expected a task id string, got {json.dumps(task)}")
+        if task is not None and (not isinstance(task, str) or len(task) > MAX_TASK_ID_CHARS):
+            raise CommandError(BAD_TYPE, f"task: expected a task id string (at most {MAX_TASK_ID_CHARS} "
+                                         f"characters), got {show(task)}")
         return {"task": task}
     raise CommandError(NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet")

@@ -1,6 +1,7 @@
 """The 20 ms control thread: FK, safety, task state machine, Ruckig re-plan, DLS IK, joint commands."""
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import logging
 import math
@@ -19,10 +20,13 @@ from control.tasks import ApproachTask, ContactView, PointTask, ProbeTask, Rotat
 from control.geometry import matrix_to_quat, rotvec_to_matrix
 from tecdard import commands as C
 from tecdard.mapfiles import MapSettings, write_map
+from tecdard.messages import Cancel, Reply, StartTask, Stop
+from tecdard.safejson import show_name
 
 log = logging.getLogger("tecdar.control")
 
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 IMU_STARTUP_GRACE_S = 1.0     # no stale-IMU fault before the first sample until this long after start
@@ -125,10 +129,11 @@ class TickStats:
 
 class ControlThread:
     """Owns the task, the planner and the robot commands. Everything else reaches it
-    through `inbox` (commands from the Zenoh thread) and hands results out
-    through `outbox` (state, events, deferred replies) and `to_estimator` (the task's
-    wishes of the estimator: release, arm, begin, arc, hold_bias; proprioception reaches
-    the estimator from its own thread, tecdard.workers.proprio_loop).
+    through `submit` (StartTask and Cancel from the Zenoh thread) and `request_stop` (a Stop,
+    from any thread: checked first on every tick, never queued behind anything). It hands
+    results out through `replies` (a Reply per command), `outbox` (state and events) and
+    `to_estimator` (the task's wishes of the estimator: release, arm, begin, arc, hold_bias;
+    proprioception reaches the estimator from its own thread, tecdard.workers.proprio_loop).
     """
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue,
@@ -147,7 +152,10 @@ class ControlThread:
         self.map_settings = map_settings or MapSettings()
         # map files are fused and written here, never on the 20 ms tick
         self._writer = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-writer")
-        self.inbox: queue.Queue = queue.Queue(maxsize=256)
+        self._writes: list[concurrent.futures.Future] = []
+        self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
+        self.replies: queue.SimpleQueue = queue.SimpleQueue()    # as many as there are requests: never full
+        self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
         self.planner = CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk)
         self.stats = TickStats()
         self.task = None
@@ -182,9 +190,33 @@ class ControlThread:
     def _event(self, kind: str, **fields) -> None:
         self._put(("event", {"t": time.monotonic(), "kind": kind, **fields}))
 
-    def _reply(self, query, payload: dict) -> None:
-        if query is not None:
-            self._put(("reply", query, payload))
+    def _reply(self, request: int | None, payload: dict) -> None:
+        if request is not None:
+            self.replies.put(Reply(request, payload))
+
+    def _write_map(self, record) -> concurrent.futures.Future:
+        """Fuse and write a map on the map-writer thread, never on the tick."""
+        fut = self._writer.submit(write_map, record, self.map_settings)
+        self._writes = [f for f in self._writes if not f.done()] + [fut]
+        return fut
+
+    def quiescent(self) -> bool:
+        """No task, the arm at rest after any stop, and every map written (for an orderly shutdown)."""
+        return self.task is None and not self._braking and all(f.done() for f in self._writes)
+
+    # -- commands in (any thread) --------------------------------------------
+    def submit(self, msg: StartTask | Cancel) -> bool:
+        """Queue a task command for the next tick; False when the queue is full."""
+        try:
+            self.commands.put_nowait(msg)
+            return True
+        except queue.Full:
+            return False
+
+    def request_stop(self, msg: Stop) -> None:
+        """Stop whatever runs, at the next tick whatever else is queued; the Stop's request is
+        answered once the arm is at rest."""
+        self._stops.append(msg)
 
     # -- thread body --------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -350,38 +382,37 @@ class ControlThread:
 
     # -- commands ---------------------------------------------------------------
     def _handle_commands(self, p: np.ndarray, v: np.ndarray) -> None:
+        while self._stops:                       # stop first, whatever else is queued
+            stop = self._stops.popleft()
+            self._stop_waiters.append(stop.request)
+            if self.task is not None:
+                self._end_task("failed", error=stop.reason)
+            self._braking = True
+            self.mode = "stopped"
         while True:
             try:
-                msg = self.inbox.get_nowait()
+                msg = self.commands.get_nowait()
             except queue.Empty:
                 return
-            kind = msg[0]
-            if kind == "stop":
-                self._stop_waiters.append(msg[1])
-                if self.task is not None:
-                    self._end_task("failed", error="stopped by command")
-                self._braking = True
-                self.mode = "stopped"
-            elif kind == "cancel":
-                task_id, query = msg[1], msg[2]
-                if self.task is None or (task_id is not None and task_id != self.task.id):
-                    self._reply(query, C.CommandError(C.NO_TASK, f"task: no running task {task_id or ''}".strip()).reply())
+            if isinstance(msg, Cancel):
+                if self.task is None or (msg.task is not None and msg.task != self.task.id):
+                    which = "" if msg.task is None else " " + show_name(msg.task)
+                    self._reply(msg.request, C.CommandError(C.NO_TASK, f"task: no running task{which}").reply())
                 else:
                     self._end_task("failed", error="cancelled")
                     self._braking = True
-                    self._reply(query, {"ok": True})
-            elif kind == "start":
-                verb, fields, query = msg[1], msg[2], msg[3]
-                self._start_task(verb, fields, query, p, v)
+                    self._reply(msg.request, {"ok": True})
+            elif isinstance(msg, StartTask):
+                self._start_task(msg.verb, msg.fields, msg.request, p, v)
 
-    def _start_task(self, verb: str, f: dict, query, p: np.ndarray, v: np.ndarray) -> None:
+    def _start_task(self, verb: str, f: dict, request: int | None, p: np.ndarray, v: np.ndarray) -> None:
         if self.task is not None or self._braking:
             running = self.task.id if self.task is not None else "a stop"
-            self._reply(query, C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply())
+            self._reply(request, C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply())
             return
         if self.faults:
             code = next(iter(self.faults))
-            self._reply(query, C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply())
+            self._reply(request, C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply())
             return
         task_id = f"{verb}-{uuid.uuid4().hex[:8]}"
         if verb == "rotate":
@@ -397,10 +428,10 @@ class ControlThread:
             try:
                 task = self._map_task(task_id, f, p)
             except C.CommandError as exc:
-                self._reply(query, exc.reply())
+                self._reply(request, exc.reply())
                 return
         else:
-            self._reply(query, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
+            self._reply(request, C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply())
             return
         self.task = task
         self._last_est = None
@@ -416,7 +447,7 @@ class ControlThread:
             # armed once the approach moves at constant speed (as the paper's ongoing case does)
             self._put(("arm", False), self.to_estimator)
         self._event("task_started", task=task_id, verb=verb, params=f)
-        self._reply(query, {"ok": True, "task": task_id})
+        self._reply(request, {"ok": True, "task": task_id})
 
     def _map_task(self, task_id: str, f: dict, p: np.ndarray) -> MapTask:
         """A map run from the command; refused when any of its moves would leave the workspace box."""
@@ -429,7 +460,7 @@ class ControlThread:
                            probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
                            max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp),
                            turn_yaw_rad=math.radians(ms.turn_deg), release_distance=ms.release_distance_m)
-        task = MapTask(task_id, params, lambda record: self._writer.submit(write_map, record, ms))
+        task = MapTask(task_id, params, lambda record: self._write_map(record))
         lo, hi = np.array(self.p.workspace_min), np.array(self.p.workspace_max)
         for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):
             for xy in task.planned_tcp_xy(self._R_hold if self._R_hold is not None else np.eye(3)):
@@ -521,8 +552,8 @@ class ControlThread:
             self._braking = False
             if self.task is None:
                 self.mode = "idle"
-                for q in self._stop_waiters:
-                    self._reply(q, {"ok": True})
+                for request in self._stop_waiters:
+                    self._reply(request, {"ok": True})
                 self._stop_waiters.clear()
         return p_cmd, v_cmd
 
@@ -552,7 +583,7 @@ class ControlThread:
             partial = task.partial_record() if isinstance(task, MapTask) else None
             if partial is not None:
                 # nothing is lost: the points probed so far are fused and written all the same
-                self._writer.submit(write_map, partial, self.map_settings)
+                self._write_map(partial)
                 extra["map_path"] = str(pathlib.Path(self.map_settings.output_dir) / task.id)
             self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
 

@@ -5,6 +5,7 @@ import gc
 import logging
 import os
 import queue
+import shutil
 import signal
 import sys
 import tempfile
@@ -26,16 +27,21 @@ from robots.world import HingeParams, PivotParams
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
+from tecdard.intake import IntakeParams, QueryIntake
+from tecdard.messages import Stop
 from tecdard.mapfiles import MapSettings
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
-from tecdard.zenoh_io import JSON, Keys, dumps, session_config
+from tecdard.zenoh_io import DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, dumps, session_config
 
 log = logging.getLogger("tecdar")
 
 OUTBOX_SIZE = 4096
 THREAD_JOIN_S = 0.5
+MAIN_POLL_S = 0.005            # the main thread looks at the query ring and the replies at least this often
+TELEMETRY_PER_PASS = 64        # state, contact and event messages published per pass, then queries again
+SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop and a map to be written (unit: 5 s)
 GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
 
@@ -63,6 +69,7 @@ class Daemon:
         self.listen = listen if listen is not None else configured
         self.connect = zc.getstrlist("connect", [])
         self.multicast = zc.getbool("multicast_scouting", False)
+        intake_params = IntakeParams.from_config(zc)
 
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
@@ -97,6 +104,7 @@ class Daemon:
                                 robot=robot_params, imu=imu_params,
                                 seed=seed, hinge=hinge, pivot=pivot,
                                 imu_out={"sim": "pipe", "sim-wire": "wire", "serial": "none"}[self.imu_source])
+        self._pty_dir: str | None = None
         if self.imu_source == "sim-wire":
             # The simulated fingertip speaks tecdar-imu/1 on a pseudo-terminal and the real
             # serial driver reads it: parser, scaling and clock sync all run in simulation.
@@ -121,6 +129,7 @@ class Daemon:
         self.imu = SerialImuSource(serial_params) if serial_params is not None else self.robot
         del backend
         self.stop_event = threading.Event()
+        self.shutdown_requested = threading.Event()
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
         self.contact = LatestValue()
         self.notifier = Notifier()
@@ -131,12 +140,21 @@ class Daemon:
                                      self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings)
         self.keys = Keys(self.robot_name)
-        self.latest_state: dict | None = None
+        self.state_json: str | None = None       # the latest state publication, for `status`
+        self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: self.state_json, intake_params)
+        try:
+            self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES)
+        except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
+            raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints ({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
 
     # -- lifecycle ----------------------------------------------------------
     def request_stop(self, *_args) -> None:
-        self.stop_event.set()
+        """SIGTERM/SIGINT: stop the task as `stop` would (a map writes what it has), then exit; a
+        second signal exits at once."""
+        if self.shutdown_requested.is_set():
+            self.stop_event.set()
+        self.shutdown_requested.set()
 
     def _start_threads(self) -> None:
         self.robot.start()
@@ -167,11 +185,16 @@ class Daemon:
                 th.join(THREAD_JOIN_S)
             except Exception:
                 log.exception("joining %s", th.name)
-        for step in (self.robot.hold, self.robot.stop, self.imu.close):
+        for step in (self.robot.hold, self.robot.stop, self.imu.close, self._remove_pty_dir):
             try:
                 step()
             except Exception:
                 log.exception("shutdown step %s failed", getattr(step, "__name__", step))
+
+    def _remove_pty_dir(self) -> None:
+        if self._pty_dir is not None:
+            shutil.rmtree(self._pty_dir, ignore_errors=True)
+            self._pty_dir = None
 
     def run(self) -> int:
         # The acquisition and sim-link threads block on I/O and need the GIL back at once when
@@ -180,21 +203,11 @@ class Daemon:
         sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         signal.signal(signal.SIGINT, self.request_stop)
         signal.signal(signal.SIGTERM, self.request_stop)
-        inbox: queue.Queue = self.outbox
-        conf = session_config(self.listen, self.connect, self.multicast)
-
-        def on_query(query) -> None:
-            # Enqueue and return: never reply or block inside a Zenoh callback.
-            try:
-                inbox.put_nowait(("query", query))
-            except queue.Full:
-                log.warning("command queue full; dropped a query on %s", query.key_expr)
-
-        with zenoh.open(conf) as session:
+        with zenoh.open(self.zenoh_config) as session:
             pub_state = session.declare_publisher(self.keys.state, encoding=JSON)
             pub_contact = session.declare_publisher(self.keys.contact, encoding=JSON)
             pub_events = session.declare_publisher(self.keys.events, encoding=JSON)
-            session.declare_queryable(self.keys.cmd_all, on_query)
+            self.intake.declare(session)
             # Everything built so far lives as long as the daemon. A full garbage collection walks
             # every tracked object with the GIL held: with the estimator's compiled loops (numba,
             # llvmlite) loaded that is ~116 000 objects and a 57 ms stall of every thread, several
@@ -208,7 +221,7 @@ class Daemon:
             # IMU data at rest (estimator.onset.warmup_s). A task sent before that would probe blind
             # for its first tens of milliseconds and localise from a late onset.
             warm_by = time.monotonic() + IMU_WARM_TIMEOUT_S
-            while not self.estimator.warm.wait(0.05) and not self.stop_event.is_set():
+            while not self.estimator.warm.wait(0.05) and not self.shutdown_requested.is_set():
                 if time.monotonic() > warm_by:
                     log.warning("the IMU has not streamed its onset warm-up within %.0f s; contacts are not "
                                 "detected until it has", IMU_WARM_TIMEOUT_S)
@@ -218,62 +231,54 @@ class Daemon:
             log.info("tecdard ready: robot %s (%s), listening on %s", self.robot_name, self.model.name,
                      ", ".join(self.listen))
             try:
-                while not self.stop_event.is_set():
-                    try:
-                        msg = inbox.get(timeout=0.1)
-                    except queue.Empty:
-                        continue
-                    kind = msg[0]
-                    if kind == "state":
-                        self.latest_state = msg[1]
-                        pub_state.put(dumps(msg[1]))
-                    elif kind == "contact":
-                        pub_contact.put(dumps(msg[1]))
-                    elif kind == "event":
-                        log.info("event %s", dumps(msg[1]))
-                        pub_events.put(dumps(msg[1]))
-                    elif kind == "reply":
-                        self._reply(msg[1], msg[2])
-                    elif kind == "query":
-                        self._on_command(msg[1])
+                self._serve(pub_state, pub_contact, pub_events)
             finally:
+                self.intake.undeclare()
                 self._shutdown()
                 token.undeclare()
         log.info("tecdard stopped")
         return 0
 
-    # -- commands -----------------------------------------------------------
-    @staticmethod
-    def _reply(query, payload: dict) -> None:
-        try:
-            query.reply(query.key_expr, dumps(payload), encoding=JSON)
-        except Exception as exc:   # the client may have gone; never let it kill the loop
-            log.warning("reply to %s failed: %s", query.key_expr, exc)
-
-    def _on_command(self, query) -> None:
-        key = str(query.key_expr)
-        verb = key[len(self.keys.cmd_prefix):] if key.startswith(self.keys.cmd_prefix) else key
-        try:
+    def _serve(self, pub_state, pub_contact, pub_events) -> None:
+        """The main thread's loop: replies first, then queued queries (bounded per pass), then the
+        telemetry the other threads produced (bounded per pass); an orderly stop on a signal."""
+        intake, control, outbox = self.intake, self.control, self.outbox
+        shutdown_by = None
+        while not self.stop_event.is_set():
+            now = time.monotonic()
+            while True:
+                try:
+                    intake.deliver(control.replies.get_nowait())
+                except queue.Empty:
+                    break
+            intake.poll(now)
+            if self.shutdown_requested.is_set():
+                if shutdown_by is None:
+                    log.info("shutting down: stopping the task and the arm first")
+                    control.request_stop(Stop(None, "daemon shutting down"))
+                    shutdown_by = now + SHUTDOWN_GRACE_S
+                elif control.quiescent() or now > shutdown_by:
+                    if not control.quiescent():
+                        log.warning("shutting down before the arm came to rest or the map was written "
+                                    "(%.1f s grace)", SHUTDOWN_GRACE_S)
+                    break
             try:
-                raw = query.payload.to_string() if query.payload is not None else None
-            except Exception:
-                raise C.CommandError(C.BAD_JSON, "payload: not valid UTF-8") from None
-            fields = C.validate(verb, C.parse_payload(raw), self.limits) if verb in C.VERBS else None
-            if fields is None:
-                C.validate(verb, {}, self.limits)   # raises unknown_verb
-            if verb == "status":
-                self._reply(query, {"ok": True, "state": self.latest_state})
-                return
-            if verb == "stop":
-                msg = ("stop", query)
-            elif verb == "cancel":
-                msg = ("cancel", fields["task"], query)
-            else:
-                msg = ("start", verb, fields, query)
-            try:
-                self.control.inbox.put_nowait(msg)
-            except queue.Full:
-                raise C.CommandError(C.BUSY, f"{verb}: control queue full, try again") from None
-        except C.CommandError as exc:
-            log.info("refused %s: %s (%s)", verb, exc.message, exc.code)
-            self._reply(query, exc.reply())
+                msg = outbox.get(timeout=MAIN_POLL_S)
+            except queue.Empty:
+                continue
+            for _ in range(TELEMETRY_PER_PASS):
+                kind, body = msg[0], msg[1]
+                if kind == "state":
+                    text = dumps(body)
+                    self.state_json = text
+                    pub_state.put(text)
+                elif kind == "contact":
+                    pub_contact.put(dumps(body))
+                elif kind == "event":
+                    text = dumps(body)
+                    log.info("event %s", text)
+                    pub_events.put(text)
+                try:
+                    msg = outbox.get_nowait()
+                except queue.Empty:
+                    break

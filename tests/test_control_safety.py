@@ -9,6 +9,7 @@ from control.tasks import ApproachTask
 from robots.backend import JointState, SimTruth
 from robots.model import READY_Q, ArmModel
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+from tecdard.messages import StartTask
 
 AXIS = np.array([0.0, 1.0, 0.0])
 
@@ -168,8 +169,8 @@ def cruise_tcp_speeds(model, ages):
     """A free approach down at 20 mm/s, ticked exactly every 20 ms; the TCP speeds it commands in cruise."""
     ct = control_thread(model, ring=FreshRing())
     arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), ages)
-    ct.inbox.put(("start", "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
-                                         "stop_angle_deg": 10.0}, None))
+    ct.submit(StartTask(None, "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
+                                           "stop_angle_deg": 10.0}))
     speeds = []
     for k in range(1, 90):
         now = 0.02 * k
@@ -197,8 +198,8 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
     from tecdard.control_thread import TRIGGER_SETTLE_S
     ct = control_thread(model, ring=FreshRing())
     arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
-    ct.inbox.put(("start", "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
-                                         "stop_angle_deg": 10.0}, None))
+    ct.submit(StartTask(None, "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
+                                           "stop_angle_deg": 10.0}))
     steady_at = armed_at = None
     for k in range(1, 60):
         now = 0.02 * k

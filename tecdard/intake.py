@@ -1,0 +1,233 @@
+"""Zenoh queries in, commands out: `stop` ahead of everything, every other query bounded in cost and rate.
+
+Two queryables serve `tecdar/{robot}/cmd/`:
+- `cmd/stop` has a callback of its own (Zenoh's callback thread): it registers the query and hands
+  a `Stop` to the control thread at once, so a stop never waits behind other queries.
+- `cmd/**` (every other key under `cmd/`, including unknown verbs such as `cmd/stop/now`) fills a
+  Zenoh ring channel that the main thread polls. A flood overwrites the oldest queued queries in
+  Zenoh's own memory (their senders get no reply) without costing Python anything.
+
+The main thread then spends a bounded amount of work on each query it takes: the payload's size
+is checked before a byte is decoded, parsing is bounded (tecdard.safejson), and a token bucket
+limits how many queries per second are parsed at all (a large payload costs more). Queries over
+the limit get a `rate_limited` reply while a second budget lasts, and are dropped beyond it, so
+that a flood can never buy more than a fixed share of the main thread.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+
+from tecdard import commands as C
+from tecdard.messages import Cancel, Reply, StartTask, Stop
+from tecdard.safejson import show_name
+from tecdard.zenoh_io import JSON, Keys, dumps
+
+log = logging.getLogger("tecdar.intake")
+
+QUERY_BACKLOG = 64             # queries waiting in Zenoh's ring for the main thread (the oldest are overwritten)
+QUERIES_PER_POLL = 32          # the main thread takes at most this many per loop, then serves replies and telemetry
+MAX_PENDING_STOPS = 64         # stop queries waiting for the arm to come to rest; more are dropped (the stop holds)
+REFUSALS_PER_S = 500.0         # budget of rate_limited replies; beyond it a query is dropped unanswered
+REFUSAL_BURST = 100
+PAYLOAD_COST_BYTES = 1024      # a query costs one token plus one per this many payload bytes
+LOG_REFUSALS_PER_S = 5         # refusals logged one by one per second; the rest are counted
+
+
+@dataclass
+class IntakeParams:
+    max_query_rate_hz: float = 100.0   # queries parsed per second, sustained (a large payload counts more)
+    query_burst: float = 50.0          # ... and in a burst
+
+    @classmethod
+    def from_config(cls, section) -> "IntakeParams":
+        d = cls()
+        return cls(max_query_rate_hz=section.getfloat("max_query_rate_hz", d.max_query_rate_hz, minval=1.0,
+                                                      maxval=10000.0),
+                   query_burst=section.getfloat("query_burst", d.query_burst, minval=1.0, maxval=10000.0))
+
+
+class TokenBucket:
+    """`rate` tokens per second, at most `burst` saved up."""
+
+    def __init__(self, rate: float, burst: float, now: float | None = None):
+        self.rate, self.burst = rate, burst
+        self.tokens = burst
+        self.t = time.monotonic() if now is None else now
+
+    def take(self, now: float, cost: float = 1.0) -> bool:
+        self.tokens = min(self.burst, self.tokens + max(0.0, now - self.t) * self.rate)
+        self.t = max(self.t, now)
+        if self.tokens >= cost:
+            self.tokens -= cost
+            return True
+        return False
+
+
+class QueryIntake:
+    """Owned by the main thread, except `on_stop`, which Zenoh calls on its callback thread.
+
+    `control` is anything with `submit(msg) -> bool` (a StartTask or Cancel; False when its queue
+    is full) and `request_stop(Stop)`; `status_json()` gives the latest state as JSON text.
+    """
+
+    def __init__(self, keys: Keys, limits: C.Limits, control, status_json, params: IntakeParams | None = None):
+        self.keys = keys
+        self.limits = limits
+        self.control = control
+        self.status_json = status_json
+        self.params = params or IntakeParams()
+        self._stop_key = keys.cmd("stop")
+        self._pending: dict[int, zenoh.Query] = {}
+        self._pending_stops = 0
+        self._lock = threading.Lock()
+        self._ids = itertools.count(1)
+        self._parse = TokenBucket(self.params.max_query_rate_hz, self.params.query_burst)
+        self._refuse = TokenBucket(REFUSALS_PER_S, REFUSAL_BURST)
+        self._log_second, self._logged, self._unlogged = 0, 0, 0
+        self._ring = None
+        self._declared: list = []
+        self.counters = {"queries": 0, "stops": 0, "refused": 0, "rate_limited": 0, "dropped": 0}
+
+    def declare(self, session: zenoh.Session) -> None:
+        self._declared.append(session.declare_queryable(self._stop_key, self.on_stop))
+        self._ring = session.declare_queryable(self.keys.cmd_all, zenoh.handlers.RingChannel(QUERY_BACKLOG))
+        self._declared.append(self._ring)
+
+    def undeclare(self) -> None:
+        for q in self._declared:
+            try:
+                q.undeclare()
+            except Exception:
+                log.debug("undeclaring a queryable failed", exc_info=True)
+        self._declared.clear()
+        self._ring = None
+
+    # -- the stop path (Zenoh's callback thread) -----------------------------
+    def on_stop(self, query) -> None:
+        """Register the query and hand the control thread a Stop; nothing else, never blocking.
+        Whatever its payload says, a stop stops (it never moves the arm)."""
+        if str(query.key_expr) != self._stop_key:
+            return          # a wildcard query such as cmd/*: its copy in the ring is refused there
+        with self._lock:
+            if self._pending_stops >= MAX_PENDING_STOPS:
+                self.counters["dropped"] += 1
+                return
+            self._pending_stops += 1
+            request = next(self._ids)
+            self._pending[request] = query
+            self.counters["stops"] += 1
+        self.control.request_stop(Stop(request))
+
+    # -- everything else (the main thread) -----------------------------------
+    def poll(self, now: float | None = None) -> int:
+        """Take up to QUERIES_PER_POLL queued queries; returns how many were taken."""
+        if self._ring is None:
+            return 0
+        now = time.monotonic() if now is None else now
+        n = 0
+        while n < QUERIES_PER_POLL:
+            query = self._ring.try_recv()
+            if query is None:
+                break
+            n += 1
+            self.handle(query, str(query.key_expr), query.payload, now)
+            del query       # dropping the Query sends Zenoh's final reply: the sender stops waiting
+        return n
+
+    def handle(self, query, key: str, payload, now: float) -> None:
+        """One query of key `key` with `payload` (zenoh.ZBytes, bytes or None): refused, answered, or
+        handed to the control thread. No input raises."""
+        self.counters["queries"] += 1
+        prefix = self.keys.cmd_prefix
+        verb = key[len(prefix):] if key.startswith(prefix) else key
+        if key == self._stop_key:
+            return          # the stop queryable has it (both queryables see a stop)
+        size = len(payload) if payload is not None else 0
+        if not self._parse.take(now, 1.0 + size / PAYLOAD_COST_BYTES):
+            if self._refuse.take(now):
+                self.counters["rate_limited"] += 1
+                self._send(query, C.CommandError(C.RATE_LIMITED, f"{show_name(verb)}: over "
+                                                 f"{self.params.max_query_rate_hz:g} queries per second; "
+                                                 "try again later").reply())
+            else:
+                self.counters["dropped"] += 1
+            return
+        try:
+            if size > C.MAX_PAYLOAD_BYTES:      # refused unread
+                raise C.CommandError(C.PAYLOAD_TOO_LARGE, f"payload: {size} bytes, at most {C.MAX_PAYLOAD_BYTES}")
+            raw = None if payload is None else (payload if isinstance(payload, (bytes, str)) else payload.to_bytes())
+            fields = C.admit(verb, raw, self.limits)
+            if verb == "status":
+                self._send_text(query, '{"ok":true,"state":' + (self.status_json() or "null") + "}")
+                return
+            request = self._register(query)
+            msg = Cancel(request, fields["task"]) if verb == "cancel" else StartTask(request, verb, fields)
+            if not self.control.submit(msg):
+                self._forget(request)
+                raise C.CommandError(C.BUSY, f"{verb}: control queue full, try again")
+        except C.CommandError as exc:
+            self.counters["refused"] += 1
+            self._log_refusal(now, verb, exc)
+            self._send(query, exc.reply())
+        except Exception as exc:            # a bug here must cost one reply, never the daemon
+            log.exception("handling a query on %s failed", show_name(key))
+            self._send(query, C.CommandError(C.BAD_REQUEST, f"{show_name(verb)}: the request could not be "
+                                             f"handled ({type(exc).__name__}, logged)").reply())
+
+    def deliver(self, reply: Reply) -> None:
+        """The control thread's answer to a registered query."""
+        query = self._forget(reply.request)
+        if query is not None:
+            self._send(query, reply.payload)
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._pending)
+
+    # -- helpers ---------------------------------------------------------------
+    def _register(self, query) -> int:
+        with self._lock:
+            request = next(self._ids)
+            self._pending[request] = query
+            return request
+
+    def _forget(self, request: int):
+        with self._lock:
+            query = self._pending.pop(request, None)
+            if query is not None and str(query.key_expr) == self._stop_key:
+                self._pending_stops -= 1
+            return query
+
+    def _send(self, query, payload: dict) -> None:
+        self._send_text(query, dumps(payload))
+
+    @staticmethod
+    def _send_text(query, text: str) -> None:
+        if query is None:
+            return
+        try:
+            # the query's own key expression: it may be a wildcard (cmd/*), which Zenoh accepts as the
+            # reply key, and a concrete verb's key is the natural one
+            query.reply(query.key_expr, text, encoding=JSON)
+        except Exception as exc:          # the sender may have gone; never let it kill the loop
+            log.debug("reply to %s failed: %s", show_name(str(query.key_expr)), exc)
+
+    def _log_refusal(self, now: float, verb: str, exc: C.CommandError) -> None:
+        second = int(now)
+        if second != self._log_second:
+            if self._unlogged:
+                log.info("%d more refusals in the last second not logged one by one", self._unlogged)
+            self._log_second, self._logged, self._unlogged = second, 0, 0
+        if self._logged < LOG_REFUSALS_PER_S:
+            self._logged += 1
+            log.info("refused %s: %s (%s)", show_name(verb), exc.message, exc.code)
+        else:
+            self._unlogged += 1
+
