@@ -1,17 +1,22 @@
 """Zenoh queries in, commands out: `stop` ahead of everything, every other query bounded in cost and rate.
 
-Two queryables serve `tecdar/{robot}/cmd/`:
+The queryables under `tecdar/{robot}/cmd/`:
 - `cmd/stop` has a callback of its own (Zenoh's callback thread): it registers the query and hands
   a `Stop` to the control thread at once, so a stop never waits behind other queries.
-- `cmd/**` (every other key under `cmd/`, including unknown verbs such as `cmd/stop/now`) fills a
-  Zenoh ring channel that the main thread polls. A flood overwrites the oldest queued queries in
-  Zenoh's own memory (their senders get no reply) without costing Python anything.
+- each task verb and `cancel` (the "task" class), `cmd/status` ("status"), and `cmd/**` for every
+  other key ("other": unknown verbs such as `cmd/stop/now`, which get `unknown_verb`) fill Zenoh
+  ring channels of their own that the main thread polls. A flood overwrites the oldest queued
+  queries of its own class in Zenoh's memory (their senders get no reply) without costing Python
+  anything, and a flood of `status` never pushes a `rotate` out of its ring. (`cmd/**` also sees a
+  copy of every query to a known verb; it drops those unanswered.)
 
 The main thread then spends a bounded amount of work on each query it takes: the payload's size
-is checked before a byte is decoded, parsing is bounded (tecdard.safejson), and a token bucket
-limits how many queries per second are parsed at all (a large payload costs more). Queries over
-the limit get a `rate_limited` reply while a second budget lasts, and are dropped beyond it, so
-that a flood can never buy more than a fixed share of the main thread.
+is checked before a byte is decoded, parsing is bounded (tecdard.safejson), and a token bucket per
+class limits how many queries per second are parsed at all (a large payload costs more). Queries
+over the limit get a `rate_limited` reply while a refusal budget lasts, and are dropped beyond it,
+so that a flood can never buy more than a fixed share of the main thread. A flood of one task
+verb's key can still crowd out that verb for other clients: restricting who may send commands at
+all is Zenoh's access control (docs/zenoh-api.md, "Who may command the robot").
 """
 from __future__ import annotations
 
@@ -30,26 +35,30 @@ from tecdard.zenoh_io import JSON, Keys, dumps
 
 log = logging.getLogger("tecdar.intake")
 
-QUERY_BACKLOG = 64             # queries waiting in Zenoh's ring for the main thread (the oldest are overwritten)
-QUERIES_PER_POLL = 32          # the main thread takes at most this many per loop, then serves replies and telemetry
+BACKLOG = {"task": 8, "status": 64, "other": 32}   # queries waiting per ring (the oldest are overwritten)
+QUERIES_PER_POLL = 16          # per ring and pass; then the main thread serves replies and telemetry
 MAX_PENDING_STOPS = 64         # stop queries waiting for the arm to come to rest; more are dropped (the stop holds)
-REFUSALS_PER_S = 500.0         # budget of rate_limited replies; beyond it a query is dropped unanswered
-REFUSAL_BURST = 100
+REFUSALS_PER_S = 100.0         # budget of rate_limited replies; beyond it a query is left to its ring
+REFUSAL_BURST = 50
 PAYLOAD_COST_BYTES = 1024      # a query costs one token plus one per this many payload bytes
 LOG_REFUSALS_PER_S = 5         # refusals logged one by one per second; the rest are counted
 
 
 @dataclass
 class IntakeParams:
-    max_query_rate_hz: float = 100.0   # queries parsed per second, sustained (a large payload counts more)
-    query_burst: float = 50.0          # ... and in a burst
+    """Queries parsed per second, sustained and in a burst, per class (a large payload counts more)."""
+    max_task_rate_hz: float = 20.0
+    max_status_rate_hz: float = 100.0
+    max_other_rate_hz: float = 20.0
 
     @classmethod
     def from_config(cls, section) -> "IntakeParams":
         d = cls()
-        return cls(max_query_rate_hz=section.getfloat("max_query_rate_hz", d.max_query_rate_hz, minval=1.0,
-                                                      maxval=10000.0),
-                   query_burst=section.getfloat("query_burst", d.query_burst, minval=1.0, maxval=10000.0))
+        return cls(**{name: section.getfloat(name, getattr(d, name), minval=1.0, maxval=10000.0)
+                      for name in ("max_task_rate_hz", "max_status_rate_hz", "max_other_rate_hz")})
+
+    def rate(self, klass: str) -> float:
+        return {"task": self.max_task_rate_hz, "status": self.max_status_rate_hz}.get(klass, self.max_other_rate_hz)
 
 
 class TokenBucket:
@@ -60,10 +69,14 @@ class TokenBucket:
         self.tokens = burst
         self.t = time.monotonic() if now is None else now
 
-    def take(self, now: float, cost: float = 1.0) -> bool:
+    def ready(self, now: float, cost: float = 1.0) -> bool:
+        """Whether `cost` tokens are there (refilled to now), without taking them."""
         self.tokens = min(self.burst, self.tokens + max(0.0, now - self.t) * self.rate)
         self.t = max(self.t, now)
-        if self.tokens >= cost:
+        return self.tokens >= cost
+
+    def take(self, now: float, cost: float = 1.0) -> bool:
+        if self.ready(now, cost):
             self.tokens -= cost
             return True
         return False
@@ -87,17 +100,23 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._parse = TokenBucket(self.params.max_query_rate_hz, self.params.query_burst)
+        self._task_keys = {keys.cmd(v) for v in C.TASK_VERBS + ("cancel",)}
+        self._known_keys = {keys.cmd(v) for v in C.VERBS}
+        self._parse = {k: TokenBucket(self.params.rate(k), self.params.rate(k)) for k in BACKLOG}
         self._refuse = TokenBucket(REFUSALS_PER_S, REFUSAL_BURST)
         self._log_second, self._logged, self._unlogged = 0, 0, 0
-        self._ring = None
+        self._rings: list[tuple[str, object]] = []        # (class, queryable), polled in this order
         self._declared: list = []
         self.counters = {"queries": 0, "stops": 0, "refused": 0, "rate_limited": 0, "dropped": 0}
 
     def declare(self, session: zenoh.Session) -> None:
         self._declared.append(session.declare_queryable(self._stop_key, self.on_stop))
-        self._ring = session.declare_queryable(self.keys.cmd_all, zenoh.handlers.RingChannel(QUERY_BACKLOG))
-        self._declared.append(self._ring)
+        rings = [("task", key) for key in sorted(self._task_keys)]
+        rings += [("status", self.keys.cmd("status")), ("other", self.keys.cmd_all)]
+        for klass, key in rings:
+            ring = session.declare_queryable(key, zenoh.handlers.RingChannel(BACKLOG[klass]))
+            self._rings.append((klass, ring))
+            self._declared.append(ring)
 
     def undeclare(self) -> None:
         for q in self._declared:
@@ -106,7 +125,7 @@ class QueryIntake:
             except Exception:
                 log.debug("undeclaring a queryable failed", exc_info=True)
         self._declared.clear()
-        self._ring = None
+        self._rings.clear()
 
     # -- the stop path (Zenoh's callback thread) -----------------------------
     def on_stop(self, query) -> None:
@@ -126,19 +145,33 @@ class QueryIntake:
 
     # -- everything else (the main thread) -----------------------------------
     def poll(self, now: float | None = None) -> int:
-        """Take up to QUERIES_PER_POLL queued queries; returns how many were taken."""
-        if self._ring is None:
-            return 0
+        """Take up to QUERIES_PER_POLL queued queries of each ring; returns how many were taken.
+
+        A ring whose class has spent its parsing budget, with the refusal budget spent too, is
+        not looked at: its queries wait, and a flood overwrites them in Zenoh's memory, so the
+        main thread's share of any flood is bounded by the budgets, not by the flood's rate."""
         now = time.monotonic() if now is None else now
-        n = 0
-        while n < QUERIES_PER_POLL:
-            query = self._ring.try_recv()
-            if query is None:
-                break
-            n += 1
-            self.handle(query, str(query.key_expr), query.payload, now)
-            del query       # dropping the Query sends Zenoh's final reply: the sender stops waiting
-        return n
+        total = 0
+        for klass, ring in self._rings:
+            for _ in range(QUERIES_PER_POLL):
+                if not self._parse[klass].ready(now) and not self._refuse.ready(now):
+                    break
+                query = ring.try_recv()
+                if query is None:
+                    break
+                total += 1
+                key = str(query.key_expr)
+                if klass == "other" and key in self._known_keys:
+                    self._parse[klass].take(now)    # a copy of a known verb's query (its own ring has it):
+                    continue                        # dropped, at a token's cost, so a flood's copies are bounded too
+                self.handle(query, key, query.payload, now)
+                del query       # dropping the Query sends Zenoh's final reply: the sender stops waiting
+        return total
+
+    def _class(self, key: str) -> str:
+        if key in self._task_keys:
+            return "task"
+        return "status" if key == self.keys.cmd("status") else "other"
 
     def handle(self, query, key: str, payload, now: float) -> None:
         """One query of key `key` with `payload` (zenoh.ZBytes, bytes or None): refused, answered, or
@@ -147,13 +180,15 @@ class QueryIntake:
         prefix = self.keys.cmd_prefix
         verb = key[len(prefix):] if key.startswith(prefix) else key
         if key == self._stop_key:
-            return          # the stop queryable has it (both queryables see a stop)
+            return          # the stop queryable has it (a stop's copies elsewhere are not answered)
+        klass = self._class(key)
         size = len(payload) if payload is not None else 0
-        if not self._parse.take(now, 1.0 + size / PAYLOAD_COST_BYTES):
+        # parsing costs by size; an oversized payload is refused unread, at the cost of the largest one parsed
+        if not self._parse[klass].take(now, 1.0 + min(size, C.MAX_PAYLOAD_BYTES) / PAYLOAD_COST_BYTES):
             if self._refuse.take(now):
                 self.counters["rate_limited"] += 1
                 self._send(query, C.CommandError(C.RATE_LIMITED, f"{show_name(verb)}: over "
-                                                 f"{self.params.max_query_rate_hz:g} queries per second; "
+                                                 f"{self.params.rate(klass):g} queries per second; "
                                                  "try again later").reply())
             else:
                 self.counters["dropped"] += 1

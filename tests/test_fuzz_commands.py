@@ -58,8 +58,8 @@ class Query:
 
 
 def intake(sink):
-    q = QueryIntake(KEYS, LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams(max_query_rate_hz=1e9,
-                                                                                   query_burst=1e9))
+    q = QueryIntake(KEYS, LIMITS, sink, lambda: '{"mode":"idle"}',
+                    IntakeParams(max_task_rate_hz=1e9, max_status_rate_hz=1e9, max_other_rate_hz=1e9))
     return q
 
 
@@ -290,14 +290,17 @@ def test_names_are_escaped_and_cut_in_replies():
 
 def test_over_the_rate_a_query_is_refused_then_dropped():
     sink = Sink()
-    q = QueryIntake(KEYS, LIMITS, sink, lambda: "{}", IntakeParams(max_query_rate_hz=10.0, query_burst=5.0))
+    q = QueryIntake(KEYS, LIMITS, sink, lambda: "{}", IntakeParams(max_status_rate_hz=10.0))
     key = KEYS.cmd("status")
     now = time.monotonic()
     for _ in range(700):
         q.handle(Query(key, sink), key, b"", now)           # all in one instant
     codes = [json.loads(r).get("error", {}).get("code") for r in sink.replies]
-    assert codes[:5] == [None] * 5                           # the burst is served
-    assert set(codes[5:]) == {C.RATE_LIMITED}
+    assert codes[:10] == [None] * 10                         # a second's worth is served at once
+    assert set(codes[10:]) == {C.RATE_LIMITED}
+    rotate = KEYS.cmd("rotate")                              # the status flood costs other classes nothing
+    q.handle(Query(rotate, sink), rotate, b'{"angle_deg": 10}', now)
+    assert sink.submitted and sink.submitted[-1].verb == "rotate"
     assert q.counters["dropped"] > 0 and len(sink.replies) < 700    # the refusals have a budget too
     q.handle(Query(key, sink), key, b"", now + 1.0)          # a second later the rate allows more
     assert json.loads(sink.replies[-1])["ok"] is True
