@@ -91,6 +91,10 @@ class OnsetDetector:
             return section.getoptfloat(key, default, above=0.0)
 
         band = section.getfloats("band_hz", [40.0, 200.0], n=2, minval=1.0)
+        if not band[0] < band[1] < odr_hz / 2:
+            from tecdard.config import ConfigError
+            raise ConfigError(f"{section.path}.band_hz: expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz "
+                              f"(half the IMU's rate), got {band}")
         axis = section.getvec3("accel_axis", None, unit=True) if section.has("accel_axis") else None
         try:
             return cls(

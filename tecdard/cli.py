@@ -23,6 +23,11 @@ def _cmd_run(args) -> int:
     except SimProcessError as exc:
         print(f"tecdard: {exc}", file=sys.stderr)
         return 1
+    except Exception as exc:        # zenoh.ZError: cannot listen (address in use, no such interface)
+        if type(exc).__module__.split(".")[0] != "zenoh":
+            raise
+        print(f"tecdard: Zenoh: {str(exc).splitlines()[0][:300]}", file=sys.stderr)
+        return 1
 
 
 def _cmd_localize(args) -> int:

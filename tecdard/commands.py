@@ -36,6 +36,7 @@ RATE_LIMITED = "rate_limited"
 UNIT_TOL = 1e-3   # a direction must have |d| within this of 1
 MAX_PAYLOAD_BYTES = 16384     # a command payload is refused unread beyond this (the largest real one is ~200 B)
 MAX_TASK_ID_CHARS = 64
+MAP_SPEED_M_S = 0.01          # a map's default descent and probe speed (the paper's 1 cm/s), within the limits
 
 
 class CommandError(Exception):
@@ -69,8 +70,29 @@ class Limits:
     max_map_depth: float = 0.4             # m
     max_map_points: int = 400              # rows x cols
 
+    @property
+    def default_map_speed(self) -> float:
+        """A map descends and probes at up to 10 mm/s (the paper's), within the speed limits."""
+        return min(max(MAP_SPEED_M_S, self.min_speed), self.default_speed)
+
     @classmethod
     def from_config(cls, section) -> "Limits":
+        """Every option of `limits`, each bounded, and every default checked against its limit: a
+        default beyond its maximum would move the robot further than the config allows."""
+        from tecdard.config import ConfigError
+        limits = cls._read(section)
+        for verb, required in SELF_CHECK.items():
+            try:
+                validate(verb, dict(required), limits)
+            except CommandError as exc:
+                field = exc.message.split(":")[0]
+                key = DEFAULT_KEYS.get(field, f"default_{field}")
+                raise ConfigError(f"{section.path}.{key}: the default is outside its own limits "
+                                  f"('{verb}' {exc.message})") from None
+        return limits
+
+    @classmethod
+    def _read(cls, section) -> "Limits":
         d = cls()
         max_speed = section.getfloat("max_speed", d.max_speed, above=0.0, maxval=0.5)
         return cls(
@@ -96,6 +118,19 @@ class Limits:
             max_map_depth=section.getfloat("max_map_depth", d.max_map_depth, above=0.0, maxval=1.0),
             max_map_points=section.getint("max_map_points", d.max_map_points, minval=1, maxval=10000),
         )
+
+
+# A command of each verb with only its required fields: every default is used, so Limits.from_config
+# can check that each one passes its own limits.
+SELF_CHECK = {"probe": {}, "rotate": {"angle_deg": 0.1}, "point": {}, "approach": {"direction": [0.0, 0.0, -1.0]},
+              "map": {}, "stop": {}, "status": {}, "cancel": {}}
+
+
+# The limits key that holds each field's default.
+DEFAULT_KEYS = {"distance": "default_probe_distance", "probe_distance": "default_probe_distance",
+                "radius": "default_point_radius", "depth": "default_map_depth", "size": "default_map_size",
+                "speed": "default_speed", "stop_angle_deg": "default_stop_angle_deg",
+                "max_distance": "max_approach_distance", "direction": "default_direction"}
 
 
 def parse_payload(raw: str | bytes | None) -> dict:
@@ -154,6 +189,9 @@ def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> f
     if name not in obj:
         if default is None:
             raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
+        if not lo <= default <= hi:       # Limits.from_config refuses such a config; never act on one
+            raise CommandError(OUT_OF_LIMITS, f"{name}: the configured default {default:g} {unit} is outside "
+                                              f"the configured limits [{lo:g}, {hi:g}]")
         return float(default)
     v = _finite(obj[name])
     if v is None:
@@ -181,6 +219,9 @@ def _direction(obj: dict, name: str, default) -> list[float]:
 def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: str) -> list[float] | None:
     """A list of n finite numbers within [lo, hi] (default when absent; None default: may be absent)."""
     if name not in obj:
+        if default is not None and not all(lo <= x <= hi for x in default):
+            raise CommandError(OUT_OF_LIMITS, f"{name}: the configured default {list(default)} {unit} is outside "
+                                              f"the configured limits [{lo:g}, {hi:g}]")
         return None if default is None else [float(x) for x in default]
     v = obj[name]
     xs = [_finite(x) for x in v] if isinstance(v, list) and len(v) == n else None
@@ -263,8 +304,7 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
             "grid": [int(grid[0]), int(grid[1])],
             "depth": _number(obj, "depth", limits.default_map_depth, 0.005, limits.max_map_depth, "m"),
             "orientations": int(orientations),
-            "speed": _number(obj, "speed", min(0.01, limits.default_speed), limits.min_speed, limits.max_speed,
-                             "m/s"),
+            "speed": _number(obj, "speed", limits.default_map_speed, limits.min_speed, limits.max_speed, "m/s"),
         }
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())

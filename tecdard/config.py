@@ -1,4 +1,9 @@
-"""Typed, bounded access to the YAML configuration; unknown or mistyped keys are errors."""
+"""Typed, bounded access to the YAML configuration; unknown or mistyped keys are errors.
+
+The file is untrusted input too: its size is checked before it is read, it must be UTF-8, YAML
+aliases are refused (an alias bomb expands to billions of nodes), nesting is bounded, integers
+longer than MAX_INT_DIGITS are refused, and every value echoed in an error is escaped and cut.
+"""
 from __future__ import annotations
 
 import math
@@ -7,9 +12,61 @@ from typing import Any, Sequence
 
 import yaml
 
+from tecdard.safejson import show, show_name
+
+MAX_CONFIG_BYTES = 1 << 20     # a config file is refused unread beyond this
+MAX_NESTING = 16               # mappings and lists nested deeper are refused
+MAX_INT_DIGITS = 32
+MAX_STR_CHARS = 4096           # any string option (paths included); names have their own, lower limits
+MAX_LIST_ITEMS = 1000
+MAX_ABS_INT = 1 << 53          # an integer option without bounds of its own
+
 
 class ConfigError(Exception):
     """A configuration problem, with a one-line message naming the key."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """yaml.SafeLoader without aliases, with bounded nesting and integer length."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise ConfigError(f"line {event.start_mark.line + 1}: YAML aliases (*{show_name(event.anchor)}) "
+                              "are not accepted")
+        self._depth += 1
+        try:
+            if self._depth > MAX_NESTING:
+                raise ConfigError(f"line {self.peek_event().start_mark.line + 1}: nested deeper than "
+                                  f"{MAX_NESTING} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_yaml_int(self, node):
+        digits = sum(c.isdigit() for c in node.value)
+        if digits > MAX_INT_DIGITS:
+            raise ConfigError(f"line {node.start_mark.line + 1}: an integer of {digits} digits "
+                              f"(at most {MAX_INT_DIGITS})")
+        return super().construct_yaml_int(node)
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_yaml_int)
+
+
+def _finite(value: Any) -> float | None:
+    """value as a finite float, or None (not a number, bool, out of the float range, NaN, inf)."""
+    if not _is_number(value):
+        return None
+    try:
+        f = float(value)
+    except (OverflowError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
 
 
 class _Required:
@@ -36,7 +93,7 @@ class Section:
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__}")
+            raise ConfigError(f"{path or 'the file'}: expected a mapping, got {type(data).__name__}")
         self._data = data
         self.path = path
         self._used: set[str] = set()
@@ -44,7 +101,8 @@ class Section:
         self._root = root
 
     # -- raw access ---------------------------------------------------------
-    def _name(self, key: str) -> str:
+    def _name(self, key) -> str:
+        key = show_name(key)
         return f"{self.path}.{key}" if self.path else key
 
     def has(self, key: str) -> bool:
@@ -69,10 +127,10 @@ class Section:
     # -- typed getters ------------------------------------------------------
     def getfloat(self, key: str, default: Any = REQUIRED, *, minval: float | None = None,
                  maxval: float | None = None, above: float | None = None) -> float:
-        value = self._raw(key, default)
-        if not _is_number(value) or not math.isfinite(float(value)):
-            raise ConfigError(f"{self._name(key)}: expected a finite number, got {value!r}")
-        value = float(value)
+        raw = self._raw(key, default)
+        value = _finite(raw)
+        if value is None:
+            raise ConfigError(f"{self._name(key)}: expected a finite number, got {show(raw)}")
         self._check_bounds(key, value, minval, maxval, above)
         return value
 
@@ -90,40 +148,48 @@ class Section:
                maxval: int | None = None) -> int:
         value = self._raw(key, default)
         if not isinstance(value, int) or isinstance(value, bool):
-            raise ConfigError(f"{self._name(key)}: expected an integer, got {value!r}")
-        self._check_bounds(key, value, minval, maxval, None)
+            raise ConfigError(f"{self._name(key)}: expected an integer, got {show(value)}")
+        self._check_bounds(key, value, -MAX_ABS_INT if minval is None else minval,
+                           MAX_ABS_INT if maxval is None else maxval, None)
         return value
 
     def getbool(self, key: str, default: Any = REQUIRED) -> bool:
         value = self._raw(key, default)
         if not isinstance(value, bool):
-            raise ConfigError(f"{self._name(key)}: expected true or false, got {value!r}")
+            raise ConfigError(f"{self._name(key)}: expected true or false, got {show(value)}")
         return value
 
     def getstr(self, key: str, default: Any = REQUIRED, *,
-               choices: Sequence[str] | None = None) -> str:
+               choices: Sequence[str] | None = None, max_len: int = MAX_STR_CHARS) -> str:
         value = self._raw(key, default)
         if not isinstance(value, str):
-            raise ConfigError(f"{self._name(key)}: expected a string, got {value!r}")
+            raise ConfigError(f"{self._name(key)}: expected a string, got {show(value)}")
+        if len(value) > max_len:
+            raise ConfigError(f"{self._name(key)}: {len(value)} characters, at most {max_len}")
         if choices is not None and value not in choices:
-            raise ConfigError(f"{self._name(key)}: expected one of {', '.join(choices)}; got {value!r}")
+            raise ConfigError(f"{self._name(key)}: expected one of {', '.join(choices)}; got {show(value)}")
         return value
 
-    def getstrlist(self, key: str, default: Any = REQUIRED) -> list[str]:
+    def getstrlist(self, key: str, default: Any = REQUIRED, *, max_len: int = MAX_STR_CHARS,
+                   max_items: int = 64) -> list[str]:
         value = self._raw(key, default)
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise ConfigError(f"{self._name(key)}: expected a list of strings, got {value!r}")
+            raise ConfigError(f"{self._name(key)}: expected a list of strings, got {show(value)}")
+        if len(value) > max_items:
+            raise ConfigError(f"{self._name(key)}: {len(value)} items, at most {max_items}")
+        for v in value:
+            if len(v) > max_len:
+                raise ConfigError(f"{self._name(key)}: an item of {len(v)} characters, at most {max_len}")
         return list(value)
 
     def getfloats(self, key: str, default: Any = REQUIRED, *, n: int | None = None,
                   minval: float | None = None, maxval: float | None = None) -> list[float]:
         value = self._raw(key, default)
-        if (not isinstance(value, (list, tuple))
-                or not all(_is_number(v) and math.isfinite(float(v)) for v in value)):
-            raise ConfigError(f"{self._name(key)}: expected a list of numbers, got {value!r}")
+        out = [_finite(v) for v in value] if isinstance(value, (list, tuple)) and len(value) <= MAX_LIST_ITEMS else None
+        if out is None or any(v is None for v in out):
+            raise ConfigError(f"{self._name(key)}: expected a list of finite numbers, got {show(value)}")
         if n is not None and len(value) != n:
             raise ConfigError(f"{self._name(key)}: expected {n} numbers, got {len(value)}")
-        out = [float(v) for v in value]
         for v in out:
             self._check_bounds(key, v, minval, maxval, None)
         return out
@@ -171,19 +237,34 @@ class Config(Section):
     @classmethod
     def load(cls, path: str | pathlib.Path) -> "Config":
         path = pathlib.Path(path)
+        name = show_name(str(path), 200)
         try:
-            text = path.read_text()
+            with open(path, "rb") as fh:
+                raw = fh.read(MAX_CONFIG_BYTES + 1)
         except FileNotFoundError:
-            raise ConfigError(f"{path}: no such config file") from None
+            raise ConfigError(f"{name}: no such config file") from None
+        except IsADirectoryError:
+            raise ConfigError(f"{name}: is a directory, not a config file") from None
         except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
+            raise ConfigError(f"{name}: cannot read config file ({exc.strerror})") from None
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{name}: larger than {MAX_CONFIG_BYTES} bytes")
         try:
-            data = yaml.safe_load(text)
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            hint = " (UTF-16?)" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else ""
+            raise ConfigError(f"{name}: not UTF-8 text{hint} (byte {exc.start})") from None
+        try:
+            data = yaml.load(text, Loader=_StrictLoader)    # noqa: S506 (a SafeLoader, stricter still)
+        except ConfigError as exc:
+            raise ConfigError(f"{name}: {exc}") from None
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" line {mark.line + 1}" if mark is not None else ""
             problem = getattr(exc, "problem", None) or "invalid YAML"
-            raise ConfigError(f"{path}:{where}: {problem}") from None
+            raise ConfigError(f"{name}:{where}: {show_name(problem, 200)}") from None
+        except (ValueError, RecursionError, OverflowError, MemoryError) as exc:
+            raise ConfigError(f"{name}: not a valid config ({type(exc).__name__})") from None
         if data is None:
             data = {}
         return cls(data, str(path))

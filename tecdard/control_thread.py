@@ -5,7 +5,6 @@ import collections
 import concurrent.futures
 import logging
 import math
-import pathlib
 import queue
 import threading
 import time
@@ -26,6 +25,7 @@ from tecdard.safejson import show_name
 log = logging.getLogger("tecdar.control")
 
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+WORKSPACE_MAX_M = 5.0         # no arm reaches further from its base: a workspace corner beyond is a typo
 COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
@@ -64,8 +64,10 @@ class ControlParams:
             max_speed=max_speed,
             max_accel=section.getfloat("max_accel", d.max_accel, above=0.0, maxval=10.0),
             max_jerk=section.getfloat("max_jerk", d.max_jerk, above=0.0, maxval=500.0),
-            workspace_min=tuple(section.getvec3("workspace_min", list(d.workspace_min))),
-            workspace_max=tuple(section.getvec3("workspace_max", list(d.workspace_max))),
+            workspace_min=tuple(section.getfloats("workspace_min", list(d.workspace_min), n=3, minval=-WORKSPACE_MAX_M,
+                                                  maxval=WORKSPACE_MAX_M)),
+            workspace_max=tuple(section.getfloats("workspace_max", list(d.workspace_max), n=3, minval=-WORKSPACE_MAX_M,
+                                                  maxval=WORKSPACE_MAX_M)),
             imu_stale_s=section.getfloat("imu_stale_s", d.imu_stale_s, above=0.0, maxval=1.0),
             max_tracking_error_m=section.getfloat("max_tracking_error_m", d.max_tracking_error_m, above=0.0,
                                                   maxval=0.1),
@@ -153,6 +155,7 @@ class ControlThread:
         # map files are fused and written here, never on the 20 ms tick
         self._writer = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-writer")
         self._writes: list[concurrent.futures.Future] = []
+        self._partial_maps: list[tuple[str, concurrent.futures.Future]] = []   # (task id, write) of failed maps
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()    # as many as there are requests: never full
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
@@ -199,6 +202,20 @@ class ControlThread:
         fut = self._writer.submit(write_map, record, self.map_settings)
         self._writes = [f for f in self._writes if not f.done()] + [fut]
         return fut
+
+    def _announce_partial_maps(self) -> None:
+        """A failed map's files, once written: `map_written` (or `map_write_failed`)."""
+        for item in [m for m in self._partial_maps if m[1].done()]:
+            self._partial_maps.remove(item)
+            task_id, fut = item
+            exc = fut.exception()
+            if exc is None:
+                res = fut.result()
+                self._event("map_written", task=task_id, map_path=res["path"], files=res["files"],
+                            summary=res["summary"])
+            else:
+                log.error("map %s: the points probed were not written: %s", task_id, exc)
+                self._event("map_write_failed", task=task_id, error=f"{type(exc).__name__}: {exc}")
 
     def quiescent(self) -> bool:
         """No task, the arm at rest after any stop, and every map written (for an orderly shutdown)."""
@@ -297,6 +314,8 @@ class ControlThread:
             qd = self.model.dls_velocity(js.q, tw, self.q_home)
             self.robot.command_joint_velocity(qd)
         self._publish_state(now, p, R, v, est)
+        if self._partial_maps:
+            self._announce_partial_maps()
         if self._wd_interval and now - self._wd_last >= self._wd_interval:
             self._wd_last = now
             self.notifier.notify("WATCHDOG=1")
@@ -582,9 +601,10 @@ class ControlThread:
             extra = {} if sim is None else {"sim": sim}
             partial = task.partial_record() if isinstance(task, MapTask) else None
             if partial is not None:
-                # nothing is lost: the points probed so far are fused and written all the same
-                self._write_map(partial)
-                extra["map_path"] = str(pathlib.Path(self.map_settings.output_dir) / task.id)
+                # nothing is lost: the points probed so far are fused and written all the same; the
+                # directory appears complete or not at all, and `map_written` says when it has
+                self._partial_maps.append((task.id, self._write_map(partial)))
+                extra["map_pending"] = True
             self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
 
     def _sim_truth(self, result: dict | None) -> dict | None:

@@ -33,7 +33,8 @@ from tecdard.mapfiles import MapSettings
 from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
-from tecdard.zenoh_io import DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, dumps, session_config
+from tecdard.safejson import show
+from tecdard.zenoh_io import DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, dumps, endpoint_problem, session_config
 
 log = logging.getLogger("tecdar")
 
@@ -44,6 +45,10 @@ TELEMETRY_PER_PASS = 64        # state, contact and event messages published per
 SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop and a map to be written (unit: 5 s)
 GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
+MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
+MAX_ENDPOINT_CHARS = 256
+MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 class Daemon:
@@ -51,28 +56,47 @@ class Daemon:
 
     def __init__(self, cfg: Config, listen: list[str] | None = None):
         robot = cfg.section("robot")
-        self.robot_name = robot.getstr("name", "sim")
-        if not self.robot_name.replace("_", "").replace("-", "").isalnum():
-            raise ConfigError(f"robot.name: {self.robot_name!r} must be letters, digits, '-' or '_'")
-        model_name = robot.getstr("model", "panda")
+        self.robot_name = robot.getstr("name", "sim", max_len=MAX_ROBOT_NAME_CHARS)
+        if not self.robot_name or not self.robot_name.replace("_", "").replace("-", "").isalnum() \
+                or not self.robot_name.isascii():
+            raise ConfigError(f"robot.name: {self.robot_name!r} must be ASCII letters, digits, '-' or '_'")
+        model_name = robot.getstr("model", "panda", max_len=64)
         backend = robot.getstr("backend", "sim", choices=("sim",))
         try:
             tool_offset = robot.getvec3("tool_offset", [0.0, 0.0, 0.0])
+            if np.linalg.norm(tool_offset) > MAX_TOOL_OFFSET_M:
+                raise ConfigError(f"robot.tool_offset: {np.linalg.norm(tool_offset):.3g} m from the flange, "
+                                  f"at most {MAX_TOOL_OFFSET_M} m")
             tool_quat = robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0])
             self.model = ArmModel(model_name, tool_offset, tool_quat)
         except UnknownRobotError as exc:
             raise ConfigError(str(exc)) from None
         self.q_home = np.array(robot.getfloats("q_home", n=self.model.nq))
+        outside = np.flatnonzero((self.q_home < self.model.q_min) | (self.q_home > self.model.q_max))
+        if outside.size:
+            j = int(outside[0])
+            raise ConfigError(f"robot.q_home: joint {j + 1} at {self.q_home[j]:.3f} rad is outside its limits "
+                              f"[{self.model.q_min[j]:.3f}, {self.model.q_max[j]:.3f}]")
 
         zc = cfg.section("zenoh")
-        configured = zc.getstrlist("listen", ["tcp/127.0.0.1:7447"])
+        configured = zc.getstrlist("listen", [DEFAULT_ENDPOINT], max_len=MAX_ENDPOINT_CHARS, max_items=16)
         self.listen = listen if listen is not None else configured
-        self.connect = zc.getstrlist("connect", [])
+        self.connect = zc.getstrlist("connect", [], max_len=MAX_ENDPOINT_CHARS, max_items=16)
         self.multicast = zc.getbool("multicast_scouting", False)
+        for key, endpoints in (("listen", self.listen), ("connect", self.connect)):
+            for ep in endpoints:
+                problem = endpoint_problem(ep)
+                if problem:
+                    raise ConfigError(f"zenoh.{key}: {show(ep)}: {problem}")
         intake_params = IntakeParams.from_config(zc)
 
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
+        p_home = self.model.fk(self.q_home).translation
+        lo, hi = np.array(self.control_params.workspace_min), np.array(self.control_params.workspace_max)
+        if np.any(p_home < lo) or np.any(p_home > hi):
+            raise ConfigError(f"robot.q_home: the home TCP {np.round(p_home, 3).tolist()} m is outside the "
+                              f"workspace box (control.workspace_min/max)")
         self.map_settings = MapSettings.from_config(cfg.section("map"))
 
         imu = cfg.section("imu")

@@ -1,6 +1,8 @@
 """Builds the contact pipeline from the `estimator` config section (daemon and `tecdard localize` alike)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from control.baselines import BaselineParams
@@ -9,21 +11,35 @@ from control.ekf import ContactKfParams, PaperEkfParams
 from control.onset import OnsetDetector
 from control.pipeline import METHODS, ContactPipeline, PipelineParams
 from tecdard.config import ConfigError
+from tecdard.safejson import show
+
+
+MAX_ETA = 100.0              # eta is 1-3 for real fingertips (the paper's 2.0 at 30 N)
+MAX_GRIP_FORCE_N = 1000.0
 
 
 def _eta_table(section) -> list[tuple[float, float]]:
     raw = section._raw("eta_table", [[30.0, 2.0]])
     name = f"{section.path}.eta_table"
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError(f"{name}: expected a list of [grip_force_N, eta] pairs")
+    if not isinstance(raw, list) or not raw or len(raw) > 100:
+        raise ConfigError(f"{name}: expected a list of up to 100 [grip_force_N, eta] pairs")
     out = []
     for row in raw:
         if (not isinstance(row, list) or len(row) != 2
                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)):
-            raise ConfigError(f"{name}: expected [grip_force_N, eta] pairs, got {row!r}")
-        if row[1] <= 0 or row[0] < 0:
-            raise ConfigError(f"{name}: eta must be > 0 and force >= 0, got {row!r}")
-        out.append((float(row[0]), float(row[1])))
+            raise ConfigError(f"{name}: expected [grip_force_N, eta] pairs, got {show(row)}")
+        try:
+            force, eta = float(row[0]), float(row[1])
+        except OverflowError:
+            raise ConfigError(f"{name}: {show(row)} is out of the float range") from None
+        if not (math.isfinite(force) and math.isfinite(eta)):
+            raise ConfigError(f"{name}: {show(row)} is not finite")
+        if not (0.0 < eta <= MAX_ETA and 0.0 <= force <= MAX_GRIP_FORCE_N):
+            raise ConfigError(f"{name}: eta must be in (0, {MAX_ETA:g}] and the force in [0, {MAX_GRIP_FORCE_N:g}] N, "
+                              f"got {show(row)}")
+        out.append((force, eta))
+    if len({f for f, _ in out}) != len(out):
+        raise ConfigError(f"{name}: a grip force appears twice")
     return out
 
 
@@ -44,7 +60,7 @@ def build_pipeline(section, R_tcp_imu: np.ndarray, odr_hz: float = 6667.0, metho
         if (plane_normal is not None or cfg_plane is not None) else None,
         output_period_s=section.getfloat("output_period_s", 0.005, above=0.0, maxval=1.0),
         eta_table=_eta_table(section),
-        grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0),
+        grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0, maxval=MAX_GRIP_FORCE_N),
         eta_rel_std_per_n=section.getfloat("eta_rel_std_per_n", 0.02, minval=0.0, maxval=1.0),
         arc_radial_sigma=section.getfloat("arc_radial_sigma", 0.005, minval=0.0, maxval=1.0),
         ekf=ContactKfParams.from_config(section.section("ekf")),

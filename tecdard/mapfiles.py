@@ -3,15 +3,15 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import pathlib
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from control.mapping import MapRecord, kernel_depth, raster_xy
+from tecdard.files import OutputError, atomic_dir, ensure_writable_dir, state_dir
 
 PNG_CELL_PX_MAX = 8           # a raster cell is drawn as at most this many pixels square
 PNG_TARGET_PX = 480           # the longer side of the heatmap aims at this many pixels
@@ -23,15 +23,15 @@ _VIRIDIS = np.array([[68, 1, 84], [70, 50, 127], [54, 92, 141], [39, 127, 142], 
 
 
 def default_output_dir() -> str:
-    """systemd's StateDirectory when run as the service, else ./maps."""
-    state = os.environ.get("STATE_DIRECTORY")
-    return str(pathlib.Path(state.split(":")[0]) / "maps") if state else "maps"
+    """<state directory>/maps: systemd's StateDirectory when run as the service, else the user's
+    state directory (tecdard.files.state_dir), never the working directory."""
+    return str(state_dir() / "maps")
 
 
 @dataclass
 class MapSettings:
     """The `map` config section: how a run probes and how its map is fused and written."""
-    output_dir: str = "maps"
+    output_dir: str = field(default_factory=default_output_dir)
     resolution_m: float = 0.005          # raster cell of depth.npy
     kernel_k: int = 4                    # the paper's k
     kernel_sigma_m: float = 0.022        # the paper's sigma = 2.2 (unit not given; cm fits its 7-9 cm grid)
@@ -46,7 +46,7 @@ class MapSettings:
     def from_config(cls, section) -> "MapSettings":
         d = cls()
         return cls(
-            output_dir=section.getstr("output_dir", default_output_dir()),
+            output_dir=_checked_dir(section),
             resolution_m=section.getfloat("resolution_m", d.resolution_m, minval=0.001, maxval=0.1),
             kernel_k=section.getint("kernel_k", d.kernel_k, minval=1, maxval=64),
             kernel_sigma_m=section.getfloat("kernel_sigma_m", d.kernel_sigma_m, above=0.0, maxval=1.0),
@@ -57,6 +57,17 @@ class MapSettings:
             turn_deg=section.getfloat("turn_deg", d.turn_deg, minval=-180.0, maxval=180.0),
             release_distance_m=section.getfloat("release_distance_m", d.release_distance_m, minval=0.0, maxval=0.05),
         )
+
+
+def _checked_dir(section) -> str:
+    """map.output_dir, created and proven writable at start-up (not at the end of a map)."""
+    from tecdard.config import ConfigError
+    path = section.getstr("output_dir", default_output_dir())
+    try:
+        ensure_writable_dir(path, f"{section.path}.output_dir")
+    except OutputError as exc:
+        raise ConfigError(str(exc)) from None
+    return path
 
 
 def fuse(record: MapRecord, settings: MapSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -70,10 +81,19 @@ def fuse(record: MapRecord, settings: MapSettings) -> tuple[np.ndarray, np.ndarr
 
 
 def write_map(record: MapRecord, settings: MapSettings) -> dict:
-    """Fuse and write the four files into <output_dir>/<task id>/; returns the task result."""
+    """Fuse and write the four files into <output_dir>/<task id>/ (mode 0700, files 0600); returns
+    the task result. The directory appears complete or not at all: the files are written into a
+    temporary directory beside it, synced, and renamed in one step (tecdard.files.atomic_dir)."""
+    final = pathlib.Path(settings.output_dir) / record.task_id
+    ensure_writable_dir(settings.output_dir, "map.output_dir")
+    with atomic_dir(final) as tmp:
+        summary = _write_files(record, settings, tmp)
+    files = {name: str(final / name) for name in ("depth.npy", "points.csv", "summary.json", "depth.png")}
+    return {"path": str(final), "files": files, "summary": summary}
+
+
+def _write_files(record: MapRecord, settings: MapSettings, out: pathlib.Path) -> dict:
     m = record.params
-    out = pathlib.Path(settings.output_dir) / record.task_id
-    out.mkdir(parents=True, exist_ok=True)
     query, height = fuse(record, settings)
     np.save(out / "depth.npy", height)
     rows = [pt.to_row() for pt in record.points]
@@ -101,8 +121,7 @@ def write_map(record: MapRecord, settings: MapSettings) -> dict:
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     write_png(out / "depth.png", heatmap_rgb(height, query, valid, record.points, m))
-    files = {name: str(out / name) for name in ("depth.npy", "points.csv", "summary.json", "depth.png")}
-    return {"path": str(out), "files": files, "summary": summary}
+    return summary
 
 
 def colormap(t: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import zenoh
 
@@ -9,6 +10,30 @@ JSON = zenoh.Encoding.APPLICATION_JSON
 # The daemon's transport drops any message larger than this before it reaches Python (Zenoh's own
 # default is 1 GiB); commands are refused with a reply above tecdard.commands.MAX_PAYLOAD_BYTES.
 DAEMON_MAX_MESSAGE_BYTES = 1 << 20
+
+
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+PATH_PROTOCOLS = ("unixsock-stream",)
+_HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)$")
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """Why a Zenoh endpoint (`proto/host:port`, or `unixsock-stream/PATH`, with optional `?...`
+    and `#...`) cannot work, in a few words; None when it looks usable."""
+    if not isinstance(endpoint, str) or "/" not in endpoint:
+        return "expected <protocol>/<address>, e.g. tcp/127.0.0.1:7448"
+    proto, _, address = endpoint.partition("/")
+    address = address.split("#")[0].split("?")[0]
+    if proto in PATH_PROTOCOLS:
+        return None if address else "expected a socket path"
+    if proto not in IP_PROTOCOLS:
+        return f"unknown protocol {proto[:20]!r} (known: {', '.join(IP_PROTOCOLS + PATH_PROTOCOLS)})"
+    host, sep, port = address.rpartition(":")
+    if not sep or not _HOST.match(host):
+        return "expected host:port"
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        return f"port {port[:10]!r} is not 0..65535"
+    return None
 
 
 def session_config(listen: list[str], connect: list[str], multicast_scouting: bool = False,

@@ -100,3 +100,90 @@ def test_a_world_that_cannot_be_built_is_a_config_error():
     cfg = sim_config(**{"sim.hinge.point": [0.307, 0.0, 0.48]})      # 7 mm from the home TCP
     with pytest.raises(ConfigError, match="hinge.point: the TCP must be at least 2 cm"):
         Daemon(Config(cfg))
+
+
+# -- hostile and careless config files (issue 16) ---------------------------------------------
+def refused(tmp_path, text: str | bytes) -> str:
+    """What `tecdard run` does with this file, in process: the ConfigError's one line."""
+    from tecdard.daemon import Daemon
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(ConfigError) as info:
+        Daemon(Config.load(path))
+    msg = str(info.value)
+    assert "\n" not in msg and len(msg) < 400, msg
+    return msg
+
+
+def sim_yaml(**overrides) -> str:
+    return yaml.safe_dump(sim_config(**overrides))
+
+
+@pytest.mark.parametrize("make,fragment", [
+    (lambda: sim_yaml().encode("utf-16"), "not UTF-8 text (UTF-16?)"),
+    (lambda: b"robot:\n  name: \xff\xfe\n", "not UTF-8 text"),
+    (lambda: sim_yaml() + "deep: " + "[" * 200 + "]" * 200 + "\n", "nested deeper than"),
+    (lambda: sim_yaml() + "deep: " + "{a: " * 60 + "1" + "}" * 60 + "\n", "nested deeper than"),
+    (lambda: sim_yaml().replace("seed: 1", "seed: " + "9" * 400), "an integer of 400 digits"),
+    (lambda: sim_yaml().replace("seed: 1", "seed: " + "9" * 5000), "an integer of 5000 digits"),
+    (lambda: sim_yaml().replace("max_speed: 0.05", "max_speed: " + "9" * 400 + ".0"), "limits.max_speed"),
+    (lambda: sim_yaml(**{"zenoh.listen": ["tcp/127.0.0.1:notaport"]}), "zenoh.listen"),
+    (lambda: sim_yaml(**{"zenoh.connect": ["}{\"'\n"]}), "zenoh"),
+    (lambda: sim_yaml(**{"robot.name": "x" * 10_000_000}), "larger than 1048576 bytes"),
+    (lambda: sim_yaml(**{"robot.name": "x" * 100_000}), "robot.name: 100000 characters, at most 64"),
+    (lambda: sim_yaml(**{"robot.name": "bad/name"}), "robot.name"),
+    (lambda: "a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+             "c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b]\nrobot:\n  name: *c\n", "YAML aliases (*a) are not accepted"),
+    (lambda: sim_yaml(**{"limits.default_probe_distance": 0.05, "limits.max_probe_distance": 0.02}),
+     "limits.default_probe_distance"),
+    (lambda: sim_yaml(**{"limits.default_point_radius": 0.05}), "limits.default_point_radius"),
+    (lambda: sim_yaml(**{"limits.default_map_depth": 0.5, "limits.max_map_depth": 0.3}), "limits.default_map_depth"),
+    (lambda: sim_yaml(**{"limits.default_speed": 0.001}), "limits.default_speed"),
+    (lambda: sim_yaml(**{"robot.q_home": [10.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]}),
+     "robot.q_home: joint 1 at 10.000 rad is outside its limits"),
+    (lambda: sim_yaml(**{"control.workspace_max": [0.2, 0.6, 0.9]}), "the home TCP"),
+    (lambda: sim_yaml(**{"robot.tool_offset": [0.0, 0.0, 100.0]}), "robot.tool_offset: 100 m"),
+    (lambda: sim_yaml(**{"estimator.eta_table": [[30.0, float("nan")]]}), "estimator.eta_table"),
+    (lambda: sim_yaml(**{"estimator.eta_table": [[float("inf"), 2.0]]}), "estimator.eta_table"),
+    (lambda: sim_yaml(**{"estimator.onset.band_hz": [200.0, 40.0]}), "estimator.onset.band_hz"),
+    (lambda: sim_yaml(**{"control.workspace_min": [-1e9, -0.6, 0.05]}), "control.workspace_min"),
+    (lambda: bytes(range(256)) * 10, "not UTF-8"),
+    (lambda: "robot: !!python/object/apply:os.system ['true']\n", "could not determine a constructor"),
+])
+def test_a_hostile_config_is_one_line_of_refusal(tmp_path, make, fragment):
+    assert fragment in refused(tmp_path, make())
+
+
+def test_an_unwritable_map_directory_is_refused_at_start(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert "map.output_dir" in refused(tmp_path, sim_yaml(**{"map.output_dir": str(blocker / "maps")}))
+
+
+def test_an_alias_bomb_is_refused_in_bounded_time_and_memory(tmp_path):
+    """The red team's bomb expanded to 1e9 elements under robot.name and hung at 5.6 GB."""
+    import resource
+    import time
+    levels = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    levels += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 9)]
+    text = "\n".join(levels) + "\nrobot:\n  name: *a8\n"
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.monotonic()
+    assert "YAML aliases" in refused(tmp_path, text)
+    assert time.monotonic() - t0 < 5.0
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 100_000      # kB: no expansion
+
+
+@pytest.mark.parametrize("make", [
+    lambda: sim_yaml().encode("utf-16"),
+    lambda: sim_yaml().replace("seed: 1", "seed: " + "9" * 5000),
+    lambda: sim_yaml(**{"zenoh.listen": ["garbage"]}),
+])
+def test_run_exits_2_with_one_line_on_what_used_to_be_a_traceback(tmp_path, make):
+    data = make()
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    res = subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)],
+                         capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert res.returncode == 2, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr, res.stderr

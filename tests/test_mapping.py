@@ -265,13 +265,16 @@ def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
     ct.task = task
     ct._end_task("failed", error="stopped by command")
     ct._writer.shutdown(wait=True)
+    ct._announce_partial_maps()
     events = []
     while not ct.outbox.empty():
         kind, *rest = ct.outbox.get_nowait()
         if kind == "event":
             events.append(rest[0])
     (failed,) = [e for e in events if e["kind"] == "task_failed"]
-    assert failed["map_path"] == str(tmp_path / "map-6")
+    assert failed["map_pending"] is True and "map_path" not in failed     # announced once complete:
+    (written,) = [e for e in events if e["kind"] == "map_written"]
+    assert written["map_path"] == str(tmp_path / "map-6") and written["summary"]["points"] == 3
     rows = list(csv.DictReader(open(tmp_path / "map-6" / "points.csv")))
     assert len(rows) == 3 and json.loads((tmp_path / "map-6" / "summary.json").read_text())["passes"] == 1
 
@@ -348,9 +351,41 @@ def test_map_defaults_are_the_papers_grid_in_two_orientations():
     assert f["grid"] == [5, 6] and f["orientations"] == 2 and f["origin"] is None
 
 
-def test_maps_go_to_the_state_directory_under_systemd(monkeypatch):
+def test_maps_go_to_the_state_directory_under_systemd_else_the_users(monkeypatch, tmp_path):
     from tecdard.mapfiles import default_output_dir
     monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/tecdar")
     assert default_output_dir() == "/var/lib/tecdar/maps"
     monkeypatch.delenv("STATE_DIRECTORY")
-    assert default_output_dir() == "maps"
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert default_output_dir() == str(tmp_path / "tecdar" / "maps")
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert default_output_dir() == str(tmp_path / "home" / ".local" / "state" / "tecdar" / "maps")
+
+
+def test_a_map_is_written_private_and_complete_or_not_at_all(tmp_path, monkeypatch):
+    """Files 0600 in a 0700 directory that appears in one rename; a writer that dies mid-way leaves
+    only a hidden partial directory, which the next start removes."""
+    import stat
+    from tecdard import files, mapfiles
+    records = []
+    task = MapTask("map-7", map_params(orientations=1, grid=(1, 2), depth=0.02),
+                       lambda rec: records.append(rec) or done_now({}))
+    FakeRig(SCENE, P0).run(task)
+    settings = MapSettings(output_dir=str(tmp_path / "maps"))
+    res = mapfiles.write_map(records[0], settings)
+    out = tmp_path / "maps" / "map-7"
+    assert res["path"] == str(out)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o700
+    assert {stat.S_IMODE(f.stat().st_mode) for f in out.iterdir()} == {0o600}
+    # a writer killed after two files: nothing under the task's name
+    def dies(*_args):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(mapfiles, "write_png", dies)
+    with pytest.raises(KeyboardInterrupt):
+        mapfiles.write_map(MapRecord("map-8", records[0].params, records[0].points, records[0].yaw_rad), settings)
+    assert not (tmp_path / "maps" / "map-8").exists()
+    assert [p.name for p in (tmp_path / "maps").iterdir()] == ["map-7"]      # cleaned on the way out
+    (tmp_path / "maps" / (files.PARTIAL_PREFIX + "map-9-xyz")).mkdir()      # as a SIGKILL leaves it
+    files.ensure_writable_dir(tmp_path / "maps", "map.output_dir")
+    assert [p.name for p in (tmp_path / "maps").iterdir()] == ["map-7"]

@@ -1,0 +1,81 @@
+"""Where the daemon writes (maps, later recordings), and how: private modes, checked at start-up,
+complete or not at all (a temporary name, then one rename)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import shutil
+import tempfile
+
+DIR_MODE = 0o700               # maps and recordings are the operator's, not the host's
+FILE_MODE = 0o600
+PARTIAL_PREFIX = ".partial-"   # what a writer killed mid-way leaves; readers skip it, the next start removes it
+
+
+class OutputError(OSError):
+    """An output directory that cannot be used; the message is one line."""
+
+
+def state_dir() -> pathlib.Path:
+    """systemd's StateDirectory when run as the service, else the user's state directory
+    ($XDG_STATE_HOME/tecdar, ~/.local/state/tecdar): never the working directory."""
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return pathlib.Path(state.split(":")[0])
+    xdg = os.environ.get("XDG_STATE_HOME")
+    base = pathlib.Path(xdg) if xdg and os.path.isabs(xdg) else pathlib.Path.home() / ".local" / "state"
+    return base / "tecdar"
+
+
+def ensure_writable_dir(path: str | os.PathLike, what: str) -> pathlib.Path:
+    """Create `path` (mode 0700) if needed and prove it writable now, not at the end of a task;
+    OutputError naming `what` otherwise. Leftovers of writers killed mid-way are removed."""
+    p = pathlib.Path(path)
+    try:
+        p.mkdir(mode=DIR_MODE, parents=True, exist_ok=True)
+        if not p.is_dir():
+            raise OutputError(f"{what}: {p} is not a directory")
+        with tempfile.NamedTemporaryFile(dir=p, prefix=PARTIAL_PREFIX):
+            pass
+    except OutputError:
+        raise
+    except OSError as exc:
+        raise OutputError(f"{what}: {p} is not writable ({exc.strerror or type(exc).__name__})") from None
+    for stale in p.glob(PARTIAL_PREFIX + "*"):
+        shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
+    return p
+
+
+@contextlib.contextmanager
+def atomic_dir(final: str | os.PathLike):
+    """Yield a private temporary directory beside `final`; on success its files are synced and it
+    is renamed to `final` in one step, so a reader sees the whole directory or none of it. On an
+    exception (or a kill) only the temporary directory is left, named PARTIAL_PREFIX..."""
+    final = pathlib.Path(final)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=PARTIAL_PREFIX + final.name + "-", dir=final.parent))
+    try:
+        yield tmp
+        for f in tmp.iterdir():
+            os.chmod(f, FILE_MODE)
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        os.chmod(tmp, DIR_MODE)
+        os.replace(tmp, final) if not final.exists() else _replace_dir(tmp, final)
+        fd = os.open(final.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _replace_dir(tmp: pathlib.Path, final: pathlib.Path) -> None:
+    """`final` exists (a map written again under the same task id): move it aside, then swap."""
+    old = final.with_name(PARTIAL_PREFIX + final.name + "-old")
+    shutil.rmtree(old, ignore_errors=True)
+    os.replace(final, old)
+    os.replace(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
