@@ -7,6 +7,7 @@ import logging
 import sys
 
 from tecdard.config import Config, ConfigError
+from tecdard.safejson import show
 
 
 def _cmd_run(args) -> int:
@@ -30,6 +31,9 @@ def _cmd_run(args) -> int:
         return 1
 
 
+MAX_RATE_HZ = 100_000.0      # localize's --rate: more rows per second than any IMU delivers is a typo
+
+
 def _cmd_localize(args) -> int:
     from control.geometry import quat_to_matrix
     from control.pipeline import METHODS
@@ -42,9 +46,15 @@ def _cmd_localize(args) -> int:
         return L.EXIT_BAD_INPUT
 
     if args.method is not None and args.method not in METHODS:
-        return bad(f"--method: unknown estimator {args.method!r} (known: {', '.join(METHODS)})")
-    if not args.rate > 0:
-        return bad(f"--rate: must be > 0 rows per second, got {args.rate:g}")
+        return bad(f"--method: unknown estimator {show(args.method)} (known: {', '.join(METHODS)})")
+    if not 0 < args.rate <= MAX_RATE_HZ:
+        return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
+    out = None
+    if args.out:
+        try:
+            out = open(args.out, "w")             # before the replay: a bad path fails at once
+        except OSError as exc:
+            return bad(f"--out: cannot write {show(args.out, 200)} ({exc.strerror or type(exc).__name__})")
     try:
         rec = load_recording(args.recording)
     except RecordingError as exc:
@@ -62,9 +72,18 @@ def _cmd_localize(args) -> int:
             raise ConfigError(f"{unused[0]}: unknown option")
     except ConfigError as exc:
         return bad(f"config error: {exc}")
-    rows, onset_t, last = L.replay(rec, pipeline, args.rate)
-    if args.out:
-        L.write_csv(args.out, rows)
+    try:
+        rows, onset_t, last = L.replay(rec, pipeline, args.rate)
+    except Exception as exc:        # a recording the checks let through but the estimator cannot take
+        logging.getLogger("tecdar").debug("replay failed", exc_info=True)
+        return bad(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
+                   f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); please report it with the file")
+    if out is not None:
+        try:
+            with out:
+                L.write_csv(out, rows)
+        except OSError as exc:
+            return bad(f"--out: writing {show(args.out, 200)} failed ({exc.strerror or type(exc).__name__})")
     if onset_t is None or last is None:
         if args.json:
             print(json.dumps({"onset_t": None, "p_c": None, "std": None, "method": pipeline.method}))

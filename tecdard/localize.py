@@ -52,11 +52,15 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
 
 
-def write_csv(path: str, rows: np.ndarray) -> None:
-    with open(path, "w") as f:
-        f.write("t,px,py,pz,sx,sy,sz\n")
-        for r in rows:
-            f.write(f"{r[0]:.9f},{r[1]:.6f},{r[2]:.6f},{r[3]:.6f},{r[4]:.6f},{r[5]:.6f},{r[6]:.6f}\n")
+def write_csv(out, rows: np.ndarray) -> None:
+    """The rows as `t,px,py,pz,sx,sy,sz` to a path or an open text file."""
+    if isinstance(out, (str, bytes)) or hasattr(out, "__fspath__"):
+        with open(out, "w") as f:
+            write_csv(f, rows)
+        return
+    out.write("t,px,py,pz,sx,sy,sz\n")
+    for r in rows:
+        out.write(f"{r[0]:.9f},{r[1]:.6f},{r[2]:.6f},{r[3]:.6f},{r[4]:.6f},{r[5]:.6f},{r[6]:.6f}\n")
 
 
 def summary(onset_t: float, est: ContactEstimate) -> dict:

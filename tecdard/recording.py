@@ -1,16 +1,34 @@
-"""Recordings `tecdar-recording/1` (.npz): strict reading with one-line errors naming the key, and writing."""
+"""Recordings `tecdar-recording/1` (.npz): strict reading with one-line errors naming the key, and writing.
+
+A recording is untrusted input. The reader never calls np.load on it: it opens the archive
+itself, reads each member's .npy header, and checks the declared dtype, shape and size against
+the zip directory and against limits (MAX_*), all before it allocates or decompresses anything.
+A zip bomb, a header declaring terabytes, a bad CRC, broken deflate, a pickle or a truncated
+member is then one RecordingError naming the key, in bounded time and memory.
+"""
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from tecdard.safejson import JsonLimitError, loads, show
+
 FORMAT = "tecdar-recording/1"
 QUAT_NORM_TOL = 1e-3
 UNIT_TOL = 1e-3
+MAX_IMU_SAMPLES = 12_000_000     # 30 min at 6.7 kHz
+MAX_TCP_SAMPLES = 4_000_000      # an hour at 1 kHz
+MAX_DURATION_S = 3600.0          # from the first to the last sample of either stream
+MAX_ABS_TIME_S = 1e10            # timestamps beyond this are no clock a rig keeps (300 years)
+MAX_STRING_BYTES = 1 << 20       # `format` and `meta`
+MAX_META_DEPTH = 32
+MAX_HEADER_BYTES = 10_000        # numpy's own bound for a .npy header
 
 
 class RecordingError(ValueError):
@@ -52,29 +70,93 @@ class Recording:
         return float(self.imu_t[-1] - self.imu_t[0])
 
 
-def _raw(data, key: str, required: bool, expected: str):
-    """The stored array for key, None when optional and absent; RecordingError otherwise."""
+class _Npz:
+    """The members of an .npz archive, read one at a time after their declared size, dtype and
+    shape have been checked (no np.load: nothing is allocated before the checks)."""
+
+    def __init__(self, path: pathlib.Path):
+        try:
+            self.zf = zipfile.ZipFile(path)
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as exc:
+            raise RecordingError(f"{path}: not a NumPy .npz file ({type(exc).__name__})") from None
+        self.infos = {}
+        for info in self.zf.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            self.infos.setdefault(name, info)
+
+    def close(self) -> None:
+        self.zf.close()
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.infos
+
+    def header(self, key: str):
+        """(dtype, shape, fortran_order, data bytes, data offset) as the member declares them."""
+        info = self.infos[key]
+        try:
+            with self.zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f, max_header_size=MAX_HEADER_BYTES)
+                elif version == (2, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f, max_header_size=MAX_HEADER_BYTES)
+                else:
+                    raise RecordingError(f"{key}: .npy format version {version} is not supported (1.0 or 2.0)")
+                offset = f.tell()
+        except RecordingError:
+            raise
+        except (ValueError, SyntaxError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error,
+                NotImplementedError, RuntimeError) as exc:
+            raise RecordingError(f"{key}: not a valid .npy member ({_why(exc)})") from None
+        if dtype.hasobject:
+            raise RecordingError(f"{key}: holds Python objects (pickled); refused")
+        if dtype.fields is not None or dtype.subdtype is not None:
+            raise RecordingError(f"{key}: a structured dtype {show(str(dtype))}; expected a plain array")
+        if any(not isinstance(n, int) or n < 0 for n in shape) or len(shape) > 4:
+            raise RecordingError(f"{key}: a header declaring shape {show(list(shape))}")
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes != info.file_size - offset:
+            raise RecordingError(f"{key}: the header declares shape {tuple(shape)} of {dtype} ({nbytes} bytes) but "
+                                 f"the member holds {max(info.file_size - offset, 0)} bytes")
+        return dtype, tuple(shape), fortran, nbytes, offset
+
+    def read(self, key: str):
+        """The member's array, once its header has passed the checks."""
+        dtype, shape, fortran, nbytes, offset = self.header(key)
+        try:
+            buf = bytearray(nbytes)        # writable, and allocated only after the checks
+            with self.zf.open(self.infos[key]) as f:
+                f.read(offset)
+                got = f.readinto(buf)
+                f.read(1)                  # reaching the member's end checks its CRC
+        except (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, RuntimeError) as exc:
+            raise RecordingError(f"{key}: corrupt data in the archive ({_why(exc)})") from None
+        if got != nbytes:
+            raise RecordingError(f"{key}: truncated ({got} of {nbytes} bytes)")
+        arr = np.frombuffer(buf, dtype=dtype)
+        return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
+
+
+def _why(exc: BaseException) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text[:120]}" if text else type(exc).__name__
+
+
+def _array(data: _Npz, key: str, shape: tuple, required: bool = True, rows_max: int | None = None):
+    """The key as float64 of `shape` (None entries: any length, at most rows_max); RecordingError otherwise."""
     if key not in data:
         if required:
             raise RecordingError(f"{key}: missing required key")
         return None
-    try:
-        return data[key]
-    except ValueError:
-        raise RecordingError(f"{key}: holds Python objects (pickled); expected {expected}") from None
-
-
-def _array(data, key: str, shape: tuple, required: bool = True):
-    """The key as float64 of `shape` (None entries: any length); RecordingError otherwise."""
-    raw = _raw(data, key, required, "a numeric array")
-    if raw is None:
-        return None
-    if raw.dtype.kind not in "fiu":
-        raise RecordingError(f"{key}: expected a numeric array, got dtype {raw.dtype}")
-    arr = np.asarray(raw, dtype=np.float64)
-    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+    dtype, declared, *_ = data.header(key)
+    if dtype.kind not in "fiu":
+        raise RecordingError(f"{key}: expected a numeric array, got dtype {dtype}")
+    if len(declared) != len(shape) or any(s is not None and s != a for s, a in zip(shape, declared)):
         want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
-        raise RecordingError(f"{key}: expected shape {want}, got {arr.shape}")
+        raise RecordingError(f"{key}: expected shape {want}, got {declared}")
+    if rows_max is not None and declared and declared[0] > rows_max:
+        raise RecordingError(f"{key}: {declared[0]} rows, at most {rows_max}")
+    arr = np.asarray(data.read(key), dtype=np.float64)
     bad = ~np.isfinite(arr)
     if bad.any():
         row = int(np.argwhere(bad)[0][0]) if arr.ndim else 0
@@ -82,28 +164,40 @@ def _array(data, key: str, shape: tuple, required: bool = True):
     return arr
 
 
-def _string(data, key: str, required: bool) -> str | None:
-    raw = _raw(data, key, required, "a string")
-    if raw is None:
+def _string(data: _Npz, key: str, required: bool) -> str | None:
+    if key not in data:
+        if required:
+            raise RecordingError(f"{key}: missing required key")
         return None
-    if raw.ndim != 0 or raw.dtype.kind not in "US":
-        raise RecordingError(f"{key}: expected a string scalar, got dtype {raw.dtype} shape {raw.shape}")
-    value = raw.item()
-    return value.decode() if isinstance(value, bytes) else str(value)
+    dtype, shape, _, nbytes, _ = data.header(key)
+    if shape != () or dtype.kind not in "US":
+        raise RecordingError(f"{key}: expected a string scalar, got dtype {dtype} shape {shape}")
+    if nbytes > MAX_STRING_BYTES:
+        raise RecordingError(f"{key}: a string of {nbytes} bytes, at most {MAX_STRING_BYTES}")
+    value = data.read(key).item()
+    if isinstance(value, bytes):
+        try:
+            return value.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise RecordingError(f"{key}: not UTF-8 (byte {exc.start})") from None
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise RecordingError(f"{key}: holds characters that are not Unicode text (lone surrogates)") from None
+    return value
 
 
 def _increasing(t: np.ndarray, key: str) -> None:
     if len(t) < 2:
         raise RecordingError(f"{key}: needs at least 2 samples, got {len(t)}")
+    if np.abs(t).max() > MAX_ABS_TIME_S:
+        raise RecordingError(f"{key}: timestamps beyond {MAX_ABS_TIME_S:g} s (got {show(float(np.abs(t).max()))})")
     d = np.diff(t)
     if np.any(d <= 0):
         i = int(np.argmax(d <= 0)) + 1
         raise RecordingError(f"{key}: timestamps must be strictly increasing (row {i}: {t[i]!r} after {t[i - 1]!r})")
-
-
-def _same_length(arr: np.ndarray, key: str, n: int, of: str) -> None:
-    if len(arr) != n:
-        raise RecordingError(f"{key}: has {len(arr)} rows but {of} has {n}")
+    if t[-1] - t[0] > MAX_DURATION_S:
+        raise RecordingError(f"{key}: spans {t[-1] - t[0]:.6g} s, at most {MAX_DURATION_S:g} s")
 
 
 def _unit_quats(q: np.ndarray, key: str) -> np.ndarray:
@@ -120,68 +214,59 @@ def load_recording(path: str | pathlib.Path) -> Recording:
     """Read and validate a recording; every problem is a RecordingError naming the key."""
     path = pathlib.Path(path)
     if not path.is_file():
-        raise RecordingError(f"{path}: no such file")
+        raise RecordingError(f"{show(str(path), 200)}: no such file")
+    data = _Npz(path)
     try:
-        npz = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise RecordingError(f"{path}: not a NumPy .npz file ({type(exc).__name__})") from None
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise RecordingError(f"{path}: a single .npy array, expected a .npz archive")
-    with npz as data:
-        keys = {k for k in data.files if not k.startswith("truth_")}
-        get = _Lazy(data, keys)
-        fmt = _string(get, "format", True)
-        if fmt != FORMAT:
-            raise RecordingError(f"format: expected {FORMAT!r}, got {fmt!r}")
-        imu_t = _array(get, "imu_t", (None,))
-        _increasing(imu_t, "imu_t")
-        n = len(imu_t)
-        gyro = _array(get, "gyro", (None, 3))
-        _same_length(gyro, "gyro", n, "imu_t")
-        accel = _array(get, "accel", (None, 3))
-        _same_length(accel, "accel", n, "imu_t")
-        tcp_t = _array(get, "tcp_t", (None,))
-        _increasing(tcp_t, "tcp_t")
-        m = len(tcp_t)
-        tcp_pos = _array(get, "tcp_pos", (None, 3))
-        _same_length(tcp_pos, "tcp_pos", m, "tcp_t")
-        tcp_quat = _array(get, "tcp_quat", (None, 4))
-        _same_length(tcp_quat, "tcp_quat", m, "tcp_t")
-        tcp_quat = _unit_quats(tcp_quat, "tcp_quat")
-        mount = _unit_quats(_array(get, "imu_in_tcp_quat", (4,)), "imu_in_tcp_quat")
-        grip = _array(get, "grip_force", (None,), required=False)
-        if grip is not None:
-            _same_length(grip, "grip_force", m, "tcp_t")
-        tcp_vel = _array(get, "tcp_vel", (None, 3), required=False)
-        if tcp_vel is not None:
-            _same_length(tcp_vel, "tcp_vel", m, "tcp_t")
-        normal = _array(get, "plane_normal", (3,), required=False)
-        if normal is not None and abs(np.linalg.norm(normal) - 1.0) > UNIT_TOL:
-            raise RecordingError(f"plane_normal: expected a unit vector, |n| = {np.linalg.norm(normal):.6f}")
-        meta_s = _string(get, "meta", False)
-        meta = {}
-        if meta_s is not None:
-            try:
-                meta = json.loads(meta_s)
-            except json.JSONDecodeError as exc:
-                raise RecordingError(f"meta: not valid JSON ({exc.msg} at char {exc.pos})") from None
-            if not isinstance(meta, dict):
-                raise RecordingError(f"meta: expected a JSON object, got {type(meta).__name__}")
+        return _read(data)
+    finally:
+        data.close()
+
+
+def _read(get: _Npz) -> Recording:
+    fmt = _string(get, "format", True)
+    if fmt != FORMAT:
+        raise RecordingError(f"format: expected {FORMAT!r}, got {show(fmt)}")
+    imu_t = _array(get, "imu_t", (None,), rows_max=MAX_IMU_SAMPLES)
+    _increasing(imu_t, "imu_t")
+    n = len(imu_t)
+    gyro = _array(get, "gyro", (None, 3)) if _rows(get, "gyro", n, "imu_t") else None
+    accel = _array(get, "accel", (None, 3)) if _rows(get, "accel", n, "imu_t") else None
+    tcp_t = _array(get, "tcp_t", (None,), rows_max=MAX_TCP_SAMPLES)
+    _increasing(tcp_t, "tcp_t")
+    m = len(tcp_t)
+    tcp_pos = _array(get, "tcp_pos", (None, 3)) if _rows(get, "tcp_pos", m, "tcp_t") else None
+    tcp_quat = _array(get, "tcp_quat", (None, 4)) if _rows(get, "tcp_quat", m, "tcp_t") else None
+    tcp_quat = _unit_quats(tcp_quat, "tcp_quat")
+    mount = _unit_quats(_array(get, "imu_in_tcp_quat", (4,)), "imu_in_tcp_quat")
+    grip = _array(get, "grip_force", (None,), required=False) if _rows(get, "grip_force", m, "tcp_t", False) else None
+    tcp_vel = _array(get, "tcp_vel", (None, 3), required=False) if _rows(get, "tcp_vel", m, "tcp_t", False) else None
+    normal = _array(get, "plane_normal", (3,), required=False)
+    if normal is not None and abs(np.linalg.norm(normal) - 1.0) > UNIT_TOL:
+        raise RecordingError(f"plane_normal: expected a unit vector, |n| = {np.linalg.norm(normal):.6f}")
+    meta_s = _string(get, "meta", False)
+    meta = {}
+    if meta_s is not None:
+        try:
+            meta = loads(meta_s, max_depth=MAX_META_DEPTH)
+        except JsonLimitError as exc:
+            raise RecordingError(f"meta: not valid JSON: {exc}") from None
+        if not isinstance(meta, dict):
+            raise RecordingError(f"meta: expected a JSON object, got {type(meta).__name__}")
     return Recording(imu_t, gyro, accel, tcp_t, tcp_pos, tcp_quat, mount, grip,
                      None if normal is None else normal / np.linalg.norm(normal), tcp_vel, meta)
 
 
-class _Lazy:
-    """Mapping view of an NpzFile restricted to non-truth keys (loads arrays on access)."""
-
-    def __init__(self, data, keys):
-        self._data, self._keys = data, keys
-
-    def __contains__(self, key):
-        return key in self._keys
-
-    def __getitem__(self, key):
-        return self._data[key]
+def _rows(data: _Npz, key: str, n: int, of: str, required: bool = True) -> bool:
+    """Whether `key` is there (RecordingError if required and not); its declared rows must be n
+    (checked from the header, before its data are read)."""
+    if key not in data:
+        if required:
+            raise RecordingError(f"{key}: missing required key")
+        return False
+    _, shape, *_ = data.header(key)
+    if len(shape) >= 1 and shape[0] != n:
+        raise RecordingError(f"{key}: has {shape[0]} rows but {of} has {n}")
+    return True
 
 
 def load_truth(path: str | pathlib.Path) -> dict:
