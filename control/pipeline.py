@@ -26,6 +26,11 @@ TCP_TURNING_RAD_S = 0.01      # the gripper turns (its own rate from propriocept
 FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than this is no position measurement
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
 WDOT_MAX_AGE_S = 0.05         # a reported TCP rate's last change is extrapolated at most this far
+# The LSM6DSR's clipping points at its widest full scales (4000 dps, 16 g: int16 32767 LSB, less half
+# an LSB), until a source says which scales it runs (drivers.lsm6dsr.Scaling.saturation).
+DEFAULT_SATURATION = (32766.5 * 0.140 * math.pi / 180.0,      # 140 mdps/LSB: 80.06 rad/s
+                      32766.5 * 0.488e-3 * 9.80665)            # 0.488 mg/LSB: 156.8 m/s^2
+SATURATED_BATCH_FRACTION = 0.5    # a batch this clipped counts toward a clipped stream (a stuck or overloaded chip)
 
 
 class EtaSchedule:
@@ -183,13 +188,14 @@ class ContactEstimate:
     angle_rad: float = 0.0               # rotation of the object since onset, integrated from the gyro
     nis_ratio: float | None = None       # smoothed innovation NIS / its expectation (None: no innovations)
     onset_p_tcp: np.ndarray | None = None    # the TCP at the onset sample, world, m
+    saturated: int = 0                   # samples of this episode clipped at full scale (not used by the filter)
     extra: dict = field(default_factory=dict)
 
     def to_json(self, method: str | None = None) -> dict:
         return {"t": self.t, "onset_t": self.onset_t, "p": self.p.tolist(), "std": self.std.tolist(),
                 "converged": self.converged, "method": method or self.method,
                 "axis": None if self.axis is None else self.axis.tolist(), "angle_deg": math.degrees(self.angle_rad),
-                "nis_ratio": self.nis_ratio}
+                "nis_ratio": self.nis_ratio, "saturated_samples": self.saturated}
 
 
 @dataclass
@@ -251,6 +257,16 @@ class ContactPipeline:
         self._stamp_prev = np.nan
         self._begin_t: float | None = None
         self.latest: ContactEstimate | None = None
+        self._g_sat, self._a_sat = DEFAULT_SATURATION
+        self.saturated = 0                   # samples of the current episode clipped at full scale
+        self.saturated_since: float | None = None   # the stream has been mostly clipped since this time
+        self._since_gyro_sat = 1 << 30       # samples since the last clipped gyro sample (across batches)
+
+    def set_saturation(self, gyro_rad_s: float, accel_m_s2: float) -> None:
+        """Where the source clips (drivers.lsm6dsr.Scaling.saturation): samples at or beyond it are
+        not measurements. A clipped gyro sample, and every filtered sample whose low-pass window
+        holds it, is left out of the estimator; the episode counts them (ContactEstimate.saturated)."""
+        self._g_sat, self._a_sat = float(gyro_rad_s), float(accel_m_s2)
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
                     force: float = np.nan) -> None:
@@ -328,6 +344,20 @@ class ContactPipeline:
         if len(batch) == 0:
             return events, []
         t, gyro, accel = batch[:, 0], batch[:, 1:4], batch[:, 4:7]
+        gyro_clipped = np.abs(gyro).max(axis=1) >= self._g_sat
+        clipped = gyro_clipped | (np.abs(accel).max(axis=1) >= self._a_sat)
+        n_clipped = int(np.count_nonzero(clipped))
+        if n_clipped >= SATURATED_BATCH_FRACTION * len(t):
+            if self.saturated_since is None:
+                self.saturated_since = float(t[int(np.argmax(clipped))])
+        else:
+            self.saturated_since = None
+        # each filtered sample whose low-pass window holds a clipped gyro sample is tainted
+        idx = np.arange(len(t))
+        last = np.maximum.accumulate(np.where(gyro_clipped, idx, -(1 << 40)))
+        since = np.where(last >= 0, idx - last, self._since_gyro_sat + idx + 1)
+        tainted = since < self.cond.lpf_window
+        self._since_gyro_sat = int(since[-1])
         start = 0
         if not self.tracking:
             if self._begin_t is not None:
@@ -359,6 +389,7 @@ class ContactPipeline:
             self._n_w = 0
             self._angle = 0.0
             self._t_out = -np.inf
+            self.saturated = 0
             start = hit
             events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist(), "commanded": commanded})
         w_f = self.cond.lowpass(gyro)[start:]
@@ -385,6 +416,8 @@ class ContactPipeline:
         # The estimator then also needs the gripper's rate: eta's error scales only the object's
         # rotation relative to the gripper.
         tcp_turning = float(np.max(np.einsum("ij,ij->i", w_tcp, w_tcp))) > TCP_TURNING_RAD_S ** 2
+        self.saturated += int(np.count_nonzero(clipped[start:]))
+        ok &= ~tainted[start:]
         if not ok.all():
             ts, w_obj, p, v, var_v, var_w, fresh, w_tcp = (ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok],
                                                            fresh[ok], w_tcp[ok])
@@ -447,7 +480,7 @@ class ContactPipeline:
                                converged=in_plane < CONVERGED_STD_M and steps > 100, nis=float(row[K.ROW_NIS]),
                                steps=steps, method=self.method, in_plane_std=in_plane,
                                angle_rad=float(row[K.ROW_ANGLE]), nis_ratio=float(row[K.ROW_CONSISTENCY]),
-                               onset_p_tcp=self.onset_p_tcp)
+                               onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)
 
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator
@@ -471,4 +504,4 @@ class ContactPipeline:
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
                                angle_rad=self._angle, nis_ratio=getattr(est, "consistency", None),
-                               onset_p_tcp=self.onset_p_tcp)
+                               onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)

@@ -152,6 +152,7 @@ class StreamThread:
         self.board = board
         self.chunk_s = chunk_s
         self.mutate = mutate           # optional function(bytes) -> bytes, for fault injection
+        self.override = None           # optional (gyro rad/s (3,), accel m/s^2 (3,)) sent instead of rest
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="imu-emulator", daemon=True)
         self.rng = np.random.default_rng(0)
@@ -167,6 +168,8 @@ class StreamThread:
             t_next += n / self.board.p.odr_hz
             gyro = self.rng.normal(0, 0.005, (n, 3))
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
+            if self.override is not None:            # e.g. a chip stuck at full scale (clipped by the board)
+                gyro, accel = np.tile(self.override[0], (n, 1)), np.tile(self.override[1], (n, 1))
             frames = self.board.packets(gyro, accel)
             if self.device.master is not None:
                 try:        # OSError: unplugged meanwhile

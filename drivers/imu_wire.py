@@ -69,6 +69,7 @@ class Counters:
     bytes_discarded: int = 0
     samples_lost: int = 0
     status_packets: int = 0
+    bad_status: int = 0         # status packets whose values are outside the protocol's ranges (ignored)
     fifo_overruns: int = 0
     bytes_in: int = 0
     bytes_consumed: int = 0     # bytes of frames that passed the CRC

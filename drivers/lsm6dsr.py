@@ -9,8 +9,20 @@ GYRO_SENS_MDPS_PER_LSB = {125: 4.375, 250: 8.75, 500: 17.5, 1000: 35.0, 2000: 70
 ACCEL_SENS_MG_PER_LSB = {2: 0.061, 4: 0.122, 8: 0.244, 16: 0.488}
 STANDARD_GRAVITY_M_S2 = 9.80665
 DEFAULT_ODR_HZ = 6667
+# The chip's output data rates (datasheet Table 52/53, high-performance mode), Hz; a board reports
+# the one configured, rounded (12.5 Hz as 12 or 13).
+ODR_HZ = (12.5, 26.0, 52.0, 104.0, 208.0, 416.0, 833.0, 1666.0, 3332.0, 6667.0)
+ODR_TOL = 0.05                 # a reported rate within this fraction of one of ODR_HZ is that rate
+RAW_MAX = 32767
 DEFAULT_GYRO_FS_DPS = 4000
 DEFAULT_ACCEL_FS_G = 16
+
+
+def odr_problem(odr_hz: float) -> str | None:
+    """Why a reported output data rate is none of the chip's, or None."""
+    if any(abs(odr_hz - r) <= ODR_TOL * r for r in ODR_HZ):
+        return None
+    return f"odr_hz {odr_hz:g} is not an LSM6DSR rate ({', '.join(f'{r:g}' for r in ODR_HZ)} Hz)"
 
 
 class Scaling:
@@ -30,6 +42,12 @@ class Scaling:
         self.accel_fs_g = accel_fs_g
         self.gyro_rad_s_per_lsb = GYRO_SENS_MDPS_PER_LSB[gyro_fs_dps] * 1e-3 * math.pi / 180.0
         self.accel_m_s2_per_lsb = ACCEL_SENS_MG_PER_LSB[accel_fs_g] * 1e-3 * STANDARD_GRAVITY_M_S2
+
+    @property
+    def saturation(self) -> tuple[float, float]:
+        """(gyro rad/s, accel m/s^2): a sample this large on any axis is clipped at full scale
+        (int16 +32767 or -32768; half an LSB below, so that rounding on the way to SI is no issue)."""
+        return ((RAW_MAX - 0.5) * self.gyro_rad_s_per_lsb, (RAW_MAX - 0.5) * self.accel_m_s2_per_lsb)
 
     def to_si(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raw = raw.astype(np.float64)

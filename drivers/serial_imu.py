@@ -10,7 +10,7 @@ import serial
 import serial.tools.list_ports
 
 from drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
-from drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling
+from drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
 from drivers.timesync import ClockSync, Unwrapper
 
 READ_CHUNK_BYTES = 1 << 16
@@ -58,6 +58,8 @@ class SerialParams:
             Scaling(p.gyro_fs_dps, p.accel_fs_g)
         except ValueError as exc:
             raise ConfigError(f"{section.path}.{exc}") from None
+        if odr_problem(p.odr_hz):
+            raise ConfigError(f"{section.path}.{odr_problem(p.odr_hz)}")
         return p
 
 
@@ -170,13 +172,23 @@ class SerialImuSource:
         ts, raws = [], []
         for pkt in self.parser.feed(data):
             if isinstance(pkt, StatusPacket):
+                # every field against the protocol's ranges before any is used: a status naming a
+                # range or a rate the chip has not is counted and ignored whole
+                problem = odr_problem(pkt.odr_hz)
+                if problem is None:
+                    try:
+                        Scaling(pkt.gyro_fs_dps, pkt.accel_fs_g)
+                    except ValueError as exc:
+                        problem = str(exc)
+                if problem is not None:
+                    self.parser.counters.bad_status += 1
+                    if self.parser.counters.bad_status == 1:
+                        self.events.append({"kind": "warning", "code": "imu_bad_status",
+                                            "message": f"IMU status packet ignored: {problem}"})
+                    continue
                 self.status = pkt
-                try:
-                    self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
-                except ValueError:
-                    self.parser.counters.malformed += 1     # a status naming a range the chip has not
-                if pkt.odr_hz > 0:
-                    self.odr_hz = float(pkt.odr_hz)
+                self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
+                self.odr_hz = float(pkt.odr_hz)
             elif isinstance(pkt, SamplesPacket):
                 n = len(pkt.raw)
                 t0 = self.unwrap(pkt.t0_us)
@@ -195,6 +207,11 @@ class SerialImuSource:
         gyro, accel = self.scaling.to_si(np.vstack(raws))
         self.latest = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
         return t, gyro, accel
+
+    @property
+    def saturation(self) -> tuple[float, float]:
+        """(gyro rad/s, accel m/s^2) at which a sample is clipped, at the full scales in use."""
+        return self.scaling.saturation
 
     def counters(self) -> dict:
         out = self.parser.counters.as_dict()

@@ -34,6 +34,7 @@ from multiprocessing.reduction import ForkingPickler
 import numpy as np
 
 from drivers.imu_emulator import Board, BoardParams, PtyDevice
+from drivers.lsm6dsr import Scaling
 from drivers.sim_imu import SimImu, SimImuParams
 from robots.backend import JointState, SimTruth, joint_rates
 from robots.model import ArmModel
@@ -298,6 +299,11 @@ class SimProcess:
         self.command_joint_velocity(np.zeros(self.nq))
 
     # -- IMU source (imu_out "pipe") -----------------------------------------
+    @property
+    def saturation(self) -> tuple[float, float]:
+        """(gyro rad/s, accel m/s^2) at which the simulated chip clips (its int16 at the full scales)."""
+        return Scaling(self.spec.imu.gyro_fs_dps, self.spec.imu.accel_fs_g).saturation
+
     def read(self, timeout: float = 0.05):
         """Next chunk (t (n,), gyro (n,3), accel (n,3)) or None after `timeout` seconds."""
         conn = self._imu_rx

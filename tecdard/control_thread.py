@@ -140,7 +140,7 @@ class ControlThread:
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue,
                  to_estimator: queue.Queue, outbox: queue.Queue, q_home: np.ndarray, robot_name: str,
-                 notifier=None, map_settings: MapSettings | None = None):
+                 notifier=None, map_settings: MapSettings | None = None, imu_saturated_since=None):
         self.p = params
         self.model = model.clone()
         self.robot = robot
@@ -152,6 +152,8 @@ class ControlThread:
         self.robot_name = robot_name
         self.notifier = notifier
         self.map_settings = map_settings or MapSettings()
+        self.imu_saturated_since = imu_saturated_since or (lambda: None)   # latest value of the estimator thread
+        self._task_saturated = 0            # IMU samples clipped at full scale in the running task's episodes
         # map files are fused and written here, never on the 20 ms tick
         self._writer = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-writer")
         self._writes: list[concurrent.futures.Future] = []
@@ -278,6 +280,7 @@ class ControlThread:
         v, w = twist[:3].copy(), twist[3:].copy()
         est = self.contact.get()
         self._check_faults(now)
+        self._check_saturation(now)
         self._check_limits(js, est)
         self._handle_commands(p, v)
         p_plan, v_plan = self.planner.position, self.planner.velocity
@@ -337,6 +340,17 @@ class ControlThread:
             return
         self._stale_deferred = False
         self._set_fault("imu_stale", f"no IMU sample for {age * 1e3:.0f} ms (limit {self.p.imu_stale_s * 1e3:.0f} ms)")
+
+    def _check_saturation(self, now: float) -> None:
+        """A stream clipped at full scale for longer than imu_stale_s is a sensor fault (stuck, or
+        overloaded): no contact can be measured from it. A single clipped impact is not."""
+        since = self.imu_saturated_since()
+        if since is not None and now - since > self.p.imu_stale_s:
+            if "imu_saturated" not in self.faults:
+                self._set_fault("imu_saturated", f"the IMU has read full scale for {(now - since) * 1e3:.0f} ms "
+                                                 f"(limit {self.p.imu_stale_s * 1e3:.0f} ms)")
+        elif since is None and "imu_saturated" in self.faults:
+            self._clear_fault("imu_saturated")
 
     def _check_limits(self, js, est) -> None:
         """Force and rotation thresholds: a protective stop of the running task."""
@@ -454,6 +468,7 @@ class ControlThread:
             return
         self.task = task
         self._last_est = None
+        self._task_saturated = 0
         self._task_t0 = time.monotonic()
         self.mode = "busy"
         self.planner.reset(p, speed=f["speed"])
@@ -495,6 +510,7 @@ class ControlThread:
     def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> tuple[np.ndarray, np.ndarray]:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
+            self._task_saturated = max(self._task_saturated, est.saturated)
             view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
                                onset_p_tcp=est.onset_p_tcp,
                                in_plane_std=est.in_plane_std, angle_rad=est.angle_rad)
@@ -594,6 +610,11 @@ class ControlThread:
             sim = None
         if outcome == "done":
             result = dict(result or {})
+            if self._task_saturated:
+                # said in the result: those samples were left out, the estimate rests on the rest
+                result["imu_saturated_samples"] = self._task_saturated
+                result["warnings"] = [f"imu_saturated: {self._task_saturated} IMU samples clipped at full scale "
+                                      "were left out of the estimate"]
             if sim is not None:
                 result["sim"] = sim
             self._event("task_done", task=task.id, verb=task.kind, result=result)

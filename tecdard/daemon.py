@@ -159,10 +159,11 @@ class Daemon:
         self.notifier = Notifier()
         source_odr_hz = serial_params.odr_hz if serial_params is not None else odr_hz
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
-                                         min_batch=max(1, int(source_odr_hz * self.pipeline.params.output_period_s)))
+                                         min_batch=max(1, int(source_odr_hz * self.pipeline.params.output_period_s)),
+                                         saturation=lambda: self.imu.saturation)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
-                                     self.map_settings)
+                                     self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
         self.keys = Keys(self.robot_name)
         self.state_json: str | None = None       # the latest state publication, for `status`
         self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: self.state_json, intake_params)

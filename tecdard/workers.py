@@ -69,8 +69,13 @@ class EstimatorThread:
     """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
     estimates leave through the `contact` latest-value slot and the outbox."""
 
-    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1):
+    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1,
+                 saturation=None):
+        """`saturation()` gives the IMU source's clipping points (gyro rad/s, accel m/s^2), which
+        change with the full scales a board reports."""
         self.pipeline = pipeline
+        self.saturation = saturation
+        self.saturated_since: float | None = None   # latest value: the IMU stream has been clipped since then
         self.ring = ring
         # Samples to wait for (up to POP_TIMEOUT_S) before a batch. The pipeline's fixed cost is per
         # batch (some fifty numpy calls), and a source delivers a few samples at a time (8-sample
@@ -91,6 +96,7 @@ class EstimatorThread:
 
     def run(self, stop: threading.Event) -> None:
         pipe = self.pipeline
+        sat_limits = None
         while not stop.is_set():
             while True:
                 try:
@@ -110,7 +116,13 @@ class EstimatorThread:
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
+            if self.saturation is not None:
+                limits = self.saturation()
+                if limits != sat_limits:
+                    sat_limits = limits
+                    pipe.set_saturation(*limits)
             events, est = pipe.process(batch)
+            self.saturated_since = pipe.saturated_since
             if not self.warm.is_set() and pipe.warm:
                 self.warm.set()
             for ev in events:

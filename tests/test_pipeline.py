@@ -7,11 +7,12 @@ from control.conditioning import GyroConditioner
 from control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, relative_rotvec, rotvec_to_matrix,
                               signed_angle, unit)
 from control.onset import OnsetDetector
-from control.pipeline import ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
+from control.pipeline import DEFAULT_SATURATION, ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
 
 ODR_HZ = 6667.0
 PROPRIO_HZ = 65.0
 TOL_M = 3e-3
+CLIPPED_EXTRA_ERR_M = 1e-3     # a clipped burst left out costs the estimate at most this
 
 
 def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf"):
@@ -334,3 +335,38 @@ def test_the_compiled_batch_run_equals_the_per_output_loop(case):
             x, y = getattr(a, name), getattr(b, name)
             if x is not None:
                 np.testing.assert_allclose(x, y, rtol=FUSED_REL_TOL, atol=1e-15, err_msg=f"{name} at {a.t}")
+
+
+def test_samples_clipped_at_full_scale_are_left_out_and_counted():
+    """Issue 16: a clipped gyro sample is no measurement. Mid-episode, 15 ms of a chip at full scale
+    leave the estimate where it was without them (every filtered sample whose window holds a clipped
+    one is left out), and the estimate says how many were clipped; taken as data they ruin it."""
+    from control.geometry import quat_to_matrix
+    from robots.scenarios import Scenario, generate
+    from tecdard.config import Config
+    from tecdard.estimation import build_pipeline
+    from tecdard.localize import replay
+    from tecdard.recording import Recording
+
+    fields, truth = generate(Scenario(kind="edge-arc", seed=4, duration_s=0.8))
+    rec = Recording.from_fields(fields)
+
+    def final(rec, limits=None):
+        pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+                              plane_normal=rec.plane_normal)
+        if limits is not None:
+            pipe.set_saturation(*limits)
+        _, _, last = replay(rec, pipe)
+        d = last.p - truth["p_c"]
+        return float(np.linalg.norm(d - np.dot(d, truth["axis"]) * truth["axis"])), last
+
+    clean_err, clean = final(rec)
+    assert clean.saturated == 0
+    burst = (rec.imu_t > float(truth["onset_t"]) + 0.2) & (rec.imu_t < float(truth["onset_t"]) + 0.215)
+    g_sat, a_sat = DEFAULT_SATURATION
+    rec.gyro[burst] = [g_sat + 1e-6, -g_sat - 1e-6, g_sat + 1e-6]        # what the chip reports clipped
+    err, last = final(rec)
+    assert last.saturated == int(burst.sum()) > 50
+    assert err < clean_err + CLIPPED_EXTRA_ERR_M, (err, clean_err)
+    naive_err, naive = final(rec, limits=(np.inf, np.inf))              # without the check
+    assert naive.saturated == 0 and naive_err > 10 * max(err, 1e-3), (naive_err, err)

@@ -9,6 +9,8 @@ import pytest
 
 from drivers import imu_wire as W
 from drivers.imu_emulator import Board, BoardParams, PtyDevice, StreamThread
+from drivers.imu_wire import encode_status
+from drivers.lsm6dsr import Scaling
 from drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from tests.conftest import ROOT, sim_config
 
@@ -229,3 +231,48 @@ def test_daemon_without_imu_data_comes_up_after_the_warm_up_timeout(make_daemon,
     assert "imu_stale" in {f["code"] for f in d.client.command("status")["state"]["faults"]}
     refused = d.client.command("rotate", {"angle_deg": 10})
     assert refused["ok"] is False and refused["error"]["code"] == "fault"
+
+
+def test_a_board_stuck_at_full_scale_is_a_protective_stop_not_a_confident_contact(make_daemon, pty):
+    """Issue 16: a saturated stream during `approach` returned task_done with the contact 15 cm off
+    and a 0.1 mm std. Clipped samples are no measurements: a stream clipped for longer than the
+    stale limit is an `imu_saturated` fault, a protective stop, and refused tasks until it clears."""
+    streamer = StreamThread(pty, Board()).start()
+    try:
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
+                           "control.imu_stale_s": PRODUCT_IMU_STALE_S})
+        cli = d.client
+        time.sleep(0.5)
+        reply = cli.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.01, "max_distance": 0.05})
+        assert reply["ok"] is True, reply
+        time.sleep(0.5)
+        streamer.override = (np.array([100.0, -100.0, 100.0]), np.array([300.0, 300.0, -300.0]))
+        stop = cli.wait_event(("protective_stop",), timeout=5.0)
+        assert stop["cause"] == "imu_saturated" and "full scale" in stop["message"], stop
+        ended = cli.wait_event(("task_done", "task_failed"), reply["task"], timeout=5.0)
+        assert ended["kind"] == "task_failed" and "full scale" in ended["error"], ended
+        t_end = time.monotonic() + 5.0
+        while cli.command("status")["state"]["mode"] == "stopped" and time.monotonic() < t_end:
+            time.sleep(0.05)                          # braking to rest
+        assert cli.command("probe", {})["error"]["code"] == "fault"
+        streamer.override = None
+        cleared = cli.wait_event(("fault_cleared",), timeout=5.0)
+        assert cleared["code"] == "imu_saturated"
+        assert d.proc.poll() is None
+    finally:
+        streamer.join()
+
+
+def test_a_status_packet_outside_the_protocols_ranges_is_ignored_whole():
+    """One status with odr_hz=1 stopped a task on imu_stale: the driver took the rate. Each field is
+    now checked against the chip's ranges, and a packet with any field outside is counted and ignored."""
+    src = SerialImuSource(SerialParams(port="/dev/null"))
+    src.decode(encode_status(6667, 2000, 8), 0.0)
+    assert src.status.odr_hz == 6667 and src.scaling.gyro_fs_dps == 2000
+    for odr, gfs, afs in ((1, 2000, 8), (6667, 3, 8), (6667, 2000, 5), (65535, 4000, 16)):
+        src.decode(encode_status(odr, gfs, afs), 0.0)
+        assert src.odr_hz == 6667 and src.scaling.gyro_fs_dps == 2000 and src.scaling.accel_fs_g == 8
+    assert src.parser.counters.bad_status == 4
+    assert [e["code"] for e in src.drain_events()] == ["imu_bad_status"]     # said once, counted always
+    src.decode(encode_status(3332, 500, 4), 0.0)                              # a real change is taken
+    assert src.odr_hz == 3332 and src.saturation == Scaling(500, 4).saturation
