@@ -17,6 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tecdard.client import Client  # noqa: E402
+from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 
 ODR_HZ = 6667.0
@@ -84,7 +85,7 @@ def bench_rotate(radius: float, seed: int, strategy: str = "arc", angle_deg: flo
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:
         path = pathlib.Path(tmp) / "bench.yaml"
-        path.write_text(yaml.safe_dump(cfg))
+        path.write_text(dump_yaml(cfg))
         with open(pathlib.Path(tmp) / "log", "w") as log:
             proc = start_daemon(str(path), endpoint, log)
             try:

@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 from control.mapping import kernel_depth, raster_xy  # noqa: E402
 from robots.world import CONTAINER_M, mapping_scene  # noqa: E402
 from tecdard.client import Client  # noqa: E402
+from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.demo import free_port, start_daemon, stop_daemon  # noqa: E402
 from tecdard.mapfiles import colormap, write_png  # noqa: E402
 
@@ -68,7 +69,7 @@ def run(grid, orientations: int, speed: float, seed: int, out_dir: pathlib.Path)
     size = [CONTAINER_M[0] - 2 * INSET_M, CONTAINER_M[1] - 2 * INSET_M]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     path = out_dir / "bench.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+    path.write_text(dump_yaml(cfg))
     with open(out_dir / "log", "w") as log:
         proc = start_daemon(str(path), endpoint, log)
         try:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 
 from tecdard.config import Config, ConfigError
@@ -11,6 +12,9 @@ from tecdard.safejson import show
 
 
 def _cmd_run(args) -> int:
+    # maps, recordings and logs the daemon writes are the operator's alone (0600/0700), as the
+    # unit's UMask=0077 has it, whoever starts the daemon
+    os.umask(0o077)
     try:
         cfg = Config.load(args.config)
         from tecdard.daemon import Daemon   # heavy imports only once the config file exists

@@ -7,7 +7,7 @@ import time
 
 import zenoh
 
-from tecdard.zenoh_io import Keys, dumps, session_config
+from tecdard.zenoh_io import Keys, TlsFiles, dumps, session_config
 
 
 class ClientError(RuntimeError):
@@ -17,9 +17,10 @@ class ClientError(RuntimeError):
 class Client:
     """Connects to a daemon's endpoint (no listening, no multicast scouting)."""
 
-    def __init__(self, endpoint: str, robot: str = "sim"):
+    def __init__(self, endpoint: str, robot: str = "sim", tls: TlsFiles | None = None):
+        """`tls`: this client's certificate and key and the CA, for a daemon on a tls/ endpoint."""
         self.keys = Keys(robot)
-        self.session = zenoh.open(session_config([], [endpoint]))
+        self.session = zenoh.open(session_config([], [endpoint], tls=tls))
         self.events: queue.Queue = queue.Queue()
         self.event_log: list[dict] = []       # every event seen, in order (wait_event consumes the queue)
         self.states: queue.Queue = queue.Queue(maxsize=1000)

@@ -7,6 +7,7 @@ import sys
 import time
 
 from tecdard.client import Client, ClientError
+from tecdard.zenoh_io import TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -57,6 +58,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--robot", default="sim", help="robot name in the key expressions (default sim)")
         p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the task to end")
         p.add_argument("--json", action="store_true", help="print replies and events as JSON lines")
+        p.add_argument("--tls-ca", help="with a tls/ endpoint: the CA that signed the daemon's certificate")
+        p.add_argument("--tls-cert", help="with a tls/ endpoint: this client's certificate (its CN may be a commander)")
+        p.add_argument("--tls-key", help="with a tls/ endpoint: this client's private key")
         if verb in TASK_VERBS:
             p.add_argument("--no-follow", action="store_true", help="return once the task is accepted")
         for opt, _field, typ, help_ in fields:
@@ -79,8 +83,13 @@ def run_verb(args) -> int:
     payload = {field: getattr(args, opt.lstrip("-").replace("-", "_"))
                for opt, field, _t, _h in VERB_FIELDS[args.verb]
                if getattr(args, opt.lstrip("-").replace("-", "_")) is not None}
+    given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
+    if given and len(given) != 3:
+        print(f"tecdard {args.verb}: --tls-ca, --tls-cert and --tls-key go together", file=sys.stderr)
+        return EXIT_REFUSED
+    tls = TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None
     try:
-        cli = Client(args.connect, robot=args.robot)
+        cli = Client(args.connect, robot=args.robot, tls=tls)
     except Exception as exc:                      # zenoh refuses a malformed endpoint
         print(f"tecdard {args.verb}: cannot open a session to {args.connect}: {exc}", file=sys.stderr)
         return EXIT_NO_DAEMON

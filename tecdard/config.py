@@ -37,7 +37,8 @@ class _StrictLoader(yaml.SafeLoader):
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise ConfigError(f"line {event.start_mark.line + 1}: YAML aliases (*{show_name(event.anchor)}) "
-                              "are not accepted")
+                              "are not accepted; write the value out (an alias bomb expands a small file "
+                              "into billions of values)")
         self._depth += 1
         try:
             if self._depth > MAX_NESTING:
@@ -56,6 +57,17 @@ class _StrictLoader(yaml.SafeLoader):
 
 
 _StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_yaml_int)
+
+
+class _NoAliasDumper(yaml.SafeDumper):
+    def ignore_aliases(self, data) -> bool:
+        return True
+
+
+def dump_yaml(data: Any) -> str:
+    """YAML text that Config.load accepts: values written out, never as anchors and aliases
+    (yaml.safe_dump writes an alias for an object that appears twice)."""
+    return yaml.dump(data, Dumper=_NoAliasDumper)
 
 
 def _finite(value: Any) -> float | None:

@@ -4,7 +4,9 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import pathlib
 import queue
+import secrets
 import shutil
 import signal
 import sys
@@ -34,7 +36,8 @@ from tecdard.control_thread import ControlParams, ControlThread, LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
 from tecdard.safejson import show
-from tecdard.zenoh_io import DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, dumps, endpoint_problem, session_config
+from tecdard.zenoh_io import (DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, TlsFiles, access_control, dumps,
+                              endpoint_problem, session_config)
 
 log = logging.getLogger("tecdar")
 
@@ -49,6 +52,48 @@ MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
 MAX_ENDPOINT_CHARS = 256
 MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
+
+
+def _remove_stale_pty_dirs() -> None:
+    """sim-wire pty directories of daemons that no longer run (killed, so they could not clean up)."""
+    for path in pathlib.Path(tempfile.gettempdir()).glob(PTY_DIR_PREFIX + "*"):
+        pid = path.name[len(PTY_DIR_PREFIX):].split("-")[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not pathlib.Path(f"/proc/{pid}").exists():
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _security(zc, endpoints: list[str]) -> tuple[TlsFiles | None, list[str]]:
+    """zenoh.tls (mutual TLS: ca, cert, key) and zenoh.commanders (certificate common names that may
+    send commands), checked: the files readable, every endpoint tls/ when TLS is on (a tcp/ beside it
+    would let anyone in unauthenticated), and commanders only with TLS (names come from certificates)."""
+    tls = None
+    if zc.has("tls"):
+        sec = zc.section("tls")
+        files = {}
+        for key in ("ca", "cert", "key"):
+            path = sec.getstr(key)
+            try:
+                with open(path, "rb") as fh:
+                    if b"-----BEGIN" not in fh.read(64 * 1024):
+                        raise ConfigError(f"zenoh.tls.{key}: {show(path)} is not a PEM file")
+            except OSError as exc:
+                raise ConfigError(f"zenoh.tls.{key}: cannot read {show(path)} ({exc.strerror})") from None
+            files[key] = path
+        tls = TlsFiles(**files)
+        plain = [ep for ep in endpoints if not ep.startswith("tls/")]
+        if plain:
+            raise ConfigError(f"zenoh.listen/connect: {show(plain[0])} is not a tls/ endpoint; with zenoh.tls every "
+                              "endpoint must be, or unauthenticated peers get in beside it")
+    elif any(ep.startswith("tls/") for ep in endpoints):
+        raise ConfigError("zenoh.tls: a tls/ endpoint needs zenoh.tls (ca, cert, key)")
+    commanders = zc.getstrlist("commanders", [], max_len=256, max_items=64)
+    if commanders and tls is None:
+        raise ConfigError("zenoh.commanders: needs zenoh.tls (the names are certificates' common names)")
+    if zc.has("commanders") and not commanders:
+        raise ConfigError("zenoh.commanders: an empty list would let nobody command; leave it out to let every "
+                          "authenticated peer command")
+    return tls, commanders
 
 
 class Daemon:
@@ -88,6 +133,7 @@ class Daemon:
                 problem = endpoint_problem(ep)
                 if problem:
                     raise ConfigError(f"zenoh.{key}: {show(ep)}: {problem}")
+        self.tls, commanders = _security(zc, self.listen + self.connect)
         intake_params = IntakeParams.from_config(zc)
 
         self.limits = C.Limits.from_config(cfg.section("limits"))
@@ -132,7 +178,8 @@ class Daemon:
         if self.imu_source == "sim-wire":
             # The simulated fingertip speaks tecdar-imu/1 on a pseudo-terminal and the real
             # serial driver reads it: parser, scaling and clock sync all run in simulation.
-            self._pty_dir = tempfile.mkdtemp(prefix="tecdar-imu-")
+            # made at start, removed at exit; one left by a killed daemon is removed by the next
+            self._pty_dir = os.path.join(tempfile.gettempdir(), f"{PTY_DIR_PREFIX}{os.getpid()}-{secrets.token_hex(4)}")
             self.sim_spec.pty_link = os.path.join(self._pty_dir, "ttyIMU")
             self.sim_spec.board = BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
                                               accel_fs_g=imu_params.accel_fs_g)
@@ -168,7 +215,9 @@ class Daemon:
         self.state_json: str | None = None       # the latest state publication, for `status`
         self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: self.state_json, intake_params)
         try:
-            self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES)
+            acl = access_control(self.keys, commanders) if commanders else None
+            self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES,
+                                               tls=self.tls, acl=acl)
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints ({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
@@ -182,6 +231,9 @@ class Daemon:
         self.shutdown_requested.set()
 
     def _start_threads(self) -> None:
+        if self._pty_dir is not None:
+            _remove_stale_pty_dirs()
+            os.makedirs(self._pty_dir, mode=0o700)
         self.robot.start()
         if isinstance(self.imu, SerialImuSource):
             # the real board, or (sim-wire) the child's pty, which exists once the child has started

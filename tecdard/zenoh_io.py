@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import dataclass
 
 import zenoh
 
@@ -36,21 +37,64 @@ def endpoint_problem(endpoint: str) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """Mutual TLS: this side's certificate and key, and the CA every peer's certificate must be signed by."""
+    ca: str
+    cert: str
+    key: str
+
+
 def session_config(listen: list[str], connect: list[str], multicast_scouting: bool = False,
-                   max_message_bytes: int | None = None) -> zenoh.Config:
-    """Peer-mode config; multicast scouting is off unless explicitly enabled. With
-    `max_message_bytes` (the daemon), larger messages are dropped by the transport and shared
-    memory is off, so that no payload bypasses that limit (Zenoh moves large messages between
-    processes of one host through shared memory, unfragmented)."""
+                   max_message_bytes: int | None = None, tls: TlsFiles | None = None,
+                   acl: dict | None = None, mode: str = "peer") -> zenoh.Config:
+    """A Zenoh session's config; multicast scouting is off unless explicitly enabled.
+
+    - `max_message_bytes` (the daemon): larger messages are dropped by the transport, and shared
+      memory is off, so that no payload bypasses that limit (Zenoh moves large messages between
+      processes of one host through shared memory, unfragmented).
+    - `tls`: mutual TLS on every tls/ endpoint, listening and connecting: each side presents its
+      certificate and checks the other's against the CA.
+    - `acl`: Zenoh's access control section (tecdard.daemon builds it from zenoh.commanders).
+    - `mode`: "peer" (the daemon and its clients), "client", or "router" (a local router).
+    """
     conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "true" if multicast_scouting else "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     if max_message_bytes is not None:
         conf.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
         conf.insert_json5("transport/shared_memory/enabled", "false")
+    if tls is not None:
+        for key, value in (("root_ca_certificate", tls.ca), ("listen_certificate", tls.cert),
+                           ("listen_private_key", tls.key), ("connect_certificate", tls.cert),
+                           ("connect_private_key", tls.key), ("enable_mtls", True)):
+            conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+    if acl is not None:
+        conf.insert_json5("access_control", json.dumps(acl))
     return conf
+
+
+def access_control(keys: "Keys", commanders: list[str]) -> dict:
+    """Zenoh ACL for the daemon: every authenticated peer may watch (state, contact, events, alive);
+    only peers whose certificate's common name is in `commanders` may query cmd/**. Anything else
+    is denied (a refused query reaches no queryable: its sender gets no reply)."""
+    watch = [keys.state, keys.contact, keys.events, keys.alive]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [
+            {"id": "watch", "permission": "allow", "flows": ["egress", "ingress"], "key_exprs": watch,
+             "messages": ["put", "declare_subscriber", "liveliness_token", "liveliness_query",
+                          "declare_liveliness_subscriber", "query", "reply"]},
+            {"id": "command", "permission": "allow", "flows": ["egress", "ingress"],
+             "key_exprs": [keys.cmd_all], "messages": ["query", "reply", "declare_queryable"]},
+        ],
+        "subjects": [{"id": "authenticated"}, {"id": "commanders", "cert_common_names": list(commanders)}],
+        "policies": [{"rules": ["watch"], "subjects": ["authenticated"]},
+                     {"rules": ["command"], "subjects": ["commanders"]}],
+    }
 
 
 class Keys:

@@ -14,6 +14,7 @@ import yaml
 
 from tecdard.client import Client
 from tecdard.demo import free_port
+from tecdard.config import dump_yaml
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
@@ -49,19 +50,19 @@ def sim_config(**overrides) -> dict:
 
 
 class DaemonProcess:
-    def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None):
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+    def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp"):
+        self.endpoint = f"{protocol}/127.0.0.1:{free_port()}"
         cfg = copy.deepcopy(cfg)
         cfg["zenoh"]["listen"] = [self.endpoint]
         cfg.setdefault("map", {}).setdefault("output_dir", str(tmp_path / "maps"))    # never into the checkout
         self.config_path = tmp_path / "tecdard.yaml"
-        self.config_path.write_text(yaml.safe_dump(cfg))
+        self.config_path.write_text(dump_yaml(cfg))
         self.log_path = tmp_path / "tecdard.log"
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(self.config_path)],
                                      stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
                                      env=None if env is None else {**os.environ, **env})
-        self.client = Client(self.endpoint, robot=cfg["robot"]["name"])
+        self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls)
         try:
             self.client.wait_alive(DAEMON_START_TIMEOUT_S)
         except Exception:
@@ -94,10 +95,11 @@ class DaemonProcess:
 def make_daemon(tmp_path):
     started = []
 
-    def factory(env: dict | None = None, **overrides) -> DaemonProcess:
+    def factory(env: dict | None = None, client_tls=None, protocol="tcp", **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
-        d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S, **overrides}), env)
+        d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S, **overrides}), env,
+                          client_tls=client_tls, protocol=protocol)
         started.append(d)
         return d
 

@@ -3,9 +3,8 @@ import subprocess
 import sys
 
 import pytest
-import yaml
 
-from tecdard.config import Config, ConfigError
+from tecdard.config import Config, ConfigError, dump_yaml
 from tests.conftest import ROOT, sim_config
 
 
@@ -43,7 +42,7 @@ def test_unknown_key_is_rejected():
 
 def run_with(tmp_path, cfg) -> subprocess.CompletedProcess:
     path = tmp_path / "bad.yaml"
-    path.write_text(cfg if isinstance(cfg, str) else yaml.safe_dump(cfg))
+    path.write_text(cfg if isinstance(cfg, str) else dump_yaml(cfg))
     return subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)],
                           capture_output=True, text=True, timeout=60, cwd=ROOT)
 
@@ -116,7 +115,7 @@ def refused(tmp_path, text: str | bytes) -> str:
 
 
 def sim_yaml(**overrides) -> str:
-    return yaml.safe_dump(sim_config(**overrides))
+    return dump_yaml(sim_config(**overrides))
 
 
 @pytest.mark.parametrize("make,fragment", [

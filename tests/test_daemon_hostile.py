@@ -7,6 +7,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from tests.conftest import ROOT, STILL_M, tcp_now
 from tests.test_daemon import TASK_TIMEOUT_S, assert_arc_opened_the_cutter
@@ -103,3 +104,76 @@ def test_a_flood_during_a_task_neither_ends_it_nor_delays_stop(make_daemon):
     assert int(out.strip() or 0) > 10_000, "the flood did not flood"
     assert d.proc.poll() is None
     assert "Traceback" not in d.log()
+
+
+# -- data loss: signals during a map --------------------------------------------------------------
+def map_daemon(make_daemon, tmp_path):
+    """A daemon over the box scene of the map test, and a 2 x 2 map started on it."""
+    from tests.test_daemon import MAP_SCENE
+    tilt, tool_m = np.radians(30.0), 0.12
+    tip_tcp = [float(tool_m * np.sin(tilt)), 0.0, float(tool_m * np.cos(tilt))]
+    d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": tip_tcp, "surface": "boxes", **MAP_SCENE},
+                       "map": {"output_dir": str(tmp_path / "maps"), "tool_tip_tcp": tip_tcp},
+                       "control.imu_stale_s": 0.25})
+    reply = d.client.command("map", {"origin": [0.32, -0.04], "size": [0.08, 0.08], "grid": [2, 2], "depth": 0.06,
+                                     "orientations": 1, "speed": 0.01})
+    assert reply["ok"] is True, reply
+    return d, reply["task"]
+
+
+def wait_for_points(d, task: str, n: int, timeout: float = TASK_TIMEOUT_S) -> None:
+    """Until the map has probed n points (its progress says so)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        state = latest_state(d.client)
+        if state["task"] and state["task"]["id"] == task and state["task"]["progress"] >= n / 4 - 1e-6:
+            return
+    raise AssertionError(f"{task}: fewer than {n} points within {timeout} s\n{d.log()[-2000:]}")
+
+
+def complete_maps(out_dir) -> dict:
+    """task id -> its map's four files, for each directory a reader may see (no hidden partials);
+    each must be whole: depth.npy loads, points.csv and summary.json parse, depth.png is a PNG."""
+    import csv
+    maps = {}
+    for m in sorted(p for p in out_dir.iterdir() if not p.name.startswith(".")):
+        names = sorted(f.name for f in m.iterdir())
+        assert names == ["depth.npy", "depth.png", "points.csv", "summary.json"], (m, names)
+        np.load(m / "depth.npy")
+        json.loads((m / "summary.json").read_text())
+        rows = list(csv.DictReader(open(m / "points.csv")))
+        assert (m / "depth.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        maps[m.name] = rows
+    return maps
+
+
+def test_sigterm_during_a_map_saves_what_stop_saves(make_daemon, tmp_path):
+    """systemd's stop and restart send SIGTERM: the map is stopped as `stop` stops it, its points
+    are written, and only then does the daemon exit (0)."""
+    import signal
+    d, task = map_daemon(make_daemon, tmp_path)
+    wait_for_points(d, task, 1)
+    assert d.terminate(signal.SIGTERM, timeout=10.0) == 0
+    maps = complete_maps(tmp_path / "maps")
+    assert list(maps) == [task] and len(maps[task]) >= 1
+    log = d.log()
+    assert "daemon shutting down" in log and '"kind":"map_written"' in log, log[-2000:]
+
+
+@pytest.mark.parametrize("delay_s", [0.005, 0.04])
+def test_sigkill_while_a_map_is_written_leaves_it_whole_or_absent(make_daemon, tmp_path, delay_s):
+    """The map's files go into a hidden partial directory that is renamed when complete: a kill at
+    any moment of the write leaves the map whole, or nothing under its name; the next start removes
+    the partial leftovers."""
+    import signal
+    d, task = map_daemon(make_daemon, tmp_path)
+    wait_for_points(d, task, 1)
+    d.client.session.get(d.client.keys.cmd("stop"), timeout=1.0)       # the stop writes the points so far
+    time.sleep(delay_s)
+    d.proc.send_signal(signal.SIGKILL)
+    d.proc.wait(10.0)
+    out = tmp_path / "maps"
+    assert set(complete_maps(out)) <= {task}
+    from tecdard.files import ensure_writable_dir
+    ensure_writable_dir(out, "map.output_dir")                          # what the next start does
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]

@@ -8,7 +8,7 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from tecdard.config import Config, ConfigError
+from tecdard.config import Config, ConfigError, dump_yaml
 from tests.conftest import sim_config
 
 MAX_MESSAGE_CHARS = 400
@@ -48,7 +48,7 @@ def mutated(cfg: dict, path: tuple, value):
 
 
 def text_of(cfg: dict) -> str:
-    return yaml.safe_dump(cfg, allow_unicode=False)
+    return dump_yaml(cfg)
 
 
 def check(tmp_path, text: str | bytes) -> str:

@@ -1,5 +1,6 @@
 """The serial path on a pseudo-terminal: corruption round trips, unplug/replug, `tecdard imu`, the daemon."""
 import json
+import pathlib
 import subprocess
 import sys
 import time
@@ -276,3 +277,18 @@ def test_a_status_packet_outside_the_protocols_ranges_is_ignored_whole():
     assert [e["code"] for e in src.drain_events()] == ["imu_bad_status"]     # said once, counted always
     src.decode(encode_status(3332, 500, 4), 0.0)                              # a real change is taken
     assert src.odr_hz == 3332 and src.saturation == Scaling(500, 4).saturation
+
+
+def test_sim_wire_leaves_no_temporary_directories(make_daemon):
+    """The pty directory is made at start and removed at exit; one left by a killed daemon (here a
+    planted one of a pid that does not run) is removed by the next start."""
+    import tempfile
+    from tecdard.daemon import PTY_DIR_PREFIX
+    tmp = pathlib.Path(tempfile.gettempdir())
+    stale = tmp / f"{PTY_DIR_PREFIX}999999999-dead"
+    stale.mkdir(exist_ok=True)
+    d = make_daemon(**{"imu.source": "sim-wire"})
+    mine = list(tmp.glob(f"{PTY_DIR_PREFIX}{d.proc.pid}-*"))
+    assert len(mine) == 1 and not stale.exists()
+    assert d.terminate() == 0
+    assert not mine[0].exists()
