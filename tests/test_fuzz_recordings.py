@@ -7,8 +7,6 @@ time and memory; a recording it accepts replays without an exception.
 import io
 import json
 import resource
-import subprocess
-import sys
 import time
 import zipfile
 
@@ -18,7 +16,6 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from robots.scenarios import Scenario, generate
 from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording, save_recording
-from tests.conftest import ROOT
 
 MAX_MESSAGE_CHARS = 300
 LOAD_TIME_MAX_S = 5.0           # any refusal, on this shared machine (the zip bomb took 35 s)
@@ -165,8 +162,14 @@ def test_pickles_are_refused(arrays, tmp_path):
 
 
 def localize(*args):
-    return subprocess.run([sys.executable, "-m", "tecdard", "localize", *map(str, args)], capture_output=True,
-                          text=True, timeout=120, cwd=ROOT)
+    """`tecdard localize ARGS` in this process (the subprocess path is tests/test_localize.py's)."""
+    import contextlib
+    import types
+    from tecdard.cli import main
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        code = main(["localize", *map(str, args)])
+    return types.SimpleNamespace(returncode=code, stderr=err.getvalue(), stdout=out.getvalue())
 
 
 def test_localize_refuses_bad_outputs_and_configs_with_one_line(arrays, tmp_path):

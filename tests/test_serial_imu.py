@@ -132,10 +132,11 @@ def test_tecdard_imu_bad_port_exits_nonzero(tmp_path):
 
 
 def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
+    # the tests' stale limit, not the product's 50 ms: the board here is a Python thread of the test
+    # process, which a loaded machine stalls for 50-70 ms now and then (the stop on unplug is the same)
     streamer = StreamThread(pty, Board()).start()
     try:
-        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
-                         "control.imu_stale_s": PRODUCT_IMU_STALE_S})
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
         cli = d.client
         time.sleep(0.5)
         assert cli.command("status")["state"]["faults"] == []
