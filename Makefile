@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.sim
 	$(PY) -m benchmarks
 	$(PY) -m benchmarks.mapping
+	$(PY) -m benchmarks.hostile
 
 clean:
 	rm -rf $(VENV) build *.egg-info

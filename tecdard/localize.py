@@ -67,7 +67,8 @@ def summary(onset_t: float, est: ContactEstimate) -> dict:
     return {"onset_t": onset_t, "p_c": est.p.tolist(), "std": est.std.tolist(), "method": est.method}
 
 
-def print_summary(s: dict, as_json: bool, out=sys.stdout) -> None:
+def print_summary(s: dict, as_json: bool, out=None) -> None:
+    out = out or sys.stdout       # looked up at the call: sys.stdout may have been replaced since import
     if as_json:
         print(json.dumps(s), file=out)
     else:

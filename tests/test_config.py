@@ -40,11 +40,26 @@ def test_unknown_key_is_rejected():
         cfg.check_unused()
 
 
-def run_with(tmp_path, cfg) -> subprocess.CompletedProcess:
+def run_with(tmp_path, cfg):
+    """`tecdard run --config` on a bad config, in this process (the same entry point, without the
+    interpreter's start-up per case; test_run_exits_2_... below runs the real command line). A
+    bad config never gets as far as starting anything."""
+    import contextlib
+    import io
+    import os
+    import types
+    from tecdard.cli import main
     path = tmp_path / "bad.yaml"
     path.write_text(cfg if isinstance(cfg, str) else dump_yaml(cfg))
-    return subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)],
-                          capture_output=True, text=True, timeout=60, cwd=ROOT)
+    err = io.StringIO()
+    umask = os.umask(0o022)              # `run` sets the daemon's own umask: not this process's
+    os.umask(umask)
+    try:
+        with contextlib.redirect_stderr(err):
+            code = main(["run", "--config", str(path)])
+    finally:
+        os.umask(umask)
+    return types.SimpleNamespace(returncode=code, stderr=err.getvalue())
 
 
 @pytest.mark.parametrize("overrides,key", [

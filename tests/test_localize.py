@@ -25,9 +25,23 @@ def good(tmp_path_factory):
     return scenario_file(tmp_path_factory.mktemp("rec") / "arc.npz", kind="edge-arc", seed=5, duration_s=0.6)
 
 
-def localize(*args, cwd=ROOT):
+def localize_subprocess(*args, cwd=ROOT):
+    """`tecdard localize ARGS` as a user runs it."""
     return subprocess.run([sys.executable, "-m", "tecdard", "localize", *map(str, args)],
                           capture_output=True, text=True, timeout=120, cwd=cwd)
+
+
+def localize(*args):
+    """`tecdard localize ARGS` in this process: the same entry point, without 3 s of interpreter and
+    compiled-code start-up per call (localize_subprocess checks the real command line)."""
+    import contextlib
+    import io
+    import types
+    from tecdard.cli import main
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        code = main(["localize", *map(str, args)])
+    return types.SimpleNamespace(returncode=code, stderr=err.getvalue(), stdout=out.getvalue())
 
 
 def in_plane_error(p, truth):
@@ -38,7 +52,7 @@ def in_plane_error(p, truth):
 
 def test_localize_writes_causal_rows_and_a_summary(good, tmp_path):
     out = tmp_path / "est.csv"
-    res = localize(good, "--out", out, "--json")
+    res = localize_subprocess(good, "--out", out, "--json")
     assert res.returncode == 0, res.stderr
     summary = json.loads(res.stdout)
     assert set(summary) == {"onset_t", "p_c", "std", "method"} and summary["method"] == "ekf"
