@@ -35,7 +35,7 @@ from tecdard.zenoh_io import JSON, Keys, dumps
 
 log = logging.getLogger("tecdar.intake")
 
-BACKLOG = {"task": 8, "status": 64, "other": 32}   # queries waiting per ring (the oldest are overwritten)
+BACKLOG = {"task": 8, "status": 64, "other": 16}   # queries waiting per ring (the oldest are overwritten)
 QUERIES_PER_POLL = 16          # per ring and pass; then the main thread serves replies and telemetry
 MAX_PENDING_STOPS = 64         # stop queries waiting for the arm to come to rest; more are dropped (the stop holds)
 REFUSALS_PER_S = 100.0         # budget of rate_limited replies; beyond it a query is left to its ring
@@ -154,17 +154,19 @@ class QueryIntake:
         total = 0
         for klass, ring in self._rings:
             for _ in range(QUERIES_PER_POLL):
-                if not self._parse[klass].ready(now) and not self._refuse.ready(now):
+                # The "other" ring is always drained: it holds a copy of every query to a known verb
+                # (cmd/** matches them all), and Zenoh's default consolidation (latest) holds back a
+                # query's replies until every queryable that got it is done with it. A copy left in
+                # the ring delayed stop's reply under a flood by 100-250 ms, after the daemon had sent it.
+                if klass != "other" and not self._parse[klass].ready(now) and not self._refuse.ready(now):
                     break
                 query = ring.try_recv()
                 if query is None:
                     break
                 total += 1
                 key = str(query.key_expr)
-                if klass == "other" and key in self._known_keys:
-                    self._parse[klass].take(now)    # a copy of a known verb's query (its own ring has it):
-                    continue                        # dropped, at a token's cost, so a flood's copies are bounded too
-                self.handle(query, key, query.payload, now)
+                if klass != "other" or key not in self._known_keys:
+                    self.handle(query, key, query.payload, now)
                 del query       # dropping the Query sends Zenoh's final reply: the sender stops waiting
         return total
 

@@ -2,10 +2,10 @@
 
     python -m tests.flood ENDPOINT SECONDS [ROBOT]
 
-Sends, round after round until SECONDS have passed, what the red team sent: a burst of BURST
-concurrent `status` queries (junk and oversized payloads on `status` and on unknown verbs among
-them) and a few 10 MB payloads to `status`; never waits for a reply. Prints how many queries it
-sent.
+Sends what the red team sent: first 40 payloads of 10 MB to `status` (which the daemon's transport
+drops unread), then, round after round until SECONDS have passed (at least one round), a burst of BURST concurrent
+`status` queries with junk and oversized payloads on `status` and on unknown verbs among them.
+It never waits for a reply. Prints how many queries it sent.
 """
 from __future__ import annotations
 
@@ -17,12 +17,12 @@ import zenoh
 
 from tecdard.zenoh_io import Keys, session_config
 
-BURST = 3000
-BIG_PER_BURST = 4               # 10 MB payloads, which the daemon's transport drops unread
-PAUSE_S = 0.25
+BURST = 12000                   # the red team's "12 000 concurrent status queries"
+BIG = 40                        # 10 MB payloads at the start
+PAUSE_S = 0.5
 JUNK = [b"{", b"[" * 1000 + b"]" * 1000, b'{"angle_deg": ' + b"9" * 5000 + b"}", b"\xff\xfe",
         b'{"angle_deg": 1000}', b" " * 100_000, b'{"direction": [1e308, 1e308, 0]}']
-BIG = b" " * 10_000_000
+BIG_PAYLOAD = b" " * 10_000_000
 
 
 def main(argv: list[str]) -> int:
@@ -34,16 +34,18 @@ def main(argv: list[str]) -> int:
     with zenoh.open(session_config([], [endpoint])) as session:
         time.sleep(0.3)                        # the route to the daemon's queryables
         t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end and not stop:
+        for _ in range(BIG):
+            session.get(keys.cmd("status"), payload=BIG_PAYLOAD, timeout=1.0)
+            sent += 1
+        first = True
+        while first or (time.monotonic() < t_end and not stop):
+            first = False
             for i in range(BURST):
                 if i % 10:
                     session.get(keys.cmd("status"), timeout=1.0)
                 else:
                     verb = ("status", "dance", "stop/now", "status")[i // 10 % 4]
                     session.get(keys.cmd(verb), payload=JUNK[i // 40 % len(JUNK)], timeout=1.0)
-                sent += 1
-            for _ in range(BIG_PER_BURST):
-                session.get(keys.cmd("status"), payload=BIG, timeout=1.0)
                 sent += 1
             time.sleep(PAUSE_S)
     print(sent, flush=True)

@@ -304,3 +304,25 @@ def test_over_the_rate_a_query_is_refused_then_dropped():
     assert q.counters["dropped"] > 0 and len(sink.replies) < 700    # the refusals have a budget too
     q.handle(Query(key, sink), key, b"", now + 1.0)          # a second later the rate allows more
     assert json.loads(sink.replies[-1])["ok"] is True
+
+
+class Ring:
+    def __init__(self, queries):
+        self.queries = list(queries)
+
+    def try_recv(self):
+        return self.queries.pop(0) if self.queries else None
+
+
+def test_copies_of_known_verbs_in_the_catch_all_ring_are_dropped_whatever_the_budget():
+    """cmd/** sees a copy of every query to a known verb, and a querier's default consolidation holds
+    the replies back until each copy is dropped: under a flood a copy left waiting delayed stop's
+    reply by 100-250 ms. The catch-all ring is drained on every pass, its copies unanswered."""
+    sink = Sink()
+    q = QueryIntake(KEYS, LIMITS, sink, lambda: "{}", IntakeParams(max_other_rate_hz=1.0))
+    q._parse["other"].tokens = 0.0
+    q._refuse.tokens = 0.0
+    copies = [Query(KEYS.cmd("status"), sink) for _ in range(5)] + [Query(KEYS.cmd("stop"), sink)]
+    q._rings = [("other", Ring(copies))]
+    assert q.poll(time.monotonic()) == 6
+    assert sink.replies == [] and sink.submitted == []
