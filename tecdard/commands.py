@@ -10,7 +10,7 @@ import logging
 import math
 from dataclasses import dataclass
 
-from tecdard.safejson import JsonLimitError, loads, show, show_name
+from tecdard.safejson import JsonLimitError, finite, is_number, loads, show, show_name
 
 log = logging.getLogger("tecdar.commands")
 
@@ -170,21 +170,6 @@ def admit(verb: str, raw: str | bytes | None, limits: "Limits") -> dict:
                                         f"({type(exc).__name__}, logged)") from None
 
 
-def _is_num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _finite(v) -> float | None:
-    """v as a finite float, or None (not a number, too large for a float, NaN or inf)."""
-    if not _is_num(v):
-        return None
-    try:
-        f = float(v)
-    except (OverflowError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
-
-
 def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> float:
     if name not in obj:
         if default is None:
@@ -193,7 +178,7 @@ def _number(obj: dict, name: str, default, lo: float, hi: float, unit: str) -> f
             raise CommandError(OUT_OF_LIMITS, f"{name}: the configured default {default:g} {unit} is outside "
                                               f"the configured limits [{lo:g}, {hi:g}]")
         return float(default)
-    v = _finite(obj[name])
+    v = finite(obj[name])
     if v is None:
         raise CommandError(BAD_TYPE, f"{name}: expected a finite number, got {show(obj[name])}")
     if v < lo or v > hi:
@@ -207,7 +192,7 @@ def _direction(obj: dict, name: str, default) -> list[float]:
             raise CommandError(MISSING_FIELD, f"{name}: required field is missing")
         return list(default)
     v = obj[name]
-    xs = [_finite(x) for x in v] if isinstance(v, list) and len(v) == 3 else None
+    xs = [finite(x) for x in v] if isinstance(v, list) and len(v) == 3 else None
     if xs is None or any(x is None for x in xs):
         raise CommandError(BAD_TYPE, f"{name}: expected a unit vector [x, y, z], got {show(v)}")
     norm = math.hypot(*xs)          # no overflow for components near the float64 range
@@ -224,7 +209,7 @@ def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: 
                                               f"the configured limits [{lo:g}, {hi:g}]")
         return None if default is None else [float(x) for x in default]
     v = obj[name]
-    xs = [_finite(x) for x in v] if isinstance(v, list) and len(v) == n else None
+    xs = [finite(x) for x in v] if isinstance(v, list) and len(v) == n else None
     if xs is None or any(x is None for x in xs):
         raise CommandError(BAD_TYPE, f"{name}: expected {n} finite numbers, got {show(v)}")
     for x in xs:
@@ -296,7 +281,7 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
             raise CommandError(OUT_OF_LIMITS, f"grid: {grid[0]} x {grid[1]} points is outside the configured limits "
                                               f"(at least 1 x 1, at most {limits.max_map_points} points)")
         orientations = obj.get("orientations", 2)
-        if not _is_num(orientations) or orientations not in (1, 2):
+        if not is_number(orientations) or orientations not in (1, 2):
             raise CommandError(BAD_TYPE, f"orientations: expected 1 or 2, got {show(orientations)}")
         return {
             "origin": _numbers(obj, "origin", None, 2, -10.0, 10.0, "m"),

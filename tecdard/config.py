@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import yaml
 
-from tecdard.safejson import show, show_name
+from tecdard.safejson import finite, show, show_name
 
 MAX_CONFIG_BYTES = 1 << 20     # a config file is refused unread beyond this
 MAX_NESTING = 16               # mappings and lists nested deeper are refused
@@ -70,27 +70,12 @@ def dump_yaml(data: Any) -> str:
     return yaml.dump(data, Dumper=_NoAliasDumper)
 
 
-def _finite(value: Any) -> float | None:
-    """value as a finite float, or None (not a number, bool, out of the float range, NaN, inf)."""
-    if not _is_number(value):
-        return None
-    try:
-        f = float(value)
-    except (OverflowError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
-
-
 class _Required:
     def __repr__(self) -> str:
         return "<required>"
 
 
 REQUIRED = _Required()
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 class Section:
@@ -140,7 +125,7 @@ class Section:
     def getfloat(self, key: str, default: Any = REQUIRED, *, minval: float | None = None,
                  maxval: float | None = None, above: float | None = None) -> float:
         raw = self._raw(key, default)
-        value = _finite(raw)
+        value = finite(raw)
         if value is None:
             raise ConfigError(f"{self._name(key)}: expected a finite number, got {show(raw)}")
         self._check_bounds(key, value, minval, maxval, above)
@@ -197,7 +182,7 @@ class Section:
     def getfloats(self, key: str, default: Any = REQUIRED, *, n: int | None = None,
                   minval: float | None = None, maxval: float | None = None) -> list[float]:
         value = self._raw(key, default)
-        out = [_finite(v) for v in value] if isinstance(value, (list, tuple)) and len(value) <= MAX_LIST_ITEMS else None
+        out = [finite(v) for v in value] if isinstance(value, (list, tuple)) and len(value) <= MAX_LIST_ITEMS else None
         if out is None or any(v is None for v in out):
             raise ConfigError(f"{self._name(key)}: expected a list of finite numbers, got {show(value)}")
         if n is not None and len(value) != n:

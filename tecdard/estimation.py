@@ -1,8 +1,6 @@
 """Builds the contact pipeline from the `estimator` config section (daemon and `tecdard localize` alike)."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from control.baselines import BaselineParams
@@ -11,8 +9,7 @@ from control.ekf import ContactKfParams, PaperEkfParams
 from control.onset import OnsetDetector
 from control.pipeline import METHODS, ContactPipeline, PipelineParams
 from tecdard.config import ConfigError
-from tecdard.safejson import show
-
+from tecdard.safejson import finite, is_number, show
 
 MAX_ETA = 100.0              # eta is 1-3 for real fingertips (the paper's 2.0 at 30 N)
 MAX_GRIP_FORCE_N = 1000.0
@@ -25,14 +22,10 @@ def _eta_table(section) -> list[tuple[float, float]]:
         raise ConfigError(f"{name}: expected a list of up to 100 [grip_force_N, eta] pairs")
     out = []
     for row in raw:
-        if (not isinstance(row, list) or len(row) != 2
-                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)):
+        if not isinstance(row, list) or len(row) != 2 or not all(is_number(x) for x in row):
             raise ConfigError(f"{name}: expected [grip_force_N, eta] pairs, got {show(row)}")
-        try:
-            force, eta = float(row[0]), float(row[1])
-        except OverflowError:
-            raise ConfigError(f"{name}: {show(row)} is out of the float range") from None
-        if not (math.isfinite(force) and math.isfinite(eta)):
+        force, eta = finite(row[0]), finite(row[1])
+        if force is None or eta is None:
             raise ConfigError(f"{name}: {show(row)} is not finite")
         if not (0.0 < eta <= MAX_ETA and 0.0 <= force <= MAX_GRIP_FORCE_N):
             raise ConfigError(f"{name}: eta must be in (0, {MAX_ETA:g}] and the force in [0, {MAX_GRIP_FORCE_N:g}] N, "

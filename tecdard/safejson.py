@@ -3,6 +3,7 @@ values are shown back to the sender escaped and truncated."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 
@@ -69,6 +70,22 @@ def loads(text: str, max_depth: int = MAX_DEPTH):
         raise JsonLimitError(f"malformed JSON ({exc.msg} at char {exc.pos})") from None
     except RecursionError:      # unreachable below MAX_DEPTH; kept so that no input can raise it
         raise JsonLimitError("nested too deeply") from None
+
+
+def is_number(v) -> bool:
+    """An int or float, not a bool (JSON and YAML both give booleans that Python counts as ints)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def finite(v) -> float | None:
+    """v as a finite float, or None: not a number, a bool, beyond the float range, NaN or inf."""
+    if not is_number(v):
+        return None
+    try:
+        f = float(v)
+    except (OverflowError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
 
 
 def show(value, limit: int = SHOW_CHARS) -> str:

@@ -241,8 +241,7 @@ def test_a_board_stuck_at_full_scale_is_a_protective_stop_not_a_confident_contac
     stale limit is an `imu_saturated` fault, a protective stop, and refused tasks until it clears."""
     streamer = StreamThread(pty, Board()).start()
     try:
-        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},
-                           "control.imu_stale_s": PRODUCT_IMU_STALE_S})
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})   # the tests' 0.1 s
         cli = d.client
         time.sleep(0.5)
         reply = cli.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.01, "max_distance": 0.05})
