@@ -6,6 +6,7 @@ import os
 import pathlib
 import signal
 import subprocess
+import time
 import sys
 
 import numpy as np
@@ -24,9 +25,16 @@ DAEMON_START_TIMEOUT_S = 60.0
 # The whole-daemon tests run the simulated arm (1 kHz physics and the IMU at 6.7 kHz, a process of
 # its own), the daemon and the test's client on this machine's 2 shared cores. There IMU samples
 # now and then reach the daemon's ring 51-68 ms late (8 stale-IMU stops in 7 fresh-clone runs of
-# the suite, about 270 whole-daemon tests), and the product's 50 ms stop then ended the task under
-# test. Tests that are not about that stop allow 0.1 s; the stale-IMU tests set the product's 50 ms.
-TEST_IMU_STALE_S = 0.1
+# the suite, about 270 whole-daemon tests), and on CI (2026-12-02) a 104 ms IMU gap under a flood
+# and a 100 ms gap in joint commands ended two tasks under test. Tests that are not about those
+# stops allow 0.2 s of IMU silence and 0.25 s without a joint command before the simulated arm
+# stops itself; the stale-IMU tests set the product's 50 ms, the simulator's own tests its 0.1 s.
+TEST_IMU_STALE_S = 0.2
+TEST_SIM_COMMAND_TIMEOUT_S = 0.25
+# Likewise the divergence stop: while a task goes as planned the smoothed NIS ratio reads under 2,
+# under 4 with the other core busy, but a map probe on CI's loaded machine read 10.08 once against
+# the product's limit of 10 (the divergence test sets that; a slipping grasp reads 25-32).
+TEST_MAX_NIS_RATIO = 20.0
 STILL_M = 2e-4               # the TCP has not moved (encoder noise is ~0.03 mm)
 
 
@@ -64,13 +72,19 @@ class DaemonProcess:
                                      env=None if env is None else {**os.environ, **env})
         self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls)
         try:
-            self.client.wait_alive(DAEMON_START_TIMEOUT_S)
-        except Exception:
+            deadline = time.monotonic() + DAEMON_START_TIMEOUT_S
+            while not self.client.alive(0.5):
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"exit {self.proc.returncode}")
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"not alive after {DAEMON_START_TIMEOUT_S:.0f} s")
+        except Exception as exc:
             self.close()
-            raise RuntimeError(f"tecdard did not come up: {self.log()}")
+            raise RuntimeError(f"tecdard did not come up ({exc}): {self.log()}") from None
 
     def log(self) -> str:
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text()
 
     def terminate(self, sig=signal.SIGTERM, timeout: float = 10.0) -> int:
@@ -98,7 +112,9 @@ def make_daemon(tmp_path):
     def factory(env: dict | None = None, client_tls=None, protocol="tcp", **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
-        d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S, **overrides}), env,
+        d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,
+                                                 "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
+                                                 "control.max_nis_ratio": TEST_MAX_NIS_RATIO, **overrides}), env,
                           client_tls=client_tls, protocol=protocol)
         started.append(d)
         return d

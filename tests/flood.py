@@ -41,6 +41,8 @@ def main(argv: list[str]) -> int:
         while first or (time.monotonic() < t_end and not stop):
             first = False
             for i in range(BURST):
+                if stop:
+                    break
                 if i % 10:
                     session.get(keys.cmd("status"), timeout=1.0)
                 else:

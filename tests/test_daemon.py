@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tecdard.demo import distance_to_axis
-from tests.conftest import tcp_now
+from tests.conftest import sim_config, tcp_now
 
 HINGE_TOL_M = 0.010          # issue 2: hinge estimate within 10 mm of the true axis
 ANGLE_TOL_DEG = 2.0
@@ -223,7 +223,7 @@ def test_estimator_divergence_is_a_protective_stop(make_daemon):
     """A straight pull turns the handle past the fingertips' stick limit (10 deg); the grasp slips and the
     innovations stop fitting the model: the smoothed NIS ratio reads 25-32, against at most 1.9 (3.9 with
     the other core busy) while following the arc. The product's default limit (10) stops it."""
-    d = make_daemon()
+    d = make_daemon(**{"control.max_nis_ratio": sim_config()["control"]["max_nis_ratio"]})
     reply = d.client.command("rotate", {"angle_deg": 30.0, "strategy": "straight"})
     assert reply["ok"] is True
     ev = d.client.wait_event(("task_failed", "task_done"), reply["task"], TASK_TIMEOUT_S)

@@ -202,7 +202,8 @@ def test_unwrap_t0_us():
 
 
 def test_clock_sync_tracks_100ppm_drift_for_an_hour():
-    """An hour of packets, MCU clock 100 ppm fast, random USB latency: sample times within 0.5 ms."""
+    """An hour of packets, MCU clock 100 ppm fast, random USB latency: sample times within 0.5 ms.
+    Every fourth packet reaches the fit (the others as if lost on the bus): a quarter of the run time."""
     rng = np.random.default_rng(3)
     board = Board(BoardParams(drift_ppm=100.0, t0_us=2**32 - 5_000_000))   # wraps after 5 s
     odr, n = 6667, 8
@@ -210,13 +211,13 @@ def test_clock_sync_tracks_100ppm_drift_for_an_hour():
     host0 = 1234.5
     worst = 0.0
     period = n / odr
-    for k in range(int(3600 / period)):
+    for k in range(0, int(3600 / period), 4):
         idx = k * n
         t_true = idx / odr                                     # true time of the first sample
         mcu = unwrap(board.mcu_us(idx)) + (n - 1) / (odr * (1 + 0))
         arrival = host0 + t_true + (n - 1) / odr + 0.0002 + rng.exponential(0.0005)
         sync.add(mcu, arrival)
-        if k % 997 == 0 and k > 2000:
+        if k % 996 == 0 and k > 2000:
             err = float(sync.to_host(unwrap(board.mcu_us(idx)))) - (host0 + t_true)
             worst = max(worst, abs(err))
     assert worst < SAMPLE_TIME_TOL_S
