@@ -23,7 +23,7 @@ def test_notify_ready_and_watchdog(make_daemon, tmp_path):
         sock.settimeout(5.0)
         rest = []
         try:
-            while True:
+            while "STOPPING=1" not in rest:
                 rest.append(sock.recv(256).decode())
         except socket.timeout:
             pass
