@@ -74,6 +74,8 @@ class OnsetDetector:
         self.accel_axis = None if accel_axis is None else np.asarray(accel_axis, float) / np.linalg.norm(accel_axis)
         self.gyro_threshold = gyro_threshold
         self.band_threshold = band_threshold
+        self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+        self.odr_hz = float(odr_hz)
         self.band = SlidingBandEnergy(odr_hz, *band_hz) if band_threshold is not None else None
         self.mode = mode
         self.coincidence_s = coincidence_s
@@ -84,6 +86,24 @@ class OnsetDetector:
         self._seen_s = 0.0
         self._last_true = {}
         self.armed = True
+
+    def set_odr(self, odr_hz: float) -> str | None:
+        """The source's data rate changed (a board's status packet): the band-energy window is
+        retuned to odr/band_hz[0] samples. Returns a problem (the band does not fit under the new
+        Nyquist rate, so the band condition is off until a rate it fits) or None."""
+        odr_hz = float(odr_hz)
+        if odr_hz == self.odr_hz:
+            return None
+        self.odr_hz = odr_hz
+        if self.band_threshold is None:
+            return None
+        lo, hi = self.band_hz
+        if not lo < hi < odr_hz / 2:
+            self.band = None
+            return (f"onset band {lo:g}-{hi:g} Hz does not fit under half the IMU's new rate of {odr_hz:g} Hz: "
+                    "the band-energy condition is off")
+        self.band = SlidingBandEnergy(odr_hz, lo, hi)
+        return None
 
     @classmethod
     def from_config(cls, section, odr_hz: float = 6667.0) -> "OnsetDetector":

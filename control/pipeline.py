@@ -262,6 +262,11 @@ class ContactPipeline:
         self.saturated_since: float | None = None   # the stream has been mostly clipped since this time
         self._since_gyro_sat = 1 << 30       # samples since the last clipped gyro sample (across batches)
 
+    def set_odr(self, odr_hz: float) -> str | None:
+        """The IMU source's data rate (a board reports its own): the onset detector's band window
+        follows it. A problem, if any, as one line (OnsetDetector.set_odr)."""
+        return self.detector.set_odr(odr_hz)
+
     def set_saturation(self, gyro_rad_s: float, accel_m_s2: float) -> None:
         """Where the source clips (drivers.lsm6dsr.Scaling.saturation): samples at or beyond it are
         not measurements. A clipped gyro sample, and every filtered sample whose low-pass window

@@ -300,6 +300,11 @@ class SimProcess:
 
     # -- IMU source (imu_out "pipe") -----------------------------------------
     @property
+    def odr_hz(self) -> float:
+        """The simulated chip's data rate, Hz."""
+        return float(self.spec.imu.odr_hz)
+
+    @property
     def saturation(self) -> tuple[float, float]:
         """(gyro rad/s, accel m/s^2) at which the simulated chip clips (its int16 at the full scales)."""
         return Scaling(self.spec.imu.gyro_fs_dps, self.spec.imu.accel_fs_g).saturation

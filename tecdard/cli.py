@@ -5,10 +5,35 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 
 from tecdard.config import Config, ConfigError
 from tecdard.safejson import show
+
+
+def announce_compile() -> None:
+    """One log line before a start that must compile the estimator's kernels (tecdard.kernel_cache)."""
+    from tecdard import kernel_cache
+    try:
+        cache = kernel_cache.state()
+    except Exception as exc:         # the check must never stop a start
+        logging.getLogger("tecdar").debug("kernel cache check failed: %s", exc)
+        return
+    if not cache.warm:
+        logging.getLogger("tecdar").warning("%s", cache.describe())
+
+
+def _cmd_warm(args) -> int:
+    from tecdard import kernel_cache
+    before = kernel_cache.state()
+    if not before.warm:
+        print(f"compiling the estimator's kernels into {before.path} (about {kernel_cache.COLD_COMPILE_S:.0f} s "
+              "on 2 cores) ...", flush=True)
+    after, took = kernel_cache.warm()
+    # an uncachable install still runs (each start compiles): said, not an install failure
+    print(f"{after.describe()}; {'loaded' if after.warm else 'compiled'} in {took:.1f} s")
+    return 0
 
 
 def _cmd_run(args) -> int:
@@ -17,6 +42,7 @@ def _cmd_run(args) -> int:
     os.umask(0o077)
     try:
         cfg = Config.load(args.config)
+        announce_compile()
         from tecdard.daemon import Daemon   # heavy imports only once the config file exists
         daemon = Daemon(cfg, listen=[args.listen] if args.listen else None)
     except ConfigError as exc:
@@ -222,13 +248,30 @@ def _cmd_demo(args) -> int:
     return run_demo(args.config, args.angle)
 
 
+_NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)")
+
+
+def join_negative_values(argv: list[str]) -> list[str]:
+    """`--direction -0.26,0,0.96` as `--direction=-0.26,0,0.96`: argparse takes a value that starts
+    with '-' and is not one plain number for an option, and the vector arguments are lists."""
+    out: list[str] = []
+    for arg in argv:
+        if (out and out[-1].startswith("--") and "=" not in out[-1] and out[-1] != "--"
+                and _NEGATIVE_VALUE.match(arg)):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = join_negative_values(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(prog="tecdard", description="Transient extrinsic contact detection and ranging daemon")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("run", help="run the daemon")
     p.add_argument("--config", required=True, help="YAML configuration file")
-    p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7447)")
+    p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7507)")
     p.set_defaults(func=_cmd_run)
     p = sub.add_parser("localize", help="estimate the contact in a recording (tecdar-recording/1)")
     p.add_argument("recording", help="REC.npz")
@@ -252,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_imu)
     from tecdard.client_cli import add_parsers
     add_parsers(sub)
+    p = sub.add_parser("warm", help="compile the estimator's kernels into numba's cache (make install does)")
+    p.set_defaults(func=_cmd_warm)
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")
     p.add_argument("--config", default="configs/sim.yaml")
     p.add_argument("--angle", type=float, default=30.0, help="rotation, degrees")

@@ -9,6 +9,8 @@ import zenoh
 
 from tecdard.zenoh_io import Keys, TlsFiles, dumps, session_config
 
+WAIT_REPORT_S = 10.0           # wait_alive says what it waits for this often
+
 
 class ClientError(RuntimeError):
     pass
@@ -51,13 +53,25 @@ class Client:
         replies = self.session.liveliness().get(self.keys.alive, timeout=timeout)
         return any(r.ok is not None for r in replies)
 
-    def wait_alive(self, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+    def wait_alive(self, timeout: float = 30.0, running=None, waiting=None) -> None:
+        """Until the daemon's liveliness token is there (it declares it once READY: its threads run
+        and the IMU has warmed the onset detector). `running()` False (a daemon process that exited)
+        ends the wait at once; `waiting(seconds_so_far)` is called when the first look finds no
+        daemon, then every WAIT_REPORT_S, to say what is awaited."""
+        t0 = time.monotonic()
+        deadline, report = t0 + timeout, 0.0
+        while True:
             if self.alive(0.5):
                 return
+            now = time.monotonic()
+            if running is not None and not running():
+                raise ClientError(f"the daemon exited before {self.keys.alive} came alive")
+            if now >= deadline:
+                raise ClientError(f"daemon {self.keys.alive} not alive after {timeout:.0f} s")
+            if waiting is not None and now - t0 >= report:
+                waiting(now - t0)
+                report += WAIT_REPORT_S
             time.sleep(0.2)
-        raise ClientError(f"daemon {self.keys.alive} not alive after {timeout:.0f} s")
 
     def command(self, verb: str, payload: dict | str | None = None, timeout: float = 10.0) -> dict:
         """Send a command and return the decoded reply."""

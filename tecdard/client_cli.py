@@ -10,7 +10,7 @@ from tecdard.client import Client, ClientError
 from tecdard.zenoh_io import TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"
 BAR_WIDTH = 30
 
 
@@ -57,6 +57,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"daemon endpoint (default {DEFAULT_ENDPOINT})")
         p.add_argument("--robot", default="sim", help="robot name in the key expressions (default sim)")
         p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the task to end")
+        p.add_argument("--wait-alive", type=float, default=None,
+                       help="seconds to wait for the daemon to be ready (its liveliness token; "
+                            "default: --timeout, at most 10)")
         p.add_argument("--json", action="store_true", help="print replies and events as JSON lines")
         p.add_argument("--tls-ca", help="with a tls/ endpoint: the CA that signed the daemon's certificate")
         p.add_argument("--tls-cert", help="with a tls/ endpoint: this client's certificate (its CN may be a commander)")
@@ -95,7 +98,10 @@ def run_verb(args) -> int:
         return EXIT_NO_DAEMON
     with cli:
         try:
-            cli.wait_alive(min(args.timeout, 10.0))
+            wait_s = args.wait_alive if args.wait_alive is not None else min(args.timeout, 10.0)
+            cli.wait_alive(wait_s, waiting=lambda s: print(
+                f"tecdard {args.verb}: waiting up to {wait_s:g} s for the daemon's liveliness token "
+                f"{cli.keys.alive} at {args.connect} ({s:.0f} s so far)", file=sys.stderr, flush=True))
             reply = cli.command(args.verb, payload, timeout=min(args.timeout, 30.0))
         except ClientError as exc:
             print(f"tecdard {args.verb}: {exc}", file=sys.stderr)

@@ -51,7 +51,7 @@ IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset det
 MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
 MAX_ENDPOINT_CHARS = 256
 MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"
 PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
 
 
@@ -141,10 +141,20 @@ class Daemon:
                               f"[{self.model.q_min[j]:.3f}, {self.model.q_max[j]:.3f}]")
 
         zc = cfg.section("zenoh")
-        configured = zc.getstrlist("listen", [DEFAULT_ENDPOINT], max_len=MAX_ENDPOINT_CHARS, max_items=16)
+        # peer (default): listens for clients itself, and may also connect to a router on the host;
+        # client: reaches everything through the routers in zenoh.connect and listens on nothing
+        self.zenoh_mode = zc.getstr("mode", "peer", choices=("peer", "client"))
+        configured = zc.getstrlist("listen", [DEFAULT_ENDPOINT] if self.zenoh_mode == "peer" else [],
+                                   max_len=MAX_ENDPOINT_CHARS, max_items=16)
         self.listen = listen if listen is not None else configured
         self.connect = zc.getstrlist("connect", [], max_len=MAX_ENDPOINT_CHARS, max_items=16)
         self.multicast = zc.getbool("multicast_scouting", False)
+        if self.zenoh_mode == "client" and self.listen:
+            raise ConfigError("zenoh.listen: a Zenoh client listens on nothing; leave it out with mode: client")
+        if self.zenoh_mode == "client" and not self.connect:
+            raise ConfigError("zenoh.connect: mode client needs a router's endpoint to connect to")
+        if not self.listen and not self.connect:
+            raise ConfigError("zenoh.listen: empty, and nothing in zenoh.connect: no client could reach the daemon")
         for key, endpoints in (("listen", self.listen), ("connect", self.connect)):
             for ep in endpoints:
                 problem = endpoint_problem(ep)
@@ -171,7 +181,12 @@ class Daemon:
         sim = cfg.section("sim")
         sim_imu = sim.section("imu")
         odr_hz = sim_imu.getfloat("odr_hz", 6667.0, minval=100.0, maxval=20000.0)
-        self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), odr_hz)
+        # The onset detector is tuned to the data rate of the source in use: the board's (its serial
+        # config until its first status packet reports its own, which the estimator then follows),
+        # the simulated board's (rounded to the protocol's whole hertz) or the simulated chip's.
+        source_odr_hz = {"serial": float(serial_params.odr_hz) if serial_params is not None else odr_hz,
+                         "sim-wire": float(int(round(odr_hz))), "sim": odr_hz}[self.imu_source]
+        self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
         self.method = self.pipeline.method
 
         seed = sim.getint("seed", 0, minval=0)
@@ -221,10 +236,9 @@ class Daemon:
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
         self.contact = LatestValue()
         self.notifier = Notifier()
-        source_odr_hz = serial_params.odr_hz if serial_params is not None else odr_hz
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
                                          min_batch=max(1, int(source_odr_hz * self.pipeline.params.output_period_s)),
-                                         saturation=lambda: self.imu.saturation)
+                                         saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
@@ -234,10 +248,16 @@ class Daemon:
         try:
             acl = access_control(self.keys, commanders) if commanders else None
             self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES,
-                                               tls=self.tls, acl=acl)
+                                               tls=self.tls, acl=acl, mode=self.zenoh_mode)
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints ({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
+
+    def _where(self) -> str:
+        parts = [f"listening on {', '.join(self.listen)}"] if self.listen else []
+        if self.connect:
+            parts.append(f"connecting to {', '.join(self.connect)}")
+        return f"Zenoh {self.zenoh_mode}, " + " and ".join(parts)
 
     # -- lifecycle ----------------------------------------------------------
     def request_stop(self, *_args) -> None:
@@ -323,8 +343,7 @@ class Daemon:
                     break
             token = session.liveliness().declare_token(self.keys.alive)
             self.notifier.notify("READY=1")
-            log.info("tecdard ready: robot %s (%s), listening on %s", self.robot_name, self.model.name,
-                     ", ".join(self.listen))
+            log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self._where())
             try:
                 self._serve(pub_state, pub_contact, pub_events)
             finally:

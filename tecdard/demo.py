@@ -12,6 +12,11 @@ import numpy as np
 from tecdard.client import Client, ClientError
 
 
+# A start waits while the daemon process runs, up to: (a loaded 2-core machine compiles in 50-90 s)
+WARM_START_BUDGET_S = 60.0
+COLD_START_BUDGET_S = 300.0
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -40,15 +45,33 @@ def stop_daemon(proc: subprocess.Popen, timeout: float = 5.0) -> int:
     return proc.returncode
 
 
+def startup_budget_s() -> tuple[float, str]:
+    """How long a start may take here, and why: a cold kernel cache compiles (tecdard.kernel_cache)."""
+    from tecdard import kernel_cache
+    try:
+        cache = kernel_cache.state()
+    except Exception:
+        cache = None
+    if cache is not None and cache.warm:
+        return WARM_START_BUDGET_S, "a warm start takes about 3 s"
+    return COLD_START_BUDGET_S, (f"this first start compiles the estimator's kernels, about "
+                                 f"{kernel_cache.COLD_COMPILE_S:.0f} s on 2 cores")
+
+
 def run_demo(config: str, angle_deg: float) -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     print(f"starting tecdard on {config} at {endpoint} ...", flush=True)
     log_path = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"tecdard-demo-{os.getpid()}.log")
+    budget_s, why = startup_budget_s()
     with open(log_path, "w") as log_file:
         proc = start_daemon(config, endpoint, log_file)
         try:
             with Client(endpoint) as cli:
-                cli.wait_alive(30.0)
+                print(f"waiting for the daemon to be ready (its liveliness token tecdar/sim/alive); {why}",
+                      flush=True)
+                cli.wait_alive(budget_s, running=lambda: proc.poll() is None,
+                               waiting=lambda s: s >= 1.0 and print(f"  still waiting, {s:.0f} s so far (up to "
+                                                             f"{budget_s:.0f} s)", flush=True))
                 reply = cli.command("rotate", {"angle_deg": angle_deg})
                 if not reply.get("ok"):
                     print(f"rotate refused: {reply['error']['code']}: {reply['error']['message']}")
@@ -59,6 +82,11 @@ def run_demo(config: str, angle_deg: float) -> int:
                 status = cli.command("status")
         except ClientError as exc:
             print(f"demo failed: {exc} (daemon log: {log_path})")
+            log_file.flush()
+            with open(log_path, errors="replace") as f:
+                tail = f.read()[-2000:].strip()
+            if tail:
+                print(tail)
             return 1
         finally:
             code = stop_daemon(proc)

@@ -70,11 +70,15 @@ class EstimatorThread:
     estimates leave through the `contact` latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1,
-                 saturation=None):
+                 saturation=None, odr_hz=None):
         """`saturation()` gives the IMU source's clipping points (gyro rad/s, accel m/s^2), which
-        change with the full scales a board reports."""
+        change with the full scales a board reports; `odr_hz()` its data rate, which a board
+        reports in its status packets (the onset detector's band window follows it)."""
         self.pipeline = pipeline
         self.saturation = saturation
+        self.odr_hz = odr_hz
+        self._odr_seen: float | None = None
+        self.output_period_s = pipeline.params.output_period_s
         self.saturated_since: float | None = None   # latest value: the IMU stream has been clipped since then
         self.ring = ring
         # Samples to wait for (up to POP_TIMEOUT_S) before a batch. The pipeline's fixed cost is per
@@ -87,6 +91,19 @@ class EstimatorThread:
         self.inbox: queue.Queue = queue.Queue(maxsize=1024)
         self.dropped = 0
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
+
+    def _follow_odr(self, odr_hz: float) -> None:
+        if odr_hz == self._odr_seen:
+            return
+        first = self._odr_seen is None
+        self._odr_seen = odr_hz
+        problem = self.pipeline.set_odr(odr_hz)
+        self.min_batch = max(1, int(odr_hz * self.output_period_s))
+        if problem is not None:
+            log.warning("%s", problem)
+            self._put(("event", {"t": time.monotonic(), "kind": "warning", "code": "imu_rate", "message": problem}))
+        elif not first:
+            log.info("IMU data rate now %g Hz: the onset detector's band window follows", odr_hz)
 
     def _put(self, item) -> None:
         try:
@@ -116,6 +133,8 @@ class EstimatorThread:
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
+            if self.odr_hz is not None:
+                self._follow_odr(self.odr_hz())
             if self.saturation is not None:
                 limits = self.saturation()
                 if limits != sat_limits:

@@ -22,7 +22,7 @@ def endpoint_problem(endpoint: str) -> str | None:
     """Why a Zenoh endpoint (`proto/host:port`, or `unixsock-stream/PATH`, with optional `?...`
     and `#...`) cannot work, in a few words; None when it looks usable."""
     if not isinstance(endpoint, str) or "/" not in endpoint:
-        return "expected <protocol>/<address>, e.g. tcp/127.0.0.1:7448"
+        return "expected <protocol>/<address>, e.g. tcp/127.0.0.1:7508"
     proto, _, address = endpoint.partition("/")
     address = address.split("#")[0].split("?")[0]
     if proto in PATH_PROTOCOLS:

@@ -58,10 +58,18 @@ def sim_config(**overrides) -> dict:
 
 
 class DaemonProcess:
-    def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp"):
-        self.endpoint = f"{protocol}/127.0.0.1:{free_port()}"
+    def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp",
+                 router: str | None = None):
+        """`router`: the daemon runs as a Zenoh client of the router at that endpoint, listening on
+        nothing, and the test's client reaches it through the router."""
         cfg = copy.deepcopy(cfg)
-        cfg["zenoh"]["listen"] = [self.endpoint]
+        if router is None:
+            self.endpoint = f"{protocol}/127.0.0.1:{free_port()}"
+            cfg["zenoh"]["listen"] = [self.endpoint]
+        else:
+            self.endpoint = router
+            cfg["zenoh"].pop("listen", None)
+            cfg["zenoh"].update(mode="client", connect=[router])
         cfg.setdefault("map", {}).setdefault("output_dir", str(tmp_path / "maps"))    # never into the checkout
         self.config_path = tmp_path / "tecdard.yaml"
         self.config_path.write_text(dump_yaml(cfg))
@@ -109,13 +117,13 @@ class DaemonProcess:
 def make_daemon(tmp_path):
     started = []
 
-    def factory(env: dict | None = None, client_tls=None, protocol="tcp", **overrides) -> DaemonProcess:
+    def factory(env: dict | None = None, client_tls=None, protocol="tcp", router=None, **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
         d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,
                                                  "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
                                                  "control.max_nis_ratio": TEST_MAX_NIS_RATIO, **overrides}), env,
-                          client_tls=client_tls, protocol=protocol)
+                          client_tls=client_tls, protocol=protocol, router=router)
         started.append(d)
         return d
 

@@ -37,3 +37,44 @@ def test_no_daemon_is_exit_3(tmp_path):
     res = tecdard("status", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "2")
     assert res.returncode == 3
     assert "not alive" in res.stderr
+
+
+def test_negative_vectors_work_as_typed(capsys):
+    """Issue 17: `--direction -0.26,0,0.96` was `expected one argument`; only `--direction=-0.26,...` worked."""
+    from tecdard.cli import join_negative_values, main
+    assert join_negative_values(["probe", "--direction", "-0.26,0,0.96", "--speed", "0.01"]) == \
+        ["probe", "--direction=-0.26,0,0.96", "--speed", "0.01"]
+    assert join_negative_values(["map", "--origin", "-.3,-0.1", "--json"]) == ["map", "--origin=-.3,-0.1", "--json"]
+    assert join_negative_values(["status", "--json", "--timeout", "2"]) == ["status", "--json", "--timeout", "2"]
+    from tecdard.demo import free_port
+    # parsed, then no daemon there: exit 3, not argparse's exit 2
+    assert main(["probe", "--direction", "-0.26,0,0.96", "--connect", f"tcp/127.0.0.1:{free_port()}",
+                 "--timeout", "0.5"]) == 3
+    assert "not alive" in capsys.readouterr().err
+
+
+def test_the_default_endpoint_is_not_zenohs_router_port():
+    """7447 is zenohd's and rmw_zenohd's default: a daemon there could not listen beside a router."""
+    from tecdard.client_cli import DEFAULT_ENDPOINT as CLI_DEFAULT
+    from tecdard.daemon import DEFAULT_ENDPOINT
+    from tests.conftest import sim_config
+    assert DEFAULT_ENDPOINT == CLI_DEFAULT == sim_config()["zenoh"]["listen"][0]
+    assert not DEFAULT_ENDPOINT.endswith(":7447")
+
+
+def test_the_cli_reaches_the_daemon_through_a_local_zenoh_router(make_daemon):
+    """A Zenoh router on the host (as zenohd or ROS 2's rmw_zenohd runs one): the daemon is its
+    client and listens on nothing, and the CLI, connected to the router only, commands it."""
+    import zenoh
+    from tecdard.demo import free_port
+    from tecdard.zenoh_io import session_config
+    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    with zenoh.open(session_config([router_ep], [], mode="router")):
+        d = make_daemon(router=router_ep)
+        assert "Zenoh client" in d.log() and "connecting to " + router_ep in d.log()
+        status = tecdard("status", "--connect", router_ep)
+        assert status.returncode == 0, status.stderr
+        assert json.loads(status.stdout)["state"]["mode"] == "idle"
+        refused = tecdard("probe", "--connect", router_ep, "--direction", "-0.26,0,0.96", "--distance", "5")
+        assert refused.returncode == 2 and "out_of_limits" in refused.stderr
+        assert tecdard("stop", "--connect", router_ep).returncode == 0

@@ -72,6 +72,10 @@ def run_with(tmp_path, cfg):
     ({"map.kernel_sigma": 0.02}, "map.kernel_sigma: unknown option"),
     ({"sim.hinge": ..., "sim.pivot": {"surface": "boxes", "floor_z": 0.3, "boxes": [[0.1, 0.1, 0.0, 0.2, 0.4]]}},
      "sim.pivot.boxes: a box needs x0 < x1"),
+    ({"zenoh.mode": "router"}, "zenoh.mode"),
+    ({"zenoh.mode": "client", "zenoh.connect": ["tcp/127.0.0.1:7447"]}, "zenoh.listen: a Zenoh client listens on nothing"),
+    ({"zenoh.mode": "client", "zenoh.listen": ...}, "zenoh.connect: mode client needs a router"),
+    ({"zenoh.listen": []}, "zenoh.listen: empty, and nothing in zenoh.connect"),
 ])
 def test_run_refuses_bad_config_with_one_line(tmp_path, overrides, key):
     res = run_with(tmp_path, sim_config(**overrides))

@@ -112,3 +112,30 @@ def test_detector_is_warm_once_it_has_seen_its_warm_up_at_rest():
     spike = quiet(100, rng)
     spike[20:] += [0.0, 1.5, 0.0]
     assert feed(det, spike, t0=2.0) == 20
+
+
+def test_the_band_window_follows_the_source_rate():
+    """Issue 17: a board at another rate than configured reports it in its status packets; the band
+    energy's window (odr / band_hz[0] samples) follows, and a band that no longer fits under the new
+    Nyquist rate switches that condition off with a reason instead of mistuning it."""
+    det = OnsetDetector(accel_threshold=0.4, band_threshold=0.1, band_hz=(40.0, 200.0), odr_hz=ODR_HZ)
+    assert det.band.N == round(ODR_HZ / 40.0)
+    assert det.set_odr(ODR_HZ) is None and det.band.N == round(ODR_HZ / 40.0)
+    assert det.set_odr(1666.0) is None and det.band.N == round(1666.0 / 40.0)
+    problem = det.set_odr(208.0)
+    assert det.band is None and "208 Hz" in problem and "off" in problem
+    assert det.set_odr(3333.0) is None and det.band.N == round(3333.0 / 40.0)
+
+
+def test_the_daemon_tunes_onset_to_the_imu_source_in_use():
+    """Issue 17: the onset detector took sim.imu.odr_hz even with imu.source: serial."""
+    from tecdard.config import Config
+    from tecdard.daemon import Daemon
+    from tests.conftest import sim_config
+    cfg = sim_config(**{"imu.source": "serial", "imu.serial": {"port": "/dev/null", "odr_hz": 1666},
+                        "estimator.onset.band_threshold": 0.5})
+    d = Daemon(Config(cfg))
+    assert d.pipeline.detector.odr_hz == 1666.0 and d.pipeline.detector.band.N == round(1666 / 40.0)
+    assert d.estimator.min_batch == int(1666 * d.pipeline.params.output_period_s)
+    d = Daemon(Config(sim_config(**{"sim.imu.odr_hz": 3333.0})))
+    assert d.pipeline.detector.odr_hz == 3333.0
