@@ -295,6 +295,9 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_imu)
     from tecdard.client_cli import add_parsers
     add_parsers(sub)
+    p = sub.add_parser("doctor", help="check whether this host is ready to run the daemon beside a real arm")
+    p.add_argument("--config", default="/etc/tecdar/tecdard.yaml", help="the daemon's config (default: the unit's)")
+    p.set_defaults(func=lambda a: __import__("tecdard.doctor", fromlist=["main"]).main(a.config))
     p = sub.add_parser("warm", help="compile the estimator's kernels into numba's cache (make install does)")
     p.set_defaults(func=_cmd_warm)
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")

@@ -20,6 +20,7 @@ from control.geometry import matrix_to_quat, rotvec_to_matrix
 from tecdard import commands as C
 from tecdard.mapfiles import MapSettings, write_map
 from tecdard.messages import Cancel, Reply, StartTask, Stop
+from tecdard.realtime import MAX_RT_PRIORITY, apply_rt_priority
 from tecdard.safejson import show_name
 
 log = logging.getLogger("tecdar.control")
@@ -55,6 +56,7 @@ class ControlParams:
     max_rotation_deg: float = 95.0     # protective stop when the object has turned more than this
     max_nis_ratio: float = 10.0        # protective stop when the estimator's smoothed NIS ratio exceeds this
     max_contact_jump_m: float = 0.02   # protective stop when a converged estimate moves this far in one tick
+    rt_priority: int | None = None     # SCHED_FIFO priority of the control thread, where the host allows it
 
     @classmethod
     def from_config(cls, section, max_speed: float) -> "ControlParams":
@@ -75,6 +77,8 @@ class ControlParams:
             max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=360.0),
             max_nis_ratio=section.getfloat("max_nis_ratio", d.max_nis_ratio, above=1.0),
             max_contact_jump_m=section.getfloat("max_contact_jump_m", d.max_contact_jump_m, above=0.0, maxval=1.0),
+            rt_priority=(section.getint("rt_priority", 0, minval=1, maxval=MAX_RT_PRIORITY)
+                         if section.has("rt_priority") else None),
         )
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
             from tecdard.config import ConfigError
@@ -239,6 +243,7 @@ class ControlThread:
 
     # -- thread body --------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
+        apply_rt_priority(self.p.rt_priority)
         t_next = time.monotonic()
         failures = 0
         try:

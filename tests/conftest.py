@@ -42,6 +42,13 @@ def tcp_now(cli) -> np.ndarray:
     return np.array(cli.command("status")["state"]["tcp"]["p"])
 
 
+def daemon_config(**overrides) -> dict:
+    """configs/sim.yaml with the allowances above for a test's daemon, and `overrides` (sim_config's)."""
+    return sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,
+                         "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
+                         "control.max_nis_ratio": TEST_MAX_NIS_RATIO, **overrides})
+
+
 def sim_config(**overrides) -> dict:
     """configs/sim.yaml as a dict with dotted-path overrides, e.g. {"sim.seed": 3}; `...` deletes a key."""
     cfg = copy.deepcopy(yaml.safe_load(SIM_CONFIG.read_text()))
@@ -120,9 +127,7 @@ def make_daemon(tmp_path):
     def factory(env: dict | None = None, client_tls=None, protocol="tcp", router=None, **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
-        d = DaemonProcess(sub, sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,
-                                                 "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
-                                                 "control.max_nis_ratio": TEST_MAX_NIS_RATIO, **overrides}), env,
+        d = DaemonProcess(sub, daemon_config(**overrides), env,
                           client_tls=client_tls, protocol=protocol, router=router)
         started.append(d)
         return d
@@ -135,6 +140,6 @@ def make_daemon(tmp_path):
 @pytest.fixture(scope="module")
 def shared_daemon(tmp_path_factory):
     """One daemon for a module of tests that only talk to it."""
-    d = DaemonProcess(tmp_path_factory.mktemp("shared"), sim_config())
+    d = DaemonProcess(tmp_path_factory.mktemp("shared"), daemon_config())
     yield d
     d.close()

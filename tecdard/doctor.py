@@ -1,0 +1,261 @@
+"""`tecdard doctor`: is this host ready to run the daemon beside a real arm?
+
+One line per check, PASS, WARN, FAIL or SKIP, with the fix under anything that is not a pass;
+the exit status is 1 when any check fails. A warning is something the daemon runs with but an
+operator should know (a kernel that is not real-time, a CPU governor that scales down); a failure
+is something `tecdard run` would refuse or that leaves the daemon without its data (the config, the
+board, the endpoint).
+
+Every check reads the host through arguments with the real defaults, so the tests can point them
+at a scratch directory.
+"""
+from __future__ import annotations
+
+import glob
+import grp
+import os
+import pathlib
+import platform
+import pwd
+import socket
+from dataclasses import dataclass
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+UDEV_RULE = ROOT / "systemd" / "99-tecdar-imu.rules"
+UDEV_RULE_DIRS = ("/etc/udev/rules.d", "/run/udev/rules.d", "/usr/lib/udev/rules.d", "/lib/udev/rules.d")
+DEFAULT_RT_PRIORITY = 80      # what the doctor tries when the config names none
+CONNECT_TIMEOUT_S = 1.0
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    status: str               # pass | warn | fail | skip
+    detail: str
+    fix: str | None = None
+
+    def lines(self) -> list[str]:
+        out = [f"{self.status.upper():4}  {self.name}: {self.detail}"]
+        if self.fix and self.status != "pass":
+            out.append(f"      fix: {self.fix}")
+        return out
+
+
+# -- the host ------------------------------------------------------------------
+def check_rt_kernel(sys_realtime: str = "/sys/kernel/realtime", version: str | None = None) -> Check:
+    version = platform.uname().version if version is None else version
+    try:
+        flag = pathlib.Path(sys_realtime).read_text().strip() == "1"
+    except OSError:
+        flag = False
+    if flag or "PREEMPT_RT" in version:
+        return Check("real-time kernel", "pass", f"PREEMPT_RT ({version[:60]})")
+    return Check("real-time kernel", "warn", f"not PREEMPT_RT ({version[:60]}): a 20 ms tick can be late "
+                 "by milliseconds under load",
+                 "boot a real-time kernel (Debian: linux-image-rt-amd64; Ubuntu: `pro enable realtime-kernel`)")
+
+
+def check_rtprio(priority: int | None) -> Check:
+    from tecdard.realtime import can_set_fifo, rtprio_limit
+    asked = priority is not None
+    prio = priority if asked else DEFAULT_RT_PRIORITY
+    soft, hard = rtprio_limit()
+    problem = can_set_fifo(prio)
+    source = "control.rt_priority" if asked else f"no control.rt_priority set; tried {prio}"
+    if problem is None:
+        return Check("SCHED_FIFO", "pass", f"priority {prio} ({source}) can be set here; RLIMIT_RTPRIO {soft}/{hard}"
+                     + ("" if soft >= prio else " (allowed by CAP_SYS_NICE)"))
+    return Check("SCHED_FIFO", "warn", f"priority {prio} ({source}): {problem}",
+                 "the unit's LimitRTPRIO= (systemd/tecdard.service), or `@tecdar - rtprio 80` in "
+                 "/etc/security/limits.d/tecdar.conf for a login session")
+
+
+def check_governor(cpu_glob: str = "/sys/devices/system/cpu/cpu[0-9]*/cpufreq/scaling_governor") -> Check:
+    found = {}
+    for path in sorted(glob.glob(cpu_glob)):
+        try:
+            found[path] = pathlib.Path(path).read_text().strip()
+        except OSError:
+            continue
+    fix = "`sudo cpupower frequency-set -g performance` (and make it persist: cpufrequtils or a tuned profile)"
+    if not found:
+        return Check("CPU governor", "warn", "no cpufreq governor exposed (a VM or a container?): the host's own "
+                     "frequency scaling applies", fix)
+    others = sorted({g for g in found.values() if g != "performance"})
+    if not others:
+        return Check("CPU governor", "pass", f"performance on all {len(found)} CPUs")
+    return Check("CPU governor", "warn", f"{', '.join(others)} on {sum(g != 'performance' for g in found.values())} "
+                 f"of {len(found)} CPUs: waking from a low clock adds latency to each tick", fix)
+
+
+# -- the fingertip board ---------------------------------------------------------
+def _access_problem(path: str) -> str | None:
+    if os.access(path, os.R_OK | os.W_OK):
+        return None
+    st = os.stat(path)
+    try:
+        group = grp.getgrgid(st.st_gid).gr_name
+    except KeyError:
+        group = str(st.st_gid)
+    user = pwd.getpwuid(os.getuid()).pw_name
+    return f"{path} is mode {st.st_mode & 0o777:o}, group {group}, and {user} may not read and write it", group
+
+
+def check_board(serial_params, comports=None) -> Check:
+    """The board at its configured port (by path, or found by VID:PID) and readable and writable."""
+    if serial_params is None:
+        return Check("fingertip board", "skip", "imu.source is not serial (the simulated board is used)")
+    if comports is None:
+        import serial.tools.list_ports
+        comports = serial.tools.list_ports.comports
+    p = serial_params
+    if p.port is not None:
+        path = p.port
+        if not os.path.exists(path):
+            fix = ("plug the board in; with the udev rule installed it appears as /dev/tecdar-imu"
+                   if "tecdar-imu" in path else "plug the board in, or correct imu.serial.port")
+            return Check("fingertip board", "fail", f"{path} does not exist", fix)
+    else:
+        hits = [i for i in comports() if i.vid == p.vid and i.pid == p.pid
+                and (p.serial_number is None or i.serial_number == p.serial_number)]
+        want = f"{p.vid:04x}:{p.pid:04x}" + (f" serial {p.serial_number}" if p.serial_number else "")
+        if not hits:
+            seen = ", ".join(f"{i.device} {i.vid:04x}:{i.pid:04x}" for i in comports() if i.vid is not None)
+            return Check("fingertip board", "fail", f"no USB serial device {want} connected"
+                         + (f" (connected: {seen})" if seen else ""),
+                         "plug the board in, or correct imu.serial.vid_pid (`lsusb` lists the IDs)")
+        path = hits[0].device
+    problem = _access_problem(path)
+    if problem is not None:
+        detail, group = problem
+        return Check("fingertip board", "fail", detail,
+                     f"`sudo usermod -aG {group} $USER` and log in again (the unit runs with "
+                     f"SupplementaryGroups={group}); the udev rule sets the group")
+    return Check("fingertip board", "pass", f"{path} (real path {os.path.realpath(path)}) readable and writable")
+
+
+def check_udev_rule(dirs=UDEV_RULE_DIRS, rule: pathlib.Path = UDEV_RULE) -> Check:
+    fix = (f"sudo install -m 644 {rule} /etc/udev/rules.d/ && sudo udevadm control --reload && "
+           "sudo udevadm trigger --subsystem-match=tty")
+    ours = rule.read_text()
+    for d in dirs:
+        path = pathlib.Path(d) / rule.name
+        if path.exists():
+            try:
+                same = path.read_text() == ours
+            except OSError:
+                same = False
+            if same:
+                return Check("udev rule", "pass", f"{path}")
+            return Check("udev rule", "warn", f"{path} differs from {rule} (edited for another board?)", fix)
+    return Check("udev rule", "warn", f"{rule.name} not installed: the board is /dev/ttyACM<n>, which can change "
+                 "between plugs, and ModemManager may probe it", fix)
+
+
+# -- the daemon's own ---------------------------------------------------------------
+def _host_port(endpoint: str) -> tuple[str, str, int] | None:
+    proto, _, addr = endpoint.partition("/")
+    host, sep, port = addr.rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    return proto, host.strip("[]"), int(port)
+
+
+def _daemon_alive_at(endpoint: str, robot: str, tls) -> bool:
+    try:
+        from tecdard.client import Client
+        with Client(endpoint, robot=robot, tls=tls) as cli:
+            return cli.alive(CONNECT_TIMEOUT_S)
+    except Exception:
+        return False
+
+
+def check_endpoints(listen: list[str], connect: list[str], robot: str = "sim", tls=None) -> list[Check]:
+    out = []
+    for ep in listen:
+        hp = _host_port(ep)
+        if hp is None or hp[0] not in ("tcp", "tls", "udp", "quic"):
+            out.append(Check(f"zenoh.listen {ep}", "skip", "not a host:port endpoint; Zenoh checks it at start"))
+            continue
+        proto, host, port = hp
+        kind = socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        try:
+            with socket.socket(family, kind) as s:
+                s.bind((host, port))
+            out.append(Check(f"zenoh.listen {ep}", "pass", "free"))
+        except OSError as exc:
+            if _daemon_alive_at(ep, robot, tls):
+                out.append(Check(f"zenoh.listen {ep}", "pass", f"in use by a running tecdard (tecdar/{robot}/alive)"))
+            else:
+                router = " (7447 is Zenoh's router port: zenohd, rmw_zenohd)" if port == 7447 else ""
+                out.append(Check(f"zenoh.listen {ep}", "fail", f"cannot listen: {exc.strerror or exc}{router}",
+                                 "pick a free port for zenoh.listen, or run through the router: zenoh.mode "
+                                 "client and the router in zenoh.connect"))
+    for ep in connect:
+        hp = _host_port(ep)
+        if hp is None or hp[0] not in ("tcp", "tls"):
+            out.append(Check(f"zenoh.connect {ep}", "skip", "not a TCP endpoint; Zenoh checks it at start"))
+            continue
+        _, host, port = hp
+        try:
+            with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
+                pass
+            out.append(Check(f"zenoh.connect {ep}", "pass", "reachable"))
+        except OSError as exc:
+            out.append(Check(f"zenoh.connect {ep}", "fail", f"unreachable: {exc.strerror or exc}",
+                             "start the router (zenohd) there, or correct zenoh.connect"))
+    return out
+
+
+def check_kernel_cache() -> Check:
+    from tecdard import kernel_cache
+    try:
+        state = kernel_cache.state()
+    except Exception as exc:
+        return Check("compiled-code cache", "warn", f"cannot tell: {exc}")
+    if state.warm:
+        return Check("compiled-code cache", "pass", state.describe())
+    return Check("compiled-code cache", "warn", state.describe(),
+                 "`tecdard warm` as the daemon's user, with the NUMBA_CACHE_DIR the daemon runs with "
+                 "(the unit's: /var/cache/tecdar)")
+
+
+def load_daemon(config_path: str):
+    """The config checked as `tecdard run` checks it: (Daemon, None) or (None, Check that failed)."""
+    from tecdard.config import Config, ConfigError
+    try:
+        cfg = Config.load(config_path)
+        from tecdard.daemon import Daemon
+        return Daemon(cfg), None
+    except ConfigError as exc:
+        return None, Check("config", "fail", f"{config_path}: {exc}", "correct the key named (docs: configs/sim.yaml)")
+
+
+def run_checks(config_path: str) -> list[Check]:
+    daemon, failed = load_daemon(config_path)
+    checks = [failed or Check("config", "pass", f"{config_path} is valid (the checks of `tecdard run`)")]
+    checks += [check_rt_kernel(), check_rtprio(daemon.control_params.rt_priority if daemon else None),
+               check_governor()]
+    serial_params = getattr(getattr(daemon, "imu", None), "p", None) if daemon and daemon.imu_source == "serial" \
+        else None
+    checks.append(check_board(serial_params) if daemon else
+                  Check("fingertip board", "skip", "the config is invalid"))
+    checks.append(check_udev_rule())
+    if daemon is not None:
+        checks += check_endpoints(daemon.listen, daemon.connect, daemon.robot_name, daemon.tls)
+    checks.append(check_kernel_cache())
+    return checks
+
+
+def main(config_path: str, out=None) -> int:
+    import sys
+    out = out or sys.stdout
+    checks = run_checks(config_path)
+    for c in checks:
+        for line in c.lines():
+            print(line, file=out)
+    failed = [c for c in checks if c.status == "fail"]
+    warned = [c for c in checks if c.status == "warn"]
+    print(f"{len(checks)} checks: {len(failed)} failed, {len(warned)} warnings", file=out)
+    return 1 if failed else 0

@@ -1,0 +1,129 @@
+"""`tecdard doctor` (issue 17): a line per check, the fix under each non-pass, exit 1 on a failure."""
+import io
+import os
+import socket
+import types
+
+import pytest
+
+from tecdard import doctor
+from tecdard.config import dump_yaml
+from tecdard.demo import free_port
+from tests.conftest import ROOT, sim_config
+
+
+def test_the_shipped_config_on_this_host(tmp_path):
+    cfg = sim_config(**{"zenoh.listen": [f"tcp/127.0.0.1:{free_port()}"]})
+    path = tmp_path / "tecdard.yaml"
+    path.write_text(dump_yaml(cfg))
+    out = io.StringIO()
+    code = doctor.main(str(path), out)
+    lines = out.getvalue().splitlines()
+    names = {"config", "real-time kernel", "SCHED_FIFO", "CPU governor", "fingertip board", "udev rule",
+             "compiled-code cache"}
+    checks = [ln for ln in lines if ln[:4] in ("PASS", "WARN", "FAIL", "SKIP")]
+    assert names <= {ln[6:].split(":")[0] for ln in checks}
+    assert any(ln.startswith("PASS  zenoh.listen") for ln in checks)
+    assert lines[0].startswith("PASS  config") and code == 0, out.getvalue()
+    for i, ln in enumerate(lines[:-1]):          # every warning says what to do
+        if ln.startswith(("WARN", "FAIL")):
+            assert lines[i + 1].startswith("      fix: "), ln
+
+
+def test_a_bad_config_fails_with_the_runs_own_line(tmp_path):
+    path = tmp_path / "tecdard.yaml"
+    path.write_text(dump_yaml(sim_config(**{"control.tick_ms": 20})))
+    out = io.StringIO()
+    assert doctor.main(str(path), out) == 1
+    first = out.getvalue().splitlines()[0]
+    assert first.startswith("FAIL  config") and "control.tick_ms: unknown option" in first
+
+
+def test_rt_kernel(tmp_path):
+    flag = tmp_path / "realtime"
+    flag.write_text("1\n")
+    assert doctor.check_rt_kernel(str(flag), "#1 SMP").status == "pass"
+    assert doctor.check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_RT Debian").status == "pass"
+    c = doctor.check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_DYNAMIC")
+    assert c.status == "warn" and "linux-image-rt" in c.fix
+
+
+def test_governor(tmp_path):
+    for i, g in enumerate(["performance", "performance"]):
+        (tmp_path / f"cpu{i}").mkdir()
+        (tmp_path / f"cpu{i}" / "scaling_governor").write_text(g + "\n")
+    pattern = str(tmp_path / "cpu[0-9]*" / "scaling_governor")
+    assert doctor.check_governor(pattern).status == "pass"
+    (tmp_path / "cpu1" / "scaling_governor").write_text("powersave\n")
+    c = doctor.check_governor(pattern)
+    assert c.status == "warn" and "powersave on 1 of 2" in c.detail and "cpupower" in c.fix
+    assert doctor.check_governor(str(tmp_path / "nothing*")).status == "warn"
+
+
+def test_rtprio_is_tried_on_a_thread_of_its_own():
+    before = os.sched_getscheduler(0)
+    c = doctor.check_rtprio(10)
+    assert c.status in ("pass", "warn") and "control.rt_priority" in c.detail
+    assert os.sched_getscheduler(0) == before          # the caller's own policy is untouched
+
+
+def test_apply_rt_priority_says_so_in_one_line_when_refused(monkeypatch, caplog):
+    import logging
+    from tecdard import realtime
+
+    def refuse(*_):
+        raise PermissionError(1, "Operation not permitted")
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse)
+    with caplog.at_level(logging.INFO, logger="tecdar"):
+        assert realtime.apply_rt_priority(80) is False
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "control.rt_priority 80" in line and "refused" in line and "SCHED_OTHER" in line
+    assert realtime.apply_rt_priority(None) is False
+
+
+def test_board_by_port_and_by_vid_pid(tmp_path):
+    from drivers.serial_imu import SerialParams
+    assert doctor.check_board(None).status == "skip"
+    c = doctor.check_board(SerialParams(port="/dev/tecdar-imu-not-here"))
+    assert c.status == "fail" and "does not exist" in c.detail and "plug" in c.fix
+    c = doctor.check_board(SerialParams(port=str(tmp_path / "tecdar-imu")))     # the udev rule's link, absent
+    assert c.status == "fail" and "/dev/tecdar-imu" in c.fix
+    master, slave = os.openpty()
+    try:
+        pty = os.ttyname(slave)
+        assert doctor.check_board(SerialParams(port=pty)).status == "pass"
+        info = types.SimpleNamespace(device=pty, vid=0x0483, pid=0x5740, serial_number="A1")
+        other = types.SimpleNamespace(device="/dev/ttyUSB9", vid=0x1a86, pid=0x7523, serial_number=None)
+        assert doctor.check_board(SerialParams(vid=0x0483, pid=0x5740), lambda: [other, info]).status == "pass"
+        c = doctor.check_board(SerialParams(vid=0x0483, pid=0x5740, serial_number="B2"), lambda: [other, info])
+        assert c.status == "fail" and "0483:5740 serial B2" in c.detail and "1a86:7523" in c.detail
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_udev_rule(tmp_path):
+    assert doctor.check_udev_rule([str(tmp_path)]).status == "warn"
+    (tmp_path / doctor.UDEV_RULE.name).write_text(doctor.UDEV_RULE.read_text())
+    assert doctor.check_udev_rule([str(tmp_path)]).status == "pass"
+    (tmp_path / doctor.UDEV_RULE.name).write_text("# someone's edit\n")
+    assert doctor.check_udev_rule([str(tmp_path)]).status == "warn"
+    rule = (ROOT / "systemd" / "99-tecdar-imu.rules").read_text()
+    assert 'SYMLINK+="tecdar-imu"' in rule and 'GROUP="dialout"' in rule and "0483" in rule
+
+
+def test_endpoints_free_taken_reachable_unreachable():
+    free = f"tcp/127.0.0.1:{free_port()}"
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        checks = doctor.check_endpoints([free, busy], [busy, free])
+    assert [c.status for c in checks] == ["pass", "fail", "pass", "fail"], checks
+    assert "cannot listen" in checks[1].detail and "zenoh.mode" in checks[1].fix
+    assert "unreachable" in checks[3].detail
+
+
+def test_an_endpoint_held_by_a_running_daemon_passes(shared_daemon):
+    (c,) = doctor.check_endpoints([shared_daemon.endpoint], [])
+    assert c.status == "pass" and "running tecdard" in c.detail
