@@ -1,6 +1,14 @@
 """systemd integration: READY=1 and WATCHDOG=1 on $NOTIFY_SOCKET, and a sane unit file."""
 import configparser
+import os
+import re
+import shutil
+import signal
 import socket
+import subprocess
+import sys
+
+import pytest
 
 from tests.conftest import ROOT
 
@@ -45,3 +53,108 @@ def test_unit_file_declares_notify_watchdog_and_hardening():
     assert "DeviceAllow=char-ttyACM rw" in text
     # numba finds no writable cache in a read-only install: it must be given one
     assert svc["CacheDirectory"] == "tecdar" and "NUMBA_CACHE_DIR=/var/cache/tecdar" in svc["Environment"]
+
+
+UNIT = ROOT / "systemd" / "tecdard.service"
+MAX_EXPOSURE = 2.0            # issue 17: `systemd-analyze security` was 3.6
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="needs systemd-analyze")
+def test_the_unit_is_hardened_and_verifies():
+    res = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager", str(UNIT)],
+                         capture_output=True, text=True, timeout=60)
+    m = re.search(r"Overall exposure level for tecdard\.service: ([0-9.]+)", res.stdout)
+    assert m, res.stdout[-2000:] + res.stderr
+    assert float(m.group(1)) <= MAX_EXPOSURE, res.stdout
+    res = subprocess.run(["systemd-analyze", "verify", str(UNIT)], capture_output=True, text=True, timeout=60)
+    problems = [ln for ln in (res.stdout + res.stderr).splitlines()
+                if ln.strip() and "/opt/tecdar/.venv/bin/tecdard" not in ln]
+    assert not problems, problems
+
+
+def syscall_groups() -> dict[str, set[str]]:
+    """systemd's system-call groups, expanded (`systemd-analyze syscall-filter`)."""
+    out = subprocess.run(["systemd-analyze", "syscall-filter", "--no-pager"], capture_output=True, text=True,
+                         timeout=60).stdout
+    raw: dict[str, list[str]] = {}
+    group = None
+    for line in out.splitlines():
+        if line.startswith("@"):
+            group = line.strip()
+            raw[group] = []
+        elif group and line.startswith("    ") and not line.strip().startswith("#"):
+            raw[group].append(line.strip())
+
+    def expand(name, seen=()):
+        calls = set()
+        for item in raw.get(name, []):
+            calls |= expand(item, seen + (name,)) if item.startswith("@") and item not in seen else {item}
+        return calls
+    return {g: expand(g) for g in raw}
+
+
+def unit_syscall_filter(groups) -> tuple[set[str], set[str]]:
+    """(allowed, denied) by the unit's SystemCallFilter= lines (an allow list, then ~ deny lists)."""
+    allowed, denied = set(groups["@default"]), set()
+    for line in UNIT.read_text().splitlines():
+        if line.startswith("SystemCallFilter="):
+            value = line.split("=", 1)[1]
+            target = denied if value.startswith("~") else allowed
+            for item in value.lstrip("~").split():
+                target |= groups[item] if item.startswith("@") else {item}
+    return allowed - denied, denied
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None or shutil.which("strace") is None,
+                    reason="needs systemd-analyze and strace")
+def test_the_daemon_makes_no_system_call_the_unit_refuses(tmp_path):
+    """The daemon (its numba-compiled estimator loaded, SCHED_FIFO asked, the simulated arm's process,
+    Zenoh), run under strace tracing only the calls the unit's filter would refuse (seccomp-bpf: the
+    others cost nothing), starts, takes a status and a stop, and exits: none of them is made.
+    There is no systemd here to run the unit itself; this is its filter's part of the check."""
+    groups = syscall_groups()
+    allowed, _ = unit_syscall_filter(groups)
+    refused = sorted(groups["@known"] - allowed)
+    # strace refuses names it does not know (other architectures' calls): keep the ones it takes
+    trace = list(refused)
+    for _ in range(len(refused)):
+        res = subprocess.run(["strace", "-qq", "-o", "/dev/null", "-e", "trace=" + ",".join(trace), "true"],
+                             capture_output=True, text=True)
+        bad = re.search(r"invalid system call '([^']+)'", res.stderr)
+        if res.returncode == 0 or not bad:
+            break
+        trace.remove(bad.group(1))
+    assert "mount" in trace and "chroot" in trace and "mmap" not in trace and "sched_setscheduler" not in trace
+    # the tracer sees a refused call when one is made
+    probe = tmp_path / "probe.txt"
+    subprocess.run(["strace", "-f", "-qq", "--seccomp-bpf", "-o", str(probe), "-e", "trace=" + ",".join(trace),
+                    sys.executable, "-c", "import os\ntry: os.chroot('/nonexistent')\nexcept OSError: pass"],
+                   check=True, timeout=60)
+    assert "chroot(" in probe.read_text()
+    from tests.conftest import daemon_config
+    from tecdard.client import Client
+    from tecdard.config import dump_yaml
+    from tecdard.demo import free_port
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg = daemon_config(**{"zenoh.listen": [endpoint], "control.rt_priority": 10,
+                           "map.output_dir": str(tmp_path / "maps")})
+    (tmp_path / "d.yaml").write_text(dump_yaml(cfg))
+    out = tmp_path / "strace.txt"
+    proc = subprocess.Popen(["strace", "-f", "-qq", "--seccomp-bpf", "-o", str(out), "-e", "trace=" + ",".join(trace),
+                             sys.executable, "-m", "tecdard", "run", "--config", str(tmp_path / "d.yaml")],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(tmp_path / "log", "w"))
+    try:
+        with Client(endpoint) as cli:
+            cli.wait_alive(60.0, running=lambda: proc.poll() is None)
+            assert cli.command("status")["ok"] is True
+            assert cli.command("stop")["ok"] is True
+    finally:
+        for pid in subprocess.run(["pgrep", "-f", str(tmp_path / "d.yaml")], capture_output=True,
+                                  text=True).stdout.split():
+            if not open(f"/proc/{pid}/cmdline").read().startswith("strace"):
+                os.kill(int(pid), signal.SIGTERM)
+        proc.wait(30)
+    log = (tmp_path / "log").read_text()
+    assert "SCHED_FIFO" in log
+    calls = [ln for ln in out.read_text().splitlines() if "(" in ln and "+++" not in ln and "---" not in ln]
+    assert not calls, calls[:20]
