@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import relative_rotvec, signed_angle, unit
+from control.geometry import cross3, relative_rotvec, signed_angle, unit
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4
@@ -194,7 +194,7 @@ class HingeWorld:
 
     def tangent(self, p_tcp: np.ndarray) -> np.ndarray:
         _, u = self._grasp_deviation(p_tcp)
-        return np.cross(self.axis, u)
+        return cross3(self.axis, u)
 
     def ring(self, p_tcp: np.ndarray, v_tcp: np.ndarray) -> tuple[np.ndarray, float | None]:
         """(direction, amplitude or None for speed-scaled) of the ring at a start event."""
@@ -331,7 +331,7 @@ class PivotWorld:
                 self.contacts += 1
                 impact = True
             else:
-                self.rate = np.zeros(3) if self._d_prev is None else np.cross(self._d_prev, d) / dt
+                self.rate = np.zeros(3) if self._d_prev is None else cross3(self._d_prev, d) / dt
                 self._d_prev, self.d = d, d
                 self.force = np.zeros(3)
                 return False
@@ -351,7 +351,7 @@ class PivotWorld:
             self.L = dist + self.p.slide_force_n / self.p.grasp_stiffness_n_m
             f_axial = self.p.slide_force_n
         self.force = -f_axial * d                 # the surface pushes back along the tool
-        self.rate = np.zeros(3) if self._d_prev is None else np.cross(self._d_prev, d) / dt
+        self.rate = np.zeros(3) if self._d_prev is None else cross3(self._d_prev, d) / dt
         self._d_prev, self.d = d, d
         started = self._start.update(float(np.linalg.norm(self.rate)), dt)
         self._impact = impact

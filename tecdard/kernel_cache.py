@@ -1,7 +1,7 @@
 """The estimator's compiled kernels (control/kernels.py, numba) and their on-disk cache.
 
 Importing control.kernels compiles each kernel for its signature, or loads it from numba's cache:
-about 60 s of compiling on a quiet 2-core machine against about 1.5 s of loading. `make install`
+60-90 s of compiling on a 2-core machine against about 1.5 s of loading. `make install`
 warms the cache (`tecdard warm`); where a start still has to compile (a wheel install, a service
 with an empty NUMBA_CACHE_DIR), the daemon says so in one line before it does. `tecdard doctor`
 reports the state.
@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass
 
 KERNELS_MODULE = "control.kernels"
-COLD_COMPILE_S = 60.0          # the first start's compile on a quiet 2-core machine (measured 50-60 s)
+COLD_COMPILE_S = 90.0          # a compile on 2 cores: 50-60 s measured before, 93 s on a fresh clone (2026-12-02)
 
 
 @dataclass(frozen=True)

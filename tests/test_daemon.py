@@ -259,19 +259,20 @@ MAP_SCENE = {"floor_z": 0.33, "boxes": [[0.33, -0.05, 0.40, 0.0, 0.35]]}    # a 
 
 
 def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(make_daemon, tmp_path):
-    """The paper's tactile mapping on a 2 x 2 grid: a block held 30 deg off the vertical probes a table
-    with a box on it, in two tool orientations; every point is valid and the map matches the scene."""
+    """The paper's tactile mapping on a 2 x 1 grid across a box's edge: a block held 30 deg off the
+    vertical probes a table with a box on it, in two tool orientations; every point is valid and the
+    map matches the scene."""
     from robots.world import BoxScene
     tilt, tool_m = np.radians(30.0), 0.12
     tip_tcp = [float(tool_m * np.sin(tilt)), 0.0, float(tool_m * np.cos(tilt))]
-    # The longest daemon test (about 25 s of task). Like the mapping bench it tolerates 0.25 s of IMU
+    # The longest daemon test (about 42 s of task: 3-5 s of descent at 1 cm/s a point). Like the mapping bench it tolerates 0.25 s of IMU
     # staleness: a 58 ms stall of the shared 2-core machine stopped it once. The 50 ms stop itself is
     # tested by unplugging the board (tests/test_serial_imu.py).
     d = make_daemon(**{"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": tip_tcp, "surface": "boxes", **MAP_SCENE},
                        "map": {"output_dir": str(tmp_path / "maps"), "tool_tip_tcp": tip_tcp},
                        "control.imu_stale_s": 0.25})
     scene = BoxScene(MAP_SCENE["floor_z"], MAP_SCENE["boxes"])
-    reply = d.client.command("map", {"origin": [0.32, -0.04], "size": [0.08, 0.08], "grid": [2, 2], "depth": 0.06,
+    reply = d.client.command("map", {"origin": [0.32, -0.04], "size": [0.04, 0.08], "grid": [2, 1], "depth": 0.06,
                                      "orientations": 2, "speed": 0.01})
     assert reply["ok"] is True, reply
     progress, phases, ev = [], set(), None
@@ -291,24 +292,24 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     assert progress and all(b >= a for a, b in zip(progress, progress[1:])), "progress went backwards"
     res = ev["result"]
     summary = res["summary"]
-    assert summary["points"] == 8 and summary["valid"] == 8 and summary["passes"] == 2
+    assert summary["points"] == 4 and summary["valid"] == 4 and summary["passes"] == 2
     rows = list(csv.DictReader(open(res["files"]["points.csv"])))
-    grid = {(0, 0): (0.34, -0.02), (0, 1): (0.38, -0.02), (1, 0): (0.34, 0.02), (1, 1): (0.38, 0.02)}
+    grid = {(0, 0): (0.34, -0.02), (1, 0): (0.34, 0.02)}      # on the box, on the table
     for r in rows:
         p = np.array([float(r["x"]), float(r["y"]), float(r["z"])])
         assert abs(p[2] - scene.surface_z(p[0], p[1])) < MAP_POINT_TOL_M, r
         # the tool tip was aimed at the grid point (from the tool model, refined by each probe)
         assert np.linalg.norm(p[:2] - grid[int(r["row"]), int(r["col"])]) < 0.004, r
     depth = np.load(res["files"]["depth.npy"])
-    assert depth.shape == (16, 16) and np.isfinite(depth).all()
-    # The fused map at the four grid points (raster rows along +y) against the same kernel estimator
+    assert depth.shape == (16, 8) and np.isfinite(depth).all()
+    # The fused map at the grid points (raster rows along +y) against the same kernel estimator
     # fed the true heights at the probed x-y: the kernel itself mixes in the table 4 cm from the box's
     # points (3.8 mm at one of them from exact heights), the touch adds no more than its points' error.
     from control.mapping import kernel_depth, raster_xy
     from tecdard.mapfiles import MapSettings
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     truth_z = np.array([scene.surface_z(x, y) for x, y in xy])
-    query = raster_xy(np.array([0.32, -0.04]), np.array([0.08, 0.08]), 0.005)
+    query = raster_xy(np.array([0.32, -0.04]), np.array([0.04, 0.08]), 0.005)
     ideal = kernel_depth(xy, truth_z, query, MapSettings.kernel_k, MapSettings.kernel_sigma_m)
     for (row, col), (x, y) in grid.items():
         i, j = int((y + 0.04) / 0.005), int((x - 0.32) / 0.005)

@@ -21,7 +21,7 @@ def test_an_empty_cache_is_cold_and_the_start_says_so(tmp_path, monkeypatch, cap
     monkeypatch.setattr(numba_config, "CACHE_DIR", str(tmp_path))      # what NUMBA_CACHE_DIR sets
     state = kernel_cache.state()
     assert not state.warm and state.fresh == 0 and state.path.startswith(str(tmp_path))
-    assert "this start compiles them, about 60 s" in state.describe()
+    assert "this start compiles them, about 90 s" in state.describe()
     from tecdard.cli import announce_compile
     with caplog.at_level(logging.INFO, logger="tecdar"):
         announce_compile()
