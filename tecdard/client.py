@@ -19,10 +19,13 @@ class ClientError(RuntimeError):
 class Client:
     """Connects to a daemon's endpoint (no listening, no multicast scouting)."""
 
-    def __init__(self, endpoint: str, robot: str = "sim", tls: TlsFiles | None = None):
-        """`tls`: this client's certificate and key and the CA, for a daemon on a tls/ endpoint."""
+    def __init__(self, endpoint: str, robot: str = "sim", tls: TlsFiles | None = None,
+                 open_timeout_s: float | None = None):
+        """`tls`: this client's certificate and key and the CA, for a daemon on a tls/ endpoint.
+        `open_timeout_s`: how long a transport's handshake may take (Zenoh's default, 10 s, is also
+        how long closing the session waits on an endpoint that accepts TCP but never answers)."""
         self.keys = Keys(robot)
-        self.session = zenoh.open(session_config([], [endpoint], tls=tls))
+        self.session = zenoh.open(session_config([], [endpoint], tls=tls, open_timeout_s=open_timeout_s))
         self.events: queue.Queue = queue.Queue()
         self.event_log: list[dict] = []       # every event seen, in order (wait_event consumes the queue)
         self.states: queue.Queue = queue.Queue(maxsize=1000)

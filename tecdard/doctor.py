@@ -164,7 +164,7 @@ def _host_port(endpoint: str) -> tuple[str, str, int] | None:
 def _daemon_alive_at(endpoint: str, robot: str, tls) -> bool:
     try:
         from tecdard.client import Client
-        with Client(endpoint, robot=robot, tls=tls) as cli:
+        with Client(endpoint, robot=robot, tls=tls, open_timeout_s=CONNECT_TIMEOUT_S) as cli:
             return cli.alive(CONNECT_TIMEOUT_S)
     except Exception:
         return False

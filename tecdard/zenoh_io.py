@@ -47,7 +47,7 @@ class TlsFiles:
 
 def session_config(listen: list[str], connect: list[str], multicast_scouting: bool = False,
                    max_message_bytes: int | None = None, tls: TlsFiles | None = None,
-                   acl: dict | None = None, mode: str = "peer") -> zenoh.Config:
+                   acl: dict | None = None, mode: str = "peer", open_timeout_s: float | None = None) -> zenoh.Config:
     """A Zenoh session's config; multicast scouting is off unless explicitly enabled.
 
     - `max_message_bytes` (the daemon): larger messages are dropped by the transport, and shared
@@ -57,6 +57,7 @@ def session_config(listen: list[str], connect: list[str], multicast_scouting: bo
       certificate and checks the other's against the CA.
     - `acl`: Zenoh's access control section (tecdard.daemon builds it from zenoh.commanders).
     - `mode`: "peer" (the daemon and its clients), "client", or "router" (a local router).
+    - `open_timeout_s`: the transport handshake's limit (Zenoh's default is 10 s).
     """
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
@@ -73,6 +74,8 @@ def session_config(listen: list[str], connect: list[str], multicast_scouting: bo
             conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
     if acl is not None:
         conf.insert_json5("access_control", json.dumps(acl))
+    if open_timeout_s is not None:
+        conf.insert_json5("transport/unicast/open_timeout", str(max(1, int(open_timeout_s * 1000))))
     return conf
 
 
