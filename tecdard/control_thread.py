@@ -344,6 +344,10 @@ class ControlThread:
             self._stale_deferred = True            # our own stall: judge on the next tick
             return
         self._stale_deferred = False
+        if self.ring.total == 0:
+            self._set_fault("imu_stale", f"no IMU sample since the start, {(now - self._t_boot) * 1e3:.0f} ms ago "
+                                         f"(limit {self.p.imu_stale_s * 1e3:.0f} ms)")
+            return
         self._set_fault("imu_stale", f"no IMU sample for {age * 1e3:.0f} ms (limit {self.p.imu_stale_s * 1e3:.0f} ms)")
 
     def _check_saturation(self, now: float) -> None:

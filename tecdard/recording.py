@@ -29,6 +29,9 @@ MAX_ABS_TIME_S = 1e10            # timestamps beyond this are no clock a rig kee
 MAX_STRING_BYTES = 1 << 20       # `format` and `meta`
 MAX_META_DEPTH = 32
 MAX_HEADER_BYTES = 10_000        # numpy's own bound for a .npy header
+# The IMU's median sample rate: the onset detector's band (40-200 Hz by default) needs the rate above
+# twice its top, and a fingertip IMU at under 100 Hz is no contact sensor (sim.imu.odr_hz's range).
+IMU_RATE_RANGE_HZ = (100.0, 20_000.0)
 
 
 class RecordingError(ValueError):
@@ -228,6 +231,10 @@ def _read(get: _Npz) -> Recording:
         raise RecordingError(f"format: expected {FORMAT!r}, got {show(fmt)}")
     imu_t = _array(get, "imu_t", (None,), rows_max=MAX_IMU_SAMPLES)
     _increasing(imu_t, "imu_t")
+    rate = float(1.0 / np.median(np.diff(imu_t)))
+    if not IMU_RATE_RANGE_HZ[0] <= rate <= IMU_RATE_RANGE_HZ[1]:
+        raise RecordingError(f"imu_t: a median sample rate of {rate:.6g} Hz, expected "
+                             f"{IMU_RATE_RANGE_HZ[0]:g}-{IMU_RATE_RANGE_HZ[1]:g} Hz")
     n = len(imu_t)
     gyro = _array(get, "gyro", (None, 3)) if _rows(get, "gyro", n, "imu_t") else None
     accel = _array(get, "accel", (None, 3)) if _rows(get, "accel", n, "imu_t") else None

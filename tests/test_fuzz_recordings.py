@@ -155,6 +155,15 @@ def test_time_spans_and_magnitudes_are_bounded(arrays, tmp_path):
     assert "imu_t: timestamps beyond" in refusal(write(tmp_path / "big.npz", with_changes(arrays, imu_t=big)))
 
 
+def test_an_imu_rate_no_onset_band_fits_is_refused_by_the_reader(arrays, tmp_path):
+    """Hypothesis found it: IMU times one second apart gave a 1 Hz rate, and the pipeline's onset band
+    (40-200 Hz) then failed its own config check, naming a config key for a recording's fault."""
+    n = len(arrays["imu_t"])
+    for t, rate in ((np.arange(n) * 1.0, "1 Hz"), (np.arange(n) * 1e-6, "1e+06 Hz")):
+        msg = refusal(write(tmp_path / "rate.npz", with_changes(arrays, imu_t=t)))
+        assert msg.startswith("imu_t: a median sample rate of") and rate in msg, msg
+
+
 def test_pickles_are_refused(arrays, tmp_path):
     members = {k: member_bytes(v) for k, v in arrays.items()}
     members["gyro"] = member_bytes(np.array([{"a": 1}] * 3, dtype=object))
