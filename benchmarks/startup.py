@@ -42,13 +42,24 @@ def drop_page_cache() -> bool:
         return False
 
 
-def one_start(tmp: pathlib.Path, env: dict | None = None, timeout: float = 300.0) -> float:
+def ready_line_s(log: pathlib.Path, t_spawn_wall: float) -> float:
+    """Seconds from spawn to the daemon's own "tecdard ready" log line (its asctime, ms)."""
+    import datetime
+    for line in log.read_text().splitlines():
+        if "tecdard ready" in line:
+            stamp = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+            return stamp - t_spawn_wall
+    return float("nan")
+
+
+def one_start(tmp: pathlib.Path, env: dict | None = None, timeout: float = 300.0) -> tuple[float, float]:
+    """(seconds to the client's first sight of the liveliness token, seconds to the ready log line)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = sim_config(**{"zenoh.listen": [endpoint], "map.output_dir": str(tmp / "maps")})
     path = tmp / "startup.yaml"
     path.write_text(dump_yaml(cfg))
     with Client(endpoint) as cli:
-        t0 = time.monotonic()
+        t0, t0_wall = time.monotonic(), time.time()
         proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(path)], cwd=ROOT,
                                 stdout=subprocess.DEVNULL, stderr=open(tmp / "startup.log", "w"),
                                 env={**os.environ, **(env or {})})
@@ -58,9 +69,11 @@ def one_start(tmp: pathlib.Path, env: dict | None = None, timeout: float = 300.0
                     raise RuntimeError(f"tecdard exited {proc.returncode}: {(tmp / 'startup.log').read_text()[-500:]}")
                 if time.monotonic() - t0 > timeout:
                     raise RuntimeError("not alive in time")
-            return time.monotonic() - t0
+                time.sleep(0.02)        # with no route yet a query returns at once: never spin
+            seen = time.monotonic() - t0
         finally:
             stop_daemon(proc)
+    return seen, ready_line_s(tmp / "startup.log", t0_wall)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,14 +94,18 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`tecdard run` on configs/sim.yaml, spawn to liveliness token (READY), on {os.cpu_count()} cores.",
         "",
-        "| start | seconds | target |",
-        "|---|---|---|",
+        "The daemon's own READY is its `tecdard ready` log line; a client sees the token up to one",
+        "connect retry (0.1-0.5 s) later.",
+        "",
+        "| start | READY, s | seen by a client, s | target |",
+        "|---|---|---|---|",
         f"| first after `make install` ({'page cache dropped' if dropped else 'page cache as found'}) "
-        f"| {first:.2f} | <= {FIRST_TARGET_S:g} |",
-        f"| warm, median of {len(warm)} | {statistics.median(warm):.2f} (max {max(warm):.2f}) | <= {WARM_TARGET_S:g} |",
+        f"| {first[1]:.2f} | {first[0]:.2f} | <= {FIRST_TARGET_S:g} |",
+        f"| warm, median of {len(warm)} | {statistics.median(w[1] for w in warm):.2f} (max "
+        f"{max(w[1] for w in warm):.2f}) | {statistics.median(w[0] for w in warm):.2f} | <= {WARM_TARGET_S:g} |",
     ]
     if cold is not None:
-        lines.append(f"| empty kernel cache (compiles) | {cold:.1f} | (said in the log's first line) |")
+        lines.append(f"| empty kernel cache (compiles) | {cold[1]:.1f} | {cold[0]:.1f} | (said in the log's first line) |")
     lines.append("")
     out = "\n".join(lines)
     print(out)

@@ -10,6 +10,7 @@ import zenoh
 from tecdard.zenoh_io import Keys, TlsFiles, dumps, session_config
 
 WAIT_REPORT_S = 10.0           # wait_alive says what it waits for this often
+ALIVE_POLL_S = 0.05
 
 
 class ClientError(RuntimeError):
@@ -74,7 +75,7 @@ class Client:
             if waiting is not None and now - t0 >= report:
                 waiting(now - t0)
                 report += WAIT_REPORT_S
-            time.sleep(0.2)
+            time.sleep(ALIVE_POLL_S)      # with no route yet a query returns at once: never spin
 
     def command(self, verb: str, payload: dict | str | None = None, timeout: float = 10.0) -> dict:
         """Send a command and return the decoded reply."""

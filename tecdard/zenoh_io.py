@@ -45,6 +45,9 @@ class TlsFiles:
     key: str
 
 
+CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}
+
+
 def session_config(listen: list[str], connect: list[str], multicast_scouting: bool = False,
                    max_message_bytes: int | None = None, tls: TlsFiles | None = None,
                    acl: dict | None = None, mode: str = "peer", open_timeout_s: float | None = None) -> zenoh.Config:
@@ -64,6 +67,10 @@ def session_config(listen: list[str], connect: list[str], multicast_scouting: bo
     conf.insert_json5("scouting/multicast/enabled", "true" if multicast_scouting else "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
+    # An endpoint not up yet (a client started beside its daemon, a daemon before its router) is
+    # retried from 0.1 s, at most every 0.5 s: Zenoh's own default backs off from 1 s to 4 s, so a
+    # client could see a daemon seconds after it was ready.
+    conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
     if max_message_bytes is not None:
         conf.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
         conf.insert_json5("transport/shared_memory/enabled", "false")

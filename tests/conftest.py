@@ -20,6 +20,9 @@ from tecdard.config import dump_yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
+# Until the daemon listens, a liveliness query returns at once (no route): without a pause the
+# wait spun a core at ~70 000 queries a second while the daemon started on the other one.
+ALIVE_POLL_S = 0.05
 
 
 # The whole-daemon tests run the simulated arm (1 kHz physics and the IMU at 6.7 kHz, a process of
@@ -93,6 +96,7 @@ class DaemonProcess:
                     raise RuntimeError(f"exit {self.proc.returncode}")
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"not alive after {DAEMON_START_TIMEOUT_S:.0f} s")
+                time.sleep(ALIVE_POLL_S)
         except Exception as exc:
             self.close()
             raise RuntimeError(f"tecdard did not come up ({exc}): {self.log()}") from None
