@@ -73,9 +73,6 @@ class GyroConditioner:
         self._hist = ext[-(w - 1):].copy()
         return out
 
-    def reset_filter(self) -> None:
-        self._hist = np.zeros((0, 3))
-
     def object_rate_world(self, w_imu: np.ndarray, R_world_tcp: np.ndarray, w_tcp_world: np.ndarray,
                           eta: float | None = None) -> np.ndarray:
         """Object angular velocity in the world (n, 3) from filtered IMU-frame gyro (n, 3).

@@ -256,7 +256,6 @@ class ContactPipeline:
         self._angle = 0.0
         self._stamp_prev = np.nan
         self._begin_t: float | None = None
-        self.latest: ContactEstimate | None = None
         self._g_sat, self._a_sat = DEFAULT_SATURATION
         self.saturated = 0                   # samples of the current episode clipped at full scale
         self.saturated_since: float | None = None   # the stream has been mostly clipped since this time
@@ -438,8 +437,6 @@ class ContactPipeline:
         if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
             estimates.append(self._estimate(self._t_prev))
-        if estimates:
-            self.latest = estimates[-1]
         return events, estimates
 
     def _advance_loop(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,

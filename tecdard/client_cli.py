@@ -7,6 +7,7 @@ import sys
 import time
 
 from tecdard.client import Client, ClientError
+from tecdard.commands import TASK_VERBS
 from tecdard.zenoh_io import TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
@@ -35,7 +36,8 @@ VERB_FIELDS = {
               ("--distance", "distance", float, "m"), ("--speed", "speed", float, "m/s")],
     "rotate": [("--angle-deg", "angle_deg", float, "required"), ("--speed", "speed", float, "m/s"),
                ("--probe-distance", "probe_distance", float, "m"), ("--direction", "direction", _vec, "x,y,z"),
-               ("--strategy", "strategy", str, "arc (default) or straight")],
+               ("--strategy", "strategy", str, "arc (default) or straight"),
+               ("--turn-tool", "turn_tool", bool, "the gripper turns with the object (default; --no-turn-tool: held)")],
     "point": [("--radius", "radius", float, "m"), ("--speed", "speed", float, "m/s"),
               ("--turns", "turns", float, "")],
     "approach": [("--direction", "direction", _vec, "required, x,y,z"), ("--speed", "speed", float, "m/s"),
@@ -48,7 +50,6 @@ VERB_FIELDS = {
     "stop": [], "status": [],
     "cancel": [("--task", "task", str, "task id (default: the running task)")],
 }
-TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
 
 
 def add_parsers(sub) -> None:
@@ -67,7 +68,10 @@ def add_parsers(sub) -> None:
         if verb in TASK_VERBS:
             p.add_argument("--no-follow", action="store_true", help="return once the task is accepted")
         for opt, _field, typ, help_ in fields:
-            p.add_argument(opt, type=typ, help=help_)
+            if typ is bool:
+                p.add_argument(opt, action=argparse.BooleanOptionalAction, default=None, help=help_)
+            else:
+                p.add_argument(opt, type=typ, help=help_)
         p.set_defaults(func=run_verb, verb=verb)
 
 

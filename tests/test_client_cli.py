@@ -78,3 +78,16 @@ def test_the_cli_reaches_the_daemon_through_a_local_zenoh_router(make_daemon):
         refused = tecdard("probe", "--connect", router_ep, "--direction", "-0.26,0,0.96", "--distance", "5")
         assert refused.returncode == 2 and "out_of_limits" in refused.stderr
         assert tecdard("stop", "--connect", router_ep).returncode == 0
+
+
+def test_the_cli_offers_every_task_verb_and_rotates_with_the_tool_held():
+    """Issue 18's first step: the CLI took its verb list from a copy, and lacked rotate's turn_tool."""
+    import argparse
+    from tecdard import client_cli
+    from tecdard import commands as C
+    assert client_cli.TASK_VERBS is C.TASK_VERBS and set(C.TASK_VERBS) <= set(client_cli.VERB_FIELDS)
+    parser = argparse.ArgumentParser()
+    client_cli.add_parsers(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["rotate", "--angle-deg", "10", "--no-turn-tool"])
+    assert args.turn_tool is False
+    assert parser.parse_args(["rotate", "--angle-deg", "10"]).turn_tool is None      # the daemon's default
