@@ -63,28 +63,37 @@ def intake(sink):
     return q
 
 
-def check_one(q, sink, verb: str, payload: bytes):
-    """Send one payload on cmd/<verb> and check what came of it."""
+def check_one(q, sink, verb: str, payload: bytes) -> str:
+    """Send one payload on cmd/<verb>, check what came of it, and say what that was: "stop" (left to
+    the stop queryable), "answered" (status), "refused" or "handed" (to the control thread)."""
     n_sub, n_rep = len(sink.submitted), len(sink.replies)
     key = KEYS.cmd_prefix + verb
     q.handle(Query(key, sink), key, payload, 0.0)
     new_sub, new_rep = sink.submitted[n_sub:], sink.replies[n_rep:]
     if verb == "stop":
         assert not new_sub and not new_rep            # the stop queryable answers stops
-        return
+        return "stop"
     assert len(new_sub) + len(new_rep) == 1, (verb, payload[:80], new_sub, new_rep)
     if new_rep:
         reply = json.loads(new_rep[0])
         if reply["ok"]:
             assert verb == "status"
-            return
+            return "answered"
         err = reply["error"]
         assert err["code"] in CODES, err
         assert "\n" not in err["message"] and "\r" not in err["message"] and len(err["message"]) <= MAX_MESSAGE_CHARS, err
         assert err["code"] != C.BAD_REQUEST, err      # a bad_request is a bug of ours: none may show up here
-        return
+        return "refused"
     fields = new_sub[0].fields if hasattr(new_sub[0], "fields") else {"task": new_sub[0].task}
     check_fields(verb, fields)
+    return "handed"
+
+
+def assert_accounted(outcomes: list[str], sink) -> None:
+    """Every payload of a batch came to exactly one end: a reply or a hand-over (stops aside)."""
+    assert set(outcomes) <= {"stop", "answered", "refused", "handed"}, outcomes
+    assert len(sink.replies) == outcomes.count("answered") + outcomes.count("refused")
+    assert len(sink.submitted) == outcomes.count("handed")
 
 
 def check_fields(verb: str, f: dict) -> None:
@@ -226,12 +235,15 @@ def test_any_payload_is_answered_once_or_handed_on_within_limits(template, verb_
     base_verb, text = TEMPLATES[template]
     sink = Sink()
     q = intake(sink)
+    outcomes = []
     for _ in range(BATCH):
         data = text.encode()
         for _ in range(rng.randrange(1, depth + 1)):
             data = mutate(data, rng, raw)
         verb = base_verb if verb_choice >= len(VERB_FORMS) else VERB_FORMS[verb_choice]
-        check_one(q, sink, verb, data)
+        outcomes.append(check_one(q, sink, verb, data))
+    assert len(outcomes) == BATCH
+    assert_accounted(outcomes, sink)
 
 
 @fuzz_settings(60)
@@ -239,8 +251,8 @@ def test_any_payload_is_answered_once_or_handed_on_within_limits(template, verb_
 def test_structured_payloads_are_answered_once_or_handed_on_within_limits(batch):
     sink = Sink()
     q = intake(sink)
-    for verb, payload in batch:
-        check_one(q, sink, verb, payload)
+    outcomes = [check_one(q, sink, verb, payload) for verb, payload in batch]
+    assert_accounted(outcomes, sink)
 
 
 @fuzz_settings(20)
