@@ -64,12 +64,7 @@ def one_start(tmp: pathlib.Path, env: dict | None = None, timeout: float = 300.0
                                 stdout=subprocess.DEVNULL, stderr=open(tmp / "startup.log", "w"),
                                 env={**os.environ, **(env or {})})
         try:
-            while not cli.alive(0.05):
-                if proc.poll() is not None:
-                    raise RuntimeError(f"tecdard exited {proc.returncode}: {(tmp / 'startup.log').read_text()[-500:]}")
-                if time.monotonic() - t0 > timeout:
-                    raise RuntimeError("not alive in time")
-                time.sleep(0.02)        # with no route yet a query returns at once: never spin
+            cli.wait_alive(timeout, running=lambda: proc.poll() is None)
             seen = time.monotonic() - t0
         finally:
             stop_daemon(proc)

@@ -16,6 +16,7 @@ from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, 
 from control.geometry import Plane, relative_rotvec
 from control.kernels import plane_rotation, rate_moments, rotation_axes
 from control.onset import OnsetDetector
+from drivers.lsm6dsr import Scaling
 
 METHODS = ("ekf", "paper-ekf") + BASELINES
 PROPRIO_HISTORY = 256         # proprioception samples kept for causal lookup
@@ -26,10 +27,9 @@ TCP_TURNING_RAD_S = 0.01      # the gripper turns (its own rate from propriocept
 FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than this is no position measurement
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
 WDOT_MAX_AGE_S = 0.05         # a reported TCP rate's last change is extrapolated at most this far
-# The LSM6DSR's clipping points at its widest full scales (4000 dps, 16 g: int16 32767 LSB, less half
-# an LSB), until a source says which scales it runs (drivers.lsm6dsr.Scaling.saturation).
-DEFAULT_SATURATION = (32766.5 * 0.140 * math.pi / 180.0,      # 140 mdps/LSB: 80.06 rad/s
-                      32766.5 * 0.488e-3 * 9.80665)            # 0.488 mg/LSB: 156.8 m/s^2
+# The LSM6DSR's clipping points at its default full scales (4000 dps, 16 g: 80.06 rad/s, 156.8 m/s^2),
+# until a source says which scales it runs.
+DEFAULT_SATURATION = Scaling().saturation
 SATURATED_BATCH_FRACTION = 0.5    # a batch this clipped counts toward a clipped stream (a stuck or overloaded chip)
 
 

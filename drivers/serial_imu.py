@@ -63,8 +63,10 @@ class SerialParams:
         return p
 
 
-def find_port(vid: int, pid: int, serial_number: str | None = None) -> str:
-    for info in serial.tools.list_ports.comports():
+def find_port(vid: int, pid: int, serial_number: str | None = None, comports=None) -> str:
+    """The device path of the connected USB serial device vid:pid (and serial number), or PortError.
+    `comports`: what lists the ports (pyserial's by default)."""
+    for info in (comports or serial.tools.list_ports.comports)():
         if info.vid == vid and info.pid == pid and (serial_number is None or info.serial_number == serial_number):
             return info.device
     sn = f" serial {serial_number}" if serial_number else ""

@@ -237,7 +237,6 @@ class Daemon:
         self.contact = LatestValue()
         self.notifier = Notifier()
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
-                                         min_batch=max(1, int(source_odr_hz * self.pipeline.params.output_period_s)),
                                          saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,

@@ -89,7 +89,8 @@ def check_governor(cpu_glob: str = "/sys/devices/system/cpu/cpu[0-9]*/cpufreq/sc
 
 
 # -- the fingertip board ---------------------------------------------------------
-def _access_problem(path: str) -> str | None:
+def _access_problem(path: str) -> tuple[str, str] | None:
+    """None, or (what is wrong, the device's group)."""
     if os.access(path, os.R_OK | os.W_OK):
         return None
     st = os.stat(path)
@@ -105,6 +106,7 @@ def check_board(serial_params, comports=None) -> Check:
     """The board at its configured port (by path, or found by VID:PID) and readable and writable."""
     if serial_params is None:
         return Check("fingertip board", "skip", "imu.source is not serial (the simulated board is used)")
+    from drivers.serial_imu import PortError, find_port
     if comports is None:
         import serial.tools.list_ports
         comports = serial.tools.list_ports.comports
@@ -116,15 +118,12 @@ def check_board(serial_params, comports=None) -> Check:
                    if "tecdar-imu" in path else "plug the board in, or correct imu.serial.port")
             return Check("fingertip board", "fail", f"{path} does not exist", fix)
     else:
-        hits = [i for i in comports() if i.vid == p.vid and i.pid == p.pid
-                and (p.serial_number is None or i.serial_number == p.serial_number)]
-        want = f"{p.vid:04x}:{p.pid:04x}" + (f" serial {p.serial_number}" if p.serial_number else "")
-        if not hits:
+        try:
+            path = find_port(p.vid, p.pid, p.serial_number, comports)
+        except PortError as exc:
             seen = ", ".join(f"{i.device} {i.vid:04x}:{i.pid:04x}" for i in comports() if i.vid is not None)
-            return Check("fingertip board", "fail", f"no USB serial device {want} connected"
-                         + (f" (connected: {seen})" if seen else ""),
+            return Check("fingertip board", "fail", f"{exc}" + (f" (connected: {seen})" if seen else ""),
                          "plug the board in, or correct imu.serial.vid_pid (`lsusb` lists the IDs)")
-        path = hits[0].device
     problem = _access_problem(path)
     if problem is not None:
         detail, group = problem

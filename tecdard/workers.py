@@ -73,7 +73,8 @@ class EstimatorThread:
                  saturation=None, odr_hz=None):
         """`saturation()` gives the IMU source's clipping points (gyro rad/s, accel m/s^2), which
         change with the full scales a board reports; `odr_hz()` its data rate, which a board
-        reports in its status packets (the onset detector's band window follows it)."""
+        reports in its status packets (the onset detector's band window and `min_batch`, one
+        output period of samples, follow it)."""
         self.pipeline = pipeline
         self.saturation = saturation
         self.odr_hz = odr_hz
@@ -91,6 +92,8 @@ class EstimatorThread:
         self.inbox: queue.Queue = queue.Queue(maxsize=1024)
         self.dropped = 0
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
+        if odr_hz is not None:
+            self._follow_odr(odr_hz())
 
     def _follow_odr(self, odr_hz: float) -> None:
         if odr_hz == self._odr_seen:
@@ -132,9 +135,9 @@ class EstimatorThread:
                     pipe.begin(msg[1])
                 elif msg[0] == "hold_bias":
                     pipe.hold_bias(msg[1])
-            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
             if self.odr_hz is not None:
                 self._follow_odr(self.odr_hz())
+            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
             if self.saturation is not None:
                 limits = self.saturation()
                 if limits != sat_limits:

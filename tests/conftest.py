@@ -6,7 +6,6 @@ import os
 import pathlib
 import signal
 import subprocess
-import time
 import sys
 
 import numpy as np
@@ -20,9 +19,6 @@ from tecdard.config import dump_yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
-# Until the daemon listens, a liveliness query returns at once (no route): without a pause the
-# wait spun a core at ~70 000 queries a second while the daemon started on the other one.
-ALIVE_POLL_S = 0.05
 
 
 # The whole-daemon tests run the simulated arm (1 kHz physics and the IMU at 6.7 kHz, a process of
@@ -90,13 +86,7 @@ class DaemonProcess:
                                      env=None if env is None else {**os.environ, **env})
         self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls)
         try:
-            deadline = time.monotonic() + DAEMON_START_TIMEOUT_S
-            while not self.client.alive(0.5):
-                if self.proc.poll() is not None:
-                    raise RuntimeError(f"exit {self.proc.returncode}")
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"not alive after {DAEMON_START_TIMEOUT_S:.0f} s")
-                time.sleep(ALIVE_POLL_S)
+            self.client.wait_alive(DAEMON_START_TIMEOUT_S, running=lambda: self.proc.poll() is None)
         except Exception as exc:
             self.close()
             raise RuntimeError(f"tecdard did not come up ({exc}): {self.log()}") from None

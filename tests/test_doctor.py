@@ -4,7 +4,6 @@ import os
 import socket
 import types
 
-import pytest
 
 from tecdard import doctor
 from tecdard.config import dump_yaml
