@@ -85,6 +85,7 @@ class Task:
     trigger_phase: str | None = None
     touching_phases: tuple = ()        # phases where the tool touches outside a contact episode
     absorbed_phases: tuple = ()        # phases where the grasp absorbs the TCP's motion along the lever arm
+    reactions: tuple = ()              # the task's own safety checks (control.safety.Reaction), after the generic ones
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float):
         self.id = task_id
@@ -121,6 +122,10 @@ class Task:
     def _fail(self, message: str) -> None:
         self.status.state = "failed"
         self.status.error = message
+
+    def partial_record(self):
+        """What a task that ends early still has to write (a map's points probed so far), or None."""
+        return None
 
 
 class TwoPhaseTask(Task):

@@ -1,4 +1,4 @@
-"""`tecdard probe|rotate|point|approach|map|stop|status|cancel`: drive a running daemon over Zenoh."""
+"""`tecdard <verb>`: drive a running daemon over Zenoh (the task verbs of tecdard/verbs/, stop, status, cancel)."""
 from __future__ import annotations
 
 import argparse
@@ -7,7 +7,8 @@ import sys
 import time
 
 from tecdard.client import Client, ClientError
-from tecdard.commands import TASK_VERBS
+from tecdard import verbs
+from tecdard.commands import task_verbs
 from tecdard.zenoh_io import TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
@@ -30,31 +31,25 @@ def _ints(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
-# verb -> [(option, payload field, type, help)]
-VERB_FIELDS = {
-    "probe": [("--direction", "direction", _vec, "unit vector x,y,z (world)"),
-              ("--distance", "distance", float, "m"), ("--speed", "speed", float, "m/s")],
-    "rotate": [("--angle-deg", "angle_deg", float, "required"), ("--speed", "speed", float, "m/s"),
-               ("--probe-distance", "probe_distance", float, "m"), ("--direction", "direction", _vec, "x,y,z"),
-               ("--strategy", "strategy", str, "arc (default) or straight"),
-               ("--turn-tool", "turn_tool", bool, "the gripper turns with the object (default; --no-turn-tool: held)")],
-    "point": [("--radius", "radius", float, "m"), ("--speed", "speed", float, "m/s"),
-              ("--turns", "turns", float, "")],
-    "approach": [("--direction", "direction", _vec, "required, x,y,z"), ("--speed", "speed", float, "m/s"),
-                 ("--max-distance", "max_distance", float, "m"), ("--stop-angle-deg", "stop_angle_deg", float, "")],
-    "map": [("--origin", "origin", _vec, "x,y of the region's corner (m, world; default: centred below the TCP)"),
-            ("--size", "size", _vec, "x,y extent (m)"), ("--grid", "grid", _ints, "rows,cols (rows along +y)"),
-            ("--depth", "depth", float, "deepest descent below the start height (m)"),
-            ("--orientations", "orientations", int, "1, or 2 (a second pass, tool turned 90 deg)"),
-            ("--speed", "speed", float, "descent and probe speed (m/s)")],
-    "stop": [], "status": [],
-    "cancel": [("--task", "task", str, "task id (default: the running task)")],
-}
+# the control verbs' options; a task verb's come from its fields (tecdard/verbs/)
+CONTROL_OPTIONS = {"stop": [], "status": [],
+                   "cancel": [("--task", "task", str, "task id (default: the running task)")]}
+FIELD_TYPES = {"number": float, "direction": _vec, "numbers": _vec, "choice": str, "bool": bool, "grid": _ints,
+               "int_choice": int}
+
+
+def verb_options() -> dict[str, list[tuple]]:
+    """verb -> [(option, payload field, type, help)], the task verbs' from their registered fields."""
+    out = {}
+    for spec in verbs.discover().values():
+        out[spec.name] = [(f.option, f.name, FIELD_TYPES[f.kind], f.help or f.unit) for f in spec.fields]
+    return {**out, **CONTROL_OPTIONS}
 
 
 def add_parsers(sub) -> None:
-    for verb, fields in VERB_FIELDS.items():
-        p = sub.add_parser(verb, help=f"send '{verb}' to a running daemon")
+    summaries = {v.name: v.summary for v in verbs.discover().values()}
+    for verb, fields in verb_options().items():
+        p = sub.add_parser(verb, help=summaries.get(verb, f"send '{verb}' to a running daemon"))
         p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"daemon endpoint (default {DEFAULT_ENDPOINT})")
         p.add_argument("--robot", default="sim", help="robot name in the key expressions (default sim)")
         p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the task to end")
@@ -65,7 +60,7 @@ def add_parsers(sub) -> None:
         p.add_argument("--tls-ca", help="with a tls/ endpoint: the CA that signed the daemon's certificate")
         p.add_argument("--tls-cert", help="with a tls/ endpoint: this client's certificate (its CN may be a commander)")
         p.add_argument("--tls-key", help="with a tls/ endpoint: this client's private key")
-        if verb in TASK_VERBS:
+        if verb in summaries:
             p.add_argument("--no-follow", action="store_true", help="return once the task is accepted")
         for opt, _field, typ, help_ in fields:
             if typ is bool:
@@ -88,7 +83,7 @@ def _progress(state: dict | None, out) -> None:
 
 def run_verb(args) -> int:
     payload = {field: getattr(args, opt.lstrip("-").replace("-", "_"))
-               for opt, field, _t, _h in VERB_FIELDS[args.verb]
+               for opt, field, _t, _h in verb_options()[args.verb]
                if getattr(args, opt.lstrip("-").replace("-", "_")) is not None}
     given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
     if given and len(given) != 3:
@@ -116,7 +111,7 @@ def run_verb(args) -> int:
             err = reply.get("error", {})
             print(f"tecdard {args.verb}: refused: {err.get('code')}: {err.get('message')}", file=sys.stderr)
             return EXIT_REFUSED
-        if args.verb not in TASK_VERBS:
+        if args.verb not in task_verbs():
             if not args.json and args.verb != "status":
                 print(f"{args.verb}: ok")
             return EXIT_DONE

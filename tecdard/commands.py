@@ -10,12 +10,22 @@ import logging
 import math
 from dataclasses import dataclass
 
+from tecdard import verbs as task_verbs_registry
 from tecdard.safejson import JsonLimitError, finite, is_number, loads, show, show_name
+from tecdard.verbs import REQUIRED, Field, TaskVerb
 
 log = logging.getLogger("tecdar.commands")
 
-VERBS = ("probe", "rotate", "point", "approach", "map", "stop", "status", "cancel")
-TASK_VERBS = ("probe", "rotate", "point", "approach", "map")
+CONTROL_VERBS = ("stop", "status", "cancel")     # the verbs that are not tasks
+
+
+def task_verbs() -> tuple[str, ...]:
+    """The task verbs: one module each in tecdard/verbs/."""
+    return task_verbs_registry.names()
+
+
+def verbs() -> tuple[str, ...]:
+    return task_verbs() + CONTROL_VERBS
 
 # Error codes of the reply {"ok": false, "error": {"code", "message"}}.
 BAD_JSON = "bad_json"
@@ -81,7 +91,8 @@ class Limits:
         default beyond its maximum would move the robot further than the config allows."""
         from tecdard.config import ConfigError
         limits = cls._read(section)
-        for verb, required in SELF_CHECK.items():
+        checks = {v.name: v.self_check for v in task_verbs_registry.discover().values()}
+        for verb, required in {**checks, **{v: {} for v in CONTROL_VERBS}}.items():
             try:
                 validate(verb, dict(required), limits)
             except CommandError as exc:
@@ -118,12 +129,6 @@ class Limits:
             max_map_depth=section.getfloat("max_map_depth", d.max_map_depth, above=0.0, maxval=1.0),
             max_map_points=section.getint("max_map_points", d.max_map_points, minval=1, maxval=10000),
         )
-
-
-# A command of each verb with only its required fields: every default is used, so Limits.from_config
-# can check that each one passes its own limits.
-SELF_CHECK = {"probe": {}, "rotate": {"angle_deg": 0.1}, "point": {}, "approach": {"direction": [0.0, 0.0, -1.0]},
-              "map": {}, "stop": {}, "status": {}, "cancel": {}}
 
 
 # The limits key that holds each field's default.
@@ -225,80 +230,63 @@ def _check_fields(obj: dict, verb: str, allowed: tuple) -> None:
                                               f"(fields: {', '.join(allowed) or 'none'})")
 
 
+def _field(obj: dict, f: Field, limits: Limits, verb: str):
+    """One field of a task verb (tecdard.verbs.Field), converted and checked; its default when absent."""
+    default = f.resolve("default", limits)
+    if default is REQUIRED:
+        default = None
+    lo, hi = f.resolve("lo", limits), f.resolve("hi", limits)
+    if f.kind == "number":
+        return _number(obj, f.name, default, lo, hi, f.unit)
+    if f.kind == "direction":
+        return _direction(obj, f.name, default)
+    if f.kind == "numbers":
+        return _numbers(obj, f.name, default, f.n, lo, hi, f.unit)
+    v = obj.get(f.name, default)
+    if f.name not in obj and f.default is REQUIRED:
+        raise CommandError(MISSING_FIELD, f"{f.name}: required field is missing")
+    if f.kind == "choice":
+        if not isinstance(v, str) or v not in f.choices:
+            expected = " or ".join(f'"{c}"' for c in f.choices)
+            raise CommandError(BAD_TYPE, f"{f.name}: expected {expected}, got {show(v)}")
+        return v
+    if f.kind == "bool":
+        if not isinstance(v, bool):
+            raise CommandError(BAD_TYPE, f"{f.name}: expected true or false, got {show(v)}")
+        return v
+    if f.kind == "int_choice":
+        if not is_number(v) or v not in f.choices:
+            raise CommandError(BAD_TYPE, f"{f.name}: expected {' or '.join(str(c) for c in f.choices)}, got {show(v)}")
+        return int(v)
+    if f.kind == "grid":
+        if not isinstance(v, list) or len(v) != 2 or not all(isinstance(x, int) and not isinstance(x, bool) for x in v):
+            raise CommandError(BAD_TYPE, f"{f.name}: expected [rows, cols] as two integers, got {show(v)}")
+        if min(v) < 1 or v[0] * v[1] > limits.max_map_points:
+            raise CommandError(OUT_OF_LIMITS, f"{f.name}: {v[0]} x {v[1]} points is outside the configured limits "
+                                              f"(at least 1 x 1, at most {limits.max_map_points} points)")
+        return [int(v[0]), int(v[1])]
+    raise CommandError(INTERNAL, f"{verb}.{f.name}: unknown field kind {f.kind!r}")
+
+
+def validate_task(spec: TaskVerb, obj: dict, limits: Limits) -> dict:
+    """A task verb's payload against its fields: normalised values, defaults applied."""
+    _check_fields(obj, spec.name, tuple(f.name for f in spec.fields))
+    return {f.name: _field(obj, f, limits, spec.name) for f in spec.fields}
+
+
 def validate(verb: str, obj: dict, limits: Limits) -> dict:
     """Normalised command fields with defaults applied; CommandError on anything wrong."""
-    if verb not in VERBS:
-        raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{show_name(verb)}' (known: {', '.join(VERBS)})")
-    if verb == "rotate":
-        _check_fields(obj, verb, ("angle_deg", "speed", "probe_distance", "direction", "strategy", "turn_tool"))
-        strategy = obj.get("strategy", "arc")
-        if not isinstance(strategy, str) or strategy not in ("arc", "straight"):
-            raise CommandError(BAD_TYPE, f"strategy: expected \"arc\" or \"straight\", got {show(strategy)}")
-        turn_tool = obj.get("turn_tool", True)
-        if not isinstance(turn_tool, bool):
-            raise CommandError(BAD_TYPE, f"turn_tool: expected true or false, got {show(turn_tool)}")
-        return {
-            "angle_deg": _number(obj, "angle_deg", None, 0.1, limits.max_rotation_deg, "deg"),
-            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
-            "probe_distance": _number(obj, "probe_distance", limits.default_probe_distance, 0.0005,
-                                      limits.max_probe_distance, "m"),
-            "direction": _direction(obj, "direction", limits.default_direction),
-            "strategy": strategy,
-            "turn_tool": turn_tool,
-        }
-    if verb == "probe":
-        _check_fields(obj, verb, ("direction", "distance", "speed"))
-        return {
-            "direction": _direction(obj, "direction", limits.default_direction),
-            "distance": _number(obj, "distance", limits.default_probe_distance, 0.0005,
-                                limits.max_probe_distance, "m"),
-            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
-        }
-    if verb == "approach":
-        _check_fields(obj, verb, ("direction", "speed", "max_distance", "stop_angle_deg"))
-        return {
-            "direction": _direction(obj, "direction", None),
-            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
-            "max_distance": _number(obj, "max_distance", limits.max_approach_distance, 0.001,
-                                    limits.max_approach_distance, "m"),
-            "stop_angle_deg": _number(obj, "stop_angle_deg", limits.default_stop_angle_deg, 0.1,
-                                      limits.max_rotation_deg, "deg"),
-        }
-    if verb == "point":
-        _check_fields(obj, verb, ("radius", "speed", "turns"))
-        return {
-            "radius": _number(obj, "radius", limits.default_point_radius, 0.002, limits.max_point_radius, "m"),
-            "speed": _number(obj, "speed", limits.default_speed, limits.min_speed, limits.max_speed, "m/s"),
-            "turns": _number(obj, "turns", 1.0, 0.25, limits.max_point_turns, "turns"),
-        }
-    if verb == "map":
-        _check_fields(obj, verb, ("origin", "size", "grid", "depth", "orientations", "speed"))
-        grid = obj.get("grid", [5, 6])
-        if (not isinstance(grid, list) or len(grid) != 2
-                or not all(isinstance(x, int) and not isinstance(x, bool) for x in grid)):
-            raise CommandError(BAD_TYPE, f"grid: expected [rows, cols] as two integers, got {show(grid)}")
-        if min(grid) < 1 or grid[0] * grid[1] > limits.max_map_points:
-            raise CommandError(OUT_OF_LIMITS, f"grid: {grid[0]} x {grid[1]} points is outside the configured limits "
-                                              f"(at least 1 x 1, at most {limits.max_map_points} points)")
-        orientations = obj.get("orientations", 2)
-        if not is_number(orientations) or orientations not in (1, 2):
-            raise CommandError(BAD_TYPE, f"orientations: expected 1 or 2, got {show(orientations)}")
-        return {
-            "origin": _numbers(obj, "origin", None, 2, -10.0, 10.0, "m"),
-            "size": _numbers(obj, "size", limits.default_map_size, 2, 0.005, limits.max_map_size, "m"),
-            "grid": [int(grid[0]), int(grid[1])],
-            "depth": _number(obj, "depth", limits.default_map_depth, 0.005, limits.max_map_depth, "m"),
-            "orientations": int(orientations),
-            "speed": _number(obj, "speed", limits.default_map_speed, limits.min_speed, limits.max_speed, "m/s"),
-        }
+    spec = task_verbs_registry.get(verb)
+    if spec is not None:
+        return validate_task(spec, obj, limits)
+    if verb not in CONTROL_VERBS:
+        raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{show_name(verb)}' (known: {', '.join(verbs())})")
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())
         return {}
-    if verb == "cancel":
-        _check_fields(obj, verb, ("task",))
-        task = obj.get("task")
-        if task is not None and (not isinstance(task, str) or len(task) > MAX_TASK_ID_CHARS):
-            raise CommandError(BAD_TYPE, f"task: expected a task id string (at most {MAX_TASK_ID_CHARS} "
-                                         f"characters), got {show(task)}")
-        return {"task": task}
-    raise CommandError(NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet")
+    _check_fields(obj, verb, ("task",))
+    task = obj.get("task")
+    if task is not None and (not isinstance(task, str) or len(task) > MAX_TASK_ID_CHARS):
+        raise CommandError(BAD_TYPE, f"task: expected a task id string (at most {MAX_TASK_ID_CHARS} "
+                                     f"characters), got {show(task)}")
+    return {"task": task}

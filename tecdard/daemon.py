@@ -32,7 +32,8 @@ from tecdard.estimation import build_pipeline
 from tecdard.intake import IntakeParams, QueryIntake
 from tecdard.messages import Stop
 from tecdard.mapfiles import MapSettings
-from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+from tecdard.control_thread import ControlParams, ControlThread
+from tecdard.messages import LatestValue
 from tecdard.sdnotify import Notifier
 from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
 from tecdard.safejson import show
@@ -239,7 +240,7 @@ class Daemon:
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
                                          saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
-                                     self.estimator.inbox, self.outbox, self.q_home, self.robot_name, self.notifier,
+                                     self.estimator.directive, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
         self.keys = Keys(self.robot_name)
         self.state_json: str | None = None       # the latest state publication, for `status`
@@ -280,7 +281,7 @@ class Daemon:
                 self.imu.mark_lost(str(exc))
         proprio_model = self.model.clone()      # the proprioception thread's own pinocchio Data
         specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
-                 ("proprioception", lambda: proprio_loop(self.robot, proprio_model, self.estimator.inbox,
+                 ("proprioception", lambda: proprio_loop(self.robot, proprio_model, self.estimator.proprio,
                                                          self.stop_event)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("control", lambda: self.control.run(self.stop_event))]

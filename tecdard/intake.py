@@ -100,8 +100,8 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._task_keys = {keys.cmd(v) for v in C.TASK_VERBS + ("cancel",)}
-        self._known_keys = {keys.cmd(v) for v in C.VERBS}
+        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",)}
+        self._known_keys = {keys.cmd(v) for v in C.verbs()}
         self._parse = {k: TokenBucket(self.params.rate(k), self.params.rate(k)) for k in BACKLOG}
         self._refuse = TokenBucket(REFUSALS_PER_S, REFUSAL_BURST)
         self._log_second, self._logged, self._unlogged = 0, 0, 0

@@ -1,8 +1,10 @@
 """Map output: fuse a finished map run into a depth raster and write depth.npy, points.csv, summary.json, depth.png."""
 from __future__ import annotations
 
+import concurrent.futures
 import csv
 import json
+import logging
 import pathlib
 import struct
 import zlib
@@ -12,6 +14,8 @@ import numpy as np
 
 from control.mapping import MapRecord, kernel_depth, raster_xy
 from tecdard.files import OutputError, atomic_dir, ensure_writable_dir, state_dir
+
+log = logging.getLogger("tecdar.map")
 
 PNG_CELL_PX_MAX = 8           # a raster cell is drawn as at most this many pixels square
 PNG_TARGET_PX = 480           # the longer side of the heatmap aims at this many pixels
@@ -172,3 +176,46 @@ def write_png(path, rgb: np.ndarray) -> None:
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
     pathlib.Path(path).write_bytes(png)
+
+
+class MapWriter:
+    """Fuses and writes maps on a thread of its own, never on the control tick. A map that ends
+    early (stopped, cancelled, failed) is written all the same; `announcements()` gives, once each,
+    the `map_written` or `map_write_failed` event of every such map whose write has finished."""
+
+    def __init__(self, settings: MapSettings):
+        self.settings = settings
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-writer")
+        self._writes: list[concurrent.futures.Future] = []
+        self._partial: list[tuple[str, concurrent.futures.Future]] = []   # (task id, write) of ended maps
+
+    def write(self, record: MapRecord) -> concurrent.futures.Future:
+        fut = self._pool.submit(write_map, record, self.settings)
+        self._writes = [f for f in self._writes if not f.done()] + [fut]
+        return fut
+
+    def write_partial(self, task_id: str, record: MapRecord) -> None:
+        self._partial.append((task_id, self.write(record)))
+
+    @property
+    def idle(self) -> bool:
+        return all(f.done() for f in self._writes)
+
+    def announcements(self) -> list[dict]:
+        """Event fields (kind first) for each early-ended map written since the last call."""
+        out = []
+        for item in [m for m in self._partial if m[1].done()]:
+            self._partial.remove(item)
+            task_id, fut = item
+            exc = fut.exception()
+            if exc is None:
+                res = fut.result()
+                out.append({"kind": "map_written", "task": task_id, "map_path": res["path"], "files": res["files"],
+                            "summary": res["summary"]})
+            else:
+                log.error("map %s: the points probed were not written: %s", task_id, exc)
+                out.append({"kind": "map_write_failed", "task": task_id, "error": f"{type(exc).__name__}: {exc}"})
+        return out
+
+    def shutdown(self, wait: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=not wait)

@@ -12,6 +12,8 @@ import os
 import resource
 import threading
 
+import numpy as np
+
 log = logging.getLogger("tecdar")
 
 MAX_RT_PRIORITY = 98          # 99 is the kernel's own watchdog threads' level: never above them
@@ -64,3 +66,40 @@ def can_set_fifo(priority: int) -> str | None:
     t.start()
     t.join(5.0)
     return out[0] if out else "the probe thread did not finish"
+
+
+TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
+
+
+class TickStats:
+    """A fixed-rate loop's work and lateness per tick (ms percentiles over the last ticks) and its overruns."""
+
+    def __init__(self):
+        self.ticks = 0
+        self.overruns = 0
+        self._work = np.zeros(TICK_STATS_WINDOW)
+        self._late = np.zeros(TICK_STATS_WINDOW)
+        self.summary = {}
+
+    def add(self, work_s: float, late_s: float) -> None:
+        i = self.ticks % TICK_STATS_WINDOW
+        self._work[i] = work_s
+        self._late[i] = late_s
+        self.ticks += 1
+        if self.ticks % TICK_STATS_EVERY == 0:
+            n = min(self.ticks, TICK_STATS_WINDOW)
+            w, lt = self._work[:n] * 1e3, self._late[:n] * 1e3
+            self.summary = {
+                "ticks": self.ticks, "overruns": self.overruns,
+                "work_ms_p50": round(float(np.median(w)), 3), "work_ms_p99": round(float(np.percentile(w, 99)), 3),
+                "work_ms_max": round(float(w.max()), 3),
+                "late_ms_p50": round(float(np.median(lt)), 3), "late_ms_p99": round(float(np.percentile(lt, 99)), 3),
+                "late_ms_max": round(float(lt.max()), 3),
+            }
+
+    def snapshot(self) -> dict:
+        out = dict(self.summary)
+        out["ticks"] = self.ticks
+        out["overruns"] = self.overruns
+        return out

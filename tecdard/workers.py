@@ -1,5 +1,5 @@
 """The acquisition, proprioception and estimator thread bodies: IMU source -> ring buffer -> contact
-pipeline, and the robot's proprioception -> the pipeline."""
+pipeline, and the robot's proprioception -> a ring of its own -> the pipeline."""
 from __future__ import annotations
 
 import logging
@@ -9,6 +9,7 @@ import time
 
 from control.pipeline import ContactPipeline
 from drivers.ring import SampleRing
+from tecdard.messages import DropOldestRing, EstimatorDirective, LatestValue
 
 log = logging.getLogger("tecdar.estimator")
 
@@ -33,14 +34,15 @@ def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: qu
 
 
 PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
+PROPRIO_RING = 1024          # proprioception samples waiting for the estimator (about 2 s at 500 Hz)
 
 
-def proprio_loop(robot, model, inbox: queue.Queue, stop: threading.Event) -> None:
-    """Transport: every new proprioception sample to the estimator's inbox as the robot reports it,
+def proprio_loop(robot, model, ring: DropOldestRing, stop: threading.Event) -> None:
+    """Transport: every new proprioception sample to the estimator's ring as the robot reports it,
     at the robot's rate (not the 20 ms control tick's), as TCP pose and twist. `model` is this
-    thread's own ArmModel (its own pinocchio Data). A full inbox drops the sample (counted and
-    logged): the estimator only ever needs the newest ones."""
-    seq, dropped = -1, 0
+    thread's own ArmModel (its own pinocchio Data). A full ring overwrites the oldest sample
+    (counted and logged): the estimator only ever needs the newest ones."""
+    seq, logged = -1, 0
     while not stop.is_set():
         try:
             js = robot.wait_state(seq, PROPRIO_WAIT_S)
@@ -56,18 +58,33 @@ def proprio_loop(robot, model, inbox: queue.Queue, stop: threading.Event) -> Non
         except Exception:                 # a malformed state: skipped, never the end of the thread
             log.exception("proprioception: joint state %d skipped", js.seq)
             continue
-        try:
-            inbox.put_nowait(("proprio", js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
-                              twist[3:].copy()))
-        except queue.Full:
-            dropped += 1
-            if dropped == 1 or dropped % 1000 == 0:
-                log.warning("estimator inbox full: %d proprioception samples dropped", dropped)
+        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy()))
+        if ring.overwritten != logged and (logged == 0 or ring.overwritten - logged >= 1000):
+            logged = ring.overwritten
+            log.warning("the estimator fell behind: %d proprioception samples overwritten", logged)
+
+
+def apply_directive(pipe: ContactPipeline, new: EstimatorDirective, old: EstimatorDirective) -> None:
+    """Make the pipeline do what `new` says, given that it did what `old` said: a new episode
+    number releases the contact episode (and begins the next at `begin_t` when given), after which
+    every setting is applied again; otherwise only the settings that changed."""
+    fresh = new.episode != old.episode
+    if fresh:
+        pipe.release()
+        if new.begin_t is not None:
+            pipe.begin(new.begin_t)
+    if fresh or new.armed != old.armed:
+        pipe.set_trigger_armed(new.armed)
+    if fresh or new.arc_following != old.arc_following:
+        pipe.set_arc_following(new.arc_following)
+    if fresh or new.bias_held != old.bias_held:
+        pipe.hold_bias(new.bias_held)
 
 
 class EstimatorThread:
-    """Owns the contact pipeline. Proprioception and `release` arrive on `inbox`;
-    estimates leave through the `contact` latest-value slot and the outbox."""
+    """Owns the contact pipeline. Proprioception arrives on its own ring (`proprio`), the control
+    thread's wishes as one `EstimatorDirective` (`directive`); estimates leave through the `contact`
+    latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1,
                  saturation=None, odr_hz=None):
@@ -89,7 +106,8 @@ class EstimatorThread:
         self.min_batch = min_batch
         self.contact = contact
         self.outbox = outbox
-        self.inbox: queue.Queue = queue.Queue(maxsize=1024)
+        self.proprio = DropOldestRing(PROPRIO_RING)
+        self.directive = LatestValue(EstimatorDirective())
         self.dropped = 0
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
         if odr_hz is not None:
@@ -117,24 +135,14 @@ class EstimatorThread:
     def run(self, stop: threading.Event) -> None:
         pipe = self.pipeline
         sat_limits = None
+        applied = self.directive.get()
         while not stop.is_set():
-            while True:
-                try:
-                    msg = self.inbox.get_nowait()
-                except queue.Empty:
-                    break
-                if msg[0] == "proprio":
-                    pipe.add_proprio(*msg[1:])
-                elif msg[0] == "release":
-                    pipe.release()
-                elif msg[0] == "arc":
-                    pipe.set_arc_following(msg[1])
-                elif msg[0] == "arm":
-                    pipe.set_trigger_armed(msg[1])
-                elif msg[0] == "begin":
-                    pipe.begin(msg[1])
-                elif msg[0] == "hold_bias":
-                    pipe.hold_bias(msg[1])
+            for sample in self.proprio.drain():
+                pipe.add_proprio(*sample)
+            directive = self.directive.get()
+            if directive is not applied:
+                apply_directive(pipe, directive, applied)
+                applied = directive
             if self.odr_hz is not None:
                 self._follow_odr(self.odr_hz())
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)

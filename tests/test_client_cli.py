@@ -81,11 +81,15 @@ def test_the_cli_reaches_the_daemon_through_a_local_zenoh_router(make_daemon):
 
 
 def test_the_cli_offers_every_task_verb_and_rotates_with_the_tool_held():
-    """Issue 18's first step: the CLI took its verb list from a copy, and lacked rotate's turn_tool."""
+    """The CLI once took its verb list from a copy, and lacked rotate's turn_tool: its options now come
+    from the verbs' registered fields."""
     import argparse
     from tecdard import client_cli
     from tecdard import commands as C
-    assert client_cli.TASK_VERBS is C.TASK_VERBS and set(C.TASK_VERBS) <= set(client_cli.VERB_FIELDS)
+    options = client_cli.verb_options()
+    assert set(C.verbs()) == set(options)
+    for verb in C.task_verbs():
+        assert [field for _opt, field, _t, _h in options[verb]] == [f.name for f in C.task_verbs_registry.get(verb).fields]
     parser = argparse.ArgumentParser()
     client_cli.add_parsers(parser.add_subparsers(dest="cmd"))
     args = parser.parse_args(["rotate", "--angle-deg", "10", "--no-turn-tool"])

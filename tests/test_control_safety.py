@@ -8,8 +8,9 @@ from control.pipeline import ContactEstimate
 from control.tasks import ApproachTask
 from robots.backend import JointState, SimTruth
 from robots.model import READY_Q, ArmModel
-from tecdard.control_thread import ControlParams, ControlThread, LatestValue
-from tecdard.messages import StartTask
+from control.modes import Mode
+from tecdard.control_thread import ControlParams, ControlThread
+from tecdard.messages import LatestValue, StartTask
 
 AXIS = np.array([0.0, 1.0, 0.0])
 
@@ -21,13 +22,14 @@ def model():
 
 def control_thread(model, ring=None, **params):
     return ControlThread(ControlParams(**params), model, robot=None, ring=ring, contact=LatestValue(),
-                         to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+                         directive=LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
 
 
 def control(model, **params):
     """A control thread with an approach running (its task set directly, no tick yet)."""
     ct = control_thread(model, **params)
     ct.task = ApproachTask("approach-1", np.array([0.0, 0.0, -1.0]), 0.02, 0.05, 0.1)
+    ct.mode = Mode.BUSY
     ct._task_t0 = 0.0
     return ct
 
@@ -56,28 +58,28 @@ JS = JointState(t=0.0, q=READY_Q["panda"], qd=np.zeros(7), seq=0)
 
 def test_a_converged_estimate_that_jumps_is_a_protective_stop(model):
     ct = control(model, max_contact_jump_m=0.02)
-    ct._check_limits(JS, estimate([0.50, 0.0, 0.20]))
-    ct._check_limits(JS, estimate([0.51, 0.0, 0.20]))        # 10 mm: within the limit
+    ct._check_task(JS, estimate([0.50, 0.0, 0.20]))
+    ct._check_task(JS, estimate([0.51, 0.0, 0.20]))        # 10 mm: within the limit
     assert stops(ct) == []
-    ct._check_limits(JS, estimate([0.51, 0.0, 0.235]))       # 35 mm in one tick
+    ct._check_task(JS, estimate([0.51, 0.0, 0.235]))       # 35 mm in one tick
     (stop,) = stops(ct)
     assert stop["cause"] == "contact_jump" and stop["jump_m"] == pytest.approx(0.035)
-    assert ct.task is None and ct.mode == "stopped"
+    assert ct.task is None and ct.mode is Mode.STOPPING
 
 
 def test_jumps_before_convergence_or_along_the_edge_are_no_stop(model):
     ct = control(model, max_contact_jump_m=0.02)
-    ct._check_limits(JS, estimate([0.50, 0.0, 0.20], converged=False))
-    ct._check_limits(JS, estimate([0.60, 0.0, 0.20]))        # the estimate was still converging
-    ct._check_limits(JS, estimate([0.60, 0.3, 0.20]))        # along the edge: unobservable, no evidence
+    ct._check_task(JS, estimate([0.50, 0.0, 0.20], converged=False))
+    ct._check_task(JS, estimate([0.60, 0.0, 0.20]))        # the estimate was still converging
+    ct._check_task(JS, estimate([0.60, 0.3, 0.20]))        # along the edge: unobservable, no evidence
     assert stops(ct) == [] and ct.task is not None
 
 
 def test_innovations_far_beyond_their_expected_size_are_a_protective_stop(model):
     ct = control(model, max_nis_ratio=10.0)
-    ct._check_limits(JS, estimate([0.5, 0.0, 0.2], nis_ratio=9.0))
+    ct._check_task(JS, estimate([0.5, 0.0, 0.2], nis_ratio=9.0))
     assert stops(ct) == []
-    ct._check_limits(JS, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
+    ct._check_task(JS, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
     (stop,) = stops(ct)
     assert stop["cause"] == "divergence" and stop["nis_ratio"] == 40.0
 
@@ -97,7 +99,7 @@ def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
     ct._internal_fault(KeyError("direction"))
     (stop,) = stops(ct)
     assert stop["cause"] == "internal" and "KeyError" in stop["message"]
-    assert ct.robot.holds == 1 and ct.task is None and ct.mode == "idle"
+    assert ct.robot.holds == 1 and ct.task is None and ct.mode is Mode.IDLE
 
 
 class SimTruthRobot(HoldingRobot):
@@ -208,10 +210,8 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
         ct.tick(now)
         if steady_at is None and ct.planner.steady(0.02):
             steady_at = now
-        while not ct.to_estimator.empty():
-            msg = ct.to_estimator.get_nowait()
-            if msg[0] == "arm" and msg[1] and armed_at is None:
-                armed_at = now
+        if ct.directive.get().armed and armed_at is None:
+            armed_at = now
     assert steady_at is not None and armed_at is not None
     assert TRIGGER_SETTLE_S <= armed_at - steady_at <= TRIGGER_SETTLE_S + 0.021
 
@@ -219,21 +219,21 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
 def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
     """A tick that starts late means the daemon itself stalled, and the IMU's samples may still be
     queued behind it: the stale-IMU stop waits one tick, then stops all the same if they stay away."""
-    from tecdard.control_thread import STALE_JUDGE_LATE_S
+    from control.safety import STALE_JUDGE_LATE_S
 
     class Ring:
         total, last_t = 1, 0.0
 
     ct = control(model, imu_stale_s=0.05, ring=Ring())
     ct._late_s = STALE_JUDGE_LATE_S + 0.05
-    ct._check_faults(0.08)                       # 80 ms without a sample, but this tick is late
+    ct._check_sensors(0.08)                       # 80 ms without a sample, but this tick is late
     assert "imu_stale" not in ct.faults and stops(ct) == []
     Ring.last_t = 0.09                           # the samples were only queued: no fault at all
     ct._late_s = 0.0
-    ct._check_faults(0.10)
+    ct._check_sensors(0.10)
     assert "imu_stale" not in ct.faults and stops(ct) == []
     ct._late_s = STALE_JUDGE_LATE_S + 0.05       # late again, and this time the IMU has gone
-    ct._check_faults(0.20)
+    ct._check_sensors(0.20)
     assert "imu_stale" not in ct.faults
-    ct._check_faults(0.22)                       # a second late tick judges it: a protective stop
+    ct._check_sensors(0.22)                       # a second late tick judges it: a protective stop
     assert "imu_stale" in ct.faults and [s["cause"] for s in stops(ct)] == ["imu_stale"]

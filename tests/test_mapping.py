@@ -256,16 +256,19 @@ def test_a_failing_writer_fails_the_task():
 def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
     import queue
     from robots.model import READY_Q, ArmModel
-    from tecdard.control_thread import ControlParams, ControlThread, LatestValue
+    from control.modes import Mode
+    from tecdard.control_thread import ControlParams, ControlThread
+    from tecdard.messages import LatestValue
     ct = ControlThread(ControlParams(), ArmModel("panda"), robot=None, ring=None, contact=LatestValue(),
-                       to_estimator=queue.Queue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim",
+                       directive=LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim",
                        map_settings=MapSettings(output_dir=str(tmp_path)))
     task = MapTask("map-6", map_params(), lambda rec: done_now({}))
     FakeRig(SCENE, P0).run(task, until=lambda t: len(t.points) == 3)
-    ct.task = task
+    ct.task, ct.mode = task, Mode.BUSY
     ct._end_task("failed", error="stopped by command")
-    ct._writer.shutdown(wait=True)
-    ct._announce_partial_maps()
+    ct.maps.shutdown(wait=True)
+    for ev in ct.maps.announcements():
+        ct._event(**ev)
     events = []
     while not ct.outbox.empty():
         kind, *rest = ct.outbox.get_nowait()

@@ -1,0 +1,29 @@
+"""`rotate`: probe, then turn the held object about the estimated hinge by `angle_deg` (the paper's Algorithm 2)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from control.tasks import RotateTask
+from tecdard.verbs import Field, TaskVerb
+
+FIELDS = (
+    Field("angle_deg", "number", lo=0.1, hi=lambda lim: lim.max_rotation_deg, unit="deg", help="required"),
+    Field("speed", "number", lambda lim: lim.default_speed, lambda lim: lim.min_speed, lambda lim: lim.max_speed,
+          "m/s", "TCP speed"),
+    Field("probe_distance", "number", lambda lim: lim.default_probe_distance, 0.0005,
+          lambda lim: lim.max_probe_distance, "m", "phase-1 probe length"),
+    Field("direction", "direction", lambda lim: lim.default_direction, help="unit vector x,y,z (world)"),
+    Field("strategy", "choice", "arc", choices=("arc", "straight"), help="arc (default) or straight"),
+    Field("turn_tool", "bool", True, help="the gripper turns with the object (default; --no-turn-tool: held)"),
+)
+
+
+def build(f: dict, ctx) -> RotateTask:
+    return RotateTask(ctx.task_id, math.radians(f["angle_deg"]), f["speed"], f["probe_distance"],
+                      np.array(f["direction"]), f["strategy"], turn_tool=f["turn_tool"])
+
+
+VERB = TaskVerb("rotate", "turn the held object about its estimated hinge", FIELDS, build,
+                self_check={"angle_deg": 0.1})
