@@ -326,8 +326,8 @@ class ControlThread:
         self._last_est = None
         self._task_saturated = 0
         self._task_t0 = time.monotonic()
-        self.planner.reset(p, speed=f["speed"])
-        self._speed_cap = f["speed"]
+        self.planner.reset(p, speed=task.speed)
+        self._speed_cap = task.speed
         self._steady_since = None
         # a fresh contact episode for this task; with a trigger phase the trigger is armed once the
         # approach moves at constant speed (the arm's own acceleration at the start looks like an impact)

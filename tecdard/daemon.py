@@ -354,45 +354,62 @@ class Daemon:
         return 0
 
     def _serve(self, pub_state, pub_contact, pub_events) -> None:
-        """The main thread's loop: replies first, then queued queries (bounded per pass), then the
-        telemetry the other threads produced (bounded per pass); an orderly stop on a signal."""
-        intake, control, outbox = self.intake, self.control, self.outbox
+        """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
+        main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events)
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()
-            while True:
-                try:
-                    intake.deliver(control.replies.get_nowait())
-                except queue.Empty:
-                    break
-            intake.poll(now)
+            main.serve_commands(now)
             if self.shutdown_requested.is_set():
                 if shutdown_by is None:
                     log.info("shutting down: stopping the task and the arm first")
-                    control.request_stop(Stop(None, "daemon shutting down"))
+                    self.control.request_stop(Stop(None, "daemon shutting down"))
                     shutdown_by = now + SHUTDOWN_GRACE_S
-                elif control.quiescent() or now > shutdown_by:
-                    if not control.quiescent():
+                elif self.control.quiescent() or now > shutdown_by:
+                    if not self.control.quiescent():
                         log.warning("shutting down before the arm came to rest or the map was written "
                                     "(%.1f s grace)", SHUTDOWN_GRACE_S)
                     break
+            main.publish_telemetry(MAIN_POLL_S)
+            self.state_json = main.state_json
+
+
+class MainLoop:
+    """One pass of the main thread: the control thread's replies first, then the queued queries
+    (bounded per ring), then at most TELEMETRY_PER_PASS telemetry messages. However much telemetry
+    waits, a command's reply waits at most one pass behind it."""
+
+    def __init__(self, intake: QueryIntake, control, outbox: queue.Queue, pub_state, pub_contact, pub_events):
+        self.intake, self.control, self.outbox = intake, control, outbox
+        self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
+        self.state_json: str | None = None       # the latest state publication, for `status`
+
+    def serve_commands(self, now: float) -> None:
+        while True:
             try:
-                msg = outbox.get(timeout=MAIN_POLL_S)
+                self.intake.deliver(self.control.replies.get_nowait())
             except queue.Empty:
-                continue
-            for _ in range(TELEMETRY_PER_PASS):
-                kind, body = msg[0], msg[1]
-                if kind == "state":
-                    text = dumps(body)
-                    self.state_json = text
-                    pub_state.put(text)
-                elif kind == "contact":
-                    pub_contact.put(dumps(body))
-                elif kind == "event":
-                    text = dumps(body)
-                    log.info("event %s", text)
-                    pub_events.put(text)
-                try:
-                    msg = outbox.get_nowait()
-                except queue.Empty:
-                    break
+                break
+        self.intake.poll(now)
+
+    def publish_telemetry(self, wait_s: float) -> int:
+        """Publish up to TELEMETRY_PER_PASS queued messages, waiting up to wait_s for the first."""
+        try:
+            msg = self.outbox.get(timeout=wait_s) if wait_s > 0 else self.outbox.get_nowait()
+        except queue.Empty:
+            return 0
+        for n in range(1, TELEMETRY_PER_PASS + 1):
+            kind, body = msg[0], msg[1]
+            text = dumps(body)
+            if kind == "state":
+                self.state_json = text
+            elif kind == "event":
+                log.info("event %s", text)
+            self.pub[kind].put(text)          # the threads put only these three kinds
+            if n == TELEMETRY_PER_PASS:
+                return n
+            try:
+                msg = self.outbox.get_nowait()
+            except queue.Empty:
+                return n
+        return TELEMETRY_PER_PASS

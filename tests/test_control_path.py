@@ -1,0 +1,283 @@
+"""The control path's typed pieces: the mode table, the estimator directive, the proprioception ring,
+commands under a telemetry flood, a task verb added as one file, and a task's own safety reaction."""
+import dataclasses
+import json
+import queue
+import textwrap
+
+import numpy as np
+import pytest
+
+from control import safety
+from control.modes import Event, Mode, TransitionError, transition
+from robots.model import READY_Q, ArmModel
+from tecdard import commands as C
+from tecdard import verbs
+from tecdard.control_thread import ControlParams, ControlThread
+from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop
+from tecdard.intake import QueryIntake
+from tecdard.messages import DropOldestRing, EstimatorDirective, LatestValue, StartTask, Stop
+from tecdard.workers import apply_directive
+from tecdard.zenoh_io import Keys
+from tests.test_control_safety import LaggingArm
+
+FLOOD_STATES = 10_000
+TICK_S = 0.02
+
+
+@pytest.fixture(scope="module")
+def model():
+    return ArmModel("panda")
+
+
+# -- the mode table ------------------------------------------------------------------
+
+def test_the_mode_table_allows_the_lifecycle_and_refuses_the_rest():
+    m = transition(Mode.IDLE, Event.START)
+    assert m is Mode.BUSY and transition(m, Event.END) is Mode.SETTLING
+    assert transition(Mode.SETTLING, Event.AT_REST) is Mode.IDLE
+    for mode in Mode:
+        assert transition(mode, Event.STOP) is Mode.STOPPING      # stop always wins
+        assert transition(mode, Event.RESET) is Mode.IDLE
+    for mode, event in [(Mode.BUSY, Event.START), (Mode.STOPPING, Event.START), (Mode.IDLE, Event.END),
+                        (Mode.IDLE, Event.AT_REST), (Mode.SETTLING, Event.START)]:
+        with pytest.raises(TransitionError):
+            transition(mode, event)
+    assert [m.published(False) for m in Mode] == ["idle", "busy", "busy", "stopped"]
+    assert Mode.IDLE.published(True) == "fault" and Mode.BUSY.published(True) == "busy"
+
+
+# -- the directive ---------------------------------------------------------------------
+
+class RecordingPipeline:
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        return lambda *args: self.calls.append((name, *args))
+
+
+def test_a_directive_releases_on_a_new_episode_and_applies_only_what_changed():
+    pipe = RecordingPipeline()
+    d0 = EstimatorDirective()
+    d1 = EstimatorDirective(episode=1, armed=False)
+    apply_directive(pipe, d1, d0)
+    assert pipe.calls == [("release",), ("set_trigger_armed", False), ("set_arc_following", False),
+                          ("hold_bias", False)]
+    pipe.calls.clear()
+    apply_directive(pipe, EstimatorDirective(episode=1, armed=True), d1)
+    assert pipe.calls == [("set_trigger_armed", True)]
+    pipe.calls.clear()
+    # two episodes begun between two looks of the estimator: one release, the newest begin
+    apply_directive(pipe, EstimatorDirective(episode=3, begin_t=12.5, bias_held=True), d1)
+    assert pipe.calls[:2] == [("release",), ("begin", 12.5)] and ("hold_bias", True) in pipe.calls
+
+
+def test_the_control_thread_tells_the_estimator_by_state_that_cannot_be_lost(model):
+    """The old ("release",) and ("arm", False) tuples were dropped when a queue was full; a directive
+    is a value: however many the control thread writes, the estimator reads the newest."""
+    directive = LatestValue()
+    ct = control_thread(model, directive=directive)
+    arm = ct.robot
+    ct.submit(StartTask(None, "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
+                                           "stop_angle_deg": 10.0}))
+    tick(ct, arm, 1)
+    started = directive.get()
+    assert started.episode == 1 and started.armed is False       # armed once the approach is steady
+    for k in range(2, 41):
+        tick(ct, arm, k)
+    assert directive.get().armed is True and directive.get().episode == 1
+    ct.request_stop(Stop(None))
+    tick(ct, arm, 41)
+    ended = directive.get()
+    assert ended.episode == 2 and ended.armed is True and not ended.arc_following and not ended.bias_held
+
+
+def test_the_proprioception_ring_overwrites_the_oldest_and_counts():
+    ring = DropOldestRing(4)
+    for i in range(6):
+        ring.push(i)
+    assert ring.drain() == [2, 3, 4, 5] and ring.overwritten == 2 and ring.drain() == []
+
+
+# -- commands under a telemetry flood --------------------------------------------------
+
+class FakeQuery:
+    """What QueryIntake uses of a zenoh.Query: its key expression, its payload, and reply()."""
+
+    def __init__(self, key: str, payload: dict | None = None, delivered: list | None = None):
+        self.key_expr = key
+        self.payload = None if payload is None else json.dumps(payload).encode()
+        self.replies = []
+        self.delivered = delivered if delivered is not None else []     # every query's replies, in order
+
+    def reply(self, key, text, encoding=None):
+        self.replies.append(json.loads(text))
+        self.delivered.append(self)
+
+
+class Publisher:
+    def __init__(self):
+        self.n = 0
+
+    def put(self, _text):
+        self.n += 1
+
+
+class FreshRing:
+    total, last_t = 1, 0.0
+
+
+def control_thread(model, directive=None):
+    ct = ControlThread(ControlParams(tick_s=TICK_S), model, robot=None, ring=FreshRing(), contact=LatestValue(),
+                       directive=directive or LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"],
+                       robot_name="sim")
+    ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
+    return ct
+
+
+def tick(ct, arm, k: int) -> None:
+    now = TICK_S * k
+    arm.advance(now)
+    FreshRing.last_t = now
+    ct.tick(now)
+
+
+def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_under_a_telemetry_flood(model):
+    keys = Keys("sim")
+    ct = control_thread(model)
+    intake = QueryIntake(keys, C.Limits(), ct, lambda: None)
+    main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
+    rotate = FakeQuery(keys.cmd("rotate"), {"angle_deg": 10.0})
+    intake.handle(rotate, keys.cmd("rotate"), rotate.payload, 0.0)
+    tick(ct, ct.robot, 1)
+    main.serve_commands(0.02)
+    assert rotate.replies[0]["ok"] is True
+    task = rotate.replies[0]["task"]
+    for _ in range(FLOOD_STATES):          # the telemetry of a stalled main thread, ahead of everything below
+        ct.outbox.put(("state", {"t": 0.0, "seq": 0}))
+    delivered = []
+    sent = [FakeQuery(keys.cmd("cancel"), {"task": "rotate-0000"}, delivered),  # not the running task: no_task
+            FakeQuery(keys.cmd("probe"), {}, delivered),                        # busy: the rotate runs
+            FakeQuery(keys.cmd("cancel"), {"task": task}, delivered),           # cancels the rotate
+            FakeQuery(keys.cmd("point"), {}, delivered)]                        # busy: the rotate is braking
+    for q in sent:
+        intake.handle(q, str(q.key_expr), q.payload, 0.02)
+    tick(ct, ct.robot, 2)
+    main.serve_commands(0.04)
+    assert [len(q.replies) for q in sent] == [1, 1, 1, 1] and delivered == sent     # none lost, none reordered
+    assert [q.replies[0].get("error", {}).get("code", "ok") for q in sent] == ["no_task", "busy", "ok", "busy"]
+    for k in range(3, 60):                  # the cancelled rotate brakes to rest
+        tick(ct, ct.robot, k)
+        if ct.mode is Mode.IDLE:
+            break
+    assert ct.mode is Mode.IDLE
+    main.serve_commands(TICK_S * k)
+    # at rest, with 10 000 state messages still queued: a stop is answered after one tick and one pass
+    stop = FakeQuery(keys.cmd("stop"))
+    intake.on_stop(stop)
+    tick(ct, ct.robot, k + 1)
+    main.serve_commands(TICK_S * (k + 1))
+    assert stop.replies == [{"ok": True}]
+    assert main.publish_telemetry(0.0) == TELEMETRY_PER_PASS
+    assert ct.outbox.qsize() >= FLOOD_STATES - TELEMETRY_PER_PASS     # the flood is still there
+
+
+# -- a task verb is one file ----------------------------------------------------------------
+
+WIGGLE = '''
+    """`wiggle`: lift the TCP by `distance` and come to rest (a verb defined by this file alone)."""
+    import numpy as np
+
+    from control.safety import StopCause
+    from control.tasks import Motion, Task
+    from tecdard.verbs import Field, TaskVerb
+
+
+    class WiggleTask(Task):
+        kind = "wiggle"
+
+        def __init__(self, task_id, distance, speed, max_force_n):
+            super().__init__(task_id, np.array([0.0, 0.0, 1.0]), speed)
+            self.distance = distance
+            self.reactions = (self._pushed,)
+            self.max_force_n = max_force_n
+
+        def _pushed(self, inp):
+            if inp.force is not None and np.linalg.norm(inp.force) > self.max_force_n:
+                return StopCause("wiggle_force", "pushed while wiggling")
+            return None
+
+        def step(self, inp):
+            if not self._running(inp):
+                return None
+            target = self.p_start + self.direction * self.distance
+            if inp.planner_at_rest and np.linalg.norm(inp.p_ref - target) < 1e-4:
+                self.status.state = "done"
+                self.status.result = {"lifted_m": float(inp.p[2] - self.p_start[2])}
+                return None
+            return Motion(target, np.zeros(3), self.R_hold)
+
+
+    def build(f, ctx):
+        return WiggleTask(ctx.task_id, f["distance"], f["speed"], f["max_force_n"])
+
+
+    VERB = TaskVerb("wiggle", "lift a little", (
+        Field("distance", "number", 0.003, 0.001, 0.01, "m", "lift"),
+        Field("speed", "number", lambda lim: lim.default_speed, lambda lim: lim.min_speed,
+              lambda lim: lim.max_speed, "m/s"),
+        Field("max_force_n", "number", 5.0, 0.1, 50.0, "N"),
+    ), build)
+'''
+
+
+@pytest.fixture
+def wiggle_verb(tmp_path):
+    (tmp_path / "wiggle.py").write_text(textwrap.dedent(WIGGLE))
+    verbs.__path__.append(str(tmp_path))
+    try:
+        yield
+    finally:
+        verbs.__path__.remove(str(tmp_path))
+        verbs.REGISTRY.pop("wiggle", None)
+        verbs._discovered.discard("wiggle")
+
+
+def test_a_new_task_verb_is_one_file(model, wiggle_verb):
+    from tecdard import client_cli
+    assert "wiggle" in C.task_verbs() and "wiggle" in C.verbs()
+    fields = C.validate("wiggle", {}, C.Limits())
+    assert fields == {"distance": 0.003, "speed": 0.02, "max_force_n": 5.0}
+    with pytest.raises(C.CommandError) as exc:
+        C.validate("wiggle", {"distance": 0.5}, C.Limits())
+    assert exc.value.code == C.OUT_OF_LIMITS and exc.value.message.startswith("distance:")
+    assert [opt for opt, *_ in client_cli.verb_options()["wiggle"]] == ["--distance", "--speed", "--max-force-n"]
+    keys = Keys("sim")
+    ct = control_thread(model)
+    intake = QueryIntake(keys, C.Limits(), ct, lambda: None)
+    q = FakeQuery(keys.cmd("wiggle"), {"distance": 0.004})
+    intake.handle(q, keys.cmd("wiggle"), q.payload, 0.0)
+    for k in range(1, 200):
+        tick(ct, ct.robot, k)
+        if ct.mode is Mode.IDLE and k > 1:
+            break
+    events = [m[1] for m in list(ct.outbox.queue) if m[0] == "event"]
+    (done,) = [e for e in events if e["kind"] == "task_done"]
+    assert done["verb"] == "wiggle" and done["result"]["lifted_m"] == pytest.approx(0.004, abs=2e-4)
+
+
+def test_a_tasks_own_reaction_is_a_protective_stop(model, wiggle_verb):
+    ct = control_thread(model)
+    ct.submit(StartTask(None, "wiggle", C.validate("wiggle", {}, C.Limits())))
+    tick(ct, ct.robot, 1)
+    assert ct.mode is Mode.BUSY
+    pushed = dataclasses.replace(ct.robot.read_state(), tcp_force=np.array([0.0, 0.0, 8.0]))   # under 15 N
+    ct._check_task(pushed, None)
+    stops = [m[1] for m in list(ct.outbox.queue) if m[0] == "event" and m[1]["kind"] == "protective_stop"]
+    assert [s["cause"] for s in stops] == ["wiggle_force"] and ct.mode is Mode.STOPPING
+    # the generic force limit (15 N) comes first; the reactions after it
+    reactions = (lambda inp: safety.StopCause("x", "y"),)
+    limits = safety.SafetyLimits()
+    assert safety.check_task(safety.SafetyInput(np.array([0.0, 0.0, 20.0]), None, None), limits, reactions).cause == "force"
+    assert safety.check_task(safety.SafetyInput(None, None, None), limits, reactions).cause == "x"
