@@ -20,7 +20,9 @@ sys.path.insert(0, str(ROOT))
 from control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
 from control.geometry import Plane, quat_to_matrix  # noqa: E402
 from control.kernels import K_MIN, block_update  # noqa: E402
-from control.pipeline import METHODS  # noqa: E402
+from control import estimators  # noqa: E402
+
+METHODS = estimators.names()
 from robots.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.ekf import UNOBSERVED_STD_M, cross_rows
+from control.estimators import ContactEstimator
 from control.geometry import Plane, rotvec_to_matrix
 
 RANK_RTOL = 1e-6
@@ -30,7 +31,7 @@ class BaselineParams:
     min_dof: int = 6             # residual degrees of freedom before a std is reported
 
 
-class _LeastSquares:
+class _LeastSquares(ContactEstimator):
     """Shared machinery: normal equations around the onset TCP, SVD solve, residual-based covariance."""
 
     method = "baseline"

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control import kernels as K
+from control.estimators import ContactEstimator
 from control.geometry import Plane, rotvec_to_matrix
 from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
                              position_sums, report_state)
@@ -46,7 +47,7 @@ class PaperEkfParams:
         )
 
 
-class PaperEKF:
+class PaperEKF(ContactEstimator):
     """`paper-ekf`: the paper's filter as published, the reference for every improvement.
 
     State x = [p_g, v_g, p_c] (3D: 9, planar: 6). Prediction: p_g += dt v_g,
@@ -311,7 +312,7 @@ class PositionEvidence:
 _NO_EVIDENCE = {d: PositionEvidence(d, 1.0).arrays() for d in (2, 3)}
 
 
-class ContactKF:
+class ContactKF(ContactEstimator):
     """`ekf`: our filter on the same constraint, built for accuracy, honesty and speed.
 
     State x = [m, k]: k = eta_true / eta_used is the error of the scheduled eta and
@@ -346,6 +347,16 @@ class ContactKF:
     """
 
     method = "ekf"
+    fused = True           # `advance`: a whole batch, reports included, in one compiled call
+
+    def set_arc_radial_var(self, var_m2_s2: float) -> None:
+        self.radial_var = var_m2_s2
+
+    def set_eta_prior(self, mean: float, rel_std: float) -> None:
+        self.eta_prior_mean, self.eta_rel_std = mean, rel_std
+
+    def set_correlation(self, samples: float) -> None:
+        self.corr_samples = samples
 
     def __init__(self, params: ContactKfParams | None = None, plane: Plane | None = None):
         self.params = params or ContactKfParams()

@@ -10,15 +10,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from control import kernels as K
-from control.baselines import BASELINES, BaselineParams, make_baseline
+from control import estimators
+from control.baselines import BaselineParams
 from control.conditioning import GyroConditioner
-from control.ekf import UNOBSERVED_STD_M, ContactKF, ContactKfParams, PaperEKF, PaperEkfParams
+from control.ekf import UNOBSERVED_STD_M, ContactKfParams, PaperEkfParams
 from control.geometry import Plane, relative_rotvec
 from control.kernels import plane_rotation, rate_moments, rotation_axes
 from control.onset import OnsetDetector
 from drivers.lsm6dsr import Scaling
 
-METHODS = ("ekf", "paper-ekf") + BASELINES
 PROPRIO_HISTORY = 256         # proprioception samples kept for causal lookup
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma is below this
 MIN_AXIS_RATE_RAD_S = 1e-3
@@ -213,13 +213,8 @@ class PipelineParams:
 
 
 def make_estimator(params: PipelineParams, plane: Plane | None):
-    if params.method == "ekf":
-        return ContactKF(params.ekf, plane)
-    if params.method == "paper-ekf":
-        return PaperEKF(params.paper_ekf, plane)
-    if params.method in BASELINES:
-        return make_baseline(params.method, plane, params.baseline)
-    raise ValueError(f"method: unknown estimator {params.method!r} (known: {', '.join(METHODS)})")
+    """The estimator named by params.method (control/estimators/)."""
+    return estimators.build(params.method, params, plane)
 
 
 class ContactPipeline:
@@ -240,7 +235,7 @@ class ContactPipeline:
         self.plane = Plane(self.params.plane_normal) if self.params.plane_normal is not None else None
         self.estimator = make_estimator(self.params, self.plane)
         # `ekf` runs a whole batch, reports included, in one compiled call (ContactKF.advance)
-        self._fused = isinstance(self.estimator, ContactKF)
+        self._fused = self.estimator.fused
         self._rate_params = (MIN_AXIS_RATE_RAD_S ** 2, SECOND_AXIS_RATIO)
         self.eta = EtaSchedule(self.params.eta_table)
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.ekf.sigma_p, sigma_v=self.params.ekf.sigma_v)
@@ -287,9 +282,8 @@ class ContactPipeline:
             self.detector.armed = armed
 
     def set_arc_following(self, on: bool) -> None:
-        """The controller follows an arc about the estimate (True) or not: see ContactKF.radial_var."""
-        if hasattr(self.estimator, "radial_var"):
-            self.estimator.radial_var = self.params.arc_radial_sigma ** 2 if on else 0.0
+        """The controller follows an arc about the estimate (True) or not: see ContactEstimator.set_arc_radial_var."""
+        self.estimator.set_arc_radial_var(self.params.arc_radial_sigma ** 2 if on else 0.0)
 
     def begin(self, t: float) -> None:
         """Start a contact episode at the first sample at or after t (s), without waiting for the
@@ -306,11 +300,10 @@ class ContactPipeline:
     def _set_eta_uncertainty(self, force_n: float) -> None:
         """Away from the calibrated grip forces eta is extrapolated: tell the estimator how much less it is
         known, and which way it is off (EtaSchedule.prior)."""
-        if hasattr(self.estimator, "eta_rel_std"):
-            if force_n != force_n:                   # NaN: no grip force measured
-                force_n = self.params.grip_force_n
-            self.estimator.eta_prior_mean, self.estimator.eta_rel_std = self.eta.prior(
-                force_n, self.params.ekf.eta_rel_std, self.params.eta_rel_std_per_n)
+        if force_n != force_n:                   # NaN: no grip force measured
+            force_n = self.params.grip_force_n
+        self.estimator.set_eta_prior(*self.eta.prior(force_n, self.params.ekf.eta_rel_std,
+                                                     self.params.eta_rel_std_per_n))
 
     def _track_bias(self, t: np.ndarray, gyro: np.ndarray) -> None:
         """Bias tracking while idle, except while the gripper itself turns (its rate is not bias)."""
@@ -429,8 +422,8 @@ class ContactPipeline:
         if len(ts):
             dt = np.maximum(np.diff(ts, prepend=self._t_prev), 1e-6)
             rate = self.proprio.rate_hz()
-            if rate == rate and hasattr(self.estimator, "corr_samples"):       # not NaN
-                self.estimator.corr_samples = max(1.0, 1.0 / (self._dt_sample * rate))
+            if rate == rate:       # not NaN
+                self.estimator.set_correlation(max(1.0, 1.0 / (self._dt_sample * rate)))
             period = self.params.output_period_s
             advance = self._advance_fused if self._fused else self._advance_loop
             estimates = advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
@@ -505,5 +498,5 @@ class ContactPipeline:
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
                                cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
                                nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=self._angle, nis_ratio=getattr(est, "consistency", None),
+                               angle_rad=self._angle, nis_ratio=est.consistency,
                                onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)

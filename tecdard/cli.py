@@ -66,7 +66,7 @@ MAX_RATE_HZ = 100_000.0      # localize's --rate: more rows per second than any 
 
 def _cmd_localize(args) -> int:
     from control.geometry import quat_to_matrix
-    from control.pipeline import METHODS
+    from control import estimators
     from tecdard import localize as L
     from tecdard.estimation import build_pipeline
     from tecdard.recording import RecordingError, load_recording
@@ -75,8 +75,8 @@ def _cmd_localize(args) -> int:
         print(f"tecdard localize: {msg}", file=sys.stderr)
         return L.EXIT_BAD_INPUT
 
-    if args.method is not None and args.method not in METHODS:
-        return bad(f"--method: unknown estimator {show(args.method)} (known: {', '.join(METHODS)})")
+    if args.method is not None and args.method not in estimators.names():
+        return bad(f"--method: unknown estimator {show(args.method)} (known: {', '.join(estimators.names())})")
     if not 0 < args.rate <= MAX_RATE_HZ:
         return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
     out = None
@@ -276,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("localize", help="estimate the contact in a recording (tecdar-recording/1)")
     p.add_argument("recording", help="REC.npz")
     p.add_argument("--out", help="write estimates as CSV: t,px,py,pz,sx,sy,sz")
-    p.add_argument("--method", help="ekf (default), paper-ekf, svd-geo, gd-geo, svd-diff, gd-diff")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf); an unknown name lists them all")
     p.add_argument("--rate", type=float, default=1000.0, help="at most this many rows per second (default 1000)")
     p.add_argument("--json", action="store_true", help="print the summary as a JSON object")
     p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")

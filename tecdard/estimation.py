@@ -7,7 +7,8 @@ from control.baselines import BaselineParams
 from control.conditioning import GyroConditioner
 from control.ekf import ContactKfParams, PaperEkfParams
 from control.onset import OnsetDetector
-from control.pipeline import METHODS, ContactPipeline, PipelineParams
+from control import estimators
+from control.pipeline import ContactPipeline, PipelineParams
 from tecdard.config import ConfigError
 from tecdard.safejson import finite, is_number, show
 
@@ -39,7 +40,7 @@ def _eta_table(section) -> list[tuple[float, float]]:
 def build_pipeline(section, R_tcp_imu: np.ndarray, odr_hz: float = 6667.0, method: str | None = None,
                    plane_normal=None) -> ContactPipeline:
     """Every option of `estimator` is read here; `method`/`plane_normal` override the config's."""
-    cfg_method = section.getstr("method", "ekf", choices=METHODS)
+    cfg_method = section.getstr("method", "ekf", choices=estimators.names())
     cfg_plane = section.getvec3("plane_normal", None, unit=True) if section.has("plane_normal") else None
     conditioner = GyroConditioner(
         R_tcp_imu,

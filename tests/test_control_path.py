@@ -281,3 +281,53 @@ def test_a_tasks_own_reaction_is_a_protective_stop(model, wiggle_verb):
     limits = safety.SafetyLimits()
     assert safety.check_task(safety.SafetyInput(np.array([0.0, 0.0, 20.0]), None, None), limits, reactions).cause == "force"
     assert safety.check_task(safety.SafetyInput(None, None, None), limits, reactions).cause == "x"
+
+
+# -- an estimator is one file ----------------------------------------------------------------
+
+TCP_AT_ONSET = '''
+    """`tcp-at-onset`: the contact is where the TCP was at onset, give or take 5 cm (a floor for any other)."""
+    import numpy as np
+
+    from control.estimators import ContactEstimator, EstimatorSpec
+
+
+    class TcpAtOnset(ContactEstimator):
+        method = "tcp-at-onset"
+
+        def __init__(self, plane):
+            self.plane, self.p_c = plane, np.zeros(3)
+
+        def start(self, p_g, v_g):
+            self.p_c, self.steps = np.array(p_g, float), 0
+
+        def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None):
+            self.steps += len(dt)
+
+        def report(self):
+            cov = np.eye(3) * 0.05 ** 2
+            return self.p_c.copy(), cov, np.eye(3) * 0.05 ** 2
+
+
+    ESTIMATORS = (EstimatorSpec("tcp-at-onset", "the TCP at onset", lambda params, plane: TcpAtOnset(plane)),)
+'''
+
+
+def test_a_new_estimator_is_one_file(tmp_path):
+    from control import estimators
+    from tecdard.config import Config
+    from tecdard.estimation import build_pipeline
+    from tests.test_pipeline import simulate
+    (tmp_path / "tcp_at_onset.py").write_text(textwrap.dedent(TCP_AT_ONSET))
+    estimators.__path__.append(str(tmp_path))
+    try:
+        assert "tcp-at-onset" in estimators.names() and estimators.names()[0] == "ekf"
+        pipe = build_pipeline(Config({"estimator": {"method": "tcp-at-onset"}}).section("estimator"), np.eye(3))
+        assert pipe.method == "tcp-at-onset"
+        _, est, _center, _axis, _t_on, _ = simulate(np.eye(3), method="tcp-at-onset")
+        assert est.method == "tcp-at-onset" and est.nis_ratio is None
+        assert np.linalg.norm(est.p - [0.307, 0.0, 0.487]) < 1e-3        # the TCP when the hinge started to turn
+    finally:
+        estimators.__path__.remove(str(tmp_path))
+        estimators.REGISTRY.pop("tcp-at-onset", None)
+        estimators._discovered.discard("tcp_at_onset")

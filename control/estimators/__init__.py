@@ -1,0 +1,85 @@
+"""The contact estimators the pipeline can run, by name: one module per family in this package.
+
+Each module defines `ESTIMATORS`, a tuple of `EstimatorSpec` (name, one-line summary, and how to
+build the estimator from the pipeline's parameters and the plane of motion). The estimators derive
+from `ContactEstimator`, whose hooks the pipeline calls on every estimator alike; an estimator
+that has no use for one keeps the no-op. Adding an estimator is adding a module here (and its test).
+"""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass
+from typing import Callable
+
+
+class ContactEstimator:
+    """What the pipeline asks of an estimator. Every one implements `start` (at onset), `update`
+    (a run of samples) and `report`; the hooks below default to nothing."""
+
+    method = "estimator"
+    fused = False          # True: `advance` runs a whole batch, reports included, in one call
+    steps = 0              # samples used so far this episode
+    nis = 0.0              # the latest normalised innovation squared (0: none)
+    consistency = None     # smoothed NIS over its expectation (None: the estimator does not measure it)
+
+    def start(self, p_g, v_g) -> None:
+        """A contact episode begins with the TCP at p_g (m) moving at v_g (m/s), world."""
+        raise NotImplementedError
+
+    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None) -> None:
+        """Samples: dt (s), the object's rate w (rad/s), the TCP's p (m) and v (m/s), world, per row."""
+        raise NotImplementedError
+
+    def report(self):
+        """(p_c world m, its 3 x 3 covariance m^2, the estimator's own in-plane statistic)."""
+        raise NotImplementedError
+
+    def set_arc_radial_var(self, var_m2_s2: float) -> None:
+        """The controller follows an arc about the estimate: distrust the TCP velocity along the
+        lever arm by this variance ((m/s)^2; 0 when not following)."""
+
+    def set_eta_prior(self, mean: float, rel_std: float) -> None:
+        """Eta's prior for the next episode: the scheduled value's error factor and its relative one-sigma."""
+
+    def set_correlation(self, samples: float) -> None:
+        """IMU samples that share one proprioception sample (their velocity errors are one error)."""
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    name: str                  # the `estimator.method` and `--method` value
+    summary: str               # one line, for the CLI's help and the docs
+    build: Callable            # (params: control.pipeline.PipelineParams, plane: Plane | None) -> ContactEstimator
+
+
+REGISTRY: dict[str, EstimatorSpec] = {}
+_discovered: set[str] = set()
+
+
+def discover() -> dict[str, EstimatorSpec]:
+    """Import every estimator module on this package's path (once each) and register its ESTIMATORS."""
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name.startswith("_") or info.name in _discovered:
+            continue
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        _discovered.add(info.name)
+        for spec in getattr(module, "ESTIMATORS", ()):
+            if spec.name in REGISTRY and REGISTRY[spec.name] is not spec:
+                raise ValueError(f"estimator {spec.name!r} is defined twice")
+            REGISTRY[spec.name] = spec
+    return REGISTRY
+
+
+def names() -> tuple[str, ...]:
+    """The estimator names: `ekf` first (the default), then the rest in registration order."""
+    found = discover()
+    return tuple(sorted(found, key=lambda n: (n != "ekf", n != "paper-ekf")))
+
+
+def build(method: str, params, plane) -> ContactEstimator:
+    spec = discover().get(method)
+    if spec is None:
+        raise ValueError(f"method: unknown estimator {method!r} (known: {', '.join(names())})")
+    return spec.build(params, plane)
+
