@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control import kernels as K
+from control import kernels as kern
 from control.estimators import ContactEstimator
 from control.geometry import Plane, rotvec_to_matrix
 from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
@@ -201,7 +201,7 @@ _IDENTITY = np.eye(3)
 _NO_NORMAL = np.zeros(3)
 _NO_ALONG = np.zeros(9)         # 3D: no variance added along a plane normal
 _NO_FRESH = np.zeros(0, dtype=bool)
-_NO_RUN = np.zeros(K.RUN_SIZE)
+_NO_RUN = np.zeros(kern.RUN_SIZE)
 _NO_WWT = np.zeros((3, 3))
 
 
@@ -252,37 +252,37 @@ class PositionEvidence:
         self.d = d
         nx = d + 1
         self.var = _position_var(sigma_p)
-        self.st = np.zeros(K.EV_SIZE)           # samples taken, sum of y^T y, broken (kernels.EV_*)
+        self.st = np.zeros(kern.EV_SIZE)           # samples taken, sum of y^T y, broken (kernels.EV_*)
         self.theta = np.zeros(1 if d == 2 else 3)    # the angle (planar) or rotation vector integrated
         self.g = np.zeros(d)
         self.s_x = np.zeros((d, nx))       # sum of regressors X_k (d x (d+1))
         self.s_xx = np.zeros((nx, nx))     # sum of X_k^T X_k
         self.s_xy = np.zeros(nx)           # sum of X_k^T y_k
         self.s_y = np.zeros(d)
-        self.lam = np.zeros((nx, nx))      # the marginal information handed over so far
-        self.eta = np.zeros(nx)
+        self.lam = np.zeros((nx, nx))      # the marginal information handed over so far (matrix Lambda)
+        self.xi = np.zeros(nx)             # and its information vector (xi; eta is the transmission ratio)
 
     @property
     def n(self) -> int:
         """Position samples in the sums."""
-        return int(self.st[K.EV_N])
+        return int(self.st[kern.EV_N])
 
     @property
     def s_yy(self) -> float:
-        return float(self.st[K.EV_SYY])
+        return float(self.st[kern.EV_SYY])
 
     @property
     def broken(self) -> bool:
         """The rigid-body residual failed this episode: positions are no evidence until the next start."""
-        return bool(self.st[K.EV_BROKEN])
+        return bool(self.st[kern.EV_BROKEN])
 
     def arrays(self) -> tuple:
         """The state as the compiled run takes it (kernels.ekf_advance's ev_*)."""
-        return self.st, self.theta, self.g, self.s_x, self.s_xx, self.s_xy, self.s_y, self.lam, self.eta
+        return self.st, self.theta, self.g, self.s_x, self.s_xx, self.s_xy, self.s_y, self.lam, self.xi
 
     def start(self) -> None:
         self.reset()
-        self.st[K.EV_BROKEN] = 0.0
+        self.st[kern.EV_BROKEN] = 0.0
 
     def reset(self) -> None:
         """Restart the reference: no samples, integrals and sums zero (broken is kept)."""
@@ -293,13 +293,13 @@ class PositionEvidence:
         at the `fresh` samples (a new proprioception sample); True when any was taken."""
         taken, s_yy = position_sums(self.theta, self.g, dt, w.reshape(len(dt), -1), r, fresh, self.s_x,
                                     self.s_xx, self.s_xy, self.s_y)
-        self.st[K.EV_N] += taken
-        self.st[K.EV_SYY] += s_yy
+        self.st[kern.EV_N] += taken
+        self.st[kern.EV_SYY] += s_yy
         return taken > 0
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
-        """(dLambda, deta): the growth of the marginal information on (m, k) since the last call."""
-        return position_increment(self.s_x, self.s_xx, self.s_xy, self.s_y, self.n, self.var, self.lam, self.eta)
+        """(dLambda, dxi): the growth of the marginal information on (m, k) since the last call."""
+        return position_increment(self.s_x, self.s_xx, self.s_xy, self.s_y, self.n, self.var, self.lam, self.xi)
 
     def residual_ratio(self, k: float = 1.0) -> float:
         """Least-squares residual of the (q, m) regression at the eta ratio k, over its expectation (1 when
@@ -387,8 +387,8 @@ class ContactKF(ContactEstimator):
         # the last NIS, the consistency ratio, the open window's counts), the lever arm at the last
         # sample, and the consistency window: its start state and prior, its information, and the
         # per-sample NIS of its gated blocks.
-        self._st = np.zeros(K.ST_SIZE)
-        self._st[K.ST_CONSISTENCY] = 1.0
+        self._st = np.zeros(kern.ST_SIZE)
+        self._st[kern.ST_CONSISTENCY] = 1.0
         self._r_last = np.zeros(d)
         self._win = (np.zeros(nx), np.eye(nx), np.eye(nx), np.zeros(nx))
         self._gated = np.empty(256)
@@ -398,23 +398,23 @@ class ContactKF(ContactEstimator):
     @property
     def steps(self) -> int:
         """IMU samples taken this episode."""
-        return int(self._st[K.ST_STEPS])
+        return int(self._st[kern.ST_STEPS])
 
     @property
     def rejected(self) -> int:
         """Samples the NIS gate rejected this episode."""
-        return int(self._st[K.ST_REJECTED])
+        return int(self._st[kern.ST_REJECTED])
 
     @property
     def nis(self) -> float:
         """The last gated sample's NIS."""
-        return float(self._st[K.ST_NIS])
+        return float(self._st[kern.ST_NIS])
 
     @property
     def consistency(self) -> float:
         """The smoothed window NIS over its expectation (about 1 while the model holds; >= 1 scales the
         report, and the daemon's divergence stop reads it)."""
-        return float(self._st[K.ST_CONSISTENCY])
+        return float(self._st[kern.ST_CONSISTENCY])
 
     @property
     def k(self) -> float:
@@ -441,7 +441,7 @@ class ContactKF(ContactEstimator):
             self.x[d] = self.k_prior_mean
         self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
         self._st[:] = 0.0
-        self._st[K.ST_CONSISTENCY] = 1.0
+        self._st[kern.ST_CONSISTENCY] = 1.0
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
@@ -471,17 +471,17 @@ class ContactKF(ContactEstimator):
     def _run_params(self, rate_params) -> np.ndarray:
         """The compiled run's parameters (kernels.PRM_*) as they stand now."""
         prm = self.params
-        out = np.empty(K.PRM_SIZE)
-        out[K.PRM_Q_C], out[K.PRM_CORR] = prm.q_c, self.corr_samples
-        out[K.PRM_VAR_P], out[K.PRM_VAR_WN], out[K.PRM_RADIAL_VAR] = prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
-        out[K.PRM_GATE_NIS], out[K.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
-        out[K.PRM_K_MEAN], out[K.PRM_K_PRIOR_VAR] = self.k_prior_mean, self.k_prior_var
-        out[K.PRM_ETA_VAR], out[K.PRM_TEST_SIGMA] = (self.eta_rel_std / self.k_prior_mean) ** 2, prm.eta_test_sigma
-        out[K.PRM_EV_VAR], out[K.PRM_EV_MIN_SAMPLES] = _position_var(prm.sigma_p), MIN_RESIDUAL_SAMPLES
-        out[K.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
-        out[K.PRM_WINDOW_S], out[K.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
-        out[K.PRM_MIN_RATE2], out[K.PRM_SECOND_RATIO] = rate_params
-        out[K.PRM_UNOBSERVED_VAR] = UNOBSERVED_STD_M ** 2
+        out = np.empty(kern.PRM_SIZE)
+        out[kern.PRM_Q_C], out[kern.PRM_CORR] = prm.q_c, self.corr_samples
+        out[kern.PRM_VAR_P], out[kern.PRM_VAR_WN], out[kern.PRM_RADIAL_VAR] = prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
+        out[kern.PRM_GATE_NIS], out[kern.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
+        out[kern.PRM_K_MEAN], out[kern.PRM_K_PRIOR_VAR] = self.k_prior_mean, self.k_prior_var
+        out[kern.PRM_ETA_VAR], out[kern.PRM_TEST_SIGMA] = (self.eta_rel_std / self.k_prior_mean) ** 2, prm.eta_test_sigma
+        out[kern.PRM_EV_VAR], out[kern.PRM_EV_MIN_SAMPLES] = _position_var(prm.sigma_p), MIN_RESIDUAL_SAMPLES
+        out[kern.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
+        out[kern.PRM_WINDOW_S], out[kern.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
+        out[kern.PRM_MIN_RATE2], out[kern.PRM_SECOND_RATIO] = rate_params
+        out[kern.PRM_UNOBSERVED_VAR] = UNOBSERVED_STD_M ** 2
         return out
 
     def _advance(self, ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule) -> np.ndarray:
@@ -492,7 +492,7 @@ class ContactKF(ContactEstimator):
             period, run, wwT, w_sum, rate_params = 0.0, _NO_RUN, _NO_WWT, _NO_NORMAL, (0.0, 0.0)
         else:
             period, run, wwT, w_sum, rate_params = schedule
-        self._gated, rows = K.ekf_advance(
+        self._gated, rows = kern.ekf_advance(
             self.x, self.P, self._st, self._r_last, *self._win, self._gated, self.positions is not None, *self._ev,
             ts, dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh, fresh is not None,
             self._E, self._normal, self.origin, self._along_var, self._run_params(rate_params), schedule is not None,

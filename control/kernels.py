@@ -695,7 +695,7 @@ def _centred_sums(s_x, s_xx, s_xy, s_y, s_yy, n):
     d, nx = s_x.shape[0], s_x.shape[1]
     nn = max(n, 1)
     lam = np.empty((nx, nx))
-    eta = np.empty(nx)
+    xi = np.empty(nx)
     for a in range(nx):
         for b in range(nx):
             sxx = 0.0
@@ -705,32 +705,32 @@ def _centred_sums(s_x, s_xx, s_xy, s_y, s_yy, n):
         sxy = 0.0
         for j in range(d):
             sxy += s_x[j, a] * s_y[j]
-        eta[a] = s_xy[a] - sxy / nn
+        xi[a] = s_xy[a] - sxy / nn
     syy = 0.0
     for j in range(d):
         syy += s_y[j] * s_y[j]
-    return lam, eta, s_yy - syy / nn
+    return lam, xi, s_yy - syy / nn
 
 
 @jit("Tuple((float64[:, :], float64[:]))(float64[:, :], float64[:, :], float64[:], float64[:], int64, float64, "
      "float64[:, :], float64[:])")
-def position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta):
+def position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, xi):
     """PositionEvidence.increment: the marginal information on (m, k), the intercept q eliminated
-    (Lambda = (S_xx - S_x^T S_x / n) / var, eta = (S_xy - S_x^T S_y / n) / var), returned as its
-    growth since lam, eta, which are updated in place. The growth is symmetrised."""
+    (Lambda = (S_xx - S_x^T S_x / n) / var, xi = (S_xy - S_x^T S_y / n) / var), returned as its
+    growth since lam, xi, which are updated in place. The growth is symmetrised."""
     new, e, _ = _centred_sums(s_x, s_xx, s_xy, s_y, 0.0, n)
     nx = new.shape[0]
     d_lam = np.empty((nx, nx))
-    d_eta = np.empty(nx)
+    d_xi = np.empty(nx)
     for a in range(nx):
-        d_eta[a] = e[a] / var - eta[a]
-        eta[a] = e[a] / var
+        d_xi[a] = e[a] / var - xi[a]
+        xi[a] = e[a] / var
         for b in range(nx):
             d_lam[a, b] = 0.5 * ((new[a, b] + new[b, a]) / var - lam[a, b] - lam[b, a])
     for a in range(nx):
         for b in range(nx):
             lam[a, b] = new[a, b] / var
-    return d_lam, d_eta
+    return d_lam, d_xi
 
 
 @jit("float64(float64[:, :], float64[:, :], float64[:], float64[:], float64, int64, float64, float64, int64)")
@@ -866,7 +866,7 @@ def window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, 
 
 @jit("void(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], float64[:], "
      "float64[:, :], float64[:])")
-def position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_eta):
+def position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi):
     """PositionEvidence restarts its reference: no samples, integrals and sums zero (broken is kept)."""
     ev_st[EV_N] = 0.0
     ev_st[EV_SYY] = 0.0
@@ -877,13 +877,13 @@ def position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, 
     ev_sxy[:] = 0.0
     ev_sy[:] = 0.0
     ev_lam[:, :] = 0.0
-    ev_eta[:] = 0.0
+    ev_xi[:] = 0.0
 
 
 @jit("void(float64[:], float64[:, :], float64[:], float64[:], float64[:], float64[:, :], float64[:, :], "
      "float64[:], float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
      "int64, float64[:])")
-def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_eta, dt, w_d, r0,
+def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi, dt, w_d, r0,
                      fresh, d, prm):
     """One committed block's positions (PositionEvidence) into the state x, P, in place: the running
     sums grow; once PRM_EV_MIN_SAMPLES positions are in and the rigid-body residual (at the held eta
@@ -896,7 +896,7 @@ def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, 
     if taken == 0 or n_ev < prm[PRM_EV_MIN_SAMPLES]:
         return      # the sums grow; they count once the residual can check them
     var = prm[PRM_EV_VAR]
-    d_lam, d_eta = position_increment(ev_sx, ev_sxx, ev_sxy, ev_sy, n_ev, var, ev_lam, ev_eta)
+    d_lam, d_xi = position_increment(ev_sx, ev_sxx, ev_sxy, ev_sy, n_ev, var, ev_lam, ev_xi)
     nk = x.shape[0] - d
     k = max(x[d], K_MIN) if nk else prm[PRM_K_MEAN]
     if position_residual(ev_sx, ev_sxx, ev_sxy, ev_sy, ev_st[EV_SYY], n_ev, var, k,
@@ -906,7 +906,7 @@ def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, 
     n = d + nk                      # with k held, its column is part of the measurement
     b = np.empty(n)
     for a in range(n):
-        s = d_eta[a]
+        s = d_xi[a]
         for j in range(d):
             s -= d_lam[a, j] * x[j]
         b[a] = s - d_lam[a, d] * k
@@ -949,13 +949,13 @@ def report_row(row, x, P, st, r_last, run, wwT, w_sum, E, nrm, origin, along, pr
      "float64[:], float64[:, :], float64[:], float64[:], "                  # x, P, st, r_last
      "float64[:], float64[:, :], float64[:, :], float64[:], float64[::1], "  # wx0, wP0, wA, wb, gbuf
      "boolean, float64[:], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], float64[:], "
-     "float64[:, :], float64[:], "                                           # ev_on, ev_st ... ev_eta
+     "float64[:, :], float64[:], "                                           # ev_on, ev_st ... ev_xi
      "float64[:], float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:], "
      "float64[:], boolean[:], boolean, "                                     # ts ... fresh, use_fresh
      "float64[:, :], float64[:], float64[:], float64[:], float64[:], "      # E, nrm, origin, along, prm
      "boolean, float64, float64[:], float64[:, :], float64[:])")             # schedule, period, run, wwT, w_sum
 def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy,
-                ev_sy, ev_lam, ev_eta, ts, dt, w, w_tcp, p, v, var_v, var_w, fresh, use_fresh, E, nrm, origin, along,
+                ev_sy, ev_lam, ev_xi, ts, dt, w, w_tcp, p, v, var_v, var_w, fresh, use_fresh, E, nrm, origin, along,
                 prm, schedule, period, run, wwT, w_sum):
     """`ekf` over a chunk of samples, all state updated in place; returns (the gated-NIS buffer, the
     report rows (m, ROW_SIZE) due within the chunk).
@@ -1019,9 +1019,9 @@ def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta
             if not use_fresh or prm[PRM_RADIAL_VAR] > 0:
                 # no position measurements (the gripper turns), or following an arc (the grasp's
                 # compliance moves the TCP along the lever arm): restart the reference
-                position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_eta)
+                position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi)
                 continue
-            position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_eta,
+            position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi,
                              dt[b0:b1], w_d, r0, fresh[b0:b1], d, prm)
         if schedule:
             run[RUN_ANGLE] += rate_moments(w[k0:k1], dt[k0:k1], wwT, w_sum)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control import kernels as K
+from control import kernels as kern
 from control import estimators
 from control.baselines import BaselineParams
 from control.conditioning import GyroConditioner
@@ -456,25 +456,25 @@ class ContactPipeline:
                        period: float) -> list[ContactEstimate]:
         """`ekf`: _advance_loop (sub-blocks ending at each output time, the rate moments, the reports) in
         one compiled call (ContactKF.advance); the same numbers, without Python per output."""
-        run = np.empty(K.RUN_SIZE)
-        run[K.RUN_T_PREV], run[K.RUN_T_OUT], run[K.RUN_ANGLE], run[K.RUN_N_W] = (self._t_prev, self._t_out,
+        run = np.empty(kern.RUN_SIZE)
+        run[kern.RUN_T_PREV], run[kern.RUN_T_OUT], run[kern.RUN_ANGLE], run[kern.RUN_N_W] = (self._t_prev, self._t_out,
                                                                                self._angle, self._n_w)
         rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
                                       w_tcp if tcp_turning else None,
                                       (period, run, self._wwT, self._w_sum, self._rate_params))
-        self._t_prev, self._t_out = float(run[K.RUN_T_PREV]), float(run[K.RUN_T_OUT])
-        self._angle, self._n_w = float(run[K.RUN_ANGLE]), int(run[K.RUN_N_W])
+        self._t_prev, self._t_out = float(run[kern.RUN_T_PREV]), float(run[kern.RUN_T_OUT])
+        self._angle, self._n_w = float(run[kern.RUN_ANGLE]), int(run[kern.RUN_N_W])
         return [self._row_estimate(row) for row in rows]
 
     def _row_estimate(self, row: np.ndarray) -> ContactEstimate:
         """A report row of the compiled run (kernels.ROW_*) as a ContactEstimate."""
-        in_plane, steps = float(row[K.ROW_IN_PLANE]), int(row[K.ROW_STEPS])
-        return ContactEstimate(t=float(row[K.ROW_T]), onset_t=self.onset_t, p=row[K.ROW_P:K.ROW_P + 3],
-                               std=row[K.ROW_STD:K.ROW_STD + 3], cov=row[K.ROW_COV:K.ROW_COV + 9].reshape(3, 3),
-                               axis=row[K.ROW_AXIS:K.ROW_AXIS + 3] if row[K.ROW_AXES] else None,
-                               converged=in_plane < CONVERGED_STD_M and steps > 100, nis=float(row[K.ROW_NIS]),
+        in_plane, steps = float(row[kern.ROW_IN_PLANE]), int(row[kern.ROW_STEPS])
+        return ContactEstimate(t=float(row[kern.ROW_T]), onset_t=self.onset_t, p=row[kern.ROW_P:kern.ROW_P + 3],
+                               std=row[kern.ROW_STD:kern.ROW_STD + 3], cov=row[kern.ROW_COV:kern.ROW_COV + 9].reshape(3, 3),
+                               axis=row[kern.ROW_AXIS:kern.ROW_AXIS + 3] if row[kern.ROW_AXES] else None,
+                               converged=in_plane < CONVERGED_STD_M and steps > 100, nis=float(row[kern.ROW_NIS]),
                                steps=steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=float(row[K.ROW_ANGLE]), nis_ratio=float(row[K.ROW_CONSISTENCY]),
+                               angle_rad=float(row[kern.ROW_ANGLE]), nis_ratio=float(row[kern.ROW_CONSISTENCY]),
                                onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)
 
     def _estimate(self, t: float) -> ContactEstimate:

@@ -35,18 +35,18 @@ class Board:
     at start and every second. `packets(gyro, accel)` returns bytes for a block of SI samples."""
 
     def __init__(self, params: BoardParams | None = None):
-        self.p = params or BoardParams()
-        self.scaling = Scaling(self.p.gyro_fs_dps, self.p.accel_fs_g)
+        self.params = params or BoardParams()
+        self.scaling = Scaling(self.params.gyro_fs_dps, self.params.accel_fs_g)
         self.seq = 0
         self.sample_index = 0
         self._next_status_s = 0.0
 
     def mcu_us(self, sample_index: int) -> int:
-        true_s = sample_index / self.p.odr_hz
-        return int(round(self.p.t0_us + true_s * (1 + self.p.drift_ppm * 1e-6) * 1e6)) & 0xFFFFFFFF
+        true_s = sample_index / self.params.odr_hz
+        return int(round(self.params.t0_us + true_s * (1 + self.params.drift_ppm * 1e-6) * 1e6)) & 0xFFFFFFFF
 
     def status(self, flags: int = 0) -> bytes:
-        return W.encode_status(self.p.odr_hz, self.p.gyro_fs_dps, self.p.accel_fs_g, flags)
+        return W.encode_status(self.params.odr_hz, self.params.gyro_fs_dps, self.params.accel_fs_g, flags)
 
     def packets(self, gyro: np.ndarray, accel: np.ndarray) -> list[bytes]:
         """One frame per packet (status frames interleaved once a second of samples)."""
@@ -55,12 +55,12 @@ class Board:
     def packets_raw(self, raw: np.ndarray) -> list[bytes]:
         """Frames for raw int16 samples (n, 6), as the chip produced them."""
         out = []
-        n = self.p.samples_per_packet
+        n = self.params.samples_per_packet
         for k in range(0, len(raw), n):
-            t_s = self.sample_index / self.p.odr_hz
+            t_s = self.sample_index / self.params.odr_hz
             if t_s >= self._next_status_s:
                 out.append(self.status())
-                self._next_status_s += self.p.status_period_s
+                self._next_status_s += self.params.status_period_s
             chunk = raw[k:k + n]
             out.append(W.encode_samples(self.seq, self.mcu_us(self.sample_index), chunk))
             self.seq = (self.seq + 1) & 0xFFFF
@@ -162,10 +162,10 @@ class StreamThread:
         return self
 
     def _run(self) -> None:
-        n = max(1, int(round(self.board.p.odr_hz * self.chunk_s)))
+        n = max(1, int(round(self.board.params.odr_hz * self.chunk_s)))
         t_next = time.monotonic()
         while not self.stop.is_set():
-            t_next += n / self.board.p.odr_hz
+            t_next += n / self.board.params.odr_hz
             gyro = self.rng.normal(0, 0.005, (n, 3))
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
             if self.override is not None:            # e.g. a chip stuck at full scale (clipped by the board)

@@ -83,7 +83,7 @@ class SerialImuSource:
     """
 
     def __init__(self, params: SerialParams, clock=time.monotonic):
-        self.p = params
+        self.params = params
         self.clock = clock
         self.parser = WireParser()
         self.scaling = Scaling(params.gyro_fs_dps, params.accel_fs_g)
@@ -103,15 +103,15 @@ class SerialImuSource:
 
     # -- port -----------------------------------------------------------------
     def _resolve(self) -> str:
-        if self.p.port:
-            return self.p.port
-        return find_port(self.p.vid, self.p.pid, self.p.serial_number)
+        if self.params.port:
+            return self.params.port
+        return find_port(self.params.vid, self.params.pid, self.params.serial_number)
 
     def open(self) -> None:
         """Open the port now; PortError with a one-line reason if it cannot be."""
         path = self._resolve()
         try:
-            self.ser = serial.Serial(path, baudrate=self.p.baud, timeout=0.05)
+            self.ser = serial.Serial(path, baudrate=self.params.baud, timeout=0.05)
         except (serial.SerialException, OSError) as exc:
             reason = getattr(exc, "strerror", None) or str(exc).split(":")[-1].strip() or type(exc).__name__
             raise PortError(f"cannot open {path}: {reason}") from None

@@ -86,7 +86,7 @@ class FingertipSignal:
     """
 
     def __init__(self, params: SimImuParams, seed: int = 0):
-        self.p = params
+        self.params = params
         self.rng = np.random.default_rng(seed)
         self.R_tcp_imu = quat_to_matrix(np.array(params.imu_in_tcp_quat))
         self.eta = params.true_eta()
@@ -111,9 +111,9 @@ class FingertipSignal:
 
     def _lag(self, x: np.ndarray, dt: float) -> np.ndarray:
         """First-order low-pass (time constant lag_tau_s) of x (n, 3), state carried across calls."""
-        if self.p.lag_tau_s <= 0:
+        if self.params.lag_tau_s <= 0:
             return x
-        a = math.exp(-dt / self.p.lag_tau_s)
+        a = math.exp(-dt / self.params.lag_tau_s)
         out = np.empty_like(x)
         y0 = self._lag_state
         for k0 in range(0, len(x), IIR_BLOCK):
@@ -132,20 +132,20 @@ class FingertipSignal:
                R_world_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(raw int16 (n, 6), gyro rad/s (n, 3), accel m/s^2 (n, 3)) at sample times ts; kinematics per sample."""
         n = len(ts)
-        dt = 1.0 / self.p.odr_hz
+        dt = 1.0 / self.params.odr_hz
         R_world_imu = R_world_tcp @ self.R_tcp_imu
         w_seen = w_tcp + self._lag((w_obj - w_tcp) / self.eta, dt)
-        drift = np.cumsum(self.rng.normal(0.0, self.p.gyro_bias_walk * math.sqrt(dt), (n, 3)), axis=0)
+        drift = np.cumsum(self.rng.normal(0.0, self.params.gyro_bias_walk * math.sqrt(dt), (n, 3)), axis=0)
         bias = self.gyro_bias + drift
         self.gyro_bias = bias[-1]
         gyro = w_seen @ R_world_imu + bias + self.rng.normal(0.0, self.gyro_sigma, (n, 3))
         f_world = a_tcp - GRAVITY_WORLD_M_S2
         for t0, amp, hz in self._rings:
             s = ts - t0
-            env = np.where(s >= 0, np.exp(-np.maximum(s, 0) / self.p.ring_tau_s)
+            env = np.where(s >= 0, np.exp(-np.maximum(s, 0) / self.params.ring_tau_s)
                            * np.sin(2 * np.pi * hz * np.maximum(s, 0)), 0.0)
             f_world = f_world + env[:, None] * amp
-        self._rings = [r for r in self._rings if ts[-1] - r[0] < 10 * self.p.ring_tau_s]
+        self._rings = [r for r in self._rings if ts[-1] - r[0] < 10 * self.params.ring_tau_s]
         accel = f_world @ R_world_imu + self.accel_bias + self.rng.normal(0.0, self.accel_sigma, (n, 3))
         raw = self.scaling.to_raw(gyro, accel)
         g, a = self.scaling.to_si(raw)
@@ -162,7 +162,7 @@ class SimImu:
     """
 
     def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512, wire=None):
-        self.p = params
+        self.params = params
         self.signal = FingertipSignal(params, seed)
         self.rng = np.random.default_rng(seed + 7)
         self.period = 1.0 / params.odr_hz
@@ -207,7 +207,7 @@ class SimImu:
                 except OSError:
                     self.dropped_chunks += 1
             return
-        stamps = ts + self.rng.normal(0.0, self.p.timestamp_jitter_s, n) if self.p.timestamp_jitter_s else ts
+        stamps = ts + self.rng.normal(0.0, self.params.timestamp_jitter_s, n) if self.params.timestamp_jitter_s else ts
         stamps = np.maximum.accumulate(stamps)
         try:
             self._fifo.put_nowait((stamps, gyro, accel))

@@ -79,7 +79,7 @@ class HingeWorld:
     """
 
     def __init__(self, params: HingeParams, p_tcp0: np.ndarray, R_tcp0: np.ndarray | None = None):
-        self.p = params
+        self.params = params
         self.axis = unit(params.hinge_axis, "hinge.axis")
         self.n_table = unit(params.table_normal if params.table_normal is not None else np.array([0, 0, 1.0]),
                             "hinge.table_normal")
@@ -110,7 +110,7 @@ class HingeWorld:
 
     @property
     def hinge_now(self) -> np.ndarray:
-        return self.p.hinge_point + self.base_offset
+        return self.params.hinge_point + self.base_offset
 
     def base_displacement(self) -> float:
         return math.sqrt(sum(b * b for b in self._base))
@@ -138,8 +138,8 @@ class HingeWorld:
 
     def step(self, p_tcp: np.ndarray, dt: float, R_tcp: np.ndarray | None = None) -> bool:
         """Advance by dt with the TCP at p_tcp; returns True when the handle starts to move."""
-        k = self.p.grasp_stiffness_n_m
-        f_static = self.p.friction_mu * self.p.base_mass_kg * GRAVITY_M_S2
+        k = self.params.grasp_stiffness_n_m
+        f_static = self.params.friction_mu * self.params.base_mass_kg * GRAVITY_M_S2
         nx, ny, nz = self._n_table
         px, py, pz = map(float, p_tcp)
         for _ in range(BASE_SLIDE_ITERATIONS):
@@ -176,7 +176,7 @@ class HingeWorld:
             ax, ay, az = self._axis
             gripper = g[0] * ax + g[1] * ay + g[2] * az
         twist = self.angle - gripper - self.slip
-        limit = math.radians(self.p.twist_stick_deg) if self.p.twist_stick_deg is not None else math.inf
+        limit = math.radians(self.params.twist_stick_deg) if self.params.twist_stick_deg is not None else math.inf
         if abs(twist) > limit:
             self.slip += twist - math.copysign(limit, twist)
             twist = math.copysign(limit, twist)
@@ -198,7 +198,7 @@ class HingeWorld:
 
     def ring(self, p_tcp: np.ndarray, v_tcp: np.ndarray) -> tuple[np.ndarray, float | None]:
         """(direction, amplitude or None for speed-scaled) of the ring at a start event."""
-        return self.tangent(p_tcp), self.p.breakaway_m_s2
+        return self.tangent(p_tcp), self.params.breakaway_m_s2
 
     def tcp_force(self) -> np.ndarray:
         """Force of the world on the TCP, N, world frame (the handle pulls back on the grasp)."""
@@ -207,7 +207,7 @@ class HingeWorld:
     def truth(self) -> dict:
         return {"hinge_point": self.hinge_now.copy(), "hinge_axis": self.axis.copy(),
                 "handle_angle_rad": self.angle, "base_displacement_m": self.base_displacement(),
-                "extra": {"radius_m": self.radius, "hinge_point_initial": self.p.hinge_point.tolist(),
+                "extra": {"radius_m": self.radius, "hinge_point_initial": self.params.hinge_point.tolist(),
                           "grasp_slip_deg": float(np.degrees(self.slip)),
                           "grasp_twist_deg": float(np.degrees(self._twist))}}
 
@@ -299,7 +299,7 @@ class PivotWorld:
     """
 
     def __init__(self, params: PivotParams, p_tcp0: np.ndarray, R_tcp0: np.ndarray):
-        self.p = params
+        self.params = params
         self.R_tcp0 = np.asarray(R_tcp0, dtype=float)
         self.tip_local = np.asarray(params.tip_in_tcp, dtype=float)
         self.L = float(np.linalg.norm(self.tip_local))
@@ -323,7 +323,7 @@ class PivotWorld:
         impact = False
         if self.contact is None:
             tip = self.tip(p_tcp, R_tcp)
-            z = self.p.surface.surface_z(tip[0], tip[1])
+            z = self.params.surface.surface_z(tip[0], tip[1])
             d = R_tcp @ self.tip_local / self.L
             if tip[2] <= z:
                 # the tip is pinned where it met the surface; it cannot sink in
@@ -339,17 +339,17 @@ class PivotWorld:
         dist = float(np.linalg.norm(r))
         d = -r / max(dist, 1e-9)                  # TCP -> tip
         compression = self.L - dist
-        if compression < -self.p.lift_off_m:      # pulled away: the tip lifts off
+        if compression < -self.params.lift_off_m:      # pulled away: the tip lifts off
             # the tool keeps the attitude it had in the soft grasp (it does not snap back)
             self.tip_local = R_tcp.T @ (self.d * self.L) if self.d is not None else self.tip_local
             self.contact = None
             self.force = np.zeros(3)
             self.rate = np.zeros(3)
             return False
-        f_axial = self.p.grasp_stiffness_n_m * max(compression, 0.0)
-        if f_axial > self.p.slide_force_n:        # the tool slides in the grasp: a shorter lever arm
-            self.L = dist + self.p.slide_force_n / self.p.grasp_stiffness_n_m
-            f_axial = self.p.slide_force_n
+        f_axial = self.params.grasp_stiffness_n_m * max(compression, 0.0)
+        if f_axial > self.params.slide_force_n:        # the tool slides in the grasp: a shorter lever arm
+            self.L = dist + self.params.slide_force_n / self.params.grasp_stiffness_n_m
+            f_axial = self.params.slide_force_n
         self.force = -f_axial * d                 # the surface pushes back along the tool
         self.rate = np.zeros(3) if self._d_prev is None else cross3(self._d_prev, d) / dt
         self._d_prev, self.d = d, d
@@ -367,7 +367,7 @@ class PivotWorld:
         """An impact rings along the motion, scaled by speed; a breakaway rings with its own amplitude."""
         speed = float(np.linalg.norm(v_tcp))
         direction = v_tcp / speed if speed > 1e-9 else np.array([0.0, 0.0, 1.0])
-        return direction, (None if self._impact else self.p.breakaway_m_s2)
+        return direction, (None if self._impact else self.params.breakaway_m_s2)
 
     def tcp_force(self) -> np.ndarray:
         """Force of the world on the TCP, N, world frame (the surface pushes back through the grasp)."""

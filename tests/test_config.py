@@ -101,7 +101,7 @@ def test_daemon_builds_the_mapping_scene_world():
     d = Daemon(Config(cfg))
     world = d.sim_spec.build().world               # what the simulation process builds
     assert isinstance(world, PivotWorld)
-    assert isinstance(world.p.surface, HeightField)
+    assert isinstance(world.params.surface, HeightField)
     assert not world.in_contact()                  # the tool starts above the container
 
 

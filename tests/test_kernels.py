@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from control import kernels as K
+from control import kernels as kern
 
 REL_TOL = 1e-9
 
@@ -79,7 +79,7 @@ def test_spatial_information_matches_numpy(turning, radial_var, nk):
     w_tcp = np.tile([0.0, -0.1, 0.05], (len(w), 1)) if turning else np.zeros_like(w)
     args = (1.1, np.array([0.01, 0.0, -0.02]), 1.05, np.array([0.012, 0.001, -0.018]), 3.0, 2.5e-9, 1e-4,
             radial_var, nk)
-    A, b, gated, nis, rejected = K.spatial_information(w, w_tcp, r0, v, var_v, var_w, *args, np.eye(3 + nk),
+    A, b, gated, nis, rejected = kern.spatial_information(w, w_tcp, r0, v, var_v, var_w, *args, np.eye(3 + nk),
                                                        16.3, False)
     A_ref, b_ref = information(spatial_samples(w, w_tcp, r0, v, var_v, var_w, *args), 3 + nk)
     assert_same_information(A, b, A_ref, b_ref)
@@ -95,7 +95,7 @@ def test_planar_information_matches_numpy(turning, radial_var, nk):
     w_n, r2, v2 = w[:, 1].copy(), r0[:, :2].copy(), v[:, :2].copy()
     t_n = np.full(len(w_n), -0.1) if turning else np.zeros(len(w_n))
     c, c_lin = np.array([0.01, -0.02]), np.array([0.012, -0.018])
-    A, b, gated, nis, rejected = K.planar_information(
+    A, b, gated, nis, rejected = kern.planar_information(
         w_n, t_n, r2, v2, var_v, var_w, 1.1, c[0], c[1], 1.05, c_lin[0], c_lin[1], 3.0, 2.5e-9, 1e-4, radial_var,
         nk, 1.0, 1.0, 16.3, False)
     A_ref, b_ref = information(planar_samples(w_n, t_n, r2, v2, var_v, var_w, 1.1, c, 1.05, c_lin, 3.0, 2.5e-9,
@@ -111,9 +111,9 @@ def test_gate_rejects_an_outlier_once_armed():
     v = np.cross(w, r0)                    # consistent with contact at the origin, k = 1
     v[5] += [0.5, 0.0, 0.0]                # one glitch
     args = (w, w_tcp, r0, v, var_v, var_w, 1.0, c, 1.0, c, 1.0, 2.5e-9, 1e-4, 0.0, 0)
-    _, _, gated, nis, rejected = K.spatial_information(*args, np.eye(3) * 1e-12, 16.3, True)
+    _, _, gated, nis, rejected = kern.spatial_information(*args, np.eye(3) * 1e-12, 16.3, True)
     assert gated and rejected == 1 and nis[5] > 16.3 and np.all(np.delete(nis, 5) < 16.3)
-    _, _, gated, _, rejected = K.spatial_information(*args, np.eye(3) * 0.25, 16.3, True)
+    _, _, gated, _, rejected = kern.spatial_information(*args, np.eye(3) * 0.25, 16.3, True)
     assert not gated and rejected == 0      # the prior is still wide: H P H^T is large against R
 
 
@@ -126,7 +126,7 @@ def test_collapsed_update_is_the_kalman_update_of_an_equivalent_measurement():
         A, b = B.T @ B, B.T @ rng.normal(size=rank)
         L = rng.normal(size=(4, 4))
         P, x = L @ L.T * 1e-3 + 1e-4 * np.eye(4), rng.normal(size=4)
-        x_new, P_new = K.collapsed_update(x, P, A, b, True)
+        x_new, P_new = kern.collapsed_update(x, P, A, b, True)
         lam, U = np.linalg.eigh(A)
         good = lam > 1e-12 * lam[-1]
         H = np.sqrt(lam[good])[:, None] * U[:, good].T
@@ -136,7 +136,7 @@ def test_collapsed_update_is_the_kalman_update_of_an_equivalent_measurement():
         np.testing.assert_allclose(x_new, x + Kg @ y, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(P_new, (np.eye(4) - Kg @ H) @ P, rtol=1e-7, atol=1e-12)
         np.testing.assert_allclose(P_new, P_new.T, atol=1e-15)
-        nis, r = K.window_nis(A, b, P)
+        nis, r = kern.window_nis(A, b, P)
         assert r == rank and nis == pytest.approx(y @ np.linalg.solve(S, y), rel=1e-7)
 
 
@@ -146,7 +146,7 @@ def test_sym_eig_matches_numpy_across_wide_ranges():
         for _ in range(50):
             B = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 6, size=(n, 1))
             S = B @ B.T
-            lam, V = K.sym_eig(S)
+            lam, V = kern.sym_eig(S)
             np.testing.assert_allclose(lam, np.linalg.eigvalsh(S), rtol=1e-9, atol=1e-12 * np.abs(S).max())
             np.testing.assert_allclose(V @ np.diag(lam) @ V.T, S, rtol=1e-9, atol=1e-10 * np.abs(S).max())
 
@@ -155,7 +155,7 @@ def test_kernels_divide_by_zero_as_numpy_does():
     """IEEE division, not Python's ZeroDivisionError: a degenerate sample cannot raise in the estimator thread."""
     n = 2
     zeros = np.zeros((n, 3))
-    A, b, *_ = K.spatial_information(zeros, zeros, zeros, zeros, np.zeros(n), np.zeros(n), 1.0, np.zeros(3), 1.0,
+    A, b, *_ = kern.spatial_information(zeros, zeros, zeros, zeros, np.zeros(n), np.zeros(n), 1.0, np.zeros(3), 1.0,
                                      np.zeros(3), 1.0, 0.0, 0.0, 0.0, 1, np.eye(4), 16.3, False)
     assert A.shape == (4, 4)
 
@@ -165,8 +165,8 @@ def test_jit_compiles_where_numba_cannot_cache():
     ns = {}
     exec("def twice(x):\n    return 2.0 * x\n", ns)        # no source file: nowhere to cache
     with pytest.raises(RuntimeError, match="cannot cache"):
-        K.njit("float64(float64)", cache=True)(ns["twice"])
-    assert K.jit("float64(float64)")(ns["twice"])(1.5) == 3.0
+        kern.njit("float64(float64)", cache=True)(ns["twice"])
+    assert kern.jit("float64(float64)")(ns["twice"])(1.5) == 3.0
 
 
 def random_cov(rng, n, scale):
@@ -192,9 +192,9 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     x_lin = x + np.append(rng.normal(0, 0.005, d), [0.02] * nk)
     P = random_cov(rng, d + nk, 1e-4)
     q_c, corr, var_p, var_wn, radial_var = 1e-6, 3.0, 2.5e-9, 1e-4, 2.5e-5
-    x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = K.block_update(
+    x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = kern.block_update(
         x, P, x_lin, dt, w, np.zeros_like(w), p, v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
-        radial_var, 16.3, K.K_MIN, 1.2, False, True)
+        radial_var, 16.3, kern.K_MIN, 1.2, False, True)
     P_ref = P.copy()
     P_ref[range(d), range(d)] += q_c * dt.sum()
     k, k_lin = (x[d], x_lin[d]) if nk else (1.2, 1.2)          # k held at 1.2 when not a state
@@ -211,7 +211,7 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     np.testing.assert_allclose(r_d, r0 @ E.T, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(P_prior, P_ref, rtol=1e-12)
     assert duration == pytest.approx(dt.sum(), rel=1e-12)
-    x_ref, P_new_ref = K.collapsed_update(x, P_ref, A_ref, b_ref, True)
+    x_ref, P_new_ref = kern.collapsed_update(x, P_ref, A_ref, b_ref, True)
     np.testing.assert_allclose(x_new, x_ref, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(P_new, P_new_ref, rtol=1e-7, atol=1e-15)
     assert not gated and rejected == 0
@@ -257,10 +257,10 @@ def test_report_state_matches_numpy(planar, z, k_mean):
         info = 1.0 / P[d, d] - 1.0 / k_prior_var
         k_data = k_mean + z / np.sqrt(info)              # the data reject k = k_mean by z sigma
         x = np.append(rng.normal(0, 0.1, d), P[d, d] * (k_data * info + k_mean / k_prior_var))
-        assert K.eta_evidence(x[d], P[d, d], k_mean, k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
-    wgt = K.eta_weight(x[d], P[d, d], k_mean, k_prior_var, 3.0) if z is not None else 0.0
+        assert kern.eta_evidence(x[d], P[d, d], k_mean, k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
+    wgt = kern.eta_weight(x[d], P[d, d], k_mean, k_prior_var, 3.0) if z is not None else 0.0
     assert wgt == (0.0 if z in (None, 1.0) else pytest.approx(min(max(z - 3.0, 0.0), 1.0)))
-    p, rep, stat = K.report_state(x, P, d, 1.7, r_last, 0.0025, k_mean, k_prior_var, 3.0, E, origin, along)
+    p, rep, stat = kern.report_state(x, P, d, 1.7, r_last, 0.0025, k_mean, k_prior_var, 3.0, E, origin, along)
     c_ref, rep_ref, stat_ref = report_reference(x, P, d, 1.7, r_last, 0.0025, k_mean, wgt)
     np.testing.assert_allclose(p, origin + c_ref @ E, rtol=1e-12)
     np.testing.assert_allclose(rep, E.T @ rep_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
@@ -273,7 +273,7 @@ def test_eta_weight_ignores_an_implausible_eta():
     info = 1.0 / pkk - 1.0 / k_prior_var
     for k_data, expected in ((1.15, 1.0), (1.25, 0.0)):   # 3 and 5 prior sigmas off
         x_k = pkk * (k_data * info + 1.0 / k_prior_var)
-        assert K.eta_weight(x_k, pkk, 1.0, k_prior_var, 3.0) == expected
+        assert kern.eta_weight(x_k, pkk, 1.0, k_prior_var, 3.0) == expected
 
 
 @pytest.mark.parametrize("rates", [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.3, 0.2, 0.0]])
@@ -284,9 +284,9 @@ def test_rotation_axes_match_numpy(rates):
     w = (rng.normal(size=(500, 3)) * np.array(rates) + 1e-6 * rng.normal(size=(500, 3))) @ Q.T
     w += 0.5 * np.array(rates) @ Q.T                    # a mean rate to sign the axis
     wwT, w_sum = np.zeros((3, 3)), np.zeros(3)
-    K.rate_moments(w, np.full(len(w), 1e-3), wwT, w_sum)
+    kern.rate_moments(w, np.full(len(w), 1e-3), wwT, w_sum)
     cov, stat = random_cov(rng, 3, 1e-6), random_cov(rng, 3, 1e-6)
-    axis, axes, cov_out, top = K.rotation_axes(wwT, w_sum, len(w), 1e-12, cov, stat, 1e-6, 0.05, 0.25)
+    axis, axes, cov_out, top = kern.rotation_axes(wwT, w_sum, len(w), 1e-12, cov, stat, 1e-6, 0.05, 0.25)
     lam, V = np.linalg.eigh(w.T @ w / len(w) - 1e-12 * np.eye(3))
     assert axes == (0 if lam[-1] < 1e-6 else 2 if lam[-2] > 0.05 * lam[-1] else 1)
     if axes == 0:
@@ -309,7 +309,7 @@ def test_plane_rotation_matches_numpy():
     E = np.vstack([e1, np.cross(n, e1)])
     stat = random_cov(rng, 3, 1e-6)
     for w_sum, sign in ((2.0 * n, 1.0), (-0.5 * n + 0.1 * e1, -1.0)):
-        s, top = K.plane_rotation(stat, E, n, w_sum)
+        s, top = kern.plane_rotation(stat, E, n, w_sum)
         assert s == sign and top == pytest.approx(np.linalg.eigvalsh(E @ stat @ E.T)[-1], rel=1e-12)
 
 
@@ -323,21 +323,21 @@ def test_position_increment_and_residual_match_numpy():
     s_x, s_xx, s_xy, s_y = X.sum(0), np.einsum("ija,ijb->ab", X, X), np.einsum("ija,ij->a", X, y), y.sum(0)
     lam, eta = np.eye(nx), np.ones(nx)
     lam0, eta0 = lam.copy(), eta.copy()
-    d_lam, d_eta = K.position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta)
+    d_lam, d_eta = kern.position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta)
     lam_ref = (s_xx - s_x.T @ s_x / n) / var
     np.testing.assert_allclose(lam, lam_ref, rtol=1e-12)
     np.testing.assert_allclose(eta, (s_xy - s_x.T @ s_y / n) / var, rtol=1e-12)
     np.testing.assert_allclose(d_lam, lam_ref - lam0, rtol=1e-12)
     np.testing.assert_allclose(d_eta, eta - eta0, rtol=1e-12)
     k = 1.1
-    ratio = K.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), n, var, k, 8)
+    ratio = kern.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), n, var, k, 8)
     # regression of y - k G on [I (intercept q), -[Theta]x] per sample
     Z = np.concatenate([np.tile(np.eye(d), (n, 1)), X[:, :, :d].reshape(n * d, d)], axis=1)
     resid = (y - k * X[:, :, d]).ravel()
     fit = np.linalg.lstsq(Z, resid, rcond=None)
     rss = float(np.sum((resid - Z @ fit[0]) ** 2))
     assert ratio == pytest.approx(rss / (var * (d * n - d - np.linalg.matrix_rank(Z[:, d:]))), rel=1e-7)
-    assert K.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), 5, var, k, 8) == 1.0
+    assert kern.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), 5, var, k, 8) == 1.0
 
 
 class ReferenceKF:
@@ -363,19 +363,19 @@ class ReferenceKF:
         self.ev_n, self.ev_syy, self.broken = 0, 0.0, False
 
     def k(self):
-        return max(self.x[self.d], K.K_MIN) if self.nk else self.k_mean
+        return max(self.x[self.d], kern.K_MIN) if self.nk else self.k_mean
 
     def update(self, dt, w, p, v, var_v, var_w, fresh):
         prm = self.prm
         for k0 in range(0, len(dt), prm.max_block):
             sl = slice(k0, k0 + prm.max_block)
             args = (dt[sl], w[sl], np.zeros((len(dt[sl]), 3)), p[sl], v[sl], var_v[sl], var_w[sl], self.E, self.nrm,
-                    self.origin, prm.q_c, self.corr, prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, K.K_MIN,
+                    self.origin, prm.q_c, self.corr, prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, kern.K_MIN,
                     self.k_mean, prm.gate_nis > 0 and self.steps > 0)
             x_lin = self.x
             for _ in range(2 if self.steps == 0 else 0):
-                x_lin = K.block_update(self.x, self.P, x_lin, *args, False)[0]
-            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = K.block_update(
+                x_lin = kern.block_update(self.x, self.P, x_lin, *args, False)[0]
+            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = kern.block_update(
                 self.x, self.P, x_lin, *args, True)
             self.rejected += rejected
             if gated:
@@ -403,7 +403,7 @@ class ReferenceKF:
             return
         self.win = None
         ratio = 0.0
-        nis_w, rank = K.window_nis(w["A"], w["b"], w["P0"])
+        nis_w, rank = kern.window_nis(w["A"], w["b"], w["P0"])
         if rank:
             ratio = 1.0 + (max(nis_w, 0.0) / rank - 1.0) * (self.WINDOW_S / w["t"])
         if w["gated"]:
@@ -415,20 +415,20 @@ class ReferenceKF:
 
     def positions(self, dt, w_d, r0, fresh):
         e = self.ev
-        taken, s_yy = K.position_sums(e["theta"], e["g"], dt, w_d, r0, fresh, e["sx"], e["sxx"], e["sxy"], e["sy"])
+        taken, s_yy = kern.position_sums(e["theta"], e["g"], dt, w_d, r0, fresh, e["sx"], e["sxx"], e["sxy"], e["sy"])
         self.ev_n += taken
         self.ev_syy += s_yy
         if not taken or self.ev_n < self.EV_MIN:
             return
-        d_lam, d_eta = K.position_increment(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_n, self.var_ev, e["lam"],
+        d_lam, d_eta = kern.position_increment(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_n, self.var_ev, e["lam"],
                                             e["eta"])
-        if K.position_residual(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_syy, self.ev_n, self.var_ev, self.k(),
+        if kern.position_residual(e["sx"], e["sxx"], e["sxy"], e["sy"], self.ev_syy, self.ev_n, self.var_ev, self.k(),
                                self.EV_MIN) > self.EV_LIMIT:
             self.broken = True
             return
         n = self.d + self.nk
         b = d_eta - d_lam @ np.append(self.x[:self.d], self.k())
-        self.x, self.P = K.collapsed_update(self.x, self.P, d_lam[:n, :n].copy(), b[:n], True)
+        self.x, self.P = kern.collapsed_update(self.x, self.P, d_lam[:n, :n].copy(), b[:n], True)
 
 
 @pytest.mark.parametrize("planar", [False, True])
