@@ -23,7 +23,7 @@ from control.kernels import K_MIN, block_update  # noqa: E402
 from control import estimators  # noqa: E402
 
 METHODS = estimators.names()
-from robots.scenarios import Scenario, generate  # noqa: E402
+from sim.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402
@@ -272,7 +272,7 @@ def main() -> int:
              "the serial driver, [serial.md](serial.md); the simulator, [sim.md](sim.md); the whole daemon's",
              "`rotate` on the simulated paper cutter, [daemon.md](daemon.md); and the tactile map of the",
              "paper's container, [mapping.md](mapping.md). Every page is written by its benchmark.", "",
-             "Simulated recordings (`robots/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
+             "Simulated recordings (`sim/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
              "6667 Hz), encoder-grade TCP noise (0.05 mm) at 65 Hz with reported TCP velocity (1 mm/s noise), "
              "eta 2.0 assumed (calibrated at 30 N); every method gets the same conditioned gyro and the same causal "
              "proprioception. Errors are in the plane of rotation for line contacts (along the edge is "

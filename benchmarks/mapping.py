@@ -17,7 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from control.mapping import kernel_depth, raster_xy  # noqa: E402
-from robots.world import CONTAINER_M, mapping_scene  # noqa: E402
+from sim.world import CONTAINER_M, mapping_scene  # noqa: E402
 from tecdard.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.demo import free_port, start_daemon, stop_daemon  # noqa: E402

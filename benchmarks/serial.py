@@ -13,14 +13,14 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drivers.imu_emulator import Board, BoardParams  # noqa: E402
+from sim.board import Board, BoardParams  # noqa: E402
 from drivers.imu_wire import WireParser  # noqa: E402
 from drivers.serial_imu import SerialImuSource, SerialParams  # noqa: E402
 
 WRITER = """
 import sys, time
 sys.path.insert(0, {root!r})
-from drivers.imu_emulator import Board, BoardParams, PtyDevice, StreamThread
+from sim.board import Board, BoardParams, PtyDevice, StreamThread
 dev = PtyDevice({link!r})
 st = StreamThread(dev, Board(BoardParams(samples_per_packet={n}))).start()
 print("ready", flush=True)

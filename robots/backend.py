@@ -1,7 +1,7 @@
 """Robot backend interfaces: reading state apart from commanding, in the manner of ur_rtde."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -16,16 +16,6 @@ class JointState:
     seq: int = 0             # increments with every new measurement
     tcp_twist: np.ndarray | None = None   # [v; w] world-aligned, m/s and rad/s, when the robot reports it
     tcp_force: np.ndarray | None = None   # external force on the TCP, world, N, when the robot estimates it
-
-
-@dataclass
-class SimTruth:
-    """Ground truth that only a simulated world can report (never used by the controller)."""
-    hinge_point: np.ndarray
-    hinge_axis: np.ndarray
-    handle_angle_rad: float
-    base_displacement_m: float
-    extra: dict = field(default_factory=dict)
 
 
 def joint_rates(qd, nq: int) -> np.ndarray:

@@ -72,6 +72,8 @@ class ArmModel:
         else:
             model = full
         self.name = name
+        self.tool_offset = [0.0, 0.0, 0.0] if tool_offset is None else [float(x) for x in tool_offset]   # flange -> TCP, m
+        self.tool_quat = [0.0, 0.0, 0.0, 1.0] if tool_quat is None else [float(x) for x in tool_quat]   # (x, y, z, w)
         self.model = model
         self.nq = model.nq
         if model.existFrame(flange, pin.FrameType.BODY):

@@ -48,10 +48,10 @@ def _cmd_run(args) -> int:
     except ConfigError as exc:
         print(f"tecdard: config error: {exc}", file=sys.stderr)
         return 2
-    from robots.sim_process import SimProcessError
+    from robots.backends import BackendError
     try:
         return daemon.run()
-    except SimProcessError as exc:
+    except BackendError as exc:
         print(f"tecdard: {exc}", file=sys.stderr)
         return 1
     except Exception as exc:        # zenoh.ZError: cannot listen (address in use, no such interface)
@@ -126,7 +126,7 @@ def _cmd_localize(args) -> int:
 def _cmd_sim_record(args) -> int:
     import dataclasses
 
-    from robots.scenarios import Scenario, generate
+    from sim.scenarios import Scenario, generate
     from tecdard.recording import Recording, save_recording
 
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Scenario)
@@ -148,7 +148,7 @@ def _scenario_options(p) -> None:
     """One option per Scenario field, typed from its default."""
     import dataclasses
 
-    from robots.scenarios import KINDS, Scenario
+    from sim.scenarios import KINDS, Scenario
 
     def vec(text: str):
         try:

@@ -413,13 +413,6 @@ class ControlThread:
         self.mode = transition(self.mode, Event.END)
         self._direct(episode=self._directive.episode + 1, armed=True, arc_following=False, bias_held=False,
                      begin_t=None)
-        try:
-            sim = self._sim_truth(result)
-        except Exception:
-            # the simulator's truth only annotates the event for tests and benchmarks: a failure
-            # there must never cost the task its end event
-            log.exception("sim truth for %s failed", task.id)
-            sim = None
         if outcome == "done":
             result = dict(result or {})
             if self._task_saturated:
@@ -427,11 +420,9 @@ class ControlThread:
                 result["imu_saturated_samples"] = self._task_saturated
                 result["warnings"] = [f"imu_saturated: {self._task_saturated} IMU samples clipped at full scale "
                                       "were left out of the estimate"]
-            if sim is not None:
-                result["sim"] = sim
             self._event("task_done", task=task.id, verb=task.kind, result=result)
             return
-        extra = {} if sim is None else {"sim": sim}
+        extra = {}
         partial = task.partial_record()
         if partial is not None:
             # nothing is lost: the points probed so far are fused and written all the same; the
@@ -439,19 +430,6 @@ class ControlThread:
             self.maps.write_partial(task.id, partial)
             extra["map_pending"] = True
         self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
-
-    def _sim_truth(self, result: dict | None) -> dict | None:
-        """The simulated world's truth for benchmarks and tests (None on a real robot)."""
-        truth = self.robot.truth() if hasattr(self.robot, "truth") else None
-        if truth is None:
-            return None
-        # the true handle angle, signed about the axis the task rotated about
-        axis = (result or {}).get("hinge", result or {}).get("axis")     # None for a point contact
-        axis = truth.hinge_axis if axis is None else np.asarray(axis)
-        sign = 1.0 if float(np.dot(axis, truth.hinge_axis)) >= 0 else -1.0
-        return {"hinge_point": truth.hinge_point.tolist(), "hinge_axis": truth.hinge_axis.tolist(),
-                "angle_deg": sign * math.degrees(truth.handle_angle_rad),
-                "base_displacement": truth.base_displacement_m, **truth.extra}
 
     # -- out ------------------------------------------------------------------------
     def _direct(self, **changes) -> None:

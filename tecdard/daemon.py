@@ -6,11 +6,8 @@ import logging
 import os
 import pathlib
 import queue
-import secrets
-import shutil
 import signal
 import sys
-import tempfile
 import threading
 import time
 
@@ -19,13 +16,9 @@ import zenoh
 
 from control.geometry import quat_to_matrix
 from drivers.ring import SampleRing
-from drivers.imu_emulator import BoardParams
 from drivers.serial_imu import PortError, SerialImuSource, SerialParams
-from drivers.sim_imu import SimImuParams
+from robots import backends
 from robots.model import ArmModel, UnknownRobotError
-from robots.sim import SimRobotParams
-from robots.sim_process import SimProcess, SimSpec
-from robots.world import HingeParams, PivotParams
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
@@ -53,7 +46,6 @@ MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
 MAX_ENDPOINT_CHARS = 256
 MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"
-PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
 
 
 ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
@@ -71,14 +63,6 @@ def _renice_zenoh_threads() -> None:
                 os.setpriority(os.PRIO_PROCESS, int(task.name), os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE)
         except (OSError, ValueError):
             pass
-
-
-def _remove_stale_pty_dirs() -> None:
-    """sim-wire pty directories of daemons that no longer run (killed, so they could not clean up)."""
-    for path in pathlib.Path(tempfile.gettempdir()).glob(PTY_DIR_PREFIX + "*"):
-        pid = path.name[len(PTY_DIR_PREFIX):].split("-")[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not pathlib.Path(f"/proc/{pid}").exists():
-            shutil.rmtree(path, ignore_errors=True)
 
 
 def _security(zc, endpoints: list[str]) -> tuple[TlsFiles | None, list[str]]:
@@ -124,7 +108,7 @@ class Daemon:
                 or not self.robot_name.isascii():
             raise ConfigError(f"robot.name: {self.robot_name!r} must be ASCII letters, digits, '-' or '_'")
         model_name = robot.getstr("model", "panda", max_len=64)
-        backend = robot.getstr("backend", "sim", choices=("sim",))
+        backend_name = robot.getstr("backend", "sim", choices=backends.names())
         try:
             tool_offset = robot.getvec3("tool_offset", [0.0, 0.0, 0.0])
             if np.linalg.norm(tool_offset) > MAX_TOOL_OFFSET_M:
@@ -179,59 +163,21 @@ class Daemon:
         ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
         mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
 
-        sim = cfg.section("sim")
-        sim_imu = sim.section("imu")
-        odr_hz = sim_imu.getfloat("odr_hz", 6667.0, minval=100.0, maxval=20000.0)
+        self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home,
+                                                                            self.imu_source, mount))
+        if self.backend.serial_params is not None:
+            serial_params = self.backend.serial_params          # sim-wire: the simulated board's pty
         # The onset detector is tuned to the data rate of the source in use: the board's (its serial
         # config until its first status packet reports its own, which the estimator then follows),
-        # the simulated board's (rounded to the protocol's whole hertz) or the simulated chip's.
-        source_odr_hz = {"serial": float(serial_params.odr_hz) if serial_params is not None else odr_hz,
-                         "sim-wire": float(int(round(odr_hz))), "sim": odr_hz}[self.imu_source]
+        # or the simulated one's.
+        source_odr_hz = float(serial_params.odr_hz) if serial_params is not None else self.backend.imu_odr_hz
         self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
         self.method = self.pipeline.method
-
-        seed = sim.getint("seed", 0, minval=0)
-        imu_params = SimImuParams.from_config(sim_imu, default_mount=mount)
-        robot_params = SimRobotParams.from_config(sim.section("robot"), self.q_home)
-        hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
-        try:
-            pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        if hinge is not None and pivot is not None:
-            raise ConfigError("sim.pivot: give one world, sim.hinge or sim.pivot, not both")
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
-        self.sim_spec = SimSpec(arm=model_name, tool_offset=list(tool_offset), tool_quat=list(tool_quat),
-                                robot=robot_params, imu=imu_params,
-                                seed=seed, hinge=hinge, pivot=pivot,
-                                imu_out={"sim": "pipe", "sim-wire": "wire", "serial": "none"}[self.imu_source])
-        self._pty_dir: str | None = None
-        if self.imu_source == "sim-wire":
-            # The simulated fingertip speaks tecdar-imu/1 on a pseudo-terminal and the real
-            # serial driver reads it: parser, scaling and clock sync all run in simulation.
-            # made at start, removed at exit; one left by a killed daemon is removed by the next
-            self._pty_dir = os.path.join(tempfile.gettempdir(), f"{PTY_DIR_PREFIX}{os.getpid()}-{secrets.token_hex(4)}")
-            self.sim_spec.pty_link = os.path.join(self._pty_dir, "ttyIMU")
-            self.sim_spec.board = BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
-                                              accel_fs_g=imu_params.accel_fs_g)
-            serial_params = SerialParams(port=self.sim_spec.pty_link, odr_hz=self.sim_spec.board.odr_hz,
-                                         gyro_fs_dps=self.sim_spec.board.gyro_fs_dps,
-                                         accel_fs_g=self.sim_spec.board.accel_fs_g)
-        factory = self.sim_spec.world_factory()
-        if factory is not None:
-            # the world is built once here, at the home pose, so a bad one never half-starts the daemon
-            oMtcp = self.model.fk(self.q_home)
-            try:
-                factory(oMtcp.translation, oMtcp.rotation)
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
-        # The simulated arm, world and IMU run in a process of their own, as a real arm and board do
-        # (robots/sim_process.py): the daemon's threads never starve them of the GIL.
-        self.robot = SimProcess(self.sim_spec, self.model.nq)
-        self.imu = SerialImuSource(serial_params) if serial_params is not None else self.robot
-        del backend
+        self.robot = self.backend.robot
+        self.imu = SerialImuSource(serial_params) if serial_params is not None else self.backend.imu
         self.stop_event = threading.Event()
         self.shutdown_requested = threading.Event()
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
@@ -268,10 +214,7 @@ class Daemon:
         self.shutdown_requested.set()
 
     def _start_threads(self) -> None:
-        if self._pty_dir is not None:
-            _remove_stale_pty_dirs()
-            os.makedirs(self._pty_dir, mode=0o700)
-        self.robot.start()
+        self.backend.start()
         if isinstance(self.imu, SerialImuSource):
             # the real board, or (sim-wire) the child's pty, which exists once the child has started
             try:
@@ -299,16 +242,11 @@ class Daemon:
                 th.join(THREAD_JOIN_S)
             except Exception:
                 log.exception("joining %s", th.name)
-        for step in (self.robot.hold, self.robot.stop, self.imu.close, self._remove_pty_dir):
+        for step in (self.robot.hold, self.backend.close, self.imu.close):
             try:
                 step()
             except Exception:
                 log.exception("shutdown step %s failed", getattr(step, "__name__", step))
-
-    def _remove_pty_dir(self) -> None:
-        if self._pty_dir is not None:
-            shutil.rmtree(self._pty_dir, ignore_errors=True)
-            self._pty_dir = None
 
     def run(self) -> int:
         # The acquisition and sim-link threads block on I/O and need the GIL back at once when
@@ -350,12 +288,17 @@ class Daemon:
                 self.intake.undeclare()
                 self._shutdown()
                 token.undeclare()
+        # What was frozen at start is collectable again: the cycles that hold the planner's Ruckig
+        # objects are freed here, not left for nanobind to report as leaks at exit.
+        gc.unfreeze()
+        gc.collect()
         log.info("tecdard stopped")
         return 0
 
     def _serve(self, pub_state, pub_contact, pub_events) -> None:
         """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
-        main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events)
+        main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events,
+                        annotate=getattr(self.backend, "annotate", None))
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()
@@ -379,9 +322,13 @@ class MainLoop:
     (bounded per ring), then at most TELEMETRY_PER_PASS telemetry messages. However much telemetry
     waits, a command's reply waits at most one pass behind it."""
 
-    def __init__(self, intake: QueryIntake, control, outbox: queue.Queue, pub_state, pub_contact, pub_events):
+    def __init__(self, intake: QueryIntake, control, outbox: queue.Queue, pub_state, pub_contact, pub_events,
+                 annotate=None):
+        """`annotate(event) -> event`: the backend's additions to events (the simulator's truth on
+        a task's end), applied here on the main thread, never on the control tick."""
         self.intake, self.control, self.outbox = intake, control, outbox
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
+        self.annotate = annotate
         self.state_json: str | None = None       # the latest state publication, for `status`
 
     def serve_commands(self, now: float) -> None:
@@ -400,6 +347,8 @@ class MainLoop:
             return 0
         for n in range(1, TELEMETRY_PER_PASS + 1):
             kind, body = msg[0], msg[1]
+            if kind == "event" and self.annotate is not None:
+                body = self._annotated(body)
             text = dumps(body)
             if kind == "state":
                 self.state_json = text
@@ -413,3 +362,11 @@ class MainLoop:
             except queue.Empty:
                 return n
         return TELEMETRY_PER_PASS
+
+    def _annotated(self, event: dict) -> dict:
+        try:
+            return self.annotate(event)
+        except Exception:
+            # an annotation is for tests and benchmarks: a failure never costs the event itself
+            log.exception("annotating a %s event failed", event.get("kind"))
+            return event

@@ -54,7 +54,7 @@ class Recording:
 
     @classmethod
     def from_fields(cls, fields: dict) -> "Recording":
-        """From a dict of the format's keys (e.g. robots.scenarios.generate); absent optionals are None."""
+        """From a dict of the format's keys (e.g. sim.scenarios.generate); absent optionals are None."""
         return cls(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
                                              "imu_in_tcp_quat")},
                    grip_force=fields.get("grip_force"), plane_normal=fields.get("plane_normal"),

@@ -94,12 +94,12 @@ def test_run_refuses_missing_file_and_bad_yaml(tmp_path):
 
 
 def test_daemon_builds_the_mapping_scene_world():
-    from robots.world import HeightField, PivotWorld
+    from sim.world import HeightField, PivotWorld
     from tecdard.daemon import Daemon
     cfg = sim_config(**{"sim.hinge": ..., "sim.pivot": {"surface": "scene", "scene_seed": 2,
                                                          "tip_in_tcp": [0.0, 0.06, 0.10]}})
     d = Daemon(Config(cfg))
-    world = d.sim_spec.build().world               # what the simulation process builds
+    world = d.backend.spec.build().world              # what the simulation process builds
     assert isinstance(world, PivotWorld)
     assert isinstance(world.params.surface, HeightField)
     assert not world.in_contact()                  # the tool starts above the container

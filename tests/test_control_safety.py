@@ -6,7 +6,8 @@ import pytest
 
 from control.pipeline import ContactEstimate
 from control.tasks import ApproachTask
-from robots.backend import JointState, SimTruth
+from robots.backend import JointState
+from sim.world import SimTruth
 from robots.model import READY_Q, ArmModel
 from control.modes import Mode
 from tecdard.control_thread import ControlParams, ControlThread
@@ -102,37 +103,38 @@ def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
     assert ct.robot.holds == 1 and ct.task is None and ct.mode is Mode.IDLE
 
 
-class SimTruthRobot(HoldingRobot):
-    def __init__(self, truth):
-        super().__init__()
-        self._truth = truth
-
-    def truth(self):
-        if isinstance(self._truth, Exception):
-            raise self._truth
-        return self._truth
-
-
-def ended(ct):
-    return drained_events(ct, "task_done", "task_failed")
-
-
-def test_a_point_contact_result_ends_the_task_with_the_sim_truth(model):
+def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
     """An approach that ends on a point contact reports no axis; its end event still carries the truth.
     (It once raised in the truth and the task vanished without an end event.)"""
-    ct = control(model)
-    ct.robot = SimTruthRobot(SimTruth(np.array([0.3, 0.0, 0.3]), np.zeros(3), 0.0, 0.0, {"contacts": 1}))
-    ct._end_task("done", result={"p": [0.3, 0.0, 0.3], "axis": None})
-    (ev,) = ended(ct)
-    assert ev["kind"] == "task_done" and ev["result"]["sim"]["contacts"] == 1 and ct.task is None
+    from sim.backend import with_truth
+    truth = SimTruth(np.array([0.3, 0.0, 0.3]), np.array([0.0, 1.0, 0.0]), 0.1, 0.0, {"contacts": 1})
+    ev = with_truth({"kind": "task_done", "task": "approach-1", "result": {"p": [0.3, 0.0, 0.3], "axis": None}}, truth)
+    assert ev["result"]["sim"]["contacts"] == 1 and ev["result"]["p"] == [0.3, 0.0, 0.3]
+    failed = with_truth({"kind": "task_failed", "task": "rotate-1", "error": "x"}, truth)
+    assert failed["sim"]["hinge_axis"] == [0.0, 1.0, 0.0] and "result" not in failed
+    assert with_truth({"kind": "contact_onset"}, truth) == {"kind": "contact_onset"}
 
 
-def test_a_failing_sim_truth_never_costs_the_task_its_end_event(model):
-    ct = control(model)
-    ct.robot = SimTruthRobot(RuntimeError("world gone"))
-    ct._end_task("failed", error="no contact within max_distance 0.05 m")
-    (ev,) = ended(ct)
-    assert ev["kind"] == "task_failed" and "sim" not in ev and ct.task is None
+def test_a_failing_annotation_never_costs_the_task_its_end_event():
+    """The simulator's truth is added on the main thread; a failure there publishes the event as it is."""
+    from tecdard.daemon import MainLoop
+
+    class Pub:
+        def __init__(self):
+            self.texts = []
+
+        def put(self, text):
+            self.texts.append(text)
+
+    def broken(event):
+        raise RuntimeError("world gone")
+
+    outbox = queue.Queue()
+    outbox.put(("event", {"t": 1.0, "kind": "task_failed", "task": "approach-1", "error": "no contact"}))
+    events = Pub()
+    main = MainLoop(None, None, outbox, Pub(), Pub(), events, annotate=broken)
+    assert main.publish_telemetry(0.0) == 1
+    assert '"kind":"task_failed"' in events.texts[0] and '"sim"' not in events.texts[0]
 
 
 class LaggingArm:

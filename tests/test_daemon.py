@@ -262,7 +262,7 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     """The paper's tactile mapping on a 2 x 1 grid across a box's edge: a block held 30 deg off the
     vertical probes a table with a box on it, in two tool orientations; every point is valid and the
     map matches the scene."""
-    from robots.world import BoxScene
+    from sim.world import BoxScene
     tilt, tool_m = np.radians(30.0), 0.12
     tip_tcp = [float(tool_m * np.sin(tilt)), 0.0, float(tool_m * np.cos(tilt))]
     # The longest daemon test (about 42 s of task: 3-5 s of descent at 1 cm/s a point; at 2 cm/s only

@@ -232,7 +232,7 @@ ETA_MISMATCH_GAIN = 0.6     # the free-eta estimate at least this much nearer th
 def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
     """End error (m, in the plane of rotation) and the filter of one simulated recording through the pipeline;
     `estimator` overrides keys of the config's estimator section."""
-    from robots.scenarios import Scenario, generate
+    from sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tecdard.localize import replay

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from robots.scenarios import Scenario, generate
+from sim.scenarios import Scenario, generate
 from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording, save_recording
 
 MAX_MESSAGE_CHARS = 300

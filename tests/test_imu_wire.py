@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from drivers import imu_wire as W
-from drivers.imu_emulator import Board, BoardParams
+from sim.board import Board, BoardParams
 from drivers.lsm6dsr import ACCEL_SENS_MG_PER_LSB, GYRO_SENS_MDPS_PER_LSB, Scaling
 from drivers.serial_imu import SerialImuSource, SerialParams
 from drivers.timesync import ClockSync, Unwrapper

@@ -13,7 +13,7 @@ from control.geometry import rotvec_to_matrix
 from control.mapping import MapParams, MapRecord, MapTask, kernel_depth, raster_xy
 from control.planner import CartesianPlanner
 from control.tasks import ContactView, TickInput
-from robots.world import BoxScene
+from sim.world import BoxScene
 from tecdard import commands as C
 from tecdard.mapfiles import MapSettings, colormap, write_map
 
@@ -67,7 +67,7 @@ def test_raster_covers_the_region_rows_along_y():
 class FakeRig:
     """Planner-driven TCP (the control thread's moves), a rigid tool in a soft grasp over a BoxScene, and
     an estimator that reports the true touch point once an episode runs. `trigger` False: impacts go
-    unnoticed. As in the simulator (robots.world.PivotWorld), a touching tip stays pinned and the tool
+    unnoticed. As in the simulator (sim.world.PivotWorld), a touching tip stays pinned and the tool
     turns in the grasp about it, compressing the grasp along the tool; it lifts off 3 mm beyond its
     length and keeps the attitude it had."""
 

@@ -254,7 +254,7 @@ def _troubled_recording(seed=3):
     """A 12 cm arc with what the filter's rarer branches are for: gyro outliers (the NIS gate), a 30 ms
     burst (windows mostly rejected), and the grasp slipping at 5 mm/s from 0.8 s (the position
     evidence's rigid-body check)."""
-    from robots.scenarios import Scenario, generate
+    from sim.scenarios import Scenario, generate
     fields, truth = generate(Scenario(kind="edge-arc", seed=seed, rest_s=0.2, duration_s=1.2))
     t, on = fields["imu_t"], float(truth["onset_t"])
     fields["gyro"][np.flatnonzero(t > on + 0.05)[::40]] += 0.8
@@ -294,7 +294,7 @@ def _replay_estimates(fields, fused, plane=True, arc_following=False, chunk_s=0.
 
 
 def _scenario(**kw):
-    from robots.scenarios import Scenario, generate
+    from sim.scenarios import Scenario, generate
     return generate(Scenario(**{"seed": 3, "rest_s": 0.2, "duration_s": 0.6, **kw}))[0]
 
 
@@ -342,7 +342,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     leave the estimate where it was without them (every filtered sample whose window holds a clipped
     one is left out), and the estimate says how many were clipped; taken as data they ruin it."""
     from control.geometry import quat_to_matrix
-    from robots.scenarios import Scenario, generate
+    from sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tecdard.localize import replay

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from drivers.sim_imu import SimImu, SimImuParams
+from sim.imu import SimImu, SimImuParams
 from robots.model import ArmModel
-from robots.sim import SimRobot, SimRobotParams
-from robots.world import HingeParams, HingeWorld
+from sim.robot import SimRobot, SimRobotParams
+from sim.world import HingeParams, HingeWorld
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from control.geometry import rotvec_to_matrix
-from robots.world import HingeParams, HingeWorld
+from sim.world import HingeParams, HingeWorld
 
 DT_S = 1e-3
 HINGE = np.array([0.157, 0.0, 0.487])

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,6 +33,16 @@ class MotionStart:
             self._rest_s += dt
         return started
 
+
+
+@dataclass
+class SimTruth:
+    """Ground truth that only a simulated world can report (never used by the controller)."""
+    hinge_point: np.ndarray
+    hinge_axis: np.ndarray
+    handle_angle_rad: float
+    base_displacement_m: float
+    extra: dict = field(default_factory=dict)
 
 @dataclass
 class HingeParams:

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.backend import JointState, SimTruth, joint_rates
+from robots.backend import JointState, joint_rates
 from robots.model import ArmModel
-from robots.world import HingeWorld
+from sim.world import HingeWorld, SimTruth
 
 log = logging.getLogger("tecdar.sim")
 

@@ -33,13 +33,14 @@ from multiprocessing.reduction import ForkingPickler
 
 import numpy as np
 
-from drivers.imu_emulator import Board, BoardParams, PtyDevice
+from sim.board import Board, BoardParams, PtyDevice
 from drivers.lsm6dsr import Scaling
-from drivers.sim_imu import SimImu, SimImuParams
-from robots.backend import JointState, SimTruth, joint_rates
+from sim.imu import SimImu, SimImuParams
+from robots.backend import JointState, joint_rates
+from robots.backends import BackendError
 from robots.model import ArmModel
-from robots.sim import PHYSICS_WAKE_S, SimRobot, SimRobotParams
-from robots.world import HingeParams, HingeWorld, PivotParams, PivotWorld
+from sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
+from sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
 
 log = logging.getLogger("tecdar.sim")
 
@@ -52,7 +53,7 @@ F_SETPIPE_SZ, F_GETPIPE_SZ = 1031, 1032     # fcntl(2), Linux
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
-class SimProcessError(RuntimeError):
+class SimProcessError(BackendError):
     """The simulation process could not start or has gone."""
 
 

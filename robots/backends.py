@@ -1,0 +1,39 @@
+"""The robot backends, by the name `robot.backend` gives: each a module with `build(BackendContext)`.
+
+A backend gives the daemon a robot to receive from and command (robots.backend's JointState,
+read_state/wait_state, command_joint_velocity, hold, stop), and may also be the IMU source. Its
+module is imported only when the config names it, so the daemon never loads a backend it does
+not run (the simulator among them).
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+
+import numpy as np
+
+BACKENDS = {"sim": "sim.backend"}     # name -> module
+
+
+class BackendError(RuntimeError):
+    """The robot backend could not start, or has gone (the daemon exits 1 with this line)."""
+
+
+@dataclass(frozen=True)
+class BackendContext:
+    """What a backend may read when the daemon builds it: the whole config (its own section is
+    its to read, with the typed getters), and what the daemon has read already."""
+    cfg: object                 # tecdard.config.Config
+    model: object               # robots.model.ArmModel, tool offset included
+    q_home: np.ndarray          # rad
+    imu_source: str             # imu.source: sim | sim-wire | serial
+    imu_mount: list             # imu.imu_in_tcp_quat (x, y, z, w)
+
+
+def names() -> tuple[str, ...]:
+    return tuple(BACKENDS)
+
+
+def build(name: str, ctx: BackendContext):
+    """The backend `name`, built from the config (ConfigError on a bad option)."""
+    return importlib.import_module(BACKENDS[name]).build(ctx)
