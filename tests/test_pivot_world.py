@@ -46,7 +46,7 @@ def test_tangential_arc_keeps_the_lever_arm_and_rotates_about_the_contact():
     assert np.allclose(w.contact, c)                # the pivot stays fixed
     assert w.L == pytest.approx(L, abs=1e-3)        # no sliding on the arc
     assert w.rate[1] == pytest.approx(rate, rel=1e-3)
-    assert np.linalg.norm(w.force) < w.p.slide_force_n
+    assert np.linalg.norm(w.force) < w.params.slide_force_n
 
 
 def test_translational_probe_slides_the_tool_and_changes_the_lever_arm():
@@ -58,7 +58,7 @@ def test_translational_probe_slides_the_tool_and_changes_the_lever_arm():
     assert np.allclose(w.contact, c)
     assert w.L < L - 1e-3                           # shorter lever arm (slid in the grasp)
     dist = np.linalg.norm(p - c)
-    assert w.L == pytest.approx(dist + w.p.slide_force_n / w.p.grasp_stiffness_n_m, rel=1e-6)
+    assert w.L == pytest.approx(dist + w.params.slide_force_n / w.params.grasp_stiffness_n_m, rel=1e-6)
 
 
 def test_blunt_push_gives_force_not_rotation():
@@ -70,7 +70,7 @@ def test_blunt_push_gives_force_not_rotation():
         p = p + np.array([0.0, 0.0, -0.02]) * DT_S
         w.step(p, DT_S)
         forces.append(w.force[2])
-    assert np.all(np.diff(forces) >= -1e-12) and forces[-1] == pytest.approx(w.p.slide_force_n)
+    assert np.all(np.diff(forces) >= -1e-12) and forces[-1] == pytest.approx(w.params.slide_force_n)
     assert np.linalg.norm(w.rate) < 1e-9
 
 

@@ -1,12 +1,12 @@
 """The proprioception thread: every joint state the robot reports reaches the estimator, as TCP pose and twist."""
-import queue
 import threading
 
 import numpy as np
 
 from robots.backend import JointState
 from robots.model import ArmModel
-from tecdard.workers import proprio_loop
+from tecdard.messages import DropOldestRing
+from tecdard.workers import PROPRIO_RING, proprio_loop
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 JOIN_S = 2.0
@@ -39,41 +39,41 @@ def states(n, twist=None):
                        tcp_twist=twist) for k in range(n)]
 
 
-def run(arm, inbox):
+def run(arm, ring):
     stop = threading.Event()
-    th = threading.Thread(target=proprio_loop, args=(arm, ArmModel("panda"), inbox, stop), daemon=True)
+    th = threading.Thread(target=proprio_loop, args=(arm, ArmModel("panda"), ring, stop), daemon=True)
     th.start()
     assert arm.done.wait(JOIN_S * 5)
     stop.set()
     th.join(JOIN_S)
     assert not th.is_alive()           # the stop event ends it
-    return [inbox.get_nowait() for _ in range(inbox.qsize())]
+    return ring.drain()
 
 
 def test_every_state_arrives_once_in_order_as_tcp_pose_and_twist():
     reported = states(20)
-    got = run(ScriptedArm(reported, failures=2), queue.Queue())   # a failing link is waited out, not fatal
+    got = run(ScriptedArm(reported, failures=2), DropOldestRing(PROPRIO_RING))   # a failing link is waited out
     model = ArmModel("panda")
-    assert [m[0] for m in got] == ["proprio"] * 20
-    assert [m[1] for m in got] == [js.t for js in reported]
-    for (_, t, p, v, R, w), js in zip(got, reported):
+    assert [m[0] for m in got] == [js.t for js in reported]
+    for (t, p, v, R, w), js in zip(got, reported):
         oMtcp, twist = model.fk_twist(js.q, js.qd)
         np.testing.assert_allclose(p, oMtcp.translation, atol=1e-12)
         np.testing.assert_allclose(R, oMtcp.rotation, atol=1e-12)
         np.testing.assert_allclose(np.r_[v, w], twist, atol=1e-12)
 
 
-def test_a_reported_tcp_twist_is_used_and_a_full_inbox_drops_without_blocking():
+def test_a_reported_tcp_twist_is_used_and_a_full_ring_overwrites_the_oldest_without_blocking():
     twist = np.array([0.01, 0.0, -0.02, 0.0, 0.1, 0.0])
-    got = run(ScriptedArm(states(10, twist)), queue.Queue(maxsize=4))
-    assert len(got) == 4                                    # the rest were dropped; the loop went on
-    assert [m[1] for m in got] == [0.0, 0.01, 0.02, 0.03]
-    for _, _, _, v, _, w in got:
+    ring = DropOldestRing(4)
+    got = run(ScriptedArm(states(10, twist)), ring)
+    assert len(got) == 4 and ring.overwritten == 6          # the newest kept; the loop went on
+    assert [m[0] for m in got] == [0.06, 0.07, 0.08, 0.09]
+    for _, _, v, _, w in got:
         np.testing.assert_array_equal(np.r_[v, w], twist)
 
 
 def test_a_malformed_state_is_skipped_and_the_rest_still_arrive():
     reported = states(5)
     reported[2] = JointState(t=0.02, q=np.zeros(3), qd=np.zeros(3), seq=3)     # wrong shape: FK raises
-    got = run(ScriptedArm(reported), queue.Queue())
-    assert [m[1] for m in got] == [0.0, 0.01, 0.03, 0.04]
+    got = run(ScriptedArm(reported), DropOldestRing(PROPRIO_RING))
+    assert [m[0] for m in got] == [0.0, 0.01, 0.03, 0.04]
