@@ -198,6 +198,20 @@ class ContactEstimate:
                 "nis_ratio": self.nis_ratio, "saturated_samples": self.saturated}
 
 
+@dataclass(frozen=True)
+class EstimatorDirective:
+    """What the control thread wants of the estimator, as state: the control thread replaces it
+    (a LatestValue), the estimator thread applies whatever differs from what it applied last. A
+    value cannot be lost the way a queued message can; a new episode number releases the contact
+    episode (older onsets no longer count), and two episodes begun between two looks of the
+    estimator are one release."""
+    episode: int = 0                   # changes: end the contact episode (release)
+    armed: bool = True                 # the onset trigger is armed
+    arc_following: bool = False        # the arm follows an arc about the estimate (ContactKF.radial_var)
+    bias_held: bool = False            # the tool touches outside an episode: no gyro bias tracking
+    begin_t: float | None = None       # with a new episode: start it at this time without the trigger
+
+
 @dataclass
 class PipelineParams:
     method: str = "ekf"
@@ -314,6 +328,22 @@ class ContactPipeline:
             if ok[0] and float(w_tcp[0] @ w_tcp[0]) > TCP_TURNING_RAD_S ** 2:
                 return
         self.cond.track_bias(t, gyro)
+
+    def follow(self, new: EstimatorDirective, old: EstimatorDirective) -> None:
+        """Do what `new` says, having done what `old` said: a new episode number releases the contact
+        episode (and begins the next at `begin_t` when given), after which every setting is applied
+        again; otherwise only the settings that changed."""
+        fresh = new.episode != old.episode
+        if fresh:
+            self.release()
+            if new.begin_t is not None:
+                self.begin(new.begin_t)
+        if fresh or new.armed != old.armed:
+            self.set_trigger_armed(new.armed)
+        if fresh or new.arc_following != old.arc_following:
+            self.set_arc_following(new.arc_following)
+        if fresh or new.bias_held != old.bias_held:
+            self.hold_bias(new.bias_held)
 
     def release(self) -> None:
         """End the contact episode: back to bias tracking and an armed trigger."""

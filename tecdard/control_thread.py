@@ -1,13 +1,12 @@
-"""The 20 ms control thread: the loop that reads the arm, checks safety, steps the task, plans and servos.
+"""The 20 ms control thread: the loop that reads the arm, checks safety, takes commands, steps the task and servos.
 
-The pieces it strings together are pure and live in control/: the mode table (control.modes), the
-safety checks (control.safety), the Ruckig planner (control.planner), the servo (control.servo) and
-the tasks (control.tasks, built by their verbs in tecdard/verbs/).
+What it strings together is pure and lives in control/: the task's life with its mode and plan
+(control.runner, on control.modes and control.planner), the safety checks (control.safety), the
+servo (control.servo), and the tasks (control.tasks, built by their verbs in tecdard/verbs/).
 """
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import math
 import queue
@@ -20,14 +19,14 @@ import numpy as np
 
 from control import safety
 from control.geometry import matrix_to_quat
-from control.modes import Event, Mode, transition
-from control.planner import CartesianPlanner, PlannerError
+from control.modes import Mode
+from control.planner import CartesianPlanner
+from control.runner import TaskRunner
 from control.servo import PlanSample, joint_velocities
-from control.tasks import ContactView, TickInput
 from tecdard import commands as C
 from tecdard import verbs
 from tecdard.mapfiles import MapSettings, MapWriter
-from tecdard.messages import Cancel, EstimatorDirective, LatestValue, Reply, StartTask, Stop
+from tecdard.messages import Cancel, LatestValue, Reply, StartTask, Stop
 from tecdard.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.safejson import show_name
 
@@ -35,10 +34,6 @@ log = logging.getLogger("tecdar.control")
 
 WORKSPACE_MAX_M = 5.0         # no arm reaches further from its base: a workspace corner beyond is a typo
 COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
-REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
-# The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan
-# with a lag, and its own acceleration at the start of a descent must not read as an impact.
-TRIGGER_SETTLE_S = 0.1
 
 
 @dataclass
@@ -93,7 +88,7 @@ class ControlParams:
 
 
 class ControlThread:
-    """Owns the mode, the task, the planner and the robot's commands.
+    """Owns the robot's commands, the sensors' faults, and the TaskRunner (mode, task, plan).
 
     In: task commands through `submit` (StartTask, Cancel; a bounded queue read once per tick) and
     `request_stop` (a Stop from any thread: taken first on every tick, never behind anything).
@@ -108,9 +103,6 @@ class ControlThread:
         self.limits = params.safety_limits()
         self.model = model.clone()           # this thread's own pinocchio Data
         self.robot, self.ring, self.contact, self.outbox = robot, ring, contact, outbox
-        self.directive = directive
-        self._directive = directive.get() or EstimatorDirective()
-        directive.set(self._directive)
         self.q_home, self.robot_name, self.notifier = q_home, robot_name, notifier
         self.map_settings = map_settings or MapSettings()
         self.maps = MapWriter(self.map_settings)
@@ -118,20 +110,15 @@ class ControlThread:
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
-        self.planner = CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk)
-        self.stats = TickStats()
-        self.mode = Mode.IDLE
-        self.task = None
-        self.faults: dict[str, str] = {}
         self._stop_waiters: list = []
+        self.runner = TaskRunner(CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk),
+                                 self.limits, self._event, on_rest=self._answer_stops,
+                                 on_partial=self.maps.write_partial)
+        self.directive = directive
+        directive.set(self.runner.directive)
+        self.stats = TickStats()
+        self.faults: dict[str, str] = {}
         self._seq = 0
-        self._R_hold = None
-        self._w_ff = np.zeros(3)           # angular velocity feed-forward of the orientation target
-        self._speed_cap = None             # the planner's current TCP speed cap, m/s
-        self._task_t0 = 0.0                # the running task's episode began here: older onsets do not count
-        self._task_saturated = 0           # IMU samples clipped at full scale in the task's episodes
-        self._steady_since = None          # when the plan last became steady in the trigger's phase
-        self._last_est = None              # the contact estimate seen on the previous tick
         self._t_boot = time.monotonic()
         self._late_s = 0.0                 # how late the current tick started, s
         self._stale_deferred = False
@@ -156,7 +143,7 @@ class ControlThread:
 
     def quiescent(self) -> bool:
         """No task, the arm at rest after any stop, and every map written (for an orderly shutdown)."""
-        return self.mode is Mode.IDLE and self.maps.idle
+        return self.runner.mode is Mode.IDLE and self.maps.idle
 
     # -- the loop -------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -195,34 +182,30 @@ class ControlThread:
             self.maps.shutdown()
 
     def tick(self, now: float) -> None:
-        self.planner.advance(now)
+        runner = self.runner
+        planner = runner.planner
+        planner.advance(now)
         js = self.robot.read_state()
         oMtcp, twist = self.model.measured(js)
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         est = self.contact.get()
         self._check_sensors(now)
-        self._check_task(js, est)
-        self._handle_commands(p)
-        plan_now = (self.planner.position, self.planner.velocity)
-        fallbacks = self.planner.fallbacks
-        if self.mode is Mode.BUSY:
-            p_cmd = self._step_task(now, p, R, est, js.tcp_force)
-        elif self.mode.braking:
-            p_cmd = self._brake_step()
-        else:
-            self.planner.reset(p)
-            if self._R_hold is None:
-                self._R_hold = R
-        if self.planner.fallbacks != fallbacks:     # a task's step or a brake
+        runner.check(js.tcp_force, est)
+        self._handle_commands(now, p)
+        p_plan, v_plan = planner.position, planner.velocity
+        fallbacks = planner.fallbacks
+        p_cmd = runner.step(now, p, R, est, js.tcp_force)
+        if planner.fallbacks != fallbacks:     # a task's step or a brake
             log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
-                        self.planner.fallbacks)
-        if self.mode is Mode.IDLE:
+                        planner.fallbacks)
+        if p_cmd is None:
             self.robot.hold()
-            self._w_ff = np.zeros(3)
         else:
-            plan = PlanSample(now, plan_now[0], plan_now[1], p_cmd, self._R_hold, self._w_ff)
+            plan = PlanSample(now, p_plan, v_plan, p_cmd, runner.R_hold, runner.w_ff)
             self.robot.command_joint_velocity(joint_velocities(self.model, js, oMtcp, plan, self.params.tick_s,
                                                                self.params.max_speed, self.q_home))
+        if self.directive.get() is not runner.directive:
+            self.directive.set(runner.directive)
         self._publish_state(now, p, R, twist[:3], est)
         for ev in self.maps.announcements():
             self._event(**ev)
@@ -230,7 +213,7 @@ class ControlThread:
             self._wd_last = now
             self.notifier.notify("WATCHDOG=1")
 
-    # -- safety -----------------------------------------------------------------------
+    # -- the sensors' faults ------------------------------------------------------------
     def _check_sensors(self, now: float) -> None:
         """The IMU's faults: stale, or stuck at full scale. Each holds until its condition clears."""
         verdict = safety.imu_staleness(now, self.ring.total, self.ring.last_t, now - self._t_boot, self._late_s,
@@ -244,29 +227,10 @@ class ControlThread:
         if message is not None and code not in self.faults:
             self.faults[code] = message
             self._event("fault", code=code, message=message)
-            self._protective_stop(safety.StopCause(code, message))
+            self.runner.protective_stop(safety.StopCause(code, message))
         elif message is None and code in self.faults and not keep:
             self.faults.pop(code)
             self._event("fault_cleared", code=code)
-
-    def _check_task(self, js, est) -> None:
-        """Force, the estimate's checks and the task's own reactions: a protective stop of the task."""
-        if self.mode is not Mode.BUSY:
-            return
-        if est is not None and (est.onset_t is None or est.onset_t < self._task_t0):
-            est = None                                     # an earlier episode's
-        cause = safety.check_task(safety.SafetyInput(js.tcp_force, est, self._last_est), self.limits,
-                                  self.task.reactions)
-        if cause is not None:
-            self._protective_stop(cause)
-        elif est is not None:
-            self._last_est = est
-
-    def _protective_stop(self, cause: safety.StopCause) -> None:
-        if self.mode is not Mode.IDLE:
-            self._event("protective_stop", cause=cause.cause, message=cause.message, **cause.details)
-            self._end_task("failed", error=f"protective stop: {cause.message}")
-            self.mode = transition(self.mode, Event.STOP)
 
     def _internal_fault(self, exc: Exception) -> None:
         """A failed tick: hold the arm, end the task with a protective stop naming the error."""
@@ -274,38 +238,35 @@ class ControlThread:
             self.robot.hold()
         except Exception:
             log.exception("hold after a failed tick failed")
-        self.planner.reset(self.planner.position)
-        if self.task is not None:
-            self._protective_stop(safety.StopCause("internal", f"control error: {type(exc).__name__}: {exc}"))
-        self.mode = transition(self.mode, Event.RESET)
+        if self.runner.task is not None:
+            self.runner.protective_stop(safety.StopCause("internal", f"control error: {type(exc).__name__}: {exc}"))
+        self.runner.reset()
         self._answer_stops()
 
     # -- commands -------------------------------------------------------------------
-    def _handle_commands(self, p: np.ndarray) -> None:
+    def _handle_commands(self, now: float, p: np.ndarray) -> None:
         while self._stops:                       # stop first, whatever else is queued
             stop = self._stops.popleft()
             self._stop_waiters.append(stop.request)
-            self._end_task("failed", error=stop.reason)
-            self.mode = transition(self.mode, Event.STOP)
+            self.runner.stop(stop.reason)
         while True:
             try:
                 msg = self.commands.get_nowait()
             except queue.Empty:
                 return
             if isinstance(msg, Cancel):
-                if self.task is None or (msg.task is not None and msg.task != self.task.id):
+                if self.runner.cancel(msg.task):
+                    self._reply(msg.request, {"ok": True})
+                else:
                     which = "" if msg.task is None else " " + show_name(msg.task)
                     self._reply(msg.request, C.CommandError(C.NO_TASK, f"task: no running task{which}").reply())
-                else:
-                    self._end_task("failed", error="cancelled")
-                    self._reply(msg.request, {"ok": True})
             elif isinstance(msg, StartTask):
-                self._reply(msg.request, self._start_task(msg.verb, msg.fields, p))
+                self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p))
 
-    def _start_task(self, verb: str, f: dict, p: np.ndarray) -> dict:
+    def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray) -> dict:
         """Start the verb's task from validated fields at the measured TCP position `p`; the command's reply."""
-        if self.mode is not Mode.IDLE:
-            running = self.task.id if self.task is not None else "a stop"
+        running = self.runner.busy()
+        if running is not None:
             return C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply()
         if self.faults:
             code = next(iter(self.faults))
@@ -313,132 +274,18 @@ class ControlThread:
         spec = verbs.get(verb)
         if spec is None:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
-        ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(),
-                                self._R_hold if self._R_hold is not None else np.eye(3), self.params.max_speed,
+        R_hold = self.runner.R_hold if self.runner.R_hold is not None else np.eye(3)
+        ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
                                 self.params.workspace_min, self.params.workspace_max, self.map_settings,
                                 self.maps.write)
         try:
             task = spec.build(f, ctx)
         except verbs.BuildRefused as exc:
             return C.CommandError(C.OUT_OF_LIMITS, str(exc)).reply()
-        self.task = task
-        self.mode = transition(self.mode, Event.START)
-        self._last_est = None
-        self._task_saturated = 0
-        self._task_t0 = time.monotonic()
-        self.planner.reset(p, speed=task.speed)
-        self._speed_cap = task.speed
-        self._steady_since = None
-        # a fresh contact episode for this task; with a trigger phase the trigger is armed once the
-        # approach moves at constant speed (the arm's own acceleration at the start looks like an impact)
-        self._direct(episode=self._directive.episode + 1, armed=task.trigger_phase is None, begin_t=None)
-        self._event("task_started", task=task.id, verb=verb, params=f)
+        self.runner.start(task, now, p, f)
         return {"ok": True, "task": task.id}
 
-    # -- motion ---------------------------------------------------------------------
-    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> np.ndarray:
-        """The task's next target, planned; the commanded position one tick ahead."""
-        task = self.task
-        if est is not None and est.onset_t is not None and est.onset_t >= self._task_t0:
-            self._task_saturated = max(self._task_saturated, est.saturated)
-            view = ContactView(tracking=True, p=est.p, std=est.std, axis=est.axis, onset_t=est.onset_t,
-                               onset_p_tcp=est.onset_p_tcp, in_plane_std=est.in_plane_std, angle_rad=est.angle_rad)
-        else:
-            view = ContactView(tracking=False)
-        if task.trigger_phase is not None:
-            self._direct(armed=self._trigger_armed(now, task))
-        episode = task.episode
-        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force))
-        if task.episode != episode:
-            # the task starts a fresh contact episode: older onsets no longer count
-            self._task_t0 = now
-            self._last_est = None
-            begin_t = now if task.commanded_onset else None
-            task.commanded_onset = False
-            self._direct(episode=self._directive.episode + 1, begin_t=begin_t,
-                         armed=self._directive.armed if task.trigger_phase is None else False)
-        # the task says where its TCP motion along the lever arm is absorbed by the grasp, and where
-        # it touches outside an episode (the gyro's bias is then held)
-        self._direct(arc_following=task.status.phase in task.absorbed_phases,
-                     bias_held=task.status.phase in task.touching_phases)
-        if motion is None:
-            st = task.status
-            if st.state in ("done", "failed"):
-                self._end_task(st.state, result=st.result, error=st.error)
-            return self._brake_step()
-        self._R_hold = motion.R
-        self._w_ff = np.zeros(3) if motion.w is None else motion.w
-        cap = task.speed if motion.max_speed is None else motion.max_speed
-        if cap != self._speed_cap:
-            self._speed_cap = cap
-            self.planner.set_speed(cap)
-        cause = safety.check_motion(motion.p, self.planner.position, p, self.limits)
-        if cause is None:
-            try:
-                return self.planner.step(motion.p, motion.v, motion.min_duration_s)[0]
-            except PlannerError as exc:
-                cause = safety.StopCause("planner", str(exc))
-        self._protective_stop(cause)
-        return self._brake_step()
-
-    def _trigger_armed(self, now: float, task) -> bool:
-        """Armed while the arm moves steadily, TRIGGER_SETTLE_S after the plan does: starting and
-        braking are not impacts."""
-        steady = task.status.phase == task.trigger_phase and self.planner.steady(task.speed)
-        if not steady:
-            self._steady_since = None
-            return False
-        if self._steady_since is None:
-            self._steady_since = now
-        return now - self._steady_since >= TRIGGER_SETTLE_S
-
-    def _brake_step(self) -> np.ndarray:
-        self._w_ff = np.zeros(3)
-        try:
-            p_cmd, v_cmd = self.planner.brake()
-        except PlannerError:
-            p_cmd, v_cmd = self.planner.position, np.zeros(3)
-        if self.mode.braking and float(np.linalg.norm(v_cmd)) < REST_SPEED_M_S and self.planner.at_rest:
-            self.mode = transition(self.mode, Event.AT_REST)
-            self._answer_stops()
-        return p_cmd
-
-    def _end_task(self, outcome: str, result: dict | None = None, error: str = "") -> None:
-        """End the running task (if any): its end event, a fresh episode for the estimator, and the
-        points of a map that ends early written all the same."""
-        task = self.task
-        if task is None:
-            return
-        self.task = None
-        self.mode = transition(self.mode, Event.END)
-        self._direct(episode=self._directive.episode + 1, armed=True, arc_following=False, bias_held=False,
-                     begin_t=None)
-        if outcome == "done":
-            result = dict(result or {})
-            if self._task_saturated:
-                # said in the result: those samples were left out, the estimate rests on the rest
-                result["imu_saturated_samples"] = self._task_saturated
-                result["warnings"] = [f"imu_saturated: {self._task_saturated} IMU samples clipped at full scale "
-                                      "were left out of the estimate"]
-            self._event("task_done", task=task.id, verb=task.kind, result=result)
-            return
-        extra = {}
-        partial = task.partial_record()
-        if partial is not None:
-            # nothing is lost: the points probed so far are fused and written all the same; the
-            # directory appears complete or not at all, and `map_written` says when it has
-            self.maps.write_partial(task.id, partial)
-            extra["map_pending"] = True
-        self._event("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
-
     # -- out ------------------------------------------------------------------------
-    def _direct(self, **changes) -> None:
-        """Change what the estimator is told (a latest value: it cannot be lost)."""
-        directive = dataclasses.replace(self._directive, **changes)
-        if directive != self._directive:
-            self._directive = directive
-            self.directive.set(directive)
-
     def _answer_stops(self) -> None:
         for request in self._stop_waiters:
             self._reply(request, {"ok": True})
@@ -459,15 +306,13 @@ class ControlThread:
 
     def _publish_state(self, now: float, p, R, v, est) -> None:
         self._seq += 1
-        task = None
-        if self.task is not None:
-            task = {"id": self.task.id, "kind": self.task.kind, "phase": self.task.status.phase,
-                    "progress": round(self.task.status.progress, 4)}
+        task = self.runner.task
         self._put(("state", {
-            "t": now, "seq": self._seq, "mode": self.mode.published(bool(self.faults)),
+            "t": now, "seq": self._seq, "mode": self.runner.mode.published(bool(self.faults)),
             "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
             "contact": None if est is None else est.to_json(),
-            "task": task,
+            "task": None if task is None else {"id": task.id, "kind": task.kind, "phase": task.status.phase,
+                                               "progress": round(task.status.progress, 4)},
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
-            "control": {**self.stats.snapshot(), "planner_fallbacks": self.planner.fallbacks},
+            "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks},
         }))

@@ -2,8 +2,8 @@
 
 A command keeps its Zenoh `Query` in the main thread under a request id; the control thread sees
 only the id and answers with a `Reply` carrying it. The control thread tells the estimator what it
-wants as one `EstimatorDirective` in a `LatestValue`; proprioception reaches the estimator through
-a `DropOldestRing` of its own.
+wants as one `control.pipeline.EstimatorDirective` in a `LatestValue`; proprioception reaches the
+estimator through a `DropOldestRing` of its own.
 """
 from __future__ import annotations
 
@@ -35,20 +35,6 @@ class Stop:
 class Reply:
     request: int
     payload: dict         # the reply object, {"ok": ...}
-
-
-@dataclass(frozen=True)
-class EstimatorDirective:
-    """What the control thread wants of the estimator, as state: the control thread replaces it
-    (a LatestValue), the estimator thread applies whatever differs from what it applied last. A
-    value cannot be lost the way a queued message can; a new episode number releases the contact
-    episode (older onsets no longer count), and two episodes begun between two looks of the
-    estimator are one release."""
-    episode: int = 0                   # changes: end the contact episode (release)
-    armed: bool = True                 # the onset trigger is armed
-    arc_following: bool = False        # the arm follows an arc about the estimate (ContactKF.radial_var)
-    bias_held: bool = False            # the tool touches outside an episode: no gyro bias tracking
-    begin_t: float | None = None       # with a new episode: start it at this time without the trigger
 
 
 class LatestValue:

@@ -7,9 +7,9 @@ import queue
 import threading
 import time
 
-from control.pipeline import ContactPipeline
+from control.pipeline import ContactPipeline, EstimatorDirective
 from drivers.ring import SampleRing
-from tecdard.messages import DropOldestRing, EstimatorDirective, LatestValue
+from tecdard.messages import DropOldestRing, LatestValue
 
 log = logging.getLogger("tecdar.estimator")
 
@@ -62,23 +62,6 @@ def proprio_loop(robot, model, ring: DropOldestRing, stop: threading.Event) -> N
         if ring.overwritten != logged and (logged == 0 or ring.overwritten - logged >= 1000):
             logged = ring.overwritten
             log.warning("the estimator fell behind: %d proprioception samples overwritten", logged)
-
-
-def apply_directive(pipe: ContactPipeline, new: EstimatorDirective, old: EstimatorDirective) -> None:
-    """Make the pipeline do what `new` says, given that it did what `old` said: a new episode
-    number releases the contact episode (and begins the next at `begin_t` when given), after which
-    every setting is applied again; otherwise only the settings that changed."""
-    fresh = new.episode != old.episode
-    if fresh:
-        pipe.release()
-        if new.begin_t is not None:
-            pipe.begin(new.begin_t)
-    if fresh or new.armed != old.armed:
-        pipe.set_trigger_armed(new.armed)
-    if fresh or new.arc_following != old.arc_following:
-        pipe.set_arc_following(new.arc_following)
-    if fresh or new.bias_held != old.bias_held:
-        pipe.hold_bias(new.bias_held)
 
 
 class EstimatorThread:
@@ -141,7 +124,7 @@ class EstimatorThread:
                 pipe.add_proprio(*sample)
             directive = self.directive.get()
             if directive is not applied:
-                apply_directive(pipe, directive, applied)
+                pipe.follow(directive, applied)
                 applied = directive
             if self.odr_hz is not None:
                 self._follow_odr(self.odr_hz())

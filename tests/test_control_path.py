@@ -10,14 +10,15 @@ import pytest
 
 from control import safety
 from control.modes import Event, Mode, TransitionError, transition
+from control.pipeline import ContactPipeline
 from robots.model import READY_Q, ArmModel
 from tecdard import commands as C
 from tecdard import verbs
 from tecdard.control_thread import ControlParams, ControlThread
 from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop
 from tecdard.intake import QueryIntake
-from tecdard.messages import DropOldestRing, EstimatorDirective, LatestValue, StartTask, Stop
-from tecdard.workers import apply_directive
+from control.pipeline import EstimatorDirective
+from tecdard.messages import DropOldestRing, LatestValue, StartTask, Stop
 from tecdard.zenoh_io import Keys
 from tests.test_control_safety import LaggingArm
 
@@ -61,15 +62,15 @@ def test_a_directive_releases_on_a_new_episode_and_applies_only_what_changed():
     pipe = RecordingPipeline()
     d0 = EstimatorDirective()
     d1 = EstimatorDirective(episode=1, armed=False)
-    apply_directive(pipe, d1, d0)
+    ContactPipeline.follow(pipe, d1, d0)
     assert pipe.calls == [("release",), ("set_trigger_armed", False), ("set_arc_following", False),
                           ("hold_bias", False)]
     pipe.calls.clear()
-    apply_directive(pipe, EstimatorDirective(episode=1, armed=True), d1)
+    ContactPipeline.follow(pipe, EstimatorDirective(episode=1, armed=True), d1)
     assert pipe.calls == [("set_trigger_armed", True)]
     pipe.calls.clear()
     # two episodes begun between two looks of the estimator: one release, the newest begin
-    apply_directive(pipe, EstimatorDirective(episode=3, begin_t=12.5, bias_held=True), d1)
+    ContactPipeline.follow(pipe, EstimatorDirective(episode=3, begin_t=12.5, bias_held=True), d1)
     assert pipe.calls[:2] == [("release",), ("begin", 12.5)] and ("hold_bias", True) in pipe.calls
 
 
@@ -169,9 +170,9 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
     assert [q.replies[0].get("error", {}).get("code", "ok") for q in sent] == ["no_task", "busy", "ok", "busy"]
     for k in range(3, 60):                  # the cancelled rotate brakes to rest
         tick(ct, ct.robot, k)
-        if ct.mode is Mode.IDLE:
+        if ct.runner.mode is Mode.IDLE:
             break
-    assert ct.mode is Mode.IDLE
+    assert ct.runner.mode is Mode.IDLE
     main.serve_commands(TICK_S * k)
     # at rest, with 10 000 state messages still queued: a stop is answered after one tick and one pass
     stop = FakeQuery(keys.cmd("stop"))
@@ -260,7 +261,7 @@ def test_a_new_task_verb_is_one_file(model, wiggle_verb):
     intake.handle(q, keys.cmd("wiggle"), q.payload, 0.0)
     for k in range(1, 200):
         tick(ct, ct.robot, k)
-        if ct.mode is Mode.IDLE and k > 1:
+        if ct.runner.mode is Mode.IDLE and k > 1:
             break
     events = [m[1] for m in list(ct.outbox.queue) if m[0] == "event"]
     (done,) = [e for e in events if e["kind"] == "task_done"]
@@ -271,11 +272,11 @@ def test_a_tasks_own_reaction_is_a_protective_stop(model, wiggle_verb):
     ct = control_thread(model)
     ct.submit(StartTask(None, "wiggle", C.validate("wiggle", {}, C.Limits())))
     tick(ct, ct.robot, 1)
-    assert ct.mode is Mode.BUSY
+    assert ct.runner.mode is Mode.BUSY
     pushed = dataclasses.replace(ct.robot.read_state(), tcp_force=np.array([0.0, 0.0, 8.0]))   # under 15 N
-    ct._check_task(pushed, None)
+    ct.runner.check(pushed.tcp_force, None)
     stops = [m[1] for m in list(ct.outbox.queue) if m[0] == "event" and m[1]["kind"] == "protective_stop"]
-    assert [s["cause"] for s in stops] == ["wiggle_force"] and ct.mode is Mode.STOPPING
+    assert [s["cause"] for s in stops] == ["wiggle_force"] and ct.runner.mode is Mode.STOPPING
     # the generic force limit (15 N) comes first; the reactions after it
     reactions = (lambda inp: safety.StopCause("x", "y"),)
     limits = safety.SafetyLimits()

@@ -29,9 +29,9 @@ def control_thread(model, ring=None, **params):
 def control(model, **params):
     """A control thread with an approach running (its task set directly, no tick yet)."""
     ct = control_thread(model, **params)
-    ct.task = ApproachTask("approach-1", np.array([0.0, 0.0, -1.0]), 0.02, 0.05, 0.1)
-    ct.mode = Mode.BUSY
-    ct._task_t0 = 0.0
+    ct.runner.task = ApproachTask("approach-1", np.array([0.0, 0.0, -1.0]), 0.02, 0.05, 0.1)
+    ct.runner.mode = Mode.BUSY
+    ct.runner.task_t0 = 0.0
     return ct
 
 
@@ -59,28 +59,28 @@ JS = JointState(t=0.0, q=READY_Q["panda"], qd=np.zeros(7), seq=0)
 
 def test_a_converged_estimate_that_jumps_is_a_protective_stop(model):
     ct = control(model, max_contact_jump_m=0.02)
-    ct._check_task(JS, estimate([0.50, 0.0, 0.20]))
-    ct._check_task(JS, estimate([0.51, 0.0, 0.20]))        # 10 mm: within the limit
+    ct.runner.check(JS.tcp_force, estimate([0.50, 0.0, 0.20]))
+    ct.runner.check(JS.tcp_force, estimate([0.51, 0.0, 0.20]))        # 10 mm: within the limit
     assert stops(ct) == []
-    ct._check_task(JS, estimate([0.51, 0.0, 0.235]))       # 35 mm in one tick
+    ct.runner.check(JS.tcp_force, estimate([0.51, 0.0, 0.235]))       # 35 mm in one tick
     (stop,) = stops(ct)
     assert stop["cause"] == "contact_jump" and stop["jump_m"] == pytest.approx(0.035)
-    assert ct.task is None and ct.mode is Mode.STOPPING
+    assert ct.runner.task is None and ct.runner.mode is Mode.STOPPING
 
 
 def test_jumps_before_convergence_or_along_the_edge_are_no_stop(model):
     ct = control(model, max_contact_jump_m=0.02)
-    ct._check_task(JS, estimate([0.50, 0.0, 0.20], converged=False))
-    ct._check_task(JS, estimate([0.60, 0.0, 0.20]))        # the estimate was still converging
-    ct._check_task(JS, estimate([0.60, 0.3, 0.20]))        # along the edge: unobservable, no evidence
-    assert stops(ct) == [] and ct.task is not None
+    ct.runner.check(JS.tcp_force, estimate([0.50, 0.0, 0.20], converged=False))
+    ct.runner.check(JS.tcp_force, estimate([0.60, 0.0, 0.20]))        # the estimate was still converging
+    ct.runner.check(JS.tcp_force, estimate([0.60, 0.3, 0.20]))        # along the edge: unobservable, no evidence
+    assert stops(ct) == [] and ct.runner.task is not None
 
 
 def test_innovations_far_beyond_their_expected_size_are_a_protective_stop(model):
     ct = control(model, max_nis_ratio=10.0)
-    ct._check_task(JS, estimate([0.5, 0.0, 0.2], nis_ratio=9.0))
+    ct.runner.check(JS.tcp_force, estimate([0.5, 0.0, 0.2], nis_ratio=9.0))
     assert stops(ct) == []
-    ct._check_task(JS, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
+    ct.runner.check(JS.tcp_force, estimate([0.5, 0.0, 0.2], nis_ratio=40.0))
     (stop,) = stops(ct)
     assert stop["cause"] == "divergence" and stop["nis_ratio"] == 40.0
 
@@ -100,7 +100,7 @@ def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
     ct._internal_fault(KeyError("direction"))
     (stop,) = stops(ct)
     assert stop["cause"] == "internal" and "KeyError" in stop["message"]
-    assert ct.robot.holds == 1 and ct.task is None and ct.mode is Mode.IDLE
+    assert ct.robot.holds == 1 and ct.runner.task is None and ct.runner.mode is Mode.IDLE
 
 
 def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
@@ -182,7 +182,7 @@ def cruise_tcp_speeds(model, ages):
         FreshRing.last_t = now
         ct.tick(now)
         speeds.append(float(-model.fk_twist(arm.q, arm.qd)[1][2]))
-    assert ct.task is not None and ct.task.status.phase == "approach"
+    assert ct.runner.task is not None and ct.runner.task.status.phase == "approach"
     return np.array(speeds[40:])
 
 
@@ -199,7 +199,7 @@ def test_the_servo_compares_a_late_measurement_with_the_plan_at_its_time(model):
 def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(model):
     """An approach from rest: the arm follows the plan with a lag, so the trigger arms TRIGGER_SETTLE_S
     after the plan reaches its constant speed, not at once; its start is no impact."""
-    from tecdard.control_thread import TRIGGER_SETTLE_S
+    from control.runner import TRIGGER_SETTLE_S
     ct = control_thread(model, ring=FreshRing())
     arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
     ct.submit(StartTask(None, "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
@@ -210,7 +210,7 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
         arm.advance(now)
         FreshRing.last_t = now
         ct.tick(now)
-        if steady_at is None and ct.planner.steady(0.02):
+        if steady_at is None and ct.runner.planner.steady(0.02):
             steady_at = now
         if ct.directive.get().armed and armed_at is None:
             armed_at = now

@@ -264,8 +264,8 @@ def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
                        map_settings=MapSettings(output_dir=str(tmp_path)))
     task = MapTask("map-6", map_params(), lambda rec: done_now({}))
     FakeRig(SCENE, P0).run(task, until=lambda t: len(t.points) == 3)
-    ct.task, ct.mode = task, Mode.BUSY
-    ct._end_task("failed", error="stopped by command")
+    ct.runner.task, ct.runner.mode = task, Mode.BUSY
+    ct.runner.end("failed", error="stopped by command")
     ct.maps.shutdown(wait=True)
     for ev in ct.maps.announcements():
         ct._event(**ev)
