@@ -89,6 +89,35 @@ def imu_saturation(now: float, saturated_since: float | None, limits: SafetyLimi
     return None
 
 
+class SensorWatch:
+    """The sensors' faults (imu_stale, imu_saturated) as state: each holds from when its condition
+    is found until it clears. `update` returns what changed, as (event kind, code, message) with
+    kind `fault` or `fault_cleared`; a new fault is also a protective stop of the running task."""
+
+    def __init__(self, limits: SafetyLimits, t_boot: float):
+        self.limits = limits
+        self.t_boot = t_boot
+        self.faults: dict[str, str] = {}
+        self._stale_deferred = False
+
+    def update(self, now: float, total: int, last_t: float, late_s: float,
+               saturated_since: float | None) -> list[tuple[str, str, str]]:
+        verdict = imu_staleness(now, total, last_t, now - self.t_boot, late_s, self._stale_deferred, self.limits)
+        self._stale_deferred = verdict.deferred
+        changes = self._set("imu_stale", verdict.stale, keep=verdict.deferred)
+        changes += self._set("imu_saturated", imu_saturation(now, saturated_since, self.limits),
+                             keep=saturated_since is not None)
+        return changes
+
+    def _set(self, code: str, message: str | None, keep: bool) -> list[tuple[str, str, str]]:
+        if message is not None and code not in self.faults:
+            self.faults[code] = message
+            return [("fault", code, message)]
+        if message is None and code in self.faults and not keep:
+            return [("fault_cleared", code, self.faults.pop(code))]
+        return []
+
+
 # -- a running task ---------------------------------------------------------------
 
 def check_task(inp: SafetyInput, limits: SafetyLimits, reactions: tuple = ()) -> StopCause | None:

@@ -117,11 +117,10 @@ class ControlThread:
         self.directive = directive
         directive.set(self.runner.directive)
         self.stats = TickStats()
-        self.faults: dict[str, str] = {}
+        self.sensors = safety.SensorWatch(self.limits, time.monotonic())
+        self.faults = self.sensors.faults    # code -> message, while it holds
         self._seq = 0
-        self._t_boot = time.monotonic()
         self._late_s = 0.0                 # how late the current tick started, s
-        self._stale_deferred = False
         self.first_tick = threading.Event()
         self.dropped = 0
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
@@ -213,24 +212,16 @@ class ControlThread:
             self._wd_last = now
             self.notifier.notify("WATCHDOG=1")
 
-    # -- the sensors' faults ------------------------------------------------------------
+    # -- faults -------------------------------------------------------------------------
     def _check_sensors(self, now: float) -> None:
-        """The IMU's faults: stale, or stuck at full scale. Each holds until its condition clears."""
-        verdict = safety.imu_staleness(now, self.ring.total, self.ring.last_t, now - self._t_boot, self._late_s,
-                                       self._stale_deferred, self.limits)
-        self._stale_deferred = verdict.deferred
-        self._fault("imu_stale", verdict.stale, keep=verdict.deferred)
-        since = self.imu_saturated_since()
-        self._fault("imu_saturated", safety.imu_saturation(now, since, self.limits), keep=since is not None)
-
-    def _fault(self, code: str, message: str | None, keep: bool = False) -> None:
-        if message is not None and code not in self.faults:
-            self.faults[code] = message
-            self._event("fault", code=code, message=message)
-            self.runner.protective_stop(safety.StopCause(code, message))
-        elif message is None and code in self.faults and not keep:
-            self.faults.pop(code)
-            self._event("fault_cleared", code=code)
+        """The IMU's faults: stale, or stuck at full scale (a new one stops the running task)."""
+        for kind, code, message in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
+                                                       self.imu_saturated_since()):
+            if kind == "fault":
+                self._event("fault", code=code, message=message)
+                self.runner.protective_stop(safety.StopCause(code, message))
+            else:
+                self._event("fault_cleared", code=code)
 
     def _internal_fault(self, exc: Exception) -> None:
         """A failed tick: hold the arm, end the task with a protective stop naming the error."""

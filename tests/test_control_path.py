@@ -332,3 +332,17 @@ def test_a_new_estimator_is_one_file(tmp_path):
         estimators.__path__.remove(str(tmp_path))
         estimators.REGISTRY.pop("tcp-at-onset", None)
         estimators._discovered.discard("tcp_at_onset")
+
+
+def test_the_sensor_watch_holds_a_fault_while_its_condition_lasts():
+    watch = safety.SensorWatch(safety.SafetyLimits(imu_stale_s=0.05), t_boot=0.0)
+    assert watch.update(0.5, 0, float("-inf"), 0.0, None) == []              # the first samples are on their way
+    (change,) = watch.update(1.2, 0, float("-inf"), 0.0, None)
+    assert change[:2] == ("fault", "imu_stale") and "since the start" in change[2]
+    assert watch.update(1.3, 10, 1.29, 0.0, None) == [("fault_cleared", "imu_stale", change[2])]
+    # clipped at full scale for longer than imu_stale_s: a fault, held while the clipping goes on
+    assert watch.update(1.32, 20, 1.31, 0.0, 1.30) == []
+    (sat,) = watch.update(1.40, 30, 1.39, 0.0, 1.30)
+    assert sat[:2] == ("fault", "imu_saturated") and watch.faults == {"imu_saturated": sat[2]}
+    assert watch.update(1.41, 31, 1.40, 0.0, 1.405) == []                    # clipped again: still held
+    assert [c[:2] for c in watch.update(1.42, 32, 1.41, 0.0, None)] == [("fault_cleared", "imu_saturated")]
