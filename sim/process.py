@@ -181,6 +181,9 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
             else:
                 robot.overruns += 1
                 if delay < -MAX_BEHIND_S:
+                    # said, because the daemon's stale-IMU stop then measures this, not the daemon
+                    log.warning("sim: the simulation fell %.0f ms behind real time (the host did not run "
+                                "it); resuming from now", -delay * 1e3)
                     t_next = time.monotonic()       # far behind: resume from now, not in a burst
     finally:
         robot.hold()

@@ -34,6 +34,7 @@ log = logging.getLogger("tecdar.control")
 
 WORKSPACE_MAX_M = 5.0         # no arm reaches further from its base: a workspace corner beyond is a typo
 COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
+STALL_LOG_S = 0.1             # a tick that starts this late is logged (the whole daemon was held up)
 
 
 @dataclass
@@ -155,6 +156,9 @@ class ControlThread:
                 t_next += tick_s
                 t0 = time.monotonic()
                 self._late_s = max(0.0, t0 - (t_next - tick_s))
+                if self._late_s > STALL_LOG_S:
+                    # said, so that a stale-IMU stop after it can be told from a stalled sensor
+                    log.warning("control tick started %.0f ms late: the daemon was stalled", self._late_s * 1e3)
                 try:
                     self.tick(t0)
                     failures = 0
