@@ -32,7 +32,7 @@ def _cmd_warm(args) -> int:
               "on 2 cores) ...", flush=True)
     after, took = kernel_cache.warm()
     # an uncachable install still runs (each start compiles): said, not an install failure
-    print(f"{after.describe()}; {'loaded' if after.warm else 'compiled'} in {took:.1f} s")
+    print(f"{after.describe()}; {'loaded' if before.warm else 'compiled'} in {took:.1f} s")
     return 0
 
 

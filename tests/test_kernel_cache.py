@@ -51,3 +51,15 @@ def test_the_demo_waits_as_long_as_a_start_can_take(tmp_path, monkeypatch, cold)
     budget, why = demo.startup_budget_s()
     assert budget == (demo.COLD_START_BUDGET_S if cold else demo.WARM_START_BUDGET_S)
     assert ("compiles" in why) == cold
+
+
+def test_warm_says_compiled_when_it_compiled_and_loaded_when_it_loaded(monkeypatch, capsys):
+    """It once said "loaded in 41 s" after a cold compile: the word comes from the state before."""
+    from tecdard import cli, kernel_cache
+    cold = kernel_cache.CacheState(False, "/cache", 0, 26, "kernels.py")
+    warm = kernel_cache.CacheState(True, "/cache", 26, 26, "kernels.py")
+    for before, word in ((cold, "compiled in 41.0 s"), (warm, "loaded in 41.0 s")):
+        monkeypatch.setattr(kernel_cache, "state", lambda b=before: b)
+        monkeypatch.setattr(kernel_cache, "warm", lambda: (warm, 41.0))
+        assert cli._cmd_warm(None) == 0
+        assert capsys.readouterr().out.strip().endswith(word)
