@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 import queue
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

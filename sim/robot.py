@@ -12,7 +12,7 @@ import numpy as np
 
 from robots.backend import JointState, joint_rates
 from robots.model import ArmModel
-from sim.world import HingeWorld, SimTruth
+from sim.world import SimTruth
 
 log = logging.getLogger("tecdar.sim")
 

@@ -205,13 +205,10 @@ def _cmd_imu(args) -> int:
         return 1
     t_start = time.monotonic()
     n_samples = 0
-    first_t = last_t = None
     while time.monotonic() - t_start < args.seconds:
         out = src.read(0.05)
         if out is not None:
             n_samples += len(out[0])
-            first_t = out[0][0] if first_t is None else first_t
-            last_t = out[0][-1]
     elapsed = time.monotonic() - t_start
     src.close()
     c = src.counters()

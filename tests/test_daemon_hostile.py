@@ -7,7 +7,6 @@ import sys
 import time
 
 import numpy as np
-import pytest
 
 from tests.conftest import ROOT, STILL_M, tcp_now
 from tests.test_daemon import TASK_TIMEOUT_S, assert_arc_opened_the_cutter

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from sim.scenarios import Scenario, generate
-from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording, save_recording
+from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording
 
 MAX_MESSAGE_CHARS = 300
 LOAD_TIME_MAX_S = 5.0           # any refusal, on this shared machine (the zip bomb took 35 s)
