@@ -118,6 +118,7 @@ class ControlThread:
         self.directive = directive
         directive.set(self.runner.directive)
         self.stats = TickStats()
+        self.latest_state = LatestValue()    # the newest state message, for `status`
         self.sensors = safety.SensorWatch(self.limits, time.monotonic())
         self.faults = self.sensors.faults    # code -> message, while it holds
         self._seq = 0
@@ -302,7 +303,7 @@ class ControlThread:
     def _publish_state(self, now: float, p, R, v, est) -> None:
         self._seq += 1
         task = self.runner.task
-        self._put(("state", {
+        state = {
             "t": now, "seq": self._seq, "mode": self.runner.mode.published(bool(self.faults)),
             "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
             "contact": None if est is None else est.to_json(),
@@ -310,4 +311,6 @@ class ControlThread:
                                                "progress": round(task.status.progress, 4)},
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks},
-        }))
+        }
+        self.latest_state.set(state)
+        self._put(("state", state))

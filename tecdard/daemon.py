@@ -189,8 +189,8 @@ class Daemon:
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
         self.keys = Keys(self.robot_name)
-        self.state_json: str | None = None       # the latest state publication, for `status`
-        self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: self.state_json, intake_params)
+        self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: status_json(self.control),
+                                  intake_params)
         try:
             acl = access_control(self.keys, commanders) if commanders else None
             self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES,
@@ -314,7 +314,13 @@ class Daemon:
                                     "(%.1f s grace)", SHUTDOWN_GRACE_S)
                     break
             main.publish_telemetry(MAIN_POLL_S)
-            self.state_json = main.state_json
+
+
+def status_json(control) -> str | None:
+    """`status`: the control thread's newest state (at most a tick old), not the newest published
+    one, which can wait behind other telemetry while replies go first."""
+    state = control.latest_state.get()
+    return None if state is None else dumps(state)
 
 
 class MainLoop:
@@ -329,7 +335,6 @@ class MainLoop:
         self.intake, self.control, self.outbox = intake, control, outbox
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
         self.annotate = annotate
-        self.state_json: str | None = None       # the latest state publication, for `status`
 
     def serve_commands(self, now: float) -> None:
         while True:
@@ -350,9 +355,7 @@ class MainLoop:
             if kind == "event" and self.annotate is not None:
                 body = self._annotated(body)
             text = dumps(body)
-            if kind == "state":
-                self.state_json = text
-            elif kind == "event":
+            if kind == "event":
                 log.info("event %s", text)
             self.pub[kind].put(text)          # the threads put only these three kinds
             if n == TELEMETRY_PER_PASS:

@@ -15,7 +15,7 @@ from robots.model import READY_Q, ArmModel
 from tecdard import commands as C
 from tecdard import verbs
 from tecdard.control_thread import ControlParams, ControlThread
-from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop
+from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop, status_json
 from tecdard.intake import QueryIntake
 from control.pipeline import EstimatorDirective
 from tecdard.messages import DropOldestRing, LatestValue, StartTask, Stop
@@ -147,7 +147,7 @@ def tick(ct, arm, k: int) -> None:
 def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_under_a_telemetry_flood(model):
     keys = Keys("sim")
     ct = control_thread(model)
-    intake = QueryIntake(keys, C.Limits(), ct, lambda: None)
+    intake = QueryIntake(keys, C.Limits(), ct, lambda: status_json(ct))
     main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
     rotate = FakeQuery(keys.cmd("rotate"), {"angle_deg": 10.0})
     intake.handle(rotate, keys.cmd("rotate"), rotate.payload, 0.0)
@@ -180,6 +180,11 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
     tick(ct, ct.robot, k + 1)
     main.serve_commands(TICK_S * (k + 1))
     assert stop.replies == [{"ok": True}]
+    # and `status` says what the control loop knows now, not what waits in the telemetry queue
+    status = FakeQuery(keys.cmd("status"))
+    intake.handle(status, keys.cmd("status"), None, TICK_S * (k + 1))
+    state = status.replies[0]["state"]
+    assert state["seq"] == k + 1 and state["mode"] == "idle" and state["task"] is None
     assert main.publish_telemetry(0.0) == TELEMETRY_PER_PASS
     assert ct.outbox.qsize() >= FLOOD_STATES - TELEMETRY_PER_PASS     # the flood is still there
 
