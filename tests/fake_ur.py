@@ -1,0 +1,365 @@
+"""A fake Universal Robots controller at the protocol level, for tests of the real ur-rtde client.
+
+This module so far serves RTDE (Real-Time Data Exchange, protocol version 2, port 30004) as UR's
+RTDE guide specifies it:
+- every package is a header (uint16 size including the header, uint8 type) and a payload, big-endian;
+- the client negotiates the protocol version ('V'), asks the controller version ('v'), sets up
+  output recipes ('O': frequency and variable names; the reply gives a recipe id and the types,
+  `NOT_FOUND` for an unknown name) and input recipes ('I': names; `IN_USE` or `NOT_FOUND` where
+  they cannot be had), then starts ('S') or pauses ('P') synchronisation;
+- once started, the controller sends a data package ('U') per output recipe at its frequency,
+  and the client writes its inputs as data packages of an input recipe's id.
+
+The controller's state (the variables' values) comes from `state()`, a callable the test or the
+simulated arm provides; inputs the client writes land in `inputs`, by variable name.
+Each fake binds a loopback address of its own (127.0.0.x), because the ports are fixed.
+"""
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+
+RTDE_PORT = 30004
+PROTOCOL_VERSION = 2
+
+# package types
+REQUEST_PROTOCOL_VERSION = ord("V")
+GET_URCONTROL_VERSION = ord("v")
+TEXT_MESSAGE = ord("M")
+DATA_PACKAGE = ord("U")
+SETUP_OUTPUTS = ord("O")
+SETUP_INPUTS = ord("I")
+START = ord("S")
+PAUSE = ord("P")
+
+# variable types and their struct formats
+FORMATS = {"BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
+           "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I"}
+
+
+def _output_table() -> dict[str, str]:
+    """The controller's output variables and their types (UR's RTDE guide, e-Series 5.x)."""
+    t = {name: "VECTOR6D" for name in (
+        "target_q", "target_qd", "target_qdd", "target_current", "target_moment", "actual_q", "actual_qd",
+        "actual_current", "joint_control_output", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
+        "target_TCP_pose", "target_TCP_speed", "joint_temperatures", "actual_joint_voltage", "payload_inertia",
+        "ft_raw_wrench", "actual_current_as_torque")}
+    t.update({name: "DOUBLE" for name in (
+        "timestamp", "actual_execution_time", "speed_scaling", "target_speed_fraction", "actual_momentum",
+        "actual_main_voltage", "actual_robot_voltage", "actual_robot_current", "standard_analog_input0",
+        "standard_analog_input1", "standard_analog_output0", "standard_analog_output1", "io_current",
+        "tool_analog_input0", "tool_analog_input1", "tool_output_current", "tool_temperature", "tcp_force_scalar",
+        "payload", "joint_position_deviation_ratio", "collision_detection_ratio")})
+    t.update({name: "UINT32" for name in (
+        "runtime_state", "robot_status_bits", "safety_status_bits", "analog_io_types", "tool_mode",
+        "tool_analog_input_types", "output_bit_registers0_to_31", "output_bit_registers32_to_63",
+        "input_bit_registers0_to_31", "input_bit_registers32_to_63", "script_control_line",
+        "euromap67_input_bits", "euromap67_output_bits")})
+    t.update({"robot_mode": "INT32", "safety_mode": "INT32", "safety_status": "INT32", "tool_output_voltage": "INT32",
+              "time_scale_source": "INT32", "joint_mode": "VECTOR6INT32", "actual_tool_accelerometer": "VECTOR3D",
+              "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D", "payload_cog": "VECTOR3D",
+              "actual_digital_input_bits": "UINT64", "actual_digital_output_bits": "UINT64"})
+    for i in range(48):
+        t[f"output_int_register_{i}"] = t[f"input_int_register_{i}"] = "INT32"
+        t[f"output_double_register_{i}"] = t[f"input_double_register_{i}"] = "DOUBLE"
+    for i in range(64, 128):
+        t[f"output_bit_register_{i}"] = t[f"input_bit_register_{i}"] = "BOOL"
+    return t
+
+
+def _input_table() -> dict[str, str]:
+    """The variables a client may write (UR's RTDE guide)."""
+    t = {"speed_slider_mask": "UINT32", "speed_slider_fraction": "DOUBLE", "standard_digital_output_mask": "UINT8",
+         "standard_digital_output": "UINT8", "configurable_digital_output_mask": "UINT8",
+         "configurable_digital_output": "UINT8", "tool_digital_output_mask": "UINT8", "tool_digital_output": "UINT8",
+         "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
+         "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
+         "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
+         "external_force_torque": "VECTOR6D"}
+    for i in range(48):
+        t[f"input_int_register_{i}"] = "INT32"
+        t[f"input_double_register_{i}"] = "DOUBLE"
+    for i in range(64, 128):
+        t[f"input_bit_register_{i}"] = "BOOL"
+    return t
+
+
+OUTPUTS = _output_table()
+INPUTS = _input_table()
+
+
+def _zero(kind: str):
+    fmt = FORMATS[kind]
+    n = int(fmt[:-1]) if len(fmt) > 1 else 1
+    value = False if kind == "BOOL" else (0.0 if fmt[-1] == "d" else 0)
+    return [value] * n if n > 1 else value
+
+
+class _Recipe:
+    def __init__(self, names: list[str], kinds: list[str], frequency_hz: float = 0.0):
+        self.names, self.kinds, self.frequency_hz = names, kinds, frequency_hz
+        self.struct = struct.Struct(">" + "".join(FORMATS[k] for k in kinds))
+
+    def pack(self, values: dict) -> bytes:
+        flat = []
+        for name, kind in zip(self.names, self.kinds):
+            v = values.get(name)
+            v = _zero(kind) if v is None else v
+            flat.extend(v if isinstance(v, (list, tuple)) else [v])
+        return self.struct.pack(*flat)
+
+    def unpack(self, payload: bytes) -> dict:
+        flat = list(self.struct.unpack(payload))
+        out = {}
+        for name, kind in zip(self.names, self.kinds):
+            fmt = FORMATS[kind]
+            n = int(fmt[:-1]) if len(fmt) > 1 else 1
+            out[name] = flat[:n] if n > 1 else flat[0]
+            del flat[:n]
+        return out
+
+
+def _read_exact(conn: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = conn.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("the client closed the connection")
+        buf += chunk
+    return buf
+
+
+def _package(kind: int, payload: bytes = b"") -> bytes:
+    return struct.pack(">HB", 3 + len(payload), kind) + payload
+
+
+class RtdeServer:
+    """RTDE on (host, 30004). `state()` gives the output variables' current values by name;
+    `version` is the controller's (major, minor, bugfix, build): major 5 is e-Series (500 Hz),
+    3 a CB3 (125 Hz). `max_frequency_hz` is the controller's base rate; its `timestamp` counts its
+    cycles since it was switched on, `uptime_s` before the fake started."""
+
+    def __init__(self, host: str, state, version=(5, 11, 0, 0), port: int = RTDE_PORT, uptime_s: float = 100.0):
+        self.host, self.port = host, port
+        self.state = state
+        self.version = version
+        self.max_frequency_hz = 500.0 if version[0] >= 5 else 125.0
+        self.inputs: dict = {}                     # the latest value of every input variable written
+        self._inputs_lock = threading.Lock()
+        self.input_packages = 0
+        self.stopped = threading.Event()
+        self._t0 = time.monotonic() - uptime_s   # the controller was switched on a while before a client came
+        self._sock = socket.create_server((host, port), reuse_port=False)
+        self._sock.settimeout(0.1)
+        self._conns: list[socket.socket] = []
+        self._thread = threading.Thread(target=self._accept, name=f"rtde-{host}", daemon=True)
+        self._thread.start()
+
+    def read_inputs(self) -> dict:
+        with self._inputs_lock:
+            return dict(self.inputs)
+
+    def close(self) -> None:
+        self.stopped.set()
+        for conn in list(self._conns):
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            conn.close()
+        self._thread.join(2.0)
+        self._sock.close()
+
+    def _accept(self) -> None:
+        while not self.stopped.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            conn.settimeout(None)            # accepted sockets inherit the listening socket's timeout
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), name="rtde-conn", daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        outputs: list[_Recipe] = []
+        inputs: dict[int, _Recipe] = {}
+        started = threading.Event()
+        sender = None
+        lock = threading.Lock()             # the sender thread and replies share the socket
+
+        def send(data: bytes) -> None:
+            with lock:
+                conn.sendall(data)
+
+        try:
+            while not self.stopped.is_set():
+                size, kind = struct.unpack(">HB", _read_exact(conn, 3))
+                payload = _read_exact(conn, size - 3)
+                if kind == REQUEST_PROTOCOL_VERSION:
+                    (asked,) = struct.unpack(">H", payload)
+                    send(_package(kind, struct.pack(">B", 1 if asked in (1, PROTOCOL_VERSION) else 0)))
+                elif kind == GET_URCONTROL_VERSION:
+                    send(_package(kind, struct.pack(">IIII", *self.version)))
+                elif kind == SETUP_OUTPUTS:
+                    (frequency,) = struct.unpack(">d", payload[:8])
+                    names = [n for n in payload[8:].decode().split(",") if n]
+                    kinds = [OUTPUTS.get(n, "NOT_FOUND") for n in names]
+                    if "NOT_FOUND" in kinds or not 0 < frequency <= self.max_frequency_hz:
+                        send(_package(kind, struct.pack(">B", 0) + ",".join(kinds).encode()))
+                        continue
+                    outputs.append(_Recipe(names, kinds, frequency))
+                    send(_package(kind, struct.pack(">B", len(outputs)) + ",".join(kinds).encode()))
+                elif kind == SETUP_INPUTS:
+                    names = [n for n in payload.decode().split(",") if n]
+                    kinds = [INPUTS.get(n, "NOT_FOUND") for n in names]
+                    if "NOT_FOUND" in kinds:
+                        send(_package(kind, struct.pack(">B", 0) + ",".join(kinds).encode()))
+                        continue
+                    recipe_id = len(inputs) + 1
+                    inputs[recipe_id] = _Recipe(names, kinds)
+                    send(_package(kind, struct.pack(">B", recipe_id) + ",".join(kinds).encode()))
+                elif kind == START:
+                    ok = bool(outputs)
+                    send(_package(kind, struct.pack(">B", 1 if ok else 0)))
+                    if ok and not started.is_set():
+                        started.set()
+                        sender = threading.Thread(target=self._send_data, args=(send, outputs, started),
+                                                  name="rtde-data", daemon=True)
+                        sender.start()
+                elif kind == PAUSE:
+                    started.clear()
+                    send(_package(kind, struct.pack(">B", 1)))
+                elif kind == DATA_PACKAGE:
+                    recipe = inputs.get(payload[0])
+                    if recipe is not None and len(payload) - 1 == recipe.struct.size:
+                        values = recipe.unpack(payload[1:])
+                        with self._inputs_lock:
+                            self.inputs.update(values)
+                            self.input_packages += 1
+                # anything else: ignored, as the controller does with what it does not know
+        except (ConnectionError, OSError, struct.error):
+            pass
+        finally:
+            started.clear()
+            try:
+                conn.close()
+            except OSError:
+                pass
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def _send_data(self, send, outputs: list[_Recipe], started: threading.Event) -> None:
+        """Every output recipe at its own frequency (the controller's cycle divided down), on an
+        absolute schedule."""
+        period = 1.0 / self.max_frequency_hz
+        cycle = 0
+        t_next = time.monotonic()
+        while started.is_set() and not self.stopped.is_set():
+            # the controller's clock: its whole cycles since it started, as the real one counts them
+            cycles = int((time.monotonic() - self._t0) / period)
+            values = {**self.state(), "timestamp": cycles * period}
+            try:
+                for recipe_id, recipe in enumerate(outputs, start=1):
+                    every = max(1, int(round(self.max_frequency_hz / recipe.frequency_hz)))
+                    if cycle % every == 0:
+                        send(_package(DATA_PACKAGE, struct.pack(">B", recipe_id) + recipe.pack(values)))
+            except OSError:
+                return
+            cycle += 1
+            t_next += period
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.1:
+                t_next = time.monotonic()
+
+
+# -- the fake as a process of its own ---------------------------------------------------------
+
+def free_loopback_host(ports=(RTDE_PORT,)) -> str:
+    """A 127.0.0.x address whose fixed controller ports are free (tests never meet on them)."""
+    import random
+    for x in random.sample(range(2, 255), 253):
+        host = f"127.0.0.{x}"
+        try:
+            for port in ports:
+                with socket.create_server((host, port)):
+                    pass
+            return host
+        except OSError:
+            continue
+    raise RuntimeError("no free 127.0.0.x address for a fake controller")
+
+
+class StaticArm:
+    """A controller's state that the test sets: joint positions, modes and status bits."""
+
+    def __init__(self, q, tcp_pose=(0.0,) * 6):
+        self.values = {"actual_q": list(q), "target_q": list(q), "actual_qd": [0.0] * 6,
+                       "actual_TCP_pose": list(tcp_pose), "robot_mode": 7, "safety_mode": 1, "safety_status_bits": 1,
+                       "robot_status_bits": 0b11, "runtime_state": 2, "speed_scaling": 1.0}
+
+    def state(self) -> dict:
+        return self.values
+
+
+def _child(host: str, version, q, tcp_pose, conn) -> None:
+    """The fake controller's process: serves until told to stop; answers the test's requests."""
+    arm = StaticArm(q, tcp_pose)
+    server = RtdeServer(host, arm.state, version=version)
+    conn.send("ready")
+    try:
+        while True:
+            msg = conn.recv()
+            if msg[0] == "stop":
+                break
+            if msg[0] == "set":
+                arm.values.update(msg[1])
+                conn.send(None)
+            elif msg[0] == "inputs":
+                conn.send((server.read_inputs(), server.input_packages))
+    except EOFError:
+        pass
+    finally:
+        server.close()
+
+
+class FakeController:
+    """The parent's handle on a fake controller process at `host`."""
+
+    def __init__(self, host: str, version=(5, 11, 0, 0), q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
+                 tcp_pose=(0.0,) * 6):
+        import multiprocessing
+        ctx = multiprocessing.get_context("spawn")
+        self.host = host
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_child, args=(host, version, list(q), list(tcp_pose), child),
+                                 name=f"fake-ur-{host}", daemon=True)
+        self._proc.start()
+        if not self._conn.poll(30.0) or self._conn.recv() != "ready":
+            self.close()
+            raise RuntimeError(f"the fake controller at {host} did not start")
+
+    def set(self, **values) -> None:
+        """Set output variables of the controller's state (robot_mode, safety_status_bits, actual_q ...)."""
+        self._conn.send(("set", values))
+        self._conn.recv()
+
+    def inputs(self) -> tuple[dict, int]:
+        """The input variables the client wrote (latest values) and how many data packages it sent."""
+        self._conn.send(("inputs",))
+        return self._conn.recv()
+
+    def close(self) -> None:
+        try:
+            self._conn.send(("stop",))
+        except (OSError, BrokenPipeError):
+            pass
+        self._proc.join(5.0)
+        if self._proc.is_alive():
+            self._proc.kill()

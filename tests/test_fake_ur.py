@@ -1,0 +1,80 @@
+"""The fake UR controller's RTDE server against the real ur-rtde client (issue 19's ground).
+
+The client is PyPI's ur-rtde (C++ behind pybind11), never mocked: what these tests check is that
+the fake speaks RTDE v2 as the client expects it. The fake runs as a process of its own, as a
+controller does: the binding holds the GIL while it blocks in a handshake.
+"""
+import time
+
+import pytest
+
+from tests.fake_ur import FakeController, free_loopback_host
+
+rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is installed by `make test` (extra `ur`)")
+rtde_io = pytest.importorskip("rtde_io")
+
+Q = (0.1, -1.2, 1.3, -1.6, -1.57, 0.2)
+TCP_POSE = (0.4, 0.1, 0.3, 0.0, 3.14, 0.0)        # x, y, z (m) and a rotation vector (rad), base frame
+UR_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
+                "robot_mode", "safety_mode", "robot_status_bits", "safety_status_bits", "runtime_state"]
+CONTROLLER_PERIOD_S = 0.002                        # an e-Series controller's cycle (500 Hz)
+PROTECTIVE_STOPPED_BIT = 2                         # safety_status_bits: bit 0 normal mode, bit 2 protective stop
+SETTLE_S = 0.3                                     # for the client's receive thread to take new packages
+
+
+@pytest.fixture
+def fake():
+    controller = FakeController(free_loopback_host(), q=Q, tcp_pose=TCP_POSE)
+    yield controller
+    controller.close()
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+def test_the_real_receive_client_reads_the_controller_state_and_its_stops(fake):
+    r = rtde_receive.RTDEReceiveInterface(fake.host, 500.0, UR_VARIABLES)
+    try:
+        assert wait_for(lambda: r.getActualQ() == list(Q))
+        assert r.getActualTCPPose() == list(TCP_POSE)
+        assert r.getRobotMode() == 7 and r.getSafetyMode() == 1 and not r.isProtectiveStopped()
+        # the controller's clock counts its cycles: a timestamp is a whole number of them
+        t = r.getTimestamp()
+        assert t > 0 and abs(t / CONTROLLER_PERIOD_S - round(t / CONTROLLER_PERIOD_S)) < 1e-6
+        assert wait_for(lambda: r.getTimestamp() > t)
+        fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+        assert wait_for(r.isProtectiveStopped) and r.getSafetyMode() == 3
+    finally:
+        r.disconnect()
+
+
+def test_the_clients_default_recipe_is_served_whole(fake):
+    """Without a variable list the client asks for everything its PolyScope version has."""
+    r = rtde_receive.RTDEReceiveInterface(fake.host)
+    try:
+        assert wait_for(lambda: r.getActualQ() == list(Q))
+        assert r.getSpeedScaling() == 1.0
+    finally:
+        r.disconnect()
+
+
+def test_an_unknown_variable_is_refused_as_the_controller_refuses_it(fake):
+    with pytest.raises(RuntimeError, match="not found by the controller"):
+        rtde_receive.RTDEReceiveInterface(fake.host, 500.0, ["timestamp", "no_such_variable"])
+
+
+def test_what_the_client_writes_reaches_the_controller(fake):
+    io = rtde_io.RTDEIOInterface(fake.host)
+    try:
+        assert io.setInputIntRegister(18, 5) and io.setInputDoubleRegister(19, 2.5)
+        assert wait_for(lambda: fake.inputs()[1] >= 2)
+        inputs, _ = fake.inputs()
+        assert inputs["input_int_register_18"] == 5 and inputs["input_double_register_19"] == 2.5
+    finally:
+        io.disconnect()         # before the fake goes: the client aborts its process on a lost connection
