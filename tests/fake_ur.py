@@ -1,7 +1,8 @@
 """A fake Universal Robots controller at the protocol level, for tests of the real ur-rtde client.
 
-This module so far serves RTDE (Real-Time Data Exchange, protocol version 2, port 30004) as UR's
-RTDE guide specifies it:
+So far it serves the dashboard server (port 29999: a greeting, then one reply line per command
+line, as UR's dashboard server documents them) and RTDE (Real-Time Data Exchange, protocol
+version 2, port 30004) as UR's RTDE guide specifies it:
 - every package is a header (uint16 size including the header, uint8 type) and a payload, big-endian;
 - the client negotiates the protocol version ('V'), asks the controller version ('v'), sets up
   output recipes ('O': frequency and variable names; the reply gives a recipe id and the types,
@@ -22,6 +23,7 @@ import threading
 import time
 
 RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
 PROTOCOL_VERSION = 2
 
 # package types
@@ -279,9 +281,165 @@ class RtdeServer:
                 t_next = time.monotonic()
 
 
+# -- the dashboard server ------------------------------------------------------------------------
+
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT"}
+NORMAL_MODE_BIT, PROTECTIVE_STOP_BIT = 0, 2          # safety_status_bits
+POWER_ON_BIT, PROGRAM_RUNNING_BIT = 0, 1             # robot_status_bits
+
+
+class ControllerState:
+    """The values both servers share (RTDE's output variables by name), under one lock."""
+
+    def __init__(self, values: dict, model: str = "UR5", remote_control: bool = True,
+                 version=(5, 11, 0, 0)):
+        self.values = values
+        self.model, self.remote_control, self.version = model, remote_control, version
+        self.lock = threading.Lock()
+        self.loaded_program = "<unnamed>"
+
+    def snapshot(self) -> dict:
+        with self.lock:
+            return dict(self.values)
+
+    def update(self, **values) -> None:
+        with self.lock:
+            self.values.update(values)
+
+    def program_running(self) -> bool:
+        return bool(self.values.get("robot_status_bits", 0) >> PROGRAM_RUNNING_BIT & 1)
+
+    def set_program_running(self, running: bool) -> None:
+        with self.lock:
+            bits = self.values.get("robot_status_bits", 0) & ~(1 << PROGRAM_RUNNING_BIT)
+            self.values["robot_status_bits"] = bits | (int(running) << PROGRAM_RUNNING_BIT)
+            self.values["runtime_state"] = 2 if running else 1          # PLAYING, STOPPED
+
+    def unlock_protective_stop(self) -> bool:
+        with self.lock:
+            if self.values.get("safety_mode") != 3:
+                return False
+            self.values["safety_mode"] = 1
+            self.values["safety_status_bits"] = 1 << NORMAL_MODE_BIT
+            return True
+
+
+class DashboardServer:
+    """The dashboard server on (host, 29999): a greeting on connect, then a reply line per command."""
+
+    GREETING = "Connected: Universal Robots Dashboard Server"
+
+    def __init__(self, host: str, controller: ControllerState, port: int = DASHBOARD_PORT):
+        self.controller = controller
+        self.commands: list[str] = []              # every command line received, in order
+        self.not_understood: list[str] = []        # those the server answered "could not understand"
+        self.stopped = threading.Event()
+        self._sock = socket.create_server((host, port))
+        self._sock.settimeout(0.1)
+        self._conns: list[socket.socket] = []
+        self._thread = threading.Thread(target=self._accept, name=f"dashboard-{host}", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self.stopped.set()
+        for conn in list(self._conns):
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            conn.close()
+        self._thread.join(2.0)
+        self._sock.close()
+
+    def _accept(self) -> None:
+        while not self.stopped.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            conn.settimeout(None)
+            self._conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), name="dashboard-conn", daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        try:
+            conn.sendall((self.GREETING + "\n").encode())
+            buf = b""
+            while not self.stopped.is_set():
+                chunk = conn.recv(1024)
+                if not chunk:
+                    return
+                buf += chunk
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    command = line.decode(errors="replace").strip()
+                    self.commands.append(command)
+                    reply = self.reply(command)
+                    conn.sendall((reply + "\n").encode())
+                    if command == "quit":
+                        return
+        except OSError:
+            pass
+        finally:
+            conn.close()
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def reply(self, command: str) -> str:
+        c = self.controller
+        v = c.snapshot()
+        major, minor, bugfix, build = c.version
+        lower = command.lower()
+        if lower == "polyscopeversion":
+            return f"URSoftware {major}.{minor}.{bugfix}.{build} (Jan 01 2022)"
+        if lower == "is in remote control":
+            return "true" if c.remote_control else "false"
+        if lower == "robotmode":
+            return f"Robotmode: {ROBOT_MODES.get(v.get('robot_mode'), 'NO_CONTROLLER')}"
+        if lower == "safetymode":
+            return f"Safetymode: {SAFETY_MODES.get(v.get('safety_mode'), 'FAULT')}"
+        if lower == "safetystatus":
+            return f"Safetystatus: {SAFETY_MODES.get(v.get('safety_mode'), 'FAULT')}"
+        if lower == "programstate":
+            return f"{'PLAYING' if c.program_running() else 'STOPPED'} {c.loaded_program}"
+        if lower == "running":
+            return f"Program running: {'true' if c.program_running() else 'false'}"
+        if lower == "stop":
+            if not c.program_running():
+                return "Failed to execute: stop"
+            c.set_program_running(False)
+            return "Stopped"
+        if lower == "unlock protective stop":
+            return "Protective stop releasing" if c.unlock_protective_stop() else \
+                "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of protective stop before unlocking"
+        if lower == "close safety popup":
+            return "closing safety popup"
+        if lower == "close popup":
+            return "closing popup"
+        if lower == "get robot model":
+            return c.model
+        if lower == "get loaded program":
+            return "No program loaded" if c.loaded_program == "<unnamed>" else f"Loaded program: {c.loaded_program}"
+        if lower == "power on":
+            c.update(robot_mode=5)
+            return "Powering on"
+        if lower == "brake release":
+            c.update(robot_mode=7)
+            return "Brake releasing"
+        if lower == "quit":
+            return "Disconnected"
+        self.not_understood.append(command)
+        return f"could not understand: '{command}'"
+
+
 # -- the fake as a process of its own ---------------------------------------------------------
 
-def free_loopback_host(ports=(RTDE_PORT,)) -> str:
+def free_loopback_host(ports=(DASHBOARD_PORT, RTDE_PORT)) -> str:
     """A 127.0.0.x address whose fixed controller ports are free (tests never meet on them)."""
     import random
     for x in random.sample(range(2, 255), 253):
@@ -296,22 +454,14 @@ def free_loopback_host(ports=(RTDE_PORT,)) -> str:
     raise RuntimeError("no free 127.0.0.x address for a fake controller")
 
 
-class StaticArm:
-    """A controller's state that the test sets: joint positions, modes and status bits."""
-
-    def __init__(self, q, tcp_pose=(0.0,) * 6):
-        self.values = {"actual_q": list(q), "target_q": list(q), "actual_qd": [0.0] * 6,
-                       "actual_TCP_pose": list(tcp_pose), "robot_mode": 7, "safety_mode": 1, "safety_status_bits": 1,
-                       "robot_status_bits": 0b11, "runtime_state": 2, "speed_scaling": 1.0}
-
-    def state(self) -> dict:
-        return self.values
-
-
-def _child(host: str, version, q, tcp_pose, conn) -> None:
+def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
     """The fake controller's process: serves until told to stop; answers the test's requests."""
-    arm = StaticArm(q, tcp_pose)
-    server = RtdeServer(host, arm.state, version=version)
+    controller = ControllerState({"actual_q": list(q), "target_q": list(q), "actual_qd": [0.0] * 6,
+                                  "actual_TCP_pose": list(tcp_pose), "robot_mode": 7, "safety_mode": 1,
+                                  "safety_status_bits": 1 << NORMAL_MODE_BIT, "robot_status_bits": 1 << POWER_ON_BIT,
+                                  "runtime_state": 1, "speed_scaling": 1.0}, model=model, version=version)
+    rtde = RtdeServer(host, controller.snapshot, version=version)
+    dashboard = DashboardServer(host, controller)
     conn.send("ready")
     try:
         while True:
@@ -319,26 +469,29 @@ def _child(host: str, version, q, tcp_pose, conn) -> None:
             if msg[0] == "stop":
                 break
             if msg[0] == "set":
-                arm.values.update(msg[1])
+                controller.update(**msg[1])
                 conn.send(None)
             elif msg[0] == "inputs":
-                conn.send((server.read_inputs(), server.input_packages))
+                conn.send((rtde.read_inputs(), rtde.input_packages))
+            elif msg[0] == "dashboard":
+                conn.send((list(dashboard.commands), list(dashboard.not_understood)))
     except EOFError:
         pass
     finally:
-        server.close()
+        dashboard.close()
+        rtde.close()
 
 
 class FakeController:
     """The parent's handle on a fake controller process at `host`."""
 
-    def __init__(self, host: str, version=(5, 11, 0, 0), q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
+    def __init__(self, host: str, version=(5, 11, 0, 0), model: str = "UR5", q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
                  tcp_pose=(0.0,) * 6):
         import multiprocessing
         ctx = multiprocessing.get_context("spawn")
         self.host = host
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(host, version, list(q), list(tcp_pose), child),
+        self._proc = ctx.Process(target=_child, args=(host, version, model, list(q), list(tcp_pose), child),
                                  name=f"fake-ur-{host}", daemon=True)
         self._proc.start()
         if not self._conn.poll(30.0) or self._conn.recv() != "ready":
@@ -353,6 +506,11 @@ class FakeController:
     def inputs(self) -> tuple[dict, int]:
         """The input variables the client wrote (latest values) and how many data packages it sent."""
         self._conn.send(("inputs",))
+        return self._conn.recv()
+
+    def dashboard_commands(self) -> tuple[list[str], list[str]]:
+        """The command lines the dashboard server has received, in order, and those it did not understand."""
+        self._conn.send(("dashboard",))
         return self._conn.recv()
 
     def close(self) -> None:

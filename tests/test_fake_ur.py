@@ -12,6 +12,7 @@ from tests.fake_ur import FakeController, free_loopback_host
 
 rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is installed by `make test` (extra `ur`)")
 rtde_io = pytest.importorskip("rtde_io")
+dashboard_client = pytest.importorskip("dashboard_client")
 
 Q = (0.1, -1.2, 1.3, -1.6, -1.57, 0.2)
 TCP_POSE = (0.4, 0.1, 0.3, 0.0, 3.14, 0.0)        # x, y, z (m) and a rotation vector (rad), base frame
@@ -78,3 +79,36 @@ def test_what_the_client_writes_reaches_the_controller(fake):
         assert inputs["input_int_register_18"] == 5 and inputs["input_double_register_19"] == 2.5
     finally:
         io.disconnect()         # before the fake goes: the client aborts its process on a lost connection
+
+
+def test_the_real_dashboard_client_talks_to_the_dashboard_server(fake):
+    db = dashboard_client.DashboardClient(fake.host)
+    db.connect()                         # reads the server's greeting
+    try:
+        assert db.isConnected() and db.isInRemoteControl()
+        assert db.polyscopeVersion() == "5.11.0.0"
+        assert db.robotmode() == "Robotmode: RUNNING" and db.safetystatus() == "Safetystatus: NORMAL"
+        assert db.programState().startswith("STOPPED") and not db.running()
+        assert db.getRobotModel() == "UR5"
+    finally:
+        db.disconnect()
+    sent, not_understood = fake.dashboard_commands()
+    assert {"is in remote control", "PolyscopeVersion", "robotmode", "safetystatus", "programState", "running",
+            "get robot model"} <= set(sent)
+    assert not_understood == []
+
+
+def test_a_protective_stop_is_unlocked_on_the_dashboard_and_clears_on_rtde(fake):
+    r = rtde_receive.RTDEReceiveInterface(fake.host, 500.0, UR_VARIABLES)
+    db = dashboard_client.DashboardClient(fake.host)
+    db.connect()
+    try:
+        fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+        assert wait_for(r.isProtectiveStopped)
+        assert db.safetystatus() == "Safetystatus: PROTECTIVE_STOP"
+        db.unlockProtectiveStop()
+        assert wait_for(lambda: not r.isProtectiveStopped()) and r.getSafetyMode() == 1
+        assert db.safetystatus() == "Safetystatus: NORMAL"
+    finally:
+        db.disconnect()
+        r.disconnect()
