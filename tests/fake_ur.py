@@ -1,8 +1,10 @@
 """A fake Universal Robots controller at the protocol level, for tests of the real ur-rtde client.
 
-So far it serves the dashboard server (port 29999: a greeting, then one reply line per command
-line, as UR's dashboard server documents them) and RTDE (Real-Time Data Exchange, protocol
-version 2, port 30004) as UR's RTDE guide specifies it:
+It serves the dashboard server (port 29999: a greeting, then one reply line per command line, as
+UR's dashboard server documents them), the script port (30003: URScript sent as text; a script
+that defines `rtde_control` runs as ur-rtde's control script, emulated by `ControlScript` on the
+RTDE registers) and RTDE (Real-Time Data Exchange, protocol version 2, port 30004) as UR's RTDE
+guide specifies it:
 - every package is a header (uint16 size including the header, uint8 type) and a payload, big-endian;
 - the client negotiates the protocol version ('V'), asks the controller version ('v'), sets up
   output recipes ('O': frequency and variable names; the reply gives a recipe id and the types,
@@ -24,6 +26,7 @@ import time
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
+SCRIPT_PORT = 30003
 PROTOCOL_VERSION = 2
 
 # package types
@@ -300,6 +303,7 @@ class ControllerState:
         self.model, self.remote_control, self.version = model, remote_control, version
         self.lock = threading.Lock()
         self.loaded_program = "<unnamed>"
+        self.serial_number = "20215500001"        # year, model code, number, as the controller reports it
 
     def snapshot(self) -> dict:
         with self.lock:
@@ -332,8 +336,9 @@ class DashboardServer:
 
     GREETING = "Connected: Universal Robots Dashboard Server"
 
-    def __init__(self, host: str, controller: ControllerState, port: int = DASHBOARD_PORT):
+    def __init__(self, host: str, controller: ControllerState, port: int = DASHBOARD_PORT, on_stop=None):
         self.controller = controller
+        self.on_stop = on_stop or (lambda: None)     # `stop`: the program stops
         self.commands: list[str] = []              # every command line received, in order
         self.not_understood: list[str] = []        # those the server answered "could not understand"
         self.stopped = threading.Event()
@@ -412,6 +417,7 @@ class DashboardServer:
         if lower == "stop":
             if not c.program_running():
                 return "Failed to execute: stop"
+            self.on_stop()
             c.set_program_running(False)
             return "Stopped"
         if lower == "unlock protective stop":
@@ -423,6 +429,8 @@ class DashboardServer:
             return "closing popup"
         if lower == "get robot model":
             return c.model
+        if lower == "get serial number":
+            return c.serial_number
         if lower == "get loaded program":
             return "No program loaded" if c.loaded_program == "<unnamed>" else f"Loaded program: {c.loaded_program}"
         if lower == "power on":
@@ -437,9 +445,165 @@ class DashboardServer:
         return f"could not understand: '{command}'"
 
 
+# -- the script port and ur-rtde's control script ---------------------------------------------------
+
+# ur-rtde's control script (rtde_control.script): output_int_register_0 says where it is
+SCRIPT_READY, SCRIPT_DONE = 1, 2
+STREAMED = {6, 9, 10, 11, 24}       # force mode, speedJ, speedL, servoJ, servoL: a new target each cycle
+SPEEDJ, SPEED_STOP, STOPJ, STOP_SCRIPT = 9, 15, 34, 255
+RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
+
+
+class JointArm:
+    """The fake's arm under speedj: each joint's rate moves to its target at the commanded
+    acceleration, the positions integrate the rates, every controller cycle."""
+
+    def __init__(self, q, max_qd_rad_s: float = 3.14):
+        self.q = [float(x) for x in q]
+        self.qd = [0.0] * len(self.q)
+        self.target = [0.0] * len(self.q)
+        self.accel = 1.0
+        self.max_qd = max_qd_rad_s
+
+    def speedj(self, qd, accel: float) -> None:
+        self.target = [max(-self.max_qd, min(self.max_qd, float(x))) for x in qd]
+        self.accel = max(float(accel), 1e-6)
+
+    def stop(self, decel: float) -> None:
+        self.speedj([0.0] * len(self.q), decel)
+
+    def halt(self) -> None:
+        """A protective stop: the rates go to zero at once (the brakes' reaction is not modelled)."""
+        self.qd = [0.0] * len(self.q)
+        self.target = [0.0] * len(self.q)
+
+    def step(self, dt: float) -> None:
+        step = self.accel * dt
+        for i, (v, goal) in enumerate(zip(self.qd, self.target)):
+            v += max(-step, min(step, goal - v))
+            self.qd[i] = v
+            self.q[i] += v * dt
+
+
+class ControlScript:
+    """ur-rtde's control script as the controller would run it: every cycle it reads the command
+    in input_int_register_0 and signals in output_int_register_0 (rtde_control.script's main loop)."""
+
+    def __init__(self, controller: "ControllerState", rtde: RtdeServer, arm: JointArm):
+        self.controller, self.rtde, self.arm = controller, rtde, arm
+        self.running = False
+        self.executing = False
+        self.commands: list[int] = []          # every command processed, in order
+
+    def start(self) -> None:
+        self.running, self.executing = True, False
+        self.controller.update(output_int_register_0=SCRIPT_READY)
+        self.controller.set_program_running(True)
+
+    def stop(self) -> None:
+        self.running = False
+        self.controller.set_program_running(False)
+
+    def cycle(self) -> None:
+        if not self.running:
+            return
+        inputs = self.rtde.read_inputs()
+        cmd = inputs.get("input_int_register_0", 0)
+        if cmd in STREAMED:
+            self._process(cmd, inputs)
+            self.controller.update(output_int_register_0=SCRIPT_READY)
+        elif cmd == 0:
+            self.executing = False
+            self.controller.update(output_int_register_0=SCRIPT_READY)
+        elif not self.executing:
+            self.executing = True
+            if self._process(cmd, inputs):
+                self.controller.update(output_int_register_0=SCRIPT_DONE)
+
+    def _process(self, cmd: int, inputs: dict) -> bool:
+        """One command; False when it ends the script."""
+        self.commands.append(cmd)
+        reg = [inputs.get(f"input_double_register_{i}", 0.0) for i in range(8)]
+        if cmd == SPEEDJ:
+            self.arm.speedj(reg[0:6], reg[6])
+        elif cmd in (SPEED_STOP, STOPJ):
+            self.arm.stop(reg[0] if reg[0] > 0 else 10.0)
+        elif cmd == STOP_SCRIPT:
+            self.arm.stop(10.0)
+            self.stop()
+            return False
+        return True
+
+
+class ScriptServer:
+    """The script port (30003): URScript arrives as text; a program that defines `rtde_control`
+    starts the control script (another program first stops the one running)."""
+
+    def __init__(self, host: str, on_script, port: int = SCRIPT_PORT):
+        self.on_script = on_script
+        self.scripts: list[str] = []
+        self.stopped = threading.Event()
+        self._sock = socket.create_server((host, port))
+        self._sock.settimeout(0.1)
+        self._conns: list[socket.socket] = []
+        self._thread = threading.Thread(target=self._accept, name=f"script-{host}", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self.stopped.set()
+        for conn in list(self._conns):
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            conn.close()
+        self._thread.join(2.0)
+        self._sock.close()
+
+    def _accept(self) -> None:
+        while not self.stopped.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            conn.settimeout(0.05)
+            self._conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), name="script-conn", daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        """A program is complete when the sender pauses: the controller runs what it has."""
+        buf = b""
+        try:
+            while not self.stopped.is_set():
+                try:
+                    chunk = conn.recv(65536)
+                    if not chunk:
+                        break
+                    buf += chunk
+                except socket.timeout:
+                    if buf:
+                        self._run(buf)
+                        buf = b""
+        except OSError:
+            pass
+        finally:
+            if buf:
+                self._run(buf)
+            conn.close()
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def _run(self, data: bytes) -> None:
+        text = data.decode(errors="replace")
+        self.scripts.append(text)
+        self.on_script(text)
+
+
 # -- the fake as a process of its own ---------------------------------------------------------
 
-def free_loopback_host(ports=(DASHBOARD_PORT, RTDE_PORT)) -> str:
+def free_loopback_host(ports=(DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)) -> str:
     """A 127.0.0.x address whose fixed controller ports are free (tests never meet on them)."""
     import random
     for x in random.sample(range(2, 255), 253):
@@ -455,13 +619,43 @@ def free_loopback_host(ports=(DASHBOARD_PORT, RTDE_PORT)) -> str:
 
 
 def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
-    """The fake controller's process: serves until told to stop; answers the test's requests."""
+    """The fake controller's process: the arm and the control script step every controller cycle;
+    it serves until told to stop, and answers the test's requests."""
+    arm = JointArm(q)
     controller = ControllerState({"actual_q": list(q), "target_q": list(q), "actual_qd": [0.0] * 6,
                                   "actual_TCP_pose": list(tcp_pose), "robot_mode": 7, "safety_mode": 1,
                                   "safety_status_bits": 1 << NORMAL_MODE_BIT, "robot_status_bits": 1 << POWER_ON_BIT,
-                                  "runtime_state": 1, "speed_scaling": 1.0}, model=model, version=version)
+                                  "runtime_state": RUNTIME_STOPPED, "speed_scaling": 1.0}, model=model,
+                                 version=version)
     rtde = RtdeServer(host, controller.snapshot, version=version)
-    dashboard = DashboardServer(host, controller)
+    script = ControlScript(controller, rtde, arm)
+
+    def on_script(text: str) -> None:
+        if "def rtde_control():" in text:
+            script.start()
+
+    scripts = ScriptServer(host, on_script)
+    dashboard = DashboardServer(host, controller, on_stop=script.stop)
+    stop = threading.Event()
+
+    def run_cycles() -> None:
+        period = 1.0 / rtde.max_frequency_hz
+        t_next = time.monotonic()
+        while not stop.is_set():
+            script.cycle()
+            if controller.values.get("safety_mode") != 1:
+                arm.halt()                    # a protective or emergency stop halts the arm
+            arm.step(period)
+            controller.update(actual_q=list(arm.q), target_q=list(arm.q), actual_qd=list(arm.qd))
+            t_next += period
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.1:
+                t_next = time.monotonic()
+
+    cycles = threading.Thread(target=run_cycles, name="controller-cycle", daemon=True)
+    cycles.start()
     conn.send("ready")
     try:
         while True:
@@ -470,15 +664,25 @@ def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
                 break
             if msg[0] == "set":
                 controller.update(**msg[1])
+                if msg[1].get("safety_mode", 1) != 1 and script.running:
+                    # a protective stop pauses the program, as PolyScope does
+                    script.stop()
+                    controller.update(runtime_state=RUNTIME_PAUSED)
                 conn.send(None)
             elif msg[0] == "inputs":
                 conn.send((rtde.read_inputs(), rtde.input_packages))
             elif msg[0] == "dashboard":
                 conn.send((list(dashboard.commands), list(dashboard.not_understood)))
+            elif msg[0] == "arm":
+                conn.send({"q": list(arm.q), "qd": list(arm.qd), "commands": list(script.commands),
+                           "scripts": len(scripts.scripts), "program_running": script.running})
     except EOFError:
         pass
     finally:
+        stop.set()
+        cycles.join(1.0)
         dashboard.close()
+        scripts.close()
         rtde.close()
 
 
@@ -506,6 +710,12 @@ class FakeController:
     def inputs(self) -> tuple[dict, int]:
         """The input variables the client wrote (latest values) and how many data packages it sent."""
         self._conn.send(("inputs",))
+        return self._conn.recv()
+
+    def arm(self) -> dict:
+        """The arm's joint positions and rates, the control script's commands processed, the
+        programs received, and whether the control script runs."""
+        self._conn.send(("arm",))
         return self._conn.recv()
 
     def dashboard_commands(self) -> tuple[list[str], list[str]]:

@@ -112,3 +112,44 @@ def test_a_protective_stop_is_unlocked_on_the_dashboard_and_clears_on_rtde(fake)
     finally:
         db.disconnect()
         r.disconnect()
+
+
+rtde_control = pytest.importorskip("rtde_control")
+SPEEDJ_QD = [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]     # rad/s, joint 1 (the base) only
+SPEEDJ_ACCEL = 1.0                             # rad/s^2
+TICK_S = 0.02
+
+
+def test_the_real_control_client_runs_its_script_and_speedj_moves_the_arm(fake):
+    c = rtde_control.RTDEControlInterface(fake.host)
+    try:
+        assert c.isProgramRunning()                          # the script went in on 30003 and runs
+        q0 = fake.arm()["q"][0]
+        for _ in range(25):                                  # 0.5 s of 20 ms ticks
+            assert c.speedJ(SPEEDJ_QD, SPEEDJ_ACCEL, TICK_S)
+            time.sleep(TICK_S)
+        arm = fake.arm()
+        assert arm["qd"][0] == pytest.approx(0.1) and arm["q"][0] - q0 > 0.02
+        assert all(v == 0.0 for v in arm["qd"][1:])
+        assert c.speedStop(2.0)
+        assert wait_for(lambda: fake.arm()["qd"][0] == 0.0)
+        commands = fake.arm()["commands"]
+        assert commands.count(9) >= 25 and commands[-1] == 15      # speedJ each tick, then speedStop
+    finally:
+        c.stopScript()
+        c.disconnect()
+    assert not fake.arm()["program_running"]
+
+
+def test_a_protective_stop_halts_the_arm_and_the_controller_refuses_speedj(fake):
+    c = rtde_control.RTDEControlInterface(fake.host)
+    try:
+        for _ in range(10):
+            c.speedJ(SPEEDJ_QD, SPEEDJ_ACCEL, TICK_S)
+            time.sleep(TICK_S)
+        fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+        assert wait_for(lambda: not c.isProgramRunning())               # PolyScope pauses the program
+        assert c.speedJ(SPEEDJ_QD, SPEEDJ_ACCEL, TICK_S) is False      # refused: the program is paused
+        assert fake.arm()["qd"] == [0.0] * 6
+    finally:
+        c.disconnect()
