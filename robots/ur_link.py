@@ -1,0 +1,248 @@
+"""The ur-rtde clients in a process of their own: the daemon's link to a Universal Robots controller.
+
+Why a process of their own (both seen against tests/fake_ur.py):
+- ur-rtde's pybind11 binding holds the GIL while it blocks. A connect waits for the controller's
+  handshake, and every Python thread of the caller waits with it: the control loop, the IMU path.
+- When the controller drops the connection, ur-rtde's background threads can end with an uncaught
+  exception, and `terminate` aborts the whole process.
+In a child both cost the child only. The daemon sees a link that reports `lost` and can reconnect.
+
+The child connects (RTDEReceiveInterface, then RTDEControlInterface, which uploads its control
+script), then streams every new controller state to the parent and carries out speedJ and stop
+commands. The parent maps the controller's timestamps onto its monotonic clock (drivers.timesync:
+the lower envelope of arrival minus controller time) and hands out JointStates as any backend.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.timesync import ClockSync
+from robots.backend import JointState, joint_rates
+from robots.backends import BackendError
+
+log = logging.getLogger("tecdar.ur")
+
+STOP_TIMEOUT_S = 2.0
+STOP_DECEL_RAD_S2 = 2.0        # speedStop's deceleration when the daemon holds or stops the arm
+LINK_SILENT_S = 0.5            # no new controller state for this long: the link is lost (ur-rtde's own
+                               # isConnected stays true while its control interface tries to reconnect)
+UR_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
+                "robot_mode", "safety_mode", "safety_status_bits", "robot_status_bits", "runtime_state"]
+PROTECTIVE_STOPPED_BIT = 2     # safety_status_bits
+EMERGENCY_STOPPED_BITS = (5, 6, 7)     # system, robot, any emergency stop
+PROGRAM_RUNNING_BIT = 1        # robot_status_bits
+ROBOT_MODE_RUNNING = 7
+NQ = 6
+
+
+class UrLinkError(BackendError):
+    """The controller could not be reached, refused the link, or the link has gone."""
+
+
+@dataclass(frozen=True)
+class UrLinkSettings:
+    host: str
+    frequency_hz: float = -1.0            # -1: the controller's own rate (500 Hz e-Series, 125 Hz CB3)
+    accel_rad_s2: float = 1.0             # speedJ's acceleration bound
+    command_time_s: float = 0.02          # speedJ's time: the control tick (the controller stops after it)
+    connect_timeout_s: float = 10.0       # a controller that does not answer within this is an error
+
+
+@dataclass(frozen=True)
+class UrState:
+    """One controller state as the child read it."""
+    controller_t: float          # the controller's clock, s
+    rx_t: float                  # the child's monotonic clock when read, s
+    q: tuple
+    qd: tuple
+    tcp_pose: tuple              # x, y, z (m) and a rotation vector (rad), base frame, with the controller's TCP
+    tcp_speed: tuple             # v (m/s) and w (rad/s), base frame
+    tcp_force: tuple             # force (N) and torque (N m) at the TCP, base frame
+    robot_mode: int
+    safety_mode: int
+    safety_bits: int
+    program_running: bool
+
+    @property
+    def protective_stopped(self) -> bool:
+        return bool(self.safety_bits >> PROTECTIVE_STOPPED_BIT & 1)
+
+    @property
+    def emergency_stopped(self) -> bool:
+        return any(self.safety_bits >> b & 1 for b in EMERGENCY_STOPPED_BITS)
+
+
+def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
+    """The child: connect, then stream states and carry out commands until told to close or the link goes."""
+    import rtde_control
+    import rtde_receive
+    try:
+        rx = rtde_receive.RTDEReceiveInterface(settings.host, settings.frequency_hz, UR_VARIABLES)
+        ctl = rtde_control.RTDEControlInterface(settings.host, settings.frequency_hz)
+    except Exception as exc:
+        state_tx.send(("error", f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"))
+        return
+    period = 1.0 / 500.0
+    state_tx.send(("ready", None))
+    last_t = None
+    last_new = time.monotonic()
+    lost = False
+    try:
+        while True:
+            while cmd_rx.poll():
+                msg = cmd_rx.recv()
+                if msg[0] == "speedj":
+                    if not ctl.speedJ(list(msg[1]), settings.accel_rad_s2, settings.command_time_s):
+                        state_tx.send(("refused", "speedJ"))
+                elif msg[0] == "stop":
+                    if not ctl.speedStop(STOP_DECEL_RAD_S2):
+                        state_tx.send(("refused", "speedStop"))
+                elif msg[0] == "close":
+                    return
+            if not rx.isConnected():
+                lost = True
+                state_tx.send(("lost", "the controller closed the RTDE connection"))
+                return
+            t = rx.getTimestamp()
+            now = time.monotonic()
+            if t == last_t and now - last_new > LINK_SILENT_S:
+                lost = True
+                state_tx.send(("lost", f"no state from the controller for {now - last_new:.1f} s"))
+                return
+            if t != last_t:
+                last_t, last_new = t, now
+                state_tx.send(("state", UrState(
+                    t, time.monotonic(), tuple(rx.getActualQ()), tuple(rx.getActualQd()), tuple(rx.getActualTCPPose()),
+                    tuple(rx.getActualTCPSpeed()), tuple(rx.getActualTCPForce()), rx.getRobotMode(),
+                    rx.getSafetyMode(), rx.getSafetyStatusBits(), bool(rx.getRobotStatus() >> PROGRAM_RUNNING_BIT & 1))))
+            time.sleep(period / 2)
+    except (EOFError, OSError, BrokenPipeError):
+        return                      # the daemon has gone
+    finally:
+        # on a lost link the client's calls block in its reconnect: the parent ends this process
+        for step in () if lost else (lambda: ctl.speedStop(STOP_DECEL_RAD_S2), ctl.stopScript, ctl.disconnect,
+                                     rx.disconnect):
+            try:
+                step()
+            except Exception:
+                pass
+
+
+class UrLink:
+    """The daemon's handle on the child: receive (read_state, wait_state) and control
+    (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable."""
+
+    def __init__(self, settings: UrLinkSettings):
+        self.settings = settings
+        self._proc = None
+        self._cmd = self._state_rx = None
+        self._send_lock = threading.Lock()
+        self._state: JointState | None = None
+        self.ur_state: UrState | None = None       # the newest controller state, as read
+        self._seq = 0
+        self._sync = ClockSync()
+        self._new_state = threading.Condition()
+        self._reader: threading.Thread | None = None
+        self.exited = threading.Event()
+        self.fault: str | None = None               # the link's own fault (lost, a refused command), or None
+
+    def start(self) -> None:
+        """Connect within settings.connect_timeout_s, or UrLinkError naming the host."""
+        ctx = multiprocessing.get_context("spawn")
+        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
+        self._state_rx, state_tx = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=child_main, args=(self.settings, cmd_rx, state_tx), name="tecdar-ur",
+                                 daemon=True)
+        self._proc.start()
+        cmd_rx.close()
+        state_tx.close()
+        host, timeout = self.settings.host, self.settings.connect_timeout_s
+        try:
+            if not self._state_rx.poll(timeout):
+                raise UrLinkError(f"robot.ur.host: no UR controller answered at {host} within {timeout:g} s")
+            msg = self._state_rx.recv()
+        except EOFError:
+            raise UrLinkError(f"robot.ur.host: the link to {host} ended at start (exit code "
+                              f"{self._proc.exitcode})") from None
+        except UrLinkError:
+            self._kill()
+            raise
+        if msg[0] != "ready":
+            self._kill()
+            raise UrLinkError(f"robot.ur.host: {host} refused the link: {msg[1]}")
+        self._reader = threading.Thread(target=self._read, name="ur-link", daemon=True)
+        self._reader.start()
+
+    def stop(self) -> None:
+        if self._proc is None:
+            return
+        self._send(("close",), quiet=True)
+        self._proc.join(STOP_TIMEOUT_S)
+        self._kill()
+        self._proc = None
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(STOP_TIMEOUT_S)
+
+    def _read(self) -> None:
+        while True:
+            try:
+                msg = self._state_rx.recv()
+            except (EOFError, OSError):
+                break
+            if msg[0] == "state":
+                st: UrState = msg[1]
+                self._sync.add(st.controller_t, st.rx_t)
+                self._seq += 1
+                pose = np.array(st.tcp_pose)
+                js = JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
+                                seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]))
+                with self._new_state:
+                    self.ur_state, self._state, self.tcp_pose = st, js, pose
+                    self._new_state.notify_all()
+            elif msg[0] == "refused":
+                self.fault = f"the controller refused {msg[1]}"
+            elif msg[0] == "lost":
+                self.fault = msg[1]
+                break                        # the child may hang in its client's reconnect: stop() ends it
+        with self._new_state:
+            if self.fault is None:
+                self.fault = f"the link to {self.settings.host} has gone"
+            self.exited.set()
+            self._new_state.notify_all()
+
+    def _send(self, msg: tuple, quiet: bool = False) -> None:
+        try:
+            with self._send_lock:
+                self._cmd.send(msg)
+        except (OSError, ValueError, AttributeError, BrokenPipeError):
+            if not quiet:
+                raise UrLinkError(f"the link to {self.settings.host} is not running") from None
+
+    # -- RobotReceive / RobotControl ------------------------------------------
+    def read_state(self) -> JointState:
+        if self._state is None:
+            raise UrLinkError(f"no state from {self.settings.host} yet")
+        return self._state
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        with self._new_state:
+            self._new_state.wait_for(
+                lambda: self.exited.is_set() or (self._state is not None and self._state.seq != seq), timeout)
+        if self.exited.is_set():
+            raise UrLinkError(self.fault or "the link has gone")
+        return self.read_state()
+
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        self._send(("speedj", tuple(float(x) for x in joint_rates(qd, NQ))))
+
+    def hold(self) -> None:
+        self._send(("stop",))

@@ -1,0 +1,96 @@
+"""robots.ur_link against the fake UR controller, through the real ur-rtde client in its child process."""
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from tests.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController, free_loopback_host
+
+pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
+
+from robots.ur_link import UrLink, UrLinkError, UrLinkSettings  # noqa: E402
+
+Q = (0.1, -1.2, 1.3, -1.6, -1.57, 0.2)
+QD = np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])       # rad/s
+TICK_S = 0.02
+CONNECT_TIMEOUT_S = 3.0
+PROTECTIVE_STOPPED_BIT = 2
+
+
+@pytest.fixture
+def fake():
+    controller = FakeController(free_loopback_host(), q=Q)
+    yield controller
+    controller.close()
+
+
+@pytest.fixture
+def link(fake):
+    ur = UrLink(UrLinkSettings(fake.host, connect_timeout_s=CONNECT_TIMEOUT_S))
+    ur.start()
+    yield ur
+    ur.stop()
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+def test_states_arrive_on_the_daemons_clock_and_speedj_moves_the_arm(fake, link):
+    js = link.wait_state(-1, 2.0)
+    np.testing.assert_allclose(js.q, Q)
+    # the controller's timestamps, mapped onto this process's monotonic clock
+    assert abs(js.t - time.monotonic()) < 0.1
+    seqs = {js.seq}
+    for _ in range(25):
+        link.command_joint_velocity(QD)
+        js = link.wait_state(js.seq, 1.0)
+        seqs.add(js.seq)
+        time.sleep(TICK_S)
+    assert len(seqs) > 10                                     # a stream of states, not one
+    assert js.qd[0] == pytest.approx(0.1) and js.q[0] > Q[0] + 0.02
+    link.hold()
+    assert wait_for(lambda: link.read_state().qd[0] == 0.0)
+    assert link.fault is None and link.ur_state.program_running
+
+
+def test_a_controller_that_does_not_answer_is_an_error_within_the_deadline():
+    host = free_loopback_host()
+    listeners = [socket.create_server((host, port)) for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)]
+    try:                                                      # connections are accepted, nothing is ever said
+        t0 = time.monotonic()
+        with pytest.raises(UrLinkError, match=f"no UR controller answered at {host} within"):
+            UrLink(UrLinkSettings(host, connect_timeout_s=1.0)).start()
+        assert time.monotonic() - t0 < 1.0 + 3.0              # the deadline, plus ending the child
+    finally:
+        for s in listeners:
+            s.close()
+
+
+def test_no_controller_at_all_is_an_error_naming_the_host():
+    host = free_loopback_host()
+    with pytest.raises(UrLinkError, match=host):
+        UrLink(UrLinkSettings(host, connect_timeout_s=CONNECT_TIMEOUT_S)).start()
+
+
+def test_a_protective_stop_is_seen_and_a_refused_speedj_is_a_fault(fake, link):
+    link.wait_state(-1, 2.0)
+    fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+    assert wait_for(lambda: link.ur_state.protective_stopped)
+    link.command_joint_velocity(QD)
+    assert wait_for(lambda: link.fault == "the controller refused speedJ")
+
+
+def test_a_controller_that_goes_away_is_a_lost_link_not_a_dead_daemon(fake, link):
+    js = link.wait_state(-1, 2.0)
+    fake.close()                                              # the controller is switched off
+    assert wait_for(lambda: link.exited.is_set(), 10.0)
+    assert link.fault
+    with pytest.raises(UrLinkError):
+        link.wait_state(js.seq, 0.1)
