@@ -46,6 +46,11 @@ class CartesianPlanner:
         self._t_plan: float | None = None     # when the trajectory in `out` started (None: none to follow)
         self.fallbacks = 0                    # cycles planned axis by axis after a Ruckig failure (_update)
 
+    def release(self) -> None:
+        """Drop the Ruckig objects now (the planner is not used again). Freed by their reference count,
+        not left to a garbage collection that the daemon's frozen heap would never run."""
+        self.otg = self.inp = self.out = None
+
     def _set_limits(self, speed: float) -> None:
         # Ruckig limits are per axis. Targets here always carry a velocity of norm
         # <= speed, so per-axis `speed` keeps their direction intact (dividing by

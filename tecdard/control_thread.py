@@ -184,6 +184,7 @@ class ControlThread:
             except Exception:
                 log.exception("hold on exit failed")
             self.maps.shutdown()
+            self.runner.planner.release()
 
     def tick(self, now: float) -> None:
         runner = self.runner

@@ -288,10 +288,6 @@ class Daemon:
                 self.intake.undeclare()
                 self._shutdown()
                 token.undeclare()
-        # What was frozen at start is collectable again: the cycles that hold the planner's Ruckig
-        # objects are freed here, not left for nanobind to report as leaks at exit.
-        gc.unfreeze()
-        gc.collect()
         log.info("tecdard stopped")
         return 0
 
