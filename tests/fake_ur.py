@@ -140,31 +140,20 @@ def _package(kind: int, payload: bytes = b"") -> bytes:
     return struct.pack(">HB", 3 + len(payload), kind) + payload
 
 
-class RtdeServer:
-    """RTDE on (host, 30004). `state()` gives the output variables' current values by name;
-    `version` is the controller's (major, minor, bugfix, build): major 5 is e-Series (500 Hz),
-    3 a CB3 (125 Hz). `max_frequency_hz` is the controller's base rate; its `timestamp` counts its
-    cycles since it was switched on, `uptime_s` before the fake started."""
+class _TcpServer:
+    """A listening socket on (host, port) with a thread per connection: `_serve(conn)` is the
+    protocol; the connection is closed and forgotten when it returns. `conn_timeout_s` is each
+    connection's receive timeout (None: blocking)."""
 
-    def __init__(self, host: str, state, version=(5, 11, 0, 0), port: int = RTDE_PORT, uptime_s: float = 100.0):
-        self.host, self.port = host, port
-        self.state = state
-        self.version = version
-        self.max_frequency_hz = 500.0 if version[0] >= 5 else 125.0
-        self.inputs: dict = {}                     # the latest value of every input variable written
-        self._inputs_lock = threading.Lock()
-        self.input_packages = 0
+    conn_timeout_s: float | None = None
+
+    def _listen(self, host: str, port: int, name: str) -> None:
         self.stopped = threading.Event()
-        self._t0 = time.monotonic() - uptime_s   # the controller was switched on a while before a client came
-        self._sock = socket.create_server((host, port), reuse_port=False)
+        self._sock = socket.create_server((host, port))
         self._sock.settimeout(0.1)
         self._conns: list[socket.socket] = []
-        self._thread = threading.Thread(target=self._accept, name=f"rtde-{host}", daemon=True)
+        self._thread = threading.Thread(target=self._accept, name=f"{name}-{host}", daemon=True)
         self._thread.start()
-
-    def read_inputs(self) -> dict:
-        with self._inputs_lock:
-            return dict(self.inputs)
 
     def close(self) -> None:
         self.stopped.set()
@@ -185,10 +174,48 @@ class RtdeServer:
                 continue
             except OSError:
                 return
-            conn.settimeout(None)            # accepted sockets inherit the listening socket's timeout
+            conn.settimeout(self.conn_timeout_s)      # accepted sockets inherit the listening one's timeout
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._conns.append(conn)
-            threading.Thread(target=self._serve, args=(conn,), name="rtde-conn", daemon=True).start()
+            threading.Thread(target=self._run, args=(conn,), name="fake-ur-conn", daemon=True).start()
+
+    def _run(self, conn: socket.socket) -> None:
+        try:
+            self._serve(conn)
+        except OSError:
+            pass
+        finally:
+            try:
+                conn.close()
+            except OSError:
+                pass
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def _serve(self, conn: socket.socket) -> None:
+        raise NotImplementedError
+
+
+class RtdeServer(_TcpServer):
+    """RTDE on (host, 30004). `state()` gives the output variables' current values by name;
+    `version` is the controller's (major, minor, bugfix, build): major 5 is e-Series (500 Hz),
+    3 a CB3 (125 Hz). `max_frequency_hz` is the controller's base rate; its `timestamp` counts its
+    cycles since it was switched on, `uptime_s` before the fake started."""
+
+    def __init__(self, host: str, state, version=(5, 11, 0, 0), port: int = RTDE_PORT, uptime_s: float = 100.0):
+        self.host, self.port = host, port
+        self.state = state
+        self.version = version
+        self.max_frequency_hz = 500.0 if version[0] >= 5 else 125.0
+        self.inputs: dict = {}                     # the latest value of every input variable written
+        self._inputs_lock = threading.Lock()
+        self.input_packages = 0
+        self._t0 = time.monotonic() - uptime_s   # the controller was switched on a while before a client came
+        self._listen(host, port, "rtde")
+
+    def read_inputs(self) -> dict:
+        with self._inputs_lock:
+            return dict(self.inputs)
 
     def _serve(self, conn: socket.socket) -> None:
         outputs: list[_Recipe] = []
@@ -247,16 +274,10 @@ class RtdeServer:
                             self.inputs.update(values)
                             self.input_packages += 1
                 # anything else: ignored, as the controller does with what it does not know
-        except (ConnectionError, OSError, struct.error):
+        except (ConnectionError, struct.error):
             pass
         finally:
             started.clear()
-            try:
-                conn.close()
-            except OSError:
-                pass
-            if conn in self._conns:
-                self._conns.remove(conn)
 
     def _send_data(self, send, outputs: list[_Recipe], started: threading.Event) -> None:
         """Every output recipe at its own frequency (the controller's cycle divided down), on an
@@ -331,7 +352,7 @@ class ControllerState:
             return True
 
 
-class DashboardServer:
+class DashboardServer(_TcpServer):
     """The dashboard server on (host, 29999): a greeting on connect, then a reply line per command."""
 
     GREETING = "Connected: Universal Robots Dashboard Server"
@@ -341,59 +362,23 @@ class DashboardServer:
         self.on_stop = on_stop or (lambda: None)     # `stop`: the program stops
         self.commands: list[str] = []              # every command line received, in order
         self.not_understood: list[str] = []        # those the server answered "could not understand"
-        self.stopped = threading.Event()
-        self._sock = socket.create_server((host, port))
-        self._sock.settimeout(0.1)
-        self._conns: list[socket.socket] = []
-        self._thread = threading.Thread(target=self._accept, name=f"dashboard-{host}", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self.stopped.set()
-        for conn in list(self._conns):
-            try:
-                conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-            conn.close()
-        self._thread.join(2.0)
-        self._sock.close()
-
-    def _accept(self) -> None:
-        while not self.stopped.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except socket.timeout:
-                continue
-            except OSError:
-                return
-            conn.settimeout(None)
-            self._conns.append(conn)
-            threading.Thread(target=self._serve, args=(conn,), name="dashboard-conn", daemon=True).start()
+        self._listen(host, port, "dashboard")
 
     def _serve(self, conn: socket.socket) -> None:
-        try:
-            conn.sendall((self.GREETING + "\n").encode())
-            buf = b""
-            while not self.stopped.is_set():
-                chunk = conn.recv(1024)
-                if not chunk:
+        conn.sendall((self.GREETING + "\n").encode())
+        buf = b""
+        while not self.stopped.is_set():
+            chunk = conn.recv(1024)
+            if not chunk:
+                return
+            buf += chunk
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                command = line.decode(errors="replace").strip()
+                self.commands.append(command)
+                conn.sendall((self.reply(command) + "\n").encode())
+                if command == "quit":
                     return
-                buf += chunk
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
-                    command = line.decode(errors="replace").strip()
-                    self.commands.append(command)
-                    reply = self.reply(command)
-                    conn.sendall((reply + "\n").encode())
-                    if command == "quit":
-                        return
-        except OSError:
-            pass
-        finally:
-            conn.close()
-            if conn in self._conns:
-                self._conns.remove(conn)
 
     def reply(self, command: str) -> str:
         c = self.controller
@@ -535,42 +520,16 @@ class ControlScript:
         return True
 
 
-class ScriptServer:
+class ScriptServer(_TcpServer):
     """The script port (30003): URScript arrives as text; a program that defines `rtde_control`
-    starts the control script (another program first stops the one running)."""
+    starts the control script. Other programs are recorded, not run."""
+
+    conn_timeout_s = 0.05          # a pause this long ends a program
 
     def __init__(self, host: str, on_script, port: int = SCRIPT_PORT):
         self.on_script = on_script
         self.scripts: list[str] = []
-        self.stopped = threading.Event()
-        self._sock = socket.create_server((host, port))
-        self._sock.settimeout(0.1)
-        self._conns: list[socket.socket] = []
-        self._thread = threading.Thread(target=self._accept, name=f"script-{host}", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self.stopped.set()
-        for conn in list(self._conns):
-            try:
-                conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-            conn.close()
-        self._thread.join(2.0)
-        self._sock.close()
-
-    def _accept(self) -> None:
-        while not self.stopped.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except socket.timeout:
-                continue
-            except OSError:
-                return
-            conn.settimeout(0.05)
-            self._conns.append(conn)
-            threading.Thread(target=self._serve, args=(conn,), name="script-conn", daemon=True).start()
+        self._listen(host, port, "script")
 
     def _serve(self, conn: socket.socket) -> None:
         """A program is complete when the sender pauses: the controller runs what it has."""
@@ -584,18 +543,13 @@ class ScriptServer:
                     buf += chunk
                 except socket.timeout:
                     if buf:
-                        self._run(buf)
+                        self._program(buf)
                         buf = b""
-        except OSError:
-            pass
         finally:
             if buf:
-                self._run(buf)
-            conn.close()
-            if conn in self._conns:
-                self._conns.remove(conn)
+                self._program(buf)
 
-    def _run(self, data: bytes) -> None:
+    def _program(self, data: bytes) -> None:
         text = data.decode(errors="replace")
         self.scripts.append(text)
         self.on_script(text)
@@ -684,6 +638,16 @@ def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
         dashboard.close()
         scripts.close()
         rtde.close()
+
+
+def wait_for(predicate, timeout_s: float = 5.0) -> bool:
+    """Poll `predicate` until it holds or `timeout_s` has passed; its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
 
 
 class FakeController:

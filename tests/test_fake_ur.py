@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from tests.fake_ur import FakeController, free_loopback_host
+from tests.fake_ur import FakeController, free_loopback_host, wait_for
 
 rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is installed by `make test` (extra `ur`)")
 rtde_io = pytest.importorskip("rtde_io")
@@ -28,15 +28,6 @@ def fake():
     controller = FakeController(free_loopback_host(), q=Q, tcp_pose=TCP_POSE)
     yield controller
     controller.close()
-
-
-def wait_for(predicate, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 def test_the_real_receive_client_reads_the_controller_state_and_its_stops(fake):

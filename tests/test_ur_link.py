@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController, free_loopback_host
+from tests.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController, free_loopback_host, wait_for
 
 pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
 
@@ -31,15 +31,6 @@ def link(fake):
     ur.start()
     yield ur
     ur.stop()
-
-
-def wait_for(predicate, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 def test_states_arrive_on_the_daemons_clock_and_speedj_moves_the_arm(fake, link):
