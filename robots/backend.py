@@ -1,6 +1,7 @@
 """Robot backend interfaces: reading state apart from commanding, in the manner of ur_rtde."""
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -24,6 +25,42 @@ def joint_rates(qd, nq: int) -> np.ndarray:
     if qd.shape != (nq,) or not np.all(np.isfinite(qd)):
         raise ValueError(f"qd: expected {nq} finite joint rates")
     return qd
+
+
+class StateSlot:
+    """The newest JointState of a robot link, between the thread that receives states and the
+    threads that read them: `publish` replaces it and wakes the waiters; `close` (the link has gone)
+    wakes them for good, and reads then raise `error()`."""
+
+    def __init__(self, error):
+        self._error = error                  # () -> the exception to raise once closed or before a state
+        self._state: JointState | None = None
+        self._cond = threading.Condition()
+        self.closed = threading.Event()
+
+    def publish(self, js: JointState) -> None:
+        with self._cond:
+            self._state = js
+            self._cond.notify_all()
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed.set()
+            self._cond.notify_all()
+
+    def read(self) -> JointState:
+        if self._state is None:
+            raise self._error()
+        return self._state
+
+    def wait(self, seq: int, timeout: float) -> JointState:
+        """The newest state once its seq differs from `seq`, or after `timeout` s."""
+        with self._cond:
+            self._cond.wait_for(lambda: self.closed.is_set() or (self._state is not None and self._state.seq != seq),
+                                timeout)
+        if self.closed.is_set():
+            raise self._error()
+        return self.read()
 
 
 class RobotReceive(Protocol):

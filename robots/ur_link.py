@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.timesync import ClockSync
-from robots.backend import JointState, joint_rates
+from robots.backend import JointState, StateSlot, joint_rates
 from robots.backends import BackendError
 
 log = logging.getLogger("tecdar.ur")
@@ -143,13 +143,13 @@ class UrLink:
         self._proc = None
         self._cmd = self._state_rx = None
         self._send_lock = threading.Lock()
-        self._state: JointState | None = None
+        self._states = StateSlot(lambda: UrLinkError(self.fault or f"no state from {self.settings.host} yet"))
         self.ur_state: UrState | None = None       # the newest controller state, as read
+        self.tcp_pose: np.ndarray | None = None    # its TCP pose: x, y, z (m), rotation vector (rad), base frame
         self._seq = 0
         self._sync = ClockSync()
-        self._new_state = threading.Condition()
         self._reader: threading.Thread | None = None
-        self.exited = threading.Event()
+        self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost, a refused command), or None
 
     def start(self) -> None:
@@ -205,19 +205,16 @@ class UrLink:
                 pose = np.array(st.tcp_pose)
                 js = JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
                                 seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]))
-                with self._new_state:
-                    self.ur_state, self._state, self.tcp_pose = st, js, pose
-                    self._new_state.notify_all()
+                self.ur_state, self.tcp_pose = st, pose
+                self._states.publish(js)
             elif msg[0] == "refused":
                 self.fault = f"the controller refused {msg[1]}"
             elif msg[0] == "lost":
                 self.fault = msg[1]
                 break                        # the child may hang in its client's reconnect: stop() ends it
-        with self._new_state:
-            if self.fault is None:
-                self.fault = f"the link to {self.settings.host} has gone"
-            self.exited.set()
-            self._new_state.notify_all()
+        if self.fault is None:
+            self.fault = f"the link to {self.settings.host} has gone"
+        self._states.close()
 
     def _send(self, msg: tuple, quiet: bool = False) -> None:
         try:
@@ -229,17 +226,11 @@ class UrLink:
 
     # -- RobotReceive / RobotControl ------------------------------------------
     def read_state(self) -> JointState:
-        if self._state is None:
-            raise UrLinkError(f"no state from {self.settings.host} yet")
-        return self._state
+        return self._states.read()
 
     def wait_state(self, seq: int, timeout: float) -> JointState:
-        with self._new_state:
-            self._new_state.wait_for(
-                lambda: self.exited.is_set() or (self._state is not None and self._state.seq != seq), timeout)
-        if self.exited.is_set():
-            raise UrLinkError(self.fault or "the link has gone")
-        return self.read_state()
+        """The latest state, once its seq differs from `seq` or after `timeout` s; UrLinkError once the link has gone."""
+        return self._states.wait(seq, timeout)
 
     def command_joint_velocity(self, qd: np.ndarray) -> None:
         self._send(("speedj", tuple(float(x) for x in joint_rates(qd, NQ))))

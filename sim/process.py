@@ -36,7 +36,7 @@ import numpy as np
 from sim.board import Board, BoardParams, PtyDevice
 from drivers.lsm6dsr import Scaling
 from sim.imu import SimImu, SimImuParams
-from robots.backend import JointState, joint_rates
+from robots.backend import JointState, StateSlot, joint_rates
 from robots.backends import BackendError
 from robots.model import ArmModel
 from sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
@@ -203,11 +203,10 @@ class SimProcess:
         self._proc = None
         self._cmd = self._state_rx = self._imu_rx = None
         self._send_lock = threading.Lock()
-        self._state: JointState | None = None
+        self._states = StateSlot(lambda: SimProcessError("the simulation process is not running"))
         self._truth: SimTruth | None = None
-        self._new_state = threading.Condition()    # notified with each state from the child, and at its exit
         self._reader: threading.Thread | None = None
-        self.exited = threading.Event()
+        self.exited = self._states.closed
 
     # -- lifecycle ----------------------------------------------------------
     def start(self) -> None:
@@ -232,7 +231,8 @@ class SimProcess:
         if msg[0] != "ready":
             self._kill()
             raise SimProcessError(f"the simulation process failed at start: {msg[1]}")
-        _, self._state, self._truth = msg
+        _, state, self._truth = msg
+        self._states.publish(state)
         self._reader = threading.Thread(target=self._read_states, name="sim-link", daemon=True)
         self._reader.start()
 
@@ -262,30 +262,20 @@ class SimProcess:
             except (EOFError, OSError):
                 break
             if msg[0] == "state":
-                with self._new_state:
-                    _, self._state, self._truth = msg
-                    self._new_state.notify_all()
-        with self._new_state:
-            self.exited.set()
-            self._new_state.notify_all()
+                _, state, self._truth = msg
+                self._states.publish(state)
+        self._states.close()
         if self._proc is not None and self._proc.exitcode not in (None, 0):
             log.error("the simulation process exited (code %s)", self._proc.exitcode)
 
     # -- RobotReceive / RobotControl ------------------------------------------
     def read_state(self) -> JointState:
-        if self._state is None:
-            raise SimProcessError("the simulation process is not running")
-        return self._state
+        return self._states.read()
 
     def wait_state(self, seq: int, timeout: float) -> JointState:
         """The latest state, once its seq differs from `seq` or after `timeout` s; SimProcessError once
         the child has gone."""
-        with self._new_state:
-            self._new_state.wait_for(
-                lambda: self.exited.is_set() or (self._state is not None and self._state.seq != seq), timeout)
-        if self.exited.is_set():
-            raise SimProcessError("the simulation process is not running")
-        return self.read_state()
+        return self._states.wait(seq, timeout)
 
     def truth(self) -> SimTruth | None:
         return self._truth
