@@ -90,8 +90,8 @@ def imu_saturation(now: float, saturated_since: float | None, limits: SafetyLimi
 
 
 class SensorWatch:
-    """The sensors' faults (imu_stale, imu_saturated) as state: each holds from when its condition
-    is found until it clears. `update` returns what changed, as (event kind, code, message) with
+    """The sensors' faults (imu_stale, imu_saturated, and the robot backend's own) as state: each
+    holds from when its condition is found until it clears. `update` returns what changed, as (event kind, code, message) with
     kind `fault` or `fault_cleared`; a new fault is also a protective stop of the running task."""
 
     def __init__(self, limits: SafetyLimits, t_boot: float):
@@ -99,6 +99,7 @@ class SensorWatch:
         self.t_boot = t_boot
         self.faults: dict[str, str] = {}
         self._stale_deferred = False
+        self._robot_codes: set[str] = set()
 
     def update(self, now: float, total: int, last_t: float, late_s: float,
                saturated_since: float | None) -> list[tuple[str, str, str]]:
@@ -107,6 +108,18 @@ class SensorWatch:
         changes = self._set("imu_stale", verdict.stale, keep=verdict.deferred)
         changes += self._set("imu_saturated", imu_saturation(now, saturated_since, self.limits),
                              keep=saturated_since is not None)
+        return changes
+
+    def update_robot(self, current: dict[str, str]) -> list[tuple[str, str, str]]:
+        """The robot backend's faults that hold now (code -> message): new ones are raised, those of
+        the backend's that no longer hold are cleared."""
+        changes = []
+        for code in [c for c in self._robot_codes if c not in current]:
+            self._robot_codes.discard(code)
+            changes += self._set(code, None, keep=False)
+        for code, message in current.items():
+            self._robot_codes.add(code)
+            changes += self._set(code, message, keep=False)
         return changes
 
     def _set(self, code: str, message: str | None, keep: bool) -> list[tuple[str, str, str]]:

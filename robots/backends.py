@@ -1,7 +1,9 @@
 """The robot backends, by the name `robot.backend` gives: each a module with `build(BackendContext)`.
 
 A backend gives the daemon a robot to receive from and command (robots.backend's JointState,
-read_state/wait_state, command_joint_velocity, hold, stop), and may also be the IMU source. Its
+read_state/wait_state, command_joint_velocity, hold, stop), and may also be the IMU source. A robot
+with `faults()` (code -> message, while each holds) has them raised and cleared as the daemon's
+own faults. Its
 module is imported only when the config names it, so the daemon never loads a backend it does
 not run (the simulator among them).
 """
@@ -12,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BACKENDS = {"sim": "sim.backend"}     # name -> module
+BACKENDS = {"sim": "sim.backend", "ur": "robots.ur"}     # name -> module
 
 
 class BackendError(RuntimeError):
@@ -28,6 +30,7 @@ class BackendContext:
     q_home: np.ndarray          # rad
     imu_source: str             # imu.source: sim | sim-wire | serial
     imu_mount: list             # imu.imu_in_tcp_quat (x, y, z, w)
+    tick_s: float = 0.02        # control.tick_s: how long a joint velocity command holds
 
 
 def names() -> tuple[str, ...]:

@@ -93,16 +93,23 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     last_t = None
     last_new = time.monotonic()
     lost = False
+    refusing = False
+
+    def outcome(ok: bool, what: str) -> None:
+        nonlocal refusing
+        if ok == refusing:            # a change: the first refusal, or the first acceptance after them
+            refusing = not ok
+            state_tx.send(("refused" if refusing else "accepted", what))
     try:
         while True:
             while cmd_rx.poll():
                 msg = cmd_rx.recv()
                 if msg[0] == "speedj":
-                    if not ctl.speedJ(list(msg[1]), settings.accel_rad_s2, settings.command_time_s):
-                        state_tx.send(("refused", "speedJ"))
+                    outcome(ctl.speedJ(list(msg[1]), settings.accel_rad_s2, settings.command_time_s), "speedJ")
                 elif msg[0] == "stop":
-                    if not ctl.speedStop(STOP_DECEL_RAD_S2):
-                        state_tx.send(("refused", "speedStop"))
+                    outcome(ctl.speedStop(STOP_DECEL_RAD_S2), "speedStop")
+                elif msg[0] == "reupload":
+                    ctl.reuploadScript()
                 elif msg[0] == "close":
                     return
             if not rx.isConnected():
@@ -150,7 +157,8 @@ class UrLink:
         self._sync = ClockSync()
         self._reader: threading.Thread | None = None
         self.exited = self._states.closed
-        self.fault: str | None = None               # the link's own fault (lost, a refused command), or None
+        self.fault: str | None = None               # the link's own fault (lost), or None
+        self.refused: str | None = None             # the controller refuses commands (since this one), or None
 
     def start(self) -> None:
         """Connect within settings.connect_timeout_s, or UrLinkError naming the host."""
@@ -208,7 +216,9 @@ class UrLink:
                 self.ur_state, self.tcp_pose = st, pose
                 self._states.publish(js)
             elif msg[0] == "refused":
-                self.fault = f"the controller refused {msg[1]}"
+                self.refused = f"the controller refused {msg[1]}"
+            elif msg[0] == "accepted":
+                self.refused = None
             elif msg[0] == "lost":
                 self.fault = msg[1]
                 break                        # the child may hang in its client's reconnect: stop() ends it
@@ -237,3 +247,7 @@ class UrLink:
 
     def hold(self) -> None:
         self._send(("stop",))
+
+    def reupload(self) -> None:
+        """Upload ur-rtde's control script again (after a protective stop has been unlocked)."""
+        self._send(("reupload",))

@@ -104,6 +104,7 @@ class ControlThread:
         self.limits = params.safety_limits()
         self.model = model.clone()           # this thread's own pinocchio Data
         self.robot, self.ring, self.contact, self.outbox = robot, ring, contact, outbox
+        self._robot_faults = getattr(robot, "faults", None)     # a backend's own faults, where it has them
         self.q_home, self.robot_name, self.notifier = q_home, robot_name, notifier
         self.map_settings = map_settings or MapSettings()
         self.maps = MapWriter(self.map_settings)
@@ -220,9 +221,12 @@ class ControlThread:
 
     # -- faults -------------------------------------------------------------------------
     def _check_sensors(self, now: float) -> None:
-        """The IMU's faults: stale, or stuck at full scale (a new one stops the running task)."""
-        for kind, code, message in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
-                                                       self.imu_saturated_since()):
+        """The IMU's faults (stale, stuck at full scale) and the robot's (a backend's faults()): a new
+        one stops the running task."""
+        changes = self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s, self.imu_saturated_since())
+        if self._robot_faults is not None:
+            changes += self.sensors.update_robot(self._robot_faults())
+        for kind, code, message in changes:
             if kind == "fault":
                 self._event("fault", code=code, message=message)
                 self.runner.protective_stop(safety.StopCause(code, message))

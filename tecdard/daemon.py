@@ -164,7 +164,8 @@ class Daemon:
         mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
 
         self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home,
-                                                                            self.imu_source, mount))
+                                                                            self.imu_source, mount,
+                                                                            self.control_params.tick_s))
         if self.backend.serial_params is not None:
             serial_params = self.backend.serial_params          # sim-wire: the simulated board's pty
         # The onset detector is tuned to the data rate of the source in use: the board's (its serial
@@ -247,6 +248,10 @@ class Daemon:
                 step()
             except Exception:
                 log.exception("shutdown step %s failed", getattr(step, "__name__", step))
+        if not any(th.name == "control" and th.is_alive() for th in self._threads):
+            # the control thread releases the planner's Ruckig objects as it ends; one that never
+            # started (a failed start) leaves that to here, or nanobind reports them at exit
+            self.control.runner.planner.release()
 
     def run(self) -> int:
         # The acquisition and sim-link threads block on I/O and need the GIL back at once when
@@ -266,28 +271,31 @@ class Daemon:
             # control ticks and IMU chunks. Frozen, they are never walked again (under 0.1 ms).
             gc.collect()
             gc.freeze()
-            self._start_threads()
-            _renice_zenoh_threads()
-            if not self.control.first_tick.wait(2.0):
-                log.error("control thread did not tick within 2 s")
-            # Alive and READY once a contact can be detected: the onset detector needs its warm-up of
-            # IMU data at rest (estimator.onset.warmup_s). A task sent before that would probe blind
-            # for its first tens of milliseconds and localise from a late onset.
-            warm_by = time.monotonic() + IMU_WARM_TIMEOUT_S
-            while not self.estimator.warm.wait(0.05) and not self.shutdown_requested.is_set():
-                if time.monotonic() > warm_by:
-                    log.warning("the IMU has not streamed its onset warm-up within %.0f s; contacts are not "
-                                "detected until it has", IMU_WARM_TIMEOUT_S)
-                    break
-            token = session.liveliness().declare_token(self.keys.alive)
-            self.notifier.notify("READY=1")
-            log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self._where())
+            token = None
             try:
+                self._start_threads()
+                _renice_zenoh_threads()
+                if not self.control.first_tick.wait(2.0):
+                    log.error("control thread did not tick within 2 s")
+                # Alive and READY once a contact can be detected: the onset detector needs its warm-up of
+                # IMU data at rest (estimator.onset.warmup_s). A task sent before that would probe blind
+                # for its first tens of milliseconds and localise from a late onset.
+                warm_by = time.monotonic() + IMU_WARM_TIMEOUT_S
+                while not self.estimator.warm.wait(0.05) and not self.shutdown_requested.is_set():
+                    if time.monotonic() > warm_by:
+                        log.warning("the IMU has not streamed its onset warm-up within %.0f s; contacts are not "
+                                    "detected until it has", IMU_WARM_TIMEOUT_S)
+                        break
+                token = session.liveliness().declare_token(self.keys.alive)
+                self.notifier.notify("READY=1")
+                log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self._where())
                 self._serve(pub_state, pub_contact, pub_events)
             finally:
+                # also when a start fails (a backend that cannot connect): what did start is stopped
                 self.intake.undeclare()
                 self._shutdown()
-                token.undeclare()
+                if token is not None:
+                    token.undeclare()
         log.info("tecdard stopped")
         return 0
 

@@ -75,7 +75,8 @@ def test_a_protective_stop_is_seen_and_a_refused_speedj_is_a_fault(fake, link):
     fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
     assert wait_for(lambda: link.ur_state.protective_stopped)
     link.command_joint_velocity(QD)
-    assert wait_for(lambda: link.fault == "the controller refused speedJ")
+    assert wait_for(lambda: link.refused == "the controller refused speedJ")
+    assert link.fault is None                                 # the link itself is fine
 
 
 def test_a_controller_that_goes_away_is_a_lost_link_not_a_dead_daemon(fake, link):

@@ -1,0 +1,151 @@
+"""`robot.backend: ur`: a Universal Robots arm through ur-rtde (robots.ur_link), the fingertip board on serial.
+
+Reads `robot.ur`:
+- `host` (required): the controller's address;
+- `frequency_hz`: the RTDE rate, default the controller's own (500 Hz e-Series, 125 Hz CB3);
+- `accel_rad_s2`: speedJ's joint acceleration bound (default 1.0);
+- `connect_timeout_s`: a controller that does not answer within this is an error (default 10).
+
+The controller's faults are the daemon's: a protective or emergency stop, a robot not running, the
+control script not running (remote control off, stopped from the pendant), or a lost link each hold
+as a fault (a protective stop of the task, tasks refused) until they clear. A lost link is
+reconnected with back-off. When a protective stop has been unlocked, the control script is
+uploaded again: it moves nothing by itself, and the task it served already ended on the stop.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+
+from robots.backends import BackendContext
+from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
+
+log = logging.getLogger("tecdar.ur")
+
+UR_MODELS = ("ur3", "ur5", "ur10")      # example-robot-data's; e-Series arms share their kinematics' layout
+RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
+
+
+class UrBackend:
+    """The robot (receive and control, as any backend) on a UrLink; the IMU is the serial board."""
+
+    imu = None                         # the fingertip board is read by the serial driver (imu.source: serial)
+    serial_params = None
+    imu_odr_hz = None
+
+    def __init__(self, ctx: BackendContext):
+        from tecdard.config import ConfigError
+        if ctx.model.name not in UR_MODELS:
+            raise ConfigError(f"robot.model: {ctx.model.name!r} is no UR arm; with robot.backend ur use one of "
+                              f"{', '.join(UR_MODELS)}")
+        if ctx.imu_source != "serial":
+            raise ConfigError("imu.source: with robot.backend ur the fingertip board is read over serial; "
+                              "set imu.source: serial")
+        section = ctx.cfg.section("robot").section("ur")
+        if not section.has("host"):
+            raise ConfigError("robot.ur.host: required with robot.backend ur (the controller's address)")
+        self.settings = UrLinkSettings(
+            host=section.getstr("host", max_len=253),
+            frequency_hz=section.getfloat("frequency_hz", -1.0, minval=-1.0, maxval=500.0),
+            accel_rad_s2=section.getfloat("accel_rad_s2", 1.0, above=0.0, maxval=40.0),
+            command_time_s=ctx.tick_s,
+            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0))
+        self.nq = ctx.model.nq
+        self.link = UrLink(self.settings)
+        self.robot = self
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        self.reconnects = 0
+
+    # -- lifecycle ----------------------------------------------------------------
+    def start(self) -> None:
+        """Connect (UrLinkError naming the host if the controller does not answer), then watch the link."""
+        self.link.start()
+        self._supervisor = threading.Thread(target=self._supervise, name="ur-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.link.stop()
+        if self._supervisor is not None:
+            self._supervisor.join(2.0)
+
+    def _supervise(self) -> None:
+        """Reconnect a lost link with back-off; re-upload the control script once a stop has cleared."""
+        attempt = 0
+        while not self._stop.wait(0.05):
+            link = self.link
+            if link.exited.is_set():
+                self._stop.wait(RECONNECT_S[min(attempt, len(RECONNECT_S) - 1)])
+                if self._stop.is_set():
+                    return
+                attempt += 1
+                fresh = UrLink(self.settings)
+                try:
+                    fresh.start()
+                except UrLinkError as exc:
+                    log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
+                    continue
+                link.stop()
+                self.link, attempt = fresh, 0
+                self.reconnects += 1
+                log.info("reconnected to %s", self.settings.host)
+                continue
+            st = link.ur_state
+            if st is not None and not st.program_running and not st.protective_stopped \
+                    and not st.emergency_stopped and st.robot_mode == ROBOT_MODE_RUNNING:
+                link.reupload()
+                self._stop.wait(1.0)          # the script starts within a few controller cycles
+
+    # -- receive / control, as any backend -----------------------------------------
+    def read_state(self):
+        return self.link.read_state()
+
+    def wait_state(self, seq: int, timeout: float):
+        try:
+            return self.link.wait_state(seq, timeout)
+        except UrLinkError:
+            self._stop.wait(timeout)          # reconnecting: the proprioception thread waits, as for a quiet arm
+            return self.link.read_state()
+
+    def command_joint_velocity(self, qd) -> None:
+        try:
+            self.link.command_joint_velocity(qd)
+        except UrLinkError:
+            pass                              # the link is down: its fault has stopped the task already
+
+    def hold(self) -> None:
+        try:
+            self.link.hold()
+        except UrLinkError:
+            pass
+
+    def stop(self) -> None:
+        self.close()
+
+    def faults(self) -> dict[str, str]:
+        """The controller's faults that hold now, code -> message (the daemon's `fault` events)."""
+        out = {}
+        link = self.link
+        if link.exited.is_set() or link.fault:
+            out["robot_link"] = f"UR controller {self.settings.host}: {link.fault or 'not connected'}"
+        if link.refused:
+            out["robot_refused"] = f"UR controller {self.settings.host}: {link.refused}"
+        st = link.ur_state
+        if st is None:
+            return out
+        if st.emergency_stopped:
+            out["robot_emergency_stop"] = "the UR controller reports an emergency stop"
+        elif st.protective_stopped:
+            out["robot_protective_stop"] = ("the UR controller reports a protective stop: inspect its cause, "
+                                            "then unlock it on the pendant or the dashboard")
+        elif st.robot_mode != ROBOT_MODE_RUNNING:
+            out["robot_not_running"] = f"the UR arm is not running (robot mode {st.robot_mode})"
+        elif not st.program_running:
+            out["robot_program"] = ("ur-rtde's control script is not running on the controller (remote control "
+                                    "off, or stopped from the pendant)")
+        return out
+
+
+def build(ctx: BackendContext) -> UrBackend:
+    return UrBackend(ctx)

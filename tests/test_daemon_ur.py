@@ -1,0 +1,93 @@
+"""The whole daemon on `robot.backend: ur`: the real ur-rtde client against the fake UR controller,
+the fingertip board on a pseudo-terminal. What a rig's first minutes exercise: start, state, the
+controller's protective stop as the daemon's fault, and configs that cannot work."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from robots.model import READY_Q, ArmModel
+from sim.board import Board, PtyDevice, StreamThread
+from tecdard.config import dump_yaml
+from tests.conftest import ROOT, DaemonProcess, daemon_config
+from tests.fake_ur import FakeController, free_loopback_host, wait_for
+
+pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
+dashboard_client = pytest.importorskip("dashboard_client")
+
+Q_HOME = list(READY_Q["ur5"])
+FK_TOL_M = 1e-6                 # the fake reports the joint positions the daemon's model turns into the TCP
+PROTECTIVE_STOPPED_BIT = 2
+CONNECT_TIMEOUT_S = 3.0
+EXIT_WITHIN_S = 20.0            # a refused start exits within the connect deadline plus the daemon's start
+
+
+def ur_config(host: str, port_link: str, **extra) -> dict:
+    return daemon_config(**{"robot.backend": "ur", "robot.model": "ur5", "robot.name": "ur",
+                            "robot.q_home": Q_HOME, "robot.ur": {"host": host, "connect_timeout_s": CONNECT_TIMEOUT_S},
+                            "imu.source": "serial", "imu.serial": {"port": port_link}, "sim": ..., **extra})
+
+
+@pytest.fixture
+def board(tmp_path):
+    device = PtyDevice(tmp_path / "ttyIMU")
+    streamer = StreamThread(device, Board()).start()
+    yield device
+    streamer.join()
+    device.close()
+
+
+@pytest.fixture
+def fake():
+    controller = FakeController(free_loopback_host(), q=Q_HOME)
+    yield controller
+    controller.close()
+
+
+def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(tmp_path, board, fake):
+    d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link)))
+    try:
+        state = d.client.command("status")["state"]
+        expected = ArmModel("ur5").fk(np.array(Q_HOME)).translation
+        assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
+        assert state["mode"] == "idle" and state["faults"] == []
+        fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+        ev = d.client.wait_event(("fault",), None, 5.0)
+        assert ev["code"] == "robot_protective_stop"
+        refused = d.client.command("probe", {})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault"
+        db = dashboard_client.DashboardClient(fake.host)
+        db.connect()
+        db.unlockProtectiveStop()                     # as the operator would, after inspecting the cause
+        db.disconnect()
+        # the stop clears, and the control script is uploaded again: no fault is left
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0), \
+            d.client.command("status")["state"]["faults"]
+        assert fake.arm()["scripts"] >= 2
+    finally:
+        d.close()
+    assert "leaked" not in d.log()
+
+
+def run_refused(tmp_path, cfg: dict) -> subprocess.CompletedProcess:
+    path = tmp_path / "ur.yaml"
+    path.write_text(dump_yaml(cfg))
+    return subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=EXIT_WITHIN_S)
+
+
+def test_a_ur_config_without_a_host_is_one_line_and_exit_2(tmp_path, board):
+    cfg = ur_config("127.0.0.1", str(board.link))
+    del cfg["robot"]["ur"]["host"]
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "robot.ur.host: required" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_no_ur_controller_at_the_host_is_an_error_naming_it_not_a_hang(tmp_path, board):
+    host = free_loopback_host()
+    res = run_refused(tmp_path, ur_config(host, str(board.link)))
+    assert res.returncode == 1
+    (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
+    assert line.startswith(f"tecdard: robot.ur.host: {host}") and "leaked" not in res.stderr
