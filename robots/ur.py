@@ -17,6 +17,8 @@ from __future__ import annotations
 import logging
 import threading
 
+import numpy as np
+
 from robots.backends import BackendContext
 from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
 
@@ -24,6 +26,8 @@ log = logging.getLogger("tecdar.ur")
 
 UR_MODELS = ("ur3", "ur5", "ur10")      # example-robot-data's; e-Series arms share their kinematics' layout
 RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
+FK_CHECK_M = 0.003                      # our FK and the controller's TCP further apart than this: said at start
+FIRST_STATE_S = 2.0
 
 
 class UrBackend:
@@ -51,6 +55,8 @@ class UrBackend:
             command_time_s=ctx.tick_s,
             connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0))
         self.nq = ctx.model.nq
+        self.model = ctx.model
+        self.fk_offset_m: float | None = None    # |our FK TCP - the controller's TCP| at start, m
         self.link = UrLink(self.settings)
         self.robot = self
         self._stop = threading.Event()
@@ -61,8 +67,21 @@ class UrBackend:
     def start(self) -> None:
         """Connect (UrLinkError naming the host if the controller does not answer), then watch the link."""
         self.link.start()
+        self._check_kinematics()
         self._supervisor = threading.Thread(target=self._supervise, name="ur-supervisor", daemon=True)
         self._supervisor.start()
+
+    def _check_kinematics(self) -> None:
+        """Compare our FK of the controller's joints with the TCP the controller reports. The
+        controller's carries the arm's own kinematic calibration and its TCP setting; generic URDF
+        kinematics, or a tool offset that differs from the controller's TCP, put ours elsewhere."""
+        js = self.link.wait_state(-1, FIRST_STATE_S)
+        p_fk = self.model.fk(js.q).translation
+        self.fk_offset_m = float(np.linalg.norm(p_fk - self.link.tcp_pose[:3]))
+        if self.fk_offset_m > FK_CHECK_M:
+            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm from the one the controller reports "
+                        "(model %s, tool offset %s m); check the tool offset against the controller's TCP setting, "
+                        "and the model", self.fk_offset_m * 1e3, self.model.name, self.model.tool_offset)
 
     def close(self) -> None:
         self._stop.set()

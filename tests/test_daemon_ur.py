@@ -38,9 +38,14 @@ def board(tmp_path):
     device.close()
 
 
+def tcp_of(q, offset_m=(0.0, 0.0, 0.0)) -> list:
+    """A controller's TCP pose for joint positions q: our FK's position (plus an offset), any rotation."""
+    return list(ArmModel("ur5").fk(np.array(q)).translation + offset_m) + [0.0, 3.14, 0.0]
+
+
 @pytest.fixture
 def fake():
-    controller = FakeController(free_loopback_host(), q=Q_HOME)
+    controller = FakeController(free_loopback_host(), q=Q_HOME, tcp_pose=tcp_of(Q_HOME))
     yield controller
     controller.close()
 
@@ -67,7 +72,18 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
         assert fake.arm()["scripts"] >= 2
     finally:
         d.close()
-    assert "leaked" not in d.log()
+    assert "leaked" not in d.log() and "robot.tool_offset / robot.model" not in d.log()
+
+
+def test_a_controller_tcp_far_from_our_kinematics_is_said_at_start(tmp_path, board):
+    fake = FakeController(free_loopback_host(), q=Q_HOME, tcp_pose=tcp_of(Q_HOME, (0.0, 0.0, 0.012)))
+    try:
+        d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link)))
+        d.close()
+    finally:
+        fake.close()
+    (line,) = [x for x in d.log().splitlines() if "robot.tool_offset / robot.model" in x]
+    assert "12.0 mm" in line and "model ur5" in line
 
 
 def run_refused(tmp_path, cfg: dict) -> subprocess.CompletedProcess:
