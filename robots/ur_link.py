@@ -52,6 +52,7 @@ class UrLinkSettings:
     accel_rad_s2: float = 1.0             # speedJ's acceleration bound
     command_time_s: float = 0.02          # speedJ's time: the control tick (the controller stops after it)
     connect_timeout_s: float = 10.0       # a controller that does not answer within this is an error
+    watchdog_hz: float = 10.0             # the controller stops the program when the daemon writes less often
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,11 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     try:
         rx = rtde_receive.RTDEReceiveInterface(settings.host, settings.frequency_hz, UR_VARIABLES)
         ctl = rtde_control.RTDEControlInterface(settings.host, settings.frequency_hz)
+        # The controller's RTDE watchdog: the daemon's control tick writes the command register every
+        # tick (speedJ, or speedJ of zeros when it holds); if the daemon stalls for 1 / watchdog_hz s,
+        # the controller stops the program and the arm, whatever speed it was told last.
+        if not ctl.setWatchdog(settings.watchdog_hz):
+            raise RuntimeError(f"the controller refused the RTDE watchdog at {settings.watchdog_hz:g} Hz")
     except Exception as exc:
         state_tx.send(("error", f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"))
         return
@@ -110,6 +116,7 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                     outcome(ctl.speedStop(STOP_DECEL_RAD_S2), "speedStop")
                 elif msg[0] == "reupload":
                     ctl.reuploadScript()
+                    ctl.setWatchdog(settings.watchdog_hz)      # a new program starts without one
                 elif msg[0] == "close":
                     return
             if not rx.isConnected():
@@ -246,7 +253,9 @@ class UrLink:
         self._send(("speedj", tuple(float(x) for x in joint_rates(qd, NQ))))
 
     def hold(self) -> None:
-        self._send(("stop",))
+        """Bring the arm to rest and keep it there: speedJ of zeros, sent every tick like any command
+        (it feeds the controller's watchdog, where speedStop would not)."""
+        self._send(("speedj", (0.0,) * NQ))
 
     def reupload(self) -> None:
         """Upload ur-rtde's control script again (after a protective stop has been unlocked)."""

@@ -217,6 +217,11 @@ class RtdeServer(_TcpServer):
         with self._inputs_lock:
             return dict(self.inputs)
 
+    def read_inputs_counted(self) -> tuple[dict, int]:
+        """The inputs and how many input packages have come so far."""
+        with self._inputs_lock:
+            return dict(self.inputs), self.input_packages
+
     def _serve(self, conn: socket.socket) -> None:
         outputs: list[_Recipe] = []
         inputs: dict[int, _Recipe] = {}
@@ -435,7 +440,7 @@ class DashboardServer(_TcpServer):
 # ur-rtde's control script (rtde_control.script): output_int_register_0 says where it is
 SCRIPT_READY, SCRIPT_DONE = 1, 2
 STREAMED = {6, 9, 10, 11, 24}       # force mode, speedJ, speedL, servoJ, servoL: a new target each cycle
-SPEEDJ, SPEED_STOP, STOPJ, STOP_SCRIPT = 9, 15, 34, 255
+SPEEDJ, SPEED_STOP, STOPJ, SET_WATCHDOG, STOP_SCRIPT = 9, 15, 34, 35, 255
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 
 
@@ -479,9 +484,15 @@ class ControlScript:
         self.running = False
         self.executing = False
         self.commands: list[int] = []          # every command processed, in order
+        # rtde_set_watchdog on input_int_register_0: no input package for 1 / watchdog_hz s stops the program
+        self.watchdog_hz = 0.0
+        self.watchdog_trips = 0
+        self._inputs_seen = -1
+        self._last_input_t = time.monotonic()
 
     def start(self) -> None:
         self.running, self.executing = True, False
+        self.watchdog_hz = 0.0                 # a new program sets its own
         self.controller.update(output_int_register_0=SCRIPT_READY)
         self.controller.set_program_running(True)
 
@@ -492,7 +503,15 @@ class ControlScript:
     def cycle(self) -> None:
         if not self.running:
             return
-        inputs = self.rtde.read_inputs()
+        inputs, packages = self.rtde.read_inputs_counted()
+        now = time.monotonic()
+        if packages != self._inputs_seen:
+            self._inputs_seen, self._last_input_t = packages, now
+        elif self.watchdog_hz > 0 and now - self._last_input_t > 1.0 / self.watchdog_hz:
+            self.watchdog_trips += 1           # the client went quiet: the controller stops the program
+            self.arm.stop(10.0)
+            self.stop()
+            return
         cmd = inputs.get("input_int_register_0", 0)
         if cmd in STREAMED:
             self._process(cmd, inputs)
@@ -513,6 +532,8 @@ class ControlScript:
             self.arm.speedj(reg[0:6], reg[6])
         elif cmd in (SPEED_STOP, STOPJ):
             self.arm.stop(reg[0] if reg[0] > 0 else 10.0)
+        elif cmd == SET_WATCHDOG:
+            self.watchdog_hz = reg[0]
         elif cmd == STOP_SCRIPT:
             self.arm.stop(10.0)
             self.stop()
@@ -629,7 +650,8 @@ def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
                 conn.send((list(dashboard.commands), list(dashboard.not_understood)))
             elif msg[0] == "arm":
                 conn.send({"q": list(arm.q), "qd": list(arm.qd), "commands": list(script.commands),
-                           "scripts": len(scripts.scripts), "program_running": script.running})
+                           "scripts": len(scripts.scripts), "program_running": script.running,
+                           "watchdog_hz": script.watchdog_hz, "watchdog_trips": script.watchdog_trips})
     except EOFError:
         pass
     finally:

@@ -144,3 +144,19 @@ def test_a_protective_stop_halts_the_arm_and_the_controller_refuses_speedj(fake)
         assert fake.arm()["qd"] == [0.0] * 6
     finally:
         c.disconnect()
+
+
+def test_the_controllers_watchdog_stops_a_client_that_went_quiet(fake):
+    c = rtde_control.RTDEControlInterface(fake.host)
+    try:
+        assert c.setWatchdog(10.0) and fake.arm()["watchdog_hz"] == 10.0
+        for _ in range(15):                                  # fed every 20 ms: no trip
+            assert c.speedJ(SPEEDJ_QD, SPEEDJ_ACCEL, TICK_S)
+            time.sleep(TICK_S)
+        assert fake.arm()["watchdog_trips"] == 0
+        time.sleep(0.3)                                      # over 1 / 10 Hz without a write
+        arm = fake.arm()
+        assert arm["watchdog_trips"] == 1 and not arm["program_running"]
+        assert wait_for(lambda: fake.arm()["qd"][0] == 0.0)
+    finally:
+        c.disconnect()

@@ -46,9 +46,27 @@ def test_states_arrive_on_the_daemons_clock_and_speedj_moves_the_arm(fake, link)
         time.sleep(TICK_S)
     assert len(seqs) > 10                                     # a stream of states, not one
     assert js.qd[0] == pytest.approx(0.1) and js.q[0] > Q[0] + 0.02
-    link.hold()
-    assert wait_for(lambda: link.read_state().qd[0] == 0.0)
+    for _ in range(25):                                       # holding: zero rates every tick, as the daemon does
+        link.hold()
+        time.sleep(TICK_S)
+    assert link.read_state().qd[0] == 0.0
     assert link.fault is None and link.ur_state.program_running
+
+
+def test_a_stalled_daemon_is_stopped_by_the_controllers_watchdog(fake, link):
+    """The control script repeats its last speedJ target forever; only the RTDE watchdog stops an
+    arm whose daemon went quiet."""
+    link.wait_state(-1, 2.0)
+    assert fake.arm()["watchdog_hz"] == 10.0
+    for _ in range(15):
+        link.command_joint_velocity(QD)
+        time.sleep(TICK_S)
+    assert fake.arm()["qd"][0] == pytest.approx(0.1)
+    time.sleep(0.3)                                           # the daemon stalls: nothing is written
+    arm = fake.arm()
+    assert arm["watchdog_trips"] == 1 and not arm["program_running"]
+    assert wait_for(lambda: fake.arm()["qd"][0] == 0.0)
+    assert wait_for(lambda: not link.ur_state.program_running)
 
 
 def test_a_controller_that_does_not_answer_is_an_error_within_the_deadline():
