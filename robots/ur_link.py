@@ -200,6 +200,8 @@ class UrLink:
         self._send(("close",), quiet=True)
         self._proc.join(STOP_TIMEOUT_S)
         self._kill()
+        for conn in (self._cmd, self._state_rx):       # a reconnect makes new ones: never leak these
+            conn.close()
         self._proc = None
 
     def _kill(self) -> None:

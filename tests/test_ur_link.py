@@ -104,3 +104,15 @@ def test_a_controller_that_goes_away_is_a_lost_link_not_a_dead_daemon(fake, link
     assert link.fault
     with pytest.raises(UrLinkError):
         link.wait_state(js.seq, 0.1)
+
+
+def test_a_stopped_link_leaves_no_open_pipes(fake):
+    """The UR backend makes a new link on every reconnect: the old one's pipes must be closed."""
+    import os
+    before = len(os.listdir("/proc/self/fd"))
+    for _ in range(3):
+        ur = UrLink(UrLinkSettings(fake.host, connect_timeout_s=CONNECT_TIMEOUT_S))
+        ur.start()
+        ur.wait_state(-1, 2.0)
+        ur.stop()
+    assert len(os.listdir("/proc/self/fd")) <= before
