@@ -107,3 +107,30 @@ def test_no_ur_controller_at_the_host_is_an_error_naming_it_not_a_hang(tmp_path,
     assert res.returncode == 1
     (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
     assert line.startswith(f"tecdard: robot.ur.host: {host}") and "leaked" not in res.stderr
+
+
+def test_a_stalled_daemon_has_the_arm_stopped_by_the_controllers_watchdog(tmp_path, board, fake):
+    """ur-rtde's control script repeats its last speedJ target: only the RTDE watchdog stops an arm
+    whose daemon stopped writing (here SIGSTOP, as a hung host would)."""
+    import os
+    import signal
+    import time
+    d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link)))
+    try:
+        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.05})
+        assert reply["ok"] is True
+        assert wait_for(lambda: any(abs(v) > 1e-3 for v in fake.arm()["qd"]), 5.0)     # moving
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.5)                            # over the watchdog's 0.1 s, and the arm's stop
+            arm = fake.arm()
+            assert arm["watchdog_trips"] == 1 and not arm["program_running"]
+            assert all(v == 0.0 for v in arm["qd"])
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        # back: the stopped program is a fault, the task ends on it, and the script comes back
+        ev = d.client.wait_event(("task_failed",), reply["task"], 10.0)
+        assert "protective stop" in ev["error"]
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
+    finally:
+        d.close()
