@@ -17,6 +17,8 @@ class JointState:
     seq: int = 0             # increments with every new measurement
     tcp_twist: np.ndarray | None = None   # [v; w] world-aligned, m/s and rad/s, when the robot reports it
     tcp_force: np.ndarray | None = None   # external force on the TCP, world, N, when the robot estimates it
+    tcp_pose: np.ndarray | None = None    # oMtcp (4 x 4, world) as the robot reports it, from its own calibrated
+                                          # kinematics and TCP setting; None: the daemon's FK of q
 
 
 def joint_rates(qd, nq: int) -> np.ndarray:

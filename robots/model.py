@@ -8,6 +8,8 @@ import sys
 import numpy as np
 import pinocchio as pin
 
+from robots import ur_dh
+
 # Damped least-squares IK constants.
 DLS_DAMPING = 1e-2          # lambda, m (or rad) equivalent
 IK_POS_GAIN_PER_S = 5.0     # feedback on Cartesian position error, 1/s
@@ -18,7 +20,8 @@ IK_MAX_ITERATIONS = 300
 IK_STALL_ITERATIONS = 25    # no progress for this many iterations: unreachable
 IK_MAX_STEP_RAD = 0.2
 
-# Arms by name: URDF path under example-robot-data's robots/ and the flange frame.
+# Arms by name: URDF path under example-robot-data's robots/ and the flange frame; or None for the
+# UR e-Series arms, built from UR's DH parameters (robots/ur_dh.py: example-robot-data has none).
 ARMS = {
     "panda": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
     "ur3": ("ur_description/urdf/ur3_robot.urdf", "tool0"),
@@ -26,6 +29,7 @@ ARMS = {
     "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
     "z1": ("z1_description/urdf/z1.urdf", "gripperStator"),
     "xarm7": ("xarm_description/urdf/xarm7.urdf", "link7"),
+    **{name: (None, ur_dh.FLANGE) for name in ur_dh.UR_E_DH},
 }
 # A well-conditioned "ready" posture per arm (rad): smallest Jacobian singular value >= 0.1.
 READY_Q = {
@@ -35,6 +39,7 @@ READY_Q = {
     "ur10": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
     "z1": (0.0, 1.2, -1.0, -0.3, 0.0, 0.0),
     "xarm7": (0.0, -0.4, 0.0, 0.6, 0.0, 1.0, 0.0),
+    **{name: (0.0, -1.2, 1.5, -1.9, -1.57, 0.0) for name in ur_dh.UR_E_DH},
 }
 
 
@@ -63,8 +68,8 @@ class ArmModel:
         if name not in ARMS:
             raise UnknownRobotError(f"robot.model: unknown arm {name!r}; known: {', '.join(sorted(ARMS))}")
         rel, flange = ARMS[name]
-        urdf = robots_dir() / rel
-        full = pin.buildModelFromUrdf(str(urdf))
+        source = f"{name} (UR's DH parameters)" if rel is None else (robots_dir() / rel).name
+        full = ur_dh.build_model(name) if rel is None else pin.buildModelFromUrdf(str(robots_dir() / rel))
         # Lock everything that is not a revolute arm joint (gripper fingers).
         lock = [j for j in range(1, full.njoints) if "finger" in full.names[j] or "gripper" in full.names[j].lower()]
         if lock:
@@ -81,7 +86,7 @@ class ArmModel:
         elif model.existFrame(flange):
             flange_id = model.getFrameId(flange)
         else:
-            raise UnknownRobotError(f"robot.model: frame {flange!r} not in {urdf.name}")
+            raise UnknownRobotError(f"robot.model: frame {flange!r} not in {source}")
         offset = pin.SE3.Identity()
         if tool_offset is not None:
             offset.translation = np.asarray(tool_offset, dtype=float)
@@ -118,9 +123,12 @@ class ArmModel:
         return oMtcp, self.jacobian(q) @ qd
 
     def measured(self, js) -> tuple[pin.SE3, np.ndarray]:
-        """oMtcp and the TCP twist [v; w] of a JointState (robots.backend): the twist the robot
-        reports when it reports one, else from the joint rates."""
+        """oMtcp and the TCP twist [v; w] of a JointState (robots.backend): the pose and the twist
+        the robot reports when it reports them (a UR controller's carry the arm's own kinematic
+        calibration, which generic URDF kinematics miss by millimetres), else from the joints."""
         oMtcp, twist = self.fk_twist(js.q, js.qd)
+        if js.tcp_pose is not None:
+            oMtcp = pin.SE3(js.tcp_pose)
         return oMtcp, (twist if js.tcp_twist is None else js.tcp_twist)
 
     def dls_velocity(self, q: np.ndarray, twist: np.ndarray, q_home: np.ndarray | None = None) -> np.ndarray:

@@ -18,15 +18,19 @@ import logging
 import threading
 
 import numpy as np
+import pinocchio as pin
 
 from robots.backends import BackendContext
 from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
 
 log = logging.getLogger("tecdar.ur")
 
-UR_MODELS = ("ur3", "ur5", "ur10")      # example-robot-data's; e-Series arms share their kinematics' layout
+UR_MODELS = ("ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e")   # CB3 (URDFs) and e-Series (robots/ur_dh.py)
+E_SERIES_MAJOR = 5                      # PolyScope 5 runs e-Series arms, 3 the CB3 ones
 RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
 FK_CHECK_M = 0.003                      # our FK and the controller's TCP further apart than this: said at start
+FK_CHECK_RAD = 0.0175                   # ... or turned by more than this (1 degree)
+CONTROLLER_BASE_FRAME = "base"          # ur_description: the frame the controller reports in
 FIRST_STATE_S = 2.0
 
 
@@ -57,7 +61,9 @@ class UrBackend:
         self.nq = ctx.model.nq
         self.model = ctx.model
         self.fk_offset_m: float | None = None    # |our FK TCP - the controller's TCP| at start, m
-        self.link = UrLink(self.settings)
+        self.fk_offset_rad: float | None = None  # the angle between their orientations, rad
+        self.oMbase = controller_base(ctx.model)
+        self.link = UrLink(self.settings, self.oMbase)
         self.robot = self
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
@@ -65,23 +71,53 @@ class UrBackend:
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
-        """Connect (UrLinkError naming the host if the controller does not answer), then watch the link."""
+        """Connect (UrLinkError naming the host if the controller does not answer, or if it runs
+        another arm than robot.model), then watch the link."""
         self.link.start()
+        try:
+            self._check_model(self.link.identity)
+        except UrLinkError:
+            self.link.stop()
+            raise
         self._check_kinematics()
         self._supervisor = threading.Thread(target=self._supervise, name="ur-supervisor", daemon=True)
         self._supervisor.start()
 
+    def _check_model(self, identity: dict) -> None:
+        """robot.model against the arm the controller's dashboard reports: its type (UR5 for a UR5
+        or a UR5e) and its series (PolyScope 5: e-Series). Unknown (no dashboard): said, not refused."""
+        if not identity.get("model") or not identity.get("version"):
+            log.warning("robot.model: the controller at %s did not say which arm it runs (dashboard server); "
+                        "check that robot.model %s is the arm", self.settings.host, self.model.name)
+            return
+        e_series = int(identity["version"].split(".")[0]) >= E_SERIES_MAJOR
+        theirs = identity["model"].upper() + ("e" if e_series else "")
+        ours = self.model.name.upper().replace("E", "e")
+        if theirs != ours:
+            raise UrLinkError(f"robot.model: {self.model.name}, but the controller at {self.settings.host} runs a "
+                              f"{theirs} ({'e-Series' if e_series else 'CB3'}, software {identity['version']}); "
+                              f"set robot.model: {theirs.lower()}")
+
     def _check_kinematics(self) -> None:
         """Compare our FK of the controller's joints with the TCP the controller reports. The
         controller's carries the arm's own kinematic calibration and its TCP setting; generic URDF
-        kinematics, or a tool offset that differs from the controller's TCP, put ours elsewhere."""
+        kinematics, or a tool offset that differs from the controller's TCP, put ours elsewhere.
+
+        The controller's pose is the one the daemon uses (estimator, tasks, servo feedback): it is
+        where the tool really is, to the arm's calibration (UR states about 0.1 mm of repeatability;
+        nominal kinematics are millimetres off on a real arm). Our model only turns the commanded
+        TCP twist into joint rates, where a millimetre-level error changes the rate by a fraction of
+        a percent and the position feedback removes it. A tool offset or model that disagrees with
+        the controller puts the IMU's lever arm in the wrong place, so it is said here."""
         js = self.link.wait_state(-1, FIRST_STATE_S)
-        p_fk = self.model.fk(js.q).translation
-        self.fk_offset_m = float(np.linalg.norm(p_fk - self.link.tcp_pose[:3]))
-        if self.fk_offset_m > FK_CHECK_M:
-            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm from the one the controller reports "
-                        "(model %s, tool offset %s m); check the tool offset against the controller's TCP setting, "
-                        "and the model", self.fk_offset_m * 1e3, self.model.name, self.model.tool_offset)
+        oMfk = self.model.fk(js.q)
+        self.fk_offset_m = float(np.linalg.norm(oMfk.translation - js.tcp_pose[:3, 3]))
+        self.fk_offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ js.tcp_pose[:3, :3])))
+        if self.fk_offset_m > FK_CHECK_M or self.fk_offset_rad > FK_CHECK_RAD:
+            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from the one the "
+                        "controller reports (model %s, tool offset %s m, tool quat %s); check them against the "
+                        "controller's TCP setting and arm type", self.fk_offset_m * 1e3,
+                        np.degrees(self.fk_offset_rad), self.model.name, self.model.tool_offset, self.model.tool_quat)
 
     def close(self) -> None:
         self._stop.set()
@@ -99,7 +135,7 @@ class UrBackend:
                 if self._stop.is_set():
                     return
                 attempt += 1
-                fresh = UrLink(self.settings)
+                fresh = UrLink(self.settings, self.oMbase)
                 try:
                     fresh.start()
                 except UrLinkError as exc:
@@ -164,6 +200,16 @@ class UrBackend:
             out["robot_program"] = ("ur-rtde's control script is not running on the controller (remote control "
                                     "off, or stopped from the pendant)")
         return out
+
+
+def controller_base(model) -> np.ndarray:
+    """The controller's base frame in the model's world (4 x 4): ur_description's `base` frame,
+    which is base_link turned half a turn about z (the URDF's root is not the controller's)."""
+    if not model.model.existFrame(CONTROLLER_BASE_FRAME):
+        return np.eye(4)
+    data = model.model.createData()
+    pin.framesForwardKinematics(model.model, data, pin.neutral(model.model))
+    return data.oMf[model.model.getFrameId(CONTROLLER_BASE_FRAME)].homogeneous.copy()
 
 
 def build(ctx: BackendContext) -> UrBackend:

@@ -11,16 +11,23 @@ The child connects (RTDEReceiveInterface, then RTDEControlInterface, which uploa
 script), then streams every new controller state to the parent and carries out speedJ and stop
 commands. The parent maps the controller's timestamps onto its monotonic clock (drivers.timesync:
 the lower envelope of arrival minus controller time) and hands out JointStates as any backend.
+
+Frames: the controller reports its TCP pose, speed and force in its own base frame, which is not
+the URDF's root: ur_description's `base` frame (base_link turned half a turn about z). The link
+maps all three into the model's world with `oMbase`, the placement of that frame.
 """
 from __future__ import annotations
 
 import logging
 import multiprocessing
+import re
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
+
+import pinocchio as pin
 
 from drivers.timesync import ClockSync
 from robots.backend import JointState, StateSlot, joint_rates
@@ -29,6 +36,7 @@ from robots.backends import BackendError
 log = logging.getLogger("tecdar.ur")
 
 STOP_TIMEOUT_S = 2.0
+DASHBOARD_TIMEOUT_MS = 2000
 STOP_DECEL_RAD_S2 = 2.0        # speedStop's deceleration when the daemon holds or stops the arm
 LINK_SILENT_S = 0.5            # no new controller state for this long: the link is lost (ur-rtde's own
                                # isConnected stays true while its control interface tries to reconnect)
@@ -79,10 +87,29 @@ class UrState:
         return any(self.safety_bits >> b & 1 for b in EMERGENCY_STOPPED_BITS)
 
 
+def controller_identity(host: str) -> dict:
+    """The arm type and software version the controller's dashboard server reports
+    ({"model": "UR5", "version": "5.11.0.0"}), or {} when the dashboard does not answer."""
+    import dashboard_client
+    db = dashboard_client.DashboardClient(host)
+    try:
+        db.connect(DASHBOARD_TIMEOUT_MS)
+        found = re.search(r"(\d+\.\d+\.\d+(\.\d+)?)", db.polyscopeVersion())
+        return {"model": db.getRobotModel().strip(), "version": found.group(1) if found else ""}
+    except Exception:
+        return {}
+    finally:
+        try:
+            db.disconnect()
+        except Exception:
+            pass
+
+
 def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     """The child: connect, then stream states and carry out commands until told to close or the link goes."""
     import rtde_control
     import rtde_receive
+    identity = controller_identity(settings.host)
     try:
         rx = rtde_receive.RTDEReceiveInterface(settings.host, settings.frequency_hz, UR_VARIABLES)
         ctl = rtde_control.RTDEControlInterface(settings.host, settings.frequency_hz)
@@ -95,7 +122,7 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
         state_tx.send(("error", f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"))
         return
     period = 1.0 / 500.0
-    state_tx.send(("ready", None))
+    state_tx.send(("ready", identity))
     last_t = None
     last_new = time.monotonic()
     lost = False
@@ -152,20 +179,23 @@ class UrLink:
     """The daemon's handle on the child: receive (read_state, wait_state) and control
     (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable."""
 
-    def __init__(self, settings: UrLinkSettings):
+    def __init__(self, settings: UrLinkSettings, oMbase: np.ndarray | None = None):
+        """`oMbase` (4 x 4): the controller's base frame in the model's world (identity: the same)."""
         self.settings = settings
+        base = np.eye(4) if oMbase is None else np.asarray(oMbase, dtype=float)
+        self._R_wb, self._p_wb = base[:3, :3].copy(), base[:3, 3].copy()
         self._proc = None
         self._cmd = self._state_rx = None
         self._send_lock = threading.Lock()
         self._states = StateSlot(lambda: UrLinkError(self.fault or f"no state from {self.settings.host} yet"))
-        self.ur_state: UrState | None = None       # the newest controller state, as read
-        self.tcp_pose: np.ndarray | None = None    # its TCP pose: x, y, z (m), rotation vector (rad), base frame
+        self.ur_state: UrState | None = None       # the newest controller state, as read (its base frame)
         self._seq = 0
         self._sync = ClockSync()
         self._reader: threading.Thread | None = None
         self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost), or None
         self.refused: str | None = None             # the controller refuses commands (since this one), or None
+        self.identity: dict = {}                    # the controller's arm type and version (controller_identity)
 
     def start(self) -> None:
         """Connect within settings.connect_timeout_s, or UrLinkError naming the host."""
@@ -191,6 +221,7 @@ class UrLink:
         if msg[0] != "ready":
             self._kill()
             raise UrLinkError(f"robot.ur.host: {host} refused the link: {msg[1]}")
+        self.identity = msg[1] or {}
         self._reader = threading.Thread(target=self._read, name="ur-link", daemon=True)
         self._reader.start()
 
@@ -219,11 +250,8 @@ class UrLink:
                 st: UrState = msg[1]
                 self._sync.add(st.controller_t, st.rx_t)
                 self._seq += 1
-                pose = np.array(st.tcp_pose)
-                js = JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
-                                seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]))
-                self.ur_state, self.tcp_pose = st, pose
-                self._states.publish(js)
+                self.ur_state = st
+                self._states.publish(self._joint_state(st))
             elif msg[0] == "refused":
                 self.refused = f"the controller refused {msg[1]}"
             elif msg[0] == "accepted":
@@ -234,6 +262,17 @@ class UrLink:
         if self.fault is None:
             self.fault = f"the link to {self.settings.host} has gone"
         self._states.close()
+
+    def _joint_state(self, st: UrState) -> JointState:
+        """A controller state as the daemon's: its clock, and the TCP's pose, twist and force in the world."""
+        R_wb, p_wb = self._R_wb, self._p_wb
+        pose = np.eye(4)
+        pose[:3, :3] = R_wb @ pin.exp3(np.array(st.tcp_pose[3:]))        # a rotation vector, base frame
+        pose[:3, 3] = R_wb @ np.array(st.tcp_pose[:3]) + p_wb
+        speed = np.array(st.tcp_speed)
+        return JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
+                          seq=self._seq, tcp_twist=np.concatenate([R_wb @ speed[:3], R_wb @ speed[3:]]),
+                          tcp_force=R_wb @ np.array(st.tcp_force[:3]), tcp_pose=pose)
 
     def _send(self, msg: tuple, quiet: bool = False) -> None:
         try:

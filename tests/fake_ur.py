@@ -13,16 +13,24 @@ guide specifies it:
 - once started, the controller sends a data package ('U') per output recipe at its frequency,
   and the client writes its inputs as data packages of an input recipe's id.
 
-The controller's state (the variables' values) comes from `state()`, a callable the test or the
-simulated arm provides; inputs the client writes land in `inputs`, by variable name.
+The controller's state is a sample per controller cycle (`ControllerState.publish`), stamped with
+the cycle's own time: the arm's joints, its TCP from the controller's own kinematics (`UrKinematics`,
+UR's published DH parameters, in the controller's base frame), and whatever the test sets. Every
+RTDE client gets every sample at its recipe's rate. Inputs the client writes land in `inputs`, by
+variable name. The arm is `JointArm` (speedJ integrated), or with `sim=` our own simulator
+(`SimArm`: the world, the fingertip IMU and its board on a pseudo-terminal).
 Each fake binds a loopback address of its own (127.0.0.x), because the ports are fixed.
 """
 from __future__ import annotations
 
+import collections
+import math
 import socket
 import struct
 import threading
 import time
+
+import numpy as np
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -197,20 +205,18 @@ class _TcpServer:
 
 
 class RtdeServer(_TcpServer):
-    """RTDE on (host, 30004). `state()` gives the output variables' current values by name;
-    `version` is the controller's (major, minor, bugfix, build): major 5 is e-Series (500 Hz),
-    3 a CB3 (125 Hz). `max_frequency_hz` is the controller's base rate; its `timestamp` counts its
-    cycles since it was switched on, `uptime_s` before the fake started."""
+    """RTDE on (host, 30004): the controller's samples (`ControllerState.samples_after`), each with
+    its own timestamp. `version` is the controller's (major, minor, bugfix, build): major 5 is
+    e-Series (500 Hz), 3 a CB3 (125 Hz); `max_frequency_hz` is its base rate."""
 
-    def __init__(self, host: str, state, version=(5, 11, 0, 0), port: int = RTDE_PORT, uptime_s: float = 100.0):
+    def __init__(self, host: str, controller: "ControllerState", version=(5, 11, 0, 0), port: int = RTDE_PORT):
         self.host, self.port = host, port
-        self.state = state
+        self.controller = controller
         self.version = version
-        self.max_frequency_hz = 500.0 if version[0] >= 5 else 125.0
+        self.max_frequency_hz = controller_rate_hz(version)
         self.inputs: dict = {}                     # the latest value of every input variable written
         self._inputs_lock = threading.Lock()
         self.input_packages = 0
-        self._t0 = time.monotonic() - uptime_s   # the controller was switched on a while before a client came
         self._listen(host, port, "rtde")
 
     def read_inputs(self) -> dict:
@@ -285,29 +291,19 @@ class RtdeServer(_TcpServer):
             started.clear()
 
     def _send_data(self, send, outputs: list[_Recipe], started: threading.Event) -> None:
-        """Every output recipe at its own frequency (the controller's cycle divided down), on an
-        absolute schedule."""
-        period = 1.0 / self.max_frequency_hz
-        cycle = 0
-        t_next = time.monotonic()
+        """Every controller sample from now on, each output recipe at its own frequency (the
+        controller's cycle divided down), as soon as the cycle that made it has published it."""
+        seen = self.controller.count
         while started.is_set() and not self.stopped.is_set():
-            # the controller's clock: its whole cycles since it started, as the real one counts them
-            cycles = int((time.monotonic() - self._t0) / period)
-            values = {**self.state(), "timestamp": cycles * period}
-            try:
-                for recipe_id, recipe in enumerate(outputs, start=1):
-                    every = max(1, int(round(self.max_frequency_hz / recipe.frequency_hz)))
-                    if cycle % every == 0:
-                        send(_package(DATA_PACKAGE, struct.pack(">B", recipe_id) + recipe.pack(values)))
-            except OSError:
-                return
-            cycle += 1
-            t_next += period
-            delay = t_next - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -0.1:
-                t_next = time.monotonic()
+            for index, values in self.controller.samples_after(seen, 0.1):
+                seen = index + 1
+                try:
+                    for recipe_id, recipe in enumerate(outputs, start=1):
+                        every = max(1, int(round(self.max_frequency_hz / recipe.frequency_hz)))
+                        if index % every == 0:
+                            send(_package(DATA_PACKAGE, struct.pack(">B", recipe_id) + recipe.pack(values)))
+                except OSError:
+                    return
 
 
 # -- the dashboard server ------------------------------------------------------------------------
@@ -327,13 +323,30 @@ class ControllerState:
                  version=(5, 11, 0, 0)):
         self.values = values
         self.model, self.remote_control, self.version = model, remote_control, version
-        self.lock = threading.Lock()
+        self.lock = threading.Condition()        # notified on every new sample
         self.loaded_program = "<unnamed>"
         self.serial_number = "20215500001"        # year, model code, number, as the controller reports it
+        self.samples: collections.deque = collections.deque(maxlen=256)    # (index, values), oldest first
+        self.count = 0                            # samples published so far
 
     def snapshot(self) -> dict:
         with self.lock:
             return dict(self.values)
+
+    def publish(self, timestamp: float, **values) -> None:
+        """One controller cycle's sample: the shared values with the arm's `values`, at `timestamp`
+        (s on the controller's clock)."""
+        with self.lock:
+            self.values.update(values)
+            self.samples.append((self.count, {**self.values, "timestamp": timestamp}))
+            self.count += 1
+            self.lock.notify_all()
+
+    def samples_after(self, seen: int, timeout: float) -> list[tuple[int, dict]]:
+        """The samples from index `seen` on (those still kept), waiting up to `timeout` s for one."""
+        with self.lock:
+            self.lock.wait_for(lambda: self.count > seen, timeout)
+            return [(i, v) for i, v in self.samples if i >= seen]
 
     def update(self, **values) -> None:
         with self.lock:
@@ -435,6 +448,160 @@ class DashboardServer(_TcpServer):
         return f"could not understand: '{command}'"
 
 
+# -- the controller's kinematics ----------------------------------------------------------------
+
+# UR's published DH parameters (d1, a2, a3, d4, d5, d6), m, per arm; alpha is the same for all.
+# The controller's base frame is the DH base: ur_description's `base`, not its `base_link`.
+UR_DH = {
+    "UR3": (0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819),
+    "UR5": (0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823),
+    "UR10": (0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922),
+    "UR3e": (0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921),
+    "UR5e": (0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
+    "UR10e": (0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
+    "UR16e": (0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
+}
+DH_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+E_SERIES_VERSION, CB3_VERSION = (5, 11, 0, 0), (3, 15, 7, 0)
+CONTROLLER_UPTIME_S = 100.0         # the controller's clock had run this long when the fake started
+
+
+def controller_rate_hz(version) -> float:
+    return 500.0 if version[0] >= 5 else 125.0
+
+
+def rotvec_to_matrix(rv) -> np.ndarray:
+    rv = np.asarray(rv, float)
+    angle = float(np.linalg.norm(rv))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rv / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def matrix_to_rotvec(R) -> np.ndarray:
+    """A rotation vector of angle [0, pi] (as the controller reports it), through the quaternion
+    (Shepperd's method: well conditioned near a half turn, where tool-down poses live)."""
+    t = np.trace(R)
+    i = int(np.argmax([t, R[0, 0], R[1, 1], R[2, 2]]))
+    if i == 0:
+        w = math.sqrt(1 + t) / 2
+        x, y, z = (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)
+    elif i == 1:
+        x = math.sqrt(1 + 2 * R[0, 0] - t) / 2
+        w, y, z = (R[2, 1] - R[1, 2]) / (4 * x), (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x)
+    elif i == 2:
+        y = math.sqrt(1 + 2 * R[1, 1] - t) / 2
+        w, x, z = (R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), (R[1, 2] + R[2, 1]) / (4 * y)
+    else:
+        z = math.sqrt(1 + 2 * R[2, 2] - t) / 2
+        w, x, y = (R[1, 0] - R[0, 1]) / (4 * z), (R[0, 2] + R[2, 0]) / (4 * z), (R[1, 2] + R[2, 1]) / (4 * z)
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    v = np.array([x, y, z])
+    s = float(np.linalg.norm(v))
+    return np.zeros(3) if s < 1e-15 else v / s * 2 * math.atan2(s, w)
+
+
+class UrKinematics:
+    """The controller's forward kinematics: UR's DH parameters and its TCP setting (x, y, z, rotation
+    vector, flange frame); poses and speeds in its base frame, as RTDE reports them."""
+
+    def __init__(self, arm: str, tcp_offset=(0.0,) * 6):
+        d1, a2, a3, d4, d5, d6 = UR_DH[arm]
+        self.d, self.a = (d1, 0.0, 0.0, d4, d5, d6), (0.0, a2, a3, 0.0, 0.0, 0.0)
+        self.flange_tcp = np.eye(4)
+        self.flange_tcp[:3, :3] = rotvec_to_matrix(tcp_offset[3:])
+        self.flange_tcp[:3, 3] = tcp_offset[:3]
+
+    def matrix(self, q) -> np.ndarray:
+        T = np.eye(4)
+        for qi, d, a, alpha in zip(q, self.d, self.a, DH_ALPHA):
+            ct, st, ca, sa = math.cos(qi), math.sin(qi), math.cos(alpha), math.sin(alpha)
+            T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
+                              [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+        return T @ self.flange_tcp
+
+    def pose(self, q) -> list:
+        T = self.matrix(q)
+        return list(T[:3, 3]) + list(matrix_to_rotvec(T[:3, :3]))
+
+    def speed(self, q, qd, h: float = 1e-6) -> list:
+        """The TCP's linear and angular velocity, base frame: the pose's derivative along qd."""
+        T0, T1 = self.matrix(q), self.matrix(np.asarray(q) + h * np.asarray(qd))
+        w = T0[:3, :3] @ matrix_to_rotvec(T0[:3, :3].T @ T1[:3, :3]) / h
+        return list((T1[:3, 3] - T0[:3, 3]) / h) + list(w)
+
+
+# -- the simulated arm -----------------------------------------------------------------------
+
+# ur_description's base_link (our simulator's world) is the controller's base turned half a turn about z
+SIM_WORLD_IN_BASE = np.diag([-1.0, -1.0, 1.0])
+
+
+class SimArmSpec:
+    """What the fake needs to run our simulator as its arm (picklable): sim.process.SimSpec with
+    imu_out "wire" and the board's pty path. The simulator's commands come from speedJ, ramped at
+    its acceleration every controller cycle, and its states are the controller's samples."""
+
+    def __init__(self, sim_spec):
+        self.sim_spec = sim_spec
+
+
+class SimArm:
+    """The fake's arm as our simulator (sim.robot.SimRobot on its URDF, its world, the fingertip
+    IMU writing tecdar-imu/1 on a pty). The physics runs in slices (sim.robot.PHYSICS_WAKE_S); each
+    proprioception sample becomes the controller sample of its own cycle, so a state is stamped
+    with when it was measured and delivered at most one slice late."""
+
+    def __init__(self, spec: SimArmSpec):
+        from sim.board import Board, PtyDevice
+        from sim.robot import PHYSICS_WAKE_S
+        sim = spec.sim_spec
+        self.device = PtyDevice(sim.pty_link)
+        self.robot = sim.build(wire=(Board(sim.board), self.device))
+        self.robot.sync_clock()
+        self.slice_s = PHYSICS_WAKE_S
+        self.q, self.qd = list(self.robot.q), [0.0] * len(self.robot.q)
+        self._ramp = JointArm(self.q)          # speedJ's acceleration-bounded rate, the simulator's command
+        self._next_slice = time.monotonic()
+        self.moved_t: float | None = None
+
+    def speedj(self, qd, accel: float) -> None:
+        self._ramp.speedj(qd, accel)
+
+    def stop(self, decel: float) -> None:
+        self._ramp.stop(decel)
+
+    def halt(self) -> None:
+        self._ramp.halt()
+
+    def step(self, dt: float, now: float) -> list[tuple]:
+        self._ramp.step(dt, now)
+        self.robot.command_at(now, np.array(self._ramp.qd))
+        if now < self._next_slice:
+            return []
+        self._next_slice = now + self.slice_s
+        self.robot.advance_to(now)
+        out = []
+        for js in self.robot.drain_states():
+            force = SIM_WORLD_IN_BASE.T @ js.tcp_force if js.tcp_force is not None else np.zeros(3)
+            out.append((js.t, list(js.q), list(js.qd), tuple(force)))
+            if self.moved_t is None and np.any(js.qd != 0.0):
+                self.moved_t = js.t
+        if out:
+            self.q, self.qd = out[-1][1], out[-1][2]
+        return out
+
+    def truth(self):
+        return self.robot.truth()
+
+    def close(self) -> None:
+        self.robot.hold()
+        self.device.close()
+
+
 # -- the script port and ur-rtde's control script ---------------------------------------------------
 
 # ur-rtde's control script (rtde_control.script): output_int_register_0 says where it is
@@ -454,6 +621,7 @@ class JointArm:
         self.target = [0.0] * len(self.q)
         self.accel = 1.0
         self.max_qd = max_qd_rad_s
+        self.moved_t: float | None = None     # when a joint first moved (monotonic), for the latency figure
 
     def speedj(self, qd, accel: float) -> None:
         self.target = [max(-self.max_qd, min(self.max_qd, float(x))) for x in qd]
@@ -467,12 +635,19 @@ class JointArm:
         self.qd = [0.0] * len(self.q)
         self.target = [0.0] * len(self.q)
 
-    def step(self, dt: float) -> None:
+    def step(self, dt: float, now: float) -> list[tuple]:
+        """One controller cycle; its sample (t, q, qd, TCP force in the base frame or None: not modelled)."""
         step = self.accel * dt
         for i, (v, goal) in enumerate(zip(self.qd, self.target)):
             v += max(-step, min(step, goal - v))
             self.qd[i] = v
             self.q[i] += v * dt
+        if self.moved_t is None and any(self.qd):
+            self.moved_t = now
+        return [(now, list(self.q), list(self.qd), None)]
+
+    def close(self) -> None:
+        pass
 
 
 class ControlScript:
@@ -484,6 +659,7 @@ class ControlScript:
         self.running = False
         self.executing = False
         self.commands: list[int] = []          # every command processed, in order
+        self.speedj_t: collections.deque = collections.deque(maxlen=4096)   # (monotonic t, target) per new speedJ
         # rtde_set_watchdog on input_int_register_0: no input package for 1 / watchdog_hz s stops the program
         self.watchdog_hz = 0.0
         self.watchdog_trips = 0
@@ -500,11 +676,10 @@ class ControlScript:
         self.running = False
         self.controller.set_program_running(False)
 
-    def cycle(self) -> None:
+    def cycle(self, now: float) -> None:
         if not self.running:
             return
         inputs, packages = self.rtde.read_inputs_counted()
-        now = time.monotonic()
         if packages != self._inputs_seen:
             self._inputs_seen, self._last_input_t = packages, now
         elif self.watchdog_hz > 0 and now - self._last_input_t > 1.0 / self.watchdog_hz:
@@ -529,6 +704,8 @@ class ControlScript:
         self.commands.append(cmd)
         reg = [inputs.get(f"input_double_register_{i}", 0.0) for i in range(8)]
         if cmd == SPEEDJ:
+            if not self.speedj_t or self.speedj_t[-1][1] != tuple(reg[0:6]):
+                self.speedj_t.append((time.monotonic(), tuple(reg[0:6])))
             self.arm.speedj(reg[0:6], reg[6])
         elif cmd in (SPEED_STOP, STOPJ):
             self.arm.stop(reg[0] if reg[0] > 0 else 10.0)
@@ -593,16 +770,17 @@ def free_loopback_host(ports=(DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)) -> str:
     raise RuntimeError("no free 127.0.0.x address for a fake controller")
 
 
-def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
-    """The fake controller's process: the arm and the control script step every controller cycle;
-    it serves until told to stop, and answers the test's requests."""
-    arm = JointArm(q)
-    controller = ControllerState({"actual_q": list(q), "target_q": list(q), "actual_qd": [0.0] * 6,
-                                  "actual_TCP_pose": list(tcp_pose), "robot_mode": 7, "safety_mode": 1,
-                                  "safety_status_bits": 1 << NORMAL_MODE_BIT, "robot_status_bits": 1 << POWER_ON_BIT,
-                                  "runtime_state": RUNTIME_STOPPED, "speed_scaling": 1.0}, model=model,
-                                 version=version)
-    rtde = RtdeServer(host, controller.snapshot, version=version)
+def _child(host: str, arm_name: str, version, q, tcp_offset, sim, conn) -> None:
+    """The fake controller's process: the arm and the control script step every controller cycle,
+    which publishes its sample; it serves until told to stop, and answers the test's requests."""
+    kinematics = UrKinematics(arm_name, tcp_offset)
+    arm = JointArm(q) if sim is None else SimArm(sim)
+    model = arm_name.rstrip("e")                  # the dashboard's name: UR5 for a UR5 or a UR5e
+    controller = ControllerState({"actual_q": list(arm.q), "target_q": list(arm.q), "actual_qd": [0.0] * 6,
+                                  "robot_mode": 7, "safety_mode": 1, "safety_status_bits": 1 << NORMAL_MODE_BIT,
+                                  "robot_status_bits": 1 << POWER_ON_BIT, "runtime_state": RUNTIME_STOPPED,
+                                  "speed_scaling": 1.0}, model=model, version=version)
+    rtde = RtdeServer(host, controller, version=version)
     script = ControlScript(controller, rtde, arm)
 
     def on_script(text: str) -> None:
@@ -612,16 +790,26 @@ def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
     scripts = ScriptServer(host, on_script)
     dashboard = DashboardServer(host, controller, on_stop=script.stop)
     stop = threading.Event()
+    period = 1.0 / rtde.max_frequency_hz
+    t0 = time.monotonic() - CONTROLLER_UPTIME_S       # the controller was switched on a while before
+
+    def sample(t: float, q, qd, force_base) -> None:
+        """One cycle's state: its clock counts whole cycles since it started, as the real one does.
+        `force_base` None: the TCP force stays what the test set."""
+        force = {} if force_base is None else {"actual_TCP_force": list(force_base) + [0.0] * 3}
+        controller.publish(round((t - t0) / period) * period, actual_q=list(q), target_q=list(q),
+                           actual_qd=list(qd), actual_TCP_pose=kinematics.pose(q),
+                           actual_TCP_speed=kinematics.speed(q, qd), **force)
 
     def run_cycles() -> None:
-        period = 1.0 / rtde.max_frequency_hz
         t_next = time.monotonic()
         while not stop.is_set():
-            script.cycle()
+            now = time.monotonic()
+            script.cycle(now)
             if controller.values.get("safety_mode") != 1:
                 arm.halt()                    # a protective or emergency stop halts the arm
-            arm.step(period)
-            controller.update(actual_q=list(arm.q), target_q=list(arm.q), actual_qd=list(arm.qd))
+            for t, q, qd, force in arm.step(period, now):
+                sample(t, q, qd, force)
             t_next += period
             delay = t_next - time.monotonic()
             if delay > 0:
@@ -651,12 +839,16 @@ def _child(host: str, version, model: str, q, tcp_pose, conn) -> None:
             elif msg[0] == "arm":
                 conn.send({"q": list(arm.q), "qd": list(arm.qd), "commands": list(script.commands),
                            "scripts": len(scripts.scripts), "program_running": script.running,
-                           "watchdog_hz": script.watchdog_hz, "watchdog_trips": script.watchdog_trips})
+                           "watchdog_hz": script.watchdog_hz, "watchdog_trips": script.watchdog_trips,
+                           "speedj_t": list(script.speedj_t), "moved_t": arm.moved_t})
+            elif msg[0] == "truth":
+                conn.send(arm.truth() if sim is not None else None)
     except EOFError:
         pass
     finally:
         stop.set()
         cycles.join(1.0)
+        arm.close()
         dashboard.close()
         scripts.close()
         rtde.close()
@@ -673,20 +865,29 @@ def wait_for(predicate, timeout_s: float = 5.0) -> bool:
 
 
 class FakeController:
-    """The parent's handle on a fake controller process at `host`."""
+    """The parent's handle on a fake controller process at `host`: a UR arm (`arm`: UR3, UR5, UR10
+    (CB3) or UR3e, UR5e, UR10e, UR16e) whose controller version defaults to its series', with the
+    controller's TCP set to `tcp_offset` (x, y, z m, rotation vector rad, flange frame, as on the
+    pendant). The arm integrates speedJ from `q`, or with `sim` (a SimArmSpec) is our simulator."""
 
-    def __init__(self, host: str, version=(5, 11, 0, 0), model: str = "UR5", q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
-                 tcp_pose=(0.0,) * 6):
+    def __init__(self, host: str, arm: str = "UR5e", version=None, q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
+                 tcp_offset=(0.0,) * 6, sim: "SimArmSpec | None" = None):
         import multiprocessing
         ctx = multiprocessing.get_context("spawn")
         self.host = host
+        self.version = version or (E_SERIES_VERSION if arm.endswith("e") else CB3_VERSION)
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(host, version, model, list(q), list(tcp_pose), child),
+        self._proc = ctx.Process(target=_child, args=(host, arm, self.version, list(q), list(tcp_offset), sim, child),
                                  name=f"fake-ur-{host}", daemon=True)
         self._proc.start()
-        if not self._conn.poll(30.0) or self._conn.recv() != "ready":
+        if not self._conn.poll(60.0) or self._conn.recv() != "ready":
             self.close()
             raise RuntimeError(f"the fake controller at {host} did not start")
+
+    def truth(self):
+        """With `sim`: the simulated world's truth (sim.world.SimTruth) now."""
+        self._conn.send(("truth",))
+        return self._conn.recv()
 
     def set(self, **values) -> None:
         """Set output variables of the controller's state (robot_mode, safety_status_bits, actual_q ...)."""

@@ -38,14 +38,10 @@ def board(tmp_path):
     device.close()
 
 
-def tcp_of(q, offset_m=(0.0, 0.0, 0.0)) -> list:
-    """A controller's TCP pose for joint positions q: our FK's position (plus an offset), any rotation."""
-    return list(ArmModel("ur5").fk(np.array(q)).translation + offset_m) + [0.0, 3.14, 0.0]
-
-
 @pytest.fixture
 def fake():
-    controller = FakeController(free_loopback_host(), q=Q_HOME, tcp_pose=tcp_of(Q_HOME))
+    """A CB3 UR5, as robot.model ur5 is: its TCP from UR's DH parameters, in the controller's base frame."""
+    controller = FakeController(free_loopback_host(), arm="UR5", q=Q_HOME)
     yield controller
     controller.close()
 
@@ -58,8 +54,11 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
         assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
         assert state["mode"] == "idle" and state["faults"] == []
         fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
-        ev = d.client.wait_event(("fault",), None, 5.0)
-        assert ev["code"] == "robot_protective_stop"
+        # the stop pauses the control script, so a speedJ in flight may be refused first: a fault too
+        codes = [d.client.wait_event(("fault",), None, 5.0)["code"]]
+        while codes[-1] != "robot_protective_stop":
+            codes.append(d.client.wait_event(("fault",), None, 5.0)["code"])
+        assert set(codes) <= {"robot_protective_stop", "robot_refused", "robot_program"}, codes
         refused = d.client.command("probe", {})
         assert refused["ok"] is False and refused["error"]["code"] == "fault"
         db = dashboard_client.DashboardClient(fake.host)
@@ -76,14 +75,15 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
 
 
 def test_a_controller_tcp_far_from_our_kinematics_is_said_at_start(tmp_path, board):
-    fake = FakeController(free_loopback_host(), q=Q_HOME, tcp_pose=tcp_of(Q_HOME, (0.0, 0.0, 0.012)))
+    # the pendant's TCP is 12 mm out of the flange; the daemon's tool offset says nothing of it
+    fake = FakeController(free_loopback_host(), arm="UR5", q=Q_HOME, tcp_offset=(0.0, 0.0, 0.012, 0.0, 0.0, 0.0))
     try:
         d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link)))
         d.close()
     finally:
         fake.close()
     (line,) = [x for x in d.log().splitlines() if "robot.tool_offset / robot.model" in x]
-    assert "12.0 mm" in line and "model ur5" in line
+    assert "12.0 mm and 0.0 deg" in line and "model ur5" in line
 
 
 def run_refused(tmp_path, cfg: dict) -> subprocess.CompletedProcess:
@@ -134,3 +134,12 @@ def test_a_stalled_daemon_has_the_arm_stopped_by_the_controllers_watchdog(tmp_pa
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
     finally:
         d.close()
+
+
+def test_a_model_that_is_not_the_controllers_arm_is_an_error_naming_both(tmp_path, board, fake):
+    """robot.model ur5e against a CB3 UR5: centimetres apart, so the daemon does not start."""
+    res = run_refused(tmp_path, ur_config(fake.host, str(board.link), **{"robot.model": "ur5e"}))
+    assert res.returncode == 1
+    (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
+    assert f"robot.model: ur5e, but the controller at {fake.host} runs a UR5 (CB3" in line
+    assert "set robot.model: ur5" in line

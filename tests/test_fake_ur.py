@@ -8,14 +8,14 @@ import time
 
 import pytest
 
-from tests.fake_ur import FakeController, free_loopback_host, wait_for
+from tests.fake_ur import FakeController, UrKinematics, free_loopback_host, wait_for
 
 rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is installed by `make test` (extra `ur`)")
 rtde_io = pytest.importorskip("rtde_io")
 dashboard_client = pytest.importorskip("dashboard_client")
 
 Q = (0.1, -1.2, 1.3, -1.6, -1.57, 0.2)
-TCP_POSE = (0.4, 0.1, 0.3, 0.0, 3.14, 0.0)        # x, y, z (m) and a rotation vector (rad), base frame
+TCP_OFFSET = (0.0, 0.0, 0.15, 0.0, 0.0, 0.0)      # the controller's TCP setting: 15 cm out of the flange
 UR_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
                 "robot_mode", "safety_mode", "robot_status_bits", "safety_status_bits", "runtime_state"]
 CONTROLLER_PERIOD_S = 0.002                        # an e-Series controller's cycle (500 Hz)
@@ -25,7 +25,7 @@ SETTLE_S = 0.3                                     # for the client's receive th
 
 @pytest.fixture
 def fake():
-    controller = FakeController(free_loopback_host(), q=Q, tcp_pose=TCP_POSE)
+    controller = FakeController(free_loopback_host(), q=Q, tcp_offset=TCP_OFFSET)
     yield controller
     controller.close()
 
@@ -34,7 +34,7 @@ def test_the_real_receive_client_reads_the_controller_state_and_its_stops(fake):
     r = rtde_receive.RTDEReceiveInterface(fake.host, 500.0, UR_VARIABLES)
     try:
         assert wait_for(lambda: r.getActualQ() == list(Q))
-        assert r.getActualTCPPose() == list(TCP_POSE)
+        assert r.getActualTCPPose() == pytest.approx(UrKinematics("UR5e", TCP_OFFSET).pose(Q), abs=1e-12)
         assert r.getRobotMode() == 7 and r.getSafetyMode() == 1 and not r.isProtectiveStopped()
         # the controller's clock counts its cycles: a timestamp is a whole number of them
         t = r.getTimestamp()

@@ -77,3 +77,27 @@ def test_unreachable_target_is_reported_not_diverging():
     assert not reached
     assert np.all(np.isfinite(q)) and err > 1.0
     assert np.all(q >= arm.q_min) and np.all(q <= arm.q_max)
+
+
+@pytest.mark.parametrize("name,dh_name", [("ur3", "UR3"), ("ur5", "UR5"), ("ur10", "UR10"), ("ur3e", "UR3e"),
+                                          ("ur5e", "UR5e"), ("ur10e", "UR10e"), ("ur16e", "UR16e")])
+def test_ur_models_are_the_controllers_kinematics_in_its_base_frame(name, dh_name):
+    """Our UR models (CB URDFs, e-Series from robots/ur_dh.py) against UR's DH parameters, computed
+    independently (the fake controller's): the same TCP once the controller's base frame is placed."""
+    from robots.ur import controller_base
+    from tests.fake_ur import UrKinematics
+    arm = ArmModel(name)
+    oMbase = controller_base(arm)
+    np.testing.assert_allclose(oMbase[:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-12)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.uniform(-3.0, 3.0, 6)
+        T = oMbase @ UrKinematics(dh_name).matrix(q)
+        oMtcp = arm.fk(q)
+        np.testing.assert_allclose(T[:3, 3], oMtcp.translation, atol=1e-9)
+        np.testing.assert_allclose(T[:3, :3], oMtcp.rotation, atol=1e-9)
+
+
+def test_an_e_series_arm_is_not_its_cb_namesake():
+    q = np.array(READY_Q["ur5"])
+    assert np.linalg.norm(ArmModel("ur5e").fk(q).translation - ArmModel("ur5").fk(q).translation) > 0.05
