@@ -37,6 +37,7 @@ log = logging.getLogger("tecdar.ur")
 
 STOP_TIMEOUT_S = 2.0
 DASHBOARD_TIMEOUT_MS = 2000
+REFUSED_AFTER_S = 0.05         # commands refused this long, with no stop to explain it: the link's fault
 STOP_DECEL_RAD_S2 = 2.0        # speedStop's deceleration when the daemon holds or stops the arm
 LINK_SILENT_S = 0.5            # no new controller state for this long: the link is lost (ur-rtde's own
                                # isConnected stays true while its control interface tries to reconnect)
@@ -127,12 +128,27 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     last_new = time.monotonic()
     lost = False
     refusing = False
+    refused_since = None
 
     def outcome(ok: bool, what: str) -> None:
-        nonlocal refusing
-        if ok == refusing:            # a change: the first refusal, or the first acceptance after them
-            refusing = not ok
-            state_tx.send(("refused" if refusing else "accepted", what))
+        """A refusal is the link's fault only when the controller's state does not explain it (a
+        protective stop, or the program stopped, has its own fault), and only once it has lasted
+        REFUSED_AFTER_S: the receive stream may show the stop a cycle after the command failed."""
+        nonlocal refusing, refused_since
+        if ok:
+            refused_since = None
+            if refusing:
+                refusing = False
+                state_tx.send(("accepted", what))
+            return
+        if rx.isProtectiveStopped() or rx.isEmergencyStopped() or not rx.getRobotStatus() >> PROGRAM_RUNNING_BIT & 1:
+            refused_since = None
+            return
+        now = time.monotonic()
+        refused_since = now if refused_since is None else refused_since
+        if not refusing and now - refused_since >= REFUSED_AFTER_S:
+            refusing = True
+            state_tx.send(("refused", what))
     try:
         while True:
             while cmd_rx.poll():

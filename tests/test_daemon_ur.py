@@ -143,3 +143,26 @@ def test_a_model_that_is_not_the_controllers_arm_is_an_error_naming_both(tmp_pat
     (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
     assert f"robot.model: ur5e, but the controller at {fake.host} runs a UR5 (CB3" in line
     assert "set robot.model: ur5" in line
+
+
+def test_a_controller_that_goes_and_comes_back_is_a_fault_then_fault_cleared(tmp_path, board):
+    host = free_loopback_host()
+    fake = FakeController(host, arm="UR5", q=Q_HOME)
+    d = DaemonProcess(tmp_path, ur_config(host, str(board.link)))
+    try:
+        assert d.client.command("status")["state"]["faults"] == []
+        fake.close()                                   # the controller is switched off
+        ev = d.client.wait_event(("fault",), None, 10.0)
+        assert ev["code"] == "robot_link" and host in ev["message"]
+        refused = d.client.command("probe", {})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault"
+        fake = FakeController(host, arm="UR5", q=Q_HOME)      # back, at the same address
+        cleared = d.client.wait_event(("fault_cleared",), None, 20.0)
+        assert cleared["code"] == "robot_link"
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
+        # the new link is the daemon's: its hold reaches the new controller's control script
+        assert wait_for(lambda: fake.arm()["program_running"] and fake.inputs()[1] > 10, 5.0)
+    finally:
+        d.close()
+        fake.close()
+    assert "reconnected to " + host in d.log()

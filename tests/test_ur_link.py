@@ -88,13 +88,29 @@ def test_no_controller_at_all_is_an_error_naming_the_host():
         UrLink(UrLinkSettings(host, connect_timeout_s=CONNECT_TIMEOUT_S)).start()
 
 
-def test_a_protective_stop_is_seen_and_a_refused_speedj_is_a_fault(fake, link):
+def test_a_protective_stop_is_seen_and_explains_the_refusals_it_causes(fake, link):
     link.wait_state(-1, 2.0)
     fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
     assert wait_for(lambda: link.ur_state.protective_stopped)
-    link.command_joint_velocity(QD)
-    assert wait_for(lambda: link.refused == "the controller refused speedJ")
+    for _ in range(10):                                       # refused: the stop's own fault says why
+        link.command_joint_velocity(QD)
+        time.sleep(TICK_S)
+    assert link.refused is None and link.fault is None
+
+
+def test_commands_refused_with_no_stop_to_explain_them_are_a_fault(fake, link):
+    """The controller's runtime says its program is stopped while its status bits say it runs:
+    ur-rtde refuses every speedJ, and nothing in the state explains it."""
+    link.wait_state(-1, 2.0)
+    fake.set(runtime_state=1)                                 # STOPPED
+    deadline = time.monotonic() + 2.0
+    while link.refused is None and time.monotonic() < deadline:
+        link.command_joint_velocity(QD)
+        time.sleep(TICK_S)
+    assert link.refused == "the controller refused speedJ"
     assert link.fault is None                                 # the link itself is fine
+    fake.set(runtime_state=2)                                 # PLAYING: accepted again, the fault clears
+    assert wait_for(lambda: (link.command_joint_velocity(QD), link.refused)[1] is None)
 
 
 def test_a_controller_that_goes_away_is_a_lost_link_not_a_dead_daemon(fake, link):
