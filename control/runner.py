@@ -77,7 +77,13 @@ class TaskRunner:
         self.end("failed", error=reason)
         self.mode = transition(self.mode, Event.STOP)
 
-    def protective_stop(self, cause: safety.StopCause) -> None:
+    def protective_stop(self, cause: safety.StopCause, halted_at: np.ndarray | None = None) -> None:
+        """End the task and brake to rest. `halted_at`: the measured TCP where the robot's own
+        controller has stopped the arm (its protective stop, a lost program): the plan stops there
+        at once, because a brake that ran on would only send motion the controller refuses now, or
+        leaves in its command registers to run when its program is started again."""
+        if halted_at is not None:
+            self.planner.reset(halted_at)
         if self.mode is not Mode.IDLE:
             self.emit("protective_stop", cause=cause.cause, message=cause.message, **cause.details)
             self.stop(f"protective stop: {cause.message}")

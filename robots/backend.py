@@ -19,6 +19,8 @@ class JointState:
     tcp_force: np.ndarray | None = None   # external force on the TCP, world, N, when the robot estimates it
     tcp_pose: np.ndarray | None = None    # oMtcp (4 x 4, world) as the robot reports it, from its own calibrated
                                           # kinematics and TCP setting; None: the daemon's FK of q
+    grip_force: float | None = None       # the gripper's grasp force, N, where the robot reads one (eta's
+                                          # schedule); None: estimator.grip_force_n, the configured constant
 
 
 def joint_rates(qd, nq: int) -> np.ndarray:

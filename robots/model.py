@@ -43,6 +43,26 @@ READY_Q = {
 }
 
 
+# A UR arm's world is its controller's base frame (UR's DH base; ur_description's `base`, which is
+# `base_link` turned half a turn about z): the frame of the pendant's TCP pose and of ur-rtde's
+# getActualTCPPose, so positions the daemon takes and reports read as a UR user reads them.
+UR_ARMS = ("ur3", "ur5", "ur10", *ur_dh.UR_E_DH)
+
+
+def reroot(model: pin.Model, frame: str) -> None:
+    """Make the fixed frame `frame` the model's world: everything attached to the universe is
+    placed relative to it instead (the joints' motion is unchanged)."""
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    fMo = data.oMf[model.getFrameId(frame)].inverse()
+    for j in range(1, model.njoints):
+        if model.parents[j] == 0:
+            model.jointPlacements[j] = fMo * model.jointPlacements[j]
+    for f in model.frames:
+        if f.parentJoint == 0:
+            f.placement = fMo * f.placement
+
+
 class UnknownRobotError(ValueError):
     pass
 
@@ -76,6 +96,8 @@ class ArmModel:
             model = pin.buildReducedModel(full, lock, pin.neutral(full))
         else:
             model = full
+        if name in UR_ARMS:
+            reroot(model, ur_dh.CONTROLLER_BASE)
         self.name = name
         self.tool_offset = [0.0, 0.0, 0.0] if tool_offset is None else [float(x) for x in tool_offset]   # flange -> TCP, m
         self.tool_quat = [0.0, 0.0, 0.0, 1.0] if tool_quat is None else [float(x) for x in tool_quat]   # (x, y, z, w)

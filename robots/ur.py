@@ -30,7 +30,6 @@ E_SERIES_MAJOR = 5                      # PolyScope 5 runs e-Series arms, 3 the 
 RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
 FK_CHECK_M = 0.003                      # our FK and the controller's TCP further apart than this: said at start
 FK_CHECK_RAD = 0.0175                   # ... or turned by more than this (1 degree)
-CONTROLLER_BASE_FRAME = "base"          # ur_description: the frame the controller reports in
 FIRST_STATE_S = 2.0
 
 
@@ -62,8 +61,7 @@ class UrBackend:
         self.model = ctx.model
         self.fk_offset_m: float | None = None    # |our FK TCP - the controller's TCP| at start, m
         self.fk_offset_rad: float | None = None  # the angle between their orientations, rad
-        self.oMbase = controller_base(ctx.model)
-        self.link = UrLink(self.settings, self.oMbase)
+        self.link = UrLink(self.settings)
         self.robot = self
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
@@ -135,7 +133,7 @@ class UrBackend:
                 if self._stop.is_set():
                     return
                 attempt += 1
-                fresh = UrLink(self.settings, self.oMbase)
+                fresh = UrLink(self.settings)
                 try:
                     fresh.start()
                 except UrLinkError as exc:
@@ -200,16 +198,6 @@ class UrBackend:
             out["robot_program"] = ("ur-rtde's control script is not running on the controller (remote control "
                                     "off, or stopped from the pendant)")
         return out
-
-
-def controller_base(model) -> np.ndarray:
-    """The controller's base frame in the model's world (4 x 4): ur_description's `base` frame,
-    which is base_link turned half a turn about z (the URDF's root is not the controller's)."""
-    if not model.model.existFrame(CONTROLLER_BASE_FRAME):
-        return np.eye(4)
-    data = model.model.createData()
-    pin.framesForwardKinematics(model.model, data, pin.neutral(model.model))
-    return data.oMf[model.model.getFrameId(CONTROLLER_BASE_FRAME)].homogeneous.copy()
 
 
 def build(ctx: BackendContext) -> UrBackend:

@@ -5,9 +5,9 @@ its wrists are longer, and its reach differs by millimetres to centimetres. With
 an e-Series arm, our FK is centimetres off the controller's and every commanded twist is mapped
 to joint rates through the wrong Jacobian. So these models are built from UR's published DH
 parameters (Universal Robots, "DH parameters for calculations of kinematics and dynamics"),
-chained as Pinocchio revolute-z joints, with the same frames as the CB URDFs: the world is
-ur_description's `base_link`, `base` is the controller's base frame (base_link turned half a turn
-about z) and `tool0` is the flange. Masses are UR's; inertias are those of point masses, since
+chained as Pinocchio revolute-z joints, with the same frames as the CB URDFs: `base_link`, `base`
+(the controller's base frame, base_link turned half a turn about z) and `tool0`, the flange.
+robots.model makes `base` the world of every UR arm. Masses are UR's; inertias are those of point masses, since
 the daemon uses these models for kinematics only.
 """
 from __future__ import annotations

@@ -12,9 +12,9 @@ script), then streams every new controller state to the parent and carries out s
 commands. The parent maps the controller's timestamps onto its monotonic clock (drivers.timesync:
 the lower envelope of arrival minus controller time) and hands out JointStates as any backend.
 
-Frames: the controller reports its TCP pose, speed and force in its own base frame, which is not
-the URDF's root: ur_description's `base` frame (base_link turned half a turn about z). The link
-maps all three into the model's world with `oMbase`, the placement of that frame.
+Frames: the controller reports its TCP pose, speed and force in its own base frame, which is a UR
+model's world (robots.model.UR_ARMS), so they pass as they are; the pose's rotation vector becomes
+a matrix.
 """
 from __future__ import annotations
 
@@ -37,6 +37,7 @@ log = logging.getLogger("tecdar.ur")
 
 STOP_TIMEOUT_S = 2.0
 DASHBOARD_TIMEOUT_MS = 2000
+SCRIPT_START_S = 1.0          # a re-uploaded control script runs within this
 REFUSED_AFTER_S = 0.05         # commands refused this long, with no stop to explain it: the link's fault
 STOP_DECEL_RAD_S2 = 2.0        # speedStop's deceleration when the daemon holds or stops the arm
 LINK_SILENT_S = 0.5            # no new controller state for this long: the link is lost (ur-rtde's own
@@ -106,6 +107,20 @@ def controller_identity(host: str) -> dict:
             pass
 
 
+def restart_script(ctl, settings: UrLinkSettings) -> None:
+    """Upload ur-rtde's control script again, after a stop has cleared. The controller keeps its RTDE
+    input registers across programs, and the new script runs the command they hold: the last
+    speedJ written before the stop. So zeros go in as soon as it runs (then the arm ramps from
+    rest at most a few controller cycles towards that old speed, at the speedJ acceleration), and
+    a watchdog, which a new program starts without."""
+    ctl.reuploadScript()
+    deadline = time.monotonic() + SCRIPT_START_S
+    while not ctl.isProgramRunning() and time.monotonic() < deadline:
+        time.sleep(0.001)
+    ctl.speedJ([0.0] * NQ, settings.accel_rad_s2, settings.command_time_s)
+    ctl.setWatchdog(settings.watchdog_hz)
+
+
 def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     """The child: connect, then stream states and carry out commands until told to close or the link goes."""
     import rtde_control
@@ -158,8 +173,7 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                 elif msg[0] == "stop":
                     outcome(ctl.speedStop(STOP_DECEL_RAD_S2), "speedStop")
                 elif msg[0] == "reupload":
-                    ctl.reuploadScript()
-                    ctl.setWatchdog(settings.watchdog_hz)      # a new program starts without one
+                    restart_script(ctl, settings)
                 elif msg[0] == "close":
                     return
             if not rx.isConnected():
@@ -195,11 +209,8 @@ class UrLink:
     """The daemon's handle on the child: receive (read_state, wait_state) and control
     (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable."""
 
-    def __init__(self, settings: UrLinkSettings, oMbase: np.ndarray | None = None):
-        """`oMbase` (4 x 4): the controller's base frame in the model's world (identity: the same)."""
+    def __init__(self, settings: UrLinkSettings):
         self.settings = settings
-        base = np.eye(4) if oMbase is None else np.asarray(oMbase, dtype=float)
-        self._R_wb, self._p_wb = base[:3, :3].copy(), base[:3, 3].copy()
         self._proc = None
         self._cmd = self._state_rx = None
         self._send_lock = threading.Lock()
@@ -280,15 +291,13 @@ class UrLink:
         self._states.close()
 
     def _joint_state(self, st: UrState) -> JointState:
-        """A controller state as the daemon's: its clock, and the TCP's pose, twist and force in the world."""
-        R_wb, p_wb = self._R_wb, self._p_wb
+        """A controller state as the daemon's: its clock, and the TCP's pose (a matrix), twist and force."""
         pose = np.eye(4)
-        pose[:3, :3] = R_wb @ pin.exp3(np.array(st.tcp_pose[3:]))        # a rotation vector, base frame
-        pose[:3, 3] = R_wb @ np.array(st.tcp_pose[:3]) + p_wb
-        speed = np.array(st.tcp_speed)
+        pose[:3, :3] = pin.exp3(np.array(st.tcp_pose[3:]))        # a rotation vector
+        pose[:3, 3] = st.tcp_pose[:3]
         return JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
-                          seq=self._seq, tcp_twist=np.concatenate([R_wb @ speed[:3], R_wb @ speed[3:]]),
-                          tcp_force=R_wb @ np.array(st.tcp_force[:3]), tcp_pose=pose)
+                          seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]),
+                          tcp_pose=pose)
 
     def _send(self, msg: tuple, quiet: bool = False) -> None:
         try:

@@ -195,7 +195,7 @@ class ControlThread:
         oMtcp, twist = self.model.measured(js)
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         est = self.contact.get()
-        self._check_sensors(now)
+        self._check_sensors(now, p)
         runner.check(js.tcp_force, est)
         self._handle_commands(now, p)
         p_plan, v_plan = planner.position, planner.velocity
@@ -220,16 +220,18 @@ class ControlThread:
             self.notifier.notify("WATCHDOG=1")
 
     # -- faults -------------------------------------------------------------------------
-    def _check_sensors(self, now: float) -> None:
+    def _check_sensors(self, now: float, p: np.ndarray) -> None:
         """The IMU's faults (stale, stuck at full scale) and the robot's (a backend's faults()): a new
-        one stops the running task."""
-        changes = self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s, self.imu_saturated_since())
+        one stops the running task. `p`: the measured TCP."""
+        changes = [(c, None) for c in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
+                                                           self.imu_saturated_since())]
         if self._robot_faults is not None:
-            changes += self.sensors.update_robot(self._robot_faults())
-        for kind, code, message in changes:
+            # the robot's own controller has stopped the arm where it is: the plan stops there too
+            changes += [(c, p) for c in self.sensors.update_robot(self._robot_faults())]
+        for (kind, code, message), halted_at in changes:
             if kind == "fault":
                 self._event("fault", code=code, message=message)
-                self.runner.protective_stop(safety.StopCause(code, message))
+                self.runner.protective_stop(safety.StopCause(code, message), halted_at=halted_at)
             else:
                 self._event("fault_cleared", code=code)
 

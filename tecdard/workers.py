@@ -7,6 +7,8 @@ import queue
 import threading
 import time
 
+import numpy as np
+
 from control.pipeline import ContactPipeline, EstimatorDirective
 from drivers.ring import SampleRing
 from tecdard.messages import DropOldestRing, LatestValue
@@ -58,7 +60,8 @@ def proprio_loop(robot, model, ring: DropOldestRing, stop: threading.Event) -> N
         except Exception:                 # a malformed state: skipped, never the end of the thread
             log.exception("proprioception: joint state %d skipped", js.seq)
             continue
-        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy()))
+        grip = np.nan if js.grip_force is None else float(js.grip_force)
+        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(), grip))
         if ring.overwritten != logged and (logged == 0 or ring.overwritten - logged >= 1000):
             logged = ring.overwritten
             log.warning("the estimator fell behind: %d proprioception samples overwritten", logged)

@@ -536,10 +536,6 @@ class UrKinematics:
 
 # -- the simulated arm -----------------------------------------------------------------------
 
-# ur_description's base_link (our simulator's world) is the controller's base turned half a turn about z
-SIM_WORLD_IN_BASE = np.diag([-1.0, -1.0, 1.0])
-
-
 class SimArmSpec:
     """What the fake needs to run our simulator as its arm (picklable): sim.process.SimSpec with
     imu_out "wire" and the board's pty path. The simulator's commands come from speedJ, ramped at
@@ -586,7 +582,8 @@ class SimArm:
         self.robot.advance_to(now)
         out = []
         for js in self.robot.drain_states():
-            force = SIM_WORLD_IN_BASE.T @ js.tcp_force if js.tcp_force is not None else np.zeros(3)
+            # the simulator's world is the UR model's, the controller's base frame (robots.model.UR_ARMS)
+            force = js.tcp_force if js.tcp_force is not None else np.zeros(3)
             out.append((js.t, list(js.q), list(js.qd), tuple(force)))
             if self.moved_t is None and np.any(js.qd != 0.0):
                 self.moved_t = js.t

@@ -351,3 +351,24 @@ def test_the_sensor_watch_holds_a_fault_while_its_condition_lasts():
     assert sat[:2] == ("fault", "imu_saturated") and watch.faults == {"imu_saturated": sat[2]}
     assert watch.update(1.41, 31, 1.40, 0.0, 1.405) == []                    # clipped again: still held
     assert [c[:2] for c in watch.update(1.42, 32, 1.41, 0.0, None)] == [("fault_cleared", "imu_saturated")]
+
+
+def test_a_robot_fault_stops_the_plan_where_the_controller_stopped_the_arm(model, wiggle_verb):
+    """The robot's own controller has stopped the arm (its protective stop): the daemon commands no
+    brake that runs on past it. Such commands are refused now, or left in the controller's command
+    registers to run when its program starts again. An IMU fault, with the arm still ours, brakes."""
+    ct = control_thread(model)
+    ct.submit(StartTask(None, "wiggle", C.validate("wiggle", {"distance": 0.01}, C.Limits())))
+    for k in range(1, 12):
+        tick(ct, ct.robot, k)
+    assert ct.runner.mode is Mode.BUSY and np.linalg.norm(ct.runner.planner.velocity) > 1e-3   # moving
+    ct._robot_faults = lambda: {"robot_protective_stop": "the controller reports a protective stop"}
+    ct.robot.qd[:] = 0.0                               # the controller has halted the arm
+    p_halted = model.fk(ct.robot.q).translation.copy()
+    tick(ct, ct.robot, 12)
+    events = [m[1]["kind"] for m in list(ct.outbox.queue) if m[0] == "event"]
+    assert "protective_stop" in events and "task_failed" in events
+    for k in range(13, 17):
+        tick(ct, ct.robot, k)
+        assert np.linalg.norm(model.fk(ct.robot.q).translation - p_halted) < 1e-4
+    assert ct.runner.mode is Mode.IDLE and np.all(ct.robot.qd == 0.0)

@@ -26,6 +26,8 @@ EXIT_WITHIN_S = 20.0            # a refused start exits within the connect deadl
 def ur_config(host: str, port_link: str, **extra) -> dict:
     return daemon_config(**{"robot.backend": "ur", "robot.model": "ur5", "robot.name": "ur",
                             "robot.q_home": Q_HOME, "robot.ur": {"host": host, "connect_timeout_s": CONNECT_TIMEOUT_S},
+                            # the controller's base frame: the ready posture's TCP is at x -0.63 m
+                            "control.workspace_min": [-0.9, -0.9, 0.05], "control.workspace_max": [0.9, 0.9, 0.9],
                             "imu.source": "serial", "imu.serial": {"port": port_link}, "sim": ..., **extra})
 
 

@@ -83,16 +83,16 @@ def test_unreachable_target_is_reported_not_diverging():
                                           ("ur5e", "UR5e"), ("ur10e", "UR10e"), ("ur16e", "UR16e")])
 def test_ur_models_are_the_controllers_kinematics_in_its_base_frame(name, dh_name):
     """Our UR models (CB URDFs, e-Series from robots/ur_dh.py) against UR's DH parameters, computed
-    independently (the fake controller's): the same TCP once the controller's base frame is placed."""
-    from robots.ur import controller_base
+    independently (the fake controller's): a UR arm's world is its controller's base frame, so the
+    TCP is the one the controller reports."""
     from tests.fake_ur import UrKinematics
     arm = ArmModel(name)
-    oMbase = controller_base(arm)
-    np.testing.assert_allclose(oMbase[:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-12)
+    pin.framesForwardKinematics(arm.model, arm.data, pin.neutral(arm.model))
+    np.testing.assert_allclose(arm.data.oMf[arm.model.getFrameId("base")].homogeneous, np.eye(4), atol=1e-12)
     rng = np.random.default_rng(0)
     for _ in range(20):
         q = rng.uniform(-3.0, 3.0, 6)
-        T = oMbase @ UrKinematics(dh_name).matrix(q)
+        T = UrKinematics(dh_name).matrix(q)
         oMtcp = arm.fk(q)
         np.testing.assert_allclose(T[:3, 3], oMtcp.translation, atol=1e-9)
         np.testing.assert_allclose(T[:3, :3], oMtcp.rotation, atol=1e-9)

@@ -135,13 +135,12 @@ def test_a_stopped_link_leaves_no_open_pipes(fake):
 
 
 def test_the_controllers_tcp_pose_speed_and_force_arrive_in_the_models_world(fake):
-    """The controller reports in its base frame (UR's DH base, ur_description's `base`), half a turn
-    about z from the URDF's root: the link turns pose, speed and force into the model's world,
-    where they are what our FK and Jacobian say for the same joints (to the fake's DH kinematics)."""
+    """The controller reports in its base frame (UR's DH base, ur_description's `base`), which is a
+    UR model's world: pose and speed are what our FK and Jacobian say for the same joints (to the
+    fake's DH kinematics), the force arrives as the controller reports it."""
     from robots.model import ArmModel
-    from robots.ur import controller_base
     model = ArmModel("ur5e")
-    ur = UrLink(UrLinkSettings(fake.host, connect_timeout_s=CONNECT_TIMEOUT_S), controller_base(model))
+    ur = UrLink(UrLinkSettings(fake.host, connect_timeout_s=CONNECT_TIMEOUT_S))
     ur.start()
     try:
         force_base = [1.0, 2.0, 3.0]
@@ -157,7 +156,7 @@ def test_the_controllers_tcp_pose_speed_and_force_arrive_in_the_models_world(fak
         # the fake's speed is its pose's derivative along qd, so to its finite step
         np.testing.assert_allclose(js.tcp_twist, model.jacobian(js.q) @ js.qd, atol=1e-6)
         assert np.linalg.norm(js.tcp_twist[:3]) > 0.05
-        np.testing.assert_allclose(js.tcp_force, [-1.0, -2.0, 3.0])
+        np.testing.assert_allclose(js.tcp_force, force_base)
         # model.measured (the daemon's proprioception) takes the controller's pose
         measured, twist = model.measured(js)
         np.testing.assert_allclose(measured.homogeneous, js.tcp_pose)
