@@ -37,6 +37,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks
 	$(PY) -m benchmarks.mapping
 	$(PY) -m benchmarks.hostile
+	$(PY) -m benchmarks.ur
 	$(PY) -m benchmarks.startup --cold
 
 clean:

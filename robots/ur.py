@@ -3,14 +3,22 @@
 Reads `robot.ur`:
 - `host` (required): the controller's address;
 - `frequency_hz`: the RTDE rate, default the controller's own (500 Hz e-Series, 125 Hz CB3);
-- `accel_rad_s2`: speedJ's joint acceleration bound (default 1.0);
-- `connect_timeout_s`: a controller that does not answer within this is an error (default 10).
+- `accel_rad_s2`: speedJ's joint acceleration bound (default 4.0): a ceiling above the joint
+  accelerations the jerk-limited Cartesian plan asks (docs/ur.md);
+- `connect_timeout_s`: a controller that does not answer within this is an error (default 10);
+- `watchdog_hz`: the controller's RTDE watchdog (default 10): it stops the arm when the daemon
+  writes less often, so a stalled daemon never leaves the arm at its last speed.
+
+The controller's pose, speed and force are the daemon's (a UR arm's world is its controller's base
+frame, robots.model): its pose carries the arm's own calibration. Grip force: UR's RTDE carries no
+gripper state (grippers speak their own protocols), so eta's schedule uses estimator.grip_force_n.
 
 The controller's faults are the daemon's: a protective or emergency stop, a robot not running, the
 control script not running (remote control off, stopped from the pendant), or a lost link each hold
 as a fault (a protective stop of the task, tasks refused) until they clear. A lost link is
 reconnected with back-off. When a protective stop has been unlocked, the control script is
-uploaded again: it moves nothing by itself, and the task it served already ended on the stop.
+uploaded again and told zeros at once (the controller's registers still hold the last speedJ from
+before the stop); the task it served already ended on the stop.
 """
 from __future__ import annotations
 
@@ -54,9 +62,13 @@ class UrBackend:
         self.settings = UrLinkSettings(
             host=section.getstr("host", max_len=253),
             frequency_hz=section.getfloat("frequency_hz", -1.0, minval=-1.0, maxval=500.0),
-            accel_rad_s2=section.getfloat("accel_rad_s2", 1.0, above=0.0, maxval=40.0),
+            accel_rad_s2=section.getfloat("accel_rad_s2", 4.0, above=0.0, maxval=40.0),
             command_time_s=ctx.tick_s,
-            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0))
+            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
+            watchdog_hz=section.getfloat("watchdog_hz", 10.0, minval=2.0, maxval=500.0))
+        if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
+            raise ConfigError(f"robot.ur.watchdog_hz: {self.settings.watchdog_hz:g} Hz would stop the arm between "
+                              f"two control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
         self.nq = ctx.model.nq
         self.model = ctx.model
         self.fk_offset_m: float | None = None    # |our FK TCP - the controller's TCP| at start, m
@@ -88,13 +100,11 @@ class UrBackend:
             log.warning("robot.model: the controller at %s did not say which arm it runs (dashboard server); "
                         "check that robot.model %s is the arm", self.settings.host, self.model.name)
             return
-        e_series = int(identity["version"].split(".")[0]) >= E_SERIES_MAJOR
-        theirs = identity["model"].upper() + ("e" if e_series else "")
-        ours = self.model.name.upper().replace("E", "e")
-        if theirs != ours:
+        theirs = expected_controller_arm(identity)
+        if theirs.lower() != self.model.name:
+            series = "e-Series" if theirs.endswith("e") else "CB3"
             raise UrLinkError(f"robot.model: {self.model.name}, but the controller at {self.settings.host} runs a "
-                              f"{theirs} ({'e-Series' if e_series else 'CB3'}, software {identity['version']}); "
-                              f"set robot.model: {theirs.lower()}")
+                              f"{theirs} ({series}, software {identity['version']}); set robot.model: {theirs.lower()}")
 
     def _check_kinematics(self) -> None:
         """Compare our FK of the controller's joints with the TCP the controller reports. The
@@ -198,6 +208,13 @@ class UrBackend:
             out["robot_program"] = ("ur-rtde's control script is not running on the controller (remote control "
                                     "off, or stopped from the pendant)")
         return out
+
+
+def expected_controller_arm(identity: dict) -> str:
+    """The arm a controller runs, as robot.model spells it but for case (UR5e), from its dashboard's
+    model (UR5 for a UR5 or a UR5e) and software version (PolyScope 5: e-Series)."""
+    e_series = int(identity["version"].split(".")[0]) >= E_SERIES_MAJOR
+    return identity["model"].upper() + ("e" if e_series else "")
 
 
 def build(ctx: BackendContext) -> UrBackend:

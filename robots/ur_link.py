@@ -59,7 +59,7 @@ class UrLinkError(BackendError):
 class UrLinkSettings:
     host: str
     frequency_hz: float = -1.0            # -1: the controller's own rate (500 Hz e-Series, 125 Hz CB3)
-    accel_rad_s2: float = 1.0             # speedJ's acceleration bound
+    accel_rad_s2: float = 4.0             # speedJ's acceleration bound, rad/s^2
     command_time_s: float = 0.02          # speedJ's time: the control tick (the controller stops after it)
     connect_timeout_s: float = 10.0       # a controller that does not answer within this is an error
     watchdog_hz: float = 10.0             # the controller stops the program when the daemon writes less often
@@ -90,14 +90,18 @@ class UrState:
 
 
 def controller_identity(host: str) -> dict:
-    """The arm type and software version the controller's dashboard server reports
-    ({"model": "UR5", "version": "5.11.0.0"}), or {} when the dashboard does not answer."""
+    """The arm type and software version the controller's dashboard server reports, and on an
+    e-Series whether it is in remote control ({"model": "UR5", "version": "5.11.0.0",
+    "remote_control": True}), or {} when the dashboard does not answer."""
     import dashboard_client
     db = dashboard_client.DashboardClient(host)
     try:
         db.connect(DASHBOARD_TIMEOUT_MS)
         found = re.search(r"(\d+\.\d+\.\d+(\.\d+)?)", db.polyscopeVersion())
-        return {"model": db.getRobotModel().strip(), "version": found.group(1) if found else ""}
+        identity = {"model": db.getRobotModel().strip(), "version": found.group(1) if found else ""}
+        if identity["version"] and int(identity["version"].split(".")[0]) >= 5:
+            identity["remote_control"] = bool(db.isInRemoteControl())      # e-Series only
+        return identity
     except Exception:
         return {}
     finally:

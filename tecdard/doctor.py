@@ -220,6 +220,38 @@ def check_kernel_cache() -> Check:
                  "(the unit's: /var/cache/tecdar)")
 
 
+def check_ur_controller(host: str, model: str) -> list[Check]:
+    """A UR controller at `host`: its dashboard, RTDE and script ports answer, it runs the arm
+    robot.model names, and it is in remote control (ur-rtde uploads its script only then)."""
+    from robots.ur_link import controller_identity
+    from robots.ur import expected_controller_arm
+    ports = {"dashboard": 29999, "script": 30003, "RTDE": 30004}
+    closed = []
+    for name, port in ports.items():
+        try:
+            with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
+                pass
+        except OSError as exc:
+            closed.append(f"{name} {port}: {exc.strerror or exc}")
+    if closed:
+        return [Check(f"UR controller {host}", "fail", "; ".join(closed),
+                      "check robot.ur.host, the network to the controller, and that it is switched on")]
+    out = [Check(f"UR controller {host}", "pass", "dashboard, script and RTDE ports answer")]
+    identity = controller_identity(host)
+    if not identity:
+        out.append(Check("UR arm", "warn", "the dashboard did not say which arm this is",
+                         f"check that robot.model {model} is the controller's arm"))
+    else:
+        theirs = expected_controller_arm(identity)
+        ok = theirs.lower() == model
+        out.append(Check("UR arm", "pass" if ok else "fail", f"{theirs}, software {identity['version']}",
+                         None if ok else f"set robot.model: {theirs.lower()}"))
+        if identity.get("remote_control") is False:
+            out.append(Check("UR remote control", "fail", "the controller is in local control",
+                             "switch the pendant to remote control (e-Series: the icon at its top right)"))
+    return out
+
+
 def load_daemon(config_path: str):
     """The config checked as `tecdard run` checks it: (Daemon, None) or (None, Check that failed)."""
     from tecdard.config import Config, ConfigError
@@ -243,6 +275,9 @@ def run_checks(config_path: str) -> list[Check]:
     checks.append(check_udev_rule())
     if daemon is not None:
         checks += check_endpoints(daemon.listen, daemon.connect, daemon.robot_name, daemon.tls)
+        settings = getattr(daemon.backend, "settings", None)
+        if settings is not None and hasattr(settings, "host"):          # robot.backend: ur
+            checks += check_ur_controller(settings.host, daemon.model.name)
     checks.append(check_kernel_cache())
     return checks
 

@@ -767,7 +767,7 @@ def free_loopback_host(ports=(DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)) -> str:
     raise RuntimeError("no free 127.0.0.x address for a fake controller")
 
 
-def _child(host: str, arm_name: str, version, q, tcp_offset, sim, conn) -> None:
+def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control: bool, conn) -> None:
     """The fake controller's process: the arm and the control script step every controller cycle,
     which publishes its sample; it serves until told to stop, and answers the test's requests."""
     kinematics = UrKinematics(arm_name, tcp_offset)
@@ -776,7 +776,8 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, conn) -> None:
     controller = ControllerState({"actual_q": list(arm.q), "target_q": list(arm.q), "actual_qd": [0.0] * 6,
                                   "robot_mode": 7, "safety_mode": 1, "safety_status_bits": 1 << NORMAL_MODE_BIT,
                                   "robot_status_bits": 1 << POWER_ON_BIT, "runtime_state": RUNTIME_STOPPED,
-                                  "speed_scaling": 1.0}, model=model, version=version)
+                                  "speed_scaling": 1.0}, model=model, version=version,
+                                 remote_control=remote_control)
     rtde = RtdeServer(host, controller, version=version)
     script = ControlScript(controller, rtde, arm)
 
@@ -868,13 +869,14 @@ class FakeController:
     pendant). The arm integrates speedJ from `q`, or with `sim` (a SimArmSpec) is our simulator."""
 
     def __init__(self, host: str, arm: str = "UR5e", version=None, q=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0),
-                 tcp_offset=(0.0,) * 6, sim: "SimArmSpec | None" = None):
+                 tcp_offset=(0.0,) * 6, sim: "SimArmSpec | None" = None, remote_control: bool = True):
         import multiprocessing
         ctx = multiprocessing.get_context("spawn")
         self.host = host
         self.version = version or (E_SERIES_VERSION if arm.endswith("e") else CB3_VERSION)
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(host, arm, self.version, list(q), list(tcp_offset), sim, child),
+        self._proc = ctx.Process(target=_child, args=(host, arm, self.version, list(q), list(tcp_offset), sim,
+                                                      remote_control, child),
                                  name=f"fake-ur-{host}", daemon=True)
         self._proc.start()
         if not self._conn.poll(60.0) or self._conn.recv() != "ready":

@@ -168,3 +168,11 @@ def test_a_controller_that_goes_and_comes_back_is_a_fault_then_fault_cleared(tmp
         d.close()
         fake.close()
     assert "reconnected to " + host in d.log()
+
+
+def test_a_watchdog_that_would_stop_the_arm_between_ticks_is_a_config_error(tmp_path, board):
+    cfg = ur_config("127.0.0.1", str(board.link))
+    cfg["robot"]["ur"]["watchdog_hz"] = 100.0            # 10 ms: shorter than the 20 ms tick
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "robot.ur.watchdog_hz: 100 Hz would stop the arm between two control ticks" \
+        in res.stderr

@@ -4,6 +4,7 @@ import os
 import socket
 import types
 
+import pytest
 
 from tecdard import doctor
 from tecdard.config import dump_yaml
@@ -126,3 +127,54 @@ def test_endpoints_free_taken_reachable_unreachable():
 def test_an_endpoint_held_by_a_running_daemon_passes(shared_daemon):
     (c,) = doctor.check_endpoints([shared_daemon.endpoint], [])
     assert c.status == "pass" and "running tecdard" in c.detail
+
+
+# -- a UR rig ---------------------------------------------------------------------------------
+
+def ur5e_config(tmp_path, host: str) -> str:
+    """configs/ur5e.yaml as shipped, pointed at `host`, listening on a free port."""
+    import yaml
+    cfg = yaml.safe_load((ROOT / "configs" / "ur5e.yaml").read_text())
+    cfg["robot"]["ur"]["host"] = host
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    path = tmp_path / "ur5e.yaml"
+    path.write_text(dump_yaml(cfg))
+    return str(path)
+
+
+def test_the_shipped_ur5e_config_is_valid_and_its_controller_is_checked(tmp_path):
+    pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
+    from tests.fake_ur import FakeController, free_loopback_host
+    fake = FakeController(free_loopback_host(), arm="UR5e")
+    try:
+        out = io.StringIO()
+        doctor.main(ur5e_config(tmp_path, fake.host), out)
+    finally:
+        fake.close()
+    text = out.getvalue()
+    assert text.splitlines()[0].startswith("PASS  config"), text
+    assert f"PASS  UR controller {fake.host}: dashboard, script and RTDE ports answer" in text
+    assert "PASS  UR arm: UR5e, software 5.11" in text
+
+
+@pytest.mark.parametrize("arm,remote,expect", [
+    ("UR5", True, "FAIL  UR arm: UR5, software 3.15.7.0"),             # a CB3 UR5 where a UR5e is configured
+    ("UR5e", False, "FAIL  UR remote control: the controller is in local control"),
+])
+def test_a_ur_controller_that_cannot_serve_this_config_fails(tmp_path, arm, remote, expect):
+    pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
+    from tests.fake_ur import FakeController, free_loopback_host
+    fake = FakeController(free_loopback_host(), arm=arm, remote_control=remote)
+    try:
+        checks = doctor.check_ur_controller(fake.host, "ur5e")
+    finally:
+        fake.close()
+    lines = [ln for c in checks for ln in c.lines()]
+    assert any(ln.startswith(expect) for ln in lines), lines
+    assert any(ln.startswith("      fix: ") for ln in lines)
+
+
+def test_no_ur_controller_at_the_host_fails_naming_the_ports():
+    from tests.fake_ur import free_loopback_host
+    (check,) = doctor.check_ur_controller(free_loopback_host(), "ur5e")
+    assert check.status == "fail" and "dashboard 29999" in check.detail and "RTDE 30004" in check.detail
