@@ -176,3 +176,20 @@ def test_a_watchdog_that_would_stop_the_arm_between_ticks_is_a_config_error(tmp_
     res = run_refused(tmp_path, cfg)
     assert res.returncode == 2 and "robot.ur.watchdog_hz: 100 Hz would stop the arm between two control ticks" \
         in res.stderr
+
+
+def test_commands_the_controller_refuses_are_a_fault_not_silence(tmp_path, board, fake):
+    """The controller's runtime says its program is stopped while its status bits say it runs:
+    ur-rtde refuses the daemon's every speedJ (its hold, here), and no stop explains it."""
+    d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link)))
+    try:
+        assert d.client.command("status")["state"]["faults"] == []
+        fake.set(runtime_state=1)                          # STOPPED
+        ev = d.client.wait_event(("fault",), None, 5.0)
+        assert ev["code"] == "robot_refused" and "refused speedJ" in ev["message"]
+        refused = d.client.command("approach", {"direction": [0.0, 0.0, -1.0]})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault"
+        fake.set(runtime_state=2)                          # PLAYING: accepted again
+        assert d.client.wait_event(("fault_cleared",), None, 5.0)["code"] == "robot_refused"
+    finally:
+        d.close()
