@@ -88,38 +88,23 @@ def stream(seconds: float) -> dict:
 def rotates(n: int, accel_rad_s2: float | None = None) -> list[dict]:
     from sim.backend import with_truth
     from tecdard.demo import distance_to_axis
-    from tests.conftest import DaemonProcess
-    from tests.test_daemon_ur import ur_config
-    from tests.test_ur_rotate import ARM, Q_HOME, cutter_arm
+    from tests.test_ur_rotate import cutter_rig
+    config = {} if accel_rad_s2 is None else {"robot.ur.accel_rad_s2": accel_rad_s2}
     out = []
     for seed in range(1, n + 1):
-        with tempfile.TemporaryDirectory() as tmp:
-            tmp = pathlib.Path(tmp)
-            spec = cutter_arm(tmp, seed=seed)
-            fake = FakeController(free_loopback_host(), arm="UR5e", sim=spec)
-            try:
-                cfg = ur_config(fake.host, spec.sim_spec.pty_link, **{"robot.model": ARM, "robot.q_home": Q_HOME})
-                if accel_rad_s2 is not None:
-                    cfg["robot"]["ur"]["accel_rad_s2"] = accel_rad_s2
-                d = DaemonProcess(tmp, cfg)
-                try:
-                    t0 = time.monotonic()
-                    reply = d.client.command("rotate", {"angle_deg": 30.0})
-                    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
-                    duration = time.monotonic() - t0
-                    ev = with_truth(ev, fake.truth())
-                finally:
-                    d.close()
-            finally:
-                fake.close()
-            if ev["kind"] != "task_done":
-                out.append({"seed": seed, "failed": ev.get("error", "?")})
-                continue
-            res, sim = ev["result"], ev["result"]["sim"]
-            err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]),
-                                   np.array(sim["hinge_axis"]))
-            out.append({"seed": seed, "hinge_mm": err * 1e3, "angle_deg": sim["angle_deg"],
-                        "base_mm": sim["base_displacement"] * 1e3, "duration_s": duration})
+        with tempfile.TemporaryDirectory() as tmp, cutter_rig(pathlib.Path(tmp), seed, **config) as (fake, d):
+            t0 = time.monotonic()
+            reply = d.client.command("rotate", {"angle_deg": 30.0})
+            ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
+            duration = time.monotonic() - t0
+            ev = with_truth(ev, fake.truth())
+        if ev["kind"] != "task_done":
+            out.append({"seed": seed, "failed": ev.get("error", "?")})
+            continue
+        res, sim = ev["result"], ev["result"]["sim"]
+        err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
+        out.append({"seed": seed, "hinge_mm": err * 1e3, "angle_deg": sim["angle_deg"],
+                    "base_mm": sim["base_displacement"] * 1e3, "duration_s": duration})
     return out
 
 

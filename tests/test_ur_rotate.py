@@ -3,6 +3,8 @@ fake UR controller, whose arm is our simulator (tests/fake_ur.SimArm: a UR5e und
 paper cutter's hinge, the fingertip IMU streaming tecdar-imu/1 on a pseudo-terminal that the
 daemon reads as its serial board). Everything between the daemon and the arm is the real path:
 RTDE v2 on loopback, the controller's base frame and clock, the serial wire protocol."""
+import contextlib
+
 import numpy as np
 import pytest
 
@@ -46,22 +48,29 @@ def cutter_arm(tmp_path, seed: int = 1) -> SimArmSpec:
         board=BoardParams(odr_hz=int(round(imu.odr_hz)), gyro_fs_dps=imu.gyro_fs_dps, accel_fs_g=imu.accel_fs_g)))
 
 
-def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
-    spec = cutter_arm(tmp_path)
+@contextlib.contextmanager
+def cutter_rig(tmp_path, seed: int = 1, **config):
+    """(fake controller whose arm is the simulated cutter, daemon on robot.backend ur), closed after."""
+    spec = cutter_arm(tmp_path, seed=seed)
     fake = FakeController(free_loopback_host(), arm="UR5e", sim=spec)
     try:
         d = DaemonProcess(tmp_path, ur_config(fake.host, spec.sim_spec.pty_link,
-                                              **{"robot.model": ARM, "robot.q_home": Q_HOME}))
+                                              **{"robot.model": ARM, "robot.q_home": Q_HOME, **config}))
         try:
-            reply = d.client.command("rotate", {"angle_deg": 30.0})
-            assert reply["ok"] is True, reply
-            ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
-            ev = with_truth(ev, fake.truth())
-            assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
+            yield fake, d
         finally:
             d.close()
     finally:
         fake.close()
+
+
+def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
+    with cutter_rig(tmp_path) as (fake, d):
+        reply = d.client.command("rotate", {"angle_deg": 30.0})
+        assert reply["ok"] is True, reply
+        ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+        ev = with_truth(ev, fake.truth())
+        assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
     res, sim = ev["result"], ev["result"]["sim"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
     summary = f"hinge error {err * 1e3:.2f} mm, angle {sim['angle_deg']:.2f} deg, base {sim['base_displacement'] * 1e3:.2f} mm"
@@ -76,38 +85,29 @@ def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(
     import time
     import dashboard_client
     from tests.fake_ur import wait_for
-    spec = cutter_arm(tmp_path, seed=2)
-    fake = FakeController(free_loopback_host(), arm="UR5e", sim=spec)
-    try:
-        d = DaemonProcess(tmp_path, ur_config(fake.host, spec.sim_spec.pty_link,
-                                              **{"robot.model": ARM, "robot.q_home": Q_HOME}))
-        try:
-            reply = d.client.command("rotate", {"angle_deg": 30.0})
-            assert reply["ok"] is True, reply
-            # mid-task: the handle has turned a few degrees
-            assert wait_for(lambda: abs(fake.truth().handle_angle_rad) > np.radians(5.0), 30.0)
-            fake.set(safety_status_bits=1 << 2, safety_mode=3)
-            stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
-            assert stop["cause"] == "robot_protective_stop"
-            failed = d.client.wait_event(("task_failed",), reply["task"], 5.0)
-            assert "protective stop" in failed["error"]
-            angle_at_stop = fake.truth().handle_angle_rad
-            db = dashboard_client.DashboardClient(fake.host)
-            db.connect()
-            db.unlockProtectiveStop()
-            db.disconnect()
-            assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
-            # the control script is back, and the daemon only holds: the arm stays where it stopped
-            # (the controller's registers still held the last speedJ of the task; the link writes
-            # zeros as soon as the new script runs, and the daemon's plan stopped where the arm did)
-            q_back = np.array(fake.arm()["q"])
-            time.sleep(1.0)
-            arm = fake.arm()
-            assert arm["program_running"]
-            assert np.max(np.abs(np.array(arm["q"]) - q_back)) < STILL_RAD
-            assert abs(fake.truth().handle_angle_rad - angle_at_stop) < np.radians(0.2)
-            assert all(v == 0.0 for v in arm["speedj_t"][-1][1])
-        finally:
-            d.close()
-    finally:
-        fake.close()
+    with cutter_rig(tmp_path, seed=2) as (fake, d):
+        reply = d.client.command("rotate", {"angle_deg": 30.0})
+        assert reply["ok"] is True, reply
+        # mid-task: the handle has turned a few degrees
+        assert wait_for(lambda: abs(fake.truth().handle_angle_rad) > np.radians(5.0), 30.0)
+        fake.set(safety_status_bits=1 << 2, safety_mode=3)
+        stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
+        assert stop["cause"] == "robot_protective_stop"
+        failed = d.client.wait_event(("task_failed",), reply["task"], 5.0)
+        assert "protective stop" in failed["error"]
+        angle_at_stop = fake.truth().handle_angle_rad
+        db = dashboard_client.DashboardClient(fake.host)
+        db.connect()
+        db.unlockProtectiveStop()
+        db.disconnect()
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
+        # the control script is back, and the daemon only holds: the arm stays where it stopped
+        # (the controller's registers still held the last speedJ of the task; the link writes
+        # zeros as soon as the new script runs, and the daemon's plan stopped where the arm did)
+        q_back = np.array(fake.arm()["q"])
+        time.sleep(1.0)
+        arm = fake.arm()
+        assert arm["program_running"]
+        assert np.max(np.abs(np.array(arm["q"]) - q_back)) < STILL_RAD
+        assert abs(fake.truth().handle_angle_rad - angle_at_stop) < np.radians(0.2)
+        assert all(v == 0.0 for v in arm["speedj_t"][-1][1])
