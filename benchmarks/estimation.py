@@ -270,8 +270,10 @@ def main() -> int:
              f"{os.cpu_count()} cores, Python {platform.python_version()})", "",
              "`make bench` runs, in order: this estimator benchmark (`python -m benchmarks.estimation`, below);",
              "the serial driver, [serial.md](serial.md); the simulator, [sim.md](sim.md); the whole daemon's",
-             "`rotate` on the simulated paper cutter, [daemon.md](daemon.md); and the tactile map of the",
-             "paper's container, [mapping.md](mapping.md). Every page is written by its benchmark.", "",
+             "`rotate` on the simulated paper cutter, [daemon.md](daemon.md); the tactile map of the",
+             "paper's container, [mapping.md](mapping.md); hostile input, [hostile.md](hostile.md); the UR",
+             "backend against the fake controller, [ur.md](ur.md); and start-up, [startup.md](startup.md).",
+             "Every page is written by its benchmark.", "",
              "Simulated recordings (`sim/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
              "6667 Hz), encoder-grade TCP noise (0.05 mm) at 65 Hz with reported TCP velocity (1 mm/s noise), "
              "eta 2.0 assumed (calibrated at 30 N); every method gets the same conditioned gyro and the same causal "

@@ -24,6 +24,7 @@ import re
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.connection import wait
 
 import numpy as np
 
@@ -37,6 +38,7 @@ log = logging.getLogger("tecdar.ur")
 
 STOP_TIMEOUT_S = 2.0
 DASHBOARD_TIMEOUT_MS = 2000
+CONTROLLER_CYCLE_S = 0.002     # an e-Series controller's cycle (500 Hz), the fastest RTDE rate
 SCRIPT_START_S = 1.0          # a re-uploaded control script runs within this
 REFUSED_AFTER_S = 0.05         # commands refused this long, with no stop to explain it: the link's fault
 STOP_DECEL_RAD_S2 = 2.0        # speedStop's deceleration when the daemon holds or stops the arm
@@ -120,7 +122,7 @@ def restart_script(ctl, settings: UrLinkSettings) -> None:
     ctl.reuploadScript()
     deadline = time.monotonic() + SCRIPT_START_S
     while not ctl.isProgramRunning() and time.monotonic() < deadline:
-        time.sleep(0.001)
+        time.sleep(CONTROLLER_CYCLE_S)      # ur-rtde offers no wait for it: its state, once a cycle
     ctl.speedJ([0.0] * NQ, settings.accel_rad_s2, settings.command_time_s)
     ctl.setWatchdog(settings.watchdog_hz)
 
@@ -141,7 +143,6 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     except Exception as exc:
         state_tx.send(("error", f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"))
         return
-    period = 1.0 / 500.0
     state_tx.send(("ready", identity))
     last_t = None
     last_new = time.monotonic()
@@ -196,7 +197,9 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                     t, time.monotonic(), tuple(rx.getActualQ()), tuple(rx.getActualQd()), tuple(rx.getActualTCPPose()),
                     tuple(rx.getActualTCPSpeed()), tuple(rx.getActualTCPForce()), rx.getRobotMode(),
                     rx.getSafetyMode(), rx.getSafetyStatusBits(), bool(rx.getRobotStatus() >> PROGRAM_RUNNING_BIT & 1))))
-            time.sleep(period / 2)
+            # a command wakes the loop at once; otherwise the controller's state is polled at twice
+            # its fastest rate (ur-rtde's receive interface offers no wait for a new state)
+            wait([cmd_rx], CONTROLLER_CYCLE_S / 2)
     except (EOFError, OSError, BrokenPipeError):
         return                      # the daemon has gone
     finally:
