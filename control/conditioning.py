@@ -49,6 +49,16 @@ class GyroConditioner:
         self._bias_s += dt
         self.bias = self.bias + alpha * (gyro.mean(axis=0) - self.bias)
 
+    def bias_state(self) -> np.ndarray:
+        """(4,): the bias (rad/s, IMU frame) and the rest time averaged into it (s; 0: none yet), the
+        state a replay starts from (tecdard.localize.replay_live)."""
+        return np.append(self.bias, self._bias_s if self._bias_ready else 0.0)
+
+    def set_bias_state(self, state) -> None:
+        self.bias = np.array(state[:3], dtype=float)
+        self._bias_s = float(state[3])
+        self._bias_ready = self._bias_s > 0.0
+
     def freeze_bias(self, frozen: bool = True) -> None:
         """Hold the bias during a contact episode (the object's rotation is not bias)."""
         self.bias_frozen = frozen

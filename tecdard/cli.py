@@ -69,7 +69,7 @@ def _cmd_localize(args) -> int:
     from control import estimators
     from tecdard import localize as L
     from tecdard.estimation import build_pipeline
-    from tecdard.recording import RecordingError, load_recording
+    from tecdard.recording import RecordingError, load_live, load_recording
 
     def bad(msg: str) -> int:
         print(f"tecdard localize: {msg}", file=sys.stderr)
@@ -87,6 +87,7 @@ def _cmd_localize(args) -> int:
             return bad(f"--out: cannot write {show(args.out, 200)} ({exc.strerror or type(exc).__name__})")
     try:
         rec = load_recording(args.recording)
+        live = None if args.ignore_live else load_live(args.recording, rec)
     except RecordingError as exc:
         return bad(str(exc))
     try:
@@ -103,7 +104,10 @@ def _cmd_localize(args) -> int:
     except ConfigError as exc:
         return bad(f"config error: {exc}")
     try:
-        rows, onset_t, last = L.replay(rec, pipeline, args.rate)
+        if live is not None:         # a daemon's recording: fed as the live estimator was
+            rows, onset_t, last = L.replay_live(rec, live, pipeline)
+        else:
+            rows, onset_t, last = L.replay(rec, pipeline, args.rate)
     except Exception as exc:        # a recording the checks let through but the estimator cannot take
         logging.getLogger("tecdar").debug("replay failed", exc_info=True)
         return bad(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
@@ -278,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print the summary as a JSON object")
     p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
     p.add_argument("--no-plane", action="store_true", help="ignore plane_normal: use the 3D estimator")
+    p.add_argument("--ignore-live", action="store_true",
+                   help="a daemon recording: replay it as any recording, not as its live estimator was fed")
     p.set_defaults(func=_cmd_localize)
     p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
     p.add_argument("out", help="OUT.npz")

@@ -33,7 +33,9 @@ def _ints(text: str) -> list[int]:
 
 # the control verbs' options; a task verb's come from its fields (tecdard/verbs/)
 CONTROL_OPTIONS = {"stop": [], "status": [],
-                   "cancel": [("--task", "task", str, "task id (default: the running task)")]}
+                   "cancel": [("--task", "task", str, "task id (default: the running task)")],
+                   "record": [("--action", "action", str, "start or stop a capture on demand"),
+                              ("--label", "label", str, "a label for the file's name")]}
 FIELD_TYPES = {"number": float, "direction": _vec, "numbers": _vec, "choice": str, "bool": bool, "grid": _ints,
                "int_choice": int}
 

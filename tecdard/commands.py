@@ -16,7 +16,7 @@ from tecdard.verbs import REQUIRED, Field, TaskVerb
 
 log = logging.getLogger("tecdar.commands")
 
-CONTROL_VERBS = ("stop", "status", "cancel")     # the verbs that are not tasks
+CONTROL_VERBS = ("stop", "status", "cancel", "record")     # the verbs that are not tasks
 
 
 def task_verbs() -> tuple[str, ...]:
@@ -42,6 +42,9 @@ INTERNAL = "internal"
 BAD_REQUEST = "bad_request"              # the request could not be handled (a bug of ours: logged)
 PAYLOAD_TOO_LARGE = "payload_too_large"
 RATE_LIMITED = "rate_limited"
+NOT_RECORDING = "not_recording"
+RECORD_ACTIONS = ("start", "stop")
+MAX_LABEL_CHARS = 64
 
 UNIT_TOL = 1e-3   # a direction must have |d| within this of 1
 MAX_PAYLOAD_BYTES = 16384     # a command payload is refused unread beyond this (the largest real one is ~200 B)
@@ -92,7 +95,8 @@ class Limits:
         from tecdard.config import ConfigError
         limits = cls._read(section)
         checks = {v.name: v.self_check for v in task_verbs_registry.discover().values()}
-        for verb, required in {**checks, **{v: {} for v in CONTROL_VERBS}}.items():
+        control = {v: {"action": "stop"} if v == "record" else {} for v in CONTROL_VERBS}
+        for verb, required in {**checks, **control}.items():
             try:
                 validate(verb, dict(required), limits)
             except CommandError as exc:
@@ -284,6 +288,17 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
     if verb in ("stop", "status"):
         _check_fields(obj, verb, ())
         return {}
+    if verb == "record":
+        _check_fields(obj, verb, ("action", "label"))
+        action, label = obj.get("action"), obj.get("label", "")
+        if action is None:
+            raise CommandError(MISSING_FIELD, "record: missing field 'action' (start or stop)")
+        if action not in RECORD_ACTIONS:
+            raise CommandError(BAD_TYPE, f"action: expected 'start' or 'stop', got {show(action)}")
+        if not isinstance(label, str) or len(label) > MAX_LABEL_CHARS:
+            raise CommandError(BAD_TYPE, f"label: expected a string of at most {MAX_LABEL_CHARS} characters, "
+                                         f"got {show(label)}")
+        return {"action": action, "label": label}
     _check_fields(obj, verb, ("task",))
     task = obj.get("task")
     if task is not None and (not isinstance(task, str) or len(task) > MAX_TASK_ID_CHARS):

@@ -98,6 +98,11 @@ class Section:
         self._root = root
 
     # -- raw access ---------------------------------------------------------
+    @property
+    def data(self) -> dict:
+        """The mapping as read (for a digest of the whole config; components use the getters)."""
+        return self._data
+
     def _name(self, key) -> str:
         key = show_name(key)
         return f"{self.path}.{key}" if self.path else key

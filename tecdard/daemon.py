@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import os
 import pathlib
@@ -24,7 +25,9 @@ from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
 from tecdard.intake import IntakeParams, QueryIntake
 from tecdard.messages import Stop
+from tecdard import __version__
 from tecdard.mapfiles import MapSettings
+from tecdard.recorder import Recorder, RecordParams, config_digest
 from tecdard.control_thread import ControlParams, ControlThread
 from tecdard.messages import LatestValue
 from tecdard.sdnotify import Notifier
@@ -174,6 +177,7 @@ class Daemon:
         source_odr_hz = float(serial_params.odr_hz) if serial_params is not None else self.backend.imu_odr_hz
         self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
         self.method = self.pipeline.method
+        self.record_params = RecordParams.from_config(cfg.section("record"))
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
@@ -184,14 +188,20 @@ class Daemon:
         self.outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_SIZE)
         self.contact = LatestValue()
         self.notifier = Notifier()
+        self.recorder = Recorder(self.record_params, self._emit, {
+            "robot": self.robot_name, "backend": backend_name, "model": self.model.name, "version": __version__,
+            "config_digest": config_digest(json.dumps(cfg.data, sort_keys=True, default=str)),
+            "estimator": self.method, "imu_in_tcp_quat": list(mount),
+            "plane_normal": self.pipeline.params.plane_normal})
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
-                                         saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz)
+                                         saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz,
+                                         recorder=self.recorder)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
         self.keys = Keys(self.robot_name)
         self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: status_json(self.control),
-                                  intake_params)
+                                  intake_params, record=self.recorder.request)
         try:
             acl = access_control(self.keys, commanders) if commanders else None
             self.zenoh_config = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES,
@@ -199,6 +209,13 @@ class Daemon:
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints ({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
+
+    def _emit(self, kind: str, **fields) -> None:
+        """An event from a thread that is not the control thread's (the recorder's)."""
+        try:
+            self.outbox.put_nowait(("event", {"t": time.monotonic(), "kind": kind, **fields}))
+        except queue.Full:
+            log.warning("event %s dropped: the outbox is full", kind)
 
     def _where(self) -> str:
         parts = [f"listening on {', '.join(self.listen)}"] if self.listen else []
@@ -228,6 +245,7 @@ class Daemon:
                  ("proprioception", lambda: proprio_loop(self.robot, proprio_model, self.estimator.proprio,
                                                          self.stop_event)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
+                 ("recorder", lambda: self.recorder.run(self.stop_event)),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:
             th = threading.Thread(target=body, name=name, daemon=True)
@@ -302,7 +320,7 @@ class Daemon:
     def _serve(self, pub_state, pub_contact, pub_events) -> None:
         """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
         main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events,
-                        annotate=getattr(self.backend, "annotate", None))
+                        annotate=getattr(self.backend, "annotate", None), on_event=self.recorder.note_event)
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()
@@ -333,12 +351,14 @@ class MainLoop:
     waits, a command's reply waits at most one pass behind it."""
 
     def __init__(self, intake: QueryIntake, control, outbox: queue.Queue, pub_state, pub_contact, pub_events,
-                 annotate=None):
+                 annotate=None, on_event=None):
         """`annotate(event) -> event`: the backend's additions to events (the simulator's truth on
-        a task's end), applied here on the main thread, never on the control tick."""
+        a task's end), applied here on the main thread, never on the control tick. `on_event(event)`
+        sees every event published (the recorder's)."""
         self.intake, self.control, self.outbox = intake, control, outbox
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
         self.annotate = annotate
+        self.on_event = on_event
 
     def serve_commands(self, now: float) -> None:
         while True:
@@ -361,6 +381,8 @@ class MainLoop:
             text = dumps(body)
             if kind == "event":
                 log.info("event %s", text)
+                if self.on_event is not None:
+                    self.on_event(body)
             self.pub[kind].put(text)          # the threads put only these three kinds
             if n == TELEMETRY_PER_PASS:
                 return n

@@ -89,8 +89,11 @@ class QueryIntake:
     is full) and `request_stop(Stop)`; `status_json()` gives the latest state as JSON text.
     """
 
-    def __init__(self, keys: Keys, limits: C.Limits, control, status_json, params: IntakeParams | None = None):
+    def __init__(self, keys: Keys, limits: C.Limits, control, status_json, params: IntakeParams | None = None,
+                 record=None):
+        """`record(action, label) -> reply dict` answers `record` (CommandError to refuse)."""
         self.keys = keys
+        self.record = record
         self.limits = limits
         self.control = control
         self.status_json = status_json
@@ -100,7 +103,7 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",)}
+        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel", "record")}
         self._known_keys = {keys.cmd(v) for v in C.verbs()}
         self._parse = {k: TokenBucket(self.params.rate(k), self.params.rate(k)) for k in BACKLOG}
         self._refuse = TokenBucket(REFUSALS_PER_S, REFUSAL_BURST)
@@ -202,6 +205,11 @@ class QueryIntake:
             fields = C.admit(verb, raw, self.limits)
             if verb == "status":
                 self._send_text(query, '{"ok":true,"state":' + (self.status_json() or "null") + "}")
+                return
+            if verb == "record":
+                if self.record is None:
+                    raise C.CommandError(C.NOT_IMPLEMENTED, "record: this daemon does not record")
+                self._send(query, self.record(fields["action"], fields["label"]))
                 return
             request = self._register(query)
             msg = Cancel(request, fields["task"]) if verb == "cancel" else StartTask(request, verb, fields)

@@ -7,8 +7,10 @@ import sys
 import numpy as np
 
 from control.geometry import quat_to_matrix
-from control.pipeline import ContactEstimate, ContactPipeline
-from tecdard.recording import Recording
+from control.pipeline import ContactEstimate, ContactPipeline, EstimatorDirective
+from tecdard.recording import LiveLog, Recording
+
+DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")
 
 EXIT_OK, EXIT_NO_CONTACT, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -47,6 +49,52 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
             if ev["kind"] == "contact_onset" and onset_t is None:
                 onset_t = ev["t"]
         for est in estimates:
+            last = est
+            rows.append(np.concatenate([[est.t], est.p, est.std]))
+    return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
+
+
+def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline):
+    """Run the pipeline over a daemon recording as the live estimator ran: the same passes (each
+    pass's IMU batch), each proprioception sample added before the pass it reached live, the
+    directives, data rates and clipping points as they changed, from the gyro bias the live
+    pipeline had at the start. Returns (rows (k, 7): t, p, std, one per estimate the live pass
+    published; onset_t or None; last estimate). `pipeline` must be built from the daemon's
+    estimator config: then its answer is the live one (docs/recordings.md states the tolerance)."""
+    R = quat_to_matrix(rec.tcp_quat)
+    force = rec.grip_force
+    batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
+    pipeline.cond.set_bias_state(live.bias0)
+    changes = {c["pass"]: c for c in live.changes}
+    applied = None
+    rows, last, onset_t = [], None, None
+    j, start = 0, 0
+    for k, end in enumerate(live.pass_end):
+        while j < len(rec.tcp_t) and live.tcp_pass[j] <= k:
+            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if rec.tcp_vel is None else rec.tcp_vel[j], R[j],
+                                 live.tcp_w[j], np.nan if force is None else force[j])
+            j += 1
+        change = changes.get(k)
+        if change is not None:
+            directive = EstimatorDirective(**{f: change["directive"][f] for f in DIRECTIVE_FIELDS
+                                              if f in change["directive"]})
+            if applied is None:          # the state the live pipeline was in: settings, not a release
+                pipeline.set_trigger_armed(directive.armed)
+                pipeline.set_arc_following(directive.arc_following)
+                pipeline.hold_bias(directive.bias_held)
+            else:
+                pipeline.follow(directive, applied)
+            applied = directive
+            if change.get("odr_hz"):
+                pipeline.set_odr(float(change["odr_hz"]))
+            if change.get("saturation"):
+                pipeline.set_saturation(*map(float, change["saturation"]))
+        events, est = pipeline.process(batch[start:end])
+        start = end
+        for ev in events:
+            if ev["kind"] == "contact_onset" and onset_t is None:
+                onset_t = ev["t"]
+        if est is not None:
             last = est
             rows.append(np.concatenate([[est.t], est.p, est.std]))
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last

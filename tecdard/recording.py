@@ -282,7 +282,9 @@ def load_truth(path: str | pathlib.Path) -> dict:
         return {k[len("truth_"):]: data[k] for k in data.files if k.startswith("truth_")}
 
 
-def save_recording(path: str | pathlib.Path, rec: Recording, truth: dict | None = None) -> None:
+def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict | None = None) -> None:
+    """Write `rec` to a path or an open binary file; `truth` as truth_* keys, `extra` as they are
+    (a daemon recording's live_* keys)."""
     arrays = {
         "format": np.array(FORMAT), "imu_t": rec.imu_t, "gyro": rec.gyro, "accel": rec.accel,
         "tcp_t": rec.tcp_t, "tcp_pos": rec.tcp_pos, "tcp_quat": rec.tcp_quat,
@@ -298,4 +300,53 @@ def save_recording(path: str | pathlib.Path, rec: Recording, truth: dict | None 
         arrays["meta"] = np.array(json.dumps(rec.meta))
     for k, v in (truth or {}).items():
         arrays[f"truth_{k}"] = np.asarray(v)
+    arrays.update(extra or {})
     np.savez_compressed(path, **arrays)
+
+
+@dataclass
+class LiveLog:
+    """A daemon recording's `live_*` keys: how the live estimator was fed (docs/recordings.md)."""
+    pass_end: np.ndarray         # (B,) int: imu rows fed up to each estimator pass
+    tcp_pass: np.ndarray         # (M,) int: the pass before which each proprioception sample was added
+    tcp_w: np.ndarray            # (M, 3) the TCP's rate as reported, rad/s, world
+    changes: list                # [{"pass", "directive", "odr_hz", "saturation"}] where they changed
+    bias0: np.ndarray            # (4,) the gyro bias at the first pass (rad/s, IMU frame) and its rest time (s)
+    est: np.ndarray              # (K, 7) the live estimates: t, p, std
+    events: list
+
+
+def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
+    """The live_* keys of a daemon recording checked against `rec`, None when there are none;
+    RecordingError naming the key when they are malformed."""
+    data = _Npz(pathlib.Path(path))
+    try:
+        if "live_pass_end" not in data:
+            return None
+        n_imu, n_tcp = len(rec.imu_t), len(rec.tcp_t)
+        ends = _array(data, "live_pass_end", (None,), rows_max=MAX_IMU_SAMPLES)
+        if len(ends) == 0 or np.any(np.diff(ends) < 0) or ends[0] < 0 or ends[-1] != n_imu:
+            raise RecordingError(f"live_pass_end: expected non-decreasing row counts ending at {n_imu}")
+        passes = _array(data, "live_tcp_pass", (n_tcp,))
+        if np.any(np.diff(passes) < 0) or (n_tcp and (passes[0] < 0 or passes[-1] >= len(ends))):
+            raise RecordingError(f"live_tcp_pass: expected non-decreasing pass numbers below {len(ends)}")
+        changes = _json_list(data, "live_changes")
+        for c in changes:
+            if not isinstance(c, dict) or not isinstance(c.get("pass"), int) or not isinstance(c.get("directive"), dict):
+                raise RecordingError("live_changes: expected [{\"pass\": int, \"directive\": {...}, ...}]")
+        return LiveLog(ends.astype(np.int64), passes.astype(np.int64), _array(data, "live_tcp_w", (n_tcp, 3)),
+                       changes, _array(data, "live_bias0", (4,)), _array(data, "live_est", (None, 7)),
+                       _json_list(data, "live_events"))
+    finally:
+        data.close()
+
+
+def _json_list(data: _Npz, key: str) -> list:
+    text = _string(data, key, True)
+    try:
+        value = loads(text)
+    except (JsonLimitError, ValueError) as exc:
+        raise RecordingError(f"{key}: not JSON ({_why(exc)})") from None
+    if not isinstance(value, list):
+        raise RecordingError(f"{key}: expected a JSON list")
+    return value

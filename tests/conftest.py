@@ -77,6 +77,7 @@ class DaemonProcess:
             cfg["zenoh"].pop("listen", None)
             cfg["zenoh"].update(mode="client", connect=[router])
         cfg.setdefault("map", {}).setdefault("output_dir", str(tmp_path / "maps"))    # never into the checkout
+        cfg.setdefault("record", {}).setdefault("dir", str(tmp_path / "recordings"))
         self.config_path = tmp_path / "tecdard.yaml"
         self.config_path.write_text(dump_yaml(cfg))
         self.log_path = tmp_path / "tecdard.log"

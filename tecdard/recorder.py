@@ -1,0 +1,406 @@
+"""Live recordings: every contact episode (and captures on demand) as a `tecdar-recording/1` file.
+
+The estimator thread hands the recorder what it fed its pipeline at each pass: the proprioception
+samples it added, the directive and data rate in force, the IMU batch, the events and the estimate
+that came out. `record.pre_onset_s` of that is kept in a bounded buffer; a contact onset (with
+`record.enabled`) or a `record start` command opens a capture that runs until the episode or its
+task ends, or `record stop`. The recorder's own thread writes the file (a temporary name, then one
+rename), under a disk budget that deletes the oldest recordings first. A full disk or a write
+error is a logged warning and a counted drop; nothing here ever blocks the estimator or the
+control thread: the hand-over is a bounded queue whose overflow is dropped and counted.
+
+Beyond the format's keys a daemon recording carries what a faithful replay needs (`live_*`, see
+docs/recordings.md): each pass's batch boundary, the pass at which each proprioception sample
+reached the pipeline, the directives and data rates as they changed, the gyro bias at the start,
+and the live estimates and events, so `tecdard localize` reproduces the live answer.
+"""
+from __future__ import annotations
+
+import collections
+import datetime
+import hashlib
+import json
+import logging
+import os
+import pathlib
+import queue
+import re
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from control.geometry import matrix_to_quat
+from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
+from tecdard.recording import Recording, save_recording
+
+log = logging.getLogger("tecdar.record")
+
+QUEUE_STEPS = 4096           # estimator passes waiting for the recorder (about 20 s at 200 passes/s)
+MAX_CAPTURE_S = 120.0        # a capture is closed (and written) after this long, whatever is open
+LABEL_RE = re.compile(r"[^A-Za-z0-9_.-]+")
+MAX_LABEL_CHARS = 40
+TASK_END_KINDS = ("task_done", "task_failed")
+PRE_EVENTS = 64             # daemon events kept from before a capture (those in its window are written)
+TASK_END_GRACE_S = 0.5       # after its episode, a capture waits this long for its task's end event
+
+
+class EmptyCapture(ValueError):
+    """A capture with too little in it to be a recording."""
+
+
+def default_dir() -> str:
+    return str(state_dir() / "recordings")
+
+
+@dataclass(frozen=True)
+class RecordParams:
+    """The `record` config section."""
+    enabled: bool = False                 # every contact episode is written
+    dir: str = field(default_factory=default_dir)
+    pre_onset_s: float = 1.0              # the buffer kept before an onset (or a `record start`)
+    max_mb: float = 2000.0                # the recordings directory's budget: the oldest go first
+
+    @classmethod
+    def from_config(cls, section) -> "RecordParams":
+        from tecdard.config import ConfigError
+        d = cls()
+        params = cls(enabled=section.getbool("enabled", False),
+                     dir=section.getstr("dir", default_dir()),
+                     pre_onset_s=section.getfloat("pre_onset_s", d.pre_onset_s, minval=0.0, maxval=10.0),
+                     max_mb=section.getfloat("max_mb", d.max_mb, above=0.0, maxval=1e7))
+        try:
+            ensure_writable_dir(params.dir, f"{section.path}.dir")
+        except OutputError as exc:
+            raise ConfigError(str(exc)) from None
+        return params
+
+
+@dataclass
+class Pass:
+    """One pass of the estimator thread, as it fed its pipeline."""
+    proprio: list                 # (t, p, v, R, w, grip) tuples added before the batch
+    directive: object             # the EstimatorDirective in force for the batch
+    odr_hz: float | None
+    saturation: tuple | None      # (gyro rad/s, accel m/s^2) clipping points in force
+    batch: np.ndarray             # (n, 7) t, gyro, accel
+    events: list                  # the pipeline's events of this pass
+    estimate: object              # ContactEstimate or None
+    bias: np.ndarray              # the conditioner's bias state before the batch (GyroConditioner.bias_state)
+
+    @property
+    def t_end(self) -> float | None:
+        return float(self.batch[-1, 0]) if len(self.batch) else None
+
+
+@dataclass
+class Capture:
+    reason: str                   # "episode" or "manual"
+    label: str
+    task: str | None
+    verb: str | None
+    episode: int
+    passes: list
+    events: list
+    t_open: float = field(default_factory=time.monotonic)
+    manual: bool = False
+    end_by: float | None = None   # its episode has ended: written at its task's end, or at this time
+
+
+class Recorder:
+    """Fed by the estimator thread (`feed`) and the main thread (`note_event`, `command`); owns its
+    capture state on its own thread (`run`). `emit(kind, **fields)` publishes its events."""
+
+    def __init__(self, params: RecordParams, emit, meta: dict):
+        self.params = params
+        self.emit = emit
+        self.meta = meta
+        self._q: queue.Queue = queue.Queue(QUEUE_STEPS)
+        self.dropped_passes = 0          # passes lost because the recorder fell behind (counted)
+        self.write_failures = 0
+        self.written = 0
+        self._pre: collections.deque = collections.deque()
+        self._pre_events: collections.deque = collections.deque(maxlen=PRE_EVENTS)
+        self._capture: Capture | None = None
+        self._task: tuple[str, str] | None = None       # (id, verb) of the running task
+        self._lost_in_capture = 0
+        self._manual: str | None = None                  # main thread: the label of a capture on demand
+
+    # -- hand-over (other threads) -------------------------------------------------
+    def feed(self, p: Pass) -> None:
+        """On the estimator thread: never blocks; an overflow is dropped and counted."""
+        self._put(("pass", p))
+
+    def note_event(self, event: dict) -> None:
+        """On the main thread: a daemon event (task starts and ends close captures)."""
+        self._put(("event", event))
+
+    def request(self, action: str, label: str) -> dict:
+        """On the main thread: a `record` command's reply. The main thread owns whether a capture on
+        demand runs (`_manual`); the capture itself is the recorder thread's."""
+        from tecdard import commands as C
+        if action == "start":
+            if self._manual is not None:
+                raise C.CommandError(C.BUSY, f"record: a capture on demand is running (label "
+                                             f"{self._manual!r}); record stop first")
+            self._manual = clean_label(label)
+            self._put(("command", "start", self._manual))
+            return {"ok": True, "recording": True, "label": self._manual, "dir": self.params.dir}
+        if self._manual is None:
+            raise C.CommandError(C.NOT_RECORDING, "record: no capture on demand is running")
+        label, self._manual = self._manual, None
+        self._put(("command", "stop", label))
+        return {"ok": True, "recording": False, "label": label}
+
+    def _put(self, item) -> None:
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            self.dropped_passes += 1
+
+    # -- the recorder's thread ------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                item = self._q.get(timeout=0.1)
+            except queue.Empty:
+                self._check_age()
+                continue
+            try:
+                self._take(item)
+            except Exception:                    # a bug here costs a recording, never the daemon
+                log.exception("recorder: a %s was lost", item[0])
+                self._capture = None
+        if self._capture is not None:            # the daemon stops: what was captured is kept
+            try:
+                self._write(self._capture, "daemon stopping")
+            except Exception:
+                log.exception("recorder: the capture open at shutdown was lost")
+
+    def _take(self, item) -> None:
+        kind = item[0]
+        if kind == "pass":
+            self._on_pass(item[1])
+        elif kind == "event":
+            self._on_event(item[1])
+        elif kind == "command":
+            self._on_command(item[1], item[2])
+        self._check_age()
+
+    def _on_pass(self, p: Pass) -> None:
+        cap = self._capture
+        if cap is not None and not cap.manual and cap.end_by is None and p.directive.episode != cap.episode:
+            # the pipeline was released before this pass: its task's end event is on its way (or
+            # there is no task): wait for it a little, so that the file holds it
+            cap.end_by = time.monotonic() + (TASK_END_GRACE_S if cap.task is not None else 0.0)
+        if cap is not None:
+            cap.passes.append(p)
+        else:
+            self._pre.append(p)
+            self._trim_pre()
+        if self._capture is None and self.params.enabled and any(e.get("kind") == "contact_onset" for e in p.events):
+            task, verb = self._task or (None, None)
+            self._open("episode", "", task, verb, p.directive.episode)
+
+    def _on_event(self, ev: dict) -> None:
+        kind = ev.get("kind")
+        if kind == "task_started":
+            self._task = (str(ev.get("task")), str(ev.get("verb")))
+        cap = self._capture
+        if cap is None:
+            self._pre_events.append(ev)
+        else:
+            cap.events.append(ev)
+            if kind in TASK_END_KINDS and cap.task == ev.get("task") and not cap.manual:
+                self._finish("the task ended")
+        if kind in TASK_END_KINDS:
+            self._task = None
+
+    def _on_command(self, action: str, label: str) -> None:
+        if action == "start":
+            if self._capture is not None:
+                self._capture.manual, self._capture.label = True, label or self._capture.label
+                return
+            task, verb = self._task or (None, None)
+            episode = self._pre[-1].directive.episode if self._pre else 0
+            self._open("manual", label, task, verb, episode)
+            self._capture.manual = True
+        elif action == "stop" and self._capture is not None:
+            self._finish("record stop")
+
+    def _open(self, reason: str, label: str, task, verb, episode: int) -> None:
+        t0 = next((p.t_end for p in self._pre if p.t_end is not None), None)
+        events = [e for e in self._pre_events if t0 is not None and isinstance(e.get("t"), (int, float))
+                  and e["t"] >= t0 - self.params.pre_onset_s]
+        self._capture = Capture(reason, label, task, verb, episode, list(self._pre), events)
+        self._pre.clear()
+        self._pre_events.clear()
+        self._lost_in_capture = self.dropped_passes
+
+    def _trim_pre(self) -> None:
+        newest = next((p.t_end for p in reversed(self._pre) if p.t_end is not None), None)
+        if newest is None:
+            return
+        horizon = newest - self.params.pre_onset_s
+        while len(self._pre) > 1 and (self._pre[0].t_end is None or self._pre[0].t_end < horizon):
+            self._pre.popleft()
+
+    def _check_age(self) -> None:
+        cap = self._capture
+        now = time.monotonic()
+        if cap is not None and cap.end_by is not None and now >= cap.end_by:
+            self._finish("the episode ended")
+        elif cap is not None and now - cap.t_open > MAX_CAPTURE_S:
+            self._finish(f"longer than {MAX_CAPTURE_S:g} s")
+
+    def _finish(self, why: str) -> None:
+        cap, self._capture = self._capture, None
+        if cap is not None:
+            self._write(cap, why)
+
+    # -- writing --------------------------------------------------------------------
+    def _write(self, cap: Capture, why: str) -> None:
+        lost = self.dropped_passes - self._lost_in_capture
+        try:
+            rec, extra = build(cap, {**self.meta, "ended": why, "passes_lost": lost})
+        except EmptyCapture as exc:
+            log.info("recording not written (%s): %s", why, exc)
+            return
+        directory = pathlib.Path(self.params.dir)
+        path = directory / file_name(cap, datetime.datetime.now())
+        n = 2
+        while path.exists():
+            path = path.with_name(f"{path.stem.rsplit('~', 1)[0]}~{n}.npz")
+            n += 1
+        tmp = None
+        try:
+            directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX + path.stem + "-", suffix=".npz", dir=directory)
+            with os.fdopen(fd, "wb") as f:
+                save_recording(f, rec, extra=extra)
+                f.flush()
+                os.fsync(f.fileno())
+            os.chmod(tmp, FILE_MODE)
+            os.replace(tmp, path)
+        except OSError as exc:
+            self.write_failures += 1
+            log.warning("recording %s not written: %s (%d so far)", path.name, exc.strerror or exc, self.write_failures)
+            if tmp is not None:
+                try:
+                    os.unlink(tmp)
+                except OSError:
+                    pass
+            self.emit("recording_failed", file=path.name, message=f"{exc.strerror or type(exc).__name__}",
+                      failures=self.write_failures)
+            return
+        self.written += 1
+        size = path.stat().st_size
+        log.info("recording %s written (%s, %.1f s, %d kB)", path.name, why,
+                 rec.imu_t[-1] - rec.imu_t[0], size // 1024)
+        self.emit("recording_written", path=str(path), task=cap.task, label=cap.label, reason=why,
+                  duration_s=float(rec.imu_t[-1] - rec.imu_t[0]), bytes=size, passes_lost=lost)
+        self._enforce_budget(directory, keep=path)
+
+    def _enforce_budget(self, directory: pathlib.Path, keep: pathlib.Path) -> None:
+        budget = self.params.max_mb * 1e6
+        try:
+            files = sorted((f for f in directory.glob("*.npz") if not f.name.startswith(PARTIAL_PREFIX)),
+                           key=lambda f: f.stat().st_mtime)
+            total = sum(f.stat().st_size for f in files)
+        except OSError as exc:
+            log.warning("recordings budget not checked: %s", exc)
+            return
+        for f in files:
+            if total <= budget or f == keep:
+                continue
+            try:
+                size = f.stat().st_size
+                f.unlink()
+                total -= size
+                log.info("recording %s deleted: the recordings are over record.max_mb (%g MB)", f.name,
+                         self.params.max_mb)
+            except OSError as exc:
+                log.warning("recording %s not deleted: %s", f.name, exc)
+
+
+def file_name(cap: Capture, now: datetime.datetime) -> str:
+    """<time>-<task or 'idle'>[-<label>].npz, with only [A-Za-z0-9_.-] from what a sender gave."""
+    parts = [now.strftime("%Y%m%d-%H%M%S"), LABEL_RE.sub("_", cap.task or "idle")[:MAX_LABEL_CHARS]]
+    if cap.label:
+        parts.append(LABEL_RE.sub("_", cap.label)[:MAX_LABEL_CHARS])
+    return "-".join(parts) + ".npz"
+
+
+def clean_label(label) -> str:
+    """A capture's label as the file name will carry it."""
+    return LABEL_RE.sub("_", str(label))[:MAX_LABEL_CHARS]
+
+
+def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
+    """The capture as a Recording and its `live_*` keys; EmptyCapture when it holds too little."""
+    passes = cap.passes
+    batches = [p.batch for p in passes if len(p.batch)]
+    if not batches:
+        raise EmptyCapture("no IMU samples")
+    imu = np.concatenate(batches)
+    rows = [(k, s) for k, p in enumerate(passes) for s in p.proprio]
+    if len(imu) < 2 or len(rows) < 2:
+        raise EmptyCapture(f"{len(imu)} IMU and {len(rows)} proprioception samples")
+    tcp_t = np.array([s[0] for _, s in rows])
+    keep = np.concatenate([[True], np.diff(tcp_t) > 0])       # the format wants strictly increasing times
+    rows = [r for r, k in zip(rows, keep) if k]
+    tcp_t = tcp_t[keep]
+    R = np.array([s[3] for _, s in rows])
+    vel = [s[2] for _, s in rows]
+    w = [s[4] for _, s in rows]
+    grip = np.array([s[5] for _, s in rows], dtype=float)
+    first = passes[0]
+    rec = Recording(
+        imu_t=imu[:, 0].copy(), gyro=imu[:, 1:4].copy(), accel=imu[:, 4:7].copy(), tcp_t=tcp_t,
+        tcp_pos=np.array([s[1] for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
+        imu_in_tcp_quat=np.asarray(meta["imu_in_tcp_quat"], float),
+        grip_force=grip if np.all(np.isfinite(grip)) else None,
+        plane_normal=None if meta.get("plane_normal") is None else np.asarray(meta["plane_normal"], float),
+        tcp_vel=np.array(vel) if all(v is not None for v in vel) else None,
+        meta={k: v for k, v in meta.items() if k not in ("imu_in_tcp_quat", "plane_normal")} |
+        {"task": cap.task, "verb": cap.verb, "label": cap.label, "reason": cap.reason})
+    # each pass's batch end (into imu_t), and the pass at which each proprioception sample arrived
+    ends = np.cumsum([len(p.batch) for p in passes])
+    changes, last = [], (None, None, None)
+    for k, p in enumerate(passes):
+        d = asdict(p.directive)
+        now = (d, p.odr_hz, None if p.saturation is None else list(p.saturation))
+        if now != last:
+            changes.append({"pass": k, "directive": d, "odr_hz": p.odr_hz, "saturation": now[2]})
+            last = now
+    ests = [p.estimate for p in passes if p.estimate is not None]
+    events = [e for p in passes for e in p.events] + cap.events
+    extra = {
+        "live_pass_end": ends.astype(np.int64),
+        "live_tcp_pass": np.array([k for k, _ in rows], dtype=np.int64),
+        "live_tcp_w": np.array([np.zeros(3) if x is None else x for x in w], dtype=float),
+        "live_changes": np.array(json.dumps(_finite(changes))),
+        "live_bias0": np.asarray(first.bias, float),
+        "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
+        "live_events": np.array(json.dumps(_finite(events))),
+    }
+    return rec, extra
+
+
+def _finite(x):
+    """JSON-ready: numpy values as Python ones, NaN and infinities as null (the reader refuses them)."""
+    if isinstance(x, dict):
+        return {str(k): _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer, np.bool_)):
+        return x.item()
+    return x if x is None or isinstance(x, (str, int, bool)) else str(x)
+
+
+def config_digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
