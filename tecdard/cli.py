@@ -5,6 +5,7 @@ import argparse
 import json
 import logging
 import os
+import pathlib
 import re
 import sys
 
@@ -64,19 +65,62 @@ def _cmd_run(args) -> int:
 MAX_RATE_HZ = 100_000.0      # localize's --rate: more rows per second than any IMU delivers is a typo
 
 
-def _cmd_localize(args) -> int:
+class _BadInput(Exception):
+    """A command-line tool's input that cannot be used; the message is one line (exit 2)."""
+
+
+def _recording_and_pipeline(args):
+    """The recording named by args.recording, its live_* log (None for any other, or with
+    --ignore-live) and a contact pipeline from args.config's `estimator` section; _BadInput otherwise."""
     from control.geometry import quat_to_matrix
     from control import estimators
-    from tecdard import localize as L
     from tecdard.estimation import build_pipeline
     from tecdard.recording import RecordingError, load_live, load_recording
+
+    method = getattr(args, "method", None)
+    if method is not None and method not in estimators.names():
+        raise _BadInput(f"--method: unknown estimator {show(method)} (known: {', '.join(estimators.names())})")
+    try:
+        rec = load_recording(args.recording)
+        live = None if getattr(args, "ignore_live", False) else load_live(args.recording, rec)
+    except RecordingError as exc:
+        raise _BadInput(str(exc)) from None
+    no_plane = getattr(args, "no_plane", False)
+    try:
+        cfg = Config.load(args.config) if args.config else Config({})
+        section = cfg.section("estimator")
+        pipeline = build_pipeline(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+                                  method=method, plane_normal=None if no_plane else rec.plane_normal)
+        if no_plane:
+            pipeline.params.plane_normal = None
+        unused = section.unused_keys()
+        if unused:
+            raise ConfigError(f"{unused[0]}: unknown option")
+    except ConfigError as exc:
+        raise _BadInput(f"config error: {exc}") from None
+    return rec, live, pipeline
+
+
+def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0):
+    """(rows, onset_t, last) of the replay: as fed live for a daemon recording, else causally in chunks."""
+    from tecdard import localize as L
+    try:
+        if live is not None:
+            return L.replay_live(rec, live, pipeline)
+        return L.replay(rec, pipeline, rate_hz)
+    except Exception as exc:        # a recording the checks let through but the estimator cannot take
+        logging.getLogger("tecdar").debug("replay failed", exc_info=True)
+        raise _BadInput(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); please report it with the file") from None
+
+
+def _cmd_localize(args) -> int:
+    from tecdard import localize as L
 
     def bad(msg: str) -> int:
         print(f"tecdard localize: {msg}", file=sys.stderr)
         return L.EXIT_BAD_INPUT
 
-    if args.method is not None and args.method not in estimators.names():
-        return bad(f"--method: unknown estimator {show(args.method)} (known: {', '.join(estimators.names())})")
     if not 0 < args.rate <= MAX_RATE_HZ:
         return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
     out = None
@@ -86,32 +130,10 @@ def _cmd_localize(args) -> int:
         except OSError as exc:
             return bad(f"--out: cannot write {show(args.out, 200)} ({exc.strerror or type(exc).__name__})")
     try:
-        rec = load_recording(args.recording)
-        live = None if args.ignore_live else load_live(args.recording, rec)
-    except RecordingError as exc:
+        rec, live, pipeline = _recording_and_pipeline(args)
+        rows, onset_t, last = _estimates(args, rec, live, pipeline, args.rate)
+    except _BadInput as exc:
         return bad(str(exc))
-    try:
-        cfg = Config.load(args.config) if args.config else Config({})
-        section = cfg.section("estimator")
-        plane = None if args.no_plane else rec.plane_normal
-        pipeline = build_pipeline(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                                  method=args.method, plane_normal=plane)
-        if args.no_plane:
-            pipeline.params.plane_normal = None
-        unused = section.unused_keys()
-        if unused:
-            raise ConfigError(f"{unused[0]}: unknown option")
-    except ConfigError as exc:
-        return bad(f"config error: {exc}")
-    try:
-        if live is not None:         # a daemon's recording: fed as the live estimator was
-            rows, onset_t, last = L.replay_live(rec, live, pipeline)
-        else:
-            rows, onset_t, last = L.replay(rec, pipeline, args.rate)
-    except Exception as exc:        # a recording the checks let through but the estimator cannot take
-        logging.getLogger("tecdar").debug("replay failed", exc_info=True)
-        return bad(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
-                   f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); please report it with the file")
     if out is not None:
         try:
             with out:
@@ -125,6 +147,34 @@ def _cmd_localize(args) -> int:
         return L.EXIT_NO_CONTACT
     L.print_summary(L.summary(onset_t, last), args.json)
     return L.EXIT_OK
+
+
+def _cmd_plot(args) -> int:
+    import numpy as np
+
+    from tecdard import plot
+    from tecdard.recording import load_truth
+
+    def bad(msg: str) -> int:
+        print(f"tecdard plot: {msg}", file=sys.stderr)
+        return 2
+
+    try:
+        rec, live, pipeline = _recording_and_pipeline(args)
+        rows, onset_t, _ = _estimates(args, rec, live, pipeline)
+        try:
+            truth = load_truth(args.recording)     # optional: a truth that cannot be read is left out
+        except Exception:
+            truth = {}
+        if np.shape(truth.get("p_c")) != (3,) or not np.all(np.isfinite(truth.get("p_c", np.nan))):
+            truth.pop("p_c", None)
+        plot.draw(rec, rows, onset_t, truth, args.out, f"{pathlib.Path(args.recording).name}, {pipeline.method}")
+    except _BadInput as exc:
+        return bad(str(exc))
+    except plot.PlotError as exc:
+        return bad(str(exc))
+    print(f"{args.out}: {len(rows)} estimates" + ("" if onset_t is not None else ", no contact detected"))
+    return 0
 
 
 def _cmd_sim_record(args) -> int:
@@ -285,6 +335,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ignore-live", action="store_true",
                    help="a daemon recording: replay it as any recording, not as its live estimator was fed")
     p.set_defaults(func=_cmd_localize)
+    p = sub.add_parser("plot", help="draw a recording: IMU and onset, the estimate with its 3-sigma band, its error")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("-o", "--out", required=True, help="image to write (png, pdf, svg)")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
+    p.set_defaults(func=_cmd_plot)
     p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
     p.add_argument("out", help="OUT.npz")
     _scenario_options(p)

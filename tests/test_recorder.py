@@ -1,6 +1,7 @@
 """Live recordings (issue 20): what the daemon records replays to the live answer; `record` on demand;
 the recorder's thread under a full disk, a budget and a flood."""
 import errno
+import importlib.util
 import json
 import os
 import queue
@@ -75,6 +76,10 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     assert res.returncode == 0, res.stderr
     np.testing.assert_allclose(json.loads(res.stdout)["p_c"], rows[-1, 1:4], atol=1e-12)
     assert "leaked" not in d.log()
+    if importlib.util.find_spec("matplotlib") is not None:      # the `viz` extra: a daemon recording plots
+        plotted = subprocess.run([sys.executable, "-m", "tecdard", "plot", written["path"], "-o",
+                                  str(tmp_path / "live.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert plotted.returncode == 0 and (tmp_path / "live.png").stat().st_size > 20_000, plotted.stderr
 
 
 def test_record_on_demand_and_its_refusals(tmp_path):
@@ -203,3 +208,40 @@ def test_hostile_live_keys_are_one_line_errors(tmp_path):
                              capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and message in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+# -- tecdard plot ---------------------------------------------------------------------------------
+
+def tecdard(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "tecdard", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, env=env)
+
+
+def test_plot_draws_a_simulated_recording_with_its_truth(tmp_path):
+    pytest.importorskip("matplotlib", reason="the `viz` extra, which `make test` installs")
+    rec = tmp_path / "hinge.npz"
+    assert tecdard("sim-record", str(rec), "--kind", "hinge").returncode == 0
+    out = tmp_path / "hinge.png"
+    res = tecdard("plot", str(rec), "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000
+    assert "estimates" in res.stdout
+
+
+def test_plot_refuses_what_localize_refuses_with_the_same_line(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, format=np.array("tecdar-recording/1"), imu_t=np.zeros(3))
+    plot, localize = tecdard("plot", str(bad), "-o", str(tmp_path / "x.png")), tecdard("localize", str(bad))
+    assert plot.returncode == localize.returncode == 2
+    assert plot.stderr.replace("tecdard plot:", "") == localize.stderr.replace("tecdard localize:", "")
+    assert len(plot.stderr.strip().splitlines()) == 1
+
+
+def test_plot_without_matplotlib_says_what_to_install_in_one_line(tmp_path):
+    rec = tmp_path / "arc.npz"
+    assert tecdard("sim-record", str(rec), "--kind", "edge-arc").returncode == 0
+    code = ("import sys; sys.modules['matplotlib'] = None; from tecdard.cli import main; "
+            f"sys.exit(main(['plot', {str(rec)!r}, '-o', {str(tmp_path / 'x.png')!r}]))")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    assert res.stderr.strip() == "tecdard plot: needs matplotlib: pip install 'tecdar[viz]'"
