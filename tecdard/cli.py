@@ -101,13 +101,13 @@ def _recording_and_pipeline(args):
     return rec, live, pipeline
 
 
-def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0):
+def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0, on_estimate=None, on_event=None):
     """(rows, onset_t, last) of the replay: as fed live for a daemon recording, else causally in chunks."""
     from tecdard import localize as L
     try:
         if live is not None:
-            return L.replay_live(rec, live, pipeline)
-        return L.replay(rec, pipeline, rate_hz)
+            return L.replay_live(rec, live, pipeline, on_estimate)
+        return L.replay(rec, pipeline, rate_hz, on_estimate=on_estimate, on_event=on_event)
     except Exception as exc:        # a recording the checks let through but the estimator cannot take
         logging.getLogger("tecdar").debug("replay failed", exc_info=True)
         raise _BadInput(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
@@ -147,6 +147,33 @@ def _cmd_localize(args) -> int:
         return L.EXIT_NO_CONTACT
     L.print_summary(L.summary(onset_t, last), args.json)
     return L.EXIT_OK
+
+
+def _cmd_export(args) -> int:
+    from tecdard import export
+    from tecdard.recording import load_truth
+
+    def bad(msg: str) -> int:
+        print(f"tecdard export: {msg}", file=sys.stderr)
+        return 2
+
+    estimates, events = [], []
+    try:
+        rec, live, pipeline = _recording_and_pipeline(args)
+        _estimates(args, rec, live, pipeline, on_estimate=estimates.append, on_event=events.append)
+        if live is not None:
+            events = live.events          # the pipeline's and the daemon's, as they happened live
+        try:
+            truth = load_truth(args.recording)
+        except Exception:
+            truth = {}
+        n = export.write_mcap(args.mcap, rec, estimates, events, truth)
+    except _BadInput as exc:
+        return bad(str(exc))
+    except export.ExportError as exc:
+        return bad(str(exc))
+    print(f"{args.mcap}: {n} messages ({len(estimates)} estimates, {len(events)} events)")
+    return 0
 
 
 def _cmd_plot(args) -> int:
@@ -342,6 +369,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
     p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
     p.set_defaults(func=_cmd_plot)
+    p = sub.add_parser("export", help="write a recording and its replayed estimate as MCAP for Foxglove")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("--mcap", required=True, help="OUT.mcap (replaced if it exists)")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
+    p.set_defaults(func=_cmd_export)
     p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
     p.add_argument("out", help="OUT.npz")
     _scenario_options(p)

@@ -15,8 +15,10 @@ DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")
 EXIT_OK, EXIT_NO_CONTACT, EXIT_BAD_INPUT = 0, 1, 2
 
 
-def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, chunk_s: float = 0.1):
+def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, chunk_s: float = 0.1,
+           on_estimate=None, on_event=None):
     """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate).
+    `on_estimate(est)` and `on_event(ev)` see each estimate and pipeline event as it comes.
 
     Rows come at the estimator's output cadence, never more than rate_hz per second. The
     recording is fed in chunks of chunk_s with the proprioception stamped up to each chunk's
@@ -48,13 +50,17 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
         for ev in events:
             if ev["kind"] == "contact_onset" and onset_t is None:
                 onset_t = ev["t"]
+            if on_event is not None:
+                on_event(ev)
         for est in estimates:
             last = est
+            if on_estimate is not None:
+                on_estimate(est)
             rows.append(np.concatenate([[est.t], est.p, est.std]))
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
 
 
-def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline):
+def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline, on_estimate=None):
     """Run the pipeline over a daemon recording as the live estimator ran: the same passes (each
     pass's IMU batch), each proprioception sample added before the pass it reached live, the
     directives, data rates and clipping points as they changed, from the gyro bias the live
@@ -97,6 +103,8 @@ def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline):
         if est is not None:
             last = est
             rows.append(np.concatenate([[est.t], est.p, est.std]))
+            if on_estimate is not None:
+                on_estimate(est)
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
 
 

@@ -80,6 +80,11 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
         plotted = subprocess.run([sys.executable, "-m", "tecdard", "plot", written["path"], "-o",
                                   str(tmp_path / "live.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert plotted.returncode == 0 and (tmp_path / "live.png").stat().st_size > 20_000, plotted.stderr
+    if importlib.util.find_spec("foxglove") is not None:        # and exports, with the live events
+        topics = check_export(written["path"], tmp_path / "live.mcap")
+        assert len(topics["/contact"]) == len(live.est)
+        kinds = [name for name, _, _ in topics["/events"]]
+        assert len(kinds) == len(live.events)
 
 
 def test_record_on_demand_and_its_refusals(tmp_path):
@@ -245,3 +250,55 @@ def test_plot_without_matplotlib_says_what_to_install_in_one_line(tmp_path):
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
     assert res.stderr.strip() == "tecdard plot: needs matplotlib: pip install 'tecdar[viz]'"
+
+
+# -- tecdard export --mcap ----------------------------------------------------------------------------
+
+def read_mcap(path) -> dict:
+    """topic -> [(schema name, log_time, data bytes)], read back with the mcap package's reader."""
+    from mcap.reader import make_reader
+    out: dict = {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            out.setdefault(channel.topic, []).append((schema.name, message.log_time, message.data))
+    return out
+
+
+def check_export(rec_path, mcap_path, *extra) -> dict:
+    res = tecdard("export", str(rec_path), "--mcap", str(mcap_path), *extra)
+    assert res.returncode == 0, res.stderr
+    topics = read_mcap(mcap_path)
+    rec = load_recording(rec_path)
+    assert {name for name, _, _ in topics["/tf"]} == {"foxglove.FrameTransforms"}
+    assert len(topics["/tf"]) == len(rec.tcp_t)                   # one per proprioception sample
+    assert {name for name, _, _ in topics["/contact"]} == {"foxglove.SceneUpdate"}
+    assert {name for name, _, _ in topics["/events"]} == {"foxglove.Log"}
+    imu = [json.loads(d) for _, _, d in topics["/imu"]]
+    assert sum(len(m["t"]) for m in imu) == len(rec.imu_t)        # every sample, batched
+    assert len(imu) >= (rec.imu_t[-1] - rec.imu_t[0]) / 0.011
+    np.testing.assert_array_equal(np.concatenate([m["gyro"] for m in imu]), rec.gyro)
+    times = [t for msgs in topics.values() for _, t, _ in msgs]
+    assert min(times) >= 0
+    return topics
+
+
+def test_export_writes_the_imu_the_tcp_the_estimate_and_the_events_as_mcap(tmp_path):
+    pytest.importorskip("foxglove", reason="the `viz` extra, which `make test` installs")
+    rec = tmp_path / "hinge.npz"
+    assert tecdard("sim-record", str(rec), "--kind", "hinge").returncode == 0
+    topics = check_export(rec, tmp_path / "hinge.mcap")
+    n_est = len(L.replay(load_recording(rec), build_pipeline(Config({}).section("estimator"), np.eye(3), 6667.0))[0])
+    assert len(topics["/contact"]) == n_est + 1                    # each estimate, and the truth
+    assert any(b"contact_onset" in d for _, _, d in topics["/events"])
+
+
+def test_export_refuses_what_localize_refuses_and_an_unwritable_path(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, format=np.array("tecdar-recording/1"), imu_t=np.zeros(3))
+    res, localize = tecdard("export", str(bad), "--mcap", str(tmp_path / "x.mcap")), tecdard("localize", str(bad))
+    assert res.returncode == 2 and res.stderr.replace("export", "localize") == localize.stderr
+    rec = tmp_path / "arc.npz"
+    assert tecdard("sim-record", str(rec), "--kind", "edge-arc").returncode == 0
+    res = tecdard("export", str(rec), "--mcap", str(tmp_path / "no" / "such" / "dir" / "x.mcap"))
+    assert res.returncode == 2 and res.stderr.startswith("tecdard export: --mcap: cannot write")
+    assert len(res.stderr.strip().splitlines()) == 1

@@ -1,0 +1,68 @@
+"""`tecdard export REC.npz --mcap OUT.mcap`: a recording, with the estimate replayed over it, as an MCAP
+file for Foxglove (tecdard/foxglove_io.py's topics). `.npz` stays the analysis format; MCAP is for looking."""
+from __future__ import annotations
+
+import numpy as np
+
+from control.geometry import quat_to_matrix
+from tecdard.foxglove_io import Channels
+
+IMU_BATCH_S = 0.01             # the IMU in messages of this much
+
+
+class ExportError(Exception):
+    """What keeps an export from being written, in one line."""
+
+
+def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int:
+    """Write the recording, its estimates (ContactEstimate) and events to `out`; the messages written."""
+    try:
+        import foxglove
+    except ImportError:
+        raise ExportError("needs foxglove-sdk: pip install 'tecdar[viz]'") from None
+    items = []                  # (t, order, kind, payload): written in time order
+    edges = np.searchsorted(rec.imu_t, np.arange(rec.imu_t[0], rec.imu_t[-1] + IMU_BATCH_S, IMU_BATCH_S), "right")
+    edges = np.unique(np.append(edges, len(rec.imu_t)))
+    start = 0
+    for end in edges:
+        if end > start:
+            items.append((rec.imu_t[end - 1], 0, "imu", (start, end)))
+            start = end
+    R = quat_to_matrix(rec.tcp_quat)
+    for j in range(len(rec.tcp_t)):
+        items.append((rec.tcp_t[j], 1, "tcp", j))
+    for est in estimates:
+        items.append((est.t, 2, "contact", est))
+    for ev in events:
+        t = ev.get("t")
+        if isinstance(t, (int, float)) and np.isfinite(t):
+            items.append((float(t), 3, "event", ev))
+    items.sort(key=lambda x: (x[0], x[1]))
+    R_mount = quat_to_matrix(rec.imu_in_tcp_quat)
+    ctx = foxglove.Context()
+    try:
+        writer = foxglove.open_mcap(out, allow_overwrite=True, context=ctx)
+    except Exception as exc:
+        raise ExportError(f"--mcap: cannot write {out} ({exc})") from None
+    # MCAP's times: the recording's first sample at the Unix epoch (a recording's clock is its own)
+    ch = Channels(ctx, origin_s=min(rec.imu_t[0], rec.tcp_t[0]))
+    try:
+        p_true = truth.get("p_c")
+        if np.shape(p_true) == (3,) and np.all(np.isfinite(p_true)):
+            axis = truth.get("axis") if np.shape(truth.get("axis")) == (3,) else None
+            ch.contact(rec.imu_t[0], np.asarray(p_true, float), np.eye(3) * 1e-6, axis, entity="truth",
+                       rgba=(0.1, 0.7, 0.2, 0.8))
+        for t, _, kind, x in items:
+            if kind == "imu":
+                a, b = x
+                ch.imu_batch(rec.imu_t[a:b], rec.gyro[a:b], rec.accel[a:b])
+            elif kind == "tcp":
+                ch.tcp(t, rec.tcp_pos[x], R[x], R_mount)
+            elif kind == "contact":
+                ch.contact(t, x.p, x.cov, x.axis)
+            else:
+                ch.event(t, x)
+    finally:
+        ch.close()
+        writer.close()
+    return len(items)
