@@ -28,6 +28,7 @@ from tecdard.messages import Stop
 from tecdard import __version__
 from tecdard.mapfiles import MapSettings
 from tecdard.recorder import Recorder, RecordParams, config_digest
+from tecdard.viz import LiveView, VizParams
 from tecdard.control_thread import ControlParams, ControlThread
 from tecdard.messages import LatestValue
 from tecdard.sdnotify import Notifier
@@ -178,6 +179,7 @@ class Daemon:
         self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
         self.method = self.pipeline.method
         self.record_params = RecordParams.from_config(cfg.section("record"))
+        self.viz_params = VizParams.from_config(cfg.section("viz").section("foxglove"))
         cfg.check_unused()
 
         self.ring = SampleRing(ring_capacity)
@@ -193,9 +195,11 @@ class Daemon:
             "config_digest": config_digest(json.dumps(cfg.data, sort_keys=True, default=str)),
             "estimator": self.method, "imu_in_tcp_quat": list(mount),
             "plane_normal": self.pipeline.params.plane_normal})
+        self.view = LiveView(self.viz_params, quat_to_matrix(np.array(mount)), self._emit) \
+            if self.viz_params.enabled else None
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox,
                                          saturation=lambda: self.imu.saturation, odr_hz=lambda: self.imu.odr_hz,
-                                         recorder=self.recorder)
+                                         taps=(self.recorder,) + ((self.view,) if self.view is not None else ()))
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name, self.notifier,
                                      self.map_settings, imu_saturated_since=lambda: self.estimator.saturated_since)
@@ -209,6 +213,12 @@ class Daemon:
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints ({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
+
+    def _note_event(self, event: dict) -> None:
+        """Every published event, for the recorder and the live view (main thread; never blocks)."""
+        self.recorder.note_event(event)
+        if self.view is not None:
+            self.view.note_event(event)
 
     def _emit(self, kind: str, **fields) -> None:
         """An event from a thread that is not the control thread's (the recorder's)."""
@@ -246,6 +256,7 @@ class Daemon:
                                                          self.stop_event)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("recorder", lambda: self.recorder.run(self.stop_event)),
+                 *([("viz", lambda: self.view.run(self.stop_event))] if self.view is not None else []),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:
             th = threading.Thread(target=body, name=name, daemon=True)
@@ -320,7 +331,7 @@ class Daemon:
     def _serve(self, pub_state, pub_contact, pub_events) -> None:
         """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
         main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events,
-                        annotate=getattr(self.backend, "annotate", None), on_event=self.recorder.note_event)
+                        annotate=getattr(self.backend, "annotate", None), on_event=self._note_event)
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()

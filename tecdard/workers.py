@@ -74,13 +74,13 @@ class EstimatorThread:
     latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1,
-                 saturation=None, odr_hz=None, recorder=None):
+                 saturation=None, odr_hz=None, taps: tuple = ()):
         """`saturation()` gives the IMU source's clipping points (gyro rad/s, accel m/s^2), which
         change with the full scales a board reports; `odr_hz()` its data rate, which a board
         reports in its status packets (the onset detector's band window and `min_batch`, one
         output period of samples, follow it)."""
         self.pipeline = pipeline
-        self.recorder = recorder        # tecdard.recorder.Recorder: what each pass fed the pipeline, or None
+        self.taps = tuple(taps)         # each gets every pass (`feed(Pass)`, never blocking): recorder, live view
         self.saturation = saturation
         self.odr_hz = odr_hz
         self._odr_seen: float | None = None
@@ -140,10 +140,12 @@ class EstimatorThread:
                 if limits != sat_limits:
                     sat_limits = limits
                     pipe.set_saturation(*limits)
-            bias = pipe.cond.bias_state() if self.recorder is not None else None
+            bias = pipe.cond.bias_state() if self.taps else None
             events, est = pipe.process(batch)
-            if self.recorder is not None and (len(batch) or proprio):
-                self.recorder.feed(Pass(proprio, applied, self._odr_seen, sat_limits, batch, events, est, bias))
+            if self.taps and (len(batch) or proprio):
+                done = Pass(proprio, applied, self._odr_seen, sat_limits, batch, events, est, bias)
+                for tap in self.taps:
+                    tap.feed(done)
             self.saturated_since = pipe.saturated_since
             if not self.warm.is_set() and pipe.warm:
                 self.warm.set()

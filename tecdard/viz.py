@@ -1,0 +1,137 @@
+"""The live view: a Foxglove WebSocket server (`viz.foxglove`, off by default, loopback by default)
+publishing tecdard/foxglove_io.py's channels as the daemon runs.
+
+Fed like the recorder: the estimator thread hands each pass (its IMU batch, the proprioception it
+added, its estimate and events) to a bounded queue, the main thread the daemon's events. Overflow
+is dropped and counted, and nothing waits. The view's own thread publishes every VIEW_PERIOD_S:
+- the IMU as one batch;
+- every TCP sample as a transform;
+- the newest estimate;
+- every event.
+
+With no client connected it only empties its queue. Foxglove Studio connects to
+ws://<host>:<port>. The server is foxglove-sdk's (the `viz` extra).
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger("tecdar.viz")
+
+VIEW_PERIOD_S = 0.02          # the view publishes at 50 Hz
+QUEUE_ITEMS = 2048            # passes and events waiting (10 s of passes)
+
+
+@dataclass(frozen=True)
+class VizParams:
+    enabled: bool = False
+    host: str = "127.0.0.1"      # loopback: another machine reaches it through an SSH tunnel, or set the host
+    port: int = 8765             # Foxglove's usual
+
+    @classmethod
+    def from_config(cls, section) -> "VizParams":
+        from tecdard.config import ConfigError
+        d = cls()
+        params = cls(enabled=section.getbool("enabled", d.enabled), host=section.getstr("host", d.host, max_len=253),
+                     port=section.getint("port", d.port, minval=1, maxval=65535))
+        if params.enabled:
+            try:
+                import foxglove  # noqa: F401
+            except ImportError:
+                raise ConfigError(f"{section.path}.enabled: the live view needs foxglove-sdk: "
+                                  "pip install 'tecdar[viz]'") from None
+        return params
+
+
+class LiveView:
+    def __init__(self, params: VizParams, R_tcp_imu: np.ndarray, emit=None):
+        self.params = params
+        self.R_tcp_imu = np.asarray(R_tcp_imu, float)
+        self.emit = emit or (lambda kind, **f: None)
+        self._q: queue.Queue = queue.Queue(QUEUE_ITEMS)
+        self.dropped = 0
+        self.published = 0
+        self.port: int | None = None
+        self.ready = threading.Event()
+
+    def feed(self, p) -> None:
+        """On the estimator thread: never blocks."""
+        self._put(("pass", p))
+
+    def note_event(self, event: dict) -> None:
+        self._put(("event", event))
+
+    def _put(self, item) -> None:
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+
+    def run(self, stop: threading.Event) -> None:
+        import foxglove
+
+        from tecdard.foxglove_io import Channels
+        ctx = foxglove.Context()
+        try:
+            server = foxglove.start_server(name="tecdard", host=self.params.host, port=self.params.port, context=ctx)
+        except Exception as exc:          # the port is taken: the daemon runs on without its view
+            log.error("viz.foxglove: cannot serve on %s:%d (%s); no live view", self.params.host, self.params.port,
+                      str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__)
+            self.emit("warning", code="viz_unavailable",
+                      message=f"viz.foxglove: cannot serve on {self.params.host}:{self.params.port}")
+            self.ready.set()
+            return
+        self.port = server.port
+        channels = Channels(ctx, origin_s=time.monotonic(), epoch_s=time.time())
+        log.info("live view: Foxglove WebSocket server on ws://%s:%d", self.params.host, self.port)
+        self.ready.set()
+        try:
+            t_next = time.monotonic()
+            while not stop.is_set():
+                t_next += VIEW_PERIOD_S
+                self._publish(channels, self._drain())
+                delay = t_next - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                elif delay < -1.0:
+                    t_next = time.monotonic()
+        finally:
+            channels.close()
+            server.stop()
+
+    def _drain(self) -> list:
+        items = []
+        while True:
+            try:
+                items.append(self._q.get_nowait())
+            except queue.Empty:
+                return items
+
+    def _publish(self, ch, items: list) -> None:
+        passes = [x[1] for x in items if x[0] == "pass"]
+        events = [x[1] for x in items if x[0] == "event"] + [e for p in passes for e in p.events]
+        try:
+            batches = [p.batch for p in passes if len(p.batch)]
+            if batches and ch.imu.has_sinks():
+                b = np.concatenate(batches)
+                ch.imu_batch(b[:, 0], b[:, 1:4], b[:, 4:7])
+            if ch.tf.has_sinks():
+                for p in passes:
+                    for t, pos, _v, R, _w, _grip in p.proprio:
+                        ch.tcp(t, pos, R, self.R_tcp_imu)
+            est = next((p.estimate for p in reversed(passes) if p.estimate is not None), None)
+            if est is not None and ch.contact_ch.has_sinks():
+                ch.contact(est.t, est.p, est.cov, est.axis)
+            if ch.events.has_sinks():
+                for ev in events:
+                    t = ev.get("t")
+                    ch.event(float(t) if isinstance(t, (int, float)) else time.monotonic(), ev)
+            self.published += 1
+        except Exception:                # a view's failure costs a frame, never the daemon
+            log.exception("live view: a frame was lost")

@@ -1,0 +1,77 @@
+"""The live Foxglove view (issue 20): a WebSocket client, as Foxglove Studio would, subscribes to every
+channel of a running daemon and receives each."""
+import json
+import struct
+import time
+
+import pytest
+
+from tecdard.demo import free_port
+from tests.conftest import DaemonProcess, daemon_config
+
+pytest.importorskip("foxglove", reason="the `viz` extra, which `make test` installs")
+ws_client = pytest.importorskip("websockets.sync.client")
+
+TOPICS = {"/imu", "/tf", "/contact", "/events"}
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+MESSAGE_DATA = 0x01                       # the binary opcode of a message on a subscription
+RECEIVE_WITHIN_S = 20.0
+
+
+def connect(port: int, within_s: float = 10.0):
+    deadline = time.monotonic() + within_s
+    while True:
+        try:
+            return ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=2.0)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def test_a_websocket_client_receives_every_channel_of_the_live_view(tmp_path):
+    port = free_port()
+    d = DaemonProcess(tmp_path, daemon_config(**{"viz.foxglove": {"enabled": True, "port": port}}))
+    try:
+        with connect(port) as ws:
+            channels = {}
+            while set(channels) != TOPICS:
+                msg = json.loads(ws.recv(timeout=5.0))
+                if msg.get("op") == "advertise":
+                    channels.update({c["topic"]: c for c in msg["channels"]})
+            assert channels["/tf"]["schemaName"] == "foxglove.FrameTransforms"
+            assert channels["/contact"]["schemaName"] == "foxglove.SceneUpdate"
+            assert channels["/imu"]["encoding"] == "json"
+            subs = {k: channels[topic]["id"] for k, topic in enumerate(sorted(TOPICS), start=1)}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": k, "channelId": c} for k, c in subs.items()]}))
+            reply = d.client.command("rotate", {"angle_deg": 10.0})      # an onset, estimates, events
+            assert reply["ok"] is True
+            got: dict = {}
+            imu_samples = 0
+            deadline = time.monotonic() + RECEIVE_WITHIN_S
+            while len(got) < len(subs) and time.monotonic() < deadline:
+                frame = ws.recv(timeout=5.0)
+                if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA:
+                    sub, stamp_ns = struct.unpack_from("<IQ", frame, 1)
+                    got.setdefault(sub, []).append(frame[13:])
+                    if sub == {v: k for k, v in subs.items()}.get(channels["/imu"]["id"]):
+                        imu_samples += len(json.loads(frame[13:])["t"])
+                    assert stamp_ns > 1.5e18                 # wall-clock nanoseconds
+        topics_got = {sorted(TOPICS)[k - 1] for k in got}
+        assert topics_got == TOPICS, topics_got
+        assert imu_samples > 0
+    finally:
+        d.close()
+    assert "live view: Foxglove WebSocket server on ws://127.0.0.1:" in d.log()
+
+
+def test_a_live_view_whose_port_is_taken_leaves_the_daemon_running(tmp_path):
+    import socket
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        d = DaemonProcess(tmp_path, daemon_config(**{"viz.foxglove": {"enabled": True, "port": port}}))
+        try:
+            assert d.client.command("status")["ok"] is True
+        finally:
+            d.close()
+    assert "viz.foxglove: cannot serve on 127.0.0.1:%d" % port in d.log()
