@@ -176,6 +176,57 @@ def _cmd_export(args) -> int:
     return 0
 
 
+def _cmd_calibrate_eta(args) -> int:
+    import argparse as ap
+
+    import numpy as np
+
+    from tecdard import calibrate as K
+
+    def bad(msg: str) -> int:
+        print(f"tecdard calibrate-eta: {msg}", file=sys.stderr)
+        return 2
+
+    if (args.contact is None) == (args.radius is None):
+        return bad("give the contact's position (--contact x,y,z, world, m) or the lever arm (--radius r, m)")
+    contact = None
+    if args.contact is not None:
+        try:
+            contact = np.array([float(x) for x in args.contact.split(",")])
+        except ValueError:
+            contact = None
+        if contact is None or contact.shape != (3,) or not np.all(np.isfinite(contact)):
+            return bad(f"--contact: expected three numbers x,y,z in metres, got {show(args.contact)}")
+    if args.radius is not None and not (np.isfinite(args.radius) and 0.001 <= args.radius <= 2.0):
+        return bad(f"--radius: expected 0.001..2 m, got {args.radius!r}")
+    if len(args.recordings) < K.MIN_RECORDINGS:
+        return bad(f"needs at least {K.MIN_RECORDINGS} recordings (got {len(args.recordings)}): eta's uncertainty "
+                   "comes from more than one probe")
+    rows = []
+    try:
+        for path in args.recordings:
+            one = ap.Namespace(recording=path, config=args.config, method=None, ignore_live=False, no_plane=False)
+            rec, live, pipeline = _recording_and_pipeline(one)
+            _, onset_t, _ = _estimates(one, rec, live, pipeline)
+            name = pathlib.Path(path).name
+            if onset_t is None:
+                raise K.CalibrationError(f"{name}: no contact onset detected")
+            force = K.grip_force_of(name, rec)
+            eta, se, n = K.eta_of(name, rec, onset_t, contact, args.radius)
+            rows.append((force, eta, se))
+            print(f"{name}: grip {force:g} N, eta {eta:.3f} +- {se:.3f} ({n} windows)")
+    except _BadInput as exc:
+        return bad(str(exc))
+    except K.CalibrationError as exc:
+        return bad(str(exc))
+    pooled = K.pool(rows)
+    print("grip force N | eta | one-sigma | recordings")
+    for force, eta, sigma, n in pooled:
+        print(f"{force:12g} | {eta:.3f} | {sigma:.3f} | {n}")
+    print(K.table_yaml(pooled))
+    return 0
+
+
 def _cmd_plot(args) -> int:
     import numpy as np
 
@@ -376,6 +427,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
     p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
     p.set_defaults(func=_cmd_export)
+    p = sub.add_parser("calibrate-eta", help="eta per grip force from probes against a contact at a known place")
+    p.add_argument("recordings", nargs="+", help="REC.npz ... (each with a grip_force key or meta.grip_force)")
+    p.add_argument("--contact", help="the contact's position x,y,z (world, m)")
+    p.add_argument("--radius", type=float, help="or the lever arm from the TCP to the contact (m)")
+    p.add_argument("--config", help="YAML whose `estimator` section finds the onsets")
+    p.set_defaults(func=_cmd_calibrate_eta)
     p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
     p.add_argument("out", help="OUT.npz")
     _scenario_options(p)

@@ -1,0 +1,127 @@
+"""`tecdard calibrate-eta REC.npz... --contact x,y,z | --radius r`: the fingertip's transmission
+coefficient eta per grip force, from probes against a contact at a known place.
+
+The fingertip's gyro sees a fraction of the held object's rotation relative to the gripper: the
+pipeline's model (control/conditioning.py) is w_obj = w_tcp + eta (w_seen - w_tcp). With the contact
+known, the object's rate follows from the TCP's motion alone: v_tcp = w_obj x r, r = p_tcp - p_c.
+Its part across the lever arm is w_perp = r x v / |r|^2. So after the onset, in 10 ms windows
+while the TCP moves, eta is the least-squares slope of (w_perp - w_tcp_perp) against
+(w_seen_perp - w_tcp_perp). With `--radius` instead of a contact point, |w_obj - w_tcp| = |v_rel| / r
+(the TCP on a circle of that radius about the contact).
+
+Each recording gives one eta, with the standard error of its slope. The recordings at one grip
+force (the `grip_force` key's median, rounded to 0.1 N) are pooled: the inverse-variance mean, and
+the spread between recordings where there are several. The printed `estimator.eta_table` goes
+into the daemon's config.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from control.geometry import quat_to_matrix
+
+WINDOW_S = 0.01               # samples averaged per window
+MIN_SPEED_M_S = 0.002         # windows with a slower TCP carry no rate information
+MIN_TURN_RAD = np.radians(2.0)    # a probe must turn the object at least this much
+BIAS_WINDOW_S = 0.2           # the gyro bias: the mean over this long before the onset (at rest)
+MIN_RECORDINGS = 2
+FORCE_ROUND_N = 0.1
+
+
+class CalibrationError(Exception):
+    """What keeps a calibration from being made, in one line naming the file or the option."""
+
+
+def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = None) -> tuple[float, float, int]:
+    """(eta, its standard error, windows used) from one recording whose onset is at onset_t."""
+    t = rec.imu_t
+    pre = (t < onset_t) & (t >= onset_t - BIAS_WINDOW_S)
+    if np.count_nonzero(pre) < 10:
+        raise CalibrationError(f"{name}: less than {BIAS_WINDOW_S:g} s at rest before the onset for the gyro bias")
+    bias = rec.gyro[pre].mean(axis=0)
+    R_tcp_imu = quat_to_matrix(rec.imu_in_tcp_quat)
+    R_world_tcp = quat_to_matrix(rec.tcp_quat)
+    # proprioception at each IMU sample: the newest at or before it (causal, as the pipeline takes it)
+    j = np.clip(np.searchsorted(rec.tcp_t, t, side="right") - 1, 0, len(rec.tcp_t) - 1)
+    if rec.tcp_vel is not None:
+        v_tcp = rec.tcp_vel
+    else:
+        v_tcp = np.gradient(rec.tcp_pos, rec.tcp_t, axis=0)
+    # the gripper's own rate, from its orientations
+    dR = np.einsum("kji,kjl->kil", R_world_tcp[:-1], R_world_tcp[1:])      # R_k^T R_{k+1}
+    ang = np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    ax = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], axis=1)
+    scale = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
+    w_body = ax * scale[:, None] / np.diff(rec.tcp_t)[:, None]
+    w_tcp_k = np.einsum("kij,kj->ki", R_world_tcp[:-1], w_body)
+    w_tcp_k = np.vstack([w_tcp_k, w_tcp_k[-1:]])
+    after = t >= onset_t
+    w_seen = np.einsum("kij,kj->ki", R_world_tcp[j], (rec.gyro - bias) @ R_tcp_imu.T)
+    edges = np.arange(onset_t, t[-1], WINDOW_S)
+    idx = np.searchsorted(t, edges)
+    a_all, b_all = [], []
+    turned = 0.0
+    for k0, k1 in zip(idx[:-1], idx[1:]):
+        if k1 - k0 < 3 or not after[k0]:
+            continue
+        jj = j[k0:k1]
+        v = v_tcp[jj].mean(axis=0)
+        wt = w_tcp_k[jj].mean(axis=0)
+        ws = w_seen[k0:k1].mean(axis=0)
+        turned += float(np.linalg.norm(ws - wt)) * (t[k1 - 1] - t[k0])
+        if np.linalg.norm(v) < MIN_SPEED_M_S:
+            continue
+        if contact is not None:
+            r = rec.tcp_pos[jj].mean(axis=0) - contact
+            n2 = float(r @ r)
+            if n2 < 1e-6:
+                continue
+            u = r / np.sqrt(n2)
+            a = np.cross(r, v - np.cross(wt, r)) / n2                     # the object's rate relative to the gripper, across r
+            b = (ws - wt) - ((ws - wt) @ u) * u
+            a_all.append(a)
+            b_all.append(b)
+        else:
+            v_rel = np.linalg.norm(v)
+            a_all.append(np.array([v_rel / radius]))
+            b_all.append(np.array([np.linalg.norm(ws - wt)]))
+    if turned * 1.0 < MIN_TURN_RAD / 3.0 or len(a_all) < 5:       # the gyro sees 1/eta of the turn
+        raise CalibrationError(f"{name}: the probe never turned the object (gyro saw {np.degrees(turned):.2f} deg "
+                               f"relative to the gripper over {len(a_all)} moving windows)")
+    a, b = np.concatenate(a_all), np.concatenate(b_all)
+    bb = float(b @ b)
+    eta = float(a @ b) / bb
+    res = a - eta * b
+    dof = max(len(a) - 1, 1)
+    se = float(np.sqrt((res @ res) / dof / bb))
+    return eta, se, len(a_all)
+
+
+def pool(rows: list[tuple[float, float, float]]) -> list[tuple[float, float, float, int]]:
+    """[(force, eta, se)] per recording -> [(force, eta, its one-sigma, recordings)] per force."""
+    out = []
+    for force in sorted({r[0] for r in rows}):
+        group = [(e, s) for f, e, s in rows if f == force]
+        e = np.array([g[0] for g in group])
+        w = 1.0 / np.maximum(np.array([g[1] for g in group]), 1e-6) ** 2
+        mean = float((w * e).sum() / w.sum())
+        sigma = float(np.sqrt(1.0 / w.sum()))
+        if len(group) > 1:        # the recordings disagree more than their own errors say: take that
+            sigma = max(sigma, float(e.std(ddof=1) / np.sqrt(len(group))))
+        out.append((force, mean, sigma, len(group)))
+    return out
+
+
+def grip_force_of(name: str, rec) -> float:
+    f = None
+    if rec.grip_force is not None:
+        f = float(np.median(rec.grip_force))
+    elif isinstance(rec.meta.get("grip_force"), (int, float)):
+        f = float(rec.meta["grip_force"])
+    if f is None or not np.isfinite(f) or f < 0:
+        raise CalibrationError(f"{name}: no grip force (neither a grip_force key nor meta.grip_force)")
+    return round(f / FORCE_ROUND_N) * FORCE_ROUND_N
+
+
+def table_yaml(pooled) -> str:
+    return "estimator.eta_table: [" + ", ".join(f"[{f:g}, {e:.3f}]" for f, e, _, _ in pooled) + "]"

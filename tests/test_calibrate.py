@@ -1,0 +1,72 @@
+"""`tecdard calibrate-eta` (issue 20): eta per grip force from probes against a known contact."""
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from tecdard.recording import load_truth
+from tests.conftest import ROOT
+
+ETAS = {20.0: 2.6, 30.0: 2.0, 40.0: 1.6}     # the fingertip's eta at three grip forces (set in the simulation)
+ETA_TOL = 0.03                                # relative: measured 0.4-0.5 % low on these recordings
+
+
+def tecdard(*args):
+    return subprocess.run([sys.executable, "-m", "tecdard", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=180)
+
+
+@pytest.fixture(scope="module")
+def probes(tmp_path_factory):
+    """Two arcs per grip force about the same edge (seeds differ: noise, bias)."""
+    tmp = tmp_path_factory.mktemp("eta")
+    out = []
+    for force, eta in ETAS.items():
+        for seed in (1, 2):
+            path = tmp / f"arc-{force:g}N-{seed}.npz"
+            res = tecdard("sim-record", str(path), "--kind", "edge-arc", "--radius", "0.08", "--grip-force",
+                          str(force), "--eta", str(eta), "--seed", str(seed))
+            assert res.returncode == 0, res.stderr
+            out.append(path)
+    return out
+
+
+def test_eta_is_recovered_at_three_grip_forces_with_a_known_contact(probes):
+    p_c = load_truth(probes[0])["p_c"]
+    res = tecdard("calibrate-eta", *map(str, probes), "--contact", ",".join(f"{x:.9f}" for x in p_c))
+    assert res.returncode == 0, res.stderr
+    rows = re.findall(r"^\s*([\d.]+) \| ([\d.]+) \| ([\d.]+) \| (\d+)$", res.stdout, re.M)
+    got = {float(f): (float(e), float(s), int(n)) for f, e, s, n in rows}
+    assert set(got) == set(ETAS)
+    for force, eta in ETAS.items():
+        e, s, n = got[force]
+        assert n == 2 and abs(e - eta) / eta < ETA_TOL, (force, e, eta)
+        assert 0 < s < 0.05 * eta
+    (table,) = [ln for ln in res.stdout.splitlines() if ln.startswith("estimator.eta_table:")]
+    values = np.array(yaml.safe_load(table)["estimator.eta_table"])     # ready to paste into the config
+    np.testing.assert_allclose(values[:, 0], sorted(ETAS))
+
+
+def test_eta_from_the_lever_arm_alone(probes):
+    res = tecdard("calibrate-eta", *map(str, probes[:2]), "--radius", "0.08")
+    assert res.returncode == 0, res.stderr
+    (line,) = [ln for ln in res.stdout.splitlines() if ln.strip().startswith("20 |")]
+    assert abs(float(line.split("|")[1]) - ETAS[20.0]) / ETAS[20.0] < ETA_TOL
+
+
+def test_too_few_recordings_and_probes_that_never_turned_are_one_line_errors(probes, tmp_path):
+    res = tecdard("calibrate-eta", str(probes[0]), "--radius", "0.08")
+    assert res.returncode == 2 and "needs at least 2 recordings" in res.stderr
+    still = tmp_path / "still.npz"
+    assert tecdard("sim-record", str(still), "--kind", "edge-arc", "--speed", "0.0005").returncode == 0
+    res = tecdard("calibrate-eta", str(probes[0]), str(still), "--radius", "0.08")
+    assert res.returncode == 2 and "still.npz" in res.stderr and ("never turned" in res.stderr
+                                                                  or "no contact onset" in res.stderr)
+    res = tecdard("calibrate-eta", str(probes[0]), str(probes[1]))
+    assert res.returncode == 2 and "--contact x,y,z" in res.stderr
+    res = tecdard("calibrate-eta", str(probes[0]), str(probes[1]), "--contact", "1,2")
+    assert res.returncode == 2 and "--contact: expected three numbers" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
