@@ -38,6 +38,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.mapping
 	$(PY) -m benchmarks.hostile
 	$(PY) -m benchmarks.ur
+	$(PY) -m benchmarks.viz
 	$(PY) -m benchmarks.startup --cold
 
 clean:
