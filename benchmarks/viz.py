@@ -13,6 +13,7 @@ The machine is shared: the figures vary from run to run; nothing here is asserte
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -33,41 +34,37 @@ SETTLE_S = 2.0
 
 def idle_cpu(overrides: dict, seconds: float, subscribe_port: int | None = None) -> float:
     """The daemon process's CPU, as a share of one core, idle for `seconds`."""
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         d = DaemonProcess(pathlib.Path(tmp), daemon_config(**overrides))
+        stack.callback(d.close)
         ws = None
-        try:
-            if subscribe_port is not None:
-                from websockets.sync.client import connect
-                ws = connect(f"ws://127.0.0.1:{subscribe_port}", subprotocols=["foxglove.sdk.v1",
-                                                                                "foxglove.websocket.v1"])
-                channels = {}
-                while len(channels) < 4:
-                    msg = json.loads(ws.recv(timeout=5.0))
-                    if msg.get("op") == "advertise":
-                        channels.update({c["topic"]: c["id"] for c in msg["channels"]})
-                ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                    {"id": k, "channelId": c} for k, c in enumerate(channels.values(), start=1)]}))
-            time.sleep(SETTLE_S)
-            c0, t0 = cpu_s(d.proc.pid), time.monotonic()
-            received = 0
-            while time.monotonic() - t0 < seconds:
-                if ws is not None:
-                    try:
-                        ws.recv(timeout=0.1)
-                        received += 1
-                    except TimeoutError:
-                        pass
-                else:
-                    time.sleep(0.1)
-            share = (cpu_s(d.proc.pid) - c0) / (time.monotonic() - t0)
-            if ws is not None and received == 0:
-                raise RuntimeError("the live view sent nothing")
-            return share
-        finally:
+        if subscribe_port is not None:
+            from websockets.sync.client import connect
+            ws = stack.enter_context(connect(f"ws://127.0.0.1:{subscribe_port}",
+                                             subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]))
+            channels = {}
+            while len(channels) < 4:
+                msg = json.loads(ws.recv(timeout=5.0))
+                if msg.get("op") == "advertise":
+                    channels.update({c["topic"]: c["id"] for c in msg["channels"]})
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": k, "channelId": c} for k, c in enumerate(channels.values(), start=1)]}))
+        time.sleep(SETTLE_S)
+        c0, t0 = cpu_s(d.proc.pid), time.monotonic()
+        received = 0
+        while time.monotonic() - t0 < seconds:
             if ws is not None:
-                ws.close()
-            d.close()
+                try:
+                    ws.recv(timeout=0.1)
+                    received += 1
+                except TimeoutError:
+                    pass
+            else:
+                time.sleep(0.1)
+        share = (cpu_s(d.proc.pid) - c0) / (time.monotonic() - t0)
+        if ws is not None and received == 0:
+            raise RuntimeError("the live view sent nothing")
+        return share
 
 
 def main() -> None:
