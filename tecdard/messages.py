@@ -8,6 +8,7 @@ estimator through a `DropOldestRing` of its own.
 from __future__ import annotations
 
 import collections
+import queue
 import threading
 from dataclasses import dataclass
 
@@ -73,3 +74,38 @@ class DropOldestRing:
                 out.append(self._items.popleft())
         except IndexError:
             return out
+
+
+class Inbox:
+    """A bounded hand-over to a consumer thread that never blocks its producers: what does not fit
+    is dropped and counted (the estimator thread feeding the recorder and the live view)."""
+
+    def __init__(self, capacity: int):
+        self._q: queue.Queue = queue.Queue(capacity)
+        self.dropped = 0
+
+    def put(self, item) -> bool:
+        try:
+            self._q.put_nowait(item)
+            return True
+        except queue.Full:
+            self.dropped += 1
+            return False
+
+    def get(self, timeout: float):
+        """The oldest item, or None after `timeout` s."""
+        try:
+            return self._q.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def drain(self) -> list:
+        items = []
+        while True:
+            try:
+                items.append(self._q.get_nowait())
+            except queue.Empty:
+                return items
+
+    def empty(self) -> bool:
+        return self._q.empty()

@@ -23,7 +23,6 @@ import json
 import logging
 import os
 import pathlib
-import queue
 import re
 import tempfile
 import threading
@@ -33,6 +32,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from control.geometry import matrix_to_quat
+from tecdard.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
 from tecdard.recording import Recording, save_recording
 
@@ -117,8 +117,7 @@ class Recorder:
         self.params = params
         self.emit = emit
         self.meta = meta
-        self._q: queue.Queue = queue.Queue(QUEUE_STEPS)
-        self.dropped_passes = 0          # passes lost because the recorder fell behind (counted)
+        self._inbox = Inbox(QUEUE_STEPS)
         self.write_failures = 0
         self.written = 0
         self._pre: collections.deque = collections.deque()
@@ -131,11 +130,11 @@ class Recorder:
     # -- hand-over (other threads) -------------------------------------------------
     def feed(self, p: Pass) -> None:
         """On the estimator thread: never blocks; an overflow is dropped and counted."""
-        self._put(("pass", p))
+        self._inbox.put(("pass", p))
 
     def note_event(self, event: dict) -> None:
         """On the main thread: a daemon event (task starts and ends close captures)."""
-        self._put(("event", event))
+        self._inbox.put(("event", event))
 
     def request(self, action: str, label: str) -> dict:
         """On the main thread: a `record` command's reply. The main thread owns whether a capture on
@@ -146,26 +145,24 @@ class Recorder:
                 raise C.CommandError(C.BUSY, f"record: a capture on demand is running (label "
                                              f"{self._manual!r}); record stop first")
             self._manual = clean_label(label)
-            self._put(("command", "start", self._manual))
+            self._inbox.put(("command", "start", self._manual))
             return {"ok": True, "recording": True, "label": self._manual, "dir": self.params.dir}
         if self._manual is None:
             raise C.CommandError(C.NOT_RECORDING, "record: no capture on demand is running")
         label, self._manual = self._manual, None
-        self._put(("command", "stop", label))
+        self._inbox.put(("command", "stop", label))
         return {"ok": True, "recording": False, "label": label}
 
-    def _put(self, item) -> None:
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped_passes += 1
+    @property
+    def dropped_passes(self) -> int:
+        """Items lost because the recorder fell behind (counted, never waited for)."""
+        return self._inbox.dropped
 
     # -- the recorder's thread ------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
-            try:
-                item = self._q.get(timeout=0.1)
-            except queue.Empty:
+            item = self._inbox.get(0.1)
+            if item is None:
                 self._check_age()
                 continue
             try:

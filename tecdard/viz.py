@@ -15,12 +15,13 @@ ws://<host>:<port>. The server is foxglove-sdk's (the `viz` extra).
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
+
+from tecdard.messages import Inbox
 
 log = logging.getLogger("tecdar.viz")
 
@@ -54,24 +55,17 @@ class LiveView:
         self.params = params
         self.R_tcp_imu = np.asarray(R_tcp_imu, float)
         self.emit = emit or (lambda kind, **f: None)
-        self._q: queue.Queue = queue.Queue(QUEUE_ITEMS)
-        self.dropped = 0
+        self.inbox = Inbox(QUEUE_ITEMS)
         self.published = 0
         self.port: int | None = None
         self.ready = threading.Event()
 
     def feed(self, p) -> None:
         """On the estimator thread: never blocks."""
-        self._put(("pass", p))
+        self.inbox.put(("pass", p))
 
     def note_event(self, event: dict) -> None:
-        self._put(("event", event))
-
-    def _put(self, item) -> None:
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
+        self.inbox.put(("event", event))
 
     def run(self, stop: threading.Event) -> None:
         import foxglove
@@ -95,7 +89,7 @@ class LiveView:
             t_next = time.monotonic()
             while not stop.is_set():
                 t_next += VIEW_PERIOD_S
-                self._publish(channels, self._drain())
+                self._publish(channels, self.inbox.drain())
                 delay = t_next - time.monotonic()
                 if delay > 0:
                     stop.wait(delay)
@@ -104,14 +98,6 @@ class LiveView:
         finally:
             channels.close()
             server.stop()
-
-    def _drain(self) -> list:
-        items = []
-        while True:
-            try:
-                items.append(self._q.get_nowait())
-            except queue.Empty:
-                return items
 
     def _publish(self, ch, items: list) -> None:
         passes = [x[1] for x in items if x[0] == "pass"]

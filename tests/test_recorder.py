@@ -4,7 +4,6 @@ import errno
 import importlib.util
 import json
 import os
-import queue
 import subprocess
 import sys
 import threading
@@ -147,7 +146,7 @@ def run_recorder(params, items, failing=None):
     for kind, x in items:
         getattr(rec, kind)(x)
     deadline = time.monotonic() + 10.0
-    while not rec._q.empty() and time.monotonic() < deadline:
+    while not rec._inbox.empty() and time.monotonic() < deadline:
         time.sleep(0.01)
     time.sleep(0.1)
     stop.set()
