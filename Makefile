@@ -14,7 +14,7 @@ $(PY):
 
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,ur,viz]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) control/kernels.py

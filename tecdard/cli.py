@@ -261,6 +261,8 @@ def _cmd_sim_record(args) -> int:
     from sim.scenarios import Scenario, generate
     from tecdard.recording import Recording, save_recording
 
+    if args.engine == "mujoco":
+        return _sim_record_mujoco(args)
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Scenario)
               if f.name != "extra" and getattr(args, f.name, None) is not None}
     try:
@@ -273,6 +275,32 @@ def _cmd_sim_record(args) -> int:
     save_recording(args.out, rec, truth)
     print(f"wrote {args.out}: {sc.kind}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
           f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {sc.rest_s:g} s")
+    return 0
+
+
+def _sim_record_mujoco(args) -> int:
+    """sim-record --engine mujoco: the cutter in MuJoCo (sim/mujoco_source.py), the options it shares."""
+    import dataclasses
+
+    from tecdard.recording import Recording, save_recording
+    try:
+        from sim.mujoco_source import MujocoScenario, generate
+        import mujoco  # noqa: F401
+    except ImportError:
+        print("tecdard sim-record: --engine mujoco needs mujoco: pip install 'tecdar[bench]'", file=sys.stderr)
+        return 2
+    shared = {f.name for f in dataclasses.fields(MujocoScenario)}
+    values = {k: v for k, v in vars(args).items() if k in shared and v is not None}
+    try:
+        sc = MujocoScenario(**values)
+        fields, truth = generate(sc)
+    except ValueError as exc:
+        print(f"tecdard sim-record: {exc}", file=sys.stderr)
+        return 2
+    rec = Recording.from_fields(fields)
+    save_recording(args.out, rec, truth)
+    print(f"wrote {args.out}: mujoco {sc.motion}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
+          f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {float(truth['onset_t']):.4f} s")
     return 0
 
 
@@ -435,6 +463,11 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_calibrate_eta)
     p = sub.add_parser("sim-record", help="write a simulated scenario as a recording with truth_* keys")
     p.add_argument("out", help="OUT.npz")
+    p.add_argument("--engine", choices=("scenarios", "mujoco"), default="scenarios",
+                   help="scenarios: sim/scenarios.py's signal model (default); mujoco: rigid-body physics of the "
+                        "paper cutter (sim/mujoco_source.py, the bench extra)")
+    p.add_argument("--motion", choices=("arc", "arc-turning", "push"),
+                   help="with --engine mujoco: the TCP's path (default arc)")
     _scenario_options(p)
     p.set_defaults(func=_cmd_sim_record)
     p = sub.add_parser("imu", help="read the fingertip IMU board: rates, counters, latest sample")

@@ -1,0 +1,209 @@
+"""Recordings from real rigid-body physics (MuJoCo, the `bench` extra): a second source for the
+estimation benchmark, with no signal model shared with sim/scenarios.py.
+
+The world is the paper cutter. Its handle turns on a hinge with a stop at 0°, dry friction (its
+breakaway rings the fingertip, as a real touch does) and viscous damping. The commanded path moves
+a mocap target, as a stiff position-controlled arm moves its TCP.
+
+The gripper is a 1 kg body held to the mocap target by a stiff weld, so it has real velocities and
+accelerations (a mocap body's are zero, and its children's sensors would miss the arm's motion).
+The fingertip is two compliant ball joints in series between the finger and the pad, with the
+IMU's body between them. The pad is welded to the handle through a soft weld (the grasp), so the
+IMU turns by a fraction of the handle's rotation relative to the gripper. That fraction is 1/eta,
+set by the stiffness ratio, and it lags by the joints' damping. MuJoCo's own gyro and
+accelerometer sensors at the IMU's site (specific force: gravity included) give the signal, then
+the LSM6DSR's noise densities, a turn-on bias and int16 quantisation at its full scales are added.
+
+Motions (`motion`):
+- `arc`: the TCP on the circle about the hinge, its orientation held (the fingertip twists);
+- `arc-turning`: the same, the gripper turning with the handle (the daemon's arc following);
+- `push`: a straight push along the handle's initial tangent. The grasp slides and stretches,
+  and the handle follows as it can.
+
+Proprioception is the mocap pose at `tcp_hz` with Gaussian position noise, and optionally the TCP
+velocity with noise.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from control.geometry import matrix_to_quat, rotvec_to_matrix
+
+LSB_GYRO_RAD_S_PER_DPS = math.radians(1.0)
+G = 9.80665
+
+
+@dataclass
+class MujocoScenario:
+    motion: str = "arc"                # arc | arc-turning | push
+    radius: float = 0.12               # m, hinge to TCP
+    speed: float = 0.02                # m/s, TCP
+    eta: float = 2.0                   # the fingertip's transmission (stiffness ratio)
+    lag_tau_s: float = 0.003           # the fingertip's viscoelastic time constant
+    hinge_friction_nm: float = 0.05    # dry friction of the hinge (its breakaway rings the fingertip)
+    imu_hz: float = 6667.0
+    tcp_hz: float = 500.0
+    tcp_noise: float = 5e-5            # m (encoder-grade; the paper's 5e-4)
+    tcp_vel_noise: float = 1e-3        # m/s
+    with_tcp_vel: bool = True
+    gyro_noise_density: float = 8.7e-5     # rad/s/sqrt(Hz) (LSM6DSR: 5 mdps/sqrt(Hz))
+    accel_noise_density: float = 5.9e-4   # m/s^2/sqrt(Hz) (60 ug/sqrt(Hz))
+    gyro_bias_max: float = 0.02        # rad/s
+    gyro_fs_dps: int = 4000
+    accel_fs_g: int = 16
+    rest_s: float = 0.5
+    move_s: float = 1.5
+    yaw_deg: float = 0.0               # the cutter's yaw about world z
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.motion not in ("arc", "arc-turning", "push"):
+            raise ValueError(f"motion: expected arc, arc-turning or push, got {self.motion!r}")
+        for name, lo, hi in (("radius", 0.02, 0.4), ("speed", 0.001, 0.2), ("eta", 1.01, 10.0),
+                             ("imu_hz", 500.0, 20000.0), ("tcp_hz", 10.0, 2000.0), ("move_s", 0.2, 10.0)):
+            v = getattr(self, name)
+            if not lo <= v <= hi:
+                raise ValueError(f"{name}: {v:g} is outside [{lo:g}, {hi:g}]")
+
+
+HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point, world (the robot base), m
+
+
+def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray) -> str:
+    """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge."""
+    # series torsional springs: the IMU body turns by kB/(kA+kB) = 1/eta of the pad's turn
+    k_a = 2.0                                              # N m/rad, finger -> IMU body
+    k_b = k_a / (sc.eta - 1.0)                             # N m/rad, IMU body -> pad
+    d_a, d_b = k_a * sc.lag_tau_s, k_b * sc.lag_tau_s
+    q = matrix_to_quat(R_tcp)                              # (x, y, z, w) -> MuJoCo's (w, x, y, z)
+    quat = f"{q[3]} {q[0]} {q[1]} {q[2]}"
+    handle_dir = p_tcp - HINGE
+    L = float(np.linalg.norm(handle_dir))
+    mid = HINGE + 0.5 * handle_dir
+    return f"""
+<mujoco model="tecdar-cutter">
+  <option timestep="{1.0 / sc.imu_hz}" gravity="0 0 -{G}" integrator="implicitfast"/>
+  <worldbody>
+    <body name="target" mocap="true" pos="{p_tcp[0]} {p_tcp[1]} {p_tcp[2]}" quat="{quat}"/>
+    <body name="gripper" pos="{p_tcp[0]} {p_tcp[1]} {p_tcp[2]}" quat="{quat}">
+      <freejoint name="arm"/>
+      <geom type="box" size="0.02 0.04 0.02" contype="0" conaffinity="0" mass="1.0"/>
+      <body name="imu_body" pos="0 0 0">
+        <joint name="tip_a" type="ball" stiffness="{k_a}" damping="{d_a}"/>
+        <geom type="sphere" size="0.006" contype="0" conaffinity="0" mass="0.004"/>
+        <site name="imu" pos="0 0 0"/>
+        <body name="pad" pos="0 0 0">
+          <joint name="tip_b" type="ball" stiffness="{k_b}" damping="{d_b}"/>
+          <geom type="sphere" size="0.006" contype="0" conaffinity="0" mass="0.004"/>
+        </body>
+      </body>
+    </body>
+    <body name="handle" pos="{HINGE[0]} {HINGE[1]} {HINGE[2]}">
+      <joint name="hinge" type="hinge" axis="{axis[0]} {axis[1]} {axis[2]}" range="-100 0" limited="true"
+             damping="0.02" frictionloss="{sc.hinge_friction_nm}"/>
+      <geom type="capsule" fromto="0 0 0 {handle_dir[0]} {handle_dir[1]} {handle_dir[2]}" size="0.008"
+            contype="0" conaffinity="0" mass="0.1"/>
+      <site name="grasp" pos="{handle_dir[0]} {handle_dir[1]} {handle_dir[2]}"/>
+    </body>
+  </worldbody>
+  <equality>
+    <weld body1="target" body2="gripper" relpose="0 0 0 1 0 0 0" solref="0.001 1" torquescale="100"/>
+    <weld body1="pad" body2="handle" anchor="{handle_dir[0]} {handle_dir[1]} {handle_dir[2]}"
+          relpose="0 0 0 0 0 0 0" solref="0.002 1" torquescale="100"/>
+  </equality>
+  <sensor>
+    <gyro site="imu" name="gyro"/>
+    <accelerometer site="imu" name="accel"/>
+  </sensor>
+</mujoco>
+""", L, mid
+
+
+def generate(sc: MujocoScenario) -> tuple[dict, dict]:
+    """(recording fields, truth) as sim.scenarios.generate gives them."""
+    import mujoco
+    sc.validate()
+    rng = np.random.default_rng(sc.seed)
+    yaw = math.radians(sc.yaw_deg)
+    Rz = rotvec_to_matrix(np.array([0.0, 0.0, yaw]))
+    axis = Rz @ np.array([0.0, 1.0, 0.0])                  # the hinge axis, horizontal
+    out_dir = Rz @ np.array([1.0, 0.0, 0.0])               # the handle lies along +x (yawed) from the hinge
+    p0 = HINGE + sc.radius * out_dir
+    R0 = Rz @ np.diag([1.0, -1.0, -1.0])                   # tool down
+    xml, L, _ = _mjcf(sc, p0, R0, axis)
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)        # the weld holds the pad where the model starts it: at the grasp
+    dt = model.opt.timestep
+    n_rest, n_move = int(sc.rest_s / dt), int(sc.move_s / dt)
+    n = n_rest + n_move
+    t = np.arange(n) * dt
+    # the commanded motion: a smooth (minimum-jerk) start to the TCP speed
+    ramp_s = 0.05
+    s_move = np.maximum(t - sc.rest_s, 0.0)
+    u = np.clip(s_move / ramp_s, 0.0, 1.0)
+    dist = np.where(s_move < ramp_s, sc.speed * ramp_s * (u ** 4 - 2 * u ** 3 + 2 * u), 0.0)
+    dist = np.where(s_move >= ramp_s, sc.speed * (s_move - ramp_s) + sc.speed * ramp_s, dist)
+    tangent0 = np.cross(axis, out_dir)                     # the handle's tangent at the grasp (rising)
+    if tangent0[2] < 0:
+        tangent0 = -tangent0
+    sign = 1.0 if np.dot(np.cross(out_dir, tangent0), axis) > 0 else -1.0
+    gyro = np.empty((n, 3))
+    accel = np.empty((n, 3))
+    p_cmd = np.empty((n, 3))
+    R_cmd = np.empty((n, 3, 3))
+    v_cmd = np.empty((n, 3))
+    angle = np.empty(n)
+    gid, aid = model.sensor("gyro").adr[0], model.sensor("accel").adr[0]
+    hinge_q = model.joint("hinge").qposadr[0]
+    mocap = model.body("target").mocapid[0]
+    gripper = model.body("gripper").id
+    for k in range(n):
+        if sc.motion == "push":
+            p = p0 + dist[k] * tangent0
+            R = R0
+            v = (sc.speed if s_move[k] > 0 else 0.0) * tangent0
+        else:
+            theta = sign * dist[k] / sc.radius
+            Rt = rotvec_to_matrix(axis * theta)
+            p = HINGE + Rt @ (p0 - HINGE)
+            R = Rt @ R0 if sc.motion == "arc-turning" else R0
+            v = np.cross(axis * sign * (np.gradient(dist, dt)[k] / sc.radius if k else 0.0), p - HINGE)
+        data.mocap_pos[mocap] = p
+        data.mocap_quat[mocap] = np.roll(matrix_to_quat(R), 1)
+        mujoco.mj_step(model, data)
+        gyro[k] = data.sensordata[gid:gid + 3]
+        accel[k] = data.sensordata[aid:aid + 3]
+        # the arm's TCP as its encoders would give it: the gripper body's own pose, behind the target
+        p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), v
+        angle[k] = data.qpos[hinge_q]
+    # the LSM6DSR: white noise at its densities, a turn-on bias, int16 at the full scales
+    g_lsb = sc.gyro_fs_dps * LSB_GYRO_RAD_S_PER_DPS / 32768.0
+    a_lsb = sc.accel_fs_g * G / 32768.0
+    gyro = gyro + rng.uniform(-sc.gyro_bias_max, sc.gyro_bias_max, 3) \
+        + rng.normal(0.0, sc.gyro_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
+    accel = accel + rng.normal(0.0, sc.accel_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
+    gyro = np.clip(np.round(gyro / g_lsb), -32768, 32767) * g_lsb
+    accel = np.clip(np.round(accel / a_lsb), -32768, 32767) * a_lsb
+    # proprioception at its own rate
+    tcp_t = np.arange(0.3 / sc.tcp_hz, t[-1], 1.0 / sc.tcp_hz)
+    idx = np.clip(np.searchsorted(t, tcp_t), 0, n - 1)
+    fields = {
+        "imu_t": t, "gyro": gyro, "accel": accel, "tcp_t": t[idx],
+        "tcp_pos": p_cmd[idx] + rng.normal(0.0, sc.tcp_noise, (len(idx), 3)),
+        "tcp_quat": np.array([matrix_to_quat(R) for R in R_cmd[idx]]),
+        "imu_in_tcp_quat": np.array([0.0, 0.0, 0.0, 1.0]),
+        "grip_force": None,
+        "tcp_vel": (v_cmd[idx] + rng.normal(0.0, sc.tcp_vel_noise, (len(idx), 3))) if sc.with_tcp_vel else None,
+        "plane_normal": None,
+        "meta": {"simulated": True, "engine": f"mujoco {mujoco.__version__}", "kind": f"mujoco-{sc.motion}",
+                 "radius": L, "speed": sc.speed, "eta_true": sc.eta, "seed": sc.seed},
+    }
+    moved = np.flatnonzero(np.abs(angle - angle[0]) > math.radians(0.05))
+    truth = {"p_c": HINGE.copy(), "axis": axis, "onset_t": np.array(t[moved[0]] if len(moved) else sc.rest_s),
+             "kind": np.array("edge-arc"), "radius": np.array(L), "eta": np.array(sc.eta), "angle_t": t,
+             "angle": angle - angle[0]}
+    return fields, truth
