@@ -39,6 +39,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.hostile
 	$(PY) -m benchmarks.ur
 	$(PY) -m benchmarks.viz
+	$(PY) -m benchmarks.mujoco
 	$(PY) -m benchmarks.startup --cold
 
 clean:

@@ -273,7 +273,8 @@ def main() -> int:
              "`rotate` on the simulated paper cutter, [daemon.md](daemon.md); the tactile map of the",
              "paper's container, [mapping.md](mapping.md); hostile input, [hostile.md](hostile.md); the UR",
              "backend against the fake controller, [ur.md](ur.md); what live recording and the live view cost," +
-             " [viz.md](viz.md); and start-up, [startup.md](startup.md).",
+             " [viz.md](viz.md); the estimators on MuJoCo recordings, [mujoco.md](mujoco.md); and start-up,"
+             " [startup.md](startup.md).",
              "Every page is written by its benchmark.", "",
              "Simulated recordings (`sim/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
              "6667 Hz), encoder-grade TCP noise (0.05 mm) at 65 Hz with reported TCP velocity (1 mm/s noise), "

@@ -1,0 +1,119 @@
+"""The estimators on the second source, MuJoCo's rigid-body physics (issue 21); writes benchmarks/mujoco.md.
+
+    python -m benchmarks.mujoco [--seeds N]
+
+Recordings from sim/mujoco_source.py (no signal model shared with sim/scenarios.py): the paper
+cutter, arcs with the gripper held or turning with the handle, and straight pushes, at lever arms
+of 4, 8 and 12 cm, with encoder-grade TCP noise (0.05 mm at 500 Hz, TCP velocity reported) or the
+paper's (0.5 mm at 65 Hz, no velocity).
+
+Each method runs from the true onset, commanded, so that the methods are compared on the same
+samples; the trigger's own latency is reported apart. Errors are
+in the plane of rotation (along the hinge is unobservable), in mm, at 30 ms, 180 ms and the end,
+as medians over seeds. Coverage is the share of estimates whose in-plane error lies within 3σ on
+every observable axis.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import platform
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from control.geometry import quat_to_matrix  # noqa: E402
+from sim.mujoco_source import MujocoScenario, generate  # noqa: E402
+from tecdard import localize as L  # noqa: E402
+from tecdard.config import Config  # noqa: E402
+from tecdard.estimation import build_pipeline  # noqa: E402
+from tecdard.recording import Recording  # noqa: E402
+
+METHODS = ("ekf", "paper-ekf", "svd-geo", "svd-diff")
+HORIZONS_S = (0.03, 0.18)
+GRADES = {"encoder": dict(tcp_noise=5e-5, tcp_hz=500.0, with_tcp_vel=True),
+          "paper": dict(tcp_noise=5e-4, tcp_hz=65.0, with_tcp_vel=False)}
+CASES = [(m, r) for m in ("arc", "arc-turning", "push") for r in (0.04, 0.08, 0.12)]
+
+
+def evaluate(rec: Recording, truth: dict, method: str) -> dict:
+    pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+                          method=method)
+    pipe.begin(float(truth["onset_t"]))
+    rows, _, _ = L.replay(rec, pipe)
+    a = truth["axis"]
+    d = rows[:, 1:4] - truth["p_c"]
+    d_plane = d - np.outer(d @ a, a)
+    err = np.linalg.norm(d_plane, axis=1)
+    since = rows[:, 0] - float(truth["onset_t"])
+    std = rows[:, 4:7]
+    observable = std < 0.1
+    covered = np.all((np.abs(d_plane) <= 3 * std) | ~observable, axis=1)
+    at = [float(err[min(np.searchsorted(since, h), len(err) - 1)]) for h in HORIZONS_S]
+    return {"e": at + [float(err[-1])], "coverage": float(covered.mean())}
+
+
+def latency(rec: Recording, truth: dict) -> float | None:
+    pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    _, onset_t, _ = L.replay(rec, pipe)
+    return None if onset_t is None else onset_t - float(truth["onset_t"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=3)
+    args = ap.parse_args()
+    t0 = time.time()
+    table = {}          # (grade, motion, radius) -> method -> [results]
+    lat = []
+    for grade, noise in GRADES.items():
+        for motion, radius in CASES:
+            for seed in range(1, args.seeds + 1):
+                fields, truth = generate(MujocoScenario(motion=motion, radius=radius, seed=seed, **noise))
+                rec = Recording.from_fields(fields)
+                for m in METHODS:
+                    table.setdefault((grade, motion, radius), {}).setdefault(m, []).append(evaluate(rec, truth, m))
+                if grade == "encoder":
+                    lat.append(latency(rec, truth))
+    lines = [f"# Estimation on MuJoCo recordings ({time.strftime('%Y-%m-%d')}, {platform.machine()}, "
+             f"{os.cpu_count()} cores, Python {platform.python_version()})", "",
+             __doc__.split("\n\n", 2)[1].replace("\n", " "), "",
+             __doc__.split("\n\n", 3)[2].replace("\n", " "), "", f"{args.seeds} seeds per case.", ""]
+    for grade in GRADES:
+        lines += [f"## {grade}-grade TCP noise", "",
+                  "| case | " + " | ".join(f"{m} 30 ms / 180 ms / end" for m in METHODS) + " | ekf 3σ coverage |",
+                  "|---|" + "---|" * (len(METHODS) + 1)]
+        ratios = {h: [] for h in range(2)}
+        for motion, radius in CASES:
+            res = table[(grade, motion, radius)]
+            cells = []
+            med = {}
+            for m in METHODS:
+                e = np.median(np.array([r["e"] for r in res[m]]), axis=0) * 1e3
+                med[m] = e
+                cells.append(" / ".join(f"{x:.1f}" for x in e))
+            cov = np.mean([r["coverage"] for r in res["ekf"]])
+            lines.append(f"| {motion}, {radius * 100:.0f} cm | " + " | ".join(cells) + f" | {100 * cov:.0f} % |")
+            for h in range(2):
+                ratios[h].append(med["ekf"][h] / max(med["paper-ekf"][h], 1e-9))
+        lines += ["", f"Median `ekf` / `paper-ekf` ratio: {np.median(ratios[0]):.2f} at 30 ms, "
+                  f"{np.median(ratios[1]):.2f} at 180 ms (issue 21's goal: <= 0.6).", ""]
+    detected = [x for x in lat if x is not None]
+    lines += ["## The accelerometer trigger on these recordings", "",
+              f"Detected in {len(detected)} of {len(lat)} encoder-grade recordings"
+              + (f", median {np.median(detected) * 1e3:.0f} ms from the true onset" if detected else "")
+              + ". The true onset here is when the handle has turned 0.05°: the hinge's dry friction holds it "
+              "while the arm starts, so the trigger can fire first (a negative latency).", "",
+              f"Run time {time.time() - t0:.0f} s."]
+    text = "\n".join(lines) + "\n"
+    (ROOT / "benchmarks" / "mujoco.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
