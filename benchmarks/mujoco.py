@@ -82,8 +82,8 @@ def main() -> None:
                     lat.append(latency(rec, truth))
     lines = [f"# Estimation on MuJoCo recordings ({time.strftime('%Y-%m-%d')}, {platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()})", "",
-             __doc__.split("\n\n", 2)[1].replace("\n", " "), "",
-             __doc__.split("\n\n", 3)[2].replace("\n", " "), "", f"{args.seeds} seeds per case.", ""]
+             *[part.replace("\n", " ") + "\n" for part in __doc__.split("\n\n")[2:4]],
+             f"{args.seeds} seeds per case.", ""]
     for grade in GRADES:
         lines += [f"## {grade}-grade TCP noise", "",
                   "| case | " + " | ".join(f"{m} 30 ms / 180 ms / end" for m in METHODS) + " | ekf 3σ coverage |",

@@ -256,13 +256,21 @@ def _cmd_plot(args) -> int:
 
 
 def _cmd_sim_record(args) -> int:
+    """sim-record: sim/scenarios.py's signal model, or (--engine mujoco) the cutter in MuJoCo's
+    physics (sim/mujoco_source.py), from the options the engine's scenario has."""
     import dataclasses
 
-    from sim.scenarios import Scenario, generate
     from tecdard.recording import Recording, save_recording
-
     if args.engine == "mujoco":
-        return _sim_record_mujoco(args)
+        try:
+            import mujoco  # noqa: F401
+
+            from sim.mujoco_source import MujocoScenario as Scenario, generate
+        except ImportError:
+            print("tecdard sim-record: --engine mujoco needs mujoco: pip install 'tecdar[bench]'", file=sys.stderr)
+            return 2
+    else:
+        from sim.scenarios import Scenario, generate
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Scenario)
               if f.name != "extra" and getattr(args, f.name, None) is not None}
     try:
@@ -273,33 +281,8 @@ def _cmd_sim_record(args) -> int:
         return 2
     rec = Recording.from_fields(fields)
     save_recording(args.out, rec, truth)
-    print(f"wrote {args.out}: {sc.kind}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
-          f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {sc.rest_s:g} s")
-    return 0
-
-
-def _sim_record_mujoco(args) -> int:
-    """sim-record --engine mujoco: the cutter in MuJoCo (sim/mujoco_source.py), the options it shares."""
-    import dataclasses
-
-    from tecdard.recording import Recording, save_recording
-    try:
-        from sim.mujoco_source import MujocoScenario, generate
-        import mujoco  # noqa: F401
-    except ImportError:
-        print("tecdard sim-record: --engine mujoco needs mujoco: pip install 'tecdar[bench]'", file=sys.stderr)
-        return 2
-    shared = {f.name for f in dataclasses.fields(MujocoScenario)}
-    values = {k: v for k, v in vars(args).items() if k in shared and v is not None}
-    try:
-        sc = MujocoScenario(**values)
-        fields, truth = generate(sc)
-    except ValueError as exc:
-        print(f"tecdard sim-record: {exc}", file=sys.stderr)
-        return 2
-    rec = Recording.from_fields(fields)
-    save_recording(args.out, rec, truth)
-    print(f"wrote {args.out}: mujoco {sc.motion}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
+    what = f"mujoco {sc.motion}" if args.engine == "mujoco" else sc.kind
+    print(f"wrote {args.out}: {what}, {len(rec.imu_t)} IMU samples at {sc.imu_hz:g} Hz, "
           f"{len(rec.tcp_t)} TCP samples at {sc.tcp_hz:g} Hz, onset at {float(truth['onset_t']):.4f} s")
     return 0
 
