@@ -358,8 +358,14 @@ class ContactKF(ContactEstimator):
     def set_correlation(self, samples: float) -> None:
         self.corr_samples = samples
 
+    def set_position_noise(self, sigma_m: float) -> None:
+        self.sigma_p = max(float(sigma_m), self.params.sigma_p)
+        if self.positions is not None:
+            self.positions.var = _position_var(self.sigma_p)
+
     def __init__(self, params: ContactKfParams | None = None, plane: Plane | None = None):
         self.params = params or ContactKfParams()
+        self.sigma_p = self.params.sigma_p      # m, the TCP position noise this episode (set_position_noise)
         self.plane = plane
         self.d = d = 2 if plane is not None else 3
         # the report's variance along the plane's normal (unobservable), flattened for the kernel
@@ -473,11 +479,11 @@ class ContactKF(ContactEstimator):
         prm = self.params
         out = np.empty(kern.PRM_SIZE)
         out[kern.PRM_Q_C], out[kern.PRM_CORR] = prm.q_c, self.corr_samples
-        out[kern.PRM_VAR_P], out[kern.PRM_VAR_WN], out[kern.PRM_RADIAL_VAR] = prm.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
+        out[kern.PRM_VAR_P], out[kern.PRM_VAR_WN], out[kern.PRM_RADIAL_VAR] = self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
         out[kern.PRM_GATE_NIS], out[kern.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
         out[kern.PRM_K_MEAN], out[kern.PRM_K_PRIOR_VAR] = self.k_prior_mean, self.k_prior_var
         out[kern.PRM_ETA_VAR], out[kern.PRM_TEST_SIGMA] = (self.eta_rel_std / self.k_prior_mean) ** 2, prm.eta_test_sigma
-        out[kern.PRM_EV_VAR], out[kern.PRM_EV_MIN_SAMPLES] = _position_var(prm.sigma_p), MIN_RESIDUAL_SAMPLES
+        out[kern.PRM_EV_VAR], out[kern.PRM_EV_MIN_SAMPLES] = _position_var(self.sigma_p), MIN_RESIDUAL_SAMPLES
         out[kern.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
         out[kern.PRM_WINDOW_S], out[kern.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
         out[kern.PRM_MIN_RATE2], out[kern.PRM_SECOND_RATIO] = rate_params

@@ -26,6 +26,7 @@ SECOND_AXIS_RATIO = 0.05      # a rotation about a 2nd axis this strong (by vari
 TCP_TURNING_RAD_S = 0.01      # the gripper turns (its own rate from proprioception) above this
 FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than this is no position measurement
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
+MAD_TO_SIGMA = 0.6745         # median |x| of a zero-mean normal, in its sigmas
 WDOT_MAX_AGE_S = 0.05         # a reported TCP rate's last change is extrapolated at most this far
 # The LSM6DSR's clipping points at its default full scales (4000 dps, 16 g: 80.06 rad/s, 156.8 m/s^2),
 # until a source says which scales it runs.
@@ -100,6 +101,9 @@ class ProprioTrack:
         self.n = 0
         self._rate = np.nan
         self._rate_n = 0
+        self._noise = 0.0
+        self._noise_at = 0            # `added` when the noise was last measured
+        self.added = 0                # samples added so far (the history itself is a window)
 
     def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
             force: float = np.nan) -> None:
@@ -111,7 +115,7 @@ class ProprioTrack:
             if n:
                 dt = t - self.t[n - 1]
                 v = (p - self.p[n - 1]) / dt
-                tv, var_v = t - dt / 2, 2 * self.sigma_p ** 2 / dt ** 2
+                tv, var_v = t - dt / 2, 2 * self.sigma_p_effective() ** 2 / dt ** 2
             else:
                 v, tv, var_v = np.zeros(3), t, DERIVED_V_FIRST_VAR
         else:
@@ -140,6 +144,26 @@ class ProprioTrack:
         self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
         self.wdot[n] = wdot
         self.n = n + 1
+        self.added += 1
+
+    def sigma_p_effective(self) -> float:
+        """The TCP position's noise, m: the configured sigma_p, or more where the positions show it.
+
+        The configured value is a floor. A rig's actual noise can be ten times more (the paper's
+        0.5 mm against an encoder's 0.05 mm), and a filter that trusts positions and the
+        velocities derived from them ten times too much drifts. So the noise is measured from the
+        positions' second differences, which cancel a steady motion: for white noise each has a
+        variance of 6 sigma^2. Their median is robust to the starts and stops. Re-measured every
+        16 samples over the history."""
+        n = self.n
+        if n < 8:
+            return self.sigma_p
+        if self._noise_at == 0 or self.added - self._noise_at >= 16:
+            p = self.p[:n]
+            d2 = p[2:] - 2.0 * p[1:-1] + p[:-2]
+            self._noise = float(np.median(np.abs(d2))) / (MAD_TO_SIGMA * math.sqrt(6.0))
+            self._noise_at = self.added
+        return max(self.sigma_p, self._noise)
 
     def rate_hz(self) -> float:
         """Median proprioception rate, Hz (recomputed every 16 samples)."""
@@ -405,6 +429,7 @@ class ContactPipeline:
             commanded, self._begin_t = self._begin_t is not None, None
             self.cond.freeze_bias(True)
             self._set_eta_uncertainty(float(force_on[0]))    # eta's prior for the episode
+            self.estimator.set_position_noise(self.proprio.sigma_p_effective())
             self.estimator.start(p[0], v[0])
             self.tracking = True
             self._stamp_prev = np.nan

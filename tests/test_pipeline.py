@@ -370,3 +370,17 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     assert err < clean_err + CLIPPED_EXTRA_ERR_M, (err, clean_err)
     naive_err, naive = final(rec, limits=(np.inf, np.inf))              # without the check
     assert naive.saturated == 0 and naive_err > 10 * max(err, 1e-3), (naive_err, err)
+
+
+def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
+    """A rig's TCP can be ten times noisier than the configured encoder grade (the paper's 0.5 mm):
+    the noise is measured from the positions' second differences, through a steady motion."""
+    from control.pipeline import ProprioTrack
+    rng = np.random.default_rng(3)
+    for true_sigma, expected in ((5e-4, 5e-4), (1e-5, 5e-5)):      # noisier than configured; quieter: the floor
+        track = ProprioTrack(sigma_p=5e-5)
+        for k in range(200):
+            t = k / 65.0
+            p = np.array([0.3 + 0.02 * t, 0.0, 0.4 + 0.001 * np.sin(t)]) + rng.normal(0.0, true_sigma, 3)
+            track.add(t, p, None, np.eye(3), None)
+        assert track.sigma_p_effective() == pytest.approx(expected, rel=0.15)

@@ -45,6 +45,10 @@ class ContactEstimator:
     def set_correlation(self, samples: float) -> None:
         """IMU samples that share one proprioception sample (their velocity errors are one error)."""
 
+    def set_position_noise(self, sigma_m: float) -> None:
+        """The TCP position's noise for the next episode, m (the configured value, or more when the
+        proprioception shows more: ProprioTrack.sigma_p_effective)."""
+
 
 @dataclass(frozen=True)
 class EstimatorSpec:
