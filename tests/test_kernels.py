@@ -349,10 +349,10 @@ class ReferenceKF:
 
     def __init__(self, kf):
         prm = kf.params
-        self.prm, self.d, self.nk = prm, kf.d, kf.nk
+        self.prm, self.d, self.nk, self.sigma_p = prm, kf.d, kf.nk, kf.sigma_p
         self.E, self.nrm, self.origin = kf._E, kf._normal, kf.origin.copy()
         self.x, self.P = kf.x.copy(), kf.P.copy()
-        self.k_mean, self.corr, self.var_ev = kf.k_prior_mean, kf.corr_samples, max(prm.sigma_p, 1e-7) ** 2
+        self.k_mean, self.corr, self.var_ev = kf.k_prior_mean, kf.corr_samples, max(kf.sigma_p, 1e-7) ** 2
         self.steps = self.rejected = 0
         self.nis, self.consistency = 0.0, 1.0
         self.win = None
@@ -370,7 +370,7 @@ class ReferenceKF:
         for k0 in range(0, len(dt), prm.max_block):
             sl = slice(k0, k0 + prm.max_block)
             args = (dt[sl], w[sl], np.zeros((len(dt[sl]), 3)), p[sl], v[sl], var_v[sl], var_w[sl], self.E, self.nrm,
-                    self.origin, prm.q_c, self.corr, prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, kern.K_MIN,
+                    self.origin, prm.q_c, self.corr, self.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, kern.K_MIN,
                     self.k_mean, prm.gate_nis > 0 and self.steps > 0)
             x_lin = self.x
             for _ in range(2 if self.steps == 0 else 0):

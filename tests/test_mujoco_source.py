@@ -32,7 +32,7 @@ def steady(fields, truth, t_from=0.7, t_to=1.9):
 def test_the_handle_turns_as_the_arc_commands_and_the_fingertip_sees_one_over_eta(arc):
     fields, truth = arc
     sc = MujocoScenario()
-    expected_deg = math.degrees(sc.speed * (sc.move_s - 0.025) / 0.12)       # the 50 ms smooth start
+    expected_deg = math.degrees(sc.speed * (sc.move_s - 0.025) / 0.12)       # the 50 ms smooth start (half lost)
     assert abs(abs(math.degrees(truth["angle"][-1])) - expected_deg) < ANGLE_TOL_DEG
     rest = fields["imu_t"] < truth["onset_t"] - 0.05
     bias = fields["gyro"][rest].mean(axis=0)
