@@ -67,6 +67,25 @@ class StateSlot:
         return self.read()
 
 
+CHILD_STOP_S = 2.0      # a robot link's child process is waited for this long, then terminated
+
+
+def kill_child(proc) -> None:
+    """Terminate a child process that is still alive, and wait for it."""
+    if proc is not None and proc.is_alive():
+        proc.terminate()
+        proc.join(CHILD_STOP_S)
+
+
+def end_child(proc, conns) -> None:
+    """A child process that has been asked to stop: wait for it, terminate it if it does not, and
+    close the parent's ends of its pipes (a link that reconnects makes new ones)."""
+    proc.join(CHILD_STOP_S)
+    kill_child(proc)
+    for conn in conns:
+        conn.close()
+
+
 class RobotReceive(Protocol):
     """Reading side: latest proprioception."""
 

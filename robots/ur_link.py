@@ -31,12 +31,11 @@ import numpy as np
 import pinocchio as pin
 
 from drivers.timesync import ClockSync
-from robots.backend import JointState, StateSlot, joint_rates
+from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
 from robots.backends import BackendError
 
 log = logging.getLogger("tecdar.ur")
 
-STOP_TIMEOUT_S = 2.0
 DASHBOARD_TIMEOUT_MS = 2000
 CONTROLLER_CYCLE_S = 0.002     # an e-Series controller's cycle (500 Hz), the fastest RTDE rate
 SCRIPT_START_S = 1.0          # a re-uploaded control script runs within this
@@ -250,10 +249,10 @@ class UrLink:
             raise UrLinkError(f"robot.ur.host: the link to {host} ended at start (exit code "
                               f"{self._proc.exitcode})") from None
         except UrLinkError:
-            self._kill()
+            kill_child(self._proc)
             raise
         if msg[0] != "ready":
-            self._kill()
+            kill_child(self._proc)
             raise UrLinkError(f"robot.ur.host: {host} refused the link: {msg[1]}")
         self.identity = msg[1] or {}
         self._reader = threading.Thread(target=self._read, name="ur-link", daemon=True)
@@ -263,16 +262,8 @@ class UrLink:
         if self._proc is None:
             return
         self._send(("close",), quiet=True)
-        self._proc.join(STOP_TIMEOUT_S)
-        self._kill()
-        for conn in (self._cmd, self._state_rx):       # a reconnect makes new ones: never leak these
-            conn.close()
+        end_child(self._proc, (self._cmd, self._state_rx))
         self._proc = None
-
-    def _kill(self) -> None:
-        if self._proc is not None and self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(STOP_TIMEOUT_S)
 
     def _read(self) -> None:
         while True:

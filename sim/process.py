@@ -36,7 +36,7 @@ import numpy as np
 from sim.board import Board, BoardParams, PtyDevice
 from drivers.lsm6dsr import Scaling
 from sim.imu import SimImu, SimImuParams
-from robots.backend import JointState, StateSlot, joint_rates
+from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
 from robots.backends import BackendError
 from robots.model import ArmModel
 from sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
@@ -45,7 +45,6 @@ from sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
 log = logging.getLogger("tecdar.sim")
 
 START_TIMEOUT_S = 60.0       # a cold child imports numpy and Pinocchio and loads the URDF
-STOP_TIMEOUT_S = 2.0
 MAX_BEHIND_S = 0.1            # a child this far behind its schedule resumes from now
 PIPE_CAPACITY_BYTES = 1 << 20  # asked of the kernel for each child -> daemon pipe (about 2 s of IMU)
 MESSAGE_HEADER_BYTES = 16     # multiprocessing's length prefix, with room to spare
@@ -221,15 +220,15 @@ class SimProcess:
         for end in (cmd_rx, state_tx, imu_tx):
             end.close()      # the child holds its own copies: EOF on either side means the other has gone
         if not self._state_rx.poll(START_TIMEOUT_S):
-            self._kill()
+            kill_child(self._proc)
             raise SimProcessError(f"the simulation process did not start within {START_TIMEOUT_S:.0f} s")
         try:
             msg = self._state_rx.recv()
         except EOFError:
-            self._kill()
+            kill_child(self._proc)
             raise SimProcessError(f"the simulation process exited at start (code {self._proc.exitcode})") from None
         if msg[0] != "ready":
-            self._kill()
+            kill_child(self._proc)
             raise SimProcessError(f"the simulation process failed at start: {msg[1]}")
         _, state, self._truth = msg
         self._states.publish(state)
@@ -244,16 +243,8 @@ class SimProcess:
                 self._cmd.send(("stop",))
         except (OSError, ValueError):
             pass
-        self._proc.join(STOP_TIMEOUT_S)
-        self._kill()
-        for conn in (self._cmd, self._state_rx, self._imu_rx):
-            conn.close()
+        end_child(self._proc, (self._cmd, self._state_rx, self._imu_rx))
         self._proc = None
-
-    def _kill(self) -> None:
-        if self._proc is not None and self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(STOP_TIMEOUT_S)
 
     def _read_states(self) -> None:
         while True:

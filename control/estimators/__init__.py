@@ -7,10 +7,10 @@ that has no use for one keeps the no-op. Adding an estimator is adding a module 
 """
 from __future__ import annotations
 
-import importlib
-import pkgutil
 from dataclasses import dataclass
 from typing import Callable
+
+from control.plugins import new_modules
 
 
 class ContactEstimator:
@@ -63,11 +63,7 @@ _discovered: set[str] = set()
 
 def discover() -> dict[str, EstimatorSpec]:
     """Import every estimator module on this package's path (once each) and register its ESTIMATORS."""
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_") or info.name in _discovered:
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
-        _discovered.add(info.name)
+    for module in new_modules(__path__, __name__, _discovered):
         for spec in getattr(module, "ESTIMATORS", ()):
             if spec.name in REGISTRY and REGISTRY[spec.name] is not spec:
                 raise ValueError(f"estimator {spec.name!r} is defined twice")

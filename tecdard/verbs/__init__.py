@@ -8,12 +8,12 @@ package's path once, in name order.
 """
 from __future__ import annotations
 
-import importlib
-import pkgutil
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+
+from control.plugins import new_modules
 
 REQUIRED = object()          # a Field's default: the field must be given
 
@@ -82,11 +82,7 @@ def register(verb: TaskVerb) -> TaskVerb:
 
 def discover() -> dict[str, TaskVerb]:
     """Import every verb module on this package's path (once each) and register its VERB."""
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_") or info.name in _discovered:
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
-        _discovered.add(info.name)
+    for module in new_modules(__path__, __name__, _discovered):
         verb = getattr(module, "VERB", None)
         if not isinstance(verb, TaskVerb):
             raise TypeError(f"{module.__name__}: a verb module defines VERB = TaskVerb(...)")
