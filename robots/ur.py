@@ -71,13 +71,10 @@ class UrBackend:
                               f"two control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
         self.nq = ctx.model.nq
         self.model = ctx.model
-        self.fk_offset_m: float | None = None    # |our FK TCP - the controller's TCP| at start, m
-        self.fk_offset_rad: float | None = None  # the angle between their orientations, rad
         self.link = UrLink(self.settings)
         self.robot = self
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
-        self.reconnects = 0
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
@@ -119,13 +116,13 @@ class UrBackend:
         the controller puts the IMU's lever arm in the wrong place, so it is said here."""
         js = self.link.wait_state(-1, FIRST_STATE_S)
         oMfk = self.model.fk(js.q)
-        self.fk_offset_m = float(np.linalg.norm(oMfk.translation - js.tcp_pose[:3, 3]))
-        self.fk_offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ js.tcp_pose[:3, :3])))
-        if self.fk_offset_m > FK_CHECK_M or self.fk_offset_rad > FK_CHECK_RAD:
+        offset_m = float(np.linalg.norm(oMfk.translation - js.tcp_pose[:3, 3]))
+        offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ js.tcp_pose[:3, :3])))
+        if offset_m > FK_CHECK_M or offset_rad > FK_CHECK_RAD:
             log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from the one the "
                         "controller reports (model %s, tool offset %s m, tool quat %s); check them against the "
-                        "controller's TCP setting and arm type", self.fk_offset_m * 1e3,
-                        np.degrees(self.fk_offset_rad), self.model.name, self.model.tool_offset, self.model.tool_quat)
+                        "controller's TCP setting and arm type", offset_m * 1e3,
+                        np.degrees(offset_rad), self.model.name, self.model.tool_offset, self.model.tool_quat)
 
     def close(self) -> None:
         self._stop.set()
@@ -151,7 +148,6 @@ class UrBackend:
                     continue
                 link.stop()
                 self.link, attempt = fresh, 0
-                self.reconnects += 1
                 log.info("reconnected to %s", self.settings.host)
                 continue
             st = link.ur_state

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from control.geometry import quat_to_matrix
-from tecdard.foxglove_io import Channels
 
 IMU_BATCH_S = 0.01             # the IMU in messages of this much
 
@@ -18,6 +17,8 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
     """Write the recording, its estimates (ContactEstimate) and events to `out`; the messages written."""
     try:
         import foxglove
+
+        from tecdard.foxglove_io import Channels
     except ImportError:
         raise ExportError("needs foxglove-sdk: pip install 'tecdar[viz]'") from None
     items = []                  # (t, order, kind, payload): written in time order

@@ -17,7 +17,13 @@ from __future__ import annotations
 
 import json
 
+import foxglove
 import numpy as np
+from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateChannel
+from foxglove.messages import (Color, FrameTransform, FrameTransforms, LinePrimitive, Log, LogLevel, Point3, Pose,
+                               Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3)
+
+from control.geometry import matrix_to_quat
 
 ELLIPSOID_MAX_M = 0.2          # a one-sigma ellipsoid is drawn at most this big per axis (a line contact's
                                # along-edge sigma is half a metre)
@@ -30,13 +36,10 @@ TOPICS = ("/imu", "/tf", "/contact", "/events")
 
 
 def _stamp(ns: int):
-    from foxglove.messages import Timestamp
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
 def _quat(R: np.ndarray):
-    from control.geometry import matrix_to_quat
-    from foxglove.messages import Quaternion
     x, y, z, w = matrix_to_quat(np.asarray(R, float))
     return Quaternion(x=float(x), y=float(y), z=float(z), w=float(w))
 
@@ -48,8 +51,6 @@ class Channels:
 
     def __init__(self, context=None, origin_s: float = 0.0, epoch_s: float = 0.0):
         self.origin_s, self.epoch_s = float(origin_s), float(epoch_s)
-        import foxglove
-        from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateChannel
         self.imu = foxglove.Channel("/imu", message_encoding="json", context=context,
                                     schema=foxglove.Schema(name="tecdar.ImuBatch", encoding="jsonschema",
                                                            data=json.dumps(IMU_SCHEMA).encode()))
@@ -69,7 +70,6 @@ class Channels:
             self.imu.log({"t": t.tolist(), "gyro": gyro.tolist(), "accel": accel.tolist()}, log_time=self._ns(t[-1]))
 
     def tcp(self, t: float, p: np.ndarray, R: np.ndarray, R_tcp_imu: np.ndarray | None = None) -> None:
-        from foxglove.messages import FrameTransform, FrameTransforms, Vector3
         transforms = [FrameTransform(timestamp=_stamp(self._ns(t)), parent_frame_id="world", child_frame_id="tcp",
                                      translation=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
                                      rotation=_quat(R))]
@@ -81,8 +81,6 @@ class Channels:
     def contact(self, t: float, p: np.ndarray, cov: np.ndarray, axis: np.ndarray | None, entity: str = "contact",
                 rgba=(0.9, 0.3, 0.1, 0.5)) -> None:
         """The estimate at `p` (world, m) with covariance `cov` (3 x 3, m^2) and its axis (or None)."""
-        from foxglove.messages import (Color, LinePrimitive, Point3, Pose, SceneEntity, SceneUpdate, SpherePrimitive,
-                                       Vector3)
         vals, vecs = np.linalg.eigh(0.5 * (np.asarray(cov, float) + np.asarray(cov, float).T))
         if np.linalg.det(vecs) < 0:
             vecs[:, 0] = -vecs[:, 0]
@@ -101,7 +99,6 @@ class Channels:
                                                               spheres=spheres, lines=lines)]), log_time=self._ns(t))
 
     def event(self, t: float, event: dict) -> None:
-        from foxglove.messages import Log, LogLevel
         kind = str(event.get("kind", ""))
         level = LogLevel.Warning if kind in ("protective_stop", "fault", "task_failed", "warning") else LogLevel.Info
         self.events.log(Log(timestamp=_stamp(self._ns(t)), level=level, message=json.dumps(event, default=str), name=kind),

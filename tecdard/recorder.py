@@ -106,6 +106,7 @@ class Capture:
     events: list
     t_open: float = field(default_factory=time.monotonic)
     manual: bool = False
+    lost_at_open: int = 0         # the recorder's dropped count when it opened (its own losses: the difference)
     end_by: float | None = None   # its episode has ended: written at its task's end, or at this time
 
 
@@ -119,12 +120,10 @@ class Recorder:
         self.meta = meta
         self._inbox = Inbox(QUEUE_STEPS)
         self.write_failures = 0
-        self.written = 0
         self._pre: collections.deque = collections.deque()
         self._pre_events: collections.deque = collections.deque(maxlen=PRE_EVENTS)
         self._capture: Capture | None = None
         self._task: tuple[str, str] | None = None       # (id, verb) of the running task
-        self._lost_in_capture = 0
         self._manual: str | None = None                  # main thread: the label of a capture on demand
 
     # -- hand-over (other threads) -------------------------------------------------
@@ -222,19 +221,18 @@ class Recorder:
                 return
             task, verb = self._task or (None, None)
             episode = self._pre[-1].directive.episode if self._pre else 0
-            self._open("manual", label, task, verb, episode)
-            self._capture.manual = True
+            self._open("manual", label, task, verb, episode, manual=True)
         elif action == "stop" and self._capture is not None:
             self._finish("record stop")
 
-    def _open(self, reason: str, label: str, task, verb, episode: int) -> None:
+    def _open(self, reason: str, label: str, task, verb, episode: int, manual: bool = False) -> None:
         t0 = next((p.t_end for p in self._pre if p.t_end is not None), None)
         events = [e for e in self._pre_events if t0 is not None and isinstance(e.get("t"), (int, float))
                   and e["t"] >= t0 - self.params.pre_onset_s]
-        self._capture = Capture(reason, label, task, verb, episode, list(self._pre), events)
+        self._capture = Capture(reason, label, task, verb, episode, list(self._pre), events, manual=manual,
+                                lost_at_open=self.dropped_passes)
         self._pre.clear()
         self._pre_events.clear()
-        self._lost_in_capture = self.dropped_passes
 
     def _trim_pre(self) -> None:
         newest = next((p.t_end for p in reversed(self._pre) if p.t_end is not None), None)
@@ -259,7 +257,7 @@ class Recorder:
 
     # -- writing --------------------------------------------------------------------
     def _write(self, cap: Capture, why: str) -> None:
-        lost = self.dropped_passes - self._lost_in_capture
+        lost = self.dropped_passes - cap.lost_at_open
         try:
             rec, extra = build(cap, {**self.meta, "ended": why, "passes_lost": lost})
         except EmptyCapture as exc:
@@ -292,7 +290,6 @@ class Recorder:
             self.emit("recording_failed", file=path.name, message=f"{exc.strerror or type(exc).__name__}",
                       failures=self.write_failures)
             return
-        self.written += 1
         size = path.stat().st_size
         log.info("recording %s written (%s, %.1f s, %d kB)", path.name, why,
                  rec.imu_t[-1] - rec.imu_t[0], size // 1024)

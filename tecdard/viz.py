@@ -56,7 +56,6 @@ class LiveView:
         self.R_tcp_imu = np.asarray(R_tcp_imu, float)
         self.emit = emit or (lambda kind, **f: None)
         self.inbox = Inbox(QUEUE_ITEMS)
-        self.published = 0
         self.port: int | None = None
         self.ready = threading.Event()
 
@@ -118,6 +117,5 @@ class LiveView:
                 for ev in events:
                     t = ev.get("t")
                     ch.event(float(t) if isinstance(t, (int, float)) else time.monotonic(), ev)
-            self.published += 1
         except Exception:                # a view's failure costs a frame, never the daemon
             log.exception("live view: a frame was lost")

@@ -41,6 +41,12 @@ def tcp_now(cli) -> np.ndarray:
     return np.array(cli.command("status")["state"]["tcp"]["p"])
 
 
+def tecdard(*args, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    """The command line, `python -m tecdard ARGS...`, run from the checkout."""
+    return subprocess.run([sys.executable, "-m", "tecdard", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, cwd=ROOT)
+
+
 def daemon_config(**overrides) -> dict:
     """configs/sim.yaml with the allowances above for a test's daemon, and `overrides` (sim_config's)."""
     return sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,

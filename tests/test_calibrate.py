@@ -1,22 +1,15 @@
 """`tecdard calibrate-eta` (issue 20): eta per grip force from probes against a known contact."""
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import yaml
 
 from tecdard.recording import load_truth
-from tests.conftest import ROOT
+from tests.conftest import tecdard
 
 ETAS = {20.0: 2.6, 30.0: 2.0, 40.0: 1.6}     # the fingertip's eta at three grip forces (set in the simulation)
 ETA_TOL = 0.03                                # relative: measured 0.4-0.5 % low on these recordings
-
-
-def tecdard(*args):
-    return subprocess.run([sys.executable, "-m", "tecdard", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=180)
 
 
 @pytest.fixture(scope="module")

@@ -1,14 +1,7 @@
 """The client verbs against a running daemon: exit codes, refusals, following a task to the end."""
 import json
-import subprocess
-import sys
 
-from tests.conftest import ROOT
-
-
-def tecdard(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "tecdard", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT)
+from tests.conftest import tecdard
 
 
 def test_verbs_against_a_daemon(shared_daemon):

@@ -19,7 +19,7 @@ from tecdard import recorder as R
 from tecdard.config import Config
 from tecdard.estimation import build_pipeline
 from tecdard.recording import load_live, load_recording
-from tests.conftest import ROOT, DaemonProcess, daemon_config
+from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
 
 TASK_TIMEOUT_S = 90.0
 WRITTEN_WITHIN_S = 10.0
@@ -70,14 +70,12 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     assert rec.meta["config_digest"] and rec.meta["backend"] == "sim"
     assert {e["kind"] for e in live.events} >= {"contact_onset", "task_started", "task_done"}
     # the command line gives the same answer
-    res = subprocess.run([sys.executable, "-m", "tecdard", "localize", written["path"], "--json", "--config",
-                          str(d.config_path)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    res = tecdard("localize", written["path"], "--json", "--config", d.config_path)
     assert res.returncode == 0, res.stderr
     np.testing.assert_allclose(json.loads(res.stdout)["p_c"], rows[-1, 1:4], atol=1e-12)
     assert "leaked" not in d.log()
     if importlib.util.find_spec("matplotlib") is not None:      # the `viz` extra: a daemon recording plots
-        plotted = subprocess.run([sys.executable, "-m", "tecdard", "plot", written["path"], "-o",
-                                  str(tmp_path / "live.png")], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        plotted = tecdard("plot", written["path"], "-o", tmp_path / "live.png")
         assert plotted.returncode == 0 and (tmp_path / "live.png").stat().st_size > 20_000, plotted.stderr
     if importlib.util.find_spec("foxglove") is not None:        # and exports, with the live events
         topics = check_export(written["path"], tmp_path / "live.mcap")
@@ -117,8 +115,7 @@ def test_a_record_dir_that_cannot_be_written_is_a_config_error(tmp_path):
     path = tmp_path / "t.yaml"
     from tecdard.config import dump_yaml
     path.write_text(dump_yaml(cfg))
-    res = subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)], cwd=ROOT,
-                         capture_output=True, text=True, timeout=60)
+    res = tecdard("run", "--config", path)
     assert res.returncode == 2 and "record.dir" in res.stderr and "not writable" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
 
@@ -208,18 +205,12 @@ def test_hostile_live_keys_are_one_line_errors(tmp_path):
                                 ("live_tcp_pass", good["live_tcp_pass"] + 10 ** 6, "live_tcp_pass")):
         bad = tmp_path / f"bad-{key}.npz"
         np.savez(bad, **{**good, key: value})
-        res = subprocess.run([sys.executable, "-m", "tecdard", "localize", str(bad)], cwd=ROOT,
-                             capture_output=True, text=True, timeout=60)
+        res = tecdard("localize", bad)
         assert res.returncode == 2 and message in res.stderr, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
 
 
 # -- tecdard plot ---------------------------------------------------------------------------------
-
-def tecdard(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "tecdard", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120, env=env)
-
 
 def test_plot_draws_a_simulated_recording_with_its_truth(tmp_path):
     pytest.importorskip("matplotlib", reason="the `viz` extra, which `make test` installs")
