@@ -32,6 +32,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from control.geometry import matrix_to_quat
+from tecdard import commands as C
 from tecdard.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
 from tecdard.recording import Recording, save_recording
@@ -138,7 +139,6 @@ class Recorder:
     def request(self, action: str, label: str) -> dict:
         """On the main thread: a `record` command's reply. The main thread owns whether a capture on
         demand runs (`_manual`); the capture itself is the recorder thread's."""
-        from tecdard import commands as C
         if action == "start":
             if self._manual is not None:
                 raise C.CommandError(C.BUSY, f"record: a capture on demand is running (label "
