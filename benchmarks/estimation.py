@@ -22,7 +22,7 @@ from control.geometry import Plane, quat_to_matrix  # noqa: E402
 from control.kernels import K_MIN, block_update  # noqa: E402
 from control import estimators  # noqa: E402
 
-METHODS = estimators.names()
+METHODS = tuple(m for m in estimators.names() if m != "ekf-reference")   # the reference is ekf, slower
 from sim.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402

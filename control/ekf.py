@@ -201,8 +201,6 @@ _IDENTITY = np.eye(3)
 _NO_NORMAL = np.zeros(3)
 _NO_ALONG = np.zeros(9)         # 3D: no variance added along a plane normal
 _NO_FRESH = np.zeros(0, dtype=bool)
-_NO_RUN = np.zeros(kern.RUN_SIZE)
-_NO_WWT = np.zeros((3, 3))
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -342,12 +340,10 @@ class ContactKF(ContactEstimator):
     - Updates collapse each block of samples into one exactly equivalent
       measurement (H_eq^T H_eq = sum H^T R^-1 H), applied in Joseph form. A whole
       chunk of blocks, with the consistency window and the position evidence, is one
-      compiled call (kernels.ekf_advance); `advance` adds the pipeline's output schedule
-      and reports to it.
+      compiled call (kernels.ekf_advance).
     """
 
     method = "ekf"
-    fused = True           # `advance`: a whole batch, reports included, in one compiled call
 
     def set_arc_radial_var(self, var_m2_s2: float) -> None:
         self.radial_var = var_m2_s2
@@ -461,49 +457,25 @@ class ContactKF(ContactEstimator):
             var_v = np.full(n, self.params.sigma_v ** 2)
         if var_w is None:
             var_w = np.zeros(n)
-        self._advance(dt, dt, w, p, v, var_v, var_w, fresh, w_tcp, None)     # (times unused without a schedule)
+        if w_tcp is None:
+            w_tcp = np.zeros((n, 3))
+        self._gated = kern.ekf_advance(
+            self.x, self.P, self._st, self._r_last, *self._win, self._gated, self.positions is not None, *self._ev,
+            dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh, fresh is not None,
+            self._E, self._normal, self.origin, self._run_params())
 
-    def advance(self, ts: np.ndarray, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
-                var_v: np.ndarray, var_w: np.ndarray, fresh: np.ndarray | None, w_tcp: np.ndarray | None,
-                schedule: tuple) -> np.ndarray:
-        """`update` over a batch cut at each due output, as ContactPipeline.process_all does, with the
-        reports in the same compiled call: returns their rows (m, kernels.ROW_SIZE).
-
-        ts (n,) are the samples' times, s; schedule = (period_s, run, wwT, w_sum, rate_params): the
-        output period, the pipeline's bookkeeping (kernels.RUN_*) and rate moments, updated in
-        place, and its report constants (rotation axes: minimum rate^2, second-axis ratio)."""
-        return self._advance(ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule)
-
-    def _run_params(self, rate_params) -> np.ndarray:
+    def _run_params(self) -> np.ndarray:
         """The compiled run's parameters (kernels.PRM_*) as they stand now."""
         prm = self.params
         out = np.empty(kern.PRM_SIZE)
         out[kern.PRM_Q_C], out[kern.PRM_CORR] = prm.q_c, self.corr_samples
         out[kern.PRM_VAR_P], out[kern.PRM_VAR_WN], out[kern.PRM_RADIAL_VAR] = self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
         out[kern.PRM_GATE_NIS], out[kern.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
-        out[kern.PRM_K_MEAN], out[kern.PRM_K_PRIOR_VAR] = self.k_prior_mean, self.k_prior_var
-        out[kern.PRM_ETA_VAR], out[kern.PRM_TEST_SIGMA] = (self.eta_rel_std / self.k_prior_mean) ** 2, prm.eta_test_sigma
+        out[kern.PRM_K_MEAN] = self.k_prior_mean
         out[kern.PRM_EV_VAR], out[kern.PRM_EV_MIN_SAMPLES] = _position_var(self.sigma_p), MIN_RESIDUAL_SAMPLES
         out[kern.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
         out[kern.PRM_WINDOW_S], out[kern.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
-        out[kern.PRM_MIN_RATE2], out[kern.PRM_SECOND_RATIO] = rate_params
-        out[kern.PRM_UNOBSERVED_VAR] = UNOBSERVED_STD_M ** 2
         return out
-
-    def _advance(self, ts, dt, w, p, v, var_v, var_w, fresh, w_tcp, schedule) -> np.ndarray:
-        n = len(dt)
-        if w_tcp is None:
-            w_tcp = np.zeros((n, 3))
-        if schedule is None:
-            period, run, wwT, w_sum, rate_params = 0.0, _NO_RUN, _NO_WWT, _NO_NORMAL, (0.0, 0.0)
-        else:
-            period, run, wwT, w_sum, rate_params = schedule
-        self._gated, rows = kern.ekf_advance(
-            self.x, self.P, self._st, self._r_last, *self._win, self._gated, self.positions is not None, *self._ev,
-            ts, dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh, fresh is not None,
-            self._E, self._normal, self.origin, self._along_var, self._run_params(rate_params), schedule is not None,
-            period, run, wwT, w_sum)
-        return rows
 
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject its prior mean); (the mean, 0) without

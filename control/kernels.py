@@ -3,9 +3,9 @@ small linear algebra, the pipeline's rate moments, and the whole `ekf` run of a 
 
 `ContactKF` (control/ekf.py) owns the model; these loops only evaluate it sample by sample. One
 block is tens of samples; as numpy calls on such short arrays it cost ~60 calls (300-400 us), as
-one compiled loop a few microseconds. `ekf_advance` runs a whole batch (every block, the
-consistency window, the position evidence, the rate moments and each due report) in one call, so
-that no Python runs per output. They release the GIL and cache their machine code beside this file
+one compiled loop a few microseconds. `ekf_advance` runs a chunk (every block, the
+consistency window and the position evidence) in one call; the pipeline cuts a batch into chunks
+that end at each output and builds each report in Python, as for every other estimator. They release the GIL and cache their machine code beside this file
 (`__pycache__`, or NUMBA_CACHE_DIR). They are compiled when this module is imported, for the
 signatures given (any array layout), so no call can compile mid-episode: the first import after an
 install takes about 50 s on a 2-core machine, later ones about 2 s. NUMBA_DISABLE_JIT=1 runs them as
@@ -781,8 +781,8 @@ def rate_moments(w, dt, wwT, w_sum):
     return angle
 
 
-# --- The fused `ekf` run (ContactKF.advance): every block of a batch, the consistency window, the
-# position evidence, the rate moments and each due report, in one compiled call.
+# --- The `ekf` run (ContactKF.update): every block of a chunk, the consistency window and the
+# position evidence, in one compiled call.
 # ContactKF's scalars, one float64 array updated in place:
 ST_STEPS, ST_REJECTED, ST_NIS, ST_CONSISTENCY, ST_WIN_N, ST_WIN_T, ST_WIN_SAMPLES, ST_WIN_GATED = range(8)
 ST_SIZE = 8
@@ -790,19 +790,9 @@ ST_SIZE = 8
 EV_N, EV_SYY, EV_BROKEN = range(3)
 EV_SIZE = 3
 # The run's parameters, one float64 array (ContactKF._run_params).
-(PRM_Q_C, PRM_CORR, PRM_VAR_P, PRM_VAR_WN, PRM_RADIAL_VAR, PRM_GATE_NIS, PRM_K_MEAN, PRM_K_PRIOR_VAR,
- PRM_ETA_VAR, PRM_TEST_SIGMA, PRM_MAX_BLOCK, PRM_EV_VAR, PRM_WINDOW_S, PRM_TAU_S, PRM_MIN_RATE2, PRM_SECOND_RATIO,
- PRM_UNOBSERVED_VAR, PRM_EV_MIN_SAMPLES, PRM_EV_LIMIT) = range(19)
-PRM_SIZE = 19
-# The pipeline's output bookkeeping: last sample time (s), last output time (s), angle turned (rad),
-# samples in the rate moments.
-RUN_T_PREV, RUN_T_OUT, RUN_ANGLE, RUN_N_W = range(4)
-RUN_SIZE = 4
-# One report row (ContactEstimate): t, p (3), std (3), cov (9, row-major), axis (3), axes (0: no axis
-# yet), in-plane one-sigma, nis, steps, angle, consistency.
-ROW_T, ROW_P, ROW_STD, ROW_COV, ROW_AXIS = 0, 1, 4, 7, 16
-ROW_AXES, ROW_IN_PLANE, ROW_NIS, ROW_STEPS, ROW_ANGLE, ROW_CONSISTENCY = 19, 20, 21, 22, 23, 24
-ROW_SIZE = 25
+(PRM_Q_C, PRM_CORR, PRM_VAR_P, PRM_VAR_WN, PRM_RADIAL_VAR, PRM_GATE_NIS, PRM_K_MEAN, PRM_MAX_BLOCK, PRM_EV_VAR,
+ PRM_WINDOW_S, PRM_TAU_S, PRM_EV_MIN_SAMPLES, PRM_EV_LIMIT) = range(13)
+PRM_SIZE = 13
 
 
 @jit("float64[::1](float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], "
@@ -915,121 +905,65 @@ def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, 
     P[:, :] = P_new
 
 
-@jit("void(float64[:], float64[:], float64[:, :], float64[:], float64[:], float64[:], float64[:, :], "
-     "float64[:], float64[:, :], float64[:], float64[:], float64[:], float64[:])")
-def report_row(row, x, P, st, r_last, run, wwT, w_sum, E, nrm, origin, along, prm):
-    """The pipeline's report (ContactEstimate) at its last sample, into row (ROW_*): report_state, then
-    the plane's rotation (planar) or the rotation axes from the rate moments (3D)."""
-    d = E.shape[0]
-    p_c, cov, stat = report_state(x, P, d, max(st[ST_CONSISTENCY], 1.0), r_last, prm[PRM_ETA_VAR], prm[PRM_K_MEAN],
-                                  prm[PRM_K_PRIOR_VAR], prm[PRM_TEST_SIGMA], E, origin, along)
-    if d == 2:
-        sign, top = plane_rotation(stat, E, nrm, w_sum)
-        axes = 1
-        axis = sign * nrm
-    else:
-        axis, axes, cov, top = rotation_axes(wwT, w_sum, int(run[RUN_N_W]), prm[PRM_VAR_WN], cov, stat,
-                                             prm[PRM_MIN_RATE2], prm[PRM_SECOND_RATIO], prm[PRM_UNOBSERVED_VAR])
-    row[ROW_T] = run[RUN_T_PREV]
-    for a in range(3):
-        row[ROW_P + a] = p_c[a]
-        row[ROW_STD + a] = math.sqrt(max(cov[a, a], 0.0))
-        row[ROW_AXIS + a] = axis[a]
-        for j in range(3):
-            row[ROW_COV + 3 * a + j] = cov[a, j]
-    row[ROW_AXES] = axes
-    row[ROW_IN_PLANE] = math.sqrt(max(top, 0.0))
-    row[ROW_NIS] = st[ST_NIS]
-    row[ROW_STEPS] = st[ST_STEPS]
-    row[ROW_ANGLE] = run[RUN_ANGLE]
-    row[ROW_CONSISTENCY] = st[ST_CONSISTENCY]
-
-
-@jit("Tuple((float64[::1], float64[:, :]))("
+@jit("float64[::1]("
      "float64[:], float64[:, :], float64[:], float64[:], "                  # x, P, st, r_last
      "float64[:], float64[:, :], float64[:, :], float64[:], float64[::1], "  # wx0, wP0, wA, wb, gbuf
      "boolean, float64[:], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], float64[:], "
      "float64[:, :], float64[:], "                                           # ev_on, ev_st ... ev_xi
-     "float64[:], float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:], "
-     "float64[:], boolean[:], boolean, "                                     # ts ... fresh, use_fresh
-     "float64[:, :], float64[:], float64[:], float64[:], float64[:], "      # E, nrm, origin, along, prm
-     "boolean, float64, float64[:], float64[:, :], float64[:])")             # schedule, period, run, wwT, w_sum
+     "float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:], "
+     "float64[:], boolean[:], boolean, "                                     # dt ... fresh, use_fresh
+     "float64[:, :], float64[:], float64[:], float64[:])")                  # E, nrm, origin, prm
 def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy,
-                ev_sy, ev_lam, ev_xi, ts, dt, w, w_tcp, p, v, var_v, var_w, fresh, use_fresh, E, nrm, origin, along,
-                prm, schedule, period, run, wwT, w_sum):
-    """`ekf` over a chunk of samples, all state updated in place; returns (the gated-NIS buffer, the
-    report rows (m, ROW_SIZE) due within the chunk).
+                ev_sy, ev_lam, ev_xi, dt, w, w_tcp, p, v, var_v, var_w, fresh, use_fresh, E, nrm, origin, prm):
+    """`ekf` over a chunk of samples, all state updated in place; returns the gated-NIS buffer.
 
     State: x, P (the filter), st (ST_*), r_last (the lever arm at the last sample), the consistency
     window (wx0, wP0, wA, wb, gbuf) and, with ev_on, the position evidence (ev_*: PositionEvidence).
-    Samples (n,): ts (s), dt, w and w_tcp (world: the object's rate at the scheduled eta, the gripper's
+    Samples (n,): dt, w and w_tcp (world: the object's rate at the scheduled eta, the gripper's
     own rate, zeros when still), p, v (TCP), var_v, var_w, and fresh (a new proprioception sample)
     when use_fresh; without it the position evidence restarts every block (the gripper turns).
 
-    Without `schedule` the chunk is one run of blocks (of at most PRM_MAX_BLOCK samples; the very
-    first block is linearised about its own answer by two uncommitted passes). With it the chunk is
-    cut where an output is due (a sample at or past run[RUN_T_OUT] + period, as
-    ContactPipeline.process_all does); the rate moments (wwT, w_sum, run) grow over each cut and each
-    due output is a report row (report_row)."""
+    The chunk is one run of blocks of at most PRM_MAX_BLOCK samples; the very first block of an
+    episode is linearised about its own answer by two uncommitted passes."""
     n = dt.shape[0]
     d = E.shape[0]
     nk = x.shape[0] - d
     mb = int(prm[PRM_MAX_BLOCK])
     gate_nis = prm[PRM_GATE_NIS]
     corr = max(prm[PRM_CORR], 1.0)
-    rows = np.empty((n if schedule else 0, ROW_SIZE))
-    m = 0
-    k0 = 0
-    while k0 < n:
-        due = n
-        k1 = n
-        if schedule:
-            due = np.searchsorted(ts, run[RUN_T_OUT] + period)
-            if due < n:
-                k1 = max(due + 1, k0 + 1)
-        for b0 in range(k0, k1, mb):
-            b1 = min(b0 + mb, k1)
-            steps = st[ST_STEPS]
-            gate = gate_nis > 0 and steps > 0
-            # at onset the noise model is linearised about a guess: two uncommitted passes on the first
-            # block (from the same prior) linearise it about the data's own answer
-            passes = 3 if steps == 0 else 1
-            x_lin = x
-            for i in range(passes):
-                out = block_update(x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1],
-                                   var_v[b0:b1], var_w[b0:b1], E, nrm, origin, prm[PRM_Q_C], corr, prm[PRM_VAR_P],
-                                   prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR], gate_nis, K_MIN, prm[PRM_K_MEAN], gate,
-                                   i == passes - 1)
-                x_lin = out[0]
-            x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = out
-            st[ST_REJECTED] += rejected
-            if nis.shape[0]:
-                st[ST_NIS] = nis[-1]
-            if steps > 0:
-                gbuf = window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, rejected, d,
-                                      prm)
-            x[:] = x_new
-            P[:, :] = P_new
-            st[ST_STEPS] += b1 - b0
-            k = max(x[d], K_MIN) if nk else prm[PRM_K_MEAN]
-            for a in range(d):
-                r_last[a] = r0[b1 - b0 - 1, a] - x[a] / k
-            if not ev_on or (use_fresh and ev_st[EV_BROKEN] != 0.0):
-                continue
-            if not use_fresh or prm[PRM_RADIAL_VAR] > 0:
-                # no position measurements (the gripper turns), or following an arc (the grasp's
-                # compliance moves the TCP along the lever arm): restart the reference
-                position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi)
-                continue
-            position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi,
-                             dt[b0:b1], w_d, r0, fresh[b0:b1], d, prm)
-        if schedule:
-            run[RUN_ANGLE] += rate_moments(w[k0:k1], dt[k0:k1], wwT, w_sum)
-            run[RUN_N_W] += k1 - k0
-            run[RUN_T_PREV] = ts[k1 - 1]
-            if due < n:
-                run[RUN_T_OUT] = run[RUN_T_PREV]
-                report_row(rows[m], x, P, st, r_last, run, wwT, w_sum, E, nrm, origin, along, prm)
-                m += 1
-        k0 = k1
-    return gbuf, rows[:m].copy()       # the estimates keep their rows, not a row per sample
+    for b0 in range(0, n, mb):
+        b1 = min(b0 + mb, n)
+        steps = st[ST_STEPS]
+        gate = gate_nis > 0 and steps > 0
+        # at onset the noise model is linearised about a guess: two uncommitted passes on the first
+        # block (from the same prior) linearise it about the data's own answer
+        passes = 3 if steps == 0 else 1
+        x_lin = x
+        for i in range(passes):
+            out = block_update(x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1],
+                               var_v[b0:b1], var_w[b0:b1], E, nrm, origin, prm[PRM_Q_C], corr, prm[PRM_VAR_P],
+                               prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR], gate_nis, K_MIN, prm[PRM_K_MEAN], gate,
+                               i == passes - 1)
+            x_lin = out[0]
+        x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = out
+        st[ST_REJECTED] += rejected
+        if nis.shape[0]:
+            st[ST_NIS] = nis[-1]
+        if steps > 0:
+            gbuf = window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, rejected, d, prm)
+        x[:] = x_new
+        P[:, :] = P_new
+        st[ST_STEPS] += b1 - b0
+        k = max(x[d], K_MIN) if nk else prm[PRM_K_MEAN]
+        for a in range(d):
+            r_last[a] = r0[b1 - b0 - 1, a] - x[a] / k
+        if not ev_on or (use_fresh and ev_st[EV_BROKEN] != 0.0):
+            continue
+        if not use_fresh or prm[PRM_RADIAL_VAR] > 0:
+            # no position measurements (the gripper turns), or following an arc (the grasp's
+            # compliance moves the TCP along the lever arm): restart the reference
+            position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi)
+            continue
+        position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi,
+                         dt[b0:b1], w_d, r0, fresh[b0:b1], d, prm)
+    return gbuf

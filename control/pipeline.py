@@ -272,9 +272,6 @@ class ContactPipeline:
         self.method = self.params.method
         self.plane = Plane(self.params.plane_normal) if self.params.plane_normal is not None else None
         self.estimator = make_estimator(self.params, self.plane)
-        # `ekf` runs a whole batch, reports included, in one compiled call (ContactKF.advance)
-        self._fused = self.estimator.fused
-        self._rate_params = (MIN_AXIS_RATE_RAD_S ** 2, SECOND_AXIS_RATIO)
         self.eta = EtaSchedule(self.params.eta_table)
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.ekf.sigma_p, sigma_v=self.params.ekf.sigma_v)
         self.tracking = False
@@ -480,15 +477,14 @@ class ContactPipeline:
             if rate == rate:       # not NaN
                 self.estimator.set_correlation(max(1.0, 1.0 / (self._dt_sample * rate)))
             period = self.params.output_period_s
-            advance = self._advance_fused if self._fused else self._advance_loop
-            estimates = advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
+            estimates = self._advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
         if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
             estimates.append(self._estimate(self._t_prev))
         return events, estimates
 
-    def _advance_loop(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
-                      period: float) -> list[ContactEstimate]:
+    def _advance(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
+                 period: float) -> list[ContactEstimate]:
         """Advance the estimator in sub-blocks that end at each output time, and report at each."""
         estimates: list[ContactEstimate] = []
         k0, n = 0, len(ts)
@@ -506,31 +502,6 @@ class ContactPipeline:
                 estimates.append(self._estimate(self._t_prev))
             k0 = k1
         return estimates
-
-    def _advance_fused(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
-                       period: float) -> list[ContactEstimate]:
-        """`ekf`: _advance_loop (sub-blocks ending at each output time, the rate moments, the reports) in
-        one compiled call (ContactKF.advance); the same numbers, without Python per output."""
-        run = np.empty(kern.RUN_SIZE)
-        run[kern.RUN_T_PREV], run[kern.RUN_T_OUT], run[kern.RUN_ANGLE], run[kern.RUN_N_W] = (self._t_prev, self._t_out,
-                                                                               self._angle, self._n_w)
-        rows = self.estimator.advance(ts, dt, w_obj, p, v, var_v, var_w, None if tcp_turning else fresh,
-                                      w_tcp if tcp_turning else None,
-                                      (period, run, self._wwT, self._w_sum, self._rate_params))
-        self._t_prev, self._t_out = float(run[kern.RUN_T_PREV]), float(run[kern.RUN_T_OUT])
-        self._angle, self._n_w = float(run[kern.RUN_ANGLE]), int(run[kern.RUN_N_W])
-        return [self._row_estimate(row) for row in rows]
-
-    def _row_estimate(self, row: np.ndarray) -> ContactEstimate:
-        """A report row of the compiled run (kernels.ROW_*) as a ContactEstimate."""
-        in_plane, steps = float(row[kern.ROW_IN_PLANE]), int(row[kern.ROW_STEPS])
-        return ContactEstimate(t=float(row[kern.ROW_T]), onset_t=self.onset_t, p=row[kern.ROW_P:kern.ROW_P + 3],
-                               std=row[kern.ROW_STD:kern.ROW_STD + 3], cov=row[kern.ROW_COV:kern.ROW_COV + 9].reshape(3, 3),
-                               axis=row[kern.ROW_AXIS:kern.ROW_AXIS + 3] if row[kern.ROW_AXES] else None,
-                               converged=in_plane < CONVERGED_STD_M and steps > 100, nis=float(row[kern.ROW_NIS]),
-                               steps=steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=float(row[kern.ROW_ANGLE]), nis_ratio=float(row[kern.ROW_CONSISTENCY]),
-                               onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)
 
     def _estimate(self, t: float) -> ContactEstimate:
         est = self.estimator

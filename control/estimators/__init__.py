@@ -18,7 +18,6 @@ class ContactEstimator:
     (a run of samples) and `report`; the hooks below default to nothing."""
 
     method = "estimator"
-    fused = False          # True: `advance` runs a whole batch, reports included, in one call
     steps = 0              # samples used so far this episode
     nis = 0.0              # the latest normalised innovation squared (0: none)
     consistency = None     # smoothed NIS over its expectation (None: the estimator does not measure it)
