@@ -250,64 +250,63 @@ class PositionEvidence:
         self.d = d
         nx = d + 1
         self.var = _position_var(sigma_p)
-        self.st = np.zeros(kern.EV_SIZE)           # samples taken, sum of y^T y, broken (kernels.EV_*)
-        self.theta = np.zeros(1 if d == 2 else 3)    # the angle (planar) or rotation vector integrated
-        self.g = np.zeros(d)
-        self.s_x = np.zeros((d, nx))       # sum of regressors X_k (d x (d+1))
-        self.s_xx = np.zeros((nx, nx))     # sum of X_k^T X_k
-        self.s_xy = np.zeros(nx)           # sum of X_k^T y_k
-        self.s_y = np.zeros(d)
-        self.lam = np.zeros((nx, nx))      # the marginal information handed over so far (matrix Lambda)
-        self.xi = np.zeros(nx)             # and its information vector (xi; eta is the transmission ratio)
+        # the state the compiled run updates (kernels.Evidence): the counts (kernels.EVIDENCE_STATUS),
+        # the angle (planar) or rotation vector integrated, G, the regression's running sums (of the
+        # regressors X_k (d x (d+1)), X_k^T X_k, X_k^T y_k, y_k), and the marginal information handed
+        # over so far (Lambda, xi; eta is the transmission ratio)
+        self.ev = kern.Evidence(kern.record(kern.EVIDENCE_STATUS), np.zeros(1 if d == 2 else 3), np.zeros(d),
+                                np.zeros((d, nx)), np.zeros((nx, nx)), np.zeros(nx), np.zeros(d),
+                                np.zeros((nx, nx)), np.zeros(nx))
 
     @property
     def n(self) -> int:
         """Position samples in the sums."""
-        return int(self.st[kern.EV_N])
+        return int(self.ev.status[0]["n"])
 
     @property
     def s_yy(self) -> float:
-        return float(self.st[kern.EV_SYY])
+        return float(self.ev.status[0]["s_yy"])
 
     @property
     def broken(self) -> bool:
         """The rigid-body residual failed this episode: positions are no evidence until the next start."""
-        return bool(self.st[kern.EV_BROKEN])
+        return bool(self.ev.status[0]["broken"])
 
-    def arrays(self) -> tuple:
-        """The state as the compiled run takes it (kernels.ekf_advance's ev_*)."""
-        return self.st, self.theta, self.g, self.s_x, self.s_xx, self.s_xy, self.s_y, self.lam, self.xi
+    def set_broken(self) -> None:
+        self.ev.status[0]["broken"] = True
 
     def start(self) -> None:
         self.reset()
-        self.st[kern.EV_BROKEN] = 0.0
+        self.ev.status[0]["broken"] = False
 
     def reset(self) -> None:
         """Restart the reference: no samples, integrals and sums zero (broken is kept)."""
-        position_reset(*self.arrays())
+        position_reset(self.ev)
 
     def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
         """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
         at the `fresh` samples (a new proprioception sample); True when any was taken."""
-        taken, s_yy = position_sums(self.theta, self.g, dt, w.reshape(len(dt), -1), r, fresh, self.s_x,
-                                    self.s_xx, self.s_xy, self.s_y)
-        self.st[kern.EV_N] += taken
-        self.st[kern.EV_SYY] += s_yy
+        ev = self.ev
+        taken, s_yy = position_sums(ev.theta, ev.g, dt, w.reshape(len(dt), -1), r, fresh, ev.s_x, ev.s_xx, ev.s_xy,
+                                    ev.s_y)
+        ev.status[0]["n"] += taken
+        ev.status[0]["s_yy"] += s_yy
         return taken > 0
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
         """(dLambda, dxi): the growth of the marginal information on (m, k) since the last call."""
-        return position_increment(self.s_x, self.s_xx, self.s_xy, self.s_y, self.n, self.var, self.lam, self.xi)
+        ev = self.ev
+        return position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.n, self.var, ev.lam, ev.xi)
 
     def residual_ratio(self, k: float = 1.0) -> float:
         """Least-squares residual of the (q, m) regression at the eta ratio k, over its expectation (1 when
         the model holds). k is held, not fitted: a free k would absorb part of a slip in the grasp."""
-        return position_residual(self.s_x, self.s_xx, self.s_xy, self.s_y, self.s_yy, self.n, self.var, k,
-                                 MIN_RESIDUAL_SAMPLES)
+        ev = self.ev
+        return position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.s_yy, self.n, self.var, k, MIN_RESIDUAL_SAMPLES)
 
 
-# the compiled run's position-evidence arguments for a filter without it (never read)
-_NO_EVIDENCE = {d: PositionEvidence(d, 1.0).arrays() for d in (2, 3)}
+# the compiled run's position evidence for a filter without it (never read)
+_NO_EVIDENCE = {d: PositionEvidence(d, 1.0).ev for d in (2, 3)}
 
 
 class ContactKF(ContactEstimator):
@@ -385,38 +384,38 @@ class ContactKF(ContactEstimator):
         # arm, the compliant grasp absorbs it, and that component is no evidence about the contact.
         # The tangential component (|v| = w |r|) stays, and the turning lever arm triangulates.
         self.radial_var = 0.0
-        # The compiled run's state (kernels.ekf_advance): the scalars (kernels.ST_*: steps, rejected,
-        # the last NIS, the consistency ratio, the open window's counts), the lever arm at the last
-        # sample, and the consistency window: its start state and prior, its information, and the
-        # per-sample NIS of its gated blocks.
-        self._st = np.zeros(kern.ST_SIZE)
-        self._st[kern.ST_CONSISTENCY] = 1.0
+        # The compiled run's state (kernels.ekf_advance): the counts and ratios (kernels.STATUS), the
+        # lever arm at the last sample, and the consistency window: its start state and prior, its
+        # information, and the per-sample NIS of its gated blocks.
+        self._status = kern.record(kern.STATUS, consistency=1.0)
         self._r_last = np.zeros(d)
-        self._win = (np.zeros(nx), np.eye(nx), np.eye(nx), np.zeros(nx))
+        self._win = kern.Window(np.zeros(nx), np.eye(nx), np.eye(nx), np.zeros(nx))
         self._gated = np.empty(256)
+        self._prm = kern.record(kern.RUN_PARAMS)
+        self._frame = kern.contiguous(kern.Frame(self._E, self._normal, self.origin))
         self.positions = PositionEvidence(d, self.params.sigma_p) if self.params.use_positions else None
-        self._ev = self.positions.arrays() if self.positions is not None else _NO_EVIDENCE[d]
+        self._ev = self.positions.ev if self.positions is not None else _NO_EVIDENCE[d]
 
     @property
     def steps(self) -> int:
         """IMU samples taken this episode."""
-        return int(self._st[kern.ST_STEPS])
+        return int(self._status[0]["steps"])
 
     @property
     def rejected(self) -> int:
         """Samples the NIS gate rejected this episode."""
-        return int(self._st[kern.ST_REJECTED])
+        return int(self._status[0]["rejected"])
 
     @property
     def nis(self) -> float:
         """The last gated sample's NIS."""
-        return float(self._st[kern.ST_NIS])
+        return float(self._status[0]["nis"])
 
     @property
     def consistency(self) -> float:
         """The smoothed window NIS over its expectation (about 1 while the model holds; >= 1 scales the
         report, and the daemon's divergence stop reads it)."""
-        return float(self._st[kern.ST_CONSISTENCY])
+        return float(self._status[0]["consistency"])
 
     @property
     def k(self) -> float:
@@ -442,8 +441,8 @@ class ContactKF(ContactEstimator):
         if self.nk:
             self.x[d] = self.k_prior_mean
         self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
-        self._st[:] = 0.0
-        self._st[kern.ST_CONSISTENCY] = 1.0
+        self._status[0] = kern.record(kern.STATUS, consistency=1.0)[0]
+        self._frame = kern.contiguous(kern.Frame(self._E, self._normal, self.origin))
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
@@ -459,23 +458,18 @@ class ContactKF(ContactEstimator):
             var_w = np.zeros(n)
         if w_tcp is None:
             w_tcp = np.zeros((n, 3))
-        self._gated = kern.ekf_advance(
-            self.x, self.P, self._st, self._r_last, *self._win, self._gated, self.positions is not None, *self._ev,
-            dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh, fresh is not None,
-            self._E, self._normal, self.origin, self._run_params())
+        samples = kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh))
+        self._gated = kern.ekf_advance(self.x, self.P, self._status, self._r_last, self._win, self._gated, self._ev,
+                                       self.positions is not None, samples, fresh is not None, self._frame,
+                                       self._run_params())
 
     def _run_params(self) -> np.ndarray:
-        """The compiled run's parameters (kernels.PRM_*) as they stand now."""
+        """The compiled run's parameters (kernels.RUN_PARAMS) as they stand now, in place."""
         prm = self.params
-        out = np.empty(kern.PRM_SIZE)
-        out[kern.PRM_Q_C], out[kern.PRM_CORR] = prm.q_c, self.corr_samples
-        out[kern.PRM_VAR_P], out[kern.PRM_VAR_WN], out[kern.PRM_RADIAL_VAR] = self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var
-        out[kern.PRM_GATE_NIS], out[kern.PRM_MAX_BLOCK] = prm.gate_nis, prm.max_block
-        out[kern.PRM_K_MEAN] = self.k_prior_mean
-        out[kern.PRM_EV_VAR], out[kern.PRM_EV_MIN_SAMPLES] = _position_var(self.sigma_p), MIN_RESIDUAL_SAMPLES
-        out[kern.PRM_EV_LIMIT] = POSITION_RESIDUAL_LIMIT
-        out[kern.PRM_WINDOW_S], out[kern.PRM_TAU_S] = CONSISTENCY_WINDOW_S, CONSISTENCY_TAU_S
-        return out
+        self._prm[0] = (prm.q_c, self.corr_samples, self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var, prm.gate_nis,
+                        self.k_prior_mean, prm.max_block, _position_var(self.sigma_p), CONSISTENCY_WINDOW_S,
+                        CONSISTENCY_TAU_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT)     # RUN_PARAMS' order
+        return self._prm
 
     def eta_evidence(self) -> tuple[float, float]:
         """(k from the data alone, sigmas by which the data reject its prior mean); (the mean, 0) without

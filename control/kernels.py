@@ -8,7 +8,7 @@ consistency window and the position evidence) in one call; the pipeline cuts a b
 that end at each output and builds each report in Python, as for every other estimator. They release the GIL and cache their machine code beside this file
 (`__pycache__`, or NUMBA_CACHE_DIR). They are compiled when this module is imported, for the
 signatures given (any array layout), so no call can compile mid-episode: the first import after an
-install takes about 50 s on a 2-core machine, later ones about 2 s. NUMBA_DISABLE_JIT=1 runs them as
+install takes about 30 s on a 2-core machine, later ones about 2 s. NUMBA_DISABLE_JIT=1 runs them as
 plain Python, for debugging.
 
 The two block loops (planar_information, spatial_information) return (A, b, gated, nis,
@@ -20,9 +20,10 @@ samples that carry the information.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
-from numba import njit
+from numba import from_dtype, njit, types
 
 GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
 # IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError; the GIL released meanwhile.
@@ -782,31 +783,83 @@ def rate_moments(w, dt, wwT, w_sum):
 
 
 # --- The `ekf` run (ContactKF.update): every block of a chunk, the consistency window and the
-# position evidence, in one compiled call.
-# ContactKF's scalars, one float64 array updated in place:
-ST_STEPS, ST_REJECTED, ST_NIS, ST_CONSISTENCY, ST_WIN_N, ST_WIN_T, ST_WIN_SAMPLES, ST_WIN_GATED = range(8)
-ST_SIZE = 8
-# PositionEvidence's scalars: position samples taken, their sum of y^T y, broken for the episode (1.0).
-EV_N, EV_SYY, EV_BROKEN = range(3)
-EV_SIZE = 3
-# The run's parameters, one float64 array (ContactKF._run_params).
-(PRM_Q_C, PRM_CORR, PRM_VAR_P, PRM_VAR_WN, PRM_RADIAL_VAR, PRM_GATE_NIS, PRM_K_MEAN, PRM_MAX_BLOCK, PRM_EV_VAR,
- PRM_WINDOW_S, PRM_TAU_S, PRM_EV_MIN_SAMPLES, PRM_EV_LIMIT) = range(13)
-PRM_SIZE = 13
+# position evidence, in one compiled call. Its state and parameters are named records: numpy
+# structured arrays of one element (numba reads and writes their fields by name) and named tuples
+# of C-contiguous arrays.
+STATUS = np.dtype([
+    ("steps", np.int64),           # IMU samples taken this episode
+    ("rejected", np.int64),        # samples the NIS gate rejected
+    ("nis", np.float64),           # the last gated sample's NIS
+    ("consistency", np.float64),   # the smoothed window NIS over its expectation
+    ("win_blocks", np.int64),      # the open consistency window: its blocks,
+    ("win_t", np.float64),         # its duration (s),
+    ("win_samples", np.int64),     # its samples seen by an armed gate,
+    ("win_gated", np.int64),       # and the NIS values kept in the gated-NIS buffer
+], align=True)
+EVIDENCE_STATUS = np.dtype([
+    ("n", np.int64),               # position samples in the sums
+    ("s_yy", np.float64),          # their sum of y^T y
+    ("broken", np.bool_),          # the rigid-body residual failed this episode
+], align=True)
+RUN_PARAMS = np.dtype([(name, np.float64) for name in (
+    "q_c",                         # m^2/s, the contact's random walk
+    "corr",                        # IMU samples per proprioception sample
+    "var_p",                       # m^2, TCP position noise
+    "var_wn",                      # (rad/s)^2, per-sample object-rate noise
+    "radial_var",                  # (m/s)^2, the arc follower's distrust along the lever arm
+    "gate_nis",                    # the NIS gate (0: off)
+    "k_mean",                      # eta ratio's prior mean (where k is held when not a state)
+    "max_block",                   # samples per collapsed update
+    "ev_var",                      # m^2, the position evidence's noise (floored)
+    "window_s",                    # s, the consistency window
+    "tau_s",                       # s, the consistency ratio's smoothing
+    "ev_min_samples",              # positions before the residual test can speak
+    "ev_limit",                    # residual over expectation above which positions are no evidence
+)], align=True)
+Window = namedtuple("Window", "x0 P0 A b")       # the consistency window: start state, its prior, information
+Evidence = namedtuple("Evidence", "status theta g s_x s_xx s_xy s_y lam xi")   # PositionEvidence's state
+Samples = namedtuple("Samples", "dt w w_tcp p v var_v var_w fresh")             # a chunk (ContactKF.update)
+Frame = namedtuple("Frame", "E nrm origin")      # the filter's coordinates: basis (d x 3), normal, onset TCP
+
+_V, _M = types.float64[::1], types.float64[:, ::1]
+STATUS_T = from_dtype(STATUS)[::1]
+PARAMS_T = from_dtype(RUN_PARAMS)[::1]
+WINDOW_T = types.NamedTuple((_V, _M, _M, _V), Window)
+EVIDENCE_T = types.NamedTuple((from_dtype(EVIDENCE_STATUS)[::1], _V, _V, _M, _M, _V, _V, _M, _V), Evidence)
+SAMPLES_T = types.NamedTuple((_V, _M, _M, _M, _M, _V, _V, types.boolean[::1]), Samples)
+FRAME_T = types.NamedTuple((_M, _V, _V), Frame)
 
 
-@jit("float64[::1](float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], "
-     "float64[::1], float64[:, :], float64[:], float64, float64[:], int64, int64, float64[:])")
-def window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, rejected, d, prm):
+def record(dtype: np.dtype, **values) -> np.ndarray:
+    """A one-element structured array of `dtype` (fields zero unless given): a named record the
+    compiled run updates in place; read a field as rec[0]["name"]."""
+    out = np.zeros(1, dtype)
+    for name, value in values.items():
+        out[0][name] = value
+    return out
+
+
+def contiguous(named):
+    """The named tuple with each array C-contiguous (the compiled run's signatures ask for it; no copy
+    when it already is)."""
+    return type(named)(*(np.ascontiguousarray(a) for a in named))
+
+
+@jit(types.float64[::1](types.float64[:], types.float64[:, :], STATUS_T, WINDOW_T, types.float64[::1],
+                        types.float64[:, :], types.float64[:], types.float64, types.float64[:], types.int64,
+                        types.int64, PARAMS_T))
+def window_account(x, P_prior, status, win, gbuf, A, b, duration, nis, rejected, d, prm):
     """One committed block into the consistency window (ContactKF's divergence statistic, see
     docs/estimation.md); x is the state before the block, P_prior its prior, nis the block's
     per-sample NIS (empty when the gate was not armed). Returns the buffer of the window's gated NIS,
     grown when full.
 
     The window's data are one collapsed measurement of the state at its start (window_add); its NIS
-    against the prior there, over its rank, smoothed over PRM_TAU_S, is the consistency ratio. A
+    against the prior there, over its rank, smoothed over prm.tau_s, is the consistency ratio. A
     window whose samples the gate mostly rejected reads at least their median NIS over d."""
-    ng = int(st[ST_WIN_GATED])
+    st = status[0]
+    pr = prm[0]
+    ng = st.win_gated
     if rejected:
         m = nis.shape[0]
         if ng + m > gbuf.shape[0]:
@@ -815,83 +868,80 @@ def window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, 
             gbuf = grown
         gbuf[ng:ng + m] = nis
         ng += m
-    st[ST_WIN_GATED] = ng
-    st[ST_WIN_SAMPLES] += nis.shape[0]
-    if st[ST_WIN_N] == 0:
-        wx0[:] = x
-        wP0[:, :] = P_prior
-        wA[:, :] = A
-        wb[:] = b
+    st.win_gated = ng
+    st.win_samples += nis.shape[0]
+    if st.win_blocks == 0:
+        win.x0[:] = x
+        win.P0[:, :] = P_prior
+        win.A[:, :] = A
+        win.b[:] = b
     else:
-        window_add(wA, wb, wx0, x, A, b)
-    st[ST_WIN_N] += 1
-    st[ST_WIN_T] += duration
-    t_w = st[ST_WIN_T]
-    window_s = prm[PRM_WINDOW_S]
-    if t_w < window_s:
+        window_add(win.A, win.b, win.x0, x, A, b)
+    st.win_blocks += 1
+    st.win_t += duration
+    t_w = st.win_t
+    if t_w < pr.window_s:
         return gbuf
-    n_samples = st[ST_WIN_SAMPLES]
-    st[ST_WIN_N] = 0
-    st[ST_WIN_T] = 0.0
-    st[ST_WIN_SAMPLES] = 0
-    st[ST_WIN_GATED] = 0
+    n_samples = st.win_samples
+    st.win_blocks = 0
+    st.win_t = 0.0
+    st.win_samples = 0
+    st.win_gated = 0
     ratio = 0.0
-    w_nis, rank = window_nis(wA, wb, wP0)
+    w_nis, rank = window_nis(win.A, win.b, win.P0)
     if rank:
         # the excess over the expectation referred to the nominal length: batching cannot change it
-        ratio = 1.0 + (max(w_nis, 0.0) / rank - 1.0) * (window_s / t_w)
+        ratio = 1.0 + (max(w_nis, 0.0) / rank - 1.0) * (pr.window_s / t_w)
     if ng:
         over = 0
         for i in range(ng):
-            if gbuf[i] > prm[PRM_GATE_NIS]:
+            if gbuf[i] > pr.gate_nis:
                 over += 1
         if 2 * over > n_samples:
             ratio = max(ratio, np.median(gbuf[:ng]) / d)
     if not rank and ratio <= 0.0:
         return gbuf
-    alpha = 1.0 - math.exp(-t_w / prm[PRM_TAU_S])
-    st[ST_CONSISTENCY] += alpha * (ratio - st[ST_CONSISTENCY])
+    alpha = 1.0 - math.exp(-t_w / pr.tau_s)
+    st.consistency += alpha * (ratio - st.consistency)
     return gbuf
 
 
-@jit("void(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], float64[:], "
-     "float64[:, :], float64[:])")
-def position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi):
+@jit(types.void(EVIDENCE_T))
+def position_reset(ev):
     """PositionEvidence restarts its reference: no samples, integrals and sums zero (broken is kept)."""
-    ev_st[EV_N] = 0.0
-    ev_st[EV_SYY] = 0.0
-    ev_theta[:] = 0.0
-    ev_g[:] = 0.0
-    ev_sx[:, :] = 0.0
-    ev_sxx[:, :] = 0.0
-    ev_sxy[:] = 0.0
-    ev_sy[:] = 0.0
-    ev_lam[:, :] = 0.0
-    ev_xi[:] = 0.0
+    ev.status[0].n = 0
+    ev.status[0].s_yy = 0.0
+    ev.theta[:] = 0.0
+    ev.g[:] = 0.0
+    ev.s_x[:, :] = 0.0
+    ev.s_xx[:, :] = 0.0
+    ev.s_xy[:] = 0.0
+    ev.s_y[:] = 0.0
+    ev.lam[:, :] = 0.0
+    ev.xi[:] = 0.0
 
 
-@jit("void(float64[:], float64[:, :], float64[:], float64[:], float64[:], float64[:, :], float64[:, :], "
-     "float64[:], float64[:], float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
-     "int64, float64[:])")
-def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi, dt, w_d, r0,
-                     fresh, d, prm):
+@jit(types.void(types.float64[:], types.float64[:, :], EVIDENCE_T, types.float64[:], types.float64[:, :],
+                types.float64[:, :], types.boolean[:], types.int64, PARAMS_T))
+def position_account(x, P, ev, dt, w_d, r0, fresh, d, prm):
     """One committed block's positions (PositionEvidence) into the state x, P, in place: the running
-    sums grow; once PRM_EV_MIN_SAMPLES positions are in and the rigid-body residual (at the held eta
-    ratio) stays below PRM_EV_LIMIT, their new information is one collapsed update. Above the limit
+    sums grow; once prm.ev_min_samples positions are in and the rigid-body residual (at the held eta
+    ratio) stays below prm.ev_limit, their new information is one collapsed update. Above the limit
     the evidence is broken for the episode."""
-    taken, s_yy = position_sums(ev_theta, ev_g, dt, w_d, r0, fresh, ev_sx, ev_sxx, ev_sxy, ev_sy)
-    ev_st[EV_N] += taken
-    ev_st[EV_SYY] += s_yy
-    n_ev = int(ev_st[EV_N])
-    if taken == 0 or n_ev < prm[PRM_EV_MIN_SAMPLES]:
+    st = ev.status[0]
+    pr = prm[0]
+    taken, s_yy = position_sums(ev.theta, ev.g, dt, w_d, r0, fresh, ev.s_x, ev.s_xx, ev.s_xy, ev.s_y)
+    st.n += taken
+    st.s_yy += s_yy
+    n_ev = st.n
+    if taken == 0 or n_ev < pr.ev_min_samples:
         return      # the sums grow; they count once the residual can check them
-    var = prm[PRM_EV_VAR]
-    d_lam, d_xi = position_increment(ev_sx, ev_sxx, ev_sxy, ev_sy, n_ev, var, ev_lam, ev_xi)
+    d_lam, d_xi = position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, n_ev, pr.ev_var, ev.lam, ev.xi)
     nk = x.shape[0] - d
-    k = max(x[d], K_MIN) if nk else prm[PRM_K_MEAN]
-    if position_residual(ev_sx, ev_sxx, ev_sxy, ev_sy, ev_st[EV_SYY], n_ev, var, k,
-                         int(prm[PRM_EV_MIN_SAMPLES])) > prm[PRM_EV_LIMIT]:
-        ev_st[EV_BROKEN] = 1.0      # the TCP moves relative to the object: displacements mislead
+    k = max(x[d], K_MIN) if nk else pr.k_mean
+    if position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, st.s_yy, n_ev, pr.ev_var, k,
+                         int(pr.ev_min_samples)) > pr.ev_limit:
+        st.broken = True            # the TCP moves relative to the object: displacements mislead
         return
     n = d + nk                      # with k held, its column is part of the measurement
     b = np.empty(n)
@@ -905,65 +955,59 @@ def position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, 
     P[:, :] = P_new
 
 
-@jit("float64[::1]("
-     "float64[:], float64[:, :], float64[:], float64[:], "                  # x, P, st, r_last
-     "float64[:], float64[:, :], float64[:, :], float64[:], float64[::1], "  # wx0, wP0, wA, wb, gbuf
-     "boolean, float64[:], float64[:], float64[:], float64[:, :], float64[:, :], float64[:], float64[:], "
-     "float64[:, :], float64[:], "                                           # ev_on, ev_st ... ev_xi
-     "float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:], "
-     "float64[:], boolean[:], boolean, "                                     # dt ... fresh, use_fresh
-     "float64[:, :], float64[:], float64[:], float64[:])")                  # E, nrm, origin, prm
-def ekf_advance(x, P, st, r_last, wx0, wP0, wA, wb, gbuf, ev_on, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy,
-                ev_sy, ev_lam, ev_xi, dt, w, w_tcp, p, v, var_v, var_w, fresh, use_fresh, E, nrm, origin, prm):
+@jit(types.float64[::1](_V, _M, STATUS_T, _V, WINDOW_T, types.float64[::1], EVIDENCE_T, types.boolean, SAMPLES_T,
+                        types.boolean, FRAME_T, PARAMS_T))
+def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, frame, prm):
     """`ekf` over a chunk of samples, all state updated in place; returns the gated-NIS buffer.
 
-    State: x, P (the filter), st (ST_*), r_last (the lever arm at the last sample), the consistency
-    window (wx0, wP0, wA, wb, gbuf) and, with ev_on, the position evidence (ev_*: PositionEvidence).
-    Samples (n,): dt, w and w_tcp (world: the object's rate at the scheduled eta, the gripper's
-    own rate, zeros when still), p, v (TCP), var_v, var_w, and fresh (a new proprioception sample)
-    when use_fresh; without it the position evidence restarts every block (the gripper turns).
+    State: x, P (the filter), status (STATUS), r_last (the lever arm at the last sample), the
+    consistency window (win, and gbuf: its gated NIS) and, with ev_on, the position evidence (ev).
+    The samples `smp` (n,): dt, w and w_tcp (world: the object's rate at the scheduled eta, the
+    gripper's own rate, zeros when still), p, v (TCP), var_v, var_w, and fresh (a new
+    proprioception sample) when use_fresh; without it the position evidence restarts every block
+    (the gripper turns). frame: the filter's coordinates. prm: RUN_PARAMS.
 
-    The chunk is one run of blocks of at most PRM_MAX_BLOCK samples; the very first block of an
+    The chunk is one run of blocks of at most prm.max_block samples; the very first block of an
     episode is linearised about its own answer by two uncommitted passes."""
-    n = dt.shape[0]
-    d = E.shape[0]
+    st = status[0]
+    pr = prm[0]
+    n = smp.dt.shape[0]
+    d = frame.E.shape[0]
     nk = x.shape[0] - d
-    mb = int(prm[PRM_MAX_BLOCK])
-    gate_nis = prm[PRM_GATE_NIS]
-    corr = max(prm[PRM_CORR], 1.0)
+    mb = int(pr.max_block)
+    corr = max(pr.corr, 1.0)
     for b0 in range(0, n, mb):
         b1 = min(b0 + mb, n)
-        steps = st[ST_STEPS]
-        gate = gate_nis > 0 and steps > 0
+        steps = st.steps
+        gate = pr.gate_nis > 0 and steps > 0
         # at onset the noise model is linearised about a guess: two uncommitted passes on the first
         # block (from the same prior) linearise it about the data's own answer
         passes = 3 if steps == 0 else 1
         x_lin = x
         for i in range(passes):
-            out = block_update(x, P, x_lin, dt[b0:b1], w[b0:b1], w_tcp[b0:b1], p[b0:b1], v[b0:b1],
-                               var_v[b0:b1], var_w[b0:b1], E, nrm, origin, prm[PRM_Q_C], corr, prm[PRM_VAR_P],
-                               prm[PRM_VAR_WN], prm[PRM_RADIAL_VAR], gate_nis, K_MIN, prm[PRM_K_MEAN], gate,
+            out = block_update(x, P, x_lin, smp.dt[b0:b1], smp.w[b0:b1], smp.w_tcp[b0:b1], smp.p[b0:b1],
+                               smp.v[b0:b1], smp.var_v[b0:b1], smp.var_w[b0:b1], frame.E, frame.nrm, frame.origin,
+                               pr.q_c, corr, pr.var_p, pr.var_wn, pr.radial_var, pr.gate_nis, K_MIN, pr.k_mean, gate,
                                i == passes - 1)
             x_lin = out[0]
         x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration = out
-        st[ST_REJECTED] += rejected
+        st.rejected += rejected
         if nis.shape[0]:
-            st[ST_NIS] = nis[-1]
+            st.nis = nis[-1]
         if steps > 0:
-            gbuf = window_account(x, P_prior, st, wx0, wP0, wA, wb, gbuf, A, b, duration, nis, rejected, d, prm)
+            gbuf = window_account(x, P_prior, status, win, gbuf, A, b, duration, nis, rejected, d, prm)
         x[:] = x_new
         P[:, :] = P_new
-        st[ST_STEPS] += b1 - b0
-        k = max(x[d], K_MIN) if nk else prm[PRM_K_MEAN]
+        st.steps += b1 - b0
+        k = max(x[d], K_MIN) if nk else pr.k_mean
         for a in range(d):
             r_last[a] = r0[b1 - b0 - 1, a] - x[a] / k
-        if not ev_on or (use_fresh and ev_st[EV_BROKEN] != 0.0):
+        if not ev_on or (use_fresh and ev.status[0].broken):
             continue
-        if not use_fresh or prm[PRM_RADIAL_VAR] > 0:
+        if not use_fresh or pr.radial_var > 0:
             # no position measurements (the gripper turns), or following an arc (the grasp's
             # compliance moves the TCP along the lever arm): restart the reference
-            position_reset(ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi)
+            position_reset(ev)
             continue
-        position_account(x, P, ev_st, ev_theta, ev_g, ev_sx, ev_sxx, ev_sxy, ev_sy, ev_lam, ev_xi,
-                         dt[b0:b1], w_d, r0, fresh[b0:b1], d, prm)
+        position_account(x, P, ev, smp.dt[b0:b1], w_d, r0, smp.fresh[b0:b1], d, prm)
     return gbuf

@@ -33,7 +33,7 @@ from control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_S
                          UNOBSERVED_STD_M, ContactKfParams, PositionEvidence, _position_var)
 from control.estimators import ContactEstimator
 from control.geometry import Plane
-from control.kernels import EV_BROKEN, GATE_HPH_RATIO, K_MIN, eta_weight
+from control.kernels import GATE_HPH_RATIO, K_MIN, eta_weight
 
 J = np.array([[0.0, -1.0], [1.0, 0.0]])      # w x r in a plane: w_n J r
 RANK_RCOND = 1e-12                           # eigenvalues of a window's information below this x the largest: zero
@@ -352,7 +352,7 @@ class ReferenceKF(ContactEstimator):
         ev.var = _position_var(self.sigma_p)
         d_lam, d_xi = ev.increment()
         if ev.residual_ratio(self.k()) > POSITION_RESIDUAL_LIMIT:
-            ev.st[EV_BROKEN] = 1.0      # broken: the TCP moves relative to the object
+            ev.set_broken()             # the TCP moves relative to the object
             return
         n = self.d + self.nk                 # with k held, its column is part of the measurement
         b = d_xi - d_lam @ np.append(self.kf.x[:self.d], self.k())
