@@ -242,7 +242,7 @@ def _first_linearisation(prm, p, v, w, sl):
     x = kf.x
     n = len(w[sl])
     for _ in range(2):
-        x = block_update(kf.x, kf.P, x, np.full(n, 1 / 6667), w[sl], np.zeros((n, 3)), p[sl], v[sl],
+        x = block_update(kf.x, kf.P, x, np.full(n, 1 / 6667), w[sl], p[sl], v[sl], w[sl], np.zeros((n, 3)), p[sl],
                          np.full(n, prm.sigma_v ** 2), np.zeros(n), np.eye(3), np.zeros(3), kf.origin, prm.q_c, 1.0,
                          prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, K_MIN, kf.k_prior_mean, False, False)[0]
     return x[:3]

@@ -128,7 +128,7 @@ class DiffLeastSquares(_LeastSquares):
         self._blocks.clear()
         self._t = 0.0
 
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None) -> None:
+    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
         if len(dt) == 0:
             return
         if self.plane is not None:
@@ -172,7 +172,7 @@ class GeoLeastSquares(_LeastSquares):
         self._R = np.eye(self.d)
         self._theta = 0.0
 
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None) -> None:
+    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
         """One geometric residual per update (per block), rotation integrated over the block's samples."""
         if len(dt) == 0:
             return

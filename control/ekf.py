@@ -129,9 +129,9 @@ class PaperEKF(ContactEstimator):
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
-               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None) -> None:
+               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None, paired=None) -> None:
         """Per-sample updates over a chunk: dt (n,), w/p/v (n, 3) world. The rest is unused (fixed M, eta as
-        scheduled)."""
+        scheduled, v as of each sample, as published)."""
         if self.plane is not None:
             w_n = w @ self.plane.n
             p2 = self.plane.point2(p)
@@ -240,6 +240,14 @@ class PositionEvidence:
 
     Planar: Theta is the scalar angle and Theta x m is theta J m.
 
+    A gripper that turns (w_tcp, its own rate) moves the TCP by w_tcp x (r - c) whatever
+    eta is: with rel = w - w_tcp, v = w_tcp x r + k rel x r - rel x m - w_tcp x m / k, so
+        r(t) - G_tcp(t) = q + k G(t) - Theta(t) x m,
+    G_tcp = int w_tcp x r dt known, G = int rel x r dt and Theta = int (rel + w_tcp / k) dt,
+    the 1/k linearised at the estimate. A gripper rate held between orientation samples
+    lags while it changes; once it is steady the error it left is a constant, which the
+    intercept q absorbs.
+
     The regression's residual checks the rigid-body model: when the TCP moves relative
     to the object (sliding in the grasp during a translational probe or an ongoing
     motion) displacements integrate that motion without bound, the residual grows far
@@ -251,11 +259,11 @@ class PositionEvidence:
         nx = d + 1
         self.var = _position_var(sigma_p)
         # the state the compiled run updates (kernels.Evidence): the counts (kernels.EVIDENCE_STATUS),
-        # the angle (planar) or rotation vector integrated, G, the regression's running sums (of the
+        # the angle (planar) or rotation vector integrated, G, the gripper's own part of it, the regression's running sums (of the
         # regressors X_k (d x (d+1)), X_k^T X_k, X_k^T y_k, y_k), and the marginal information handed
         # over so far (Lambda, xi; eta is the transmission ratio)
         self.ev = kern.Evidence(kern.record(kern.EVIDENCE_STATUS), np.zeros(1 if d == 2 else 3), np.zeros(d),
-                                np.zeros((d, nx)), np.zeros((nx, nx)), np.zeros(nx), np.zeros(d),
+                                np.zeros(d), np.zeros((d, nx)), np.zeros((nx, nx)), np.zeros(nx), np.zeros(d),
                                 np.zeros((nx, nx)), np.zeros(nx))
 
     @property
@@ -283,12 +291,16 @@ class PositionEvidence:
         """Restart the reference: no samples, integrals and sums zero (broken is kept)."""
         position_reset(self.ev)
 
-    def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray) -> bool:
-        """Integrate a chunk (w: (n,) in-plane rate or (n, 3); r: (n, d)) and take the positions
-        at the `fresh` samples (a new proprioception sample); True when any was taken."""
+    def add(self, dt: np.ndarray, w: np.ndarray, r: np.ndarray, fresh: np.ndarray, w_tcp: np.ndarray | None = None,
+            k: float = 1.0) -> bool:
+        """Integrate a chunk (w, and the gripper's own rate w_tcp: (n,) in-plane rates or (n, 3); r:
+        (n, d)) and take the positions at the `fresh` samples (a new proprioception sample); True
+        when any was taken. k: the eta ratio where the gripper's term is linearised."""
         ev = self.ev
-        taken, s_yy = position_sums(ev.theta, ev.g, dt, w.reshape(len(dt), -1), r, fresh, ev.s_x, ev.s_xx, ev.s_xy,
-                                    ev.s_y)
+        w = w.reshape(len(dt), -1)
+        w_tcp = np.zeros(w.shape) if w_tcp is None else w_tcp.reshape(len(dt), -1)
+        taken, s_yy = position_sums(ev.theta, ev.g, ev.g_tcp, dt, w, w_tcp, 1.0 / k, r, fresh, ev.s_x, ev.s_xx,
+                                    ev.s_xy, ev.s_y)
         ev.status[0]["n"] += taken
         ev.status[0]["s_yy"] += s_yy
         return taken > 0
@@ -446,19 +458,27 @@ class ContactKF(ContactEstimator):
 
     def update(self, dt: np.ndarray, w: np.ndarray, p: np.ndarray, v: np.ndarray,
                var_v: np.ndarray | None = None, var_w: np.ndarray | None = None,
-               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None) -> None:
+               fresh: np.ndarray | None = None, w_tcp: np.ndarray | None = None, paired=None) -> None:
         """Chunk of samples: dt (n,), w/p/v (n, 3) world; var_v (m/s)^2 and var_w (rad/s)^2 are
         per-sample extra variances of the velocity and the object rate (staleness); `fresh`
         (n,) bool marks the samples whose p is a new proprioception sample (PositionEvidence);
-        w_tcp (n, 3) is the gripper's own rate when it turns (None: still)."""
+        w_tcp (n, 3) is the gripper's own rate when it turns (None: still). `paired` = (w_v,
+        w_tcp_v, p_v, n_avg): the object's rate, the gripper's and the TCP's position from when the
+        held velocity v was measured, the rate a mean over n_avg (n,) IMU samples (None: v is
+        taken as of each sample)."""
         n = len(dt)
-        if var_v is None:
-            var_v = np.full(n, self.params.sigma_v ** 2)
-        if var_w is None:
-            var_w = np.zeros(n)
-        if w_tcp is None:
-            w_tcp = np.zeros((n, 3))
-        samples = kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, var_v, var_w, _NO_FRESH if fresh is None else fresh))
+        var_v = np.full(n, self.params.sigma_v ** 2) if var_v is None else var_v
+        var_w = np.zeros(n) if var_w is None else var_w
+        w_tcp = np.zeros((n, 3)) if w_tcp is None else w_tcp
+        if paired is None:
+            w_v, w_tcp_v, p_v = w, w_tcp, p
+        else:
+            w_v, w_tcp_v, p_v, n_avg = paired
+            # the paired rate averages n_avg samples' noise, and every sample holding this velocity
+            # repeats it: one error, shared like the velocity's (corr)
+            var_w = var_w + self.params.sigma_w ** 2 * (max(self.corr_samples, 1.0) / n_avg - 1.0)
+        samples = kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, w_v, w_tcp_v, p_v, var_v, var_w,
+                                               _NO_FRESH if fresh is None else fresh))
         self._gated = kern.ekf_advance(self.x, self.P, self._status, self._r_last, self._win, self._gated, self._ev,
                                        self.positions is not None, samples, fresh is not None, self._frame,
                                        self._run_params())

@@ -336,18 +336,21 @@ def collapsed_update(x, P, A, b, commit):
 
 @jit("Tuple((float64[:], float64[:, :], float64[:, :], float64[:, :], float64[:], boolean, float64[:], int64, "
      "float64[:, :], float64[:, :], float64))(float64[:], float64[:, :], float64[:], float64[:], float64[:, :], "
-     "float64[:, :], float64[:, :], float64[:, :], float64[:], float64[:], float64[:, :], float64[:], float64[:], "
+     "float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:, :], float64[:], "
+     "float64[:], float64[:, :], float64[:], float64[:], "
      "float64, float64, float64, float64, float64, float64, float64, float64, boolean, boolean)")
-def block_update(x, P, x_lin, dt, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, q_c, corr, var_p, var_wn,
-                 radial_var, gate_nis, k_min, k_held, gate, commit):
+def block_update(x, P, x_lin, dt, w, p, v, w_v, w_tcp_v, p_v, var_v, var_w, E, nrm, origin, q_c, corr, var_p,
+                 var_wn, radial_var, gate_nis, k_min, k_held, gate, commit):
     """One `ekf` block (ContactKF._block): from the world-frame samples to the updated state.
 
     x = [m] or [m, k] and P: the state before the block (k held at k_held when not a state); the contact's random walk (q_c m^2/s over the
     block's duration, the sum of dt) is added to P's m block first (P_prior). x_lin: where the noise is
-    linearised. w, w_tcp, p, v (n, 3) world:
-    object rate at the scheduled eta, the gripper's own rate (zeros when still), TCP position and
-    velocity; var_v, var_w (n,). E (d x 3): the plane's basis, or the identity in 3D; nrm: the
-    plane's normal (unused in 3D); origin: the onset TCP.
+    linearised. World, (n, 3): w and p, the object's rate at the scheduled eta and the TCP's
+    position at each sample (for the position evidence and the lever arm); v, the TCP velocity held
+    at each sample, and what it pairs with, from when it was measured: w_v, w_tcp_v, p_v, the
+    object's rate, the gripper's own rate (zeros when still) and the TCP's position. var_v, var_w
+    (n,). E (d x 3): the plane's basis, or the identity in 3D; nrm: the plane's normal (unused in
+    3D); origin: the onset TCP.
 
     Returns (x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration): the posterior
     (P_prior again unless commit), the block's information (planar_information,
@@ -365,30 +368,36 @@ def block_update(x, P, x_lin, dt, w, w_tcp, p, v, var_v, var_w, E, nrm, origin, 
     k = max(x[d], k_min) if nk else k_held
     k_lin = max(x_lin[d], k_min) if nk else k_held
     r0 = np.empty((n, d))
+    r0_v = np.empty((n, d))
     for i in range(n):
         for a in range(d):
             s = 0.0
+            s_v = 0.0
             for j in range(3):
                 s += (p[i, j] - origin[j]) * E[a, j]
+                s_v += (p_v[i, j] - origin[j]) * E[a, j]
             r0[i, a] = s
+            r0_v[i, a] = s_v
     if d == 2:
         w_d = np.empty((n, 1))
+        w_n = np.empty(n)
         t_n = np.empty(n)
         v2 = np.empty((n, 2))
         for i in range(n):
             w_d[i, 0] = w[i, 0] * nrm[0] + w[i, 1] * nrm[1] + w[i, 2] * nrm[2]
-            t_n[i] = w_tcp[i, 0] * nrm[0] + w_tcp[i, 1] * nrm[1] + w_tcp[i, 2] * nrm[2]
+            w_n[i] = w_v[i, 0] * nrm[0] + w_v[i, 1] * nrm[1] + w_v[i, 2] * nrm[2]
+            t_n[i] = w_tcp_v[i, 0] * nrm[0] + w_tcp_v[i, 1] * nrm[1] + w_tcp_v[i, 2] * nrm[2]
             for a in range(2):
                 v2[i, a] = v[i, 0] * E[a, 0] + v[i, 1] * E[a, 1] + v[i, 2] * E[a, 2]
         p_kk = P_prior[2, 2] if nk else 0.0
         A, b, gated, nis, rejected = planar_information(
-            w_d[:, 0], t_n, r0, v2, var_v, var_w, k, x[0] / k, x[1] / k, k_lin, x_lin[0] / k_lin,
+            w_n, t_n, r0_v, v2, var_v, var_w, k, x[0] / k, x[1] / k, k_lin, x_lin[0] / k_lin,
             x_lin[1] / k_lin, corr, var_p, var_wn, radial_var, nk, P_prior[0, 0] + P_prior[1, 1], p_kk,
             gate_nis, gate)
     else:
         w_d = w.copy()
         A, b, gated, nis, rejected = spatial_information(
-            w, w_tcp, r0, v, var_v, var_w, k, x[:3] / k, k_lin, x_lin[:3] / k_lin, corr, var_p, var_wn,
+            w_v, w_tcp_v, r0_v, v, var_v, var_w, k, x[:3] / k, k_lin, x_lin[:3] / k_lin, corr, var_p, var_wn,
             radial_var, nk, P_prior, gate_nis, gate)
     x_new, P_new = collapsed_update(x, P_prior, A, b, commit)
     return x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r0, duration
@@ -633,35 +642,49 @@ def window_nis(A, b, P0):
     return fit - q, rank
 
 
-@jit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:, :], float64[:, :], boolean[:], "
-     "float64[:, :], float64[:, :], float64[:], float64[:])")
-def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
+@jit("Tuple((int64, float64))(float64[:], float64[:], float64[:], float64[:], float64[:, :], float64[:, :], "
+     "float64, float64[:, :], boolean[:], float64[:, :], float64[:, :], float64[:], float64[:])")
+def position_sums(theta, g, g_tcp, dt, w, w_tcp, inv_k, r, fresh, s_x, s_xx, s_xy, s_y):
     """PositionEvidence's running sums over a chunk, in place; returns (samples taken, sum of y^T y).
 
-    theta (1,) planar angle or (3,) rotation vector, and g (d,): the integrals Theta = int w dt and
-    G = int w x r dt, advanced sample by sample; w (n, 1) or (n, 3); r (n, d). At each `fresh`
-    sample the regressor X = [-[Theta]x, G] (d x (d+1); planar -theta J) and y = r enter the sums."""
+    w (n, 1) planar or (n, 3): the object's rate at the scheduled eta; w_tcp (same shape): the
+    gripper's own rate (zeros when still); r (n, d): the TCP relative to the onset TCP. Integrated
+    sample by sample: theta (1,) planar angle or (3,) rotation vector, Theta = int (w - w_tcp +
+    w_tcp inv_k) dt (the m column: the gripper's rotation enters as w_tcp x m / k, linearised at
+    the estimate's 1/k = inv_k); g (d,), G = int (w - w_tcp) x r dt (the k column); g_tcp (d,),
+    int w_tcp x r dt (known). At each `fresh` sample the regressor X = [-[Theta]x, G] (d x (d+1);
+    planar -theta J) and y = r - g_tcp enter the sums."""
     n = dt.shape[0]
     d = r.shape[1]
     taken = 0
     s_yy = 0.0
     X = np.zeros((d, d + 1))
+    y = np.empty(d)
     for i in range(n):
         if d == 2:
-            wdt = w[i, 0] * dt[i]
-            theta[0] += wdt
-            g[0] -= wdt * r[i, 1]
-            g[1] += wdt * r[i, 0]
+            tdt = w_tcp[i, 0] * dt[i]
+            rdt = w[i, 0] * dt[i] - tdt
+            theta[0] += rdt + tdt * inv_k
+            g[0] -= rdt * r[i, 1]
+            g[1] += rdt * r[i, 0]
+            g_tcp[0] -= tdt * r[i, 1]
+            g_tcp[1] += tdt * r[i, 0]
         else:
-            w0 = w[i, 0] * dt[i]
-            w1 = w[i, 1] * dt[i]
-            w2 = w[i, 2] * dt[i]
-            theta[0] += w0
-            theta[1] += w1
-            theta[2] += w2
+            t0 = w_tcp[i, 0] * dt[i]
+            t1 = w_tcp[i, 1] * dt[i]
+            t2 = w_tcp[i, 2] * dt[i]
+            w0 = w[i, 0] * dt[i] - t0
+            w1 = w[i, 1] * dt[i] - t1
+            w2 = w[i, 2] * dt[i] - t2
+            theta[0] += w0 + t0 * inv_k
+            theta[1] += w1 + t1 * inv_k
+            theta[2] += w2 + t2 * inv_k
             g[0] += w1 * r[i, 2] - w2 * r[i, 1]
             g[1] += w2 * r[i, 0] - w0 * r[i, 2]
             g[2] += w0 * r[i, 1] - w1 * r[i, 0]
+            g_tcp[0] += t1 * r[i, 2] - t2 * r[i, 1]
+            g_tcp[1] += t2 * r[i, 0] - t0 * r[i, 2]
+            g_tcp[2] += t0 * r[i, 1] - t1 * r[i, 0]
         if not fresh[i]:
             continue
         if d == 2:
@@ -676,13 +699,14 @@ def position_sums(theta, g, dt, w, r, fresh, s_x, s_xx, s_xy, s_y):
             X[2, 1] = -theta[0]
         for j in range(d):
             X[j, d] = g[j]
+            y[j] = r[i, j] - g_tcp[j]
         taken += 1
         for j in range(d):
-            s_y[j] += r[i, j]
-            s_yy += r[i, j] * r[i, j]
+            s_y[j] += y[j]
+            s_yy += y[j] * y[j]
             for a in range(d + 1):
                 s_x[j, a] += X[j, a]
-                s_xy[a] += X[j, a] * r[i, j]
+                s_xy[a] += X[j, a] * y[j]
                 for b in range(d + 1):
                     s_xx[a, b] += X[j, a] * X[j, b]
     return taken, s_yy
@@ -817,16 +841,16 @@ RUN_PARAMS = np.dtype([(name, np.float64) for name in (
     "ev_limit",                    # residual over expectation above which positions are no evidence
 )], align=True)
 Window = namedtuple("Window", "x0 P0 A b")       # the consistency window: start state, its prior, information
-Evidence = namedtuple("Evidence", "status theta g s_x s_xx s_xy s_y lam xi")   # PositionEvidence's state
-Samples = namedtuple("Samples", "dt w w_tcp p v var_v var_w fresh")             # a chunk (ContactKF.update)
+Evidence = namedtuple("Evidence", "status theta g g_tcp s_x s_xx s_xy s_y lam xi")   # PositionEvidence's state
+Samples = namedtuple("Samples", "dt w w_tcp p v w_v w_tcp_v p_v var_v var_w fresh")   # a chunk (ContactKF.update)
 Frame = namedtuple("Frame", "E nrm origin")      # the filter's coordinates: basis (d x 3), normal, onset TCP
 
 _V, _M = types.float64[::1], types.float64[:, ::1]
 STATUS_T = from_dtype(STATUS)[::1]
 PARAMS_T = from_dtype(RUN_PARAMS)[::1]
 WINDOW_T = types.NamedTuple((_V, _M, _M, _V), Window)
-EVIDENCE_T = types.NamedTuple((from_dtype(EVIDENCE_STATUS)[::1], _V, _V, _M, _M, _V, _V, _M, _V), Evidence)
-SAMPLES_T = types.NamedTuple((_V, _M, _M, _M, _M, _V, _V, types.boolean[::1]), Samples)
+EVIDENCE_T = types.NamedTuple((from_dtype(EVIDENCE_STATUS)[::1], _V, _V, _V, _M, _M, _V, _V, _M, _V), Evidence)
+SAMPLES_T = types.NamedTuple((_V, _M, _M, _M, _M, _M, _M, _M, _V, _V, types.boolean[::1]), Samples)
 FRAME_T = types.NamedTuple((_M, _V, _V), Frame)
 
 
@@ -913,6 +937,7 @@ def position_reset(ev):
     ev.status[0].s_yy = 0.0
     ev.theta[:] = 0.0
     ev.g[:] = 0.0
+    ev.g_tcp[:] = 0.0
     ev.s_x[:, :] = 0.0
     ev.s_xx[:, :] = 0.0
     ev.s_xy[:] = 0.0
@@ -922,23 +947,25 @@ def position_reset(ev):
 
 
 @jit(types.void(types.float64[:], types.float64[:, :], EVIDENCE_T, types.float64[:], types.float64[:, :],
-                types.float64[:, :], types.boolean[:], types.int64, PARAMS_T))
-def position_account(x, P, ev, dt, w_d, r0, fresh, d, prm):
+                types.float64[:, :], types.float64[:, :], types.boolean[:], types.int64, PARAMS_T))
+def position_account(x, P, ev, dt, w_d, t_d, r0, fresh, d, prm):
     """One committed block's positions (PositionEvidence) into the state x, P, in place: the running
     sums grow; once prm.ev_min_samples positions are in and the rigid-body residual (at the held eta
     ratio) stays below prm.ev_limit, their new information is one collapsed update. Above the limit
-    the evidence is broken for the episode."""
+    the evidence is broken for the episode. w_d, t_d: the object's and the gripper's rates in the
+    filter's coordinates ((n, 1) about the normal, or (n, 3))."""
     st = ev.status[0]
     pr = prm[0]
-    taken, s_yy = position_sums(ev.theta, ev.g, dt, w_d, r0, fresh, ev.s_x, ev.s_xx, ev.s_xy, ev.s_y)
+    nk = x.shape[0] - d
+    k = max(x[d], K_MIN) if nk else pr.k_mean
+    taken, s_yy = position_sums(ev.theta, ev.g, ev.g_tcp, dt, w_d, t_d, 1.0 / k, r0, fresh, ev.s_x, ev.s_xx, ev.s_xy,
+                                ev.s_y)
     st.n += taken
     st.s_yy += s_yy
     n_ev = st.n
     if taken == 0 or n_ev < pr.ev_min_samples:
         return      # the sums grow; they count once the residual can check them
     d_lam, d_xi = position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, n_ev, pr.ev_var, ev.lam, ev.xi)
-    nk = x.shape[0] - d
-    k = max(x[d], K_MIN) if nk else pr.k_mean
     if position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, st.s_yy, n_ev, pr.ev_var, k,
                          int(pr.ev_min_samples)) > pr.ev_limit:
         st.broken = True            # the TCP moves relative to the object: displacements mislead
@@ -963,9 +990,9 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
     State: x, P (the filter), status (STATUS), r_last (the lever arm at the last sample), the
     consistency window (win, and gbuf: its gated NIS) and, with ev_on, the position evidence (ev).
     The samples `smp` (n,): dt, w and w_tcp (world: the object's rate at the scheduled eta, the
-    gripper's own rate, zeros when still), p, v (TCP), var_v, var_w, and fresh (a new
-    proprioception sample) when use_fresh; without it the position evidence restarts every block
-    (the gripper turns). frame: the filter's coordinates. prm: RUN_PARAMS.
+    gripper's own rate, zeros when still), p, v (TCP), what v pairs with from when it was measured
+    (w_v, w_tcp_v, p_v: block_update), var_v, var_w, and fresh (a new proprioception sample) when
+    use_fresh; without it the position evidence restarts every block. frame: the filter's coordinates. prm: RUN_PARAMS.
 
     The chunk is one run of blocks of at most prm.max_block samples; the very first block of an
     episode is linearised about its own answer by two uncommitted passes."""
@@ -985,8 +1012,9 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
         passes = 3 if steps == 0 else 1
         x_lin = x
         for i in range(passes):
-            out = block_update(x, P, x_lin, smp.dt[b0:b1], smp.w[b0:b1], smp.w_tcp[b0:b1], smp.p[b0:b1],
-                               smp.v[b0:b1], smp.var_v[b0:b1], smp.var_w[b0:b1], frame.E, frame.nrm, frame.origin,
+            out = block_update(x, P, x_lin, smp.dt[b0:b1], smp.w[b0:b1], smp.p[b0:b1], smp.v[b0:b1],
+                               smp.w_v[b0:b1], smp.w_tcp_v[b0:b1], smp.p_v[b0:b1], smp.var_v[b0:b1],
+                               smp.var_w[b0:b1], frame.E, frame.nrm, frame.origin,
                                pr.q_c, corr, pr.var_p, pr.var_wn, pr.radial_var, pr.gate_nis, K_MIN, pr.k_mean, gate,
                                i == passes - 1)
             x_lin = out[0]
@@ -1005,9 +1033,17 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
         if not ev_on or (use_fresh and ev.status[0].broken):
             continue
         if not use_fresh or pr.radial_var > 0:
-            # no position measurements (the gripper turns), or following an arc (the grasp's
-            # compliance moves the TCP along the lever arm): restart the reference
+            # no position measurements, or following an arc (the grasp's compliance moves the TCP
+            # along the lever arm): restart the reference
             position_reset(ev)
             continue
-        position_account(x, P, ev, smp.dt[b0:b1], w_d, r0, smp.fresh[b0:b1], d, prm)
+        t_d = np.empty(w_d.shape)
+        for i in range(b1 - b0):
+            if d == 2:
+                t_d[i, 0] = (smp.w_tcp[b0 + i, 0] * frame.nrm[0] + smp.w_tcp[b0 + i, 1] * frame.nrm[1]
+                             + smp.w_tcp[b0 + i, 2] * frame.nrm[2])
+            else:
+                for a in range(3):
+                    t_d[i, a] = smp.w_tcp[b0 + i, a]
+        position_account(x, P, ev, smp.dt[b0:b1], w_d, t_d, r0, smp.fresh[b0:b1], d, prm)
     return gbuf

@@ -28,6 +28,9 @@ FRESH_MAX_AGE_S = 0.002      # a proprioception sample first seen later than thi
 DERIVED_V_FIRST_VAR = 1.0     # (m/s)^2 for the first sample when velocity must be derived
 MAD_TO_SIGMA = 0.6745         # median |x| of a zero-mean normal, in its sigmas
 WDOT_MAX_AGE_S = 0.05         # a reported TCP rate's last change is extrapolated at most this far
+FINGERTIP_LAG_S = 0.003       # the silicone fingertip's viscoelastic lag, s: a rig's own, calibrated as eta is
+PRE_ONSET_VAR = 1.0           # (m/s)^2: a TCP velocity measured before the onset, as no evidence
+RATE_HISTORY_S = 0.2          # the object's rates kept for that pairing (proprioception older than this is stale)
 # The LSM6DSR's clipping points at its default full scales (4000 dps, 16 g: 80.06 rad/s, 156.8 m/s^2),
 # until a source says which scales it runs.
 DEFAULT_SATURATION = Scaling().saturation
@@ -90,6 +93,8 @@ class ProprioTrack:
         self.p = np.zeros((size, 3))
         self.v = np.zeros((size, 3))
         self.tv = np.zeros(size)           # time the velocity belongs to
+        self.pv = np.zeros((size, 3))      # the TCP's position then
+        self.hv = np.zeros(size)           # half the span around tv that the velocity describes, s
         self.var_v = np.zeros(size)
         self.a = np.zeros(size)            # |acceleration| estimate, m/s^2
         self.alpha = np.zeros(size)        # |angular acceleration| estimate of the TCP, rad/s^2
@@ -116,10 +121,12 @@ class ProprioTrack:
                 dt = t - self.t[n - 1]
                 v = (p - self.p[n - 1]) / dt
                 tv, var_v = t - dt / 2, 2 * self.sigma_p_effective() ** 2 / dt ** 2
+                pv, hv = 0.5 * (p + self.p[n - 1]), dt / 2      # the mean velocity over the interval
             else:
-                v, tv, var_v = np.zeros(3), t, DERIVED_V_FIRST_VAR
+                v, tv, var_v, pv, hv = np.zeros(3), t, DERIVED_V_FIRST_VAR, p, 0.0
         else:
-            tv, var_v = t, self.sigma_v ** 2
+            # at its stamp; it stands for the half periods either side (the rate's mean over them)
+            tv, var_v, pv, hv = t, self.sigma_v ** 2, p, (t - self.t[n - 1]) / 2 if n else 0.0
         wdot = np.zeros(3)
         if w is None:
             # Backward difference of orientations: it belongs to the middle of the interval.
@@ -136,11 +143,12 @@ class ProprioTrack:
         a = math.dist(v, self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6) if n else 0.0
         alpha = math.dist(w, self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6) if n else 0.0
         if n == self.size:
-            for arr in (self.t, self.p, self.v, self.tv, self.var_v, self.a, self.alpha, self.tw, self.R, self.w,
-                        self.wdot, self.force):
+            for arr in (self.t, self.p, self.v, self.tv, self.pv, self.hv, self.var_v, self.a, self.alpha, self.tw,
+                        self.R, self.w, self.wdot, self.force):
                 arr[:-1] = arr[1:]
             n -= 1
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
+        self.pv[n], self.hv[n] = pv, hv
         self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
         self.wdot[n] = wdot
         self.n = n + 1
@@ -195,6 +203,72 @@ class ProprioTrack:
             return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok, self.t[j]
         return p, self.v[j], self.R[j], w, var_v, var_w, self.force[j], ok
 
+    def rate_at(self, ts: np.ndarray) -> np.ndarray:
+        """The TCP's own rate (world, rad/s) at times ts (n,): interpolated between the times the
+        rates belong to (a derived rate to the middle of its interval), past the newest one
+        extrapolated with the last change for at most WDOT_MAX_AGE_S."""
+        n = self.n
+        tw, w = self.tw[:n], self.w[:n]
+        if n < 2:
+            return np.tile(w[-1] if n else np.zeros(3), (len(ts), 1))
+        out = np.column_stack([np.interp(ts, tw, w[:, a]) for a in range(3)])
+        late = ts > tw[-1]
+        if late.any():
+            slope = (w[-1] - w[-2]) / max(tw[-1] - tw[-2], 1e-6)
+            out[late] = w[-1] + np.minimum(ts[late] - tw[-1], WDOT_MAX_AGE_S)[:, None] * slope
+        return out
+
+    def velocity_at(self, ts: np.ndarray):
+        """What the velocity held at times ts belongs to: (the TCP's position then (n, 3), the TCP's
+        own rate then (n, 3), unextrapolated, the time tv it belongs to and the half span h around
+        it that it describes (n,) each: a derived velocity the interval between its two positions,
+        a reported one the half periods either side of its stamp; its noise variance, (m/s)^2,
+        without staleness)."""
+        j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
+        return self.pv[j], self.w[j], self.tv[j], self.hv[j], self.var_v[j]
+
+
+class RateHistory:
+    """The episode's fingertip rates (the IMU's, in the world, rad/s) against time, for the mean over
+    a past span: what a held TCP velocity is paired with (ContactPipeline.process_all). Kept for
+    RATE_HISTORY_S; cumulative sums make each mean two lookups."""
+
+    def __init__(self):
+        self.start(np.nan)
+
+    def start(self, t0: float) -> None:
+        """A new episode: no rates before t0 (the onset; the fingertip then turned with the gripper)."""
+        self.t0 = t0
+        self.t = np.zeros(0)
+        self.cw = np.zeros((1, 3))          # cw[i]: the sum of the first i rates
+
+    def add(self, t: np.ndarray, w: np.ndarray) -> None:
+        if len(self.t) and self.t[-1] - self.t[0] > 2 * RATE_HISTORY_S:
+            keep = int(np.searchsorted(self.t, self.t[-1] - RATE_HISTORY_S))
+            self.t = self.t[keep:]
+            self.cw = self.cw[keep:] - self.cw[keep]
+        self.t = np.concatenate([self.t, t])
+        self.cw = np.concatenate([self.cw, self.cw[-1] + np.cumsum(w, axis=0)])
+
+    def mean(self, t0: np.ndarray, t1: np.ndarray, before: np.ndarray, dt_sample: float):
+        """(the mean rate over each span [t0, t1] (n, 3), the samples it averages (n,)). The part of a
+        span before the episode counts as `before` (n, 3), one sample per dt_sample."""
+        i0 = np.searchsorted(self.t, t0, side="left")
+        i1 = np.searchsorted(self.t, t1, side="right")
+        got = np.maximum(i1 - i0, 0)
+        missing = np.clip(np.round((np.minimum(t1, self.t0) - t0) / dt_sample), 0, None)
+        total = self.cw[np.maximum(i1, i0)] - self.cw[i0] + missing[:, None] * before
+        count = got + missing
+        empty = count == 0
+        if empty.any():          # a span in a gap (clipped samples left out): the nearest rate, else the one before
+            if len(self.t):
+                j = np.clip(i0[empty], 0, len(self.t) - 1)
+                total[empty] = self.cw[j + 1] - self.cw[j]
+            else:
+                total[empty] = before[empty]
+            count = np.where(empty, 1, count)
+        return total / count[:, None], count
+
 
 @dataclass
 class ContactEstimate:
@@ -245,6 +319,7 @@ class PipelineParams:
     grip_force_n: float = 30.0                 # used when no grip force is measured
     eta_rel_std_per_n: float = 0.02            # eta's relative uncertainty grows this much per N off calibration
     arc_radial_sigma: float = 0.005            # m/s, distrust of the velocity along the lever arm while arc following
+    fingertip_lag_s: float = FINGERTIP_LAG_S   # s, the fingertip twist's lag behind the object (see process_all)
     ekf: ContactKfParams = field(default_factory=ContactKfParams)
     paper_ekf: PaperEkfParams = field(default_factory=PaperEkfParams)
     baseline: BaselineParams = field(default_factory=BaselineParams)
@@ -285,6 +360,7 @@ class ContactPipeline:
         self._dt_sample = 1.0 / 6667.0
         self._angle = 0.0
         self._stamp_prev = np.nan
+        self._rates = RateHistory()
         self._begin_t: float | None = None
         self._g_sat, self._a_sat = DEFAULT_SATURATION
         self.saturated = 0                   # samples of the current episode clipped at full scale
@@ -430,6 +506,7 @@ class ContactPipeline:
             self.estimator.start(p[0], v[0])
             self.tracking = True
             self._stamp_prev = np.nan
+            self._rates.start(float(t[hit]) - self.cond.group_delay_samples * self._dt_sample)
             self.onset_t = float(t[hit])
             self.onset_p_tcp = p[0].copy()
             self._t_prev = float(t[hit])
@@ -451,25 +528,48 @@ class ContactPipeline:
         p, v, R, w_tcp, var_v, var_wt, force, ok, stamp = self.proprio.lookup(ts - delay, with_stamp=True)
         # A proprioception sample is a position measurement at the first IMU sample that sees it
         # (extrapolated by less than one IMU period; later ones are not taken).
-        fresh = np.diff(stamp, prepend=self._stamp_prev) != 0
-        fresh &= (ts - delay - stamp) <= FRESH_MAX_AGE_S
+        new = np.diff(stamp, prepend=self._stamp_prev) != 0
+        fresh = new & ((ts - delay - stamp) <= FRESH_MAX_AGE_S)
         self._stamp_prev = float(stamp[-1])
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
         eta = self.eta(force)
         w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
         # A stale gripper rate enters the object rate as (1 - eta) * its error.
         var_w = (eta - 1.0) ** 2 * var_wt
+        # A held TCP velocity was measured at its stamp (a derived one over the interval to it): it
+        # pairs with the object's rate and the TCP's position then, not with those of each sample
+        # that holds it. At 65 Hz that is up to a period of change: from a start at rest the held
+        # velocity still reads zero while the object already turns, and the lever arm reads short.
+        # The history holds the IMU's own rate in the world; the object's rate is made from its mean
+        # with the gripper's rate of the same moment (a gripper rate extrapolated past a change
+        # would enter it (eta - 1) times).
+        ok &= ~tainted[start:]           # clipped at full scale: no measurement (set_saturation)
+        self._rates.add((ts - delay)[ok], self.cond.object_rate_world(w_f[ok], R[ok], np.zeros(3), 1.0))
+        p_v, w_tcp_v, tv, hv, var_v = self.proprio.velocity_at(ts - delay)
+        # The fingertip's twist, which the IMU reads, lags the object's by the silicone's viscoelastic
+        # time constant (the paper's "phase lag", Sec. III-B, which its eta leaves out): the twist
+        # read at tv + lag is the object's at tv. The gripper's own rotation reaches the IMU at once.
+        lag = self.params.fingertip_lag_s
+        w_tcp_v = self.proprio.rate_at(tv)
+        w_tcp_lag = self.proprio.rate_at(tv + lag) if lag > 0 else w_tcp_v
+        # the span the velocity stands for, as much of it as has been measured by each sample
+        h = np.clip(ts - delay - tv - lag, 0.0, hv)
+        w_imu_v, n_avg = self._rates.mean(tv + lag - h, tv + lag + h, w_tcp_lag, self._dt_sample)
+        w_v = w_tcp_v + eta[:, None] * (w_imu_v - w_tcp_lag)
+        # A velocity measured before the touch is no evidence of the pivot: an arm already moving
+        # into an edge moved the object with it (only a start from rest agrees with the model).
+        var_v = np.where(tv < self._rates.t0, PRE_ONSET_VAR, var_v)
         self._set_eta_uncertainty(float(force[-1]))
-        # While the gripper itself turns, its rate comes from held orientation samples; their lag
-        # integrates into the displacement model, so positions are then no evidence (see PositionEvidence).
-        # The estimator then also needs the gripper's rate: eta's error scales only the object's
-        # rotation relative to the gripper.
+        # While the gripper itself turns the estimator needs its rate: eta's error scales only the
+        # object's rotation relative to the gripper (ContactKF, and PositionEvidence for positions).
         tcp_turning = float(np.max(np.einsum("ij,ij->i", w_tcp, w_tcp))) > TCP_TURNING_RAD_S ** 2
         self.saturated += int(np.count_nonzero(clipped[start:]))
-        ok &= ~tainted[start:]
+        if not tcp_turning:
+            w_tcp_v = np.zeros_like(w_tcp_v)     # as w_tcp: the model takes every rotation as the object's
         if not ok.all():
             ts, w_obj, p, v, var_v, var_w, fresh, w_tcp = (ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok],
                                                            fresh[ok], w_tcp[ok])
+            w_v, w_tcp_v, p_v, n_avg = w_v[ok], w_tcp_v[ok], p_v[ok], n_avg[ok]
         estimates: list[ContactEstimate] = []
         if len(ts):
             dt = np.maximum(np.diff(ts, prepend=self._t_prev), 1e-6)
@@ -477,14 +577,15 @@ class ContactPipeline:
             if rate == rate:       # not NaN
                 self.estimator.set_correlation(max(1.0, 1.0 / (self._dt_sample * rate)))
             period = self.params.output_period_s
-            estimates = self._advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period)
+            estimates = self._advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period,
+                                      (w_v, w_tcp_v, p_v, n_avg))
         if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
             estimates.append(self._estimate(self._t_prev))
         return events, estimates
 
     def _advance(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
-                 period: float) -> list[ContactEstimate]:
+                 period: float, paired: tuple) -> list[ContactEstimate]:
         """Advance the estimator in sub-blocks that end at each output time, and report at each."""
         estimates: list[ContactEstimate] = []
         k0, n = 0, len(ts)
@@ -493,7 +594,7 @@ class ContactPipeline:
             k1 = n if due >= n else max(due + 1, k0 + 1)
             sl = slice(k0, k1)
             self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
-                                  None if tcp_turning else fresh[sl], w_tcp[sl] if tcp_turning else None)
+                                  fresh[sl], w_tcp[sl] if tcp_turning else None, tuple(a[sl] for a in paired))
             self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
             self._n_w += k1 - k0
             self._t_prev = float(ts[k1 - 1])

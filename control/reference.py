@@ -240,14 +240,16 @@ class ReferenceKF(ContactEstimator):
             hph = float(np.trace(Hm @ P @ Hm.T))
         return hph < GATE_HPH_RATIO * d * R_floor
 
-    def _block(self, x_lin, dt, w, w_tcp, p, v, var_v, var_w, commit: bool):
-        """One block: predict, gate, update. Returns what the window and the positions need."""
+    def _block(self, x_lin, dt, w, w_tcp, p, v, w_v, w_tcp_v, p_v, var_v, var_w, commit: bool):
+        """One block: predict, gate, update. The model pairs each held velocity v with the rates and
+        the position from when it was measured (w_v, w_tcp_v, p_v); the position evidence takes the
+        rates and positions at each sample. Returns what the window and the positions need."""
         kf, prm = self.kf, self.params
         d = self.d
         x0, P0 = kf.x.copy(), kf.P.copy()
         duration = float(np.sum(dt))
         kf.predict(duration)
-        wd, wt, r0, vd = self._samples(w, w_tcp, p, v)
+        wd, wt, r0, vd = self._samples(w_v, w_tcp_v, p_v, v)
         y, H, R = self.model(kf.x, x_lin, wd, wt, r0, vd, var_v, var_w)
         corr = max(self.corr_samples, 1.0)
         if d == 2:
@@ -274,19 +276,26 @@ class ReferenceKF(ContactEstimator):
             x_new = kf.x.copy()
             kf.x, kf.P = x0, P0
             return x_new, None
+        w_now, w_tcp_now, r0_now, _ = self._samples(w, w_tcp, p, v)
         return kf.x.copy(), dict(x=x0, P_prior=P_prior, A=A, b=b, nis=nis, rejected=rejected, duration=duration,
-                                 w=wd, r0=r0)
+                                 w=w_now, w_tcp=w_tcp_now, r0=r0_now)
 
     # --- the run over a chunk (ContactEstimator)
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None) -> None:
+    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
         n = len(dt)
         var_v = np.full(n, self.params.sigma_v ** 2) if var_v is None else var_v
         var_w = np.zeros(n) if var_w is None else var_w
         w_tcp = np.zeros((n, 3)) if w_tcp is None else w_tcp
+        if paired is None:
+            w_v, w_tcp_v, p_v = w, w_tcp, p
+        else:
+            w_v, w_tcp_v, p_v, n_avg = paired
+            # a mean of n_avg samples' rates, repeated by every sample that holds the velocity
+            var_w = var_w + self.params.sigma_w ** 2 * (max(self.corr_samples, 1.0) / n_avg - 1.0)
         mb = self.params.max_block
         for b0 in range(0, n, mb):
             sl = slice(b0, b0 + mb)
-            args = (dt[sl], w[sl], w_tcp[sl], p[sl], v[sl], var_v[sl], var_w[sl])
+            args = (dt[sl], w[sl], w_tcp[sl], p[sl], v[sl], w_v[sl], w_tcp_v[sl], p_v[sl], var_v[sl], var_w[sl])
             # at onset the noise is linearised about a guess: two passes on the first block (from the
             # same prior, not kept) linearise it about the data's own answer
             x_lin = self.kf.x
@@ -346,8 +355,7 @@ class ReferenceKF(ContactEstimator):
         if fresh is None or self.radial_var > 0:
             ev.reset()                  # the gripper turns, or the arc follower moves the TCP along the lever arm
             return
-        w_d = blk["w"].reshape(len(dt), -1)
-        if not ev.add(dt, w_d, blk["r0"], fresh) or ev.n < MIN_RESIDUAL_SAMPLES:
+        if not ev.add(dt, blk["w"], blk["r0"], fresh, blk["w_tcp"], self.k()) or ev.n < MIN_RESIDUAL_SAMPLES:
             return
         ev.var = _position_var(self.sigma_p)
         d_lam, d_xi = ev.increment()

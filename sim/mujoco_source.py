@@ -10,7 +10,7 @@ accelerations (a mocap body's are zero, and its children's sensors would miss th
 The fingertip is two compliant ball joints in series between the finger and the pad, with the
 IMU's body between them. The pad is welded to the handle through a soft weld (the grasp), so the
 IMU turns by a fraction of the handle's rotation relative to the gripper. That fraction is 1/eta,
-set by the stiffness ratio, and it lags by the joints' damping. MuJoCo's own gyro and
+set by the stiffness ratio, and it lags by `lag_tau_s` (the silicone's damping on the IMU body). MuJoCo's own gyro and
 accelerometer sensors at the IMU's site (specific force: gravity included) give the signal, then
 the LSM6DSR's noise densities, a turn-on bias and int16 quantisation at its full scales are added.
 
@@ -76,10 +76,12 @@ SETTLE_S = 0.3                             # simulated before the recording star
 
 def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray) -> str:
     """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge."""
-    # series torsional springs: the IMU body turns by kB/(kA+kB) = 1/eta of the pad's turn
+    # series torsional springs: the IMU body turns by kB/(kA+kB) = 1/eta of the pad's turn. The
+    # silicone's viscosity holds the IMU body back (a damper to the finger, none to the pad): it
+    # follows the pad's twist as a first-order lag of dA/(kA+kB) = lag_tau_s (Kelvin-Voigt)
     k_a = 2.0                                              # N m/rad, finger -> IMU body
     k_b = k_a / (sc.eta - 1.0)                             # N m/rad, IMU body -> pad
-    d_a, d_b = k_a * sc.lag_tau_s, k_b * sc.lag_tau_s
+    d_a, d_b = (k_a + k_b) * sc.lag_tau_s, 1e-4 * k_b
     q = matrix_to_quat(R_tcp)                              # (x, y, z, w) -> MuJoCo's (w, x, y, z)
     quat = f"{q[3]} {q[0]} {q[1]} {q[2]}"
     handle_dir = p_tcp - HINGE
@@ -164,6 +166,7 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     hinge_q = model.joint("hinge").qposadr[0]
     mocap = model.body("target").mocapid[0]
     gripper = model.body("gripper").id
+    vel6 = np.zeros(6)
     for k in range(n):
         if sc.motion == "push":
             p = p0 + dist[k] * tangent0
@@ -180,8 +183,10 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         mujoco.mj_step(model, data)
         gyro[k] = data.sensordata[gid:gid + 3]
         accel[k] = data.sensordata[aid:aid + 3]
-        # the arm's TCP as its encoders would give it: the gripper body's own pose, behind the target
-        p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), v
+        # the arm's TCP as its encoders would give it: the gripper body's own pose and velocity,
+        # behind the target (world-aligned, at the body's origin)
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, gripper, vel6, 0)
+        p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), vel6[3:]
         angle[k] = data.qpos[hinge_q]
     # the LSM6DSR: white noise at its densities, a turn-on bias, int16 at the full scales
     g_lsb = sc.gyro_fs_dps * LSB_GYRO_RAD_S_PER_DPS / 32768.0

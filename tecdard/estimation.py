@@ -8,7 +8,7 @@ from control.conditioning import GyroConditioner
 from control.ekf import ContactKfParams, PaperEkfParams
 from control.onset import OnsetDetector
 from control import estimators
-from control.pipeline import ContactPipeline, PipelineParams
+from control.pipeline import FINGERTIP_LAG_S, ContactPipeline, PipelineParams
 from tecdard.config import ConfigError
 from tecdard.safejson import finite, is_number, show
 
@@ -57,6 +57,7 @@ def build_pipeline(section, R_tcp_imu: np.ndarray, odr_hz: float = 6667.0, metho
         grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0, maxval=MAX_GRIP_FORCE_N),
         eta_rel_std_per_n=section.getfloat("eta_rel_std_per_n", 0.02, minval=0.0, maxval=1.0),
         arc_radial_sigma=section.getfloat("arc_radial_sigma", 0.005, minval=0.0, maxval=1.0),
+        fingertip_lag_s=section.getfloat("fingertip_lag_s", FINGERTIP_LAG_S, minval=0.0, maxval=0.05),
         ekf=ContactKfParams.from_config(section.section("ekf")),
         paper_ekf=PaperEkfParams.from_config(section.section("paper_ekf")),
     )

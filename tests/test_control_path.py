@@ -307,7 +307,7 @@ TCP_AT_ONSET = '''
         def start(self, p_g, v_g):
             self.p_c, self.steps = np.array(p_g, float), 0
 
-        def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None):
+        def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None):
             self.steps += len(dt)
 
         def report(self):

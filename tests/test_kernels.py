@@ -180,11 +180,13 @@ def random_cov(rng, n, scale):
 @pytest.mark.parametrize("nk", [0, 1])
 def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(planar, nk):
     """World-frame samples in, the updated state out: projection on a skewed plane, the contact's random
-    walk over the block's duration, the model's information (numpy, sample by sample), the update."""
+    walk over the block's duration, the model's information (numpy, sample by sample) from the rate and
+    position paired with each velocity, the update; the current rate and position for the evidence."""
     rng = np.random.default_rng(6)
-    w, r0, v, var_v, var_w = block(rng)
+    w_v, r0, v, var_v, var_w = block(rng)
     origin = np.array([0.3, -0.2, 0.5])
-    p, dt = origin + r0, rng.uniform(1e-4, 2e-4, len(w))
+    p_v, dt = origin + r0, rng.uniform(1e-4, 2e-4, len(w_v))
+    w, p = w_v + rng.normal(0, 0.01, w_v.shape), p_v + rng.normal(0, 1e-3, p_v.shape)     # at each sample
     d = 2 if planar else 3
     n = np.array([0.2, 1.0, -0.3]) / np.linalg.norm([0.2, 1.0, -0.3])
     e1 = np.cross(n, [1.0, 0.0, 0.0])
@@ -195,22 +197,21 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     P = random_cov(rng, d + nk, 1e-4)
     q_c, corr, var_p, var_wn, radial_var = 1e-6, 3.0, 2.5e-9, 1e-4, 2.5e-5
     x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = kern.block_update(
-        x, P, x_lin, dt, w, np.zeros_like(w), p, v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
+        x, P, x_lin, dt, w, p, v, w_v, np.zeros_like(w), p_v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
         radial_var, 16.3, kern.K_MIN, 1.2, False, True)
     P_ref = P.copy()
     P_ref[range(d), range(d)] += q_c * dt.sum()
     k, k_lin = (x[d], x_lin[d]) if nk else (1.2, 1.2)          # k held at 1.2 when not a state
     model = (k, x[:d] / k, k_lin, x_lin[:d] / k_lin, corr, var_p, var_wn, radial_var, nk)
     if planar:
-        w_n = w @ n
-        samples = planar_samples(w_n, np.zeros(len(w)), r0 @ E.T, v @ E.T, var_v, var_w, *model)
-        np.testing.assert_allclose(w_d[:, 0], w_n, rtol=1e-12)
+        samples = planar_samples(w_v @ n, np.zeros(len(w)), r0 @ E.T, v @ E.T, var_v, var_w, *model)
+        np.testing.assert_allclose(w_d[:, 0], w @ n, rtol=1e-12)
     else:
-        samples = spatial_samples(w, np.zeros_like(w), r0, v, var_v, var_w, *model)
+        samples = spatial_samples(w_v, np.zeros_like(w), r0, v, var_v, var_w, *model)
         np.testing.assert_allclose(w_d, w, rtol=1e-12)
     A_ref, b_ref = information(samples, d + nk)
     assert_same_information(A, b, A_ref, b_ref)
-    np.testing.assert_allclose(r_d, r0 @ E.T, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(r_d, (p - origin) @ E.T, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(P_prior, P_ref, rtol=1e-12)
     assert duration == pytest.approx(dt.sum(), rel=1e-12)
     x_ref, P_new_ref = kern.collapsed_update(x, P_ref, A_ref, b_ref, True)

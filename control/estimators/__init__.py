@@ -26,8 +26,9 @@ class ContactEstimator:
         """A contact episode begins with the TCP at p_g (m) moving at v_g (m/s), world."""
         raise NotImplementedError
 
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None) -> None:
-        """Samples: dt (s), the object's rate w (rad/s), the TCP's p (m) and v (m/s), world, per row."""
+    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
+        """Samples: dt (s), the object's rate w (rad/s), the TCP's p (m) and v (m/s), world, per row.
+        (`paired`, see ContactKF.update: what a held v pairs with; estimators may ignore it.)"""
         raise NotImplementedError
 
     def report(self):
