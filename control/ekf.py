@@ -487,7 +487,7 @@ class ContactKF(ContactEstimator):
         """The compiled run's parameters (kernels.RUN_PARAMS) as they stand now, in place."""
         prm = self.params
         self._prm[0] = (prm.q_c, self.corr_samples, self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var, prm.gate_nis,
-                        self.k_prior_mean, prm.max_block, _position_var(self.sigma_p), CONSISTENCY_WINDOW_S,
+                        self.k_prior_mean, self.k_prior_var, prm.max_block, _position_var(self.sigma_p), CONSISTENCY_WINDOW_S,
                         CONSISTENCY_TAU_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT)     # RUN_PARAMS' order
         return self._prm
 

@@ -833,6 +833,7 @@ RUN_PARAMS = np.dtype([(name, np.float64) for name in (
     "radial_var",                  # (m/s)^2, the arc follower's distrust along the lever arm
     "gate_nis",                    # the NIS gate (0: off)
     "k_mean",                      # eta ratio's prior mean (where k is held when not a state)
+    "k_prior_var",                 # and its prior variance (0 when held)
     "max_block",                   # samples per collapsed update
     "ev_var",                      # m^2, the position evidence's noise (floored)
     "window_s",                    # s, the consistency window
@@ -951,13 +952,20 @@ def position_reset(ev):
 def position_account(x, P, ev, dt, w_d, t_d, r0, fresh, d, prm):
     """One committed block's positions (PositionEvidence) into the state x, P, in place: the running
     sums grow; once prm.ev_min_samples positions are in and the rigid-body residual (at the held eta
-    ratio) stays below prm.ev_limit, their new information is one collapsed update. Above the limit
-    the evidence is broken for the episode. w_d, t_d: the object's and the gripper's rates in the
+    ratio) stays below prm.ev_limit, their new information is one collapsed update. Above the limit,
+    or once they have pulled the eta ratio's estimate beyond ETA_PRIOR_LIMIT prior sigmas, the
+    evidence is broken for the episode. w_d, t_d: the object's and the gripper's rates in the
     filter's coordinates ((n, 1) about the normal, or (n, 3))."""
     st = ev.status[0]
     pr = prm[0]
     nk = x.shape[0] - d
     k = max(x[d], K_MIN) if nk else pr.k_mean
+    if nk and pr.k_prior_var > 0.0:
+        if abs(x[d] - pr.k_mean) > ETA_PRIOR_LIMIT * math.sqrt(pr.k_prior_var):
+            # the displacements ask for an eta the calibration rules out: the rigid pivot fails
+            # (a slip, or a twist too large for one eta), not eta
+            st.broken = True
+            return
     taken, s_yy = position_sums(ev.theta, ev.g, ev.g_tcp, dt, w_d, t_d, 1.0 / k, r0, fresh, ev.s_x, ev.s_xx, ev.s_xy,
                                 ev.s_y)
     st.n += taken

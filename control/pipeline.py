@@ -620,6 +620,11 @@ class ContactPipeline:
             axis, axes, cov, top = rotation_axes(self._wwT, self._w_sum, self._n_w, self.params.ekf.sigma_w ** 2, cov,
                                                  stat, MIN_AXIS_RATE_RAD_S ** 2, SECOND_AXIS_RATIO,
                                                  UNOBSERVED_STD_M ** 2)
+            if axes == 1 and self.onset_p_tcp is not None:
+                # Along the one axis the data say nothing yet: report the prior there, the TCP's
+                # coordinate at onset, not wherever the filter's weak correlations have moved it
+                # (a pen's tip, before its second axis is excited, is level with the TCP along it).
+                p_c = p_c - float((p_c - self.onset_p_tcp) @ axis) * axis
             axis = axis if axes else None
         in_plane = math.sqrt(max(top, 0.0))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),

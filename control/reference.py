@@ -33,7 +33,7 @@ from control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_S
                          UNOBSERVED_STD_M, ContactKfParams, PositionEvidence, _position_var)
 from control.estimators import ContactEstimator
 from control.geometry import Plane
-from control.kernels import GATE_HPH_RATIO, K_MIN, eta_weight
+from control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
 
 J = np.array([[0.0, -1.0], [1.0, 0.0]])      # w x r in a plane: w_n J r
 RANK_RCOND = 1e-12                           # eigenvalues of a window's information below this x the largest: zero
@@ -353,8 +353,12 @@ class ReferenceKF(ContactEstimator):
         if ev is None or (fresh is not None and ev.broken):
             return
         if fresh is None or self.radial_var > 0:
-            ev.reset()                  # the gripper turns, or the arc follower moves the TCP along the lever arm
+            ev.reset()                  # no positions, or the arc follower moves the TCP along the lever arm
             return
+        if self.nk and self.k_prior_var > 0:
+            if abs(float(self.kf.x[self.d]) - self.k_prior_mean) > ETA_PRIOR_LIMIT * math.sqrt(self.k_prior_var):
+                ev.set_broken()         # an implausible eta: the rigid pivot fails, not eta
+                return
         if not ev.add(dt, blk["w"], blk["r0"], fresh, blk["w_tcp"], self.k()) or ev.n < MIN_RESIDUAL_SAMPLES:
             return
         ev.var = _position_var(self.sigma_p)

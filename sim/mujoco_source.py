@@ -38,7 +38,7 @@ G = 9.80665
 
 @dataclass
 class MujocoScenario:
-    motion: str = "arc"                # arc | arc-turning | push
+    motion: str = "arc"                # arc | arc-turning | push (the cutter); circle (the pen)
     radius: float = 0.12               # m, hinge to TCP
     speed: float = 0.02                # m/s, TCP
     eta: float = 2.0                   # the fingertip's transmission (stiffness ratio)
@@ -59,9 +59,18 @@ class MujocoScenario:
     yaw_deg: float = 0.0               # the cutter's yaw about world z
     seed: int = 0
 
+    circle_radius: float = 0.02        # m, the pen: the TCP's circle about the vertical through the tip
+
+    @property
+    def world(self) -> str:
+        """The cutter on its hinge (line contact), or a pen on its tip (point contact)."""
+        return "pen" if self.motion == "circle" else "cutter"
+
     def validate(self) -> None:
-        if self.motion not in ("arc", "arc-turning", "push"):
-            raise ValueError(f"motion: expected arc, arc-turning or push, got {self.motion!r}")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion: expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
+        if self.motion == "circle" and not 0.005 <= self.circle_radius <= 0.5 * self.radius:
+            raise ValueError(f"circle_radius: {self.circle_radius:g} is outside [0.005, radius / 2]")
         for name, lo, hi in (("radius", 0.02, 0.4), ("speed", 0.001, 0.2), ("eta", 1.01, 10.0),
                              ("imu_hz", 500.0, 20000.0), ("tcp_hz", 10.0, 2000.0), ("move_s", 0.2, 10.0)):
             v = getattr(self, name)
@@ -69,7 +78,8 @@ class MujocoScenario:
                 raise ValueError(f"{name}: {v:g} is outside [{lo:g}, {hi:g}]")
 
 
-HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point, world (the robot base), m
+MOTIONS = ("arc", "arc-turning", "push", "circle")
+HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point (the pen's tip), world (the robot base), m
 RAMP_S = 0.05                              # the arm reaches its speed in this long
 SETTLE_S = 0.3                             # simulated before the recording starts: the grasp takes the handle's weight
 
@@ -87,6 +97,11 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
     handle_dir = p_tcp - HINGE
     L = float(np.linalg.norm(handle_dir))
     mid = HINGE + 0.5 * handle_dir
+    if sc.world == "pen":       # the tip in a dimple: a ball joint, with the same friction and damping
+        joint = f'<joint name="hinge" type="ball" damping="0.02" frictionloss="{sc.hinge_friction_nm}"/>'
+    else:
+        joint = (f'<joint name="hinge" type="hinge" axis="{axis[0]} {axis[1]} {axis[2]}" range="-100 0" '
+                 f'limited="true" damping="0.02" frictionloss="{sc.hinge_friction_nm}"/>')
     return f"""
 <mujoco model="tecdar-cutter">
   <option timestep="{1.0 / sc.imu_hz}" gravity="0 0 -{G}" integrator="implicitfast"/>
@@ -106,8 +121,7 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
       </body>
     </body>
     <body name="handle" pos="{HINGE[0]} {HINGE[1]} {HINGE[2]}">
-      <joint name="hinge" type="hinge" axis="{axis[0]} {axis[1]} {axis[2]}" range="-100 0" limited="true"
-             damping="0.02" frictionloss="{sc.hinge_friction_nm}"/>
+      {joint}
       <geom type="capsule" fromto="0 0 0 {handle_dir[0]} {handle_dir[1]} {handle_dir[2]}" size="0.008"
             contype="0" conaffinity="0" mass="0.1"/>
       <site name="grasp" pos="{handle_dir[0]} {handle_dir[1]} {handle_dir[2]}"/>
@@ -135,7 +149,11 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     Rz = rotvec_to_matrix(np.array([0.0, 0.0, yaw]))
     axis = Rz @ np.array([0.0, 1.0, 0.0])                  # the hinge axis, horizontal
     out_dir = Rz @ np.array([1.0, 0.0, 0.0])               # the handle lies along +x (yawed) from the hinge
-    p0 = HINGE + sc.radius * out_dir
+    if sc.world == "pen":       # tilted from the vertical through the tip by the circle's radius
+        h = math.sqrt(sc.radius ** 2 - sc.circle_radius ** 2)
+        p0 = HINGE + sc.circle_radius * out_dir + np.array([0.0, 0.0, h])
+    else:
+        p0 = HINGE + sc.radius * out_dir
     R0 = Rz @ np.diag([1.0, -1.0, -1.0])                   # tool down
     xml, L, _ = _mjcf(sc, p0, R0, axis)
     model = mujoco.MjModel.from_xml_string(xml)
@@ -172,6 +190,11 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
             p = p0 + dist[k] * tangent0
             R = R0
             v = (sc.speed if s_move[k] > 0 else 0.0) * tangent0
+        elif sc.motion == "circle":       # about the vertical through the tip, the gripper held
+            psi = dist[k] / sc.circle_radius
+            p = HINGE + Rz @ np.array([sc.circle_radius * math.cos(psi), sc.circle_radius * math.sin(psi),
+                                       0.0]) + np.array([0.0, 0.0, p0[2] - HINGE[2]])
+            R = R0
         else:
             theta = sign * dist[k] / sc.radius
             Rt = rotvec_to_matrix(axis * theta)
@@ -187,7 +210,11 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         # behind the target (world-aligned, at the body's origin)
         mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, gripper, vel6, 0)
         p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), vel6[3:]
-        angle[k] = data.qpos[hinge_q]
+        if sc.world == "pen":
+            q = data.qpos[hinge_q:hinge_q + 4]
+            angle[k] = 2.0 * math.atan2(float(np.linalg.norm(q[1:])), abs(float(q[0])))
+        else:
+            angle[k] = data.qpos[hinge_q]
     # the LSM6DSR: white noise at its densities, a turn-on bias, int16 at the full scales
     g_lsb = sc.gyro_fs_dps * LSB_GYRO_RAD_S_PER_DPS / 32768.0
     a_lsb = sc.accel_fs_g * G / 32768.0
@@ -211,7 +238,8 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
                  "radius": L, "speed": sc.speed, "eta_true": sc.eta, "seed": sc.seed},
     }
     # the onset: the arm starts to push the held handle (the handle itself may stick a little longer)
-    truth = {"p_c": HINGE.copy(), "axis": axis, "onset_t": np.array(t[n_rest]),
-             "kind": np.array("edge-arc"), "radius": np.array(L), "eta": np.array(sc.eta), "angle_t": t,
+    point = sc.world == "pen"
+    truth = {"p_c": HINGE.copy(), "axis": np.zeros(3) if point else axis, "onset_t": np.array(t[n_rest]),
+             "kind": np.array("point-circle" if point else "edge-arc"), "radius": np.array(L), "eta": np.array(sc.eta), "angle_t": t,
              "angle": angle - angle[0]}
     return fields, truth

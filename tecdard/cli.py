@@ -256,8 +256,8 @@ def _cmd_plot(args) -> int:
 
 
 def _cmd_sim_record(args) -> int:
-    """sim-record: sim/scenarios.py's signal model, or (--engine mujoco) the cutter in MuJoCo's
-    physics (sim/mujoco_source.py), from the options the engine's scenario has."""
+    """sim-record: sim/scenarios.py's signal model, or (--engine mujoco) the cutter or the pen in
+    MuJoCo's physics (sim/mujoco_source.py), from the options the engine's scenario has."""
     import dataclasses
 
     from tecdard.recording import Recording, save_recording
@@ -448,9 +448,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("out", help="OUT.npz")
     p.add_argument("--engine", choices=("scenarios", "mujoco"), default="scenarios",
                    help="scenarios: sim/scenarios.py's signal model (default); mujoco: rigid-body physics of the "
-                        "paper cutter (sim/mujoco_source.py, the bench extra)")
-    p.add_argument("--motion", choices=("arc", "arc-turning", "push"),
-                   help="with --engine mujoco: the TCP's path (default arc)")
+                        "paper cutter or a pen on its tip (sim/mujoco_source.py, the bench extra)")
+    p.add_argument("--motion", choices=("arc", "arc-turning", "push", "circle"),
+                   help="with --engine mujoco: the TCP's path (default arc); circle: the pen on its tip")
     _scenario_options(p)
     p.set_defaults(func=_cmd_sim_record)
     p = sub.add_parser("imu", help="read the fingertip IMU board: rates, counters, latest sample")
