@@ -40,6 +40,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.ur
 	$(PY) -m benchmarks.viz
 	$(PY) -m benchmarks.mujoco
+	$(PY) -m benchmarks.poses
 	$(PY) -m benchmarks.startup --cold
 
 clean:

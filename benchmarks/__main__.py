@@ -78,10 +78,15 @@ def probe_direction(name: str, radius: float, off_deg: float = 0.0) -> list[floa
 
 
 def bench_rotate(radius: float, seed: int, strategy: str = "arc", angle_deg: float = 30.0,
-                 turn_tool: bool = True, pose: str = POSES[0], off_deg: float = 0.0) -> dict:
+                 turn_tool: bool = True, pose: str = POSES[0], off_deg: float = 0.0, pose_spec: dict | None = None,
+                 direction: list | None = None) -> dict:
+    """One `rotate` on the simulated cutter, its hinge at a named pose (or at `pose_spec`: point and
+    axis), probing along `direction` (default: the named pose's tangent, `off_deg` off it)."""
     cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     cfg["sim"]["seed"] = seed
-    cfg["sim"]["hinge"].update(hinge_pose(pose, radius))
+    cfg["sim"]["hinge"].update(pose_spec or hinge_pose(pose, radius))
+    if direction is None:
+        direction = probe_direction(pose, radius, off_deg)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:
         path = pathlib.Path(tmp) / "bench.yaml"
@@ -98,7 +103,7 @@ def bench_rotate(radius: float, seed: int, strategy: str = "arc", angle_deg: flo
                     cpu0, sim0, t0 = proc_cpu_s(proc.pid), children_cpu_s(proc.pid), time.monotonic()
                     reply = cli.command("rotate", {"angle_deg": angle_deg, "strategy": strategy,
                                                    "turn_tool": turn_tool,
-                                                   "direction": probe_direction(pose, radius, off_deg)})
+                                                   "direction": direction})
                     ev = cli.wait_event(("task_done", "task_failed"), reply["task"], 120)
                     cpu_task = (proc_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
                     cpu_sim = (children_cpu_s(proc.pid) - sim0) / (time.monotonic() - t0)
