@@ -81,6 +81,7 @@ class MujocoScenario:
 MOTIONS = ("arc", "arc-turning", "push", "circle")
 HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point (the pen's tip), world (the robot base), m
 RAMP_S = 0.05                              # the arm reaches its speed in this long
+NOMINAL_GRIP_N = 30.0                      # meta.grip_force: the fingertip's eta is set directly, at this force
 SETTLE_S = 0.3                             # simulated before the recording starts: the grasp takes the handle's weight
 
 
@@ -235,7 +236,8 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         "tcp_vel": (v_cmd[idx] + rng.normal(0.0, sc.tcp_vel_noise, (len(idx), 3))) if sc.with_tcp_vel else None,
         "plane_normal": None,
         "meta": {"simulated": True, "engine": f"mujoco {mujoco.__version__}", "kind": f"mujoco-{sc.motion}",
-                 "radius": L, "speed": sc.speed, "eta_true": sc.eta, "seed": sc.seed},
+                 "radius": L, "speed": sc.speed, "eta_true": sc.eta, "seed": sc.seed,
+                 "grip_force": NOMINAL_GRIP_N, "fingertip_lag_s": sc.lag_tau_s},
     }
     # the onset: the arm starts to push the held handle (the handle itself may stick a little longer)
     point = sc.world == "pen"

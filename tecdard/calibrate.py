@@ -13,6 +13,15 @@ Each recording gives one eta, with the standard error of its slope. The recordin
 force (the `grip_force` key's median, rounded to 0.1 N) are pooled: the inverse-variance mean, and
 the spread between recordings where there are several. The printed `estimator.eta_table` goes
 into the daemon's config.
+
+With `--contact`, the fingertip's lag (`estimator.fingertip_lag_s`) is fitted too: the twist the
+gyro reads lags the object's by the silicone's time constant, which shows where the rates change
+(the probe's start). At each proprioception sample in the first LAG_SPAN_S of the motion, the
+object's rate relative to the gripper across the lever arm (from the TCP's velocity and the known
+contact) is compared with eta times the gyro's relative rate LAG seconds later; the lag on a
+LAG_STEP_S grid up to LAG_MAX_S that leaves the least residual over all the recordings (each with
+its own eta) is the fingertip's. Steady motion says nothing about it, so a probe must start from
+rest.
 """
 from __future__ import annotations
 
@@ -26,10 +35,25 @@ MIN_TURN_RAD = np.radians(2.0)    # a probe must turn the object at least this m
 BIAS_WINDOW_S = 0.2           # the gyro bias: the mean over this long before the onset (at rest)
 MIN_RECORDINGS = 2
 FORCE_ROUND_N = 0.1
+LAG_MAX_S = 0.010             # the fingertip lag searched, 0 to this
+LAG_STEP_S = 0.00025
+LAG_SPAN_S = 0.3              # the part of a probe fitted: its start (where the rates change) and enough to pin eta
 
 
 class CalibrationError(Exception):
     """What keeps a calibration from being made, in one line naming the file or the option."""
+
+
+def gripper_rates(rec) -> np.ndarray:
+    """The gripper's own rate (world, rad/s) at each proprioception sample, from its orientations."""
+    R_world_tcp = quat_to_matrix(rec.tcp_quat)
+    dR = np.einsum("kji,kjl->kil", R_world_tcp[:-1], R_world_tcp[1:])      # R_k^T R_{k+1}
+    ang = np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    ax = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], axis=1)
+    scale = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
+    w_body = ax * scale[:, None] / np.diff(rec.tcp_t)[:, None]
+    w_tcp_k = np.einsum("kij,kj->ki", R_world_tcp[:-1], w_body)
+    return np.vstack([w_tcp_k, w_tcp_k[-1:]])
 
 
 def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = None) -> tuple[float, float, int]:
@@ -47,14 +71,7 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
         v_tcp = rec.tcp_vel
     else:
         v_tcp = np.gradient(rec.tcp_pos, rec.tcp_t, axis=0)
-    # the gripper's own rate, from its orientations
-    dR = np.einsum("kji,kjl->kil", R_world_tcp[:-1], R_world_tcp[1:])      # R_k^T R_{k+1}
-    ang = np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
-    ax = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], axis=1)
-    scale = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
-    w_body = ax * scale[:, None] / np.diff(rec.tcp_t)[:, None]
-    w_tcp_k = np.einsum("kij,kj->ki", R_world_tcp[:-1], w_body)
-    w_tcp_k = np.vstack([w_tcp_k, w_tcp_k[-1:]])
+    w_tcp_k = gripper_rates(rec)
     after = t >= onset_t
     w_seen = np.einsum("kij,kj->ki", R_world_tcp[j], (rec.gyro - bias) @ R_tcp_imu.T)
     edges = np.arange(onset_t, t[-1], WINDOW_S)
@@ -95,6 +112,57 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
     dof = max(len(a) - 1, 1)
     se = float(np.sqrt((res @ res) / dof / bb))
     return eta, se, len(a_all)
+
+
+def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lags on the grid (k,), the residual sum of squares at each, eta fitted per lag) of one
+    recording with a known contact: the object's relative rate across the lever arm at each
+    proprioception sample in the probe's first LAG_SPAN_S against the gyro's LAG later."""
+    t = rec.imu_t
+    pre = (t < onset_t) & (t >= onset_t - BIAS_WINDOW_S)
+    bias = rec.gyro[pre].mean(axis=0)
+    R_tcp_imu = quat_to_matrix(rec.imu_in_tcp_quat)
+    R_world_tcp = quat_to_matrix(rec.tcp_quat)
+    j_of_t = np.clip(np.searchsorted(rec.tcp_t, t, side="right") - 1, 0, len(rec.tcp_t) - 1)
+    w_seen = np.einsum("kij,kj->ki", R_world_tcp[j_of_t], (rec.gyro - bias) @ R_tcp_imu.T)
+    v_tcp = rec.tcp_vel if rec.tcp_vel is not None else np.gradient(rec.tcp_pos, rec.tcp_t, axis=0)
+    sel = np.flatnonzero((rec.tcp_t >= onset_t) & (rec.tcp_t < onset_t + LAG_SPAN_S))
+    lags = np.arange(0.0, LAG_MAX_S + 1e-12, LAG_STEP_S)
+    rss = np.full(len(lags), np.inf)
+    if len(sel) < 5:
+        return lags, rss
+    r = rec.tcp_pos[sel] - contact
+    n2 = np.einsum("ij,ij->i", r, r)
+    u = r / np.sqrt(n2)[:, None]
+    w_tcp = gripper_rates(rec)[sel]
+    a = np.cross(r, v_tcp[sel] - np.cross(w_tcp, r)) / n2[:, None]   # the object's rate relative to the gripper, across r
+    dt_imu = float(np.median(np.diff(t)))
+    half = max(int(round(0.5 / (dt_imu * max(len(rec.tcp_t) / (rec.tcp_t[-1] - rec.tcp_t[0]), 1.0)))), 1)
+    for k, lag in enumerate(lags):
+        # the gyro's mean over the proprioception period around each sample's time + lag
+        i = np.searchsorted(t, rec.tcp_t[sel] + lag)
+        lo, hi = np.clip(i - half, 0, len(t)), np.clip(i + half + 1, 0, len(t))
+        c = np.vstack([np.zeros((1, 3)), np.cumsum(w_seen, axis=0)])
+        b = (c[hi] - c[lo]) / np.maximum(hi - lo, 1)[:, None] - w_tcp
+        b = b - np.einsum("ij,ij->i", b, u)[:, None] * u
+        bb = float(np.sum(b * b))
+        if bb <= 0:
+            continue
+        eta = float(np.sum(a * b)) / bb
+        rss[k] = float(np.sum((a - eta * b) ** 2))
+    return lags, rss
+
+
+def best_lag(curves: list[np.ndarray], lags: np.ndarray) -> float:
+    """The lag of least summed residual (a parabola through the grid's minimum and its neighbours)."""
+    total = np.sum(np.vstack(curves), axis=0)
+    k = int(np.argmin(total))
+    if 0 < k < len(lags) - 1 and np.all(np.isfinite(total[k - 1:k + 2])):
+        y0, y1, y2 = total[k - 1:k + 2]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            return float(lags[k] + 0.5 * (y0 - y2) / den * LAG_STEP_S)
+    return float(lags[k])
 
 
 def pool(rows: list[tuple[float, float, float]]) -> list[tuple[float, float, float, int]]:

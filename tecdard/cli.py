@@ -202,7 +202,7 @@ def _cmd_calibrate_eta(args) -> int:
     if len(args.recordings) < K.MIN_RECORDINGS:
         return bad(f"needs at least {K.MIN_RECORDINGS} recordings (got {len(args.recordings)}): eta's uncertainty "
                    "comes from more than one probe")
-    rows = []
+    rows, lag_curves = [], []
     try:
         for path in args.recordings:
             one = ap.Namespace(recording=path, config=args.config, method=None, ignore_live=False, no_plane=False)
@@ -214,6 +214,9 @@ def _cmd_calibrate_eta(args) -> int:
             force = K.grip_force_of(name, rec)
             eta, se, n = K.eta_of(name, rec, onset_t, contact, args.radius)
             rows.append((force, eta, se))
+            if contact is not None:
+                lags, rss = K.lag_residuals(rec, onset_t, contact)
+                lag_curves.append(rss)
             print(f"{name}: grip {force:g} N, eta {eta:.3f} +- {se:.3f} ({n} windows)")
     except _BadInput as exc:
         return bad(str(exc))
@@ -224,6 +227,8 @@ def _cmd_calibrate_eta(args) -> int:
     for force, eta, sigma, n in pooled:
         print(f"{force:12g} | {eta:.3f} | {sigma:.3f} | {n}")
     print(K.table_yaml(pooled))
+    if lag_curves:
+        print(f"estimator.fingertip_lag_s: {K.best_lag(lag_curves, lags):.4f}")
     return 0
 
 

@@ -63,3 +63,24 @@ def test_too_few_recordings_and_probes_that_never_turned_are_one_line_errors(pro
     res = tecdard("calibrate-eta", str(probes[0]), str(probes[1]), "--contact", "1,2")
     assert res.returncode == 2 and "--contact: expected three numbers" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+LAG_TOL_S = 0.0015            # the fitted fingertip lag (measured within 0.9 ms on MuJoCo arcs with two probes)
+
+
+@pytest.mark.parametrize("lag_s", [0.0, 0.006])
+def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, lag_s):
+    """MuJoCo arcs (rigid-body physics, the fingertip's twist a first-order lag of lag_s): the lag that
+    best lines up the gyro with the TCP's motion about the known hinge, printed for the config."""
+    pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` installs")
+    from sim.mujoco_source import HINGE, MujocoScenario, generate
+    from tecdard.recording import Recording, save_recording
+    paths = []
+    for seed in (1, 2):
+        fields, truth = generate(MujocoScenario(motion="arc", radius=0.08, lag_tau_s=lag_s, seed=seed))
+        paths.append(tmp_path / f"arc-{seed}.npz")
+        save_recording(paths[-1], Recording.from_fields(fields), truth)
+    res = tecdard("calibrate-eta", *map(str, paths), "--contact", ",".join(f"{x:.9f}" for x in HINGE))
+    assert res.returncode == 0, res.stderr
+    (line,) = [ln for ln in res.stdout.splitlines() if ln.startswith("estimator.fingertip_lag_s:")]
+    assert abs(float(line.split(":")[1]) - lag_s) < LAG_TOL_S, line
