@@ -321,7 +321,58 @@ class PositionEvidence:
 _NO_EVIDENCE = {d: PositionEvidence(d, 1.0).ev for d in (2, 3)}
 
 
-class ContactKF(ContactEstimator):
+class ContactKfSettings:
+    """The pipeline's settings and inputs as `ekf` takes them (ContactKF, and
+    control.reference.ReferenceKF): each hook of ContactEstimator kept as the state the next update
+    or episode reads, and an update's optional inputs made whole."""
+
+    params: ContactKfParams
+    positions: "PositionEvidence | None"
+
+    def set_arc_radial_var(self, var_m2_s2: float) -> None:
+        self.radial_var = var_m2_s2
+
+    def set_eta_prior(self, mean: float, rel_std: float) -> None:
+        self.eta_prior_mean, self.eta_rel_std = mean, rel_std
+
+    def set_correlation(self, samples: float) -> None:
+        self.corr_samples = samples
+
+    def set_position_noise(self, sigma_m: float) -> None:
+        self.sigma_p = max(float(sigma_m), self.params.sigma_p)
+        if self.positions is not None:
+            self.positions.var = _position_var(self.sigma_p)
+
+    def _episode_prior(self, p_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A new episode from the TCP at onset p_g: the origin (and the plane's), the position
+        evidence restarted, eta's prior read from the settings; returns the state's prior (x, P):
+        the contact at the onset TCP, k at its prior mean."""
+        d = self.d
+        self.origin = np.asarray(p_g, dtype=float).copy()
+        if self.plane is not None:
+            self.plane.origin = self.origin
+        if self.positions is not None:
+            self.positions.start()
+        self.k_prior_mean = self.eta_prior_mean
+        self.k_prior_var = self.eta_rel_std ** 2 if self.nk else 0.0
+        x = np.append(np.zeros(d), [self.k_prior_mean] * self.nk)
+        return x, np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
+
+    def _inputs(self, n: int, w, p, var_v, var_w, w_tcp, paired):
+        """(var_v, var_w, w_tcp, w_v, w_tcp_v, p_v) for n samples (ContactKF.update's arguments)."""
+        var_v = np.full(n, self.params.sigma_v ** 2) if var_v is None else var_v
+        var_w = np.zeros(n) if var_w is None else var_w
+        w_tcp = np.zeros((n, 3)) if w_tcp is None else w_tcp
+        if paired is None:
+            return var_v, var_w, w_tcp, w, w_tcp, p
+        w_v, w_tcp_v, p_v, n_avg = paired
+        # the paired rate averages n_avg samples' noise, and every sample holding this velocity
+        # repeats it: one error, shared like the velocity's (corr)
+        var_w = var_w + self.params.sigma_w ** 2 * (max(self.corr_samples, 1.0) / n_avg - 1.0)
+        return var_v, var_w, w_tcp, w_v, w_tcp_v, p_v
+
+
+class ContactKF(ContactKfSettings, ContactEstimator):
     """`ekf`: our filter on the same constraint, built for accuracy, honesty and speed.
 
     State x = [m, k]: k = eta_true / eta_used is the error of the scheduled eta and
@@ -355,20 +406,6 @@ class ContactKF(ContactEstimator):
     """
 
     method = "ekf"
-
-    def set_arc_radial_var(self, var_m2_s2: float) -> None:
-        self.radial_var = var_m2_s2
-
-    def set_eta_prior(self, mean: float, rel_std: float) -> None:
-        self.eta_prior_mean, self.eta_rel_std = mean, rel_std
-
-    def set_correlation(self, samples: float) -> None:
-        self.corr_samples = samples
-
-    def set_position_noise(self, sigma_m: float) -> None:
-        self.sigma_p = max(float(sigma_m), self.params.sigma_p)
-        if self.positions is not None:
-            self.positions.var = _position_var(self.sigma_p)
 
     def __init__(self, params: ContactKfParams | None = None, plane: Plane | None = None):
         self.params = params or ContactKfParams()
@@ -441,18 +478,7 @@ class ContactKF(ContactEstimator):
 
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
         """Start an episode at the TCP state at onset; eta's prior is `eta_prior_mean`, `eta_rel_std` as set now."""
-        d = self.d
-        self.origin = np.asarray(p_g, dtype=float).copy()
-        if self.plane is not None:
-            self.plane.origin = self.origin
-        if self.positions is not None:
-            self.positions.start()
-        self.x = np.zeros(d + self.nk)
-        self.k_prior_mean = self.eta_prior_mean
-        self.k_prior_var = self.eta_rel_std ** 2 if self.nk else 0.0
-        if self.nk:
-            self.x[d] = self.k_prior_mean
-        self.P = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
+        self.x, self.P = self._episode_prior(p_g)
         self._status[0] = kern.record(kern.STATUS, consistency=1.0)[0]
         self._frame = kern.contiguous(kern.Frame(self._E, self._normal, self.origin))
 
@@ -466,17 +492,7 @@ class ContactKF(ContactEstimator):
         w_tcp_v, p_v, n_avg): the object's rate, the gripper's and the TCP's position from when the
         held velocity v was measured, the rate a mean over n_avg (n,) IMU samples (None: v is
         taken as of each sample)."""
-        n = len(dt)
-        var_v = np.full(n, self.params.sigma_v ** 2) if var_v is None else var_v
-        var_w = np.zeros(n) if var_w is None else var_w
-        w_tcp = np.zeros((n, 3)) if w_tcp is None else w_tcp
-        if paired is None:
-            w_v, w_tcp_v, p_v = w, w_tcp, p
-        else:
-            w_v, w_tcp_v, p_v, n_avg = paired
-            # the paired rate averages n_avg samples' noise, and every sample holding this velocity
-            # repeats it: one error, shared like the velocity's (corr)
-            var_w = var_w + self.params.sigma_w ** 2 * (max(self.corr_samples, 1.0) / n_avg - 1.0)
+        var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(len(dt), w, p, var_v, var_w, w_tcp, paired)
         samples = kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, w_v, w_tcp_v, p_v, var_v, var_w,
                                                _NO_FRESH if fresh is None else fresh))
         self._gated = kern.ekf_advance(self.x, self.P, self._status, self._r_last, self._win, self._gated, self._ev,

@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT,
-                         UNOBSERVED_STD_M, ContactKfParams, PositionEvidence, _position_var)
+                         UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings, PositionEvidence, _position_var)
 from control.estimators import ContactEstimator
 from control.geometry import Plane
 from control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
@@ -111,7 +111,7 @@ class ContactFilter:
         self.x_post, self.P_post = self.x.copy(), self.P.copy()
 
 
-class ReferenceKF(ContactEstimator):
+class ReferenceKF(ContactKfSettings, ContactEstimator):
     """`ekf-reference`: ContactKF's model and schedule in numpy; the same estimates, slower."""
 
     method = "ekf-reference"
@@ -136,21 +136,6 @@ class ReferenceKF(ContactEstimator):
         self.consistency = 1.0
         self.window = None
 
-    # the pipeline's settings, as ContactKF takes them
-    def set_arc_radial_var(self, var_m2_s2: float) -> None:
-        self.radial_var = var_m2_s2
-
-    def set_eta_prior(self, mean: float, rel_std: float) -> None:
-        self.eta_prior_mean, self.eta_rel_std = mean, rel_std
-
-    def set_correlation(self, samples: float) -> None:
-        self.corr_samples = samples
-
-    def set_position_noise(self, sigma_m: float) -> None:
-        self.sigma_p = max(float(sigma_m), self.params.sigma_p)
-        if self.positions is not None:
-            self.positions.var = _position_var(self.sigma_p)
-
     @property
     def x(self) -> np.ndarray:
         return self.kf.x
@@ -165,17 +150,8 @@ class ReferenceKF(ContactEstimator):
         return max(float(x[self.d]), K_MIN) if self.nk else self.k_prior_mean
 
     def start(self, p_g: np.ndarray, v_g: np.ndarray) -> None:
-        d = self.d
-        self.origin = np.asarray(p_g, dtype=float).copy()
-        if self.plane is not None:
-            self.plane.origin = self.origin
-        if self.positions is not None:
-            self.positions.start()
-        self.k_prior_mean = self.eta_prior_mean
-        self.k_prior_var = self.eta_rel_std ** 2 if self.nk else 0.0
-        x0 = np.append(np.zeros(d), [self.k_prior_mean] * self.nk)
-        P0 = np.diag([self.params.p0_c] * d + [self.k_prior_var] * self.nk)
-        self.kf = ContactFilter(x0, P0, self.params.q_c, d)
+        x0, P0 = self._episode_prior(p_g)
+        self.kf = ContactFilter(x0, P0, self.params.q_c, self.d)
         self.steps = self.rejected = 0
         self.nis = 0.0
         self.consistency = 1.0
@@ -283,15 +259,7 @@ class ReferenceKF(ContactEstimator):
     # --- the run over a chunk (ContactEstimator)
     def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
         n = len(dt)
-        var_v = np.full(n, self.params.sigma_v ** 2) if var_v is None else var_v
-        var_w = np.zeros(n) if var_w is None else var_w
-        w_tcp = np.zeros((n, 3)) if w_tcp is None else w_tcp
-        if paired is None:
-            w_v, w_tcp_v, p_v = w, w_tcp, p
-        else:
-            w_v, w_tcp_v, p_v, n_avg = paired
-            # a mean of n_avg samples' rates, repeated by every sample that holds the velocity
-            var_w = var_w + self.params.sigma_w ** 2 * (max(self.corr_samples, 1.0) / n_avg - 1.0)
+        var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(n, w, p, var_v, var_w, w_tcp, paired)
         mb = self.params.max_block
         for b0 in range(0, n, mb):
             sl = slice(b0, b0 + mb)
