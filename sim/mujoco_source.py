@@ -63,12 +63,17 @@ class MujocoScenario:
 
     @property
     def world(self) -> str:
-        """The cutter on its hinge (line contact), or a pen on its tip (point contact)."""
-        return "pen" if self.motion == "circle" else "cutter"
+        """The cutter on its hinge (line contact), a pen on its tip (point contact), or a block
+        tipped up on its bottom edge against a ridge on the table (a line contact through real
+        contacts: they may give and slide)."""
+        return {"circle": "pen", "tilt": "block"}.get(self.motion, "cutter")
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"motion: expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
+        if self.motion == "tilt" and (self.yaw_deg != 0.0 or self.radius < 2 * BLOCK_HALF_WIDTH_M):
+            raise ValueError(f"tilt: the block's table lies along y (yaw_deg 0) and its lever is at least "
+                             f"{2 * BLOCK_HALF_WIDTH_M:g} m")
         if self.motion == "circle" and not 0.005 <= self.circle_radius <= 0.5 * self.radius:
             raise ValueError(f"circle_radius: {self.circle_radius:g} is outside [0.005, radius / 2]")
         for name, lo, hi in (("radius", 0.02, 0.4), ("speed", 0.001, 0.2), ("eta", 1.01, 10.0),
@@ -78,7 +83,8 @@ class MujocoScenario:
                 raise ValueError(f"{name}: {v:g} is outside [{lo:g}, {hi:g}]")
 
 
-MOTIONS = ("arc", "arc-turning", "push", "circle")
+MOTIONS = ("arc", "arc-turning", "push", "circle", "tilt")
+BLOCK_HALF_WIDTH_M = 0.03                  # the block: the TCP grasps its top, this far from the pivot edge in x
 HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point (the pen's tip), world (the robot base), m
 RAMP_S = 0.05                              # the arm reaches its speed in this long
 NOMINAL_GRIP_N = 30.0                      # meta.grip_force: the fingertip's eta is set directly, at this force
@@ -103,6 +109,22 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
     else:
         joint = (f'<joint name="hinge" type="hinge" axis="{axis[0]} {axis[1]} {axis[2]}" range="-100 0" '
                  f'limited="true" damping="0.02" frictionloss="{sc.hinge_friction_nm}"/>')
+    held = f"""<body name="handle" pos="{HINGE[0]} {HINGE[1]} {HINGE[2]}">
+      {joint}
+      <geom type="capsule" fromto="0 0 0 {handle_dir[0]} {handle_dir[1]} {handle_dir[2]}" size="0.008"
+            contype="0" conaffinity="0" mass="0.1"/>
+    </body>"""
+    anchor = handle_dir
+    if sc.world == "block":     # a box on the table, its bottom edge at HINGE against a ridge (world x-z plane)
+        h2 = 0.5 * handle_dir[2]
+        c = HINGE + np.array([BLOCK_HALF_WIDTH_M, 0.0, h2])
+        held = f"""<geom name="table" type="box" pos="{HINGE[0]} 0 {HINGE[2] - 0.01}" size="0.3 0.3 0.01"/>
+    <geom name="ridge" type="box" pos="{HINGE[0] - 0.004} 0 {HINGE[2] + 0.004}" size="0.004 0.3 0.004"/>
+    <body name="handle" pos="{c[0]} {c[1]} {c[2]}">
+      <freejoint name="hinge"/>
+      <geom type="box" size="{BLOCK_HALF_WIDTH_M} 0.04 {h2}" mass="0.3" friction="0.8"/>
+    </body>"""
+        anchor = np.array([0.0, 0.0, h2])
     return f"""
 <mujoco model="tecdar-cutter">
   <option timestep="{1.0 / sc.imu_hz}" gravity="0 0 -{G}" integrator="implicitfast"/>
@@ -121,16 +143,11 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
         </body>
       </body>
     </body>
-    <body name="handle" pos="{HINGE[0]} {HINGE[1]} {HINGE[2]}">
-      {joint}
-      <geom type="capsule" fromto="0 0 0 {handle_dir[0]} {handle_dir[1]} {handle_dir[2]}" size="0.008"
-            contype="0" conaffinity="0" mass="0.1"/>
-      <site name="grasp" pos="{handle_dir[0]} {handle_dir[1]} {handle_dir[2]}"/>
-    </body>
+    {held}
   </worldbody>
   <equality>
     <weld body1="target" body2="gripper" relpose="0 0 0 1 0 0 0" solref="0.001 1" torquescale="100"/>
-    <weld body1="pad" body2="handle" anchor="{handle_dir[0]} {handle_dir[1]} {handle_dir[2]}"
+    <weld body1="pad" body2="handle" anchor="{anchor[0]} {anchor[1]} {anchor[2]}"
           relpose="0 0 0 0 0 0 0" solref="0.002 1" torquescale="100"/>
   </equality>
   <sensor>
@@ -153,6 +170,10 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     if sc.world == "pen":       # tilted from the vertical through the tip by the circle's radius
         h = math.sqrt(sc.radius ** 2 - sc.circle_radius ** 2)
         p0 = HINGE + sc.circle_radius * out_dir + np.array([0.0, 0.0, h])
+    elif sc.world == "block":   # the top's middle, above the block's middle
+        h = math.sqrt(sc.radius ** 2 - BLOCK_HALF_WIDTH_M ** 2)
+        p0 = HINGE + BLOCK_HALF_WIDTH_M * out_dir + np.array([0.0, 0.0, h])
+        out_dir = (p0 - HINGE) / sc.radius          # the lever arm's direction, for the tangent below
     else:
         p0 = HINGE + sc.radius * out_dir
     R0 = Rz @ np.diag([1.0, -1.0, -1.0])                   # tool down
@@ -211,8 +232,8 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         # behind the target (world-aligned, at the body's origin)
         mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, gripper, vel6, 0)
         p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), vel6[3:]
-        if sc.world == "pen":
-            q = data.qpos[hinge_q:hinge_q + 4]
+        if sc.world in ("pen", "block"):
+            q = data.qpos[hinge_q + (3 if sc.world == "block" else 0):][:4]
             angle[k] = 2.0 * math.atan2(float(np.linalg.norm(q[1:])), abs(float(q[0])))
         else:
             angle[k] = data.qpos[hinge_q]

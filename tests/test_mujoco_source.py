@@ -18,6 +18,8 @@ RATE_TOL = 0.05              # the IMU's relative rate against (handle rate) / e
 ANGLE_TOL_DEG = 0.5
 END_TOL_M = 0.002            # the hinge at the end of an arc, the onset commanded (measured 0.5 mm at 12 cm)
 LAG_TOL_S = 0.001            # the fingertip twist's lag against the source's time constant
+BLOCK_END_TOL_M = 0.003      # the block's edge at the end (its contacts give a little)
+BLOCK_ANGLE_TOL_DEG = 3.0    # the block turns 2 deg more than the arc: the grasp and the contacts give (measured)
 EARLY_TOL_M = 0.010          # the hinge 30 ms into an arc at 12 cm (issue 21's target; measured 4 mm)
 
 
@@ -99,7 +101,7 @@ def _error_at(fields, truth, horizon_s, **estimator):
                           rec.imu_rate_hz)
     pipe.begin(float(truth["onset_t"]))
     rows, _, _ = L.replay(rec, pipe)
-    i = np.searchsorted(rows[:, 0] - float(truth["onset_t"]), horizon_s)
+    i = min(int(np.searchsorted(rows[:, 0] - float(truth["onset_t"]), horizon_s)), len(rows) - 1)
     d = rows[i, 1:4] - truth["p_c"]
     a = truth["axis"]
     return float(np.linalg.norm(d - (d @ a) * a))
@@ -133,3 +135,14 @@ def test_a_pen_on_its_tip_is_found_in_3d_once_its_top_has_circled():
     assert early
     for e in early:
         assert abs(float((e.p - e.onset_p_tcp) @ e.axis)) < 1e-9
+
+
+def test_a_block_tipped_on_its_edge_pivots_there_and_the_estimator_finds_the_edge():
+    """The block on the table, its bottom edge against the ridge: tipped by an arc about that edge it
+    turns as commanded on MuJoCo's contacts, and the estimator finds the edge (measured 0.7-1.0 mm at
+    the end, medians of 3 seeds)."""
+    fields, truth = generate(MujocoScenario(motion="tilt", radius=0.08, seed=1))
+    sc = MujocoScenario(motion="tilt", radius=0.08)
+    expected_deg = math.degrees(sc.speed * (sc.move_s - 0.025) / 0.08)
+    assert abs(abs(math.degrees(truth["angle"][-1])) - expected_deg) < BLOCK_ANGLE_TOL_DEG
+    assert _error_at(fields, truth, np.inf) < BLOCK_END_TOL_M
