@@ -178,6 +178,7 @@ class ContactKfParams:
     use_positions: bool = True     # TCP positions as evidence too (rigid-body displacement), see PositionEvidence
     estimate_eta: bool = True      # carry eta's error as a state, see ContactKF
     eta_test_sigma: float = 3.0    # the data must reject the calibrated eta by this many sigma to be used
+    slip_radial_sigma: float = 0.005   # m/s, distrust of the velocity along the lever arm once positions show a slip
 
     @classmethod
     def from_config(cls, section) -> "ContactKfParams":
@@ -194,6 +195,7 @@ class ContactKfParams:
             use_positions=section.getbool("use_positions", d.use_positions),
             estimate_eta=section.getbool("estimate_eta", d.estimate_eta),
             eta_test_sigma=section.getfloat("eta_test_sigma", d.eta_test_sigma, minval=0.0),
+            slip_radial_sigma=section.getfloat("slip_radial_sigma", d.slip_radial_sigma, minval=0.0, maxval=1.0),
         )
 
 
@@ -342,6 +344,16 @@ class ContactKfSettings:
         self.sigma_p = max(float(sigma_m), self.params.sigma_p)
         if self.positions is not None:
             self.positions.var = _position_var(self.sigma_p)
+
+    def radial_var_now(self) -> float:
+        """The distrust of the velocity along the lever arm, (m/s)^2: the arc follower's, or once the
+        positions have shown the TCP moving relative to the object (PositionEvidence.broken: a
+        push that stretches the grasp, a slide), the slip's. The slip runs along the lever arm, and
+        taken as evidence it turned the estimate (MuJoCo pushes: 7-12 mm off at the end; 4-5 mm
+        with it)."""
+        if self.positions is not None and self.positions.broken:
+            return max(self.radial_var, self.params.slip_radial_sigma ** 2)
+        return self.radial_var
 
     def _episode_prior(self, p_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A new episode from the TCP at onset p_g: the origin (and the plane's), the position
@@ -502,7 +514,7 @@ class ContactKF(ContactKfSettings, ContactEstimator):
     def _run_params(self) -> np.ndarray:
         """The compiled run's parameters (kernels.RUN_PARAMS) as they stand now, in place."""
         prm = self.params
-        self._prm[0] = (prm.q_c, self.corr_samples, self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var, prm.gate_nis,
+        self._prm[0] = (prm.q_c, self.corr_samples, self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var_now(), prm.gate_nis,
                         self.k_prior_mean, self.k_prior_var, prm.max_block, _position_var(self.sigma_p), CONSISTENCY_WINDOW_S,
                         CONSISTENCY_TAU_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT)     # RUN_PARAMS' order
         return self._prm

@@ -125,6 +125,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         self.sigma_p = self.params.sigma_p
         self.corr_samples = 1.0
         self.radial_var = 0.0
+        self._radial_var = 0.0                  # the distrust along the lever arm for the current chunk
         self.eta_prior_mean, self.eta_rel_std = 1.0, self.params.eta_rel_std
         self.k_prior_mean, self.k_prior_var = 1.0, 0.0
         self.origin = np.zeros(3)
@@ -172,6 +173,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         the state x, the noise linearised at x_lin."""
         d, nk, prm = self.d, self.nk, self.params
         k, k_lin = self.k(x), self.k(x_lin)
+        radial_var = self._radial_var          # as of the chunk's start, as the compiled run reads it
         c, c_lin = x[:d] / k, x_lin[:d] / k_lin
         corr = max(self.corr_samples, 1.0)
         n = len(r0)
@@ -199,7 +201,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
                 R[i] = ((prm.sigma_w ** 2 + var_w[i]) * skew(r) @ skew(r).T
                         + corr * self.sigma_p ** 2 * skew(w_lin) @ skew(w_lin).T + corr * var_v[i] * np.eye(3))
                 rh = r / max(float(np.linalg.norm(r)), 1e-9)
-            R[i] += corr * self.radial_var * np.outer(rh, rh)
+            R[i] += corr * radial_var * np.outer(rh, rh)
         return y, H, R
 
     def gate_armed(self, H: np.ndarray, R_floor: float, P: np.ndarray) -> bool:
@@ -260,6 +262,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
     def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
         n = len(dt)
         var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(n, w, p, var_v, var_w, w_tcp, paired)
+        self._radial_var = self.radial_var_now()
         mb = self.params.max_block
         for b0 in range(0, n, mb):
             sl = slice(b0, b0 + mb)
@@ -320,7 +323,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         ev = self.positions
         if ev is None or (fresh is not None and ev.broken):
             return
-        if fresh is None or self.radial_var > 0:
+        if fresh is None or self._radial_var > 0:
             ev.reset()                  # no positions, or the arc follower moves the TCP along the lever arm
             return
         if self.nk and self.k_prior_var > 0:
