@@ -219,13 +219,12 @@ class ProprioTrack:
         return out
 
     def velocity_at(self, ts: np.ndarray):
-        """What the velocity held at times ts belongs to: (the TCP's position then (n, 3), the TCP's
-        own rate then (n, 3), unextrapolated, the time tv it belongs to and the half span h around
-        it that it describes (n,) each: a derived velocity the interval between its two positions,
-        a reported one the half periods either side of its stamp; its noise variance, (m/s)^2,
-        without staleness)."""
+        """What the velocity held at times ts belongs to: (the TCP's position then (n, 3), the time
+        tv it belongs to and the half span h around it that it describes (n,) each: a derived
+        velocity the interval between its two positions, a reported one the half periods either
+        side of its stamp; its noise variance, (m/s)^2, without staleness)."""
         j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
-        return self.pv[j], self.w[j], self.tv[j], self.hv[j], self.var_v[j]
+        return self.pv[j], self.tv[j], self.hv[j], self.var_v[j]
 
 
 class RateHistory:
@@ -545,7 +544,7 @@ class ContactPipeline:
         # would enter it (eta - 1) times).
         ok &= ~tainted[start:]           # clipped at full scale: no measurement (set_saturation)
         self._rates.add((ts - delay)[ok], self.cond.object_rate_world(w_f[ok], R[ok], np.zeros(3), 1.0))
-        p_v, w_tcp_v, tv, hv, var_v = self.proprio.velocity_at(ts - delay)
+        p_v, tv, hv, var_v = self.proprio.velocity_at(ts - delay)
         # The fingertip's twist, which the IMU reads, lags the object's by the silicone's viscoelastic
         # time constant (the paper's "phase lag", Sec. III-B, which its eta leaves out): the twist
         # read at tv + lag is the object's at tv. The gripper's own rotation reaches the IMU at once.
