@@ -1,7 +1,6 @@
 """Task state machines stepped by the 20 ms control tick: two-phase probing and hinge rotation (Algorithm 2)."""
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -148,11 +147,7 @@ class TwoPhaseTask(Task):
     """
 
     kind = "rotate"
-    # The probe's direction is the operator's guess at the tangent: its part along the handle is
-    # absorbed by the grasp, as the arc's radial error is. Taken as evidence, a probe 10 deg off put
-    # the centre 25-28 mm off with a 3 mm one-sigma, which the arc's triangulation corrected only
-    # slowly (the hinge ended 3-12 mm off at +-10 deg, 10-25 cm).
-    absorbed_phases = ("probe", "arc")
+    absorbed_phases = ("arc",)
 
     def __init__(self, task_id: str, angle_rad: float, speed: float, probe_distance: float,
                  direction: np.ndarray, strategy: str = "arc", turn_tool: bool = False):
@@ -176,8 +171,6 @@ class TwoPhaseTask(Task):
         self._f0 = None                 # TCP force at the start (the robot's bias and the grasp's preload)
         self._radial = 0.0              # arc radius correction from the grasp force, m
         self._t_radial = None
-        self._centre = None             # the arc's centre (the estimate, followed at the TCP's speed), m
-        self._t_centre = None
 
     def _started(self, inp: TickInput) -> None:
         self._enter("probe", inp.t)
@@ -233,7 +226,7 @@ class TwoPhaseTask(Task):
         return float(np.linalg.norm(r - np.dot(r, axis) * axis))
 
     def _step_arc(self, inp: TickInput) -> Motion | None:
-        c = dataclasses.replace(inp.contact, p=self._arc_centre(inp.t, inp.contact.p))
+        c = inp.contact
         a = self._axis_sign * unit(c.axis, "axis")
         r0 = self.p_start - c.p
         along = float(np.dot(r0, a))
@@ -252,7 +245,7 @@ class TwoPhaseTask(Task):
         self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
         remaining = self.angle_rad - phi
         if remaining <= ANGLE_TOL_RAD and inp.planner_at_rest:
-            self._finish(inp.contact)
+            self._finish(c)
             return None
         if self._timed_out(inp.t, self.angle_rad * rho / self.speed):
             self._fail("arc following did not reach the angle in time")
@@ -267,21 +260,6 @@ class TwoPhaseTask(Task):
         # Ruckig's limits are per axis: without a duration it would race a look-ahead target
         # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
         return Motion(target, v, R, min_duration_s=(phi_t - phi_plan) * rho / self.speed, w=w)
-
-    def _arc_centre(self, t: float, p_est: np.ndarray) -> np.ndarray:
-        """The centre the arc is planned about: the estimate, followed no faster than the TCP's speed.
-        With the probe no evidence of the centre, the estimate moves by centimetres early in the
-        arc; followed at once, the path jumped, the grasp twisted and slid, and the estimate swung
-        by up to 50 mm (a divergence stop in one run of six at 10 deg off the tangent)."""
-        p_est = np.asarray(p_est, dtype=float)
-        if self._centre is None:
-            self._centre, self._t_centre = p_est.copy(), t
-        step = self.speed * max(t - self._t_centre, 0.0)
-        d = p_est - self._centre
-        n = float(np.linalg.norm(d))
-        self._centre = self._centre + (d if n <= step else d * (step / n))
-        self._t_centre = t
-        return self._centre.copy()
 
     def _radius_correction(self, inp: TickInput, p_c: np.ndarray, a: np.ndarray) -> float:
         """Radial admittance: the handle's true circle is where the grasp force has no radial part.
