@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import os
@@ -65,6 +66,12 @@ def _cmd_run(args) -> int:
 MAX_RATE_HZ = 100_000.0      # localize's --rate: more rows per second than any IMU delivers is a typo
 
 
+def _refused(command: str, msg: str) -> int:
+    """A command's bad input: one line on stderr naming the command, and exit status 2."""
+    print(f"tecdard {command}: {msg}", file=sys.stderr)
+    return 2
+
+
 class _BadInput(Exception):
     """A command-line tool's input that cannot be used; the message is one line (exit 2)."""
 
@@ -117,9 +124,7 @@ def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0, on_estimate=N
 def _cmd_localize(args) -> int:
     from tecdard import localize as L
 
-    def bad(msg: str) -> int:
-        print(f"tecdard localize: {msg}", file=sys.stderr)
-        return L.EXIT_BAD_INPUT
+    bad = functools.partial(_refused, "localize")
 
     if not 0 < args.rate <= MAX_RATE_HZ:
         return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
@@ -153,9 +158,7 @@ def _cmd_export(args) -> int:
     from tecdard import export
     from tecdard.recording import load_truth
 
-    def bad(msg: str) -> int:
-        print(f"tecdard export: {msg}", file=sys.stderr)
-        return 2
+    bad = functools.partial(_refused, "export")
 
     estimates, events = [], []
     try:
@@ -183,9 +186,7 @@ def _cmd_calibrate_eta(args) -> int:
 
     from tecdard import calibrate as K
 
-    def bad(msg: str) -> int:
-        print(f"tecdard calibrate-eta: {msg}", file=sys.stderr)
-        return 2
+    bad = functools.partial(_refused, "calibrate-eta")
 
     if (args.contact is None) == (args.radius is None):
         return bad("give the contact's position (--contact x,y,z, world, m) or the lever arm (--radius r, m)")
@@ -238,9 +239,7 @@ def _cmd_plot(args) -> int:
     from tecdard import plot
     from tecdard.recording import load_truth
 
-    def bad(msg: str) -> int:
-        print(f"tecdard plot: {msg}", file=sys.stderr)
-        return 2
+    bad = functools.partial(_refused, "plot")
 
     try:
         rec, live, pipeline = _recording_and_pipeline(args)
