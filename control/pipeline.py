@@ -9,7 +9,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control import kernels as kern
 from control import estimators
 from control.baselines import BaselineParams
 from control.conditioning import GyroConditioner

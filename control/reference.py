@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT,
-                         UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings, PositionEvidence, _position_var)
+                         UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings, PositionEvidence)
 from control.estimators import ContactEstimator
 from control.geometry import Plane
 from control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
@@ -208,7 +208,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         """The NIS gate arms once the state's uncertainty, seen through the block's H, is small against
         the measurement noise (GATE_HPH_RATIO): before that it would reject the samples that carry the
         information. R_floor: the smallest isotropic noise term of the block."""
-        n, d = H.shape[0], self.d
+        d = self.d
         if d == 2:
             hph = np.mean(H[:, 0, 1] ** 2) * (P[0, 0] + P[1, 1])
             if self.nk:
@@ -332,7 +332,6 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
                 return
         if not ev.add(dt, blk["w"], blk["r0"], fresh, blk["w_tcp"], self.k()) or ev.n < MIN_RESIDUAL_SAMPLES:
             return
-        ev.var = _position_var(self.sigma_p)
         d_lam, d_xi = ev.increment()
         if ev.residual_ratio(self.k()) > POSITION_RESIDUAL_LIMIT:
             ev.set_broken()             # the TCP moves relative to the object

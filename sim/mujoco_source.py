@@ -211,7 +211,6 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         if sc.motion == "push":
             p = p0 + dist[k] * tangent0
             R = R0
-            v = (sc.speed if s_move[k] > 0 else 0.0) * tangent0
         elif sc.motion == "circle":       # about the vertical through the tip, the gripper held
             psi = dist[k] / sc.circle_radius
             p = HINGE + Rz @ np.array([sc.circle_radius * math.cos(psi), sc.circle_radius * math.sin(psi),
@@ -222,7 +221,6 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
             Rt = rotvec_to_matrix(axis * theta)
             p = HINGE + Rt @ (p0 - HINGE)
             R = Rt @ R0 if sc.motion == "arc-turning" else R0
-            v = np.cross(axis * sign * (np.gradient(dist, dt)[k] / sc.radius if k else 0.0), p - HINGE)
         data.mocap_pos[mocap] = p
         data.mocap_quat[mocap] = np.roll(matrix_to_quat(R), 1)
         mujoco.mj_step(model, data)
