@@ -330,6 +330,7 @@ class ContactKfSettings:
 
     params: ContactKfParams
     positions: "PositionEvidence | None"
+    lag_aligned_positions = True     # update's w, p, w_tcp feed PositionEvidence alone (ContactEstimator)
 
     def set_arc_radial_var(self, var_m2_s2: float) -> None:
         self.radial_var = var_m2_s2

@@ -524,14 +524,27 @@ class ContactPipeline:
         # same (earlier) instant so that w and v describe the same moment. Still causal.
         delay = self.cond.group_delay_samples * self._dt_sample
         p, v, R, w_tcp, var_v, var_wt, force, ok, stamp = self.proprio.lookup(ts - delay, with_stamp=True)
-        # A proprioception sample is a position measurement at the first IMU sample that sees it
-        # (extrapolated by less than one IMU period; later ones are not taken).
-        new = np.diff(stamp, prepend=self._stamp_prev) != 0
-        fresh = new & ((ts - delay - stamp) <= FRESH_MAX_AGE_S)
-        self._stamp_prev = float(stamp[-1])
         force = np.where(np.isnan(force), self.params.grip_force_n, force)
         eta = self.eta(force)
         w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
+        # The positions as evidence (PositionEvidence) integrate the object's rotation up to each
+        # TCP position. The fingertip's twist reaches the IMU `lag` late (below), so the twist read
+        # now is the object's relative rotation at now - lag: each position pairs with the twist
+        # read lag after it, and with the gripper's own rotation up to its own time. Unpaired, the
+        # angle trails the displacement by rate x lag, and the lever arm reads long by lag / t
+        # (MuJoCo arcs at 12 cm: 3-4 mm at 100 ms, 1.4 mm at 180 ms).
+        lag = self.params.fingertip_lag_s
+        shift = lag if self.estimator.lag_aligned_positions else 0.0
+        if shift > 0:
+            p_pos, _, _, w_tcp_pos, _, _, _, ok_pos, stamp = self.proprio.lookup(ts - delay - shift, with_stamp=True)
+            w_pos = w_obj - w_tcp + w_tcp_pos
+        else:
+            p_pos, w_tcp_pos, w_pos, ok_pos = p, w_tcp, w_obj, ok
+        # A proprioception sample is a position measurement at the first IMU sample that sees it
+        # (extrapolated by less than one IMU period; later ones are not taken).
+        new = np.diff(stamp, prepend=self._stamp_prev) != 0
+        fresh = new & ((ts - delay - shift - stamp) <= FRESH_MAX_AGE_S) & ok_pos
+        self._stamp_prev = float(stamp[-1])
         # A stale gripper rate enters the object rate as (1 - eta) * its error.
         var_w = (eta - 1.0) ** 2 * var_wt
         # A held TCP velocity was measured at its stamp (a derived one over the interval to it): it
@@ -547,7 +560,6 @@ class ContactPipeline:
         # The fingertip's twist, which the IMU reads, lags the object's by the silicone's viscoelastic
         # time constant (the paper's "phase lag", Sec. III-B, which its eta leaves out): the twist
         # read at tv + lag is the object's at tv. The gripper's own rotation reaches the IMU at once.
-        lag = self.params.fingertip_lag_s
         w_tcp_v = self.proprio.rate_at(tv)
         w_tcp_lag = self.proprio.rate_at(tv + lag) if lag > 0 else w_tcp_v
         # the span the velocity stands for, as much of it as has been measured by each sample
@@ -565,8 +577,8 @@ class ContactPipeline:
         if not tcp_turning:
             w_tcp_v = np.zeros_like(w_tcp_v)     # as w_tcp: the model takes every rotation as the object's
         if not ok.all():
-            ts, w_obj, p, v, var_v, var_w, fresh, w_tcp = (ts[ok], w_obj[ok], p[ok], v[ok], var_v[ok], var_w[ok],
-                                                           fresh[ok], w_tcp[ok])
+            ts, w_obj, v, var_v, var_w, fresh = ts[ok], w_obj[ok], v[ok], var_v[ok], var_w[ok], fresh[ok]
+            p_pos, w_pos, w_tcp_pos = p_pos[ok], w_pos[ok], w_tcp_pos[ok]
             w_v, w_tcp_v, p_v, n_avg = w_v[ok], w_tcp_v[ok], p_v[ok], n_avg[ok]
         estimates: list[ContactEstimate] = []
         if len(ts):
@@ -575,23 +587,26 @@ class ContactPipeline:
             if rate == rate:       # not NaN
                 self.estimator.set_correlation(max(1.0, 1.0 / (self._dt_sample * rate)))
             period = self.params.output_period_s
-            estimates = self._advance(ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning, period,
-                                      (w_v, w_tcp_v, p_v, n_avg))
+            estimates = self._advance(ts, dt, w_obj, (w_pos, p_pos, w_tcp_pos), v, var_v, var_w, fresh, tcp_turning,
+                                      period, (w_v, w_tcp_v, p_v, n_avg))
         if force_output and not estimates and self._t_prev is not None and self._n_w:
             self._t_out = self._t_prev
             estimates.append(self._estimate(self._t_prev))
         return events, estimates
 
-    def _advance(self, ts, dt, w_obj, p, v, var_v, var_w, fresh, w_tcp, tcp_turning: bool,
+    def _advance(self, ts, dt, w_obj, positions: tuple, v, var_v, var_w, fresh, tcp_turning: bool,
                  period: float, paired: tuple) -> list[ContactEstimate]:
-        """Advance the estimator in sub-blocks that end at each output time, and report at each."""
+        """Advance the estimator in sub-blocks that end at each output time, and report at each.
+        w_obj: the object's rate now (the angle and the axis); positions = (w, p, w_tcp): what the
+        position evidence integrates, aligned with the TCP positions (process_all)."""
+        w_pos, p, w_tcp = positions
         estimates: list[ContactEstimate] = []
         k0, n = 0, len(ts)
         while k0 < n:
             due = int(np.searchsorted(ts, self._t_out + period, side="left"))
             k1 = n if due >= n else max(due + 1, k0 + 1)
             sl = slice(k0, k1)
-            self.estimator.update(dt[sl], w_obj[sl], p[sl], v[sl], var_v[sl], var_w[sl],
+            self.estimator.update(dt[sl], w_pos[sl], p[sl], v[sl], var_v[sl], var_w[sl],
                                   fresh[sl], w_tcp[sl] if tcp_turning else None, tuple(a[sl] for a in paired))
             self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
             self._n_w += k1 - k0

@@ -21,6 +21,10 @@ class ContactEstimator:
     steps = 0              # samples used so far this episode
     nis = 0.0              # the latest normalised innovation squared (0: none)
     consistency = None     # smoothed NIS over its expectation (None: the estimator does not measure it)
+    # True: update's w, p and w_tcp are aligned for the position evidence, each TCP position with the
+    # twist read `fingertip_lag_s` after it (ContactPipeline.process_all). False: all as of the
+    # sample's own time, as the paper takes them.
+    lag_aligned_positions = False
 
     def start(self, p_g, v_g) -> None:
         """A contact episode begins with the TCP at p_g (m) moving at v_g (m/s), world."""
