@@ -179,6 +179,7 @@ class ContactKfParams:
     estimate_eta: bool = True      # carry eta's error as a state, see ContactKF
     eta_test_sigma: float = 3.0    # the data must reject the calibrated eta by this many sigma to be used
     slip_radial_sigma: float = 0.005   # m/s, distrust of the velocity along the lever arm once positions show a slip
+    arc_position_sigma: float = 0.001  # m, the TCP positions' noise while following an arc (0: no evidence then)
 
     @classmethod
     def from_config(cls, section) -> "ContactKfParams":
@@ -196,6 +197,7 @@ class ContactKfParams:
             estimate_eta=section.getbool("estimate_eta", d.estimate_eta),
             eta_test_sigma=section.getfloat("eta_test_sigma", d.eta_test_sigma, minval=0.0),
             slip_radial_sigma=section.getfloat("slip_radial_sigma", d.slip_radial_sigma, minval=0.0, maxval=1.0),
+            arc_position_sigma=section.getfloat("arc_position_sigma", d.arc_position_sigma, minval=0.0, maxval=0.1),
         )
 
 
@@ -256,10 +258,11 @@ class PositionEvidence:
     beyond the position noise, and the evidence is switched off for the episode.
     """
 
-    def __init__(self, d: int, sigma_p: float):
+    def __init__(self, d: int, sigma_p: float, arc_sigma: float = 0.0):
         self.d = d
         nx = d + 1
         self.var = _position_var(sigma_p)
+        self.arc_var = arc_sigma ** 2    # m^2, the noise of positions taken while following an arc
         # the state the compiled run updates (kernels.Evidence): the counts (kernels.EVIDENCE_STATUS),
         # the angle (planar) or rotation vector integrated, G, the gripper's own part of it, the regression's running sums (of the
         # regressors X_k (d x (d+1)), X_k^T X_k, X_k^T y_k, y_k), and the marginal information handed
@@ -278,6 +281,11 @@ class PositionEvidence:
         return float(self.ev.status[0]["s_yy"])
 
     @property
+    def noise_var(self) -> float:
+        """The noise variance of the positions in the sums: their own, or while following an arc the arc's."""
+        return max(self.var, self.arc_var) if self.ev.status[0]["arc"] else self.var
+
+    @property
     def broken(self) -> bool:
         """The rigid-body residual failed this episode: positions are no evidence until the next start."""
         return bool(self.ev.status[0]["broken"])
@@ -288,6 +296,7 @@ class PositionEvidence:
     def start(self) -> None:
         self.reset()
         self.ev.status[0]["broken"] = False
+        self.ev.status[0]["arc"] = False
 
     def reset(self) -> None:
         """Restart the reference: no samples, integrals and sums zero (broken is kept)."""
@@ -310,13 +319,14 @@ class PositionEvidence:
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
         """(dLambda, dxi): the growth of the marginal information on (m, k) since the last call."""
         ev = self.ev
-        return position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.n, self.var, ev.lam, ev.xi)
+        return position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.n, self.noise_var, ev.lam, ev.xi)
 
     def residual_ratio(self, k: float = 1.0) -> float:
         """Least-squares residual of the (q, m) regression at the eta ratio k, over its expectation (1 when
         the model holds). k is held, not fitted: a free k would absorb part of a slip in the grasp."""
         ev = self.ev
-        return position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.s_yy, self.n, self.var, k, MIN_RESIDUAL_SAMPLES)
+        return position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, self.s_yy, self.n, self.noise_var, k,
+                                 MIN_RESIDUAL_SAMPLES)
 
 
 # the compiled run's position evidence for a filter without it (never read)
@@ -455,7 +465,8 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         self._gated = np.empty(256)
         self._prm = kern.record(kern.RUN_PARAMS)
         self._frame = kern.contiguous(kern.Frame(self._E, self._normal, self.origin))
-        self.positions = PositionEvidence(d, self.params.sigma_p) if self.params.use_positions else None
+        self.positions = PositionEvidence(d, self.params.sigma_p, self.params.arc_position_sigma) \
+            if self.params.use_positions else None
         self._ev = self.positions.ev if self.positions is not None else _NO_EVIDENCE[d]
 
     @property
@@ -517,7 +528,8 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         prm = self.params
         self._prm[0] = (prm.q_c, self.corr_samples, self.sigma_p ** 2, prm.sigma_w ** 2, self.radial_var_now(), prm.gate_nis,
                         self.k_prior_mean, self.k_prior_var, prm.max_block, _position_var(self.sigma_p), CONSISTENCY_WINDOW_S,
-                        CONSISTENCY_TAU_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT)     # RUN_PARAMS' order
+                        CONSISTENCY_TAU_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT,
+                        prm.arc_position_sigma ** 2)     # RUN_PARAMS' order
         return self._prm
 
     def eta_evidence(self) -> tuple[float, float]:

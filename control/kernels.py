@@ -824,6 +824,7 @@ EVIDENCE_STATUS = np.dtype([
     ("n", np.int64),               # position samples in the sums
     ("s_yy", np.float64),          # their sum of y^T y
     ("broken", np.bool_),          # the rigid-body residual failed this episode
+    ("arc", np.bool_),             # the sums began while the arm followed an arc (their noise is arc_ev_var)
 ], align=True)
 RUN_PARAMS = np.dtype([(name, np.float64) for name in (
     "q_c",                         # m^2/s, the contact's random walk
@@ -840,6 +841,7 @@ RUN_PARAMS = np.dtype([(name, np.float64) for name in (
     "tau_s",                       # s, the consistency ratio's smoothing
     "ev_min_samples",              # positions before the residual test can speak
     "ev_limit",                    # residual over expectation above which positions are no evidence
+    "arc_ev_var",                  # m^2, the positions' noise while following an arc (0: not evidence then)
 )], align=True)
 Window = namedtuple("Window", "x0 P0 A b")       # the consistency window: start state, its prior, information
 Evidence = namedtuple("Evidence", "status theta g g_tcp s_x s_xx s_xy s_y lam xi")   # PositionEvidence's state
@@ -973,8 +975,9 @@ def position_account(x, P, ev, dt, w_d, t_d, r0, fresh, d, prm):
     n_ev = st.n
     if taken == 0 or n_ev < pr.ev_min_samples:
         return      # the sums grow; they count once the residual can check them
-    d_lam, d_xi = position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, n_ev, pr.ev_var, ev.lam, ev.xi)
-    if position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, st.s_yy, n_ev, pr.ev_var, k,
+    var = max(pr.ev_var, pr.arc_ev_var) if st.arc else pr.ev_var
+    d_lam, d_xi = position_increment(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, n_ev, var, ev.lam, ev.xi)
+    if position_residual(ev.s_x, ev.s_xx, ev.s_xy, ev.s_y, st.s_yy, n_ev, var, k,
                          int(pr.ev_min_samples)) > pr.ev_limit:
         st.broken = True            # the TCP moves relative to the object: displacements mislead
         return
@@ -1040,11 +1043,17 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
             r_last[a] = r0[b1 - b0 - 1, a] - x[a] / k
         if not ev_on or (use_fresh and ev.status[0].broken):
             continue
-        if not use_fresh or pr.radial_var > 0:
-            # no position measurements, or following an arc (the grasp's compliance moves the TCP
-            # along the lever arm): restart the reference
+        arc = pr.radial_var > 0
+        if not use_fresh or (arc and pr.arc_ev_var <= 0.0):
+            # no position measurements, or following an arc with positions no evidence: restart the reference
             position_reset(ev)
             continue
+        if ev.status[0].arc != arc:
+            # into or out of arc following: the grasp's compliance moves the TCP along the lever arm
+            # by up to the admittance's lag, so the positions then have noise of their own (arc_ev_var)
+            # and a reference of their own
+            position_reset(ev)
+            ev.status[0].arc = arc
         t_d = np.empty(w_d.shape)
         for i in range(b1 - b0):
             if d == 2:

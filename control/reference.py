@@ -130,7 +130,8 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         self.k_prior_mean, self.k_prior_var = 1.0, 0.0
         self.origin = np.zeros(3)
         self.kf = ContactFilter(np.zeros(self.d + self.nk), np.eye(self.d + self.nk), self.params.q_c, self.d)
-        self.positions = PositionEvidence(self.d, self.sigma_p) if self.params.use_positions else None
+        self.positions = PositionEvidence(self.d, self.sigma_p, self.params.arc_position_sigma) \
+            if self.params.use_positions else None
         self.r_last = np.zeros(self.d)
         self.steps = self.rejected = 0
         self.nis = 0.0
@@ -323,9 +324,13 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         ev = self.positions
         if ev is None or (fresh is not None and ev.broken):
             return
-        if fresh is None or self._radial_var > 0:
-            ev.reset()                  # no positions, or the arc follower moves the TCP along the lever arm
+        arc = self._radial_var > 0
+        if fresh is None or (arc and ev.arc_var <= 0.0):
+            ev.reset()                  # no positions, or following an arc with positions no evidence
             return
+        if ev.ev.status[0]["arc"] != arc:
+            ev.reset()                  # into or out of arc following: a reference and a noise of their own
+            ev.ev.status[0]["arc"] = arc
         if self.nk and self.k_prior_var > 0:
             if abs(float(self.kf.x[self.d]) - self.k_prior_mean) > ETA_PRIOR_LIMIT * math.sqrt(self.k_prior_var):
                 ev.set_broken()         # an implausible eta: the rigid pivot fails, not eta
