@@ -150,7 +150,7 @@ def main() -> int:
     poses = [(r, 1, "arc", 30.0, pose, 0.0) for pose in POSES[1:] for r in (0.10, 0.25)]
     cases = [(0.15, 1, "arc", 30.0, POSES[0], 0.0), (0.15, 1, "straight", 30.0, POSES[0], 0.0)] if args.quick else \
         [(r, s, "arc", 30.0, POSES[0], 0.0) for r in RADII for s in (1, 2)] + paper + poses + \
-        [(r, 1, "arc", 30.0, POSES[1], off) for off in (2.0, 5.0) for r in (0.10, 0.25)] + \
+        [(r, 1, "arc", 30.0, POSES[1], off) for off in (5.0, 10.0, -10.0) for r in (0.10, 0.25)] + \
         [(0.15, 1, "held", 30.0, POSES[0], 0.0)]
     for radius, seed, strategy, angle, pose, off in cases:
         r = bench_rotate(radius, seed, "arc" if strategy == "held" else strategy, angle,
