@@ -4,10 +4,12 @@
 
 Recordings from sim/mujoco_source.py (no signal model shared with sim/scenarios.py): the paper
 cutter, arcs with the gripper held or turning with the handle, and straight pushes, at lever arms
-of 4, 8 and 12 cm; a pen of 9 or 14 cm on its tip (a point contact), its top circled at 3 cm/s
-on a 2 cm circle with the gripper held; and a block on a table tipped up on its bottom edge
-against a ridge (MuJoCo's contacts, which give a little), grasped at its top 8 or 12 cm from the
-edge; with encoder-grade TCP noise (0.05 mm at 500 Hz, TCP velocity reported) or the
+of 4, 8 and 12 cm, and a 12 cm arc whose grasp slips on the handle once the fingertip's twist
+torque passes 0.05 N m (about 3.5 deg of handle, 0.3-0.45 s in); a pen of 9 or 14 cm on its
+tip (a point contact), its top circled at 3 cm/s on a 2 cm circle with the gripper held; and a
+block on a table tipped up on its bottom edge against a ridge (MuJoCo's contacts, which give a
+little), grasped at its top 8 or 12 cm from the edge, from rest (tilt) or slid into the ridge
+at 20 mm/s and tipped on without stopping (ongoing); with encoder-grade TCP noise (0.05 mm at 500 Hz, TCP velocity reported) or the
 paper's (0.5 mm at 65 Hz, no velocity). The fingertip's twist lags by 3 ms (the silicone's
 damping), and the estimator is told so (`estimator.fingertip_lag_s`, its default).
 
@@ -42,8 +44,8 @@ METHODS = ("ekf", "paper-ekf", "svd-geo", "svd-diff")
 HORIZONS_S = (0.03, 0.18)
 GRADES = {"encoder": dict(tcp_noise=5e-5, tcp_hz=500.0, with_tcp_vel=True),
           "paper": dict(tcp_noise=5e-4, tcp_hz=65.0, with_tcp_vel=False)}
-CASES = [(m, r) for m in ("arc", "arc-turning", "push") for r in (0.04, 0.08, 0.12)] + [("circle", 0.09), ("circle", 0.14),
-                                                                                    ("tilt", 0.08), ("tilt", 0.12)]
+CASES = [(m, r) for m in ("arc", "arc-turning", "push") for r in (0.04, 0.08, 0.12)] + \
+    [("slip", 0.12), ("circle", 0.09), ("circle", 0.14), ("tilt", 0.08), ("tilt", 0.12), ("ongoing", 0.08), ("ongoing", 0.12)]
 LAGS_S = (0.0, 0.0015, 0.003, 0.0045, 0.006)
 
 

@@ -18,7 +18,15 @@ Motions (`motion`):
 - `arc`: the TCP on the circle about the hinge, its orientation held (the fingertip twists);
 - `arc-turning`: the same, the gripper turning with the handle (the daemon's arc following);
 - `push`: a straight push along the handle's initial tangent. The grasp slides and stretches,
-  and the handle follows as it can.
+  and the handle follows as it can;
+- `slip`: the arc with the gripper held, the grasp able to turn on the handle: once the
+  fingertip's twist torque passes `slip_torque_nm` (dry friction in the grasp), the handle turns
+  in the grasp and the fingertip's twist stops growing (the IMU no longer sees the handle turn);
+- `circle` (the pen): its top circled about the vertical through the tip, the gripper held;
+- `tilt` (the block): its top pushed on the arc about its bottom edge, which a ridge holds;
+- `ongoing` (the block): the arm, moving from the recording's start and at `speed` after RAMP_S,
+  slides the block along the table into the ridge (the onset, at `rest_s`, is that impact) and
+  goes on, on the arc about the edge.
 
 Proprioception is the mocap pose at `tcp_hz` with Gaussian position noise, and optionally the TCP
 velocity with noise.
@@ -60,20 +68,23 @@ class MujocoScenario:
     seed: int = 0
 
     circle_radius: float = 0.02        # m, the pen: the TCP's circle about the vertical through the tip
+    slip_torque_nm: float = 0.05       # N m, `slip`: the grasp's dry friction about the handle (3 deg of twist at eta 2)
 
     @property
     def world(self) -> str:
         """The cutter on its hinge (line contact), a pen on its tip (point contact), or a block
         tipped up on its bottom edge against a ridge on the table (a line contact through real
         contacts: they may give and slide)."""
-        return {"circle": "pen", "tilt": "block"}.get(self.motion, "cutter")
+        return {"circle": "pen", "tilt": "block", "ongoing": "block"}.get(self.motion, "cutter")
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"motion: expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
-        if self.motion == "tilt" and (self.yaw_deg != 0.0 or self.radius < 2 * BLOCK_HALF_WIDTH_M):
-            raise ValueError(f"tilt: the block's table lies along y (yaw_deg 0) and its lever is at least "
+        if self.world == "block" and (self.yaw_deg != 0.0 or self.radius < 2 * BLOCK_HALF_WIDTH_M):
+            raise ValueError(f"{self.motion}: the block's table lies along y (yaw_deg 0) and its lever is at least "
                              f"{2 * BLOCK_HALF_WIDTH_M:g} m")
+        if self.motion == "slip" and not self.slip_torque_nm > 0.0:
+            raise ValueError(f"slip_torque_nm: expected > 0, got {self.slip_torque_nm:g}")
         if self.motion == "circle" and not 0.005 <= self.circle_radius <= 0.5 * self.radius:
             raise ValueError(f"circle_radius: {self.circle_radius:g} is outside [0.005, radius / 2]")
         for name, lo, hi in (("radius", 0.02, 0.4), ("speed", 0.001, 0.2), ("eta", 1.01, 10.0),
@@ -83,7 +94,7 @@ class MujocoScenario:
                 raise ValueError(f"{name}: {v:g} is outside [{lo:g}, {hi:g}]")
 
 
-MOTIONS = ("arc", "arc-turning", "push", "circle", "tilt")
+MOTIONS = ("arc", "arc-turning", "push", "slip", "circle", "tilt", "ongoing")
 BLOCK_HALF_WIDTH_M = 0.03                  # the block: the TCP grasps its top, this far from the pivot edge in x
 HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point (the pen's tip), world (the robot base), m
 RAMP_S = 0.05                              # the arm reaches its speed in this long
@@ -91,8 +102,11 @@ NOMINAL_GRIP_N = 30.0                      # meta.grip_force: the fingertip's et
 SETTLE_S = 0.3                             # simulated before the recording starts: the grasp takes the handle's weight
 
 
-def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray) -> str:
-    """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge."""
+def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray,
+          start: np.ndarray = np.zeros(3)) -> str:
+    """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge
+    (or the pen, or the block). p_tcp: the TCP at the onset; the gripper and the block start
+    `start` from there (`ongoing`)."""
     # series torsional springs: the IMU body turns by kB/(kA+kB) = 1/eta of the pad's turn. The
     # silicone's viscosity holds the IMU body back (a damper to the finger, none to the pad): it
     # follows the pad's twist as a first-order lag of dA/(kA+kB) = lag_tau_s (Kelvin-Voigt)
@@ -118,19 +132,37 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
     if sc.world == "block":     # a box on the table, its bottom edge at HINGE against a ridge (world x-z plane)
         h2 = 0.5 * handle_dir[2]
         c = HINGE + np.array([BLOCK_HALF_WIDTH_M, 0.0, h2])
-        held = f"""<geom name="table" type="box" pos="{HINGE[0]} 0 {HINGE[2] - 0.01}" size="0.3 0.3 0.01"/>
+        c = c + start
+        # `ongoing` slides the block on the table: a slick table (the ridge holds the edge), or the
+        # block stick-slips and rocks in the grasp on its way
+        mu = 0.05 if sc.motion == "ongoing" else 0.8
+        held = f"""<geom name="table" type="box" pos="{HINGE[0]} 0 {HINGE[2] - 0.01}" size="0.3 0.3 0.01" friction="{mu}"/>
     <geom name="ridge" type="box" pos="{HINGE[0] - 0.004} 0 {HINGE[2] + 0.004}" size="0.004 0.3 0.004"/>
     <body name="handle" pos="{c[0]} {c[1]} {c[2]}">
       <freejoint name="hinge"/>
-      <geom type="box" size="{BLOCK_HALF_WIDTH_M} 0.04 {h2}" mass="0.3" friction="0.8"/>
+      <geom type="box" size="{BLOCK_HALF_WIDTH_M} 0.04 {h2}" mass="0.3" friction="{mu}"/>
     </body>"""
         anchor = np.array([0.0, 0.0, h2])
+    # `slip`: the grasp turns on the handle against dry friction (the pad's contact, a ball joint).
+    # MuJoCo's friction loss is a soft constraint scaled by the dof's inverse inertia: on the tiny
+    # contact body alone it held nothing; the armature gives the dof the inertia of a real contact
+    # patch's (with 1e-3 it sticks until the twist torque reaches slip_torque_nm, then slides)
+    grasp, grasped = "", "pad"
+    if sc.motion == "slip":
+        grasp = f"""
+          <body name="grasp" pos="0 0 0">
+            <joint name="grasp" type="ball" frictionloss="{sc.slip_torque_nm}" damping="{1e-3 * k_b}"
+                   armature="1e-3"/>
+            <geom type="sphere" size="0.004" contype="0" conaffinity="0" mass="0.002"/>
+          </body>"""
+        grasped = "grasp"
+    p_start = p_tcp + start
     return f"""
 <mujoco model="tecdar-cutter">
   <option timestep="{1.0 / sc.imu_hz}" gravity="0 0 -{G}" integrator="implicitfast"/>
   <worldbody>
-    <body name="target" mocap="true" pos="{p_tcp[0]} {p_tcp[1]} {p_tcp[2]}" quat="{quat}"/>
-    <body name="gripper" pos="{p_tcp[0]} {p_tcp[1]} {p_tcp[2]}" quat="{quat}">
+    <body name="target" mocap="true" pos="{p_start[0]} {p_start[1]} {p_start[2]}" quat="{quat}"/>
+    <body name="gripper" pos="{p_start[0]} {p_start[1]} {p_start[2]}" quat="{quat}">
       <freejoint name="arm"/>
       <geom type="box" size="0.02 0.04 0.02" contype="0" conaffinity="0" mass="1.0"/>
       <body name="imu_body" pos="0 0 0">
@@ -139,7 +171,7 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
         <site name="imu" pos="0 0 0"/>
         <body name="pad" pos="0 0 0">
           <joint name="tip_b" type="ball" stiffness="{k_b}" damping="{d_b}"/>
-          <geom type="sphere" size="0.006" contype="0" conaffinity="0" mass="0.004"/>
+          <geom type="sphere" size="0.006" contype="0" conaffinity="0" mass="0.004"/>{grasp}
         </body>
       </body>
     </body>
@@ -147,7 +179,7 @@ def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.nda
   </worldbody>
   <equality>
     <weld body1="target" body2="gripper" relpose="0 0 0 1 0 0 0" solref="0.001 1" torquescale="100"/>
-    <weld body1="pad" body2="handle" anchor="{anchor[0]} {anchor[1]} {anchor[2]}"
+    <weld body1="{grasped}" body2="handle" anchor="{anchor[0]} {anchor[1]} {anchor[2]}"
           relpose="0 0 0 0 0 0 0" solref="0.002 1" torquescale="100"/>
   </equality>
   <sensor>
@@ -177,7 +209,11 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     else:
         p0 = HINGE + sc.radius * out_dir
     R0 = Rz @ np.diag([1.0, -1.0, -1.0])                   # tool down
-    xml, L, _ = _mjcf(sc, p0, R0, axis)
+    # `ongoing`: the block and the gripper start along +x (away from the ridge) as far as the arm
+    # travels from the start to the onset
+    approach = sc.speed * (sc.rest_s - 0.5 * RAMP_S) if sc.motion == "ongoing" else 0.0
+    start = np.array([approach, 0.0, 0.0])
+    xml, L, _ = _mjcf(sc, p0, R0, axis, start)
     model = mujoco.MjModel.from_xml_string(xml)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)        # the weld holds the pad where the model starts it: at the grasp
@@ -189,9 +225,13 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     t = np.arange(n) * dt
     # the commanded motion: the TCP's speed rises as a half cosine over RAMP_S (peak acceleration
     # speed * pi / (2 RAMP_S), 0.63 m/s^2 at 20 mm/s), then holds
-    s_move = np.maximum(t - sc.rest_s, 0.0)
+    # (`ongoing`: from the start)
+    t_go = 0.0 if sc.motion == "ongoing" else sc.rest_s
+    s_move = np.maximum(t - t_go, 0.0)
     dist = np.where(s_move < RAMP_S, 0.5 * sc.speed * (s_move - RAMP_S / math.pi * np.sin(math.pi * s_move / RAMP_S)),
                     0.5 * sc.speed * RAMP_S + sc.speed * (s_move - RAMP_S))
+    if sc.motion == "ongoing":
+        dist = dist - approach               # negative before the impact: the slide towards the ridge
     tangent0 = np.cross(axis, out_dir)                     # the handle's tangent at the grasp (rising)
     if tangent0[2] < 0:
         tangent0 = -tangent0
@@ -215,6 +255,9 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
             psi = dist[k] / sc.circle_radius
             p = HINGE + Rz @ np.array([sc.circle_radius * math.cos(psi), sc.circle_radius * math.sin(psi),
                                        0.0]) + np.array([0.0, 0.0, p0[2] - HINGE[2]])
+            R = R0
+        elif sc.motion == "ongoing" and dist[k] < 0.0:    # sliding into the ridge, along -x
+            p = p0 - dist[k] * np.array([1.0, 0.0, 0.0])
             R = R0
         else:
             theta = sign * dist[k] / sc.radius

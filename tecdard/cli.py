@@ -453,9 +453,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--engine", choices=("scenarios", "mujoco"), default="scenarios",
                    help="scenarios: sim/scenarios.py's signal model (default); mujoco: rigid-body physics of the "
                         "paper cutter, a pen on its tip or a block on a table edge (sim/mujoco_source.py, the bench extra)")
-    p.add_argument("--motion", choices=("arc", "arc-turning", "push", "circle", "tilt"),
-                   help="with --engine mujoco: the TCP's path (default arc); circle: the pen on its tip; "
-                        "tilt: a block tipped on its edge")
+    p.add_argument("--motion", choices=("arc", "arc-turning", "push", "slip", "circle", "tilt", "ongoing"),
+                   help="with --engine mujoco: the TCP's path (default arc); slip: the arc, the grasp slipping "
+                        "on the handle; circle: the pen on its tip; tilt: a block tipped on its edge; ongoing: "
+                        "the block slid into the edge at speed, then tipped")
     _scenario_options(p)
     p.set_defaults(func=_cmd_sim_record)
     p = sub.add_parser("imu", help="read the fingertip IMU board: rates, counters, latest sample")

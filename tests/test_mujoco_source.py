@@ -168,3 +168,43 @@ def test_the_positions_pair_with_the_twist_read_a_lag_later(arc):
     100 ms at 12 cm). Each position is taken with the twist read a lag after it."""
     fields, truth = arc
     assert _error_at(fields, truth, 0.1, fingertip_lag_s=0.003) < MID_TOL_M
+
+
+def _relative_twist_deg(fields, truth, t_rel):
+    """The IMU's rotation relative to the gripper (the gripper is held), integrated from the onset to
+    onset + t_rel, about the hinge, in degrees (bias from the rest before)."""
+    t = fields["imu_t"]
+    rest = t < truth["onset_t"] - 0.05
+    w = (fields["gyro"] - fields["gyro"][rest].mean(axis=0)) @ quat_to_matrix(fields["tcp_quat"][0]).T @ truth["axis"]
+    sel = (t >= truth["onset_t"]) & (t < truth["onset_t"] + t_rel)
+    return abs(math.degrees(float(np.sum(w[sel]) * (t[1] - t[0]))))
+
+
+def test_a_grasp_that_slips_stops_the_fingertip_twisting_while_the_handle_turns_on():
+    """`slip`: the grasp holds until the fingertip's twist torque reaches slip_torque_nm (0.05 N m:
+    the pad twisted 0.05 rad at eta 2, 1.4 deg at the IMU), then the handle turns in the grasp: over
+    the last half second the handle turns 4.8 deg and the IMU almost not at all."""
+    fields, truth = generate(MujocoScenario(motion="slip", seed=1, tcp_noise=0.0))
+    early = _relative_twist_deg(fields, truth, 0.15)
+    handle_early = abs(math.degrees(np.interp(truth["onset_t"] + 0.15, truth["angle_t"], truth["angle"])))
+    assert abs(early - handle_early / 2.0) < 0.2 * handle_early / 2.0       # held: 1/eta of the handle's turn
+    twist_mid, twist_end = _relative_twist_deg(fields, truth, 1.0), _relative_twist_deg(fields, truth, 1.5)
+    handle_mid, handle_end = (abs(math.degrees(np.interp(truth["onset_t"] + x, truth["angle_t"], truth["angle"])))
+                              for x in (1.0, 1.5))
+    assert twist_mid < 2.0 and abs(twist_end - twist_mid) < 0.5 and handle_end - handle_mid > 4.0
+
+
+def test_an_ongoing_motion_meets_the_ridge_at_speed_and_the_block_turns_from_there():
+    """`ongoing`: the arm slides the block along the table into the ridge at 20 mm/s, so the TCP is
+    already at speed at the onset (the impact), and the block turns only from then on; the trigger
+    fires on the impact (the arm's own start is in the detector's warm-up)."""
+    fields, truth = generate(MujocoScenario(motion="ongoing", radius=0.12, seed=1))
+    on = float(truth["onset_t"])
+    before = (fields["tcp_t"] > on - 0.1) & (fields["tcp_t"] < on - 0.01)
+    assert np.all(np.abs(np.linalg.norm(fields["tcp_vel"][before], axis=1) - 0.02) < 0.005)
+    assert abs(math.degrees(np.interp(on, truth["angle_t"], truth["angle"]))) < 0.1
+    assert abs(math.degrees(np.interp(on + 1.0, truth["angle_t"], truth["angle"]))) > 8.0
+    rec = Recording.from_fields(fields)
+    pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    _, onset_t, _ = L.replay(rec, pipe)
+    assert onset_t is not None and abs(onset_t - on) < 0.03, onset_t - on
