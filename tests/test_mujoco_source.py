@@ -208,3 +208,13 @@ def test_an_ongoing_motion_meets_the_ridge_at_speed_and_the_block_turns_from_the
     pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     _, onset_t, _ = L.replay(rec, pipe)
     assert onset_t is not None and abs(onset_t - on) < 0.03, onset_t - on
+
+
+def test_an_arm_moving_at_the_onset_pushes_through_the_grasp_before_the_pivot_counts():
+    """`ongoing` at 12 cm: for the first 10-15 ms after the impact the block has not taken up the arm's
+    20 mm/s (the TCP's velocity read 7x, 2x, 1.2x the lever arm over the first 5, 10, 15 ms), and
+    its displacement then is no pivot's either. With that part of the velocity distrusted as it
+    decays and the positions counted from 3 time constants on (IMPACT_TAU_S), the edge is within
+    issue 21's 10 mm at 30 ms (measured 4.9 mm; 62 mm before)."""
+    fields, truth = generate(MujocoScenario(motion="ongoing", radius=0.12, seed=1))
+    assert _error_at(fields, truth, 0.03) < EARLY_TOL_M
