@@ -317,7 +317,8 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     res = ev["result"]
     summary = res["summary"]
     assert summary["points"] == 4 and summary["valid"] == 4 and summary["passes"] == 2
-    rows = list(csv.DictReader(open(res["files"]["points.csv"])))
+    with open(res["files"]["points.csv"]) as fh:
+        rows = list(csv.DictReader(fh))
     grid = {(0, 0): (0.34, -0.02), (1, 0): (0.34, 0.02)}      # on the box, on the table
     for r in rows:
         p = np.array([float(r["x"]), float(r["y"]), float(r["z"])])

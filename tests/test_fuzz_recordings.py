@@ -200,9 +200,15 @@ KEYS = ("format", "imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat", "imu
 dtypes = st.sampled_from(["<f8", "<f4", "<i8", "<i2", "|u1", "|b1", "<c16", "<U8", "|S8", ">f8"])
 
 
+def _cast(shape, dt, fill):
+    """An array of `fill` cast to `dt` whatever it loses (NaN and inf into integers are the point)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.full(shape, fill).astype(dt, casting="unsafe")
+
+
 def hostile_array(n):
     return st.one_of(
-        st.builds(lambda shape, dt, fill: np.full(shape, fill).astype(dt, casting="unsafe"),
+        st.builds(_cast,
                   st.lists(st.integers(0, 5), max_size=3).map(tuple), dtypes,
                   st.one_of(st.floats(allow_nan=True), st.integers(-10, 10))),
         st.builds(lambda k, v: np.full((n, k), v), st.integers(1, 5), st.floats(allow_nan=True)),
