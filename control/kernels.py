@@ -521,7 +521,7 @@ def report_state(x, P, d, scale, r_last, eta_var, k_mean, k_prior_var, test_sigm
     rep = np.empty((d, d))
     for i in range(d):
         for j in range(d):
-            rep[i, j] = s0[i, j] + r_last[i] * (eta_var * r_last[j])
+            rep[i, j] = s0[i, j] + r_last[i] * (eta_var * scale * r_last[j])
     wgt = eta_weight(x[d], pkk, k_mean, k_prior_var, test_sigma) if nk else 0.0
     stat = s0
     if wgt > 0.0:

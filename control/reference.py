@@ -67,7 +67,7 @@ def report(x: np.ndarray, P: np.ndarray, d: int, scale: float, r_last: np.ndarra
     else:
         c0, s0 = m.copy(), P[:d, :d].copy()
     c0, s0 = c0 / k_mean, s0 * scale / k_mean ** 2
-    rep0 = s0 + eta_var * np.outer(r_last, r_last)
+    rep0 = s0 + eta_var * scale * np.outer(r_last, r_last)
     if wgt <= 0.0:
         return c0, rep0, s0
     k = max(x[d], K_MIN)
