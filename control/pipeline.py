@@ -583,8 +583,9 @@ class ContactPipeline:
         # and until then the TCP's velocity is not the pivot's. On MuJoCo's block slid into its edge
         # at 20 mm/s the velocity's lever arm read 7x, 2x and 1.2x long over the first 5, 10 and 15 ms.
         # That part of the velocity is distrusted as it decays, IMPACT_TAU_S (nothing from rest).
-        v_push = self._v_onset * np.exp(-np.maximum(tv - self._rates.t0, 0.0) / IMPACT_TAU_S)
-        var_v = var_v + v_push * v_push
+        if self._v_onset > 0.0:
+            v_push = self._v_onset * np.exp(-np.maximum(tv - self._rates.t0, 0.0) / IMPACT_TAU_S)
+            var_v = var_v + v_push * v_push
         self._set_eta_uncertainty(float(force[-1]))
         # While the gripper itself turns the estimator needs its rate: eta's error scales only the
         # object's rotation relative to the gripper (ContactKF, and PositionEvidence for positions).
