@@ -68,7 +68,7 @@ class MujocoScenario:
     seed: int = 0
 
     circle_radius: float = 0.02        # m, the pen: the TCP's circle about the vertical through the tip
-    slip_torque_nm: float = 0.05       # N m, `slip`: the grasp's dry friction about the handle (3 deg of twist at eta 2)
+    slip_torque_nm: float = 0.05       # N m, `slip`: the grasp's dry friction about the handle (about 3 deg of handle at eta 2)
 
     @property
     def world(self) -> str:
@@ -102,8 +102,7 @@ NOMINAL_GRIP_N = 30.0                      # meta.grip_force: the fingertip's et
 SETTLE_S = 0.3                             # simulated before the recording starts: the grasp takes the handle's weight
 
 
-def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray,
-          start: np.ndarray = np.zeros(3)) -> str:
+def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray, start: np.ndarray) -> str:
     """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge
     (or the pen, or the block). p_tcp: the TCP at the onset; the gripper and the block start
     `start` from there (`ongoing`)."""
