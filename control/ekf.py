@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control import kernels as kern
-from control.estimators import ContactEstimator
+from control.estimators import ContactEstimator, Snapshot
 from control.geometry import Plane, rotvec_to_matrix
 from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
                              position_sums, report_state)
@@ -516,12 +516,31 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         w_tcp_v, p_v, n_avg): the object's rate, the gripper's and the TCP's position from when the
         held velocity v was measured, the rate a mean over n_avg (n,) IMU samples (None: v is
         taken as of each sample)."""
-        var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(len(dt), w, p, var_v, var_w, w_tcp, paired)
-        samples = kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, w_v, w_tcp_v, p_v, var_v, var_w,
-                                               _NO_FRESH if fresh is None else fresh))
+        samples = self._samples(dt, w, p, v, var_v, var_w, fresh, w_tcp, paired)
         self._gated = kern.ekf_advance(self.x, self.P, self._status, self._r_last, self._win, self._gated, self._ev,
-                                       self.positions is not None, samples, fresh is not None, self._frame,
-                                       self._run_params())
+                                       self.positions is not None, samples, 0, len(dt), fresh is not None,
+                                       self._frame, self._run_params())
+
+    def advance(self, ends, n_reports: int, dt, w, p, v, var_v, var_w, fresh, w_tcp=None,
+                paired=None) -> list[Snapshot]:
+        """ContactEstimator.advance in one compiled call (kernels.ekf_segments): the same segments
+        and the same state after each as updates one by one, without their per-call cost."""
+        samples = self._samples(dt, w, p, v, var_v, var_w, fresh, w_tcp, paired)
+        nx, d = len(self.x), self.d
+        out_x, out_P = np.empty((n_reports, nx)), np.empty((n_reports, nx, nx))
+        out_r, out_s = np.empty((n_reports, d)), np.empty((n_reports, 3))
+        self._gated = kern.ekf_segments(self.x, self.P, self._status, self._r_last, self._win, self._gated, self._ev,
+                                        self.positions is not None, samples, fresh is not None, self._frame,
+                                        self._run_params(), self.params.slip_radial_sigma ** 2,
+                                        np.asarray(ends, dtype=np.int64), out_x, out_P, out_r, out_s)
+        return [Snapshot(*self.report(out_x[j], out_P[j], out_s[j, 2], out_r[j]), int(out_s[j, 0]),
+                         float(out_s[j, 1]), float(out_s[j, 2])) for j in range(n_reports)]
+
+    def _samples(self, dt, w, p, v, var_v, var_w, fresh, w_tcp, paired):
+        """update's arguments as the compiled run's Samples."""
+        var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(len(dt), w, p, var_v, var_w, w_tcp, paired)
+        return kern.contiguous(kern.Samples(dt, w, w_tcp, p, v, w_v, w_tcp_v, p_v, var_v, var_w,
+                                            _NO_FRESH if fresh is None else fresh))
 
     def _run_params(self) -> np.ndarray:
         """The compiled run's parameters (kernels.RUN_PARAMS) as they stand now, in place."""
@@ -549,13 +568,17 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         return eta_weight(float(self.x[self.d]), float(self.P[self.d, self.d]), self.k_prior_mean, self.k_prior_var,
                           self.params.eta_test_sigma)
 
-    def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(p_c, reported covariance with the eta floor, the filter's own covariance), world.
+    def report(self, x=None, P=None, consistency=None, r_last=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_c, reported covariance with the eta floor, the filter's own covariance), world, of the
+        state now (or of the one given: x, P, the consistency ratio and the lever arm at its last
+        sample, as ekf_segments keeps them).
 
         The scheduled estimate (k at its prior mean: the state conditioned on it, eta's uncertainty as
         a radial floor) until the data reject that; then the free-eta estimate c = m / k is blended in
         (kernels.report_state)."""
-        return report_state(self.x, self.P, self.d, max(self.consistency, 1.0), self._r_last,
+        if x is None:
+            x, P, consistency, r_last = self.x, self.P, self.consistency, self._r_last
+        return report_state(x, P, self.d, max(consistency, 1.0), r_last,
                             (self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
                             self.params.eta_test_sigma, self._E, self.origin, self._along_var)
 

@@ -4,8 +4,9 @@ small linear algebra, the pipeline's rate moments, and the whole `ekf` run of a 
 `ContactKF` (control/ekf.py) owns the model; these loops only evaluate it sample by sample. One
 block is tens of samples; as numpy calls on such short arrays it cost ~60 calls (300-400 us), as
 one compiled loop a few microseconds. `ekf_advance` runs a chunk (every block, the
-consistency window and the position evidence) in one call; the pipeline cuts a batch into chunks
-that end at each output and builds each report in Python, as for every other estimator. They release the GIL and cache their machine code beside this file
+consistency window and the position evidence) in one call, and `ekf_segments` a whole batch: the
+pipeline cuts it into segments that end at each output, and the state after each segment is kept
+for that output's report, which is built in Python as for every other estimator. They release the GIL and cache their machine code beside this file
 (`__pycache__`, or NUMBA_CACHE_DIR). They are compiled when this module is imported, for the
 signatures given (any array layout), so no call can compile mid-episode: the first import after an
 install takes about 30 s on a 2-core machine, later ones about 2 s. NUMBA_DISABLE_JIT=1 runs them as
@@ -994,9 +995,9 @@ def position_account(x, P, ev, dt, w_d, t_d, r0, fresh, d, prm):
 
 
 @jit(types.float64[::1](_V, _M, STATUS_T, _V, WINDOW_T, types.float64[::1], EVIDENCE_T, types.boolean, SAMPLES_T,
-                        types.boolean, FRAME_T, PARAMS_T))
-def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, frame, prm):
-    """`ekf` over a chunk of samples, all state updated in place; returns the gated-NIS buffer.
+                        types.int64, types.int64, types.boolean, FRAME_T, PARAMS_T))
+def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, i0, i1, use_fresh, frame, prm):
+    """`ekf` over the samples i0:i1 of a chunk, all state updated in place; returns the gated-NIS buffer.
 
     State: x, P (the filter), status (STATUS), r_last (the lever arm at the last sample), the
     consistency window (win, and gbuf: its gated NIS) and, with ev_on, the position evidence (ev).
@@ -1009,13 +1010,12 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
     episode is linearised about its own answer by two uncommitted passes."""
     st = status[0]
     pr = prm[0]
-    n = smp.dt.shape[0]
     d = frame.E.shape[0]
     nk = x.shape[0] - d
     mb = int(pr.max_block)
     corr = max(pr.corr, 1.0)
-    for b0 in range(0, n, mb):
-        b1 = min(b0 + mb, n)
+    for b0 in range(i0, i1, mb):
+        b1 = min(b0 + mb, i1)
         steps = st.steps
         gate = pr.gate_nis > 0 and steps > 0
         # at onset the noise model is linearised about a guess: two uncommitted passes on the first
@@ -1063,4 +1063,32 @@ def ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, fram
                 for a in range(3):
                     t_d[i, a] = smp.w_tcp[b0 + i, a]
         position_account(x, P, ev, smp.dt[b0:b1], w_d, t_d, r0, smp.fresh[b0:b1], d, prm)
+    return gbuf
+
+
+@jit(types.float64[::1](_V, _M, STATUS_T, _V, WINDOW_T, types.float64[::1], EVIDENCE_T, types.boolean, SAMPLES_T,
+                        types.boolean, FRAME_T, PARAMS_T, types.float64, types.int64[::1], _M,
+                        types.float64[:, :, ::1], _M, _M))
+def ekf_segments(x, P, status, r_last, win, gbuf, ev, ev_on, smp, use_fresh, frame, prm, slip_radial_var, ends,
+                 out_x, out_P, out_r, out_s):
+    """ekf_advance over the chunk's segments 0:ends[0], ends[0]:ends[1], ... (one call where the
+    pipeline reports between segments), keeping the state after each of the first len(out_x): x,
+    P, r_last, and (steps, nis, consistency) in out_s. Returns the gated-NIS buffer.
+
+    As between calls one segment at a time (ContactKF.radial_var_now): once the position evidence
+    has broken, the segments after take the velocity along the lever arm with at least
+    slip_radial_var."""
+    i0 = 0
+    for j in range(ends.shape[0]):
+        if ev_on and ev.status[0].broken and prm[0].radial_var < slip_radial_var:
+            prm[0].radial_var = slip_radial_var
+        gbuf = ekf_advance(x, P, status, r_last, win, gbuf, ev, ev_on, smp, i0, ends[j], use_fresh, frame, prm)
+        i0 = ends[j]
+        if j < out_x.shape[0]:
+            out_x[j] = x
+            out_P[j] = P
+            out_r[j] = r_last
+            out_s[j, 0] = status[0].steps
+            out_s[j, 1] = status[0].nis
+            out_s[j, 2] = status[0].consistency
     return gbuf

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from control import estimators
+from control.estimators import Snapshot
 from control.baselines import BaselineParams
 from control.conditioning import GyroConditioner
 from control.ekf import UNOBSERVED_STD_M, ContactKfParams, PaperEkfParams
@@ -613,30 +614,40 @@ class ContactPipeline:
 
     def _advance(self, ts, dt, w_obj, positions: tuple, v, var_v, var_w, fresh, tcp_turning: bool,
                  period: float, paired: tuple) -> list[ContactEstimate]:
-        """Advance the estimator in sub-blocks that end at each output time, and report at each.
+        """Advance the estimator in segments that end at each output time, and report at each.
         w_obj: the object's rate now (the angle and the axis); positions = (w, p, w_tcp): what the
         position evidence integrates, aligned with the TCP positions (process_all)."""
         w_pos, p, w_tcp = positions
-        estimates: list[ContactEstimate] = []
-        k0, n = 0, len(ts)
+        n = len(ts)
+        ends: list[int] = []
+        n_due, k0, t_out = 0, 0, self._t_out
         while k0 < n:
-            due = int(np.searchsorted(ts, self._t_out + period, side="left"))
+            due = int(np.searchsorted(ts, t_out + period, side="left"))
             k1 = n if due >= n else max(due + 1, k0 + 1)
-            sl = slice(k0, k1)
-            self.estimator.update(dt[sl], w_pos[sl], p[sl], v[sl], var_v[sl], var_w[sl],
-                                  fresh[sl], w_tcp[sl] if tcp_turning else None, tuple(a[sl] for a in paired))
-            self._angle += rate_moments(w_obj[sl], dt[sl], self._wwT, self._w_sum)
+            ends.append(k1)
+            if due < n:
+                t_out = float(ts[k1 - 1])
+                n_due += 1
+            k0 = k1
+        snaps = self.estimator.advance(ends, n_due, dt, w_pos, p, v, var_v, var_w, fresh,
+                                       w_tcp if tcp_turning else None, paired)
+        estimates: list[ContactEstimate] = []
+        k0 = 0
+        for j, k1 in enumerate(ends):
+            self._angle += rate_moments(w_obj[k0:k1], dt[k0:k1], self._wwT, self._w_sum)
             self._n_w += k1 - k0
             self._t_prev = float(ts[k1 - 1])
-            if due < n:
+            if j < n_due:
                 self._t_out = self._t_prev
-                estimates.append(self._estimate(self._t_prev))
+                estimates.append(self._estimate(self._t_prev, snaps[j]))
             k0 = k1
         return estimates
 
-    def _estimate(self, t: float) -> ContactEstimate:
-        est = self.estimator
-        p_c, cov, stat = est.report()
+    def _estimate(self, t: float, snap: Snapshot | None = None) -> ContactEstimate:
+        """The output at t from the estimator's snapshot then (None: as it stands now)."""
+        if snap is None:
+            snap = self.estimator.snapshot()
+        p_c, cov, stat = snap.p, snap.cov, snap.stat
         # Converged: the statistical uncertainty in the plane of rotation is small
         # (systematic floors such as eta's are reported, but do not shrink with data).
         if self.plane is not None:
@@ -658,7 +669,7 @@ class ContactPipeline:
             axis = axis if axes else None
         in_plane = math.sqrt(max(top, 0.0))
         return ContactEstimate(t=t, onset_t=self.onset_t, p=p_c, std=np.sqrt(np.maximum(cov.diagonal(), 0.0)),
-                               cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and est.steps > 100,
-                               nis=est.nis, steps=est.steps, method=self.method, in_plane_std=in_plane,
-                               angle_rad=self._angle, nis_ratio=est.consistency,
+                               cov=cov, axis=axis, converged=in_plane < CONVERGED_STD_M and snap.steps > 100,
+                               nis=snap.nis, steps=snap.steps, method=self.method, in_plane_std=in_plane,
+                               angle_rad=self._angle, nis_ratio=snap.consistency,
                                onset_p_tcp=self.onset_p_tcp, saturated=self.saturated)

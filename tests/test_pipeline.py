@@ -343,6 +343,26 @@ def test_the_compiled_run_equals_the_reference_filter(case):
                 np.testing.assert_allclose(x, y, rtol=REFERENCE_REL_TOL, atol=1e-12, err_msg=f"{name} at {a.t}")
 
 
+@pytest.mark.parametrize("plane", [True, False])
+def test_one_compiled_call_per_batch_equals_one_per_segment(monkeypatch, plane):
+    """ContactKF.advance runs a batch's segments in one compiled call (kernels.ekf_segments); the
+    estimates are those of one `update` per segment (ContactEstimator.advance) bit for bit, through
+    the gate and the slip that breaks the position evidence mid-batch (after which the segments
+    distrust the velocity along the lever arm)."""
+    from control.ekf import ContactKF
+    from control.estimators import ContactEstimator
+    fields = _troubled_recording()
+    kw = dict(plane=plane, chunk_s=0.1 if plane else 0.007)
+    batched, kf, _ = _replay_estimates(fields, "ekf", **kw)
+    monkeypatch.setattr(ContactKF, "advance", ContactEstimator.advance)
+    segmented, kf2, _ = _replay_estimates(fields, "ekf", **kw)
+    assert kf.positions.broken and kf.rejected > 0
+    assert len(batched) == len(segmented) > 100
+    for a, b in zip(batched, segmented):
+        assert (a.t, a.steps, a.nis, a.nis_ratio, a.angle_rad) == (b.t, b.steps, b.nis, b.nis_ratio, b.angle_rad)
+        assert np.array_equal(a.p, b.p) and np.array_equal(a.cov, b.cov)
+
+
 def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     """Issue 16: a clipped gyro sample is no measurement. Mid-episode, 15 ms of a chip at full scale
     leave the estimate where it was without them (every filtered sample whose window holds a clipped

@@ -8,14 +8,27 @@ that has no use for one keeps the no-op. Adding an estimator is adding a module 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
+
+import numpy as np
 
 from control.plugins import new_modules
 
 
+class Snapshot(NamedTuple):
+    """What one output reports of an estimator: `report()` and the counters, as of one moment."""
+    p: np.ndarray              # the contact, world, m
+    cov: np.ndarray            # its reported 3 x 3 covariance, m^2
+    stat: np.ndarray           # the estimator's own in-plane statistic (report's third)
+    steps: int
+    nis: float
+    consistency: float | None
+
+
 class ContactEstimator:
     """What the pipeline asks of an estimator. Every one implements `start` (at onset), `update`
-    (a run of samples) and `report`; the hooks below default to nothing."""
+    (a run of samples) and `report`; the hooks below default to nothing, and `advance` to `update`
+    segment by segment."""
 
     method = "estimator"
     steps = 0              # samples used so far this episode
@@ -38,6 +51,26 @@ class ContactEstimator:
     def report(self):
         """(p_c world m, its 3 x 3 covariance m^2, the estimator's own in-plane statistic)."""
         raise NotImplementedError
+
+    def snapshot(self) -> Snapshot:
+        """The report and the counters as they stand now."""
+        return Snapshot(*self.report(), self.steps, self.nis, self.consistency)
+
+    def advance(self, ends, n_reports: int, dt, w, p, v, var_v, var_w, fresh, w_tcp=None,
+                paired=None) -> list[Snapshot]:
+        """`update` over the samples (update's arguments, the n rows of a batch) in segments that end
+        at `ends` (increasing row indices, the last n); returns the snapshot after each of the first
+        n_reports segments (the pipeline reports there). An estimator may run the segments in one
+        go (ContactKF) as long as the snapshots are what segment-by-segment updates give."""
+        snaps, k0 = [], 0
+        for j, k1 in enumerate(ends):
+            sl = slice(k0, k1)
+            self.update(dt[sl], w[sl], p[sl], v[sl], var_v[sl], var_w[sl], fresh[sl],
+                        None if w_tcp is None else w_tcp[sl], None if paired is None else tuple(a[sl] for a in paired))
+            if j < n_reports:
+                snaps.append(self.snapshot())
+            k0 = k1
+        return snaps
 
     def set_arc_radial_var(self, var_m2_s2: float) -> None:
         """The controller follows an arc about the estimate: distrust the TCP velocity along the
