@@ -14,7 +14,7 @@ $(PY):
 
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) control/kernels.py
@@ -30,7 +30,7 @@ test: $(WARM)
 	$(PY) -m pytest -q
 
 bench: $(WARM)
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BACKENDS = {"sim": "sim.backend", "ur": "robots.ur"}     # name -> module
+BACKENDS = {"sim": "sim.backend", "ur": "robots.ur", "franka": "robots.franka"}     # name -> module
 
 
 class BackendError(RuntimeError):

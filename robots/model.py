@@ -24,6 +24,8 @@ IK_MAX_STEP_RAD = 0.2
 # UR e-Series arms, built from UR's DH parameters (robots/ur_dh.py: example-robot-data has none).
 ARMS = {
     "panda": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
+    # FR3: Franka's DH parameters and hand are the Panda's; its joint ranges are its own (FR3_LIMITS)
+    "fr3": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
     "ur3": ("ur_description/urdf/ur3_robot.urdf", "tool0"),
     "ur5": ("ur_description/urdf/ur5_robot.urdf", "tool0"),
     "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
@@ -34,12 +36,22 @@ ARMS = {
 # A well-conditioned "ready" posture per arm (rad): smallest Jacobian singular value >= 0.1.
 READY_Q = {
     "panda": (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785),
+    "fr3": (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785),
     "ur3": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
     "ur5": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
     "ur10": (0.0, -1.2, 1.5, -1.9, -1.57, 0.0),
     "z1": (0.0, 1.2, -1.0, -0.3, 0.0, 0.0),
     "xarm7": (0.0, -0.4, 0.0, 0.6, 0.0, 1.0, 0.0),
     **{name: (0.0, -1.2, 1.5, -1.9, -1.57, 0.0) for name in ur_dh.UR_E_DH},
+}
+
+
+# FR3's joint position limits (rad), from Franka's FR3 datasheet: narrower than the Panda's in
+# places (joint 6 starts at 0.5445 rad), and the arm refuses motion outside them. Joint velocity
+# limits stay the Panda's, which franky itself enforces on every motion (2.175 / 2.61 rad/s).
+FR3_LIMITS = {
+    "q_min": (-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159),
+    "q_max": (2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159),
 }
 
 
@@ -118,6 +130,9 @@ class ArmModel:
         tcp = pin.Frame("tecdar_tcp", parent.parentJoint, flange_id, parent.placement * offset,
                         pin.FrameType.OP_FRAME)
         self.tcp_id = model.addFrame(tcp)
+        if name == "fr3":
+            model.lowerPositionLimit[:] = FR3_LIMITS["q_min"]
+            model.upperPositionLimit[:] = FR3_LIMITS["q_max"]
         self.q_min = model.lowerPositionLimit.copy()
         self.q_max = model.upperPositionLimit.copy()
         self.qd_max = model.velocityLimit.copy()

@@ -1,0 +1,218 @@
+"""`robot.backend: franka`: a Franka arm (FR3, Panda) through franky (robots.franka_link), the fingertip board on serial.
+
+Reads `robot.franka`:
+- `host` (required): the robot's FCI address (the arm's, not Desk's web address where they differ);
+- `realtime`: `enforce` (default; a real arm needs a PREEMPT_RT kernel and realtime limits, and
+  `tecdard doctor` says whether this host has them) or `ignore` (simulation only: libfranka's
+  1 kHz loop then runs without realtime priority and a real arm would stop on missed packets);
+- `connect_timeout_s`: a robot that does not answer within this is an error (default 10);
+- `watchdog_s`: how long franky holds a joint velocity after the daemon's last command before it
+  stops the arm (default 0.06 s, three control ticks; at least two ticks, at most 0.5 s);
+- `relative_dynamics_factor`: franky's scaling of the arm's joint velocity, acceleration and jerk
+  limits for every motion (default 0.5);
+- `gripper`: read the Franka Hand's state (default true);
+- `grasp_force_n`: the force the grasp was commanded with (libfranka's gripper state carries the
+  width and whether it holds, not the force): while the hand holds, this feeds eta's schedule;
+  otherwise estimator.grip_force_n does (default 20 N).
+
+State: the arm's joints on the link's own thread at the robot's rate (about 1 kHz). The TCP is our
+Pinocchio FK of the measured joints (robots.model `fr3`/`panda`, with robot.tool_offset), checked
+against the robot's O_T_EE at start-up: an offset is said (franky-sim's O_T_EE is FK of the
+commanded joints; a real arm's carries its own TCP setting from Desk). The external force is the
+robot's O_F_ext_hat_K where it is not zero, else Jᵀ F = τ_J − g(q) with franky's model.
+
+Faults (each a `fault` event, and a protective stop of the task):
+- `robot_link`: the link is lost (the robot, its FCI or the network); reconnected with back-off;
+- `robot_reflex`: a reflex or an aborted motion (libfranka's errors named);
+- `robot_user_stop`: the user stop (the external activation device) is pressed;
+- `robot_refused`: franky refused a command.
+
+Recovery from a reflex is automatic, with back-off (RECOVER_S): the daemon has already ended the
+task on the fault, and recover_from_errors only clears the robot's error latch; it moves nothing,
+and nothing moves again until a client sends a new task. An operator would press the same button
+in Desk, and a daemon that waits for one leaves an unattended cell stopped for a transient reflex.
+A user stop is the operator's own act: it clears when they release the device, and the recovery
+then runs as for a reflex.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import pinocchio as pin
+
+from robots.backends import BackendContext
+from robots.franka_link import FrankaLink, FrankaLinkError, FrankaLinkSettings
+
+log = logging.getLogger("tecdar.franka")
+
+FRANKA_MODELS = ("fr3", "panda")
+RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
+RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off between automatic error recoveries while a reflex holds
+FK_CHECK_M = 0.003                      # our FK and the robot's O_T_EE further apart than this: said at start
+FK_CHECK_RAD = 0.0175
+STALE_S = 2.0                           # no state from a running child for this long: the link is lost
+                                        # (libfranka's own UDP timeout is 1 s)
+
+
+class FrankaBackend:
+    """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
+
+    imu = None
+    serial_params = None
+    imu_odr_hz = None
+
+    def __init__(self, ctx: BackendContext):
+        from tecdard.config import ConfigError
+        if ctx.model.name not in FRANKA_MODELS:
+            raise ConfigError(f"robot.model: {ctx.model.name!r} is no Franka arm; with robot.backend franka use one "
+                              f"of {', '.join(FRANKA_MODELS)}")
+        if ctx.imu_source != "serial":
+            raise ConfigError("imu.source: with robot.backend franka the fingertip board is read over serial; "
+                              "set imu.source: serial")
+        section = ctx.cfg.section("robot").section("franka")
+        if not section.has("host"):
+            raise ConfigError("robot.franka.host: required with robot.backend franka (the robot's FCI address)")
+        self.settings = FrankaLinkSettings(
+            host=section.getstr("host", max_len=253),
+            realtime=section.getstr("realtime", "enforce", choices=("enforce", "ignore")),
+            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
+            watchdog_s=section.getfloat("watchdog_s", 3.0 * ctx.tick_s, minval=2.0 * ctx.tick_s, maxval=0.5),
+            relative_dynamics_factor=section.getfloat("relative_dynamics_factor", 0.5, minval=0.05, maxval=1.0),
+            gripper=section.getbool("gripper", True),
+            grasp_force_n=section.getfloat("grasp_force_n", 20.0, above=0.0, maxval=140.0))
+        self.nq = ctx.model.nq
+        self.model = ctx.model
+        self.link = FrankaLink(self.settings)
+        self.robot = self
+        self.fk_offset: tuple[float, float] | None = None     # (m, rad) our FK against the robot's O_T_EE at start
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+
+    # -- lifecycle ----------------------------------------------------------------
+    def start(self) -> None:
+        """Connect (FrankaLinkError naming the host and what failed), cross-check the kinematics,
+        then watch the link."""
+        self.link.start()
+        for note in self.link.notes:
+            log.warning("robot.franka: %s", note)
+        self._check_kinematics(self.link.identity)
+        self._supervisor = threading.Thread(target=self._supervise, name="franka-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def _check_kinematics(self, identity: dict) -> None:
+        """Our FK of the robot's joints against the O_T_EE it reports. A real arm's carries its end
+        effector as set in Desk; a different robot.tool_offset, or a hand configured otherwise,
+        puts the IMU's lever arm elsewhere, so the offset is said. franky-sim computes O_T_EE from
+        the commanded joints, which equal the measured ones at rest."""
+        O_T_EE = np.array(identity["O_T_EE"]).reshape(4, 4, order="F")
+        oMfk = self.model.fk(np.array(identity["q"]))
+        offset_m = float(np.linalg.norm(oMfk.translation - O_T_EE[:3, 3]))
+        offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ O_T_EE[:3, :3])))
+        self.fk_offset = (offset_m, offset_rad)
+        if offset_m > FK_CHECK_M or offset_rad > FK_CHECK_RAD:
+            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from the robot's O_T_EE "
+                        "(model %s, tool offset %s m, tool quat %s); check them against the end effector set in "
+                        "Desk", offset_m * 1e3, np.degrees(offset_rad), self.model.name, self.model.tool_offset,
+                        self.model.tool_quat)
+        else:
+            log.info("robot.franka: our TCP is %.2f mm and %.2f deg from the robot's O_T_EE", offset_m * 1e3,
+                     np.degrees(offset_rad))
+
+    def close(self) -> None:
+        self._stop.set()
+        self.link.stop()
+        if self._supervisor is not None:
+            self._supervisor.join(2.0)
+
+    def _supervise(self) -> None:
+        """Reconnect a lost link with back-off; recover from a reflex with back-off."""
+        attempt = recoveries = 0
+        next_recovery = 0.0
+        while not self._stop.wait(0.05):
+            link = self.link
+            st = link.franka_state
+            if not link.exited.is_set() and st is not None and time.monotonic() - st.rx_t > STALE_S:
+                link.fault = f"no state from {self.settings.host} for {time.monotonic() - st.rx_t:.1f} s"
+                link.stop()
+            if link.exited.is_set() or link._proc is None:
+                self._stop.wait(RECONNECT_S[min(attempt, len(RECONNECT_S) - 1)])
+                if self._stop.is_set():
+                    return
+                attempt += 1
+                fresh = FrankaLink(self.settings)
+                try:
+                    fresh.start()
+                except FrankaLinkError as exc:
+                    log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
+                    continue
+                link.stop()
+                self.link, attempt, recoveries = fresh, 0, 0
+                log.info("reconnected to %s", self.settings.host)
+                continue
+            if not link.robot_fault:
+                recoveries = 0
+                continue
+            now = time.monotonic()
+            if now < next_recovery or "UserStopped" in link.robot_fault:
+                continue
+            ok, why = link.recover()
+            recoveries += 1
+            if ok:
+                log.info("recovered from %s", link.robot_fault or "the robot's error")
+            else:
+                log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
+            next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S)) - 1]
+
+    # -- receive / control, as any backend -----------------------------------------
+    def read_state(self):
+        return self.link.read_state()
+
+    def wait_state(self, seq: int, timeout: float):
+        try:
+            return self.link.wait_state(seq, timeout)
+        except FrankaLinkError:
+            self._stop.wait(timeout)          # reconnecting: the proprioception thread waits, as for a quiet arm
+            return self.link.read_state()
+
+    def command_joint_velocity(self, qd) -> None:
+        try:
+            self.link.command_joint_velocity(qd)
+        except FrankaLinkError:
+            pass                              # the link is down: its fault has stopped the task already
+
+    def hold(self) -> None:
+        try:
+            self.link.hold()
+        except FrankaLinkError:
+            pass
+
+    def stop(self) -> None:
+        self.close()
+
+    def faults(self) -> dict[str, str]:
+        """The robot's faults that hold now, code -> message (the daemon's `fault` events)."""
+        out = {}
+        link = self.link
+        host = self.settings.host
+        if link.exited.is_set() or link.fault:
+            out["robot_link"] = f"Franka robot {host}: {link.fault or 'not connected'}"
+            return out
+        fault = link.robot_fault
+        if not fault:
+            return out
+        if "UserStopped" in fault:
+            out["robot_user_stop"] = (f"Franka robot {host}: the user stop is pressed; release it to go on "
+                                      f"(the error recovery then runs by itself)")
+        elif fault.startswith("velocity command") or fault.startswith("hold"):
+            out["robot_refused"] = f"Franka robot {host} refused a command: {fault}"
+        else:
+            out["robot_reflex"] = (f"Franka robot {host}: {fault}; recovering by itself (franky's "
+                                   f"recover_from_errors), then a new task may run")
+        return out
+
+
+def build(ctx: BackendContext) -> FrankaBackend:
+    return FrankaBackend(ctx)

@@ -1,0 +1,468 @@
+"""franky in a process of its own: the daemon's link to a Franka arm (FR3 or Panda) over the FCI.
+
+Why a process of its own:
+- `franky.Robot()` has no timeout. A server that accepts the connection and never answers, or
+  an older libfranka against a newer server, leaves it waiting for ever (issue 22's own
+  measurements), and a pybind11 call that waits may hold the GIL: every thread of the caller would
+  wait with it. In a child, the parent's deadline ends the child instead.
+- libfranka's control loop runs in a thread of franky's own at 1 kHz. In the child it competes
+  with the child only, not with the daemon's estimator.
+
+The child connects (franky.Robot, and franky.Gripper when the arm has a hand), then sends every
+new robot state to the parent and carries out the daemon's commands:
+- `qd`: a JointVelocityMotion to these joint rates, re-issued every control tick. Its duration is
+  the watchdog: franky holds the target that long after reaching it, then stops, so a daemon that
+  stops commanding stops the arm one watchdog later.
+- `hold`: franky's JointVelocityStopMotion (the arm decelerates at its dynamics limits and rests).
+- `recover`: franky's automatic error recovery (recover_from_errors), after a reflex.
+- `close`: stop the motion and end.
+
+Every state carries the external force at the TCP: the robot's own estimate (O_F_ext_hat_K)
+where it gives one; otherwise from the joint torques, Jᵀ F = τ_J − g(q), with franky's own model
+(libfranka's, the robot's dynamics and its configured load). franky-sim reports no force
+estimate.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import re
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import wait
+
+import numpy as np
+
+from drivers.timesync import ClockSync
+from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
+from robots.backends import BackendError
+
+log = logging.getLogger("tecdar.franka")
+
+NQ = 7
+LIBFRANKA_ROBOT_SERVER_VERSION = 10     # the robot server version franky 2.0 (libfranka 0.21.2) speaks
+ROBOT_PORT = 1337                       # the FCI's robot server (the hand's is 1338)
+CONNECT_COMMAND = 0                     # libfranka's research interface: Command::kConnect
+CONNECT_HEADER_BYTES = 12
+CONNECT_INCOMPATIBLE = 1                # Connect::Status::kIncompatibleLibraryVersion
+LINK_SILENT_S = 0.5                     # no new robot state for this long: the link is lost
+GRIP_HZ = 10.0                          # the hand's state is read this often
+STATE_POLL_S = 0.0005                   # between state reads while a motion runs (franky then answers at once)
+GRAVITY = np.array([0.0, 0.0, -9.81])
+FORCE_FROM_TORQUES = "torques"          # FrankaState.force_source: Jᵀ F = τ_J − g(q)
+FORCE_FROM_ROBOT = "robot"              # the robot's own O_F_ext_hat_K
+ERROR_MODES = ("Reflex", "UserStopped", "Other")   # robot modes that hold a fault
+
+
+class FrankaLinkError(BackendError):
+    """The robot could not be reached, refused the link, or the link has gone."""
+
+
+@dataclass(frozen=True)
+class FrankaLinkSettings:
+    host: str
+    realtime: str = "enforce"             # franky's RealtimeConfig: enforce (a real arm) | ignore (simulation)
+    connect_timeout_s: float = 10.0       # a robot that does not answer within this is an error
+    watchdog_s: float = 0.06              # a velocity motion's hold after its target: the arm stops this
+                                          # long after the daemon's last command
+    relative_dynamics_factor: float = 0.5 # franky's scaling of the arm's velocity, acceleration and jerk limits
+    gripper: bool = True                  # read the hand's state (franky.Gripper)
+    grasp_force_n: float = 20.0           # the grasp's commanded force: the grip force while the hand holds
+
+
+@dataclass(frozen=True)
+class FrankaState:
+    """One robot state as the child read it."""
+    robot_t: float               # the robot's clock, s
+    rx_t: float                  # the child's monotonic clock when read, s
+    q: tuple
+    dq: tuple
+    O_T_EE: tuple                # 16, column-major: the robot's own TCP pose (franky's, from the commanded joints in franky-sim)
+    f_ext: tuple                 # external force at the TCP, base frame, N
+    force_source: str            # FORCE_FROM_ROBOT or FORCE_FROM_TORQUES
+    mode: str                    # franky's RobotMode name: Idle, Move, Reflex, UserStopped, ...
+    errors: str                  # the robot's current errors, "" when none
+    grip_width: float | None     # m, the hand's opening (None: no hand read)
+    grasped: bool | None
+
+
+def _matrix(affine) -> np.ndarray:
+    m = affine.matrix
+    return np.asarray(m() if callable(m) else m, dtype=float)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}"
+
+
+def connect_problem(host: str, exc: BaseException) -> str:
+    """franky's connect exception as one line a Franka user can act on."""
+    name = type(exc).__name__
+    text = str(exc)
+    if name == "IncompatibleVersionException":
+        found = re.search(r"server version:?\s*(\d+).*?library version:?\s*(\d+)", text, re.S | re.I)
+        theirs, ours = (found.group(1), found.group(2)) if found else ("?", str(LIBFRANKA_ROBOT_SERVER_VERSION))
+        return (f"robot.franka.host: the robot at {host} runs robot server version {theirs}; this franky "
+                f"(libfranka 0.21.2) speaks version {ours}. Install the franky-control release built for "
+                f"the robot's system version, or update the robot")
+    if name == "RealtimeException":
+        return (f"robot.franka.realtime: enforce, but this kernel has no realtime capability ({_first_line(exc)}); "
+                f"run on a PREEMPT_RT kernel with realtime limits for this user (`tecdard doctor` says what is "
+                f"missing), or set realtime: ignore in simulation only")
+    if name == "NetworkException":
+        return f"robot.franka.host: no Franka robot answered at {host} ({_first_line(exc)})"
+    return f"robot.franka.host: {host} refused the link: {_first_line(exc)}"
+
+
+def server_version(host: str, timeout_s: float) -> tuple[int, int]:
+    """(status, version) of the robot server's answer to libfranka's Connect on port 1337, read
+    before franky connects, because libfranka 0.21 checks no version when the server says success:
+    a robot of another system version would be driven with a state layout it does not send.
+
+    The request is libfranka's: a header (uint32 command 0, id, message size) and the library's
+    version and a UDP port (uint16 each). libfranka's reply is packed: status (uint8), version
+    (uint16), 3 bytes. franky-sim 1.0.4 answers 8 bytes (uint16 status, uint16 version, padding),
+    so the reply's length says which layout it has. Raises OSError (nothing listening, or no
+    answer within timeout_s) or ValueError (an answer that is no Connect reply)."""
+    deadline = time.monotonic() + timeout_s
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        udp.bind(("", 0))
+        with socket.create_connection((host, ROBOT_PORT), timeout=timeout_s) as sock:
+            sock.sendall(struct.pack("<III", CONNECT_COMMAND, 1, CONNECT_HEADER_BYTES + 4)
+                         + struct.pack("<HH", LIBFRANKA_ROBOT_SERVER_VERSION, udp.getsockname()[1]))
+            data = b""
+            size = None
+            while size is None or len(data) < size:
+                sock.settimeout(max(deadline - time.monotonic(), 1e-3))
+                chunk = sock.recv(256)
+                if not chunk:
+                    raise ValueError(f"the server at {host} closed the connection without a Connect reply")
+                data += chunk
+                if size is None and len(data) >= CONNECT_HEADER_BYTES:
+                    command, _, size = struct.unpack("<III", data[:CONNECT_HEADER_BYTES])
+                    if command != CONNECT_COMMAND or not CONNECT_HEADER_BYTES + 3 <= size <= 64:
+                        raise ValueError(f"the server at {host} gave no Connect reply (command {command}, "
+                                         f"{size} bytes)")
+    finally:
+        udp.close()
+    payload = data[CONNECT_HEADER_BYTES:size]
+    if len(payload) >= 8:
+        return struct.unpack("<HH", payload[:4])
+    return payload[0], struct.unpack("<H", payload[1:3])[0]
+
+
+class _Force:
+    """The external force at the TCP from the joint torques when the robot estimates none:
+    Jᵀ F = τ_J − g(q), solved in least squares with franky's model of the arm."""
+
+    def __init__(self, model, frame):
+        self.model, self.frame = model, frame
+
+    def __call__(self, state) -> tuple[np.ndarray, str]:
+        f_robot = np.asarray(state.O_F_ext_hat_K, dtype=float)
+        if np.any(f_robot != 0.0):
+            return f_robot[:3], FORCE_FROM_ROBOT
+        tau_ext = np.asarray(state.tau_J, dtype=float) - np.asarray(self.model.gravity(state, GRAVITY), dtype=float)
+        J = np.asarray(self.model.zero_jacobian(self.frame, state), dtype=float)
+        wrench, *_ = np.linalg.lstsq(J.T, tau_ext, rcond=1e-3)
+        return wrench[:3], FORCE_FROM_TORQUES
+
+
+def _motion(franky, settings: FrankaLinkSettings, qd) -> object:
+    return franky.JointVelocityMotion(np.asarray(qd, dtype=float),
+                                      duration=franky.Duration(max(int(settings.watchdog_s * 1e3), 1)))
+
+
+def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
+    """The child: connect, then stream states and carry out commands until told to close or the link goes."""
+    try:
+        import franky
+    except ImportError as exc:
+        state_tx.send(("error", f"robot.backend franka needs franky (pip install 'tecdar[franka]'): {exc}"))
+        return
+    realtime = franky.RealtimeConfig.Enforce if settings.realtime == "enforce" else franky.RealtimeConfig.Ignore
+    try:
+        robot = franky.Robot(settings.host, realtime_config=realtime,
+                             relative_dynamics_factor=settings.relative_dynamics_factor)
+        first = robot.state
+    except Exception as exc:
+        state_tx.send(("error", connect_problem(settings.host, exc)))
+        return
+    gripper = None
+    if settings.gripper:
+        try:
+            gripper = franky.Gripper(settings.host)
+        except Exception as exc:           # an arm without a hand, or its server down: said, not fatal
+            state_tx.send(("note", f"no gripper state from {settings.host}: {_first_line(exc)}"))
+    grip = {"width": None, "grasped": None}
+    closing = threading.Event()
+
+    def read_gripper() -> None:
+        """The hand's state at GRIP_HZ on a thread of its own: its reads wait for its own server
+        (2 s on a timeout), and the arm's states must not wait with them."""
+        while not closing.wait(1.0 / GRIP_HZ):
+            try:
+                gs = gripper.state
+                grip["width"], grip["grasped"] = float(gs.width), bool(gs.is_grasped)
+            except Exception:
+                grip["width"] = grip["grasped"] = None
+    if gripper is not None:
+        threading.Thread(target=read_gripper, name="franka-gripper", daemon=True).start()
+    force = _Force(robot.model, franky.Frame.EndEffector)
+    ee = _matrix(first.O_T_EE)
+    state_tx.send(("ready", {"O_T_EE": tuple(ee.ravel(order="F")), "q": tuple(first.q),
+                             "gripper_version": int(gripper.server_version) if gripper is not None else None}))
+    last_t = None
+    last_new = time.monotonic()
+    holding = True                       # a stop motion needs sending once, not every tick
+    fault = ""
+    lost = False
+
+    def report_fault(text: str) -> None:
+        nonlocal fault
+        if text != fault:
+            fault = text
+            state_tx.send(("fault", text) if text else ("clear",))
+
+    def run(what, fn) -> None:
+        """A franky call that may raise a motion's exception (a reflex, a preemption, a rejected
+        motion): the fault holds until a command is taken again or the recovery clears it."""
+        try:
+            fn()
+        except Exception as exc:
+            name = type(exc).__name__
+            if name == "NetworkException":
+                raise
+            if name == "ControlException" and "preempted" in str(exc).lower():
+                return                     # a motion replaced by the next command, or stopped: no fault
+            report_fault(f"{what}: {_first_line(exc)}")
+        else:
+            if fault and what != "motion" and not fault.startswith("robot mode"):
+                report_fault("")
+
+    try:
+        while True:
+            while cmd_rx.poll():
+                msg = cmd_rx.recv()
+                if msg[0] == "qd":
+                    holding = False
+                    run("velocity command", lambda: robot.move(_motion(franky, settings, msg[1]), asynchronous=True))
+                elif msg[0] == "hold":
+                    if not holding:
+                        holding = True
+                        run("hold", lambda: robot.move(franky.JointVelocityStopMotion(), asynchronous=True))
+                elif msg[0] == "recover":
+                    ok = False
+                    try:
+                        ok = bool(robot.recover_from_errors())
+                    except Exception as exc:
+                        if type(exc).__name__ == "NetworkException":
+                            raise
+                        state_tx.send(("recovered", False, _first_line(exc)))
+                    else:
+                        if ok and not fault.startswith("robot mode"):
+                            report_fault("")
+                        state_tx.send(("recovered", ok, "" if ok else "the robot refused its error recovery"))
+                elif msg[0] == "close":
+                    return
+            # a motion's own exception (a reflex) surfaces here, once
+            run("motion", robot.poll_motion)
+            st = robot.state               # blocks for the next packet (1 ms) when no motion runs
+            now = time.monotonic()
+            t = float(st.time.to_sec())
+            if t == last_t:
+                if now - last_new > LINK_SILENT_S:
+                    lost = True
+                    state_tx.send(("lost", f"no state from the robot for {now - last_new:.1f} s"))
+                    return
+                wait([cmd_rx], STATE_POLL_S)
+                continue
+            last_t, last_new = t, now
+            errors = repr(st.current_errors).strip()
+            errors = "" if errors in ("[]", "") else errors
+            mode = st.robot_mode.name
+            if errors or mode in ERROR_MODES:
+                report_fault(f"robot mode {mode}" + (f", errors {errors}" if errors else ""))
+            elif fault.startswith("robot mode"):
+                report_fault("")
+            f_ext, source = force(st)
+            state_tx.send(("state", FrankaState(
+                t, now, tuple(st.q), tuple(st.dq), tuple(_matrix(st.O_T_EE).ravel(order="F")),
+                tuple(float(x) for x in f_ext), source, mode, errors, grip["width"], grip["grasped"])))
+    except (EOFError, OSError, BrokenPipeError):
+        return                      # the daemon has gone
+    except Exception as exc:        # franky's NetworkException: the robot has gone
+        lost = True
+        try:
+            state_tx.send(("lost", _first_line(exc)))
+        except (OSError, BrokenPipeError):
+            pass
+    finally:
+        closing.set()
+        if not lost:
+            try:
+                robot.stop()
+            except Exception:
+                pass
+
+
+class FrankaLink:
+    """The daemon's handle on the child: receive (read_state, wait_state) and control
+    (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable
+    and `robot_fault` what the robot reports (a reflex, a user stop)."""
+
+    def __init__(self, settings: FrankaLinkSettings):
+        self.settings = settings
+        self._proc = None
+        self._cmd = self._state_rx = None
+        self._send_lock = threading.Lock()
+        self._states = StateSlot(lambda: FrankaLinkError(self.fault or f"no state from {self.settings.host} yet"))
+        self.franka_state: FrankaState | None = None
+        self._seq = 0
+        self._sync = ClockSync()
+        self._reader: threading.Thread | None = None
+        self.exited = self._states.closed
+        self.fault: str | None = None               # the link's own fault (lost), or None
+        self.robot_fault: str = ""                  # the robot's reflex or stop, "" when none
+        self.recovery: threading.Event = threading.Event()   # set when a recovery answer arrives
+        self.recovery_result: tuple[bool, str] = (False, "")
+        self.identity: dict = {}                    # what the child read at connect (O_T_EE, q, gripper version)
+        self.server_version: int | None = None      # the robot server's, from its Connect reply
+        self.notes: list[str] = []
+
+    def start(self) -> None:
+        """Check the robot server's version, then connect, all within settings.connect_timeout_s,
+        or FrankaLinkError naming the host and what failed."""
+        self._check_version()
+        ctx = multiprocessing.get_context("spawn")
+        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
+        self._state_rx, state_tx = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=child_main, args=(self.settings, cmd_rx, state_tx), name="tecdar-franka",
+                                 daemon=True)
+        self._proc.start()
+        cmd_rx.close()
+        state_tx.close()
+        host, timeout = self.settings.host, self.settings.connect_timeout_s
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._state_rx.poll(left):
+                    raise FrankaLinkError(f"robot.franka.host: no answer from a Franka robot at {host} within "
+                                          f"{timeout:g} s (franky.Robot still waiting: nothing that speaks the FCI "
+                                          f"there, or a robot server this libfranka does not match)")
+                msg = self._state_rx.recv()
+                if msg[0] != "note":
+                    break
+                self.notes.append(msg[1])
+        except EOFError:
+            kill_child(self._proc)
+            raise FrankaLinkError(f"robot.franka.host: the link to {host} ended at start (exit code "
+                                  f"{self._proc.exitcode})") from None
+        except FrankaLinkError:
+            kill_child(self._proc)
+            raise
+        if msg[0] != "ready":
+            kill_child(self._proc)
+            raise FrankaLinkError(msg[1])
+        self.identity = msg[1]
+        self._reader = threading.Thread(target=self._read, name="franka-link", daemon=True)
+        self._reader.start()
+
+    def _check_version(self) -> None:
+        host, timeout = self.settings.host, self.settings.connect_timeout_s
+        try:
+            status, version = server_version(host, timeout)
+        except ConnectionRefusedError:
+            raise FrankaLinkError(f"robot.franka.host: no Franka robot answered at {host} (connection to port "
+                                  f"{ROBOT_PORT} refused: FCI not enabled in Desk, or another address)") from None
+        except OSError as exc:
+            raise FrankaLinkError(f"robot.franka.host: no answer from a Franka robot at {host} within {timeout:g} s "
+                                  f"({exc.strerror or type(exc).__name__})") from None
+        except ValueError as exc:
+            raise FrankaLinkError(f"robot.franka.host: {exc}") from None
+        self.server_version = version
+        if status == CONNECT_INCOMPATIBLE or version != LIBFRANKA_ROBOT_SERVER_VERSION:
+            raise FrankaLinkError(f"robot.franka.host: the robot at {host} runs robot server version {version}; this "
+                                  f"franky (libfranka 0.21.2) speaks version {LIBFRANKA_ROBOT_SERVER_VERSION}. Install "
+                                  f"the franky-control release built for the robot's system version, or update the "
+                                  f"robot")
+
+    def stop(self) -> None:
+        if self._proc is None:
+            return
+        self._send(("close",), quiet=True)
+        end_child(self._proc, (self._cmd, self._state_rx))
+        self._proc = None
+
+    def _read(self) -> None:
+        while True:
+            try:
+                msg = self._state_rx.recv()
+            except (EOFError, OSError):
+                break
+            if msg[0] == "state":
+                st: FrankaState = msg[1]
+                self._sync.add(st.robot_t, st.rx_t)
+                self._seq += 1
+                self.franka_state = st
+                self._states.publish(self._joint_state(st))
+            elif msg[0] == "fault":
+                self.robot_fault = msg[1]
+            elif msg[0] == "clear":
+                self.robot_fault = ""
+            elif msg[0] == "recovered":
+                self.recovery_result = (bool(msg[1]), msg[2])
+                self.recovery.set()
+            elif msg[0] == "note":
+                self.notes.append(msg[1])
+            elif msg[0] == "lost":
+                self.fault = msg[1]
+                break
+        if self.fault is None:
+            self.fault = f"the link to {self.settings.host} has gone"
+        self._states.close()
+
+    def _joint_state(self, st: FrankaState) -> JointState:
+        """A robot state as the daemon's: its clock, the measured joints (the daemon's FK gives the
+        TCP), the external force, and the grasp's force while the hand holds (None otherwise: the
+        estimator's configured grip force)."""
+        return JointState(t=float(self._sync.to_host(st.robot_t)), q=np.array(st.q), qd=np.array(st.dq),
+                          seq=self._seq, tcp_force=np.array(st.f_ext),
+                          grip_force=self.settings.grasp_force_n if st.grasped else None)
+
+    def _send(self, msg: tuple, quiet: bool = False) -> None:
+        try:
+            with self._send_lock:
+                self._cmd.send(msg)
+        except (OSError, ValueError, AttributeError, BrokenPipeError):
+            if not quiet:
+                raise FrankaLinkError(f"the link to {self.settings.host} is not running") from None
+
+    # -- RobotReceive / RobotControl ------------------------------------------
+    def read_state(self) -> JointState:
+        return self._states.read()
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        """The latest state, once its seq differs from `seq` or after `timeout` s; FrankaLinkError once the link has gone."""
+        return self._states.wait(seq, timeout)
+
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        self._send(("qd", tuple(float(x) for x in joint_rates(qd, NQ))))
+
+    def hold(self) -> None:
+        """Bring the arm to rest with franky's stop motion, sent once per hold."""
+        self._send(("hold",))
+
+    def recover(self, timeout_s: float = 5.0) -> tuple[bool, str]:
+        """franky's automatic error recovery: (succeeded, why not)."""
+        self.recovery.clear()
+        self._send(("recover",))
+        if not self.recovery.wait(timeout_s):
+            return False, f"no answer to the error recovery within {timeout_s:g} s"
+        return self.recovery_result
