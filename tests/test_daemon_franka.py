@@ -1,0 +1,208 @@
+"""The whole daemon on `robot.backend: franka`: the real franky client (libfranka 0.21.2) against
+franky-sim's MuJoCo FR3 (tests/franka_sim.py), the fingertip board on a pseudo-terminal. Start,
+state, the command watchdog, a simulator that dies and comes back, and robots that cannot work: a
+version mismatch, nothing listening, a server that never answers."""
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from robots.model import ArmModel
+from sim.board import Board, PtyDevice, StreamThread
+from tecdard.config import dump_yaml
+from tests.conftest import ROOT, DaemonProcess, daemon_config
+from tests.fake_ur import wait_for
+
+franky = pytest.importorskip("franky", reason="franky-control is installed by `make test` (extra `franka`)")
+pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
+
+from robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
+from tests.franka_sim import ServerProcess, free_franka_host  # noqa: E402
+
+Q_SIM = [0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785]     # franky-sim's initial posture: TCP at (0.554, 0, 0.521)
+FK_TOL_M = 1e-4                 # our FK of the measured joints against franky-sim's pose at rest
+CONNECT_TIMEOUT_S = 3.0
+EXIT_WITHIN_S = 30.0
+
+
+def franka_config(host: str, port_link: str, **extra) -> dict:
+    return daemon_config(**{"robot.backend": "franka", "robot.model": "fr3", "robot.name": "fr3",
+                            "robot.q_home": Q_SIM,
+                            "robot.franka": {"host": host, "realtime": "ignore",
+                                             "connect_timeout_s": CONNECT_TIMEOUT_S},
+                            "control.workspace_min": [0.2, -0.5, 0.05], "control.workspace_max": [0.8, 0.5, 0.9],
+                            "imu.source": "serial", "imu.serial": {"port": port_link}, "sim": ..., **extra})
+
+
+@pytest.fixture
+def board(tmp_path):
+    device = PtyDevice(tmp_path / "ttyIMU")
+    streamer = StreamThread(device, Board()).start()
+    yield device
+    streamer.join()
+    device.close()
+
+
+@pytest.fixture
+def server():
+    srv = ServerProcess()
+    yield srv
+    srv.close()
+
+
+def run_refused(tmp_path, cfg: dict) -> subprocess.CompletedProcess:
+    path = tmp_path / "fr3.yaml"
+    path.write_text(dump_yaml(cfg))
+    return subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=EXIT_WITHIN_S)
+
+
+def link_to(host: str, **kw) -> FrankaLink:
+    link = FrankaLink(FrankaLinkSettings(host, realtime="ignore", connect_timeout_s=CONNECT_TIMEOUT_S, **kw))
+    link.start()
+    return link
+
+
+def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_is_a_fault_until_it_is_back(tmp_path, board):
+    host = free_franka_host()
+    srv = ServerProcess(host=host)
+    d = DaemonProcess(tmp_path, franka_config(host, str(board.link)))
+    try:
+        state = d.client.command("status")["state"]
+        expected = ArmModel("fr3").fk(np.array(Q_SIM)).translation
+        assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
+        assert state["mode"] == "idle" and state["faults"] == []
+        srv.kill()                                     # the simulator dies, as a robot's FCI would
+        ev = d.client.wait_event(("fault",), None, 10.0)
+        assert ev["code"] == "robot_link" and host in ev["message"]
+        refused = d.client.command("probe", {})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault"
+        srv = ServerProcess(host=host)                 # back, at the same address
+        cleared = d.client.wait_event(("fault_cleared",), None, 30.0)
+        assert cleared["code"] == "robot_link"
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
+    finally:
+        d.close()
+        srv.close()
+    log = d.log()
+    assert "reconnected to " + host in log and "leaked" not in log
+    assert "robot.tool_offset / robot.model" not in log        # our FK agrees with the robot's O_T_EE
+
+
+def test_the_link_reads_states_at_the_robots_rate_and_the_force_from_the_torques(server):
+    link = link_to(server.host)
+    try:
+        assert link.server_version == LIBFRANKA_ROBOT_SERVER_VERSION
+        first = link.wait_state(-1, 2.0)
+        time.sleep(1.0)
+        n = link.read_state().seq - first.seq
+        assert n > 300, n                              # about 1 kHz; a loaded CI host gets fewer
+        st = link.franka_state
+        assert st.force_source == "torques"            # franky-sim's O_F_ext_hat_K is zeros
+        assert np.linalg.norm(st.f_ext) < 1.0          # at rest, nothing touching: gravity is taken out
+        assert st.mode == "Idle" and st.errors == ""
+        assert st.grip_width is not None and st.grip_width > 0.0 and link.identity["gripper_version"] == 3
+    finally:
+        link.stop()
+
+
+def test_a_command_stream_that_stops_stops_the_arm_within_the_watchdog(server):
+    """Each velocity command is a JointVelocityMotion held for `watchdog_s` once reached: when the
+    daemon stops sending, the arm stops that long later (plus franky's ramp down), not never."""
+    watchdog_s = 0.06
+    link = link_to(server.host, watchdog_s=watchdog_s)
+    try:
+        qd = np.zeros(7)
+        qd[0] = 0.2
+        for _ in range(25):                            # half a second of 20 ms ticks
+            link.command_joint_velocity(qd)
+            time.sleep(0.02)
+        moving = link.read_state()
+        assert moving.qd[0] > 0.15
+        last_command = time.monotonic()
+        assert wait_for(lambda: abs(link.read_state().qd[0]) < 1e-3, 2.0)
+        stopped_after = time.monotonic() - last_command
+        assert stopped_after < watchdog_s + 0.5, stopped_after
+        q_stopped = link.read_state().q[0]
+        time.sleep(0.3)
+        assert abs(link.read_state().q[0] - q_stopped) < 1e-4       # and it stays stopped
+        # a hold is franky's stop motion: the arm rests even while commands were flowing
+        for _ in range(10):
+            link.command_joint_velocity(qd)
+            time.sleep(0.02)
+        link.hold()
+        assert wait_for(lambda: abs(link.read_state().qd[0]) < 1e-3, 2.0)
+        assert link.robot_fault == ""
+    finally:
+        link.stop()
+
+
+def test_a_robot_server_of_another_version_is_an_error_naming_both_versions(tmp_path, board):
+    """libfranka 0.21 checks no version when the server says success; the daemon does."""
+    for extra in (("--reply-version", "9"), ("--reply-status", "incompatible", "--reply-version", "11")):
+        srv = ServerProcess(*extra)
+        try:
+            res = run_refused(tmp_path, franka_config(srv.host, str(board.link)))
+        finally:
+            srv.close()
+        assert res.returncode == 1
+        (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
+        assert f"the robot at {srv.host} runs robot server version {extra[-1]}" in line
+        assert f"speaks version {LIBFRANKA_ROBOT_SERVER_VERSION}" in line
+
+
+def test_no_robot_or_a_robot_that_never_answers_is_an_error_not_a_hang(tmp_path, board):
+    host = free_franka_host()
+    t0 = time.monotonic()
+    res = run_refused(tmp_path, franka_config(host, str(board.link)))
+    assert res.returncode == 1
+    (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
+    assert f"no Franka robot answered at {host}" in line
+    silent = ServerProcess("--silent")
+    try:
+        t0 = time.monotonic()
+        res = run_refused(tmp_path, franka_config(silent.host, str(board.link)))
+        took = time.monotonic() - t0
+    finally:
+        silent.close()
+    assert res.returncode == 1
+    (line,) = [x for x in res.stderr.splitlines() if x.startswith("tecdard:")]
+    assert f"no answer from a Franka robot at {silent.host} within {CONNECT_TIMEOUT_S:g} s" in line
+    assert took < CONNECT_TIMEOUT_S + 20.0
+
+
+def test_the_child_ends_a_franky_connect_that_never_returns():
+    """Past the version check, franky.Robot() itself may wait for ever (an older libfranka against a
+    newer server): the link's deadline ends its process."""
+    silent = ServerProcess("--silent")
+    try:
+        link = FrankaLink(FrankaLinkSettings(silent.host, realtime="ignore", connect_timeout_s=2.0))
+        link._check_version = lambda: None             # as if the version had matched
+        t0 = time.monotonic()
+        with pytest.raises(FrankaLinkError, match="no answer from a Franka robot"):
+            link.start()
+        assert time.monotonic() - t0 < 5.0
+        assert not link._proc.is_alive()
+    finally:
+        silent.close()
+
+
+def test_a_franka_config_is_checked_before_any_connection(tmp_path, board):
+    cfg = franka_config("127.0.0.1", str(board.link))
+    del cfg["robot"]["franka"]["host"]
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "robot.franka.host: required" in res.stderr
+    cfg = franka_config("127.0.0.1", str(board.link), **{"robot.model": "xarm7",
+                                                          "robot.q_home": [0.0, -0.4, 0.0, 0.6, 0.0, 1.0, 0.0]})
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "no Franka arm" in res.stderr
+    cfg = franka_config("127.0.0.1", str(board.link))
+    cfg["robot"]["franka"]["watchdog_s"] = 0.01      # shorter than two 20 ms ticks
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "robot.franka.watchdog_s" in res.stderr
+    cfg = franka_config("127.0.0.1", str(board.link))
+    cfg["robot"]["franka"]["realtime"] = "sometimes"
+    res = run_refused(tmp_path, cfg)
+    assert res.returncode == 2 and "robot.franka.realtime" in res.stderr
