@@ -252,6 +252,61 @@ def check_ur_controller(host: str, model: str) -> list[Check]:
     return out
 
 
+LIBFRANKA_RT_PRIORITY = 99           # libfranka puts its 1 kHz loop at SCHED_FIFO's highest priority
+LIBFRANKA_MEMLOCK_BYTES = 100 << 20  # Franka's setup guide: `memlock 102400` (KiB) beside `rtprio 99`
+
+
+def check_franka_realtime(realtime: str, sys_realtime: str = "/sys/kernel/realtime", version: str | None = None,
+                          memlock: tuple[int, int] | None = None) -> list[Check]:
+    """Whether this host is fit for robot.franka.realtime: enforce. libfranka then refuses to
+    connect without a real-time kernel (franky's RealtimeException), raises its control thread to
+    SCHED_FIFO 99 and locks its memory; a real arm stops with communication_constraints_violation
+    when its 1 kHz packets come late."""
+    import resource
+    if realtime != "enforce":
+        return [Check("Franka realtime", "warn", "robot.franka.realtime: ignore: libfranka's 1 kHz loop runs "
+                      "without real-time priority; right for franky-sim, not for a real arm",
+                      "set realtime: enforce beside a real arm, on a host this doctor passes")]
+    kernel = check_rt_kernel(sys_realtime, version)
+    out = [Check("Franka realtime kernel", "pass" if kernel.status == "pass" else "fail",
+                 kernel.detail + ("" if kernel.status == "pass" else ": franky refuses to connect with realtime: "
+                                  "enforce (RealtimeException)"), kernel.fix)]
+    from tecdard.realtime import can_set_fifo
+    problem = can_set_fifo(LIBFRANKA_RT_PRIORITY)
+    out.append(Check("Franka SCHED_FIFO 99", "pass" if problem is None else "fail",
+                     "libfranka's control thread can run at SCHED_FIFO 99" if problem is None else problem,
+                     "`@realtime - rtprio 99` in /etc/security/limits.d/franka.conf with this user in group "
+                     "realtime, or LimitRTPRIO=99 in the unit"))
+    soft, hard = memlock or resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    ok = soft == resource.RLIM_INFINITY or soft >= LIBFRANKA_MEMLOCK_BYTES
+    shown = "unlimited" if soft == resource.RLIM_INFINITY else f"{soft >> 10} KiB"
+    out.append(Check("Franka memlock", "pass" if ok else "warn", f"RLIMIT_MEMLOCK {shown}",
+                     None if ok else "`@realtime - memlock 102400` in /etc/security/limits.d/franka.conf, or "
+                     "LimitMEMLOCK=infinity in the unit"))
+    return out
+
+
+def check_franka_robot(host: str, timeout_s: float = CONNECT_TIMEOUT_S) -> list[Check]:
+    """A Franka robot at `host`: its FCI answers libfranka's Connect with the robot server version
+    this franky speaks."""
+    from robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, server_version
+    try:
+        status, version = server_version(host, timeout_s)
+    except ConnectionRefusedError:
+        return [Check(f"Franka robot {host}", "fail", f"port {ROBOT_PORT} refused the connection",
+                      "enable FCI in Desk (and open the brakes), and check robot.franka.host")]
+    except (OSError, ValueError) as exc:
+        return [Check(f"Franka robot {host}", "fail", f"no Connect reply on port {ROBOT_PORT}: "
+                      f"{getattr(exc, 'strerror', None) or exc or type(exc).__name__}",
+                      "check robot.franka.host, the network to the robot, and that FCI is enabled")]
+    if status != 0 or version != LIBFRANKA_ROBOT_SERVER_VERSION:
+        return [Check(f"Franka robot {host}", "fail", f"robot server version {version}; this franky (libfranka "
+                      f"0.21.2) speaks {LIBFRANKA_ROBOT_SERVER_VERSION}",
+                      "install the franky-control release built for the robot's system version, or update the "
+                      "robot")]
+    return [Check(f"Franka robot {host}", "pass", f"robot server version {version}, as this franky speaks")]
+
+
 def load_daemon(config_path: str):
     """The config checked as `tecdard run` checks it: (Daemon, None) or (None, Check that failed)."""
     from tecdard.config import Config, ConfigError
@@ -276,8 +331,12 @@ def run_checks(config_path: str) -> list[Check]:
     if daemon is not None:
         checks += check_endpoints(daemon.listen, daemon.connect, daemon.robot_name, daemon.tls)
         settings = getattr(daemon.backend, "settings", None)
-        if settings is not None and hasattr(settings, "host"):          # robot.backend: ur
+        backend = type(daemon.backend).__module__
+        if backend == "robots.ur":
             checks += check_ur_controller(settings.host, daemon.model.name)
+        elif backend == "robots.franka":
+            checks += check_franka_realtime(settings.realtime)
+            checks += check_franka_robot(settings.host)
     checks.append(check_kernel_cache())
     return checks
 

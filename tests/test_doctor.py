@@ -178,3 +178,61 @@ def test_no_ur_controller_at_the_host_fails_naming_the_ports():
     from tests.fake_ur import free_loopback_host
     (check,) = doctor.check_ur_controller(free_loopback_host(), "ur5e")
     assert check.status == "fail" and "dashboard 29999" in check.detail and "RTDE 30004" in check.detail
+
+
+def fr3_config(tmp_path, host: str, realtime: str = "enforce") -> str:
+    import yaml
+    cfg = yaml.safe_load((ROOT / "configs" / "fr3.yaml").read_text())
+    cfg["robot"]["franka"]["host"] = host
+    cfg["robot"]["franka"]["realtime"] = realtime
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    cfg["imu"]["serial"]["port"] = str(tmp_path / "no-board")
+    path = tmp_path / "fr3.yaml"
+    path.write_text(dump_yaml(cfg))
+    return str(path)
+
+
+def test_the_shipped_fr3_config_is_valid_and_its_robot_and_realtime_are_checked(tmp_path):
+    """Issue 22: doctor tells a Franka user whether the host is fit for realtime enforcement, and
+    whether the robot's server speaks this franky's version (franky-sim here)."""
+    pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
+    from tests.franka_sim import ServerProcess
+    srv = ServerProcess()
+    try:
+        out = io.StringIO()
+        doctor.main(fr3_config(tmp_path, srv.host), out)
+    finally:
+        srv.close()
+    text = out.getvalue()
+    assert text.splitlines()[0].startswith("PASS  config"), text
+    assert f"PASS  Franka robot {srv.host}: robot server version 10, as this franky speaks" in text
+    # this CI host has no PREEMPT_RT kernel: enforcement would fail, and doctor says so with the fix
+    kernel = [ln for ln in text.splitlines() if "Franka realtime kernel" in ln]
+    assert kernel and kernel[0][:4] in ("PASS", "FAIL"), text
+    if kernel[0].startswith("FAIL"):
+        assert "RealtimeException" in kernel[0]
+    assert "Franka SCHED_FIFO 99" in text and "Franka memlock" in text
+
+
+def test_franka_realtime_checks_read_the_host():
+    rt = doctor.check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_RT", memlock=(-1, -1))
+    kernel, _, memlock = rt
+    assert kernel.status == "pass" and memlock.status == "pass"
+    low = doctor.check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_DYNAMIC", memlock=(65536, 65536))
+    assert low[0].status == "fail" and "RealtimeException" in low[0].detail and low[0].fix
+    assert low[2].status == "warn" and "64 KiB" in low[2].detail and "memlock 102400" in low[2].fix
+    (ignored,) = doctor.check_franka_realtime("ignore")
+    assert ignored.status == "warn" and "franky-sim" in ignored.detail
+
+
+def test_a_franka_robot_of_another_version_or_none_fails(tmp_path):
+    pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
+    from tests.franka_sim import ServerProcess, free_franka_host
+    srv = ServerProcess("--reply-version", "9")
+    try:
+        (check,) = doctor.check_franka_robot(srv.host)
+    finally:
+        srv.close()
+    assert check.status == "fail" and "robot server version 9" in check.detail and "speaks 10" in check.detail
+    (none,) = doctor.check_franka_robot(free_franka_host())
+    assert none.status == "fail" and "refused" in none.detail and "FCI" in none.fix
