@@ -1,0 +1,111 @@
+"""The Franka backend's link against franky-sim (issue 22); writes benchmarks/franka.md.
+
+    python -m benchmarks.franka
+
+franky-sim (tests/franka_sim.py: one FR3 and its hand over MuJoCo, on an absolute 1 kHz schedule)
+in a child process, the real franky client in the link's child (robots/franka_link.py), as the
+daemon runs them. Measured:
+- the state rate the daemon receives (new robot states per second);
+- command to motion: from `command_joint_velocity` to the first state whose joint 1 rate reads
+  1 mrad/s, from rest, over repeated commands;
+- CPU, as a share of one core: the simulator's process, the link's child (franky, libfranka's
+  1 kHz loop, the force from the joint torques) and the daemon side (the link's reader thread),
+  while the arm is commanded at 50 Hz as the control tick does.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import platform
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from robots.franka_link import FrankaLink, FrankaLinkSettings  # noqa: E402
+from tests.franka_sim import ServerProcess  # noqa: E402
+
+RATE_S = 5.0
+LATENCY_RUNS = 20
+MOVING_RAD_S = 1e-3
+CPU_S = 10.0
+TICK_S = 0.02
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process, s (/proc)."""
+    fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def main() -> None:
+    srv = ServerProcess()
+    link = FrankaLink(FrankaLinkSettings(srv.host, realtime="ignore", connect_timeout_s=10.0))
+    t0 = time.monotonic()
+    link.start()
+    connect_s = time.monotonic() - t0
+    try:
+        first = link.wait_state(-1, 2.0)
+        time.sleep(RATE_S)
+        rate = (link.read_state().seq - first.seq) / RATE_S
+
+        latencies = []
+        qd = np.zeros(7)
+        for k in range(LATENCY_RUNS):
+            qd[0] = 0.1 if k % 2 == 0 else -0.1                 # back and forth: the arm stays near home
+            js = link.read_state()
+            t_cmd = time.monotonic()
+            link.command_joint_velocity(qd)
+            seq = js.seq
+            while time.monotonic() - t_cmd < 1.0:
+                js = link.wait_state(seq, 0.1)
+                seq = js.seq
+                if abs(js.qd[0]) > MOVING_RAD_S:
+                    latencies.append(time.monotonic() - t_cmd)
+                    break
+            for _ in range(10):
+                link.command_joint_velocity(qd)
+                time.sleep(TICK_S)
+            link.hold()
+            time.sleep(0.4)
+
+        c_srv, c_child = cpu_seconds(srv.proc.pid), cpu_seconds(link._proc.pid)
+        c_self, w0 = time.process_time(), time.monotonic()
+        k = 0
+        while time.monotonic() - w0 < CPU_S:
+            qd[0] = 0.1 * np.sin(2 * np.pi * 0.25 * (time.monotonic() - w0))
+            link.command_joint_velocity(qd)
+            k += 1
+            time.sleep(max(0.0, w0 + k * TICK_S - time.monotonic()))
+        wall = time.monotonic() - w0
+        cpu = {"simulator (franky-sim, MuJoCo at 1 kHz)": (cpu_seconds(srv.proc.pid) - c_srv) / wall,
+               "the link's child (franky, libfranka's loop, force from torques)": (cpu_seconds(link._proc.pid) - c_child) / wall,
+               "daemon side (the link's reader thread, 50 Hz commands)": (time.process_time() - c_self) / wall}
+        link.hold()
+    finally:
+        link.stop()
+        srv.close()
+    lat = np.array(latencies) * 1e3
+    lines = [f"# Franka backend against franky-sim ({time.strftime('%Y-%m-%d')}, {platform.machine()}, "
+             f"{os.cpu_count()} cores, Python {platform.python_version()})", "",
+             "\n".join(__doc__.split("\n\n")[1:3]).replace("\n", " "), "",
+             "| figure | value |", "|---|---|",
+             f"| connect (version probe, franky.Robot, franky.Gripper, first state) | {connect_s:.2f} s |",
+             f"| robot states received | {rate:.0f} per second |",
+             f"| command to motion, median (min-max) over {len(lat)} | {np.median(lat):.1f} ms "
+             f"({lat.min():.1f}-{lat.max():.1f}) |"]
+    lines += [f"| CPU, {name} | {100 * share:.1f} % of a core |" for name, share in cpu.items()]
+    lines += ["", "Command to motion covers the pipe to the child, franky's motion start (a new JointVelocityMotion "
+              "preempting the last), libfranka's next 1 kHz command packet, the simulator's step and the state "
+              "that reports the joint moving. From rest the motion ramps up at franky's jerk limit "
+              "(relative_dynamics_factor 0.5), so the first mrad/s comes a few steps after the command lands.", ""]
+    text = "\n".join(lines) + "\n"
+    (ROOT / "benchmarks" / "franka.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
