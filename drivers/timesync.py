@@ -97,3 +97,43 @@ class ClockSync:
 
     def to_host(self, mcu_s: np.ndarray) -> np.ndarray:
         return self.a + self.b * np.asarray(mcu_s)
+
+
+SLEW_WINDOW_S = 2.0         # SlewClock: the arrivals' lower envelope over this much of the device's time
+SLEW_RATE = 2e-3            # SlewClock: its offset moves at most this many seconds per second
+
+
+class SlewClock:
+    """Maps a steady device clock (a robot controller's) to the host's monotonic clock as
+    host = device + offset. The offset follows the lower envelope of (arrival - device time) over
+    the last SLEW_WINDOW_S, but moves at most SLEW_RATE seconds per second of device time, so
+    consecutive mapped times keep their spacing within 0.2 % and never go back.
+
+    ClockSync fits a line through 0.5 s bins for a board's crystal, whose drift matters over
+    minutes; each refit moves the mapping at once, by milliseconds when the arrivals are noisy
+    (a loaded host, a simulator's clock), and proprioception a few microseconds apart read as a
+    turn of hundreds of rad/s. A robot's clock drifts by ppm: an offset that slews is enough."""
+
+    def __init__(self):
+        self.offset: float | None = None
+        self._env: collections.deque = collections.deque()    # (device_s, offset) candidates, increasing
+        self._last_device = None
+
+    def add(self, device_s: float, host_s: float) -> None:
+        cand = host_s - device_s
+        env = self._env
+        while env and env[-1][1] >= cand:
+            env.pop()                       # a later, lower candidate makes older higher ones moot
+        env.append((device_s, cand))
+        while env[0][0] < device_s - SLEW_WINDOW_S:
+            env.popleft()
+        target = env[0][1]
+        if self.offset is None or self._last_device is None or device_s - self._last_device > SLEW_WINDOW_S:
+            self.offset = target            # the first sample, or after a gap: start afresh
+        else:
+            step = SLEW_RATE * max(device_s - self._last_device, 0.0)
+            self.offset += min(max(target - self.offset, -step), step)
+        self._last_device = device_s
+
+    def to_host(self, device_s: float) -> float:
+        return device_s + self.offset

@@ -10,6 +10,8 @@ Reads `robot.franka`:
   stops the arm (default 0.06 s, three control ticks; at least two ticks, at most 0.5 s);
 - `relative_dynamics_factor`: franky's scaling of the arm's joint velocity, acceleration and jerk
   limits for every motion (default 0.5);
+- `state_rate_hz`: robot states handed to the daemon per second (default 500, as a UR e-Series
+  gives; the robot's own are 1 kHz, and 1000 takes them all at twice the daemon's CPU for them);
 - `gripper`: read the Franka Hand's state (default true);
 - `grasp_force_n`: the force the grasp was commanded with (libfranka's gripper state carries the
   width and whether it holds, not the force): while the hand holds, this feeds eta's schedule;
@@ -82,7 +84,8 @@ class FrankaBackend:
             watchdog_s=section.getfloat("watchdog_s", 3.0 * ctx.tick_s, minval=2.0 * ctx.tick_s, maxval=0.5),
             relative_dynamics_factor=section.getfloat("relative_dynamics_factor", 0.5, minval=0.05, maxval=1.0),
             gripper=section.getbool("gripper", True),
-            grasp_force_n=section.getfloat("grasp_force_n", 20.0, above=0.0, maxval=140.0))
+            grasp_force_n=section.getfloat("grasp_force_n", 20.0, above=0.0, maxval=140.0),
+            state_rate_hz=section.getfloat("state_rate_hz", 500.0, minval=100.0, maxval=1000.0))
         self.nq = ctx.model.nq
         self.model = ctx.model
         self.link = FrankaLink(self.settings)

@@ -36,7 +36,7 @@ from multiprocessing.connection import wait
 
 import numpy as np
 
-from drivers.timesync import ClockSync
+from drivers.timesync import SlewClock
 from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
 from robots.backends import BackendError
 
@@ -73,6 +73,7 @@ class FrankaLinkSettings:
     relative_dynamics_factor: float = 0.5 # franky's scaling of the arm's velocity, acceleration and jerk limits
     gripper: bool = True                  # read the hand's state (franky.Gripper)
     grasp_force_n: float = 20.0           # the grasp's commanded force: the grip force while the hand holds
+    state_rate_hz: float = 500.0          # robot states handed to the daemon per second (the robot's are 1 kHz)
 
 
 @dataclass(frozen=True)
@@ -228,6 +229,8 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
     lost = False
     sent_mode = None
     packed = np.empty(STATE_FLOATS)
+    sent_t = -np.inf
+    state_period = 1.0 / settings.state_rate_hz
 
     def report_fault(text: str) -> None:
         nonlocal fault
@@ -289,6 +292,9 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
                 wait([cmd_rx], STATE_POLL_S)
                 continue
             last_t, last_new = t, now
+            if t - sent_t < state_period - 2.5e-4:
+                continue                   # between the states the daemon takes (faults and force are read at its rate)
+            sent_t = t
             errors = repr(st.current_errors).strip()
             errors = "" if errors in ("[]", "") else errors
             mode = st.robot_mode.name
@@ -339,7 +345,8 @@ class FrankaLink:
         self.franka_state: FrankaState | None = None
         self._mode = ("", "", "")                   # the robot's mode, errors and force source, as last sent
         self._seq = 0
-        self._sync = ClockSync()
+        self._sync = SlewClock()
+        self._last_t = -np.inf
         self._reader: threading.Thread | None = None
         self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost), or None
@@ -452,7 +459,12 @@ class FrankaLink:
         """A robot state as the daemon's: its clock, the measured joints (the daemon's FK gives the
         TCP), the external force, and the grasp's force while the hand holds (None otherwise: the
         estimator's configured grip force)."""
-        return JointState(t=float(self._sync.to_host(st.robot_t)), q=np.array(st.q), qd=np.array(st.dq),
+        # the robot's clock on the host's (drivers.timesync.SlewClock: smooth, and never back)
+        t = float(self._sync.to_host(st.robot_t))
+        if t <= self._last_t:               # a robot clock that stepped back (a restart): its own time order
+            t = self._last_t + 1e-4
+        self._last_t = t
+        return JointState(t=t, q=np.array(st.q), qd=np.array(st.dq),
                           seq=self._seq, tcp_force=np.array(st.f_ext),
                           grip_force=self.settings.grasp_force_n if st.grasped else None)
 

@@ -4,8 +4,10 @@
 `franka-sim` extra) with one FR3 and its hand, on that address (the robot's port 1337 and the
 hand's 1338 are fixed, so each server gets an address of its own), and prints `READY <host>` once
 it listens. The simulation steps on an absolute 1 kHz schedule (franky-sim's own loop sleeps a
-fixed 1 ms after each step's work and runs at 0.7-0.9x real time on 2 cores); steps it cannot
-keep up with are counted and the schedule moves on rather than bursting.
+fixed 1 ms after each step's work and runs at 0.7-0.9x real time on 2 cores). Steps that fall
+behind catch up at once, so the simulated clock (the robot's and the fingertip board's) keeps to
+the wall clock as a real robot's and board's do; only a stall of over a second restarts the
+schedule.
 
 Options for the tests:
 - `--reply-version N` / `--reply-status incompatible`: the robot server answers libfranka's
@@ -31,7 +33,8 @@ import time
 
 ROBOT_PORT, GRIPPER_PORT = 1337, 1338
 STEP_S = 0.001
-RESYNC_BEHIND_S = 0.05          # further behind than this, the schedule restarts from now
+RESYNC_BEHIND_S = 1.0           # further behind than this, the schedule restarts from now (a stall);
+                                # less, the steps catch up at once, so simulated time stays on the clock
 JOINT7_KV = 40.0
 
 
@@ -73,6 +76,175 @@ def _patch_connect_reply(version: int, status: str) -> None:
     fs.ConnectCommand.handle = handle
 
 
+# the cutter (`--cutter`): the hinge behind the grasp towards the robot, axis y, the handle a 25 mm
+# bar from the hinge to the TCP; its base on the table slides against friction (a straight pull
+# drags it); the fingertip is two compliant ball joints in series, the IMU's body between them, as
+# in sim/mujoco_source.py, with the pad welded to the handle (the grasp)
+ETA = 2.0                       # the fingertip's transmission (the stiffness ratio); the daemon's 30 N default
+TIP_K_A = 2.0                   # N m/rad, finger -> IMU body
+TIP_LAG_S = 0.003               # the silicone's damping on the IMU body: a first-order lag of the twist
+TIP_ARMATURE = 5e-6             # kg m^2: MuJoCo's 1 ms step needs the springs' frequency under 1/dt
+HINGE_FRICTION_NM = 0.05
+BASE_FRICTION_N = 8.0           # the base's dry friction on the table, per axis
+IMU_ODR_HZ = 6667
+GYRO_NOISE_DENSITY = 8.7e-5     # rad/s/sqrt(Hz) (LSM6DSR: 5 mdps/sqrt(Hz))
+ACCEL_NOISE_DENSITY = 5.9e-4    # m/s^2/sqrt(Hz) (60 ug/sqrt(Hz))
+GYRO_BIAS_MAX = 0.02            # rad/s, the turn-on bias
+IMU_CHUNK_STEPS = 5             # physics steps per write to the pseudo-terminal (5 ms)
+
+
+def add_cutter(sim, radius: float, hinge_behind_m: float, hinge_friction_nm: float = HINGE_FRICTION_NM) -> dict:
+    """The cutter and the fingertip in franky-sim's scene, before it starts. Returns the truth:
+    the hinge point and axis (world), given the TCP at franky-sim's initial posture."""
+    import xml.etree.ElementTree as ET
+
+    import numpy as np
+
+    from robots.model import ArmModel
+    q0 = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)
+    p_tcp = ArmModel("fr3").fk(np.array(q0)).translation
+    hinge = p_tcp - np.array([hinge_behind_m, 0.0, 0.0])
+    hand = next(b for b in sim.worldbody.iter("body") if b.get("name") == "robot0_hand")
+    k_b = TIP_K_A / (ETA - 1.0)
+    d_a = (TIP_K_A + k_b) * TIP_LAG_S
+    joint = dict(type="ball", armature=str(TIP_ARMATURE), frictionloss="0", limited="false")
+    imu = ET.SubElement(hand, "body", name="imu_body", pos="0 0 0.1034")
+    ET.SubElement(imu, "joint", name="tip_a", stiffness=str(TIP_K_A), damping=str(d_a), **joint)
+    ET.SubElement(imu, "geom", type="sphere", size="0.006", contype="0", conaffinity="0", mass="0.004")
+    ET.SubElement(imu, "site", name="imu", pos="0 0 0")
+    pad = ET.SubElement(imu, "body", name="pad", pos="0 0 0")
+    ET.SubElement(pad, "joint", name="tip_b", stiffness=str(k_b), damping=str(1e-4 * k_b), **joint)
+    ET.SubElement(pad, "geom", type="sphere", size="0.006", contype="0", conaffinity="0", mass="0.004")
+    base = ET.SubElement(sim.worldbody, "body", name="cutter_base", pos=f"{hinge[0]} {hinge[1]} {hinge[2]}")
+    for name, axis in (("base_x", "1 0 0"), ("base_y", "0 1 0")):
+        ET.SubElement(base, "joint", name=name, type="slide", axis=axis, frictionloss=str(BASE_FRICTION_N),
+                      damping="20")
+    ET.SubElement(base, "geom", type="box", size="0.05 0.05 0.01", pos="0 0 -0.02", contype="0", conaffinity="0",
+                  mass="2.0")
+    handle = ET.SubElement(base, "body", name="handle", pos="0 0 0")
+    ET.SubElement(handle, "joint", name="hinge", type="hinge", axis="0 1 0", range="-1.75 0", limited="true",
+                  damping="0.02", frictionloss=str(hinge_friction_nm), armature="0")
+    ET.SubElement(handle, "geom", type="capsule", fromto=f"0 0 0 {radius} 0 0", size="0.0125", contype="0",
+                  conaffinity="0", mass="0.1")
+    # nothing here touches anything (the grasp is a weld, the base slides on its joints): MuJoCo's
+    # collision detection among the arm's meshes would only cost the simulator its real time
+    option = sim.scene.find("option")
+    if option is None:
+        option = ET.SubElement(sim.scene, "option")
+    ET.SubElement(option, "flag", contact="disable")
+    eq = sim.scene.find("equality")
+    # inactive until the arm stands at its initial posture (grasp()): MuJoCo would take the weld's
+    # pose from qpos0, the arm stretched upright
+    ET.SubElement(eq, "weld", name="grasp", body1="pad", body2="handle", anchor=f"{radius} 0 0", active="false",
+                  solref="0.005 1", torquescale="100")
+    sensors = sim.scene.find("sensor")
+    if sensors is None:
+        sensors = ET.SubElement(sim.scene, "sensor")
+    ET.SubElement(sensors, "gyro", site="imu", name="tip_gyro")
+    ET.SubElement(sensors, "accelerometer", site="imu", name="tip_accel")
+    ET.SubElement(sensors, "force", site="imu", name="grasp_force")
+    return {"hinge_point": hinge.tolist(), "hinge_axis": [0.0, 1.0, 0.0], "radius": radius}
+
+
+def report_grasp_force(robot, sim) -> None:
+    """franky-sim reports no external force (O_F_ext_hat_K zeros), and its joint torques carry the
+    joints' friction; a real FR3 estimates the wrench on its end effector. Here the robot's state
+    carries the force the grasp transmits to the hand (MuJoCo's force sensor between the hand and
+    the fingertip, which holds the handle), in the base frame, as the force on the robot."""
+    import numpy as np
+    base = type(robot)
+
+    class ReportsForce(base):
+        @property
+        def state(self):
+            st = base.state.fget(self)
+            m, d = sim.model, sim.data
+            if m is None:
+                return st
+            adr = m.sensor("grasp_force").adr[0]
+            R = d.site_xmat[m.site("imu").id].reshape(3, 3)
+            # MuJoCo's force sensor gives the force the hand exerts on the fingertip's subtree
+            # (and the handle it holds); the robot's estimate is the force on the robot: its negative
+            f = -(R @ d.sensordata[adr:adr + 3])
+            return st.replace(O_F_ext_hat_K=(*(float(x) for x in f), 0.0, 0.0, 0.0))
+    robot.__class__ = ReportsForce
+
+
+def grasp(sim) -> None:
+    """Weld the pad to the handle where they are now. A weld's data are the anchor (body2's frame),
+    that point in body1's frame, and body2's orientation relative to body1's (checked against
+    MuJoCo's own compile-time values)."""
+    import mujoco
+    import numpy as np
+    m, d = sim.model, sim.data
+    mujoco.mj_forward(m, d)
+    eq = m.equality("grasp").id
+    b1, b2 = m.eq_obj1id[eq], m.eq_obj2id[eq]
+    anchor = m.eq_data[eq, 0:3]
+    R1, R2 = d.xmat[b1].reshape(3, 3), d.xmat[b2].reshape(3, 3)
+    m.eq_data[eq, 3:6] = R1.T @ (d.xpos[b2] + R2 @ anchor - d.xpos[b1])
+    q1_inv = np.zeros(4)
+    mujoco.mju_negQuat(q1_inv, d.xquat[b1])
+    rel = np.zeros(4)
+    mujoco.mju_mulQuat(rel, q1_inv, d.xquat[b2])
+    m.eq_data[eq, 6:10] = rel
+    d.eq_active[eq] = 1
+
+
+class FingertipBoard:
+    """MuJoCo's gyro and accelerometer at the fingertip's IMU site, as the LSM6DSR on its board
+    reports them: sampled at IMU_ODR_HZ from the 1 kHz physics (linear between steps), a turn-on
+    gyro bias, white noise at the chip's densities, int16 at its full scales (sim.board.Board), in
+    tecdar-imu/1 frames on a pseudo-terminal (sim.board.PtyDevice) that the daemon reads as its
+    serial board."""
+
+    def __init__(self, sim, link: str, seed: int = 1):
+        import numpy as np
+
+        from sim.board import Board, BoardParams, PtyDevice
+        self.np = np
+        self.sim = sim
+        self.device = PtyDevice(link)
+        self.board = Board(BoardParams(odr_hz=IMU_ODR_HZ))
+        self.rng = np.random.default_rng(seed)
+        self.bias = self.rng.uniform(-GYRO_BIAS_MAX, GYRO_BIAS_MAX, 3)
+        self.g_sigma = GYRO_NOISE_DENSITY * (IMU_ODR_HZ / 2.0) ** 0.5
+        self.a_sigma = ACCEL_NOISE_DENSITY * (IMU_ODR_HZ / 2.0) ** 0.5
+        self.t, self.rows = [], []
+        self.next_sample = 0
+        self._adr = None
+
+    def post_step(self, sim) -> None:
+        np = self.np
+        model, data = sim.model, sim.data
+        if self._adr is None:
+            self._adr = (model.sensor("tip_gyro").adr[0], model.sensor("tip_accel").adr[0])
+        g, a = self._adr
+        self.t.append(float(data.time))
+        self.rows.append(np.concatenate([data.sensordata[g:g + 3], data.sensordata[a:a + 3]]))
+        if len(self.t) > IMU_CHUNK_STEPS:
+            self._flush()
+
+    def _flush(self) -> None:
+        np = self.np
+        t = np.array(self.t)
+        rows = np.array(self.rows)
+        k_end = int(np.floor(t[-1] * IMU_ODR_HZ))
+        ks = np.arange(self.next_sample, k_end + 1)
+        ks = ks[ks / IMU_ODR_HZ >= t[0]]
+        if len(ks):
+            ts = ks / IMU_ODR_HZ
+            sig = np.column_stack([np.interp(ts, t, rows[:, j]) for j in range(6)])
+            gyro = sig[:, :3] + self.bias + self.rng.normal(0.0, self.g_sigma, (len(ks), 3))
+            accel = sig[:, 3:] + self.rng.normal(0.0, self.a_sigma, (len(ks), 3))
+            try:
+                self.device.write_frames(self.board.packets(gyro, accel))
+            except OSError:
+                pass                    # nobody reading, or unplugged: the board drops, as a real one
+            self.next_sample = int(ks[-1]) + 1
+        self.t, self.rows = self.t[-1:], self.rows[-1:]
+
+
 def run(args) -> None:
     if args.silent:
         _silent(args.host)
@@ -83,22 +255,60 @@ def run(args) -> None:
     from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KV, MujocoSimulator
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
     kv = tuple(MUJOCO_DEFAULT_KV[:6]) + (args.joint7_kv,)
     with MujocoSimulator() as sim:
-        sim.add_robot(kv=kv)
+        robot = sim.add_robot(kv=kv)
+        board = None
+        if args.cutter:
+            report_grasp_force(robot, sim)
+            truth = add_cutter(sim, args.radius, args.radius, args.hinge_friction)
+            board = FingertipBoard(sim, args.pty)
+            sim.register_post_step_callback(board.post_step)
+            truth_path = args.truth
         with SimulationServer(sim, hostname_candidates=[args.host]) as server:
             print(f"READY {args.host}", flush=True)
-            next_t = time.monotonic()
+            if board is not None:
+                grasp(sim)
+                _write_truth(truth_path, truth, sim, board, force=True)
+            next_t = started = time.monotonic()
             behind = 0
+            worst_behind = 0.0
+            steps = 0
             while not stop.is_set():
                 server.run_once(realtime=False)
+                steps += 1
+                if board is not None and steps % TRUTH_EVERY_STEPS == 0:
+                    truth["resyncs"] = behind
+                    truth["worst_behind_s"] = worst_behind
+                    truth["wall_s"] = time.monotonic() - started
+                    _write_truth(truth_path, truth, sim, board)
                 next_t += STEP_S
                 delay = next_t - time.monotonic()
+                worst_behind = max(worst_behind, -delay)
                 if delay > 0:
                     time.sleep(delay)
                 elif delay < -RESYNC_BEHIND_S:
                     behind += 1
                     next_t = time.monotonic()
+
+
+TRUTH_EVERY_STEPS = 50          # the truth file is rewritten every 50 ms of simulated time
+
+
+def _write_truth(path: str, truth: dict, sim, board, force: bool = False) -> None:
+    """The scene's truth for the test, as JSON (written whole, then renamed): simulated time, the
+    handle's angle, the base's displacement, the grasp's twist."""
+    import json
+    data = sim.data
+    base = sim.model.joint("base_x").qposadr[0], sim.model.joint("base_y").qposadr[0]
+    hinge = sim.model.joint("hinge").qposadr[0]
+    out = dict(truth, sim_time_s=float(data.time), handle_angle_deg=-float(data.qpos[hinge]) * 57.29577951308232,
+               base_displacement=float((data.qpos[base[0]] ** 2 + data.qpos[base[1]] ** 2) ** 0.5))
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(out, f)
+    os.replace(tmp, path)
 
 
 class ServerProcess:
@@ -145,6 +355,11 @@ def main() -> None:
     ap.add_argument("--reply-status", choices=("ok", "incompatible"), default="ok")
     ap.add_argument("--silent", action="store_true")
     ap.add_argument("--joint7-kv", type=float, default=JOINT7_KV)
+    ap.add_argument("--cutter", action="store_true", help="the paper cutter in the hand, the fingertip IMU on --pty")
+    ap.add_argument("--radius", type=float, default=0.15, help="the handle's length, hinge to TCP, m")
+    ap.add_argument("--hinge-friction", type=float, default=HINGE_FRICTION_NM, help="the hinge's dry friction, N m")
+    ap.add_argument("--pty", default=None, help="the fingertip board's device link (with --cutter)")
+    ap.add_argument("--truth", default=None, help="the scene's truth, JSON (with --cutter)")
     run(ap.parse_args())
 
 
