@@ -55,6 +55,7 @@ RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, t
 RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off between automatic error recoveries while a reflex holds
 FK_CHECK_M = 0.003                      # our FK and the robot's O_T_EE further apart than this: said at start
 FK_CHECK_RAD = 0.0175
+RECOVERY_SETTLE_S = 0.5                # a recovery franky calls failed counts if the error clears within this
 STALE_S = 2.0                           # no state from a running child for this long: the link is lost
                                         # (libfranka's own UDP timeout is 1 s)
 
@@ -161,10 +162,15 @@ class FrankaBackend:
             now = time.monotonic()
             if now < next_recovery or "UserStopped" in link.robot_fault:
                 continue
+            fault = link.robot_fault
             ok, why = link.recover()
             recoveries += 1
+            deadline = time.monotonic() + RECOVERY_SETTLE_S
+            while not ok and link.robot_fault and time.monotonic() < deadline and not self._stop.wait(0.02):
+                pass
+            ok = ok or not link.robot_fault   # franky may answer from a state read before the robot's next
             if ok:
-                log.info("recovered from %s", link.robot_fault or "the robot's error")
+                log.info("recovered from %s", fault)
             else:
                 log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
             next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S)) - 1]

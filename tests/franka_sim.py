@@ -14,7 +14,10 @@ Options for the tests:
   Connect with this version, or with franka's "incompatible library version" status;
 - `--silent`: a server that accepts the connection and never answers (what an older libfranka
   meets, and franky.Robot() then waits for ever);
-- `--joint7-kv`: joint 7's velocity gain (franky-sim's default 200 makes it chatter).
+- `--joint7-kv`: joint 7's velocity gain (franky-sim's default 200 makes it chatter);
+- `--control FILE`: `reflex` written there raises libfranka's joint_reflex error in the robot's
+  state (franky-sim simulates none) until the robot's automatic error recovery clears it;
+- `--cutter`: the paper cutter in the hand, the fingertip board on `--pty` (below).
 
 `ServerProcess` starts one and waits for READY; `close()` ends it; `kill()` ends it as a crash would.
 """
@@ -146,28 +149,62 @@ def add_cutter(sim, radius: float, hinge_behind_m: float, hinge_friction_nm: flo
     return {"hinge_point": hinge.tolist(), "hinge_axis": [0.0, 1.0, 0.0], "radius": radius}
 
 
-def report_grasp_force(robot, sim) -> None:
-    """franky-sim reports no external force (O_F_ext_hat_K zeros), and its joint torques carry the
-    joints' friction; a real FR3 estimates the wrench on its end effector. Here the robot's state
-    carries the force the grasp transmits to the hand (MuJoCo's force sensor between the hand and
-    the fingertip, which holds the handle), in the base frame, as the force on the robot."""
-    import numpy as np
+JOINT_REFLEX = 6                # libfranka's Errors: the joint_reflex flag's index
+INJECTED = {"errors": False}    # a reflex the test asked for (--control), until the robot's error recovery
+
+
+def report_state_extras(robot, sim, grasp_force: bool) -> None:
+    """What franky-sim's robot state leaves out, as a real FR3 reports it:
+    - with the cutter, the force the grasp transmits to the hand (O_F_ext_hat_K; franky-sim's is
+      zeros and its joint torques carry its joints' friction): MuJoCo's force sensor between the
+      hand and the fingertip, in the base frame, as the force on the robot;
+    - a reflex the test injects (`--control`: the joint_reflex error flag, current and last),
+      which franky-sim never raises; the robot's automatic error recovery clears it."""
     base = type(robot)
 
-    class ReportsForce(base):
+    class WithExtras(base):
         @property
         def state(self):
             st = base.state.fget(self)
             m, d = sim.model, sim.data
-            if m is None:
-                return st
-            adr = m.sensor("grasp_force").adr[0]
-            R = d.site_xmat[m.site("imu").id].reshape(3, 3)
-            # MuJoCo's force sensor gives the force the hand exerts on the fingertip's subtree
-            # (and the handle it holds); the robot's estimate is the force on the robot: its negative
-            f = -(R @ d.sensordata[adr:adr + 3])
-            return st.replace(O_F_ext_hat_K=(*(float(x) for x in f), 0.0, 0.0, 0.0))
-    robot.__class__ = ReportsForce
+            extra = {}
+            if grasp_force and m is not None:
+                adr = m.sensor("grasp_force").adr[0]
+                R = d.site_xmat[m.site("imu").id].reshape(3, 3)
+                # MuJoCo's force sensor gives the force the hand exerts on the fingertip's subtree
+                # (and the handle it holds); the robot's estimate is the force on the robot: its negative
+                f = -(R @ d.sensordata[adr:adr + 3])
+                extra["O_F_ext_hat_K"] = (*(float(x) for x in f), 0.0, 0.0, 0.0)
+            if INJECTED["errors"]:
+                # franky-sim packs `errors` as libfranka's current errors and `reflex_reason` as the
+                # last motion's
+                flags = tuple(i == JOINT_REFLEX for i in range(len(st.errors)))
+                extra.update(errors=flags, reflex_reason=flags)
+            return st.replace(**extra) if extra else st
+    robot.__class__ = WithExtras
+
+
+def _recover_clears_the_injected_reflex() -> None:
+    from franky_sim import franka_robot_protocol as rp
+    handle = rp.AutomaticErrorRecoveryCommand.handle
+
+    def recover(self, server):
+        if INJECTED["errors"]:
+            INJECTED["errors"] = False
+            print("RECOVERED", flush=True)
+        handle(self, server)
+    rp.AutomaticErrorRecoveryCommand.handle = recover
+
+
+def _poll_control(path: str | None) -> None:
+    """`--control PATH`: a test writes `reflex` there; the next poll injects it and removes the file."""
+    if path and os.path.exists(path):
+        with open(path) as f:
+            what = f.read().strip()
+        os.remove(path)
+        if what == "reflex":
+            INJECTED["errors"] = True
+            print("REFLEX", flush=True)
 
 
 def grasp(sim) -> None:
@@ -257,11 +294,12 @@ def run(args) -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
     kv = tuple(MUJOCO_DEFAULT_KV[:6]) + (args.joint7_kv,)
+    _recover_clears_the_injected_reflex()
     with MujocoSimulator() as sim:
         robot = sim.add_robot(kv=kv)
+        report_state_extras(robot, sim, grasp_force=args.cutter)
         board = None
         if args.cutter:
-            report_grasp_force(robot, sim)
             truth = add_cutter(sim, args.radius, args.radius, args.hinge_friction)
             board = FingertipBoard(sim, args.pty)
             sim.register_post_step_callback(board.post_step)
@@ -278,6 +316,8 @@ def run(args) -> None:
             while not stop.is_set():
                 server.run_once(realtime=False)
                 steps += 1
+                if steps % TRUTH_EVERY_STEPS == 0:
+                    _poll_control(args.control)
                 if board is not None and steps % TRUTH_EVERY_STEPS == 0:
                     truth["resyncs"] = behind
                     truth["worst_behind_s"] = worst_behind
@@ -360,6 +400,7 @@ def main() -> None:
     ap.add_argument("--hinge-friction", type=float, default=HINGE_FRICTION_NM, help="the hinge's dry friction, N m")
     ap.add_argument("--pty", default=None, help="the fingertip board's device link (with --cutter)")
     ap.add_argument("--truth", default=None, help="the scene's truth, JSON (with --cutter)")
+    ap.add_argument("--control", default=None, help="a file the test writes `reflex` to, to inject one")
     run(ap.parse_args())
 
 

@@ -268,3 +268,35 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
     twist = float(np.mean(steady, axis=0)[1] - bias[1])      # about the hand's y, the hinge's axis here
     assert abs(abs(twist) / abs(omega) - 1.0 / ETA) < 0.15, twist     # the fingertip passes 1/eta of the turn
     assert np.median(forces[len(forces) // 2:]) < -0.5       # the hinge's friction resists the motion
+
+
+def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_itself(tmp_path, board):
+    """A joint reflex mid-task (injected into franky-sim's state: it simulates none) is a
+    `robot_reflex` fault naming libfranka's error, a protective stop that fails the task; the
+    daemon then runs franky's error recovery by itself, and the fault clears."""
+    control = tmp_path / "control"
+    srv = ServerProcess("--control", str(control))
+    # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
+    # as a motion starts): the force stop is set out of the way of this test's free motion
+    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{"control.max_force_n": 100.0}))
+    try:
+        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.03})
+        assert reply["ok"] is True, reply
+        assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
+        control.write_text("reflex")
+        ev = d.client.wait_event(("fault",), None, 10.0)
+        assert ev["code"] == "robot_reflex" and "joint_reflex" in ev["message"], ev
+        stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
+        assert stop["cause"] == "robot_reflex"
+        ended = d.client.wait_event(("task_failed", "task_done"), reply["task"], 5.0)
+        assert ended["kind"] == "task_failed" and "protective stop" in ended["error"], \
+            [(e["kind"], e.get("task"), e.get("error")) for e in d.client.event_log]
+        cleared = d.client.wait_event(("fault_cleared",), None, 15.0)
+        assert cleared["code"] == "robot_reflex"
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
+        assert "RECOVERED" in srv.output               # franky's recover_from_errors reached the robot
+    finally:
+        d.close()
+        srv.close()
+    (line,) = [x for x in d.log().splitlines() if "recovered from robot mode" in x]
+    assert "joint_reflex" in line
