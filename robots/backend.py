@@ -7,6 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
+from robots.backends import BackendError
+
 
 @dataclass
 class JointState:
@@ -103,3 +105,80 @@ class RobotControl(Protocol):
     def command_joint_velocity(self, qd: np.ndarray) -> None: ...
 
     def hold(self) -> None: ...
+
+
+class ChildLink:
+    """What a robot link whose client runs in a child process (robots.ur_link, robots.franka_link)
+    shares: its command pipe, the newest state (`_states`, a StateSlot) and the child's end.
+    Subclasses set `error` (their BackendError) and `settings` (with `host`), and start the child."""
+
+    error = BackendError
+
+    def __init__(self, settings):
+        self.settings = settings
+        self._proc = None
+        self._cmd = self._state_rx = None
+        self._send_lock = threading.Lock()
+        self._states = StateSlot(lambda: self.error(self.fault or f"no state from {self.settings.host} yet"))
+        self.exited = self._states.closed
+        self.fault: str | None = None               # the link's own fault (lost), or None
+
+    def stop(self) -> None:
+        if self._proc is None:
+            return
+        self._send(("close",), quiet=True)
+        end_child(self._proc, (self._cmd, self._state_rx))
+        self._proc = None
+
+    def _send(self, msg: tuple, quiet: bool = False) -> None:
+        try:
+            with self._send_lock:
+                self._cmd.send(msg)
+        except (OSError, ValueError, AttributeError, BrokenPipeError):
+            if not quiet:
+                raise self.error(f"the link to {self.settings.host} is not running") from None
+
+    def read_state(self) -> JointState:
+        return self._states.read()
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        """The latest state, once its seq differs from `seq` or after `timeout` s; the link's error
+        once it has gone."""
+        return self._states.wait(seq, timeout)
+
+
+class LinkBackend:
+    """Receive and control, as any backend, for a backend that reaches its robot through a
+    ChildLink (`self.link`, replaced when it reconnects; `self._stop` set on close). A link that is
+    down answers with its last state and takes no command: its fault has stopped the task already."""
+
+    link: ChildLink
+    _stop: threading.Event
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def read_state(self) -> JointState:
+        return self.link.read_state()
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        try:
+            return self.link.wait_state(seq, timeout)
+        except BackendError:
+            self._stop.wait(timeout)          # reconnecting: the proprioception thread waits, as for a quiet arm
+            return self.link.read_state()
+
+    def command_joint_velocity(self, qd) -> None:
+        try:
+            self.link.command_joint_velocity(qd)
+        except BackendError:
+            pass
+
+    def hold(self) -> None:
+        try:
+            self.link.hold()
+        except BackendError:
+            pass
+
+    def stop(self) -> None:
+        self.close()

@@ -45,6 +45,7 @@ import time
 import numpy as np
 import pinocchio as pin
 
+from robots.backend import LinkBackend
 from robots.backends import BackendContext
 from robots.franka_link import FrankaLink, FrankaLinkError, FrankaLinkSettings
 
@@ -60,7 +61,7 @@ STALE_S = 2.0                           # no state from a running child for this
                                         # (libfranka's own UDP timeout is 1 s)
 
 
-class FrankaBackend:
+class FrankaBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
 
     imu = None
@@ -174,32 +175,6 @@ class FrankaBackend:
             else:
                 log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
             next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S)) - 1]
-
-    # -- receive / control, as any backend -----------------------------------------
-    def read_state(self):
-        return self.link.read_state()
-
-    def wait_state(self, seq: int, timeout: float):
-        try:
-            return self.link.wait_state(seq, timeout)
-        except FrankaLinkError:
-            self._stop.wait(timeout)          # reconnecting: the proprioception thread waits, as for a quiet arm
-            return self.link.read_state()
-
-    def command_joint_velocity(self, qd) -> None:
-        try:
-            self.link.command_joint_velocity(qd)
-        except FrankaLinkError:
-            pass                              # the link is down: its fault has stopped the task already
-
-    def hold(self) -> None:
-        try:
-            self.link.hold()
-        except FrankaLinkError:
-            pass
-
-    def stop(self) -> None:
-        self.close()
 
     def faults(self) -> dict[str, str]:
         """The robot's faults that hold now, code -> message (the daemon's `fault` events)."""

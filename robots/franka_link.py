@@ -37,7 +37,7 @@ from multiprocessing.connection import wait
 import numpy as np
 
 from drivers.timesync import SlewClock
-from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
+from robots.backend import ChildLink, JointState, joint_rates, kill_child
 from robots.backends import BackendError
 
 log = logging.getLogger("tecdar.franka")
@@ -331,25 +331,21 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
                 pass
 
 
-class FrankaLink:
+class FrankaLink(ChildLink):
     """The daemon's handle on the child: receive (read_state, wait_state) and control
     (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable
     and `robot_fault` what the robot reports (a reflex, a user stop)."""
 
+    error = FrankaLinkError
+
     def __init__(self, settings: FrankaLinkSettings):
-        self.settings = settings
-        self._proc = None
-        self._cmd = self._state_rx = None
-        self._send_lock = threading.Lock()
-        self._states = StateSlot(lambda: FrankaLinkError(self.fault or f"no state from {self.settings.host} yet"))
+        super().__init__(settings)
         self.franka_state: FrankaState | None = None
         self._mode = ("", "", "")                   # the robot's mode, errors and force source, as last sent
         self._seq = 0
         self._sync = SlewClock()
         self._last_t = -np.inf
         self._reader: threading.Thread | None = None
-        self.exited = self._states.closed
-        self.fault: str | None = None               # the link's own fault (lost), or None
         self.robot_fault: str = ""                  # the robot's reflex or stop, "" when none
         self.recovery: threading.Event = threading.Event()   # set when a recovery answer arrives
         self.recovery_result: tuple[bool, str] = (False, "")
@@ -415,13 +411,6 @@ class FrankaLink:
                                   f"the franky-control release built for the robot's system version, or update the "
                                   f"robot")
 
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        self._send(("close",), quiet=True)
-        end_child(self._proc, (self._cmd, self._state_rx))
-        self._proc = None
-
     def _read(self) -> None:
         while True:
             try:
@@ -468,22 +457,7 @@ class FrankaLink:
                           seq=self._seq, tcp_force=np.array(st.f_ext),
                           grip_force=self.settings.grasp_force_n if st.grasped else None)
 
-    def _send(self, msg: tuple, quiet: bool = False) -> None:
-        try:
-            with self._send_lock:
-                self._cmd.send(msg)
-        except (OSError, ValueError, AttributeError, BrokenPipeError):
-            if not quiet:
-                raise FrankaLinkError(f"the link to {self.settings.host} is not running") from None
-
-    # -- RobotReceive / RobotControl ------------------------------------------
-    def read_state(self) -> JointState:
-        return self._states.read()
-
-    def wait_state(self, seq: int, timeout: float) -> JointState:
-        """The latest state, once its seq differs from `seq` or after `timeout` s; FrankaLinkError once the link has gone."""
-        return self._states.wait(seq, timeout)
-
+    # -- RobotControl ---------------------------------------------------------
     def command_joint_velocity(self, qd: np.ndarray) -> None:
         self._send(("qd", tuple(float(x) for x in joint_rates(qd, NQ))))
 

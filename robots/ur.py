@@ -28,6 +28,7 @@ import threading
 import numpy as np
 import pinocchio as pin
 
+from robots.backend import LinkBackend
 from robots.backends import BackendContext
 from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
 
@@ -41,7 +42,7 @@ FK_CHECK_RAD = 0.0175                   # ... or turned by more than this (1 deg
 FIRST_STATE_S = 2.0
 
 
-class UrBackend:
+class UrBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a UrLink; the IMU is the serial board."""
 
     imu = None                         # the fingertip board is read by the serial driver (imu.source: serial)
@@ -155,32 +156,6 @@ class UrBackend:
                     and not st.emergency_stopped and st.robot_mode == ROBOT_MODE_RUNNING:
                 link.reupload()
                 self._stop.wait(1.0)          # the script starts within a few controller cycles
-
-    # -- receive / control, as any backend -----------------------------------------
-    def read_state(self):
-        return self.link.read_state()
-
-    def wait_state(self, seq: int, timeout: float):
-        try:
-            return self.link.wait_state(seq, timeout)
-        except UrLinkError:
-            self._stop.wait(timeout)          # reconnecting: the proprioception thread waits, as for a quiet arm
-            return self.link.read_state()
-
-    def command_joint_velocity(self, qd) -> None:
-        try:
-            self.link.command_joint_velocity(qd)
-        except UrLinkError:
-            pass                              # the link is down: its fault has stopped the task already
-
-    def hold(self) -> None:
-        try:
-            self.link.hold()
-        except UrLinkError:
-            pass
-
-    def stop(self) -> None:
-        self.close()
 
     def faults(self) -> dict[str, str]:
         """The controller's faults that hold now, code -> message (the daemon's `fault` events)."""

@@ -31,7 +31,7 @@ import numpy as np
 import pinocchio as pin
 
 from drivers.timesync import ClockSync
-from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
+from robots.backend import ChildLink, JointState, joint_rates, kill_child
 from robots.backends import BackendError
 
 log = logging.getLogger("tecdar.ur")
@@ -211,22 +211,18 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                 pass
 
 
-class UrLink:
+class UrLink(ChildLink):
     """The daemon's handle on the child: receive (read_state, wait_state) and control
     (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable."""
 
+    error = UrLinkError
+
     def __init__(self, settings: UrLinkSettings):
-        self.settings = settings
-        self._proc = None
-        self._cmd = self._state_rx = None
-        self._send_lock = threading.Lock()
-        self._states = StateSlot(lambda: UrLinkError(self.fault or f"no state from {self.settings.host} yet"))
+        super().__init__(settings)
         self.ur_state: UrState | None = None       # the newest controller state, as read (its base frame)
         self._seq = 0
         self._sync = ClockSync()
         self._reader: threading.Thread | None = None
-        self.exited = self._states.closed
-        self.fault: str | None = None               # the link's own fault (lost), or None
         self.refused: str | None = None             # the controller refuses commands (since this one), or None
         self.identity: dict = {}                    # the controller's arm type and version (controller_identity)
 
@@ -257,13 +253,6 @@ class UrLink:
         self.identity = msg[1] or {}
         self._reader = threading.Thread(target=self._read, name="ur-link", daemon=True)
         self._reader.start()
-
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        self._send(("close",), quiet=True)
-        end_child(self._proc, (self._cmd, self._state_rx))
-        self._proc = None
 
     def _read(self) -> None:
         while True:
@@ -297,22 +286,7 @@ class UrLink:
                           seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]),
                           tcp_pose=pose)
 
-    def _send(self, msg: tuple, quiet: bool = False) -> None:
-        try:
-            with self._send_lock:
-                self._cmd.send(msg)
-        except (OSError, ValueError, AttributeError, BrokenPipeError):
-            if not quiet:
-                raise UrLinkError(f"the link to {self.settings.host} is not running") from None
-
-    # -- RobotReceive / RobotControl ------------------------------------------
-    def read_state(self) -> JointState:
-        return self._states.read()
-
-    def wait_state(self, seq: int, timeout: float) -> JointState:
-        """The latest state, once its seq differs from `seq` or after `timeout` s; UrLinkError once the link has gone."""
-        return self._states.wait(seq, timeout)
-
+    # -- RobotControl ---------------------------------------------------------
     def command_joint_velocity(self, qd: np.ndarray) -> None:
         self._send(("speedj", tuple(float(x) for x in joint_rates(qd, NQ))))
 

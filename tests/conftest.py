@@ -144,3 +144,15 @@ def shared_daemon(tmp_path_factory):
     d = DaemonProcess(tmp_path_factory.mktemp("shared"), daemon_config())
     yield d
     d.close()
+
+
+@pytest.fixture
+def board(tmp_path):
+    """A fingertip board in software (sim.board) streaming tecdar-imu/1 on a pseudo-terminal, as a
+    real arm's daemon reads it (`imu.source: serial`, `imu.serial.port: str(board.link)`)."""
+    from sim.board import Board, PtyDevice, StreamThread
+    device = PtyDevice(tmp_path / "ttyIMU")
+    streamer = StreamThread(device, Board()).start()
+    yield device
+    streamer.join()
+    device.close()

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from robots.model import ArmModel
-from sim.board import Board, PtyDevice, StreamThread
 from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 from tests.fake_ur import wait_for
@@ -34,15 +33,6 @@ def franka_config(host: str, port_link: str, **extra) -> dict:
                                              "connect_timeout_s": CONNECT_TIMEOUT_S},
                             "control.workspace_min": [0.2, -0.5, 0.05], "control.workspace_max": [0.8, 0.5, 0.9],
                             "imu.source": "serial", "imu.serial": {"port": port_link}, "sim": ..., **extra})
-
-
-@pytest.fixture
-def board(tmp_path):
-    device = PtyDevice(tmp_path / "ttyIMU")
-    streamer = StreamThread(device, Board()).start()
-    yield device
-    streamer.join()
-    device.close()
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from robots.model import READY_Q, ArmModel
-from sim.board import Board, PtyDevice, StreamThread
 from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 from tests.fake_ur import FakeController, free_loopback_host, wait_for
@@ -29,15 +28,6 @@ def ur_config(host: str, port_link: str, **extra) -> dict:
                             # the controller's base frame: the ready posture's TCP is at x -0.63 m
                             "control.workspace_min": [-0.9, -0.9, 0.05], "control.workspace_max": [0.9, 0.9, 0.9],
                             "imu.source": "serial", "imu.serial": {"port": port_link}, "sim": ..., **extra})
-
-
-@pytest.fixture
-def board(tmp_path):
-    device = PtyDevice(tmp_path / "ttyIMU")
-    streamer = StreamThread(device, Board()).start()
-    yield device
-    streamer.join()
-    device.close()
 
 
 @pytest.fixture
