@@ -1,6 +1,7 @@
 """Robot backend interfaces: reading state apart from commanding, in the manner of ur_rtde."""
 from __future__ import annotations
 
+import multiprocessing
 import threading
 from dataclasses import dataclass
 from typing import Protocol
@@ -123,6 +124,16 @@ class ChildLink:
         self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost), or None
 
+    def _spawn(self, target, name: str) -> None:
+        """Start the child `target(settings, cmd_rx, state_tx)` with a command pipe in and a state pipe out."""
+        ctx = multiprocessing.get_context("spawn")
+        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
+        self._state_rx, state_tx = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=target, args=(self.settings, cmd_rx, state_tx), name=name, daemon=True)
+        self._proc.start()
+        cmd_rx.close()
+        state_tx.close()
+
     def stop(self) -> None:
         if self._proc is None:
             return
@@ -145,6 +156,23 @@ class ChildLink:
         """The latest state, once its seq differs from `seq` or after `timeout` s; the link's error
         once it has gone."""
         return self._states.wait(seq, timeout)
+
+
+def rig_section(ctx, backend: str, models: tuple[str, ...], arm: str, host_is: str):
+    """The `robot.<backend>` section of a real arm's backend, after the checks every such backend
+    makes: robot.model is one of `models`, the fingertip board is read over serial, and the
+    section names a host (ConfigError naming the key otherwise)."""
+    from tecdard.config import ConfigError
+    if ctx.model.name not in models:
+        raise ConfigError(f"robot.model: {ctx.model.name!r} is no {arm} arm; with robot.backend {backend} use one of "
+                          f"{', '.join(models)}")
+    if ctx.imu_source != "serial":
+        raise ConfigError(f"imu.source: with robot.backend {backend} the fingertip board is read over serial; "
+                          "set imu.source: serial")
+    section = ctx.cfg.section("robot").section(backend)
+    if not section.has("host"):
+        raise ConfigError(f"robot.{backend}.host: required with robot.backend {backend} ({host_is})")
+    return section
 
 
 class LinkBackend:

@@ -45,7 +45,7 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from robots.backend import LinkBackend
+from robots.backend import LinkBackend, rig_section
 from robots.backends import BackendContext
 from robots.franka_link import FrankaLink, FrankaLinkError, FrankaLinkSettings
 
@@ -69,16 +69,7 @@ class FrankaBackend(LinkBackend):
     imu_odr_hz = None
 
     def __init__(self, ctx: BackendContext):
-        from tecdard.config import ConfigError
-        if ctx.model.name not in FRANKA_MODELS:
-            raise ConfigError(f"robot.model: {ctx.model.name!r} is no Franka arm; with robot.backend franka use one "
-                              f"of {', '.join(FRANKA_MODELS)}")
-        if ctx.imu_source != "serial":
-            raise ConfigError("imu.source: with robot.backend franka the fingertip board is read over serial; "
-                              "set imu.source: serial")
-        section = ctx.cfg.section("robot").section("franka")
-        if not section.has("host"):
-            raise ConfigError("robot.franka.host: required with robot.backend franka (the robot's FCI address)")
+        section = rig_section(ctx, "franka", FRANKA_MODELS, "Franka", "the robot's FCI address")
         self.settings = FrankaLinkSettings(
             host=section.getstr("host", max_len=253),
             realtime=section.getstr("realtime", "enforce", choices=("enforce", "ignore")),

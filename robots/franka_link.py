@@ -25,7 +25,6 @@ estimate.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import re
 import socket
 import struct
@@ -357,14 +356,7 @@ class FrankaLink(ChildLink):
         """Check the robot server's version, then connect, all within settings.connect_timeout_s,
         or FrankaLinkError naming the host and what failed."""
         self._check_version()
-        ctx = multiprocessing.get_context("spawn")
-        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
-        self._state_rx, state_tx = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=child_main, args=(self.settings, cmd_rx, state_tx), name="tecdar-franka",
-                                 daemon=True)
-        self._proc.start()
-        cmd_rx.close()
-        state_tx.close()
+        self._spawn(child_main, "tecdar-franka")
         host, timeout = self.settings.host, self.settings.connect_timeout_s
         deadline = time.monotonic() + timeout
         try:

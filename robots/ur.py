@@ -28,7 +28,7 @@ import threading
 import numpy as np
 import pinocchio as pin
 
-from robots.backend import LinkBackend
+from robots.backend import LinkBackend, rig_section
 from robots.backends import BackendContext
 from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
 
@@ -51,15 +51,7 @@ class UrBackend(LinkBackend):
 
     def __init__(self, ctx: BackendContext):
         from tecdard.config import ConfigError
-        if ctx.model.name not in UR_MODELS:
-            raise ConfigError(f"robot.model: {ctx.model.name!r} is no UR arm; with robot.backend ur use one of "
-                              f"{', '.join(UR_MODELS)}")
-        if ctx.imu_source != "serial":
-            raise ConfigError("imu.source: with robot.backend ur the fingertip board is read over serial; "
-                              "set imu.source: serial")
-        section = ctx.cfg.section("robot").section("ur")
-        if not section.has("host"):
-            raise ConfigError("robot.ur.host: required with robot.backend ur (the controller's address)")
+        section = rig_section(ctx, "ur", UR_MODELS, "UR", "the controller's address")
         self.settings = UrLinkSettings(
             host=section.getstr("host", max_len=253),
             frequency_hz=section.getfloat("frequency_hz", -1.0, minval=-1.0, maxval=500.0),

@@ -19,7 +19,6 @@ a matrix.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import re
 import threading
 import time
@@ -228,14 +227,7 @@ class UrLink(ChildLink):
 
     def start(self) -> None:
         """Connect within settings.connect_timeout_s, or UrLinkError naming the host."""
-        ctx = multiprocessing.get_context("spawn")
-        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
-        self._state_rx, state_tx = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=child_main, args=(self.settings, cmd_rx, state_tx), name="tecdar-ur",
-                                 daemon=True)
-        self._proc.start()
-        cmd_rx.close()
-        state_tx.close()
+        self._spawn(child_main, "tecdar-ur")
         host, timeout = self.settings.host, self.settings.connect_timeout_s
         try:
             if not self._state_rx.poll(timeout):
