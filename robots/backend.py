@@ -175,13 +175,36 @@ def rig_section(ctx, backend: str, models: tuple[str, ...], arm: str, host_is: s
     return section
 
 
+RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
+
+
 class LinkBackend:
     """Receive and control, as any backend, for a backend that reaches its robot through a
     ChildLink (`self.link`, replaced when it reconnects; `self._stop` set on close). A link that is
     down answers with its last state and takes no command: its fault has stopped the task already."""
 
     link: ChildLink
+    settings: object
+    log: object                        # the backend's logger
     _stop: threading.Event
+
+    def _reconnect(self, attempt: int) -> int | None:
+        """After the back-off for `attempt` earlier failures, a fresh link in place of the lost one.
+        Returns the failures so far (0: reconnected), or None when the backend is closing."""
+        self._stop.wait(RECONNECT_S[min(attempt, len(RECONNECT_S) - 1)])
+        if self._stop.is_set():
+            return None
+        attempt += 1
+        fresh = type(self.link)(self.settings)
+        try:
+            fresh.start()
+        except BackendError as exc:
+            self.log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
+            return attempt
+        self.link.stop()
+        self.link = fresh
+        self.log.info("reconnected to %s", self.settings.host)
+        return 0
 
     def close(self) -> None:
         raise NotImplementedError

@@ -47,12 +47,11 @@ import pinocchio as pin
 
 from robots.backend import LinkBackend, rig_section
 from robots.backends import BackendContext
-from robots.franka_link import FrankaLink, FrankaLinkError, FrankaLinkSettings
+from robots.franka_link import FrankaLink, FrankaLinkSettings
 
 log = logging.getLogger("tecdar.franka")
 
 FRANKA_MODELS = ("fr3", "panda")
-RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
 RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off between automatic error recoveries while a reflex holds
 FK_CHECK_M = 0.003                      # our FK and the robot's O_T_EE further apart than this: said at start
 FK_CHECK_RAD = 0.0175
@@ -64,6 +63,7 @@ STALE_S = 2.0                           # no state from a running child for this
 class FrankaBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
 
+    log = log
     imu = None
     serial_params = None
     imu_odr_hz = None
@@ -89,7 +89,7 @@ class FrankaBackend(LinkBackend):
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
-        """Connect (FrankaLinkError naming the host and what failed), cross-check the kinematics,
+        """Connect (robots.franka_link.FrankaLinkError naming the host and what failed), cross-check the kinematics,
         then watch the link."""
         self.link.start()
         for note in self.link.notes:
@@ -134,19 +134,10 @@ class FrankaBackend(LinkBackend):
                 link.fault = f"no state from {self.settings.host} for {time.monotonic() - st.rx_t:.1f} s"
                 link.stop()
             if link.exited.is_set() or link._proc is None:
-                self._stop.wait(RECONNECT_S[min(attempt, len(RECONNECT_S) - 1)])
-                if self._stop.is_set():
+                attempt = self._reconnect(attempt)
+                if attempt is None:
                     return
-                attempt += 1
-                fresh = FrankaLink(self.settings)
-                try:
-                    fresh.start()
-                except FrankaLinkError as exc:
-                    log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
-                    continue
-                link.stop()
-                self.link, attempt, recoveries = fresh, 0, 0
-                log.info("reconnected to %s", self.settings.host)
+                recoveries = 0
                 continue
             if not link.robot_fault:
                 recoveries = 0

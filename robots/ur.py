@@ -36,7 +36,6 @@ log = logging.getLogger("tecdar.ur")
 
 UR_MODELS = ("ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e")   # CB3 (URDFs) and e-Series (robots/ur_dh.py)
 E_SERIES_MAJOR = 5                      # PolyScope 5 runs e-Series arms, 3 the CB3 ones
-RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
 FK_CHECK_M = 0.003                      # our FK and the controller's TCP further apart than this: said at start
 FK_CHECK_RAD = 0.0175                   # ... or turned by more than this (1 degree)
 FIRST_STATE_S = 2.0
@@ -45,6 +44,7 @@ FIRST_STATE_S = 2.0
 class UrBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a UrLink; the IMU is the serial board."""
 
+    log = log
     imu = None                         # the fingertip board is read by the serial driver (imu.source: serial)
     serial_params = None
     imu_odr_hz = None
@@ -129,19 +129,9 @@ class UrBackend(LinkBackend):
         while not self._stop.wait(0.05):
             link = self.link
             if link.exited.is_set():
-                self._stop.wait(RECONNECT_S[min(attempt, len(RECONNECT_S) - 1)])
-                if self._stop.is_set():
+                attempt = self._reconnect(attempt)
+                if attempt is None:
                     return
-                attempt += 1
-                fresh = UrLink(self.settings)
-                try:
-                    fresh.start()
-                except UrLinkError as exc:
-                    log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
-                    continue
-                link.stop()
-                self.link, attempt = fresh, 0
-                log.info("reconnected to %s", self.settings.host)
                 continue
             st = link.ur_state
             if st is not None and not st.program_running and not st.protective_stopped \
