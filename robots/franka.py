@@ -52,7 +52,7 @@ from robots.franka_link import FrankaLink, FrankaLinkSettings
 log = logging.getLogger("tecdar.franka")
 
 FRANKA_MODELS = ("fr3", "panda")
-RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off between automatic error recoveries while a reflex holds
+RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off before each automatic error recovery while a reflex holds
 FK_CHECK_M = 0.003                      # our FK and the robot's O_T_EE further apart than this: said at start
 FK_CHECK_RAD = 0.0175
 RECOVERY_SETTLE_S = 0.5                # a recovery franky calls failed counts if the error clears within this
@@ -126,7 +126,7 @@ class FrankaBackend(LinkBackend):
     def _supervise(self) -> None:
         """Reconnect a lost link with back-off; recover from a reflex with back-off."""
         attempt = recoveries = 0
-        next_recovery = 0.0
+        next_recovery = None
         while not self._stop.wait(0.05):
             link = self.link
             st = link.franka_state
@@ -140,9 +140,13 @@ class FrankaBackend(LinkBackend):
                 recoveries = 0
                 continue
             if not link.robot_fault:
-                recoveries = 0
+                recoveries, next_recovery = 0, None
                 continue
             now = time.monotonic()
+            if next_recovery is None:
+                # the first recovery waits the first back-off too: the daemon's control tick has
+                # seen the fault and stopped the task by then
+                next_recovery = now + RECOVER_S[0]
             if now < next_recovery or "UserStopped" in link.robot_fault:
                 continue
             fault = link.robot_fault
@@ -156,7 +160,7 @@ class FrankaBackend(LinkBackend):
                 log.info("recovered from %s", fault)
             else:
                 log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
-            next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S)) - 1]
+            next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S) - 1)]
 
     def faults(self) -> dict[str, str]:
         """The robot's faults that hold now, code -> message (the daemon's `fault` events)."""
