@@ -55,18 +55,28 @@ def link_to(host: str, **kw) -> FrankaLink:
     return link
 
 
-def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_is_a_fault_until_it_is_back(tmp_path, board):
+def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_mid_task_is_a_fault_until_it_is_back(
+        tmp_path, board):
     host = free_franka_host()
     srv = ServerProcess(host=host)
-    d = DaemonProcess(tmp_path, franka_config(host, str(board.link)))
+    # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
+    # as a motion starts): the force stop is set out of the way of this test's free motion
+    d = DaemonProcess(tmp_path, franka_config(host, str(board.link), **{"control.max_force_n": 100.0}))
     try:
         state = d.client.command("status")["state"]
         expected = ArmModel("fr3").fk(np.array(Q_SIM)).translation
         assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
         assert state["mode"] == "idle" and state["faults"] == []
-        srv.kill()                                     # the simulator dies, as a robot's FCI would
+        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.03})
+        assert reply["ok"] is True, reply
+        assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
+        srv.kill()                                     # the simulator dies mid-task, as a robot's FCI would
         ev = d.client.wait_event(("fault",), None, 10.0)
         assert ev["code"] == "robot_link" and host in ev["message"]
+        stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
+        assert stop["cause"] == "robot_link"
+        ended = d.client.wait_event(("task_failed", "task_done"), reply["task"], 5.0)
+        assert ended["kind"] == "task_failed" and "protective stop" in ended["error"]
         refused = d.client.command("probe", {})
         assert refused["ok"] is False and refused["error"]["code"] == "fault"
         srv = ServerProcess(host=host)                 # back, at the same address
