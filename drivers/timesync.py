@@ -10,6 +10,7 @@ BIN_S = 0.5                # one lower-envelope point per bin of MCU time
 WINDOW_BINS = 60           # fit over the last 30 s
 RESET_JUMP_S = 0.25        # a residual this large means the MCU clock jumped (restart) or the link stalled
 RESET_LATE_PACKETS = 20    # this many late packets in a row: the MCU clock jumped backwards, refit
+REFIT_SLEW_RATE = 5e-3     # a refit's change of the mapping is spread at this many seconds per second
 
 
 class Unwrapper:
@@ -46,10 +47,13 @@ class ClockSync:
         self._bins: collections.deque = collections.deque(maxlen=WINDOW_BINS)   # (mcu, offset)
         self._bin_index: int | None = None
         self._bin_min: tuple[float, float] | None = None
-        self.a = None        # host = a + b * mcu
+        self.a = None        # host = a + b * mcu (+ the refit's correction, below)
         self.b = 1.0
         self.resets = 0
         self._late = 0
+        self._last_mcu = None
+        self._corr0 = 0.0    # a refit's jump at _corr_m0, taken out at REFIT_SLEW_RATE from there
+        self._corr_m0 = 0.0
 
     def reset(self) -> None:
         self._bins.clear()
@@ -58,9 +62,11 @@ class ClockSync:
         self.a = None
         self.b = 1.0
         self._late = 0
+        self._corr0 = 0.0
         self.resets += 1
 
     def add(self, mcu_s: float, host_s: float) -> None:
+        self._last_mcu = mcu_s
         offset = host_s - mcu_s
         if self.a is not None:
             resid = offset - (self.a + (self.b - 1.0) * mcu_s)
@@ -87,6 +93,21 @@ class ClockSync:
             self.a = offset            # early on: the lowest offset seen so far
 
     def _fit(self) -> None:
+        before = None if self.a is None or self._last_mcu is None else float(self.to_host(self._last_mcu))
+        self._refit()
+        if before is not None:
+            # no jump where the new fit takes over: the difference is taken out at REFIT_SLEW_RATE
+            # (each bin's refit moved samples by milliseconds when arrivals were noisy)
+            self._corr0 = before - (self.a + self.b * self._last_mcu)
+            self._corr_m0 = self._last_mcu
+
+    def _correction(self, mcu_s):
+        if self._corr0 == 0.0:
+            return 0.0
+        left = np.clip(abs(self._corr0) - REFIT_SLEW_RATE * (np.asarray(mcu_s) - self._corr_m0), 0.0, abs(self._corr0))
+        return np.copysign(left, self._corr0)
+
+    def _refit(self) -> None:
         pts = np.array(self._bins)
         if len(pts) >= 3:
             slope, intercept = np.polyfit(pts[:, 0] - pts[0, 0], pts[:, 1], 1)
@@ -96,7 +117,7 @@ class ClockSync:
             self.a, self.b = float(pts[:, 1].min()), 1.0
 
     def to_host(self, mcu_s: np.ndarray) -> np.ndarray:
-        return self.a + self.b * np.asarray(mcu_s)
+        return self.a + self.b * np.asarray(mcu_s) + self._correction(mcu_s)
 
 
 SLEW_WINDOW_S = 2.0         # SlewClock: the arrivals' lower envelope over this much of the device's time

@@ -244,3 +244,24 @@ def test_slew_clock_keeps_a_robots_states_in_order_through_late_and_bursty_arriv
     spacing = np.diff(mapped) / np.diff(device)
     assert np.all(spacing > 1.0 - SLEW_RATE - 1e-9) and np.all(spacing < 1.0 + SLEW_RATE + 1e-9)
     assert abs(mapped[-1] - (device[-1] + true_offset)) < 0.002
+
+
+def test_clock_sync_spreads_a_refit_instead_of_jumping():
+    """Arrivals whose lateness changes from bin to bin (a loaded host, a simulator's clock) move
+    each half-second refit by milliseconds. Sample times mapped as they come keep their spacing
+    within REFIT_SLEW_RATE of the board's: a refit no longer moves the mapping at once (it moved
+    it back by up to 13 ms, collapsing 0.2-0.4 s of samples onto one time)."""
+    from drivers.timesync import REFIT_SLEW_RATE
+    rng = np.random.default_rng(11)
+    sync = ClockSync()
+    period = 8 / 6667
+    mapped, mcu_all = [], []
+    for k in range(int(20.0 / period)):
+        mcu = k * period
+        lag = 0.0005 + rng.exponential(0.0005) + (0.01 if (k * period) % 1.3 < 0.6 else 0.0)
+        sync.add(mcu, 100.0 + mcu + lag)
+        if k > 2000:
+            mapped.append(float(sync.to_host(mcu)))
+            mcu_all.append(mcu)
+    spacing = np.diff(mapped) / np.diff(mcu_all)
+    assert np.all(np.abs(spacing - 1.0) < REFIT_SLEW_RATE + 1e-3), (spacing.min(), spacing.max())
