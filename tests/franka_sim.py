@@ -93,6 +93,9 @@ IMU_ODR_HZ = 6667
 GYRO_NOISE_DENSITY = 8.7e-5     # rad/s/sqrt(Hz) (LSM6DSR: 5 mdps/sqrt(Hz))
 ACCEL_NOISE_DENSITY = 5.9e-4    # m/s^2/sqrt(Hz) (60 ug/sqrt(Hz))
 GYRO_BIAS_MAX = 0.02            # rad/s, the turn-on bias
+GRASP_SOLREF = "0.02 1"         # the grasp weld's softness: a compliant grasp, as the daemon's arc admittance
+                                # expects (with "0.005 1" the daemon's rotate tripped its divergence stop at
+                                # every arc's end; with this it finished some, docs/franka.md)
 IMU_CHUNK_STEPS = 5             # physics steps per write to the pseudo-terminal (5 ms)
 
 
@@ -139,7 +142,7 @@ def add_cutter(sim, radius: float, hinge_behind_m: float, hinge_friction_nm: flo
     # inactive until the arm stands at its initial posture (grasp()): MuJoCo would take the weld's
     # pose from qpos0, the arm stretched upright
     ET.SubElement(eq, "weld", name="grasp", body1="pad", body2="handle", anchor=f"{radius} 0 0", active="false",
-                  solref="0.005 1", torquescale="100")
+                  solref=GRASP_SOLREF, torquescale="100")
     sensors = sim.scene.find("sensor")
     if sensors is None:
         sensors = ET.SubElement(sim.scene, "sensor")
