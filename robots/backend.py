@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+import pinocchio as pin
 
 from robots.backends import BackendError
 
@@ -178,15 +179,39 @@ def rig_section(ctx, backend: str, models: tuple[str, ...], arm: str, host_is: s
 RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
 
 
+FK_CHECK_M = 0.003         # our FK and the robot's own TCP pose further apart than this: said at start
+FK_CHECK_RAD = 0.0175      # ... or turned by more than this (1 degree)
+
+
 class LinkBackend:
     """Receive and control, as any backend, for a backend that reaches its robot through a
     ChildLink (`self.link`, replaced when it reconnects; `self._stop` set on close). A link that is
-    down answers with its last state and takes no command: its fault has stopped the task already."""
+    down answers with its last state and takes no command: its fault has stopped the task already.
+    The fingertip board is read by the serial driver (imu.source: serial)."""
 
+    imu = None
+    serial_params = None
+    imu_odr_hz = None
     link: ChildLink
     settings: object
+    model: object                      # robots.model.ArmModel
     log: object                        # the backend's logger
     _stop: threading.Event
+
+    def _say_fk_offset(self, q, pose: np.ndarray, theirs: str, check: str) -> None:
+        """Our FK of the joints q against the TCP pose (4 x 4) the robot reports: over FK_CHECK_M
+        or FK_CHECK_RAD apart, one warning naming the model and the tool. `theirs` names the
+        robot's pose, `check` what to compare the tool with."""
+        oMfk = self.model.fk(np.asarray(q, dtype=float))
+        offset_m = float(np.linalg.norm(oMfk.translation - pose[:3, 3]))
+        offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ pose[:3, :3])))
+        if offset_m > FK_CHECK_M or offset_rad > FK_CHECK_RAD:
+            self.log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from %s (model %s, "
+                             "tool offset %s m, tool quat %s); check them against %s", offset_m * 1e3,
+                             np.degrees(offset_rad), theirs, self.model.name, self.model.tool_offset,
+                             self.model.tool_quat, check)
+        else:
+            self.log.info("our TCP is %.2f mm and %.2f deg from %s", offset_m * 1e3, np.degrees(offset_rad), theirs)
 
     def _reconnect(self, attempt: int) -> int | None:
         """After the back-off for `attempt` earlier failures, a fresh link in place of the lost one.

@@ -43,7 +43,6 @@ import threading
 import time
 
 import numpy as np
-import pinocchio as pin
 
 from robots.backend import LinkBackend, rig_section
 from robots.backends import BackendContext
@@ -53,8 +52,6 @@ log = logging.getLogger("tecdar.franka")
 
 FRANKA_MODELS = ("fr3", "panda")
 RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off before each automatic error recovery while a reflex holds
-FK_CHECK_M = 0.003                      # our FK and the robot's O_T_EE further apart than this: said at start
-FK_CHECK_RAD = 0.0175
 RECOVERY_SETTLE_S = 0.5                # a recovery franky calls failed counts if the error clears within this
 STALE_S = 2.0                           # no state from a running child for this long: the link is lost
                                         # (libfranka's own UDP timeout is 1 s)
@@ -64,10 +61,6 @@ class FrankaBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
 
     log = log
-    imu = None
-    serial_params = None
-    imu_odr_hz = None
-
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "franka", FRANKA_MODELS, "Franka", "the robot's FCI address")
         self.settings = FrankaLinkSettings(
@@ -83,7 +76,6 @@ class FrankaBackend(LinkBackend):
         self.model = ctx.model
         self.link = FrankaLink(self.settings)
         self.robot = self
-        self.fk_offset: tuple[float, float] | None = None     # (m, rad) our FK against the robot's O_T_EE at start
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
 
@@ -103,19 +95,8 @@ class FrankaBackend(LinkBackend):
         effector as set in Desk; a different robot.tool_offset, or a hand configured otherwise,
         puts the IMU's lever arm elsewhere, so the offset is said. franky-sim computes O_T_EE from
         the commanded joints, which equal the measured ones at rest."""
-        O_T_EE = np.array(identity["O_T_EE"]).reshape(4, 4, order="F")
-        oMfk = self.model.fk(np.array(identity["q"]))
-        offset_m = float(np.linalg.norm(oMfk.translation - O_T_EE[:3, 3]))
-        offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ O_T_EE[:3, :3])))
-        self.fk_offset = (offset_m, offset_rad)
-        if offset_m > FK_CHECK_M or offset_rad > FK_CHECK_RAD:
-            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from the robot's O_T_EE "
-                        "(model %s, tool offset %s m, tool quat %s); check them against the end effector set in "
-                        "Desk", offset_m * 1e3, np.degrees(offset_rad), self.model.name, self.model.tool_offset,
-                        self.model.tool_quat)
-        else:
-            log.info("robot.franka: our TCP is %.2f mm and %.2f deg from the robot's O_T_EE", offset_m * 1e3,
-                     np.degrees(offset_rad))
+        self._say_fk_offset(identity["q"], np.array(identity["O_T_EE"]).reshape(4, 4, order="F"),
+                            "the robot's O_T_EE", "the end effector set in Desk")
 
     def close(self) -> None:
         self._stop.set()

@@ -101,16 +101,19 @@ def _first_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}"
 
 
+def version_mismatch(host: str, theirs) -> str:
+    return (f"robot.franka.host: the robot at {host} runs robot server version {theirs}; this franky (libfranka "
+            f"0.21.2) speaks version {LIBFRANKA_ROBOT_SERVER_VERSION}. Install the franky-control release built for "
+            f"the robot's system version, or update the robot")
+
+
 def connect_problem(host: str, exc: BaseException) -> str:
     """franky's connect exception as one line a Franka user can act on."""
     name = type(exc).__name__
     text = str(exc)
     if name == "IncompatibleVersionException":
         found = re.search(r"server version:?\s*(\d+).*?library version:?\s*(\d+)", text, re.S | re.I)
-        theirs, ours = (found.group(1), found.group(2)) if found else ("?", str(LIBFRANKA_ROBOT_SERVER_VERSION))
-        return (f"robot.franka.host: the robot at {host} runs robot server version {theirs}; this franky "
-                f"(libfranka 0.21.2) speaks version {ours}. Install the franky-control release built for "
-                f"the robot's system version, or update the robot")
+        return version_mismatch(host, found.group(1) if found else "?")
     if name == "RealtimeException":
         return (f"robot.franka.realtime: enforce, but this kernel has no realtime capability ({_first_line(exc)}); "
                 f"run on a PREEMPT_RT kernel with realtime limits for this user (`tecdard doctor` says what is "
@@ -398,10 +401,7 @@ class FrankaLink(ChildLink):
             raise FrankaLinkError(f"robot.franka.host: {exc}") from None
         self.server_version = version
         if status == CONNECT_INCOMPATIBLE or version != LIBFRANKA_ROBOT_SERVER_VERSION:
-            raise FrankaLinkError(f"robot.franka.host: the robot at {host} runs robot server version {version}; this "
-                                  f"franky (libfranka 0.21.2) speaks version {LIBFRANKA_ROBOT_SERVER_VERSION}. Install "
-                                  f"the franky-control release built for the robot's system version, or update the "
-                                  f"robot")
+            raise FrankaLinkError(version_mismatch(host, version))
 
     def _read(self) -> None:
         while True:

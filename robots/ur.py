@@ -25,9 +25,6 @@ from __future__ import annotations
 import logging
 import threading
 
-import numpy as np
-import pinocchio as pin
-
 from robots.backend import LinkBackend, rig_section
 from robots.backends import BackendContext
 from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
@@ -36,8 +33,6 @@ log = logging.getLogger("tecdar.ur")
 
 UR_MODELS = ("ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e")   # CB3 (URDFs) and e-Series (robots/ur_dh.py)
 E_SERIES_MAJOR = 5                      # PolyScope 5 runs e-Series arms, 3 the CB3 ones
-FK_CHECK_M = 0.003                      # our FK and the controller's TCP further apart than this: said at start
-FK_CHECK_RAD = 0.0175                   # ... or turned by more than this (1 degree)
 FIRST_STATE_S = 2.0
 
 
@@ -45,9 +40,6 @@ class UrBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a UrLink; the IMU is the serial board."""
 
     log = log
-    imu = None                         # the fingertip board is read by the serial driver (imu.source: serial)
-    serial_params = None
-    imu_odr_hz = None
 
     def __init__(self, ctx: BackendContext):
         from tecdard.config import ConfigError
@@ -108,14 +100,8 @@ class UrBackend(LinkBackend):
         a percent and the position feedback removes it. A tool offset or model that disagrees with
         the controller puts the IMU's lever arm in the wrong place, so it is said here."""
         js = self.link.wait_state(-1, FIRST_STATE_S)
-        oMfk = self.model.fk(js.q)
-        offset_m = float(np.linalg.norm(oMfk.translation - js.tcp_pose[:3, 3]))
-        offset_rad = float(np.linalg.norm(pin.log3(oMfk.rotation.T @ js.tcp_pose[:3, :3])))
-        if offset_m > FK_CHECK_M or offset_rad > FK_CHECK_RAD:
-            log.warning("robot.tool_offset / robot.model: our TCP is %.1f mm and %.1f deg from the one the "
-                        "controller reports (model %s, tool offset %s m, tool quat %s); check them against the "
-                        "controller's TCP setting and arm type", offset_m * 1e3,
-                        np.degrees(offset_rad), self.model.name, self.model.tool_offset, self.model.tool_quat)
+        self._say_fk_offset(js.q, js.tcp_pose, "the one the controller reports",
+                            "the controller's TCP setting and arm type")
 
     def close(self) -> None:
         self._stop.set()
