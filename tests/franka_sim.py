@@ -24,6 +24,7 @@ Options for the tests:
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import random
 import signal
@@ -308,10 +309,10 @@ def run(args) -> None:
             sim.register_post_step_callback(board.post_step)
             truth_path = args.truth
         with SimulationServer(sim, hostname_candidates=[args.host]) as server:
-            print(f"READY {args.host}", flush=True)
             if board is not None:
-                grasp(sim)
-                _write_truth(truth_path, truth, sim, board, force=True)
+                grasp(sim)                  # before READY: a test never meets the hand not yet holding
+                _write_truth(truth_path, truth, sim)
+            print(f"READY {args.host}", flush=True)
             next_t = started = time.monotonic()
             behind = 0
             worst_behind = 0.0
@@ -321,11 +322,9 @@ def run(args) -> None:
                 steps += 1
                 if steps % TRUTH_EVERY_STEPS == 0:
                     _poll_control(args.control)
-                if board is not None and steps % TRUTH_EVERY_STEPS == 0:
-                    truth["resyncs"] = behind
-                    truth["worst_behind_s"] = worst_behind
-                    truth["wall_s"] = time.monotonic() - started
-                    _write_truth(truth_path, truth, sim, board)
+                    if board is not None:
+                        truth.update(resyncs=behind, worst_behind_s=worst_behind, wall_s=time.monotonic() - started)
+                        _write_truth(truth_path, truth, sim)
                 next_t += STEP_S
                 delay = next_t - time.monotonic()
                 worst_behind = max(worst_behind, -delay)
@@ -339,14 +338,14 @@ def run(args) -> None:
 TRUTH_EVERY_STEPS = 50          # the truth file is rewritten every 50 ms of simulated time
 
 
-def _write_truth(path: str, truth: dict, sim, board, force: bool = False) -> None:
-    """The scene's truth for the test, as JSON (written whole, then renamed): simulated time, the
-    handle's angle, the base's displacement, the grasp's twist."""
+def _write_truth(path: str, truth: dict, sim) -> None:
+    """The scene's truth for the test, as JSON (written whole, then renamed): `truth` (the hinge,
+    and how the schedule has kept), simulated time, the handle's angle, the base's displacement."""
     import json
     data = sim.data
     base = sim.model.joint("base_x").qposadr[0], sim.model.joint("base_y").qposadr[0]
     hinge = sim.model.joint("hinge").qposadr[0]
-    out = dict(truth, sim_time_s=float(data.time), handle_angle_deg=-float(data.qpos[hinge]) * 57.29577951308232,
+    out = dict(truth, sim_time_s=float(data.time), handle_angle_deg=-math.degrees(float(data.qpos[hinge])),
                base_displacement=float((data.qpos[base[0]] ** 2 + data.qpos[base[1]] ** 2) ** 0.5))
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
