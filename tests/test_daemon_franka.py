@@ -11,6 +11,7 @@ import pytest
 
 from robots.model import ArmModel
 from tecdard.config import dump_yaml
+from tecdard.demo import distance_to_axis
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 from tests.fake_ur import wait_for
 
@@ -300,3 +301,66 @@ def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_it
         srv.close()
     (line,) = [x for x in d.log().splitlines() if "recovered from robot mode" in x]
     assert "joint_reflex" in line
+
+
+ROTATE_HINGE_TOL_M = 0.005      # issue 22: the hinge within 5 mm through the real client
+ROTATE_ANGLE_TOL_DEG = 2.0
+ARC_BASE_MAX_M = 0.002          # the arc about the estimate leaves the base (nearly) still
+STRAIGHT_BASE_MIN_M = 0.020     # a straight pull drags it (as on the simulated backend, tests/test_daemon.py)
+ROTATE_TIMEOUT_S = 60.0
+
+
+def cutter_run(tmp_path, **fields) -> tuple[dict, dict, list, str]:
+    """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty):
+    one rotate; returns (its task_done or task_failed event, the scene's truth after it, the events,
+    the daemon's log)."""
+    import json
+    pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
+    srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path)
+    try:
+        d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **fields.pop("config", {})))
+        try:
+            reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
+            assert reply["ok"] is True, reply
+            ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], ROTATE_TIMEOUT_S)
+            time.sleep(0.2)                                   # the truth file is rewritten every 50 ms
+            truth = json.load(open(truth_path))
+            return ev, truth, list(d.client.event_log), d.log()
+        finally:
+            d.close()
+    finally:
+        srv.close()
+
+
+def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
+    """The paper's task through the real client: probe, localise the hinge from the fingertip's
+    gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
+    within 5 mm (measured 0.9-2.6 mm), the handle at 30 deg, the base left still."""
+    ev, truth, _, log = cutter_run(tmp_path)
+    assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
+    res = ev["result"]
+    err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
+    summary = (f"hinge error {err * 1e3:.2f} mm, handle {truth['handle_angle_deg']:.2f} deg, "
+               f"base {truth['base_displacement'] * 1e3:.2f} mm, franky-sim behind by {truth['worst_behind_s'] * 1e3:.0f} ms")
+    print(summary)
+    assert err < ROTATE_HINGE_TOL_M, summary
+    assert abs(truth["handle_angle_deg"] - 30.0) < ROTATE_ANGLE_TOL_DEG, summary
+    assert abs(res["angle_deg"] - 30.0) < ROTATE_ANGLE_TOL_DEG, summary
+    assert truth["base_displacement"] < ARC_BASE_MAX_M, summary
+
+
+def test_a_straight_pull_on_franky_sim_drags_the_cutters_base(tmp_path):
+    """The paper's failure case on the same scene: pulled straight along the first tangent with the
+    gripper held, the handle's end leaves its circle by r (sqrt(1 + theta^2) - 1), 41 mm at 45 deg
+    and 15 cm, and the grasp drags the base across the table. The innovations stop fitting the
+    model as the hand's orientation and the handle's part ways (the divergence stop would end the
+    pull first: it is set out of the way, as on the simulated backend); the dragged base's
+    friction may end it on the force stop, after the drag."""
+    ev, truth, events, log = cutter_run(tmp_path, strategy="straight", angle_deg=45.0,
+                                        config={"control.max_nis_ratio": 1000.0})
+    if ev["kind"] == "task_failed":
+        stop = next(e for e in events if e["kind"] == "protective_stop")
+        assert stop["cause"] == "force", f"{ev}\n{log[-3000:]}"
+    summary = f"{ev['kind']}: handle {truth['handle_angle_deg']:.1f} deg, base {truth['base_displacement'] * 1e3:.1f} mm"
+    print(summary)
+    assert truth["base_displacement"] > STRAIGHT_BASE_MIN_M, summary
