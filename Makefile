@@ -38,6 +38,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.mapping
 	$(PY) -m benchmarks.hostile
 	$(PY) -m benchmarks.ur
+	$(PY) -m benchmarks.franka
 	$(PY) -m benchmarks.viz
 	$(PY) -m benchmarks.mujoco
 	$(PY) -m benchmarks.poses

@@ -310,13 +310,13 @@ STRAIGHT_BASE_MIN_M = 0.020     # a straight pull drags it (as on the simulated 
 ROTATE_TIMEOUT_S = 60.0
 
 
-def cutter_run(tmp_path, **fields) -> tuple[dict, dict, list, str]:
-    """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty):
-    one rotate; returns (its task_done or task_failed event, the scene's truth after it, the events,
+def cutter_run(tmp_path, *sim_args: str, **fields) -> tuple[dict, dict, list, str]:
+    """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty;
+    `sim_args` for tests/franka_sim.py): one rotate; returns (its task_done or task_failed event, the scene's truth after it, the events,
     the daemon's log)."""
     import json
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
-    srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path)
+    srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, *sim_args)
     try:
         d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **fields.pop("config", {})))
         try:
