@@ -32,6 +32,10 @@ MAX_HEADER_BYTES = 10_000        # numpy's own bound for a .npy header
 # The IMU's median sample rate: the onset detector's band (40-200 Hz by default) needs the rate above
 # twice its top, and a fingertip IMU at under 100 Hz is no contact sensor (sim.imu.odr_hz's range).
 IMU_RATE_RANGE_HZ = (100.0, 20_000.0)
+# Magnitudes no rig records: ten times the LSM6DSR's widest full scales (4000 dps = 70 rad/s, 16 g),
+# a TCP within 100 m of the base at under 100 m/s, a grip under 100 kN. Beyond them a value is a
+# corrupt file, and its sums overflow inside the estimator.
+ABS_MAX = {"gyro": 700.0, "accel": 1570.0, "tcp_pos": 100.0, "tcp_vel": 100.0, "grip_force": 1e5}
 
 
 class RecordingError(ValueError):
@@ -164,6 +168,13 @@ def _array(data: _Npz, key: str, shape: tuple, required: bool = True, rows_max: 
     if bad.any():
         row = int(np.argwhere(bad)[0][0]) if arr.ndim else 0
         raise RecordingError(f"{key}: contains NaN or inf (first at row {row})")
+    limit = ABS_MAX.get(key)
+    if limit is not None and arr.size:
+        big = np.abs(arr) > limit
+        if big.any():
+            at = tuple(int(i) for i in np.argwhere(big)[0])
+            raise RecordingError(f"{key}: {arr[at]:.6g} at row {at[0] if arr.ndim else 0} is beyond {limit:g}, "
+                                 f"no rig's reading (a corrupt file?)")
     return arr
 
 

@@ -397,19 +397,20 @@ class TruthWriter:
 
 def _keep_real_time() -> str:
     """A real robot never falls behind; a simulator sharing 2 cores with the daemon and franky
-    did, by 50-130 ms at a time, and the daemon then saw a robot whose world ran late. Where the
-    host allows it (root, or CAP_SYS_NICE) the simulator runs at a real-time priority: it needs
-    about 70 % of a core and sleeps the rest of each step, so it never starves the others. Returns
-    which it got."""
+    did, by 50-550 ms at a time, and the daemon then saw a robot whose world ran late. Where the
+    host allows it (root, or CAP_SYS_NICE) the simulation's thread runs at a real-time priority:
+    it needs about 65 % of a core and sleeps the rest of each step, so it never starves the
+    others (the truth's writer thread, started before, keeps the normal policy). Returns which it
+    got."""
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SIM_RT_PRIORITY))
         return "SCHED_FIFO"
-    except (PermissionError, OSError):
+    except OSError:                 # EPERM without the privilege
         pass
     try:
         os.nice(-10)
         return "nice-10"
-    except (PermissionError, OSError):
+    except OSError:
         return "normal"
 
 

@@ -155,6 +155,10 @@ CASES = [
     ("gyro NaN", lambda g: {"gyro": _with(g, "gyro", nan_at)}, "gyro: contains NaN or inf"),
     ("accel inf", lambda g: {"accel": _with(g, "accel", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 5, np.inf, a))}, "accel: contains NaN or inf"),
     ("tcp_pos NaN", lambda g: {"tcp_pos": _with(g, "tcp_pos", nan_at)}, "tcp_pos: contains NaN or inf"),
+    # finite but no rig's reading: their sums overflowed inside the estimator
+    ("accel 1e300", lambda g: {"accel": _with(g, "accel", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 5, 1e300, a))}, "accel: 1e+300 at row 1 is beyond 1570"),
+    ("gyro huge", lambda g: {"gyro": _with(g, "gyro", lambda a: a - 1e30)}, "gyro: -1e+30 at row 0 is beyond 700"),
+    ("tcp_pos 1 km", lambda g: {"tcp_pos": _with(g, "tcp_pos", lambda a: a + [1e3, 0, 0])}, "tcp_pos: 1000"),
     ("gyro shape", lambda g: {"gyro": _with(g, "gyro", lambda a: a[:, :2])}, "gyro: expected shape (n, 3)"),
     ("gyro length", lambda g: {"gyro": _with(g, "gyro", lambda a: a[:-1])}, "gyro: has"),
     ("tcp_quat length", lambda g: {"tcp_quat": _with(g, "tcp_quat", lambda a: a[1:])}, "tcp_quat: has"),
