@@ -144,7 +144,7 @@ def main() -> None:
                      + f" | {r['angle_deg']:.1f} deg | {r['base_m'] * 1e3:.2f} mm | {r['behind_s'] * 1e3:.0f} ms |")
     lines += ["", f"{len(done)} of {len(runs)} finished"
               + (f"; hinge error median {np.median([r['hinge_m'] for r in done]) * 1e3:.2f} mm" if done else "")
-              + ". On the simulated backend (benchmarks/daemon.md) every pose finished, hinge error median 0.65 mm. "
+              + ". On the simulated backend every hinge pose finishes (its figures: benchmarks/poses.md, benchmarks/daemon.md). "
               "franky-sim shares the 2 cores with the daemon and franky; it runs at a real-time priority where "
               "the host allows, and the last column is how far it fell behind its 1 kHz schedule (docs/franka.md)."]
     lines += ["", "Command to motion covers the pipe to the child, franky's motion start (a new JointVelocityMotion "
