@@ -198,6 +198,16 @@ class LinkBackend:
     log: object                        # the backend's logger
     _stop: threading.Event
 
+    def _attach(self, ctx, link: ChildLink) -> None:
+        """What every link backend holds once its settings are read: the arm model and the link
+        (not yet started); the backend is its own robot."""
+        self.nq = ctx.model.nq
+        self.model = ctx.model
+        self.link = link
+        self.robot = self
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+
     def _say_fk_offset(self, q, pose: np.ndarray, theirs: str, check: str) -> None:
         """Our FK of the joints q against the TCP pose (4 x 4) the robot reports: over FK_CHECK_M
         or FK_CHECK_RAD apart, one warning naming the model and the tool. `theirs` names the

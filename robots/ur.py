@@ -54,12 +54,7 @@ class UrBackend(LinkBackend):
         if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
             raise ConfigError(f"robot.ur.watchdog_hz: {self.settings.watchdog_hz:g} Hz would stop the arm between "
                               f"two control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
-        self.nq = ctx.model.nq
-        self.model = ctx.model
-        self.link = UrLink(self.settings)
-        self.robot = self
-        self._stop = threading.Event()
-        self._supervisor: threading.Thread | None = None
+        self._attach(ctx, UrLink(self.settings))
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
