@@ -310,15 +310,16 @@ STRAIGHT_BASE_MIN_M = 0.020     # a straight pull drags it (as on the simulated 
 ROTATE_TIMEOUT_S = 60.0
 
 
-def cutter_run(tmp_path, *sim_args: str, **fields) -> tuple[dict, dict, list, str]:
+def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
     """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty;
-    `sim_args` for tests/franka_sim.py): one rotate; returns (its task_done or task_failed event, the scene's truth after it, the events,
-    the daemon's log)."""
+    `sim_args` for tests/franka_sim.py, `config` over the daemon's): one rotate with `fields`.
+    Returns its task_done or task_failed event, the scene's truth after it, the events and the
+    daemon's log."""
     import json
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
     srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, *sim_args)
     try:
-        d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **fields.pop("config", {})))
+        d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **(config or {})))
         try:
             reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
             assert reply["ok"] is True, reply
