@@ -177,6 +177,7 @@ class TwoPhaseTask(Task):
         self._t_last = None
         self._f0 = None                 # TCP force at the start (the robot's bias and the grasp's preload)
         self._radial = 0.0              # arc radius correction from the grasp force, m
+        self._end_p: np.ndarray | None = None   # the arc's end, kept once the look-ahead has reached it
         self._t_radial = None
 
     def _started(self, inp: TickInput) -> None:
@@ -251,7 +252,7 @@ class TwoPhaseTask(Task):
         phi_plan = signed_angle(r0, p_ref - c.p, a)
         self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
         remaining = self.angle_rad - phi
-        if remaining <= ANGLE_TOL_RAD and inp.planner_at_rest:
+        if (self._end_p is not None or remaining <= ANGLE_TOL_RAD) and inp.planner_at_rest:
             self._finish(c)
             return None
         if self._timed_out(inp.t, self.angle_rad * rho / self.speed):
@@ -264,6 +265,16 @@ class TwoPhaseTask(Task):
         tangent = np.cross(a, Rot @ r0_perp) / rho
         v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
         R, w = self._tool_on_arc(inp.t, phi_plan, a)
+        if phi_t >= self.angle_rad:
+            # The look-ahead has reached the arc's end: that end is kept from now on (the tool
+            # still turns with the plan). Re-placed each tick about the newest estimate and the
+            # admittance's radius, it moved by micrometres, the planner never came to rest, and on
+            # a soft grasp the arm crept and the handle sprang for half a second, which the
+            # estimator's divergence stop took for a failure (franky-sim). The task ends once the
+            # planner is at rest there.
+            if self._end_p is None:
+                self._end_p = target
+            target = self._end_p
         # Ruckig's limits are per axis: without a duration it would race a look-ahead target
         # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
         return Motion(target, v, R, min_duration_s=(phi_t - phi_plan) * rho / self.speed, w=w)
