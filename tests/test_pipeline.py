@@ -57,6 +57,18 @@ def in_plane_error(p, center, axis):
     return float(np.linalg.norm(d - np.dot(d, axis) * axis))
 
 
+def test_an_estimate_whose_innovations_do_not_fit_is_not_converged():
+    """Converged is the in-plane one-sigma under 5 mm, widened by the root NIS ratio where the
+    innovations run larger than expected (a soft grasp taking up the motion): the contact_jump
+    stop then judges only estimates that both claim and earn their precision."""
+    *_, pipe = simulate(np.eye(3), 0.0)
+    snap = pipe.estimator.snapshot()
+    fits = pipe._estimate(1.0, snap._replace(consistency=0.8))
+    assert fits.converged and fits.in_plane_std < 0.005
+    ratio = (0.005 / fits.in_plane_std) ** 2 * 1.1          # enough to widen it past 5 mm
+    assert not pipe._estimate(1.0, snap._replace(consistency=ratio)).converged
+
+
 @pytest.mark.parametrize("mount", [[0, 0, 0, 1], [0.3, -0.2, 0.1, 0.9], [0.7071068, 0, 0, 0.7071068]])
 @pytest.mark.parametrize("tool_rate", [0.0, 0.05])
 def test_pipeline_localises_with_rotated_mount_and_rotating_gripper(mount, tool_rate):
