@@ -49,6 +49,7 @@ CONNECT_HEADER_BYTES = 12
 CONNECT_INCOMPATIBLE = 1                # Connect::Status::kIncompatibleLibraryVersion
 LINK_SILENT_S = 0.5                     # no new robot state for this long: the link is lost
 GRIP_HZ = 10.0                          # the hand's state is read this often
+ROBOT_PERIOD_S = 0.001                  # the robot's state rate, 1 kHz
 STATE_POLL_S = 0.0005                   # between state reads while a motion runs (franky then answers at once)
 GRAVITY = np.array([0.0, 0.0, -9.81])
 FORCE_DAMPING = 1e-6                    # m^2-scale damping of J Jᵀ in the force's least squares
@@ -316,10 +317,10 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
             packed[35] = np.nan if grip["width"] is None else grip["width"]
             packed[36] = np.nan if grip["grasped"] is None else float(grip["grasped"])
             state_tx.send(("state", packed))
-            # nothing to read until the next state the daemon takes: wait for a command instead
-            # (it is carried out at once) rather than poll franky every STATE_POLL_S, which cost
-            # the child a third of a core
-            wait([cmd_rx], max(state_period - (time.monotonic() - now) - STATE_POLL_S, 0.0))
+            # nothing to read until a robot period before the next state the daemon takes: wait
+            # for a command meanwhile (it is carried out at once) rather than poll franky every
+            # STATE_POLL_S (waiting up to the next state itself missed it: 400 of 500 a second)
+            wait([cmd_rx], max(state_period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0))
     except (EOFError, OSError, BrokenPipeError):
         return                      # the daemon has gone
     except Exception as exc:        # franky's NetworkException: the robot has gone
