@@ -356,7 +356,7 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
 def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     """The paper's task through the real client: probe, localise the hinge from the fingertip's
     gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
-    within 5 mm (measured 0.9-2.6 mm), the handle at 30 deg, the base left still."""
+    within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still."""
     ev, truth, _, log = cutter_run(tmp_path)
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     res = ev["result"]
