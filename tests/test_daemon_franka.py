@@ -27,7 +27,7 @@ CONNECT_TIMEOUT_S = 3.0
 EXIT_WITHIN_S = 30.0
 
 
-# The franky-sim cutter rig's fingertip, calibrated as a rig's is (docs/estimation.md): four of the
+# The franky-sim cutter rig's fingertip, calibrated as a rig's is (docs/recordings.md): four of the
 # daemon's own recordings of a 15 mm `probe` from rest against the hinge, and `tecdard
 # calibrate-eta --contact <the hinge>`. The scene's fingertip springs give eta 2 and a 3 ms lag;
 # the grasp's own give (the soft weld, tests/franka_sim.py GRASP_SOLREF) adds to the lag. franky-sim's
