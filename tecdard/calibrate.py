@@ -20,8 +20,8 @@ gyro reads lags the object's by the silicone's time constant, which shows where 
 object's rate relative to the gripper across the lever arm (from the TCP's velocity and the known
 contact) is compared with eta times the gyro's relative rate LAG seconds later; the lag on a
 LAG_STEP_S grid up to LAG_MAX_S that leaves the least residual over all the recordings (each with
-its own eta) is the fingertip's. Steady motion says nothing about it, so a probe must start from
-rest.
+its own eta) is the fingertip's. A best fit at LAG_MAX_S itself is refused (the true lag may lie
+beyond). Steady motion says nothing about it, so a probe must start from rest.
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ MIN_TURN_RAD = np.radians(2.0)    # a probe must turn the object at least this m
 BIAS_WINDOW_S = 0.2           # the gyro bias: the mean over this long before the onset (at rest)
 MIN_RECORDINGS = 2
 FORCE_ROUND_N = 0.1
-LAG_MAX_S = 0.010             # the fingertip lag searched, 0 to this
+LAG_MAX_S = 0.020             # the fingertip lag searched, 0 to this (a best fit at it is said, best_lag)
 LAG_STEP_S = 0.00025
 LAG_SPAN_S = 0.3              # the part of a probe fitted: its start (where the rates change) and enough to pin eta
 
@@ -153,10 +153,19 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
     return lags, rss
 
 
+class LagAtBound(CalibrationError):
+    """The residual is least at the end of the searched lags: the true lag may lie beyond."""
+
+
 def best_lag(curves: list[np.ndarray], lags: np.ndarray) -> float:
-    """The lag of least summed residual (a parabola through the grid's minimum and its neighbours)."""
+    """The lag of least summed residual (a parabola through the grid's minimum and its neighbours).
+    LagAtBound when that is the last lag searched: a silicone lags a few ms, a soft grasp's give
+    can add more, and a fit pinned at the bound would be printed as if it were the answer."""
     total = np.sum(np.vstack(curves), axis=0)
     k = int(np.argmin(total))
+    if k == len(lags) - 1:
+        raise LagAtBound(f"--contact: the fingertip lag fits best at the end of the search, {lags[k] * 1e3:g} ms: "
+                         f"it may be longer (a soft grasp's give); check the probes start from rest")
     if 0 < k < len(lags) - 1 and np.all(np.isfinite(total[k - 1:k + 2])):
         y0, y1, y2 = total[k - 1:k + 2]
         den = y0 - 2 * y1 + y2

@@ -229,7 +229,10 @@ def _cmd_calibrate_eta(args) -> int:
         print(f"{force:12g} | {eta:.3f} | {sigma:.3f} | {n}")
     print(K.table_yaml(pooled))
     if lag_curves:
-        print(f"estimator.fingertip_lag_s: {K.best_lag(lag_curves, lags):.4f}")
+        try:
+            print(f"estimator.fingertip_lag_s: {K.best_lag(lag_curves, lags):.4f}")
+        except K.LagAtBound as exc:            # eta stands; the lag is not found
+            return bad(str(exc))
     return 0
 
 

@@ -84,3 +84,14 @@ def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, 
     assert res.returncode == 0, res.stderr
     (line,) = [ln for ln in res.stdout.splitlines() if ln.startswith("estimator.fingertip_lag_s:")]
     assert abs(float(line.split(":")[1]) - lag_s) < LAG_TOL_S, line
+
+
+def test_a_lag_that_fits_best_at_the_end_of_the_search_is_refused():
+    """A best fit at the last lag searched is no answer: the true lag may lie beyond (a soft grasp's
+    give adds to the silicone's few ms). Inside the grid the parabola's vertex is given."""
+    from tecdard import calibrate as K
+    lags = np.arange(0.0, K.LAG_MAX_S + 1e-12, K.LAG_STEP_S)
+    inside = (lags - 0.0061) ** 2
+    assert abs(K.best_lag([inside, 2 * inside], lags) - 0.0061) < 1e-6
+    with pytest.raises(K.LagAtBound, match=r"end of the search, 20 ms"):
+        K.best_lag([(lags - 0.035) ** 2], lags)
