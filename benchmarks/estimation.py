@@ -17,13 +17,13 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
-from control.geometry import Plane, quat_to_matrix  # noqa: E402
-from control.kernels import K_MIN, block_update  # noqa: E402
-from control import estimators  # noqa: E402
+from tecdard.control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
+from tecdard.control.geometry import Plane, quat_to_matrix  # noqa: E402
+from tecdard.control.kernels import K_MIN, block_update  # noqa: E402
+from tecdard.control import estimators  # noqa: E402
 
 METHODS = tuple(m for m in estimators.names() if m != "ekf-reference")   # the reference is ekf, slower
-from sim.scenarios import Scenario, generate  # noqa: E402
+from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402
@@ -178,7 +178,7 @@ def filterpy_peer() -> dict:
     fk.P = np.diag([prm.m_p] * 3 + [prm.m_v] * 3 + [prm.p0_c] * 3)
     fk.Q = np.diag([prm.q_p] * 3 + [prm.q_v] * 3 + [prm.q_c] * 3)
     fk.R = np.diag([prm.m_p] * 3 + [prm.m_v] * 3)
-    from control.geometry import rotvec_to_matrix, skew
+    from tecdard.control.geometry import rotvec_to_matrix, skew
     t0 = time.perf_counter()
     for k in range(n):
         F = np.eye(9)

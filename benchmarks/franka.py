@@ -26,7 +26,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from robots.franka_link import FrankaLink, FrankaLinkSettings  # noqa: E402
+from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings  # noqa: E402
 from tests.franka_sim import ServerProcess  # noqa: E402
 
 RATE_S = 5.0

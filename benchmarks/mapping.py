@@ -16,8 +16,8 @@ import yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from control.mapping import kernel_depth, raster_xy  # noqa: E402
-from sim.world import CONTAINER_M, mapping_scene  # noqa: E402
+from tecdard.control.mapping import kernel_depth, raster_xy  # noqa: E402
+from tecdard.sim.world import CONTAINER_M, mapping_scene  # noqa: E402
 from tecdard.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.demo import free_port, start_daemon, stop_daemon  # noqa: E402
@@ -36,7 +36,7 @@ TASK_TIMEOUT_S = 3600.0
 def home_q(cfg: dict) -> list[float]:
     """Joint angles putting the TCP at HOME_TCP, tool down, near the configured home posture."""
     import pinocchio as pin
-    from robots.model import ArmModel
+    from tecdard.robots.model import ArmModel
     model = ArmModel(cfg["robot"]["model"])
     q0 = np.array(cfg["robot"]["q_home"], dtype=float)
     oMtcp = model.fk(q0)

@@ -33,8 +33,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from control.geometry import quat_to_matrix  # noqa: E402
-from sim.mujoco_source import MujocoScenario, generate  # noqa: E402
+from tecdard.control.geometry import quat_to_matrix  # noqa: E402
+from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402

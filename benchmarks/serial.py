@@ -13,9 +13,9 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sim.board import Board, BoardParams  # noqa: E402
-from drivers.imu_wire import WireParser  # noqa: E402
-from drivers.serial_imu import SerialImuSource, SerialParams  # noqa: E402
+from tecdard.sim.board import Board, BoardParams  # noqa: E402
+from tecdard.drivers.imu_wire import WireParser  # noqa: E402
+from tecdard.drivers.serial_imu import SerialImuSource, SerialParams  # noqa: E402
 
 WRITER = """
 import sys, time

@@ -10,11 +10,11 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sim.imu import SimImu, SimImuParams  # noqa: E402
-from robots.model import READY_Q, ArmModel  # noqa: E402
-from sim.scenarios import Scenario, generate  # noqa: E402
-from sim.robot import SimRobot, SimRobotParams  # noqa: E402
-from sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, mapping_scene  # noqa: E402
+from tecdard.sim.imu import SimImu, SimImuParams  # noqa: E402
+from tecdard.robots.model import READY_Q, ArmModel  # noqa: E402
+from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
+from tecdard.sim.robot import SimRobot, SimRobotParams  # noqa: E402
+from tecdard.sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, mapping_scene  # noqa: E402
 
 SIM_S = 10.0
 TICK_S = 0.02

@@ -30,7 +30,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from robots.ur_link import UrLink, UrLinkSettings  # noqa: E402
+from tecdard.robots.ur_link import UrLink, UrLinkSettings  # noqa: E402
 from tests.fake_ur import FakeController, free_loopback_host, wait_for  # noqa: E402
 
 TICK_S = 0.02
@@ -86,7 +86,7 @@ def stream(seconds: float) -> dict:
 
 
 def rotates(n: int, accel_rad_s2: float | None = None) -> list[dict]:
-    from sim.backend import with_truth
+    from tecdard.sim.backend import with_truth
     from tecdard.demo import distance_to_axis
     from tests.test_ur_rotate import cutter_rig
     config = {} if accel_rad_s2 is None else {"robot.ur.accel_rad_s2": accel_rad_s2}

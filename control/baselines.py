@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.ekf import UNOBSERVED_STD_M, cross_rows
-from control.estimators import ContactEstimator
-from control.geometry import Plane, rotvec_to_matrix
+from tecdard.control.ekf import UNOBSERVED_STD_M, cross_rows
+from tecdard.control.estimators import ContactEstimator
+from tecdard.control.geometry import Plane, rotvec_to_matrix
 
 RANK_RTOL = 1e-6
 

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control import kernels as kern
-from control.estimators import ContactEstimator, Snapshot
-from control.geometry import Plane, rotvec_to_matrix
-from control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset, position_residual,
-                             position_sums, report_state)
+from tecdard.control import kernels as kern
+from tecdard.control.estimators import ContactEstimator, Snapshot
+from tecdard.control.geometry import Plane, rotvec_to_matrix
+from tecdard.control.kernels import (K_MIN, eta_evidence, eta_weight, position_increment, position_reset,
+                                     position_residual, position_sums, report_state)
 
 UNOBSERVED_STD_M = 0.5     # one-sigma reported along an unobservable direction
 CONSISTENCY_TAU_S = 0.05   # smoothing of the NIS ratio (innovation consistency)

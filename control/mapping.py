@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.geometry import matrix_to_rotvec, rotvec_to_matrix, unit
-from control.tasks import ContactView, Motion, Task, TickInput
+from tecdard.control.geometry import matrix_to_rotvec, rotvec_to_matrix, unit
+from tecdard.control.tasks import ContactView, Motion, Task, TickInput
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 ARRIVE_TOL_M = 5e-4           # a travel/lift/retract target counts as reached within this

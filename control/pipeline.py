@@ -9,15 +9,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control import estimators
-from control.estimators import Snapshot
-from control.baselines import BaselineParams
-from control.conditioning import GyroConditioner
-from control.ekf import UNOBSERVED_STD_M, ContactKfParams, PaperEkfParams
-from control.geometry import Plane, relative_rotvec
-from control.kernels import plane_rotation, rate_moments, rotation_axes
-from control.onset import OnsetDetector
-from drivers.lsm6dsr import Scaling
+from tecdard.control import estimators
+from tecdard.control.estimators import Snapshot
+from tecdard.control.baselines import BaselineParams
+from tecdard.control.conditioning import GyroConditioner
+from tecdard.control.ekf import UNOBSERVED_STD_M, ContactKfParams, PaperEkfParams
+from tecdard.control.geometry import Plane, relative_rotvec
+from tecdard.control.kernels import plane_rotation, rate_moments, rotation_axes
+from tecdard.control.onset import OnsetDetector
+from tecdard.drivers.lsm6dsr import Scaling
 
 PROPRIO_HISTORY = 256         # proprioception samples kept for causal lookup
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma (x the root NIS ratio above 1) is below this

@@ -29,11 +29,12 @@ import math
 
 import numpy as np
 
-from control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT,
-                         UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings, PositionEvidence)
-from control.estimators import ContactEstimator
-from control.geometry import Plane
-from control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
+from tecdard.control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_SAMPLES,
+                                 POSITION_RESIDUAL_LIMIT, UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings,
+                                 PositionEvidence)
+from tecdard.control.estimators import ContactEstimator
+from tecdard.control.geometry import Plane
+from tecdard.control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
 
 J = np.array([[0.0, -1.0], [1.0, 0.0]])      # w x r in a plane: w_n J r
 RANK_RCOND = 1e-12                           # eigenvalues of a window's information below this x the largest: zero

@@ -7,11 +7,11 @@ from typing import Callable
 
 import numpy as np
 
-from control import safety
-from control.modes import Event, Mode, transition
-from control.pipeline import EstimatorDirective
-from control.planner import CartesianPlanner, PlannerError
-from control.tasks import ContactView, Task, TickInput
+from tecdard.control import safety
+from tecdard.control.modes import Event, Mode, transition
+from tecdard.control.pipeline import EstimatorDirective
+from tecdard.control.planner import CartesianPlanner, PlannerError
+from tecdard.control.tasks import ContactView, Task, TickInput
 
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 # The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import rotvec_to_matrix
+from tecdard.control.geometry import rotvec_to_matrix
 
 SERVO_MAX_AGE_S = 0.1         # the servo compares a measurement with the plan this far back at most
 

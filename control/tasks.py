@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.geometry import rotvec_to_matrix, signed_angle, unit
+from tecdard.control.geometry import rotvec_to_matrix, signed_angle, unit
 
 LOOKAHEAD_S = 0.25            # arc target placed this far ahead along the arc, at the commanded speed
 PROBE_OVERSHOOT_M = 0.002     # phase-1 target lies beyond the probe distance so the TCP never stops there

@@ -9,9 +9,9 @@ import numpy as np
 import serial
 import serial.tools.list_ports
 
-from drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
-from drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
-from drivers.timesync import ClockSync, Unwrapper
+from tecdard.drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
+from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
+from tecdard.drivers.timesync import ClockSync, Unwrapper
 
 READ_CHUNK_BYTES = 1 << 16
 RETRY_MIN_S = 0.05

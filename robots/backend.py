@@ -9,7 +9,7 @@ from typing import Protocol
 import numpy as np
 import pinocchio as pin
 
-from robots.backends import BackendError
+from tecdard.robots.backends import BackendError
 
 
 @dataclass

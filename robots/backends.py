@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BACKENDS = {"sim": "sim.backend", "ur": "robots.ur", "franka": "robots.franka"}     # name -> module
+BACKENDS = {"sim": "tecdard.sim.backend", "ur": "tecdard.robots.ur", "franka": "tecdard.robots.franka"}     # name -> module
 
 
 class BackendError(RuntimeError):

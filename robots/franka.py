@@ -44,9 +44,9 @@ import time
 
 import numpy as np
 
-from robots.backend import LinkBackend, rig_section
-from robots.backends import BackendContext
-from robots.franka_link import FrankaLink, FrankaLinkSettings
+from tecdard.robots.backend import LinkBackend, rig_section
+from tecdard.robots.backends import BackendContext
+from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings
 
 log = logging.getLogger("tecdar.franka")
 

@@ -35,9 +35,9 @@ from multiprocessing.connection import wait
 
 import numpy as np
 
-from drivers.timesync import SlewClock
-from robots.backend import ChildLink, JointState, joint_rates, kill_child
-from robots.backends import BackendError
+from tecdard.drivers.timesync import SlewClock
+from tecdard.robots.backend import ChildLink, JointState, joint_rates, kill_child
+from tecdard.robots.backends import BackendError
 
 log = logging.getLogger("tecdar.franka")
 

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pinocchio as pin
 
-from robots import ur_dh
+from tecdard.robots import ur_dh
 
 # Damped least-squares IK constants.
 DLS_DAMPING = 1e-2          # lambda, m (or rad) equivalent

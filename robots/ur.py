@@ -25,9 +25,9 @@ from __future__ import annotations
 import logging
 import threading
 
-from robots.backend import LinkBackend, rig_section
-from robots.backends import BackendContext
-from robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
+from tecdard.robots.backend import LinkBackend, rig_section
+from tecdard.robots.backends import BackendContext
+from tecdard.robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
 
 log = logging.getLogger("tecdar.ur")
 

@@ -29,9 +29,9 @@ import numpy as np
 
 import pinocchio as pin
 
-from drivers.timesync import ClockSync
-from robots.backend import ChildLink, JointState, joint_rates, kill_child
-from robots.backends import BackendError
+from tecdard.drivers.timesync import ClockSync
+from tecdard.robots.backend import ChildLink, JointState, joint_rates, kill_child
+from tecdard.robots.backends import BackendError
 
 log = logging.getLogger("tecdar.ur")
 

@@ -16,13 +16,13 @@ import tempfile
 
 import numpy as np
 
-from drivers.serial_imu import SerialParams
-from robots.backends import BackendContext
-from sim.board import BoardParams
-from sim.imu import SimImuParams
-from sim.process import SimProcess, SimSpec
-from sim.robot import SimRobotParams
-from sim.world import HingeParams, PivotParams
+from tecdard.drivers.serial_imu import SerialParams
+from tecdard.robots.backends import BackendContext
+from tecdard.sim.board import BoardParams
+from tecdard.sim.imu import SimImuParams
+from tecdard.sim.process import SimProcess, SimSpec
+from tecdard.sim.robot import SimRobotParams
+from tecdard.sim.world import HingeParams, PivotParams
 
 PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
 

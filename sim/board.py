@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers import imu_wire as W
-from drivers.lsm6dsr import Scaling
+from tecdard.drivers import imu_wire as W
+from tecdard.drivers.lsm6dsr import Scaling
 
 
 @dataclass

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import quat_to_matrix
-from drivers.lsm6dsr import Scaling
+from tecdard.control.geometry import quat_to_matrix
+from tecdard.drivers.lsm6dsr import Scaling
 
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -9.81])
 DEG = np.pi / 180.0

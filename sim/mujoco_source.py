@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.geometry import matrix_to_quat, rotvec_to_matrix
+from tecdard.control.geometry import matrix_to_quat, rotvec_to_matrix
 
 LSB_GYRO_RAD_S_PER_DPS = math.radians(1.0)
 G = 9.80665

@@ -33,14 +33,14 @@ from multiprocessing.reduction import ForkingPickler
 
 import numpy as np
 
-from sim.board import Board, BoardParams, PtyDevice
-from drivers.lsm6dsr import Scaling
-from sim.imu import SimImu, SimImuParams
-from robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
-from robots.backends import BackendError
-from robots.model import ArmModel
-from sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
-from sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
+from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.drivers.lsm6dsr import Scaling
+from tecdard.sim.imu import SimImu, SimImuParams
+from tecdard.robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
+from tecdard.robots.backends import BackendError
+from tecdard.robots.model import ArmModel
+from tecdard.sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
+from tecdard.sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
 
 log = logging.getLogger("tecdar.sim")
 

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.backend import JointState, joint_rates
-from robots.model import ArmModel
-from sim.world import SimTruth
+from tecdard.robots.backend import JointState, joint_rates
+from tecdard.robots.model import ArmModel
+from tecdard.sim.world import SimTruth
 
 log = logging.getLogger("tecdar.sim")
 

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.geometry import matrix_to_quat, quat_to_matrix, rotvec_to_matrix, unit
+from tecdard.control.geometry import matrix_to_quat, quat_to_matrix, rotvec_to_matrix, unit
 
 KINDS = ("edge-arc", "edge-translate", "edge-ongoing", "point-circle", "hinge")
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.geometry import cross3, relative_rotvec, signed_angle, unit
+from tecdard.control.geometry import cross3, relative_rotvec, signed_angle, unit
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4

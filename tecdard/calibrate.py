@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from control.geometry import quat_to_matrix
+from tecdard.control.geometry import quat_to_matrix
 
 WINDOW_S = 0.01               # samples averaged per window
 MIN_SPEED_M_S = 0.002         # windows with a slower TCP carry no rate information

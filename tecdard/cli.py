@@ -50,7 +50,7 @@ def _cmd_run(args) -> int:
     except ConfigError as exc:
         print(f"tecdard: config error: {exc}", file=sys.stderr)
         return 2
-    from robots.backends import BackendError
+    from tecdard.robots.backends import BackendError
     try:
         return daemon.run()
     except BackendError as exc:
@@ -79,8 +79,8 @@ class _BadInput(Exception):
 def _recording_and_pipeline(args):
     """The recording named by args.recording, its live_* log (None for any other, or with
     --ignore-live) and a contact pipeline from args.config's `estimator` section; _BadInput otherwise."""
-    from control.geometry import quat_to_matrix
-    from control import estimators
+    from tecdard.control.geometry import quat_to_matrix
+    from tecdard.control import estimators
     from tecdard.estimation import build_pipeline
     from tecdard.recording import RecordingError, load_live, load_recording
 
@@ -272,12 +272,12 @@ def _cmd_sim_record(args) -> int:
         try:
             import mujoco  # noqa: F401
 
-            from sim.mujoco_source import MujocoScenario as Scenario, generate
+            from tecdard.sim.mujoco_source import MujocoScenario as Scenario, generate
         except ImportError:
             print("tecdard sim-record: --engine mujoco needs mujoco: pip install 'tecdar[bench]'", file=sys.stderr)
             return 2
     else:
-        from sim.scenarios import Scenario, generate
+        from tecdard.sim.scenarios import Scenario, generate
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Scenario)
               if f.name != "extra" and getattr(args, f.name, None) is not None}
     try:
@@ -298,7 +298,7 @@ def _scenario_options(p) -> None:
     """One option per Scenario field, typed from its default."""
     import dataclasses
 
-    from sim.scenarios import KINDS, Scenario
+    from tecdard.sim.scenarios import KINDS, Scenario
 
     def vec(text: str):
         try:
@@ -334,7 +334,7 @@ def _cmd_imu(args) -> int:
     """Read the fingertip board for a while; print rates, counters and the latest sample in SI."""
     import time
 
-    from drivers.serial_imu import PortError, SerialImuSource, SerialParams
+    from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
 
     vid = pid = None
     if args.vid_pid:

@@ -17,12 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control import safety
-from control.geometry import matrix_to_quat
-from control.modes import Mode
-from control.planner import CartesianPlanner
-from control.runner import TaskRunner
-from control.servo import PlanSample, joint_velocities
+from tecdard.control import safety
+from tecdard.control.geometry import matrix_to_quat
+from tecdard.control.modes import Mode
+from tecdard.control.planner import CartesianPlanner
+from tecdard.control.runner import TaskRunner
+from tecdard.control.servo import PlanSample, joint_velocities
 from tecdard import commands as C
 from tecdard import verbs
 from tecdard.mapfiles import MapSettings, MapWriter

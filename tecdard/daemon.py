@@ -15,11 +15,11 @@ import time
 import numpy as np
 import zenoh
 
-from control.geometry import quat_to_matrix
-from drivers.ring import SampleRing
-from drivers.serial_imu import PortError, SerialImuSource, SerialParams
-from robots import backends
-from robots.model import ArmModel, UnknownRobotError
+from tecdard.control.geometry import quat_to_matrix
+from tecdard.drivers.ring import SampleRing
+from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
+from tecdard.robots import backends
+from tecdard.robots.model import ArmModel, UnknownRobotError
 from tecdard import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline

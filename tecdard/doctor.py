@@ -106,7 +106,7 @@ def check_board(serial_params, comports=None) -> Check:
     """The board at its configured port (by path, or found by VID:PID) and readable and writable."""
     if serial_params is None:
         return Check("fingertip board", "skip", "imu.source is not serial (the simulated board is used)")
-    from drivers.serial_imu import PortError, find_port
+    from tecdard.drivers.serial_imu import PortError, find_port
     if comports is None:
         import serial.tools.list_ports
         comports = serial.tools.list_ports.comports
@@ -223,8 +223,8 @@ def check_kernel_cache() -> Check:
 def check_ur_controller(host: str, model: str) -> list[Check]:
     """A UR controller at `host`: its dashboard, RTDE and script ports answer, it runs the arm
     robot.model names, and it is in remote control (ur-rtde uploads its script only then)."""
-    from robots.ur_link import controller_identity
-    from robots.ur import expected_controller_arm
+    from tecdard.robots.ur_link import controller_identity
+    from tecdard.robots.ur import expected_controller_arm
     ports = {"dashboard": 29999, "script": 30003, "RTDE": 30004}
     closed = []
     for name, port in ports.items():
@@ -289,7 +289,7 @@ def check_franka_realtime(realtime: str, sys_realtime: str = "/sys/kernel/realti
 def check_franka_robot(host: str, timeout_s: float = CONNECT_TIMEOUT_S) -> list[Check]:
     """A Franka robot at `host`: its FCI answers libfranka's Connect with the robot server version
     this franky speaks."""
-    from robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, server_version
+    from tecdard.robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, server_version
     try:
         status, version = server_version(host, timeout_s)
     except ConnectionRefusedError:
@@ -332,9 +332,9 @@ def run_checks(config_path: str) -> list[Check]:
         checks += check_endpoints(daemon.listen, daemon.connect, daemon.robot_name, daemon.tls)
         settings = getattr(daemon.backend, "settings", None)
         backend = type(daemon.backend).__module__
-        if backend == "robots.ur":
+        if backend == "tecdard.robots.ur":
             checks += check_ur_controller(settings.host, daemon.model.name)
-        elif backend == "robots.franka":
+        elif backend == "tecdard.robots.franka":
             checks += check_franka_realtime(settings.realtime)
             checks += check_franka_robot(settings.host)
     checks.append(check_kernel_cache())

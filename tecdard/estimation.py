@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from control.baselines import BaselineParams
-from control.conditioning import GyroConditioner
-from control.ekf import ContactKfParams, PaperEkfParams
-from control.onset import OnsetDetector
-from control import estimators
-from control.pipeline import FINGERTIP_LAG_S, ContactPipeline, PipelineParams
+from tecdard.control.baselines import BaselineParams
+from tecdard.control.conditioning import GyroConditioner
+from tecdard.control.ekf import ContactKfParams, PaperEkfParams
+from tecdard.control.onset import OnsetDetector
+from tecdard.control import estimators
+from tecdard.control.pipeline import FINGERTIP_LAG_S, ContactPipeline, PipelineParams
 from tecdard.config import ConfigError
 from tecdard.safejson import finite, is_number, show
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from control.geometry import quat_to_matrix
+from tecdard.control.geometry import quat_to_matrix
 
 IMU_BATCH_S = 0.01             # the IMU in messages of this much
 

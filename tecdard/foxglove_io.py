@@ -23,7 +23,7 @@ from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateCha
 from foxglove.messages import (Color, FrameTransform, FrameTransforms, LinePrimitive, Log, LogLevel, Point3, Pose,
                                Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3)
 
-from control.geometry import matrix_to_quat
+from tecdard.control.geometry import matrix_to_quat
 
 ELLIPSOID_MAX_M = 0.2          # a one-sigma ellipsoid is drawn at most this big per axis (a line contact's
                                # along-edge sigma is half a metre)

@@ -19,7 +19,7 @@ import pickle
 import time
 from dataclasses import dataclass
 
-KERNELS_MODULE = "control.kernels"
+KERNELS_MODULE = "tecdard.control.kernels"
 COLD_COMPILE_S = 90.0          # a compile on 2 cores: 50-60 s measured before, 93 s on a fresh clone (2026-12-02)
 
 

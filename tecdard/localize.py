@@ -6,8 +6,8 @@ import sys
 
 import numpy as np
 
-from control.geometry import quat_to_matrix
-from control.pipeline import ContactEstimate, ContactPipeline, EstimatorDirective
+from tecdard.control.geometry import quat_to_matrix
+from tecdard.control.pipeline import ContactEstimate, ContactPipeline, EstimatorDirective
 from tecdard.recording import LiveLog, Recording
 
 DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from control.mapping import MapRecord, kernel_depth, raster_xy
+from tecdard.control.mapping import MapRecord, kernel_depth, raster_xy
 from tecdard.files import OutputError, atomic_dir, ensure_writable_dir, state_dir
 
 log = logging.getLogger("tecdar.map")

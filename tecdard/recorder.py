@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from control.geometry import matrix_to_quat
+from tecdard.control.geometry import matrix_to_quat
 from tecdard import commands as C
 from tecdard.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir

@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 
-from control.pipeline import ContactPipeline, EstimatorDirective
-from drivers.ring import SampleRing
+from tecdard.control.pipeline import ContactPipeline, EstimatorDirective
+from tecdard.drivers.ring import SampleRing
 from tecdard.messages import DropOldestRing, LatestValue
 from tecdard.recorder import Pass
 

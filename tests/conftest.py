@@ -150,7 +150,7 @@ def shared_daemon(tmp_path_factory):
 def board(tmp_path):
     """A fingertip board in software (sim.board) streaming tecdar-imu/1 on a pseudo-terminal, as a
     real arm's daemon reads it (`imu.source: serial`, `imu.serial.port: str(board.link)`)."""
-    from sim.board import Board, PtyDevice, StreamThread
+    from tecdard.sim.board import Board, PtyDevice, StreamThread
     device = PtyDevice(tmp_path / "ttyIMU")
     streamer = StreamThread(device, Board()).start()
     yield device

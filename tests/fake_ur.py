@@ -552,8 +552,8 @@ class SimArm:
     with when it was measured and delivered at most one slice late."""
 
     def __init__(self, spec: SimArmSpec):
-        from sim.board import Board, PtyDevice
-        from sim.robot import PHYSICS_WAKE_S
+        from tecdard.sim.board import Board, PtyDevice
+        from tecdard.sim.robot import PHYSICS_WAKE_S
         sim = spec.sim_spec
         self.device = PtyDevice(sim.pty_link)
         self.robot = sim.build(wire=(Board(sim.board), self.device))

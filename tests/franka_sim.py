@@ -110,7 +110,7 @@ def add_cutter(sim, radius: float, hinge_behind_m: float, hinge_friction_nm: flo
 
     import numpy as np
 
-    from robots.model import ArmModel
+    from tecdard.robots.model import ArmModel
     q0 = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)
     p_tcp = ArmModel("fr3").fk(np.array(q0)).translation
     hinge = p_tcp - np.array([hinge_behind_m, 0.0, 0.0])
@@ -245,7 +245,7 @@ class FingertipBoard:
     def __init__(self, sim, link: str, seed: int = 1):
         import numpy as np
 
-        from sim.board import Board, BoardParams, PtyDevice
+        from tecdard.sim.board import Board, BoardParams, PtyDevice
         self.np = np
         self.sim = sim
         self.device = PtyDevice(link)

@@ -73,7 +73,7 @@ def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, 
     """MuJoCo arcs (rigid-body physics, the fingertip's twist a first-order lag of lag_s): the lag that
     best lines up the gyro with the TCP's motion about the known hinge, printed for the config."""
     pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` installs")
-    from sim.mujoco_source import HINGE, MujocoScenario, generate
+    from tecdard.sim.mujoco_source import HINGE, MujocoScenario, generate
     from tecdard.recording import Recording, save_recording
     paths = []
     for seed in (1, 2):

@@ -94,7 +94,7 @@ def test_run_refuses_missing_file_and_bad_yaml(tmp_path):
 
 
 def test_daemon_builds_the_mapping_scene_world():
-    from sim.world import HeightField, PivotWorld
+    from tecdard.sim.world import HeightField, PivotWorld
     from tecdard.daemon import Daemon
     cfg = sim_config(**{"sim.hinge": ..., "sim.pivot": {"surface": "scene", "scene_seed": 2,
                                                          "tip_in_tcp": [0.0, 0.06, 0.10]}})

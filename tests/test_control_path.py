@@ -8,16 +8,16 @@ import textwrap
 import numpy as np
 import pytest
 
-from control import safety
-from control.modes import Event, Mode, TransitionError, transition
-from control.pipeline import ContactPipeline
-from robots.model import READY_Q, ArmModel
+from tecdard.control import safety
+from tecdard.control.modes import Event, Mode, TransitionError, transition
+from tecdard.control.pipeline import ContactPipeline
+from tecdard.robots.model import READY_Q, ArmModel
 from tecdard import commands as C
 from tecdard import verbs
 from tecdard.control_thread import ControlParams, ControlThread
 from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop, status_json
 from tecdard.intake import QueryIntake
-from control.pipeline import EstimatorDirective
+from tecdard.control.pipeline import EstimatorDirective
 from tecdard.messages import DropOldestRing, LatestValue, StartTask, Stop
 from tecdard.zenoh_io import Keys
 from tests.test_control_safety import LaggingArm
@@ -320,7 +320,7 @@ TCP_AT_ONSET = '''
 
 
 def test_a_new_estimator_is_one_file(tmp_path):
-    from control import estimators
+    from tecdard.control import estimators
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tests.test_pipeline import simulate

@@ -4,12 +4,12 @@ import queue
 import numpy as np
 import pytest
 
-from control.pipeline import ContactEstimate
-from control.tasks import ApproachTask
-from robots.backend import JointState
-from sim.world import SimTruth
-from robots.model import READY_Q, ArmModel
-from control.modes import Mode
+from tecdard.control.pipeline import ContactEstimate
+from tecdard.control.tasks import ApproachTask
+from tecdard.robots.backend import JointState
+from tecdard.sim.world import SimTruth
+from tecdard.robots.model import READY_Q, ArmModel
+from tecdard.control.modes import Mode
 from tecdard.control_thread import ControlParams, ControlThread
 from tecdard.messages import LatestValue, StartTask
 
@@ -106,7 +106,7 @@ def test_a_failing_tick_holds_the_arm_and_ends_the_task(model):
 def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
     """An approach that ends on a point contact reports no axis; its end event still carries the truth.
     (It once raised in the truth and the task vanished without an end event.)"""
-    from sim.backend import with_truth
+    from tecdard.sim.backend import with_truth
     truth = SimTruth(np.array([0.3, 0.0, 0.3]), np.array([0.0, 1.0, 0.0]), 0.1, 0.0, {"contacts": 1})
     ev = with_truth({"kind": "task_done", "task": "approach-1", "result": {"p": [0.3, 0.0, 0.3], "axis": None}}, truth)
     assert ev["result"]["sim"]["contacts"] == 1 and ev["result"]["p"] == [0.3, 0.0, 0.3]
@@ -199,7 +199,7 @@ def test_the_servo_compares_a_late_measurement_with_the_plan_at_its_time(model):
 def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(model):
     """An approach from rest: the arm follows the plan with a lag, so the trigger arms TRIGGER_SETTLE_S
     after the plan reaches its constant speed, not at once; its start is no impact."""
-    from control.runner import TRIGGER_SETTLE_S
+    from tecdard.control.runner import TRIGGER_SETTLE_S
     ct = control_thread(model, ring=FreshRing())
     arm = ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
     ct.submit(StartTask(None, "approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.05,
@@ -221,7 +221,7 @@ def test_the_trigger_arms_only_once_the_plan_has_moved_steadily_for_a_while(mode
 def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
     """A tick that starts late means the daemon itself stalled, and the IMU's samples may still be
     queued behind it: the stale-IMU stop waits one tick, then stops all the same if they stay away."""
-    from control.safety import STALE_JUDGE_LATE_S
+    from tecdard.control.safety import STALE_JUDGE_LATE_S
 
     class Ring:
         total, last_t = 1, 0.0

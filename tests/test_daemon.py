@@ -285,7 +285,7 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     """The paper's tactile mapping on a 2 x 1 grid across a box's edge: a block held 30 deg off the
     vertical probes a table with a box on it, in two tool orientations; every point is valid and the
     map matches the scene."""
-    from sim.world import BoxScene
+    from tecdard.sim.world import BoxScene
     tilt, tool_m = np.radians(30.0), 0.12
     tip_tcp = [float(tool_m * np.sin(tilt)), 0.0, float(tool_m * np.cos(tilt))]
     # The longest daemon test (about 42 s of task: 3-5 s of descent at 1 cm/s a point; at 2 cm/s only
@@ -330,7 +330,7 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     # The fused map at the grid points (raster rows along +y) against the same kernel estimator
     # fed the true heights at the probed x-y: the kernel itself mixes in the table 4 cm from the box's
     # points (3.8 mm at one of them from exact heights), the touch adds no more than its points' error.
-    from control.mapping import kernel_depth, raster_xy
+    from tecdard.control.mapping import kernel_depth, raster_xy
     from tecdard.mapfiles import MapSettings
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     truth_z = np.array([scene.surface_z(x, y) for x, y in xy])

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from robots.model import ArmModel
+from tecdard.robots.model import ArmModel
 from tecdard.config import dump_yaml
 from tecdard.demo import distance_to_axis
 from tests.conftest import ROOT, DaemonProcess, daemon_config
@@ -18,7 +18,7 @@ from tests.fake_ur import wait_for
 franky = pytest.importorskip("franky", reason="franky-control is installed by `make test` (extra `franka`)")
 pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
 
-from robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
+from tecdard.robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
 from tests.franka_sim import ServerProcess, free_franka_host  # noqa: E402
 
 Q_SIM = [0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785]     # franky-sim's initial posture: TCP at (0.554, 0, 0.521)
@@ -233,8 +233,8 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
 
     import serial
 
-    from drivers.imu_wire import SamplesPacket, WireParser
-    from drivers.lsm6dsr import Scaling
+    from tecdard.drivers.imu_wire import SamplesPacket, WireParser
+    from tecdard.drivers.lsm6dsr import Scaling
     from tests.franka_sim import ETA
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
     srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, "--hinge-friction", "0.3")

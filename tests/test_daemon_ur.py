@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from robots.model import READY_Q, ArmModel
+from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 from tests.fake_ur import FakeController, free_loopback_host, wait_for

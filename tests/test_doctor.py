@@ -82,7 +82,7 @@ def test_apply_rt_priority_says_so_in_one_line_when_refused(monkeypatch, caplog)
 
 
 def test_board_by_port_and_by_vid_pid(tmp_path):
-    from drivers.serial_imu import SerialParams
+    from tecdard.drivers.serial_imu import SerialParams
     assert doctor.check_board(None).status == "skip"
     c = doctor.check_board(SerialParams(port="/dev/tecdar-imu-not-here"))
     assert c.status == "fail" and "does not exist" in c.detail and "plug" in c.fix

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from control.baselines import BASELINES, make_baseline
-from control.ekf import ContactKF, ContactKfParams, PaperEKF, PositionEvidence
-from control.geometry import Plane, rotvec_to_matrix, unit
+from tecdard.control.baselines import BASELINES, make_baseline
+from tecdard.control.ekf import ContactKF, ContactKfParams, PaperEKF, PositionEvidence
+from tecdard.control.geometry import Plane, rotvec_to_matrix, unit
 
 ODR_HZ = 6667.0
 EXACT_TOL_M = 1e-4        # noise-free answers within 0.1 mm
@@ -237,12 +237,12 @@ ETA_NO_HARM_M = 1e-3        # and never farther than the calibrated one by more 
 def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
     """End error (m, in the plane of rotation) and the filter of one simulated recording through the pipeline;
     `estimator` overrides keys of the config's estimator section."""
-    from sim.scenarios import Scenario, generate
+    from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tecdard.localize import replay
     from tecdard.recording import Recording
-    from control.geometry import quat_to_matrix
+    from tecdard.control.geometry import quat_to_matrix
 
     fields, truth = generate(Scenario(kind=kind, radius=0.12, grip_force=grip_force, seed=seed))
     rec = Recording.from_fields(fields)

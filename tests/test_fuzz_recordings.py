@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from sim.scenarios import Scenario, generate
+from tecdard.sim.scenarios import Scenario, generate
 from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording
 
 MAX_MESSAGE_CHARS = 300
@@ -225,7 +225,7 @@ def fuzz(examples: int) -> settings:
 
 def outcome(path) -> str:
     """"refused" (one short line) or "replayed" (the replay ran without an exception)."""
-    from control.geometry import quat_to_matrix
+    from tecdard.control.geometry import quat_to_matrix
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tecdard.localize import replay

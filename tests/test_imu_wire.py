@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from drivers import imu_wire as W
-from sim.board import Board, BoardParams
-from drivers.lsm6dsr import ACCEL_SENS_MG_PER_LSB, GYRO_SENS_MDPS_PER_LSB, Scaling
-from drivers.serial_imu import SerialImuSource, SerialParams
-from drivers.timesync import ClockSync, Unwrapper
+from tecdard.drivers import imu_wire as W
+from tecdard.sim.board import Board, BoardParams
+from tecdard.drivers.lsm6dsr import ACCEL_SENS_MG_PER_LSB, GYRO_SENS_MDPS_PER_LSB, Scaling
+from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
+from tecdard.drivers.timesync import ClockSync, Unwrapper
 
 # Golden packets; CRCs computed by hand with a bit-by-bit CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF).
 GOLDEN_STATUS = bytes.fromhex("a55a 02 0600 0b1a a00f 10 00 bc1a".replace(" ", ""))
@@ -229,7 +229,7 @@ def test_slew_clock_keeps_a_robots_states_in_order_through_late_and_bursty_arriv
     in bursts, as a loaded host delivers a simulator's states, map to host times whose spacing
     stays within 0.2 % of the robot's own, never going back, within a millisecond or two of the
     true offset once the envelope has seen an on-time arrival."""
-    from drivers.timesync import SLEW_RATE, SlewClock
+    from tecdard.drivers.timesync import SLEW_RATE, SlewClock
     rng = np.random.default_rng(4)
     clock = SlewClock()
     true_offset = 1234.5
@@ -251,7 +251,7 @@ def test_clock_sync_spreads_a_refit_instead_of_jumping():
     each half-second refit by milliseconds. Sample times mapped as they come keep their spacing
     within REFIT_SLEW_RATE of the board's: a refit no longer moves the mapping at once (it moved
     it back by up to 13 ms, collapsing 0.2-0.4 s of samples onto one time)."""
-    from drivers.timesync import REFIT_SLEW_RATE
+    from tecdard.drivers.timesync import REFIT_SLEW_RATE
     rng = np.random.default_rng(11)
     sync = ClockSync()
     period = 8 / 6667

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from control import kernels as kern
-from control import reference
+from tecdard.control import kernels as kern
+from tecdard.control import reference
 
 REL_TOL = 1e-9
 REFERENCE_REL_TOL = 1e-7    # the compiled run against control/reference.py: a collapsed and a stacked update
@@ -331,9 +331,9 @@ def test_the_compiled_run_keeps_the_state_of_the_reference_filter(planar, nk, ch
     (ContactKF.update) keeps the state, the counts, the consistency ratio and the slide flag of the
     numpy reference (control/reference.py) after every chunk (chunks of 150 are cut into blocks of
     max_block)."""
-    from control.ekf import ContactKF, ContactKfParams
-    from control.geometry import Plane
-    from control.reference import ReferenceKF
+    from tecdard.control.ekf import ContactKF, ContactKfParams
+    from tecdard.control.geometry import Plane
+    from tecdard.control.reference import ReferenceKF
     rng = np.random.default_rng(11)
     axis = np.array([0.0, -1.0, 0.0])
     t = np.arange(6000) / 6667.0

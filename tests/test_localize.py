@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from sim.scenarios import Scenario, generate
+from tecdard.sim.scenarios import Scenario, generate
 from tecdard.recording import FORMAT, Recording, RecordingError, load_recording, load_truth, save_recording
 from tests.conftest import ROOT
 

@@ -9,11 +9,11 @@ import zlib
 import numpy as np
 import pytest
 
-from control.geometry import rotvec_to_matrix
-from control.mapping import MapParams, MapRecord, MapTask, kernel_depth, raster_xy
-from control.planner import CartesianPlanner
-from control.tasks import ContactView, TickInput
-from sim.world import BoxScene
+from tecdard.control.geometry import rotvec_to_matrix
+from tecdard.control.mapping import MapParams, MapRecord, MapTask, kernel_depth, raster_xy
+from tecdard.control.planner import CartesianPlanner
+from tecdard.control.tasks import ContactView, TickInput
+from tecdard.sim.world import BoxScene
 from tecdard import commands as C
 from tecdard.mapfiles import MapSettings, colormap, write_map
 
@@ -255,8 +255,8 @@ def test_a_failing_writer_fails_the_task():
 
 def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
     import queue
-    from robots.model import READY_Q, ArmModel
-    from control.modes import Mode
+    from tecdard.robots.model import READY_Q, ArmModel
+    from tecdard.control.modes import Mode
     from tecdard.control_thread import ControlParams, ControlThread
     from tecdard.messages import LatestValue
     ct = ControlThread(ControlParams(), ArmModel("panda"), robot=None, ring=None, contact=LatestValue(),

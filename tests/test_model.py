@@ -3,7 +3,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robots.model import READY_Q, ArmModel
+from tecdard.robots.model import READY_Q, ArmModel
 
 POS_TOL_M = 1e-4
 ROT_TOL_RAD = 1e-3

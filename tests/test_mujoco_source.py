@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` installs")
 
-from control.geometry import quat_to_matrix  # noqa: E402
-from sim.mujoco_source import MujocoScenario, generate  # noqa: E402
+from tecdard.control.geometry import quat_to_matrix  # noqa: E402
+from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
 from tecdard import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402

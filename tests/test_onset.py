@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from control.onset import OnsetDetector, SlidingBandEnergy
+from tecdard.control.onset import OnsetDetector, SlidingBandEnergy
 
 ODR_HZ = 6667.0
 G = np.array([0.0, 0.0, 9.81])

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from control.conditioning import GyroConditioner
-from control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, relative_rotvec, rotvec_to_matrix,
-                              signed_angle, unit)
-from control.onset import OnsetDetector
-from control.kernels import eta_weight
-from control.pipeline import DEFAULT_SATURATION, ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
+from tecdard.control.conditioning import GyroConditioner
+from tecdard.control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, relative_rotvec,
+                                      rotvec_to_matrix, signed_angle, unit)
+from tecdard.control.onset import OnsetDetector
+from tecdard.control.kernels import eta_weight
+from tecdard.control.pipeline import DEFAULT_SATURATION, ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
 
 ODR_HZ = 6667.0
 PROPRIO_HZ = 65.0
@@ -135,7 +135,7 @@ def test_proprio_lookup_is_causal():
 def test_a_reported_tcp_rate_is_extrapolated_with_its_last_change_for_a_while_only():
     """Between samples a turning gripper's reported rate ramps on (its last change); if proprioception
     stalls, the ramp stops after WDOT_MAX_AGE_S instead of growing without bound."""
-    from control.pipeline import WDOT_MAX_AGE_S
+    from tecdard.control.pipeline import WDOT_MAX_AGE_S
     track = ProprioTrack()
     track.add(0.00, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.10]))
     track.add(0.01, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.12]))      # 2 rad/s^2
@@ -268,7 +268,7 @@ def _troubled_recording(seed=3):
     """A 12 cm arc with what the filter's rarer branches are for: gyro outliers (the NIS gate), a 30 ms
     burst (windows mostly rejected), and the grasp slipping at 5 mm/s from 0.8 s (the position
     evidence's rigid-body check)."""
-    from sim.scenarios import Scenario, generate
+    from tecdard.sim.scenarios import Scenario, generate
     fields, truth = generate(Scenario(kind="edge-arc", seed=seed, rest_s=0.2, duration_s=1.2))
     t, on = fields["imu_t"], float(truth["onset_t"])
     fields["gyro"][np.flatnonzero(t > on + 0.05)[::40]] += 0.8
@@ -309,7 +309,7 @@ def _replay_estimates(fields, method, plane=True, arc_following=False, chunk_s=0
 
 
 def _scenario(**kw):
-    from sim.scenarios import Scenario, generate
+    from tecdard.sim.scenarios import Scenario, generate
     return generate(Scenario(**{"seed": 3, "rest_s": 0.2, "duration_s": 0.6, **kw}))[0]
 
 
@@ -361,8 +361,8 @@ def test_one_compiled_call_per_batch_equals_one_per_segment(monkeypatch, plane):
     estimates are those of one `update` per segment (ContactEstimator.advance) bit for bit, through
     the gate and the slip that breaks the position evidence mid-batch (after which the segments
     distrust the velocity along the lever arm)."""
-    from control.ekf import ContactKF
-    from control.estimators import ContactEstimator
+    from tecdard.control.ekf import ContactKF
+    from tecdard.control.estimators import ContactEstimator
     fields = _troubled_recording()
     kw = dict(plane=plane, chunk_s=0.1 if plane else 0.007)
     batched, kf, _ = _replay_estimates(fields, "ekf", **kw)
@@ -379,8 +379,8 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     """Issue 16: a clipped gyro sample is no measurement. Mid-episode, 15 ms of a chip at full scale
     leave the estimate where it was without them (every filtered sample whose window holds a clipped
     one is left out), and the estimate says how many were clipped; taken as data they ruin it."""
-    from control.geometry import quat_to_matrix
-    from sim.scenarios import Scenario, generate
+    from tecdard.control.geometry import quat_to_matrix
+    from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
     from tecdard.localize import replay
@@ -413,7 +413,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
 def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
     """A rig's TCP can be ten times noisier than the configured encoder grade (the paper's 0.5 mm):
     the noise is measured from the positions' second differences, through a steady motion."""
-    from control.pipeline import ProprioTrack
+    from tecdard.control.pipeline import ProprioTrack
     rng = np.random.default_rng(3)
     for true_sigma, expected in ((5e-4, 5e-4), (1e-5, 5e-5)):      # noisier than configured; quieter: the floor
         track = ProprioTrack(sigma_p=5e-5)
@@ -427,7 +427,7 @@ def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
 def test_rate_history_means_a_span_and_counts_what_came_before_the_episode():
     """The mean over [t0, t1] of the rates stored (cumulative sums), the part before the episode's start
     as the rate given for it, one sample per period; a span in a gap takes the nearest rate."""
-    from control.pipeline import RateHistory
+    from tecdard.control.pipeline import RateHistory
     h = RateHistory()
     h.start(1.0)
     t = 1.0 + np.arange(100) * 1e-3
@@ -448,7 +448,7 @@ def test_rate_history_means_a_span_and_counts_what_came_before_the_episode():
 def test_the_tcp_rate_is_interpolated_where_it_belongs_and_extrapolated_past_the_newest():
     """Rates derived from orientations belong to the middle of their interval: between those times the
     rate is interpolated; past the newest, extrapolated with the last change (at most WDOT_MAX_AGE_S)."""
-    from control.pipeline import WDOT_MAX_AGE_S
+    from tecdard.control.pipeline import WDOT_MAX_AGE_S
     track = ProprioTrack()
     axis = np.array([0.0, 0.0, 1.0])
     for k in range(6):                          # the rate ramps at 1 rad/s^2, sampled every 10 ms

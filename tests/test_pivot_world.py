@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from sim.world import PivotParams, PivotWorld, TableEdge
+from tecdard.sim.world import PivotParams, PivotWorld, TableEdge
 
 DT_S = 1e-3
 R_DOWN = np.diag([1.0, -1.0, -1.0])          # tool pointing down (TCP z -> world -z)
@@ -87,7 +87,7 @@ def test_beyond_the_edge_nothing_is_touched_and_pulling_back_lifts_off():
 
 
 def test_mapping_scene_has_the_container_and_objects():
-    from sim.world import CONTAINER_M, mapping_scene
+    from tecdard.sim.world import CONTAINER_M, mapping_scene
     scene = mapping_scene(seed=3)
     assert np.allclose(scene.size_xy, CONTAINER_M[:2], atol=scene.cell)
     floor = 0.05
@@ -100,7 +100,7 @@ def test_mapping_scene_has_the_container_and_objects():
 
 
 def test_probing_the_scene_pins_the_tip_at_the_surface_height():
-    from sim.world import mapping_scene
+    from tecdard.sim.world import mapping_scene
     scene = mapping_scene(seed=1)
     rng = np.random.default_rng(0)
     for _ in range(5):

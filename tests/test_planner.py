@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from control.planner import MAX_ADVANCE_TICKS, CartesianPlanner, PlannerError
+from tecdard.control.planner import MAX_ADVANCE_TICKS, CartesianPlanner, PlannerError
 
 TICK_S = 0.02
 

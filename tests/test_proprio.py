@@ -3,8 +3,8 @@ import threading
 
 import numpy as np
 
-from robots.backend import JointState
-from robots.model import ArmModel
+from tecdard.robots.backend import JointState
+from tecdard.robots.model import ArmModel
 from tecdard.messages import DropOldestRing
 from tecdard.workers import PROPRIO_RING, proprio_loop
 

@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from control.geometry import quat_to_matrix
-from control.pipeline import ContactEstimate, EstimatorDirective
+from tecdard.control.geometry import quat_to_matrix
+from tecdard.control.pipeline import ContactEstimate, EstimatorDirective
 from tecdard import localize as L
 from tecdard import recorder as R
 from tecdard.config import Config

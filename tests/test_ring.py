@@ -3,7 +3,7 @@ import threading
 
 import numpy as np
 
-from drivers.ring import SampleRing
+from tecdard.drivers.ring import SampleRing
 
 
 def batch(t0, n):

@@ -8,11 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers import imu_wire as W
-from sim.board import Board, BoardParams, PtyDevice, StreamThread
-from drivers.imu_wire import encode_status
-from drivers.lsm6dsr import Scaling
-from drivers.serial_imu import PortError, SerialImuSource, SerialParams
+from tecdard.drivers import imu_wire as W
+from tecdard.sim.board import Board, BoardParams, PtyDevice, StreamThread
+from tecdard.drivers.imu_wire import encode_status
+from tecdard.drivers.lsm6dsr import Scaling
+from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from tests.conftest import ROOT, sim_config
 
 PRODUCT_IMU_STALE_S = sim_config()["control"]["imu_stale_s"]     # 50 ms, issue 6
@@ -283,7 +283,7 @@ def test_sim_wire_leaves_no_temporary_directories(make_daemon):
     """The pty directory is made at start and removed at exit; one left by a killed daemon (here a
     planted one of a pid that does not run) is removed by the next start."""
     import tempfile
-    from sim.backend import PTY_DIR_PREFIX
+    from tecdard.sim.backend import PTY_DIR_PREFIX
     tmp = pathlib.Path(tempfile.gettempdir())
     stale = tmp / f"{PTY_DIR_PREFIX}999999999-dead"
     stale.mkdir(exist_ok=True)

@@ -5,10 +5,10 @@ import time
 import numpy as np
 import pytest
 
-from sim.board import Board, BoardParams, PtyDevice
-from drivers.lsm6dsr import Scaling
-from drivers.serial_imu import SerialImuSource, SerialParams
-from sim.imu import ETA_TRUE_TABLE, FingertipSignal, SimImu, SimImuParams
+from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.drivers.lsm6dsr import Scaling
+from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
+from tecdard.sim.imu import ETA_TRUE_TABLE, FingertipSignal, SimImu, SimImuParams
 
 ODR = 6667.0
 R_DOWN = np.diag([1.0, -1.0, -1.0])        # tool pointing down

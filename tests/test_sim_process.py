@@ -4,10 +4,10 @@ import time
 import numpy as np
 import pytest
 
-from sim.imu import SimImuParams
-from sim.robot import SimRobotParams
-from sim.process import SimProcess, SimProcessError, SimSpec
-from sim.world import HingeParams
+from tecdard.sim.imu import SimImuParams
+from tecdard.sim.robot import SimRobotParams
+from tecdard.sim.process import SimProcess, SimProcessError, SimSpec
+from tecdard.sim.world import HingeParams
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from sim.imu import SimImu, SimImuParams
-from robots.model import ArmModel
-from sim.robot import SimRobot, SimRobotParams
-from sim.world import HingeParams, HingeWorld
+from tecdard.sim.imu import SimImu, SimImuParams
+from tecdard.robots.model import ArmModel
+from tecdard.sim.robot import SimRobot, SimRobotParams
+from tecdard.sim.world import HingeParams, HingeWorld
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 

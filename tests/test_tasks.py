@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from control.geometry import matrix_to_rotvec
-from control.planner import CartesianPlanner
-from control.tasks import TOOL_TURN_RAMP_S, ContactView, RotateTask, TickInput
+from tecdard.control.geometry import matrix_to_rotvec
+from tecdard.control.planner import CartesianPlanner
+from tecdard.control.tasks import TOOL_TURN_RAMP_S, ContactView, RotateTask, TickInput
 
 TICK_S = 0.02
 HINGE = np.array([0.157, 0.0, 0.487])

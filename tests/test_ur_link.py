@@ -9,7 +9,7 @@ from tests.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController
 
 pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
 
-from robots.ur_link import UrLink, UrLinkError, UrLinkSettings  # noqa: E402
+from tecdard.robots.ur_link import UrLink, UrLinkError, UrLinkSettings  # noqa: E402
 
 Q = (0.1, -1.2, 1.3, -1.6, -1.57, 0.2)
 QD = np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])       # rad/s
@@ -138,7 +138,7 @@ def test_the_controllers_tcp_pose_speed_and_force_arrive_in_the_models_world(fak
     """The controller reports in its base frame (UR's DH base, ur_description's `base`), which is a
     UR model's world: pose and speed are what our FK and Jacobian say for the same joints (to the
     fake's DH kinematics), the force arrives as the controller reports it."""
-    from robots.model import ArmModel
+    from tecdard.robots.model import ArmModel
     model = ArmModel("ur5e")
     ur = UrLink(UrLinkSettings(fake.host, connect_timeout_s=CONNECT_TIMEOUT_S))
     ur.start()

@@ -8,13 +8,13 @@ import contextlib
 import numpy as np
 import pytest
 
-from robots.model import READY_Q, ArmModel
-from sim.backend import with_truth
-from sim.board import BoardParams
-from sim.imu import SimImuParams
-from sim.process import SimSpec
-from sim.robot import SimRobotParams
-from sim.world import HingeParams
+from tecdard.robots.model import READY_Q, ArmModel
+from tecdard.sim.backend import with_truth
+from tecdard.sim.board import BoardParams
+from tecdard.sim.imu import SimImuParams
+from tecdard.sim.process import SimSpec
+from tecdard.sim.robot import SimRobotParams
+from tecdard.sim.world import HingeParams
 from tecdard.demo import distance_to_axis
 from tests.conftest import DaemonProcess
 from tests.fake_ur import FakeController, SimArmSpec, free_loopback_host

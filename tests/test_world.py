@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from control.geometry import rotvec_to_matrix
-from sim.world import HingeParams, HingeWorld
+from tecdard.control.geometry import rotvec_to_matrix
+from tecdard.sim.world import HingeParams, HingeWorld
 
 DT_S = 1e-3
 HINGE = np.array([0.157, 0.0, 0.487])

@@ -12,7 +12,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from control.plugins import new_modules
+from tecdard.control.plugins import new_modules
 
 
 class Snapshot(NamedTuple):

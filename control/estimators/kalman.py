@@ -1,7 +1,7 @@
 """The Kalman filters: `ekf` (ours) and `paper-ekf` (the paper's, as published)."""
-from control.ekf import ContactKF, PaperEKF
-from control.estimators import EstimatorSpec
-from control.reference import ReferenceKF
+from tecdard.control.ekf import ContactKF, PaperEKF
+from tecdard.control.estimators import EstimatorSpec
+from tecdard.control.reference import ReferenceKF
 
 ESTIMATORS = (
     EstimatorSpec("ekf", "our filter on the differential constraint (eta as a state, positions as evidence)",

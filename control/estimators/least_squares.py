@@ -1,6 +1,6 @@
 """The paper's least-squares baselines: svd-geo, gd-geo, svd-diff, gd-diff (windowed, causal)."""
-from control.baselines import BASELINES, make_baseline
-from control.estimators import EstimatorSpec
+from tecdard.control.baselines import BASELINES, make_baseline
+from tecdard.control.estimators import EstimatorSpec
 
 
 def _spec(method: str) -> EstimatorSpec:

@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from control.plugins import new_modules
+from tecdard.control.plugins import new_modules
 
 REQUIRED = object()          # a Field's default: the field must be given
 

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from control.tasks import ApproachTask
+from tecdard.control.tasks import ApproachTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (

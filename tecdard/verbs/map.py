@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from control.mapping import MapParams, MapTask
+from tecdard.control.mapping import MapParams, MapTask
 from tecdard.verbs import BuildRefused, Field, TaskVerb
 
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)

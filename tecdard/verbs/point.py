@@ -1,7 +1,7 @@
 """`point`: circular probing about a point contact (a pen on its tip)."""
 from __future__ import annotations
 
-from control.tasks import PointTask
+from tecdard.control.tasks import PointTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (
