@@ -16,9 +16,9 @@ import yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.client import Client  # noqa: E402
+from tecdard.cli.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
-from tecdard.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
+from tecdard.tools.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 
 ODR_HZ = 6667.0
 RADII = (0.10, 0.15, 0.20, 0.25)

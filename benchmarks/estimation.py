@@ -24,10 +24,10 @@ from tecdard.control import estimators  # noqa: E402
 
 METHODS = tuple(m for m in estimators.names() if m != "ekf-reference")   # the reference is ekf, slower
 from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
-from tecdard import localize as L  # noqa: E402
+from tecdard.tools import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402
-from tecdard.recording import Recording  # noqa: E402
+from tecdard.recording.format import Recording  # noqa: E402
 
 OUT = ROOT / "benchmarks"
 T_EARLY_S, T_MID_S = 0.030, 0.180

@@ -53,7 +53,7 @@ def rotate_runs(n: int = ROTATE_RUNS) -> list[dict]:
     scene's truth, and how far franky-sim fell behind its schedule (s)."""
     import tempfile
 
-    from tecdard.demo import distance_to_axis
+    from tecdard.tools.demo import distance_to_axis
     from tests.test_daemon_franka import cutter_run
     out = []
     for _ in range(n):

@@ -19,9 +19,9 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.client import Client  # noqa: E402
+from tecdard.cli.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
-from tecdard.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
+from tecdard.tools.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 from tests.conftest import sim_config  # noqa: E402
 
 WINDOW_S = 5.0

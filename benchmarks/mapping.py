@@ -18,10 +18,10 @@ sys.path.insert(0, str(ROOT))
 
 from tecdard.control.mapping import kernel_depth, raster_xy  # noqa: E402
 from tecdard.sim.world import CONTAINER_M, mapping_scene  # noqa: E402
-from tecdard.client import Client  # noqa: E402
+from tecdard.cli.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
-from tecdard.demo import free_port, start_daemon, stop_daemon  # noqa: E402
-from tecdard.mapfiles import colormap, write_png  # noqa: E402
+from tecdard.tools.demo import free_port, start_daemon, stop_daemon  # noqa: E402
+from tecdard.verbs.map.files import colormap, write_png  # noqa: E402
 
 HOME_TCP = np.array([0.307, 0.0, 0.52])      # start pose: tool down, above the container
 TOOL_LENGTH_M = 0.12            # the paper's eraser, 11 cm, held 30 deg off the vertical

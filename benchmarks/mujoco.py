@@ -35,10 +35,10 @@ sys.path.insert(0, str(ROOT))
 
 from tecdard.control.geometry import quat_to_matrix  # noqa: E402
 from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
-from tecdard import localize as L  # noqa: E402
+from tecdard.tools import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402
-from tecdard.recording import Recording  # noqa: E402
+from tecdard.recording.format import Recording  # noqa: E402
 
 METHODS = ("ekf", "paper-ekf", "svd-geo", "svd-diff")
 HORIZONS_S = (0.03, 0.18)

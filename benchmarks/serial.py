@@ -20,7 +20,7 @@ from tecdard.drivers.serial_imu import SerialImuSource, SerialParams  # noqa: E4
 WRITER = """
 import sys, time
 sys.path.insert(0, {root!r})
-from sim.board import Board, BoardParams, PtyDevice, StreamThread
+from tecdard.sim.board import Board, BoardParams, PtyDevice, StreamThread
 dev = PtyDevice({link!r})
 st = StreamThread(dev, Board(BoardParams(samples_per_packet={n}))).start()
 print("ready", flush=True)

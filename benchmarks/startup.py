@@ -25,9 +25,9 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.client import Client  # noqa: E402
+from tecdard.cli.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
-from tecdard.demo import free_port, stop_daemon  # noqa: E402
+from tecdard.tools.demo import free_port, stop_daemon  # noqa: E402
 from tests.conftest import sim_config  # noqa: E402
 
 FIRST_TARGET_S, WARM_TARGET_S = 5.0, 3.0

@@ -87,7 +87,7 @@ def stream(seconds: float) -> dict:
 
 def rotates(n: int, accel_rad_s2: float | None = None) -> list[dict]:
     from tecdard.sim.backend import with_truth
-    from tecdard.demo import distance_to_axis
+    from tecdard.tools.demo import distance_to_axis
     from tests.test_ur_rotate import cutter_rig
     config = {} if accel_rad_s2 is None else {"robot.ur.accel_rad_s2": accel_rad_s2}
     out = []

@@ -26,7 +26,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.ur import cpu_s  # noqa: E402
-from tecdard.demo import free_port  # noqa: E402
+from tecdard.tools.demo import free_port  # noqa: E402
 from tests.conftest import DaemonProcess, daemon_config  # noqa: E402
 
 SETTLE_S = 2.0

@@ -1,4 +1,4 @@
 """`python -m tecdard` is the `tecdard` command."""
-from tecdard.cli import main
+from tecdard.cli.main import main
 
 raise SystemExit(main())

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from tecdard.client import Client
-from tecdard.demo import free_port
+from tecdard.cli.client import Client
+from tecdard.tools.demo import free_port
 from tecdard.config import dump_yaml
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

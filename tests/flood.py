@@ -15,7 +15,7 @@ import time
 
 import zenoh
 
-from tecdard.zenoh_io import Keys, session_config
+from tecdard.api.session import Keys, session_config
 
 BURST = 12000                   # the red team's "12 000 concurrent status queries"
 BIG = 40                        # 10 MB payloads at the start

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tecdard.recording import load_truth
+from tecdard.recording.format import load_truth
 from tests.conftest import tecdard
 
 ETAS = {20.0: 2.6, 30.0: 2.0, 40.0: 1.6}     # the fingertip's eta at three grip forces (set in the simulation)
@@ -74,7 +74,7 @@ def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, 
     best lines up the gyro with the TCP's motion about the known hinge, printed for the config."""
     pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` installs")
     from tecdard.sim.mujoco_source import HINGE, MujocoScenario, generate
-    from tecdard.recording import Recording, save_recording
+    from tecdard.recording.format import Recording, save_recording
     paths = []
     for seed in (1, 2):
         fields, truth = generate(MujocoScenario(motion="arc", radius=0.08, lag_tau_s=lag_s, seed=seed))
@@ -89,7 +89,7 @@ def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, 
 def test_a_lag_that_fits_best_at_the_end_of_the_search_is_refused():
     """A best fit at the last lag searched is no answer: the true lag may lie beyond (a soft grasp's
     give adds to the silicone's few ms). Inside the grid the parabola's vertex is given."""
-    from tecdard import calibrate as K
+    from tecdard.tools import calibrate as K
     lags = np.arange(0.0, K.LAG_MAX_S + 1e-12, K.LAG_STEP_S)
     inside = (lags - 0.0061) ** 2
     assert abs(K.best_lag([inside, 2 * inside], lags) - 0.0061) < 1e-6

@@ -26,7 +26,7 @@ def test_verbs_against_a_daemon(shared_daemon):
 
 
 def test_no_daemon_is_exit_3(tmp_path):
-    from tecdard.demo import free_port
+    from tecdard.tools.demo import free_port
     res = tecdard("status", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "2")
     assert res.returncode == 3
     assert "not alive" in res.stderr
@@ -34,12 +34,12 @@ def test_no_daemon_is_exit_3(tmp_path):
 
 def test_negative_vectors_work_as_typed(capsys):
     """Issue 17: `--direction -0.26,0,0.96` was `expected one argument`; only `--direction=-0.26,...` worked."""
-    from tecdard.cli import join_negative_values, main
+    from tecdard.cli.main import join_negative_values, main
     assert join_negative_values(["probe", "--direction", "-0.26,0,0.96", "--speed", "0.01"]) == \
         ["probe", "--direction=-0.26,0,0.96", "--speed", "0.01"]
     assert join_negative_values(["map", "--origin", "-.3,-0.1", "--json"]) == ["map", "--origin=-.3,-0.1", "--json"]
     assert join_negative_values(["status", "--json", "--timeout", "2"]) == ["status", "--json", "--timeout", "2"]
-    from tecdard.demo import free_port
+    from tecdard.tools.demo import free_port
     # parsed, then no daemon there: exit 3, not argparse's exit 2
     assert main(["probe", "--direction", "-0.26,0,0.96", "--connect", f"tcp/127.0.0.1:{free_port()}",
                  "--timeout", "0.5"]) == 3
@@ -48,8 +48,8 @@ def test_negative_vectors_work_as_typed(capsys):
 
 def test_the_default_endpoint_is_not_zenohs_router_port():
     """7447 is zenohd's and rmw_zenohd's default: a daemon there could not listen beside a router."""
-    from tecdard.client_cli import DEFAULT_ENDPOINT as CLI_DEFAULT
-    from tecdard.daemon import DEFAULT_ENDPOINT
+    from tecdard.cli.task_verbs import DEFAULT_ENDPOINT as CLI_DEFAULT
+    from tecdard.runtime.daemon import DEFAULT_ENDPOINT
     from tests.conftest import sim_config
     assert DEFAULT_ENDPOINT == CLI_DEFAULT == sim_config()["zenoh"]["listen"][0]
     assert not DEFAULT_ENDPOINT.endswith(":7447")
@@ -59,8 +59,8 @@ def test_the_cli_reaches_the_daemon_through_a_local_zenoh_router(make_daemon):
     """A Zenoh router on the host (as zenohd or ROS 2's rmw_zenohd runs one): the daemon is its
     client and listens on nothing, and the CLI, connected to the router only, commands it."""
     import zenoh
-    from tecdard.demo import free_port
-    from tecdard.zenoh_io import session_config
+    from tecdard.tools.demo import free_port
+    from tecdard.api.session import session_config
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     with zenoh.open(session_config([router_ep], [], mode="router")):
         d = make_daemon(router=router_ep)
@@ -77,8 +77,8 @@ def test_the_cli_offers_every_task_verb_and_rotates_with_the_tool_held():
     """The CLI once took its verb list from a copy, and lacked rotate's turn_tool: its options now come
     from the verbs' registered fields."""
     import argparse
-    from tecdard import client_cli
-    from tecdard import commands as C
+    from tecdard.cli import task_verbs as client_cli
+    from tecdard.api import commands as C
     options = client_cli.verb_options()
     assert set(C.verbs()) == set(options)
     for verb in C.task_verbs():

@@ -1,7 +1,7 @@
 """Command validation: every bad payload gets a code and a message naming the field."""
 import pytest
 
-from tecdard import commands as C
+from tecdard.api import commands as C
 
 LIMITS = C.Limits(max_speed=0.05, max_rotation_deg=90.0, max_probe_distance=0.02)
 

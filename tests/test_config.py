@@ -48,7 +48,7 @@ def run_with(tmp_path, cfg):
     import io
     import os
     import types
-    from tecdard.cli import main
+    from tecdard.cli.main import main
     path = tmp_path / "bad.yaml"
     path.write_text(cfg if isinstance(cfg, str) else dump_yaml(cfg))
     err = io.StringIO()
@@ -95,7 +95,7 @@ def test_run_refuses_missing_file_and_bad_yaml(tmp_path):
 
 def test_daemon_builds_the_mapping_scene_world():
     from tecdard.sim.world import HeightField, PivotWorld
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     cfg = sim_config(**{"sim.hinge": ..., "sim.pivot": {"surface": "scene", "scene_seed": 2,
                                                          "tip_in_tcp": [0.0, 0.06, 0.10]}})
     d = Daemon(Config(cfg))
@@ -106,7 +106,7 @@ def test_daemon_builds_the_mapping_scene_world():
 
 
 def test_two_worlds_are_refused():
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     cfg = sim_config(**{"sim.pivot": {"surface": "table"}})
     with pytest.raises(ConfigError, match="sim.pivot: give one world"):
         Daemon(Config(cfg))
@@ -114,7 +114,7 @@ def test_two_worlds_are_refused():
 
 def test_a_world_that_cannot_be_built_is_a_config_error():
     """The daemon builds its world once at the home pose before anything starts."""
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     cfg = sim_config(**{"sim.hinge.point": [0.307, 0.0, 0.48]})      # 7 mm from the home TCP
     with pytest.raises(ConfigError, match="hinge.point: the TCP must be at least 2 cm"):
         Daemon(Config(cfg))
@@ -123,7 +123,7 @@ def test_a_world_that_cannot_be_built_is_a_config_error():
 # -- hostile and careless config files (issue 16) ---------------------------------------------
 def refused(tmp_path, text: str | bytes) -> str:
     """What `tecdard run` does with this file, in process: the ConfigError's one line."""
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     path = tmp_path / "bad.yaml"
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(ConfigError) as info:

@@ -12,14 +12,14 @@ from tecdard.control import safety
 from tecdard.control.modes import Event, Mode, TransitionError, transition
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.robots.model import READY_Q, ArmModel
-from tecdard import commands as C
+from tecdard.api import commands as C
 from tecdard import verbs
-from tecdard.control_thread import ControlParams, ControlThread
-from tecdard.daemon import TELEMETRY_PER_PASS, MainLoop, status_json
-from tecdard.intake import QueryIntake
+from tecdard.runtime.control_thread import ControlParams, ControlThread
+from tecdard.runtime.daemon import TELEMETRY_PER_PASS, MainLoop, status_json
+from tecdard.runtime.intake import QueryIntake
 from tecdard.control.pipeline import EstimatorDirective
-from tecdard.messages import DropOldestRing, LatestValue, StartTask, Stop
-from tecdard.zenoh_io import Keys
+from tecdard.runtime.messages import DropOldestRing, LatestValue, StartTask, Stop
+from tecdard.api.session import Keys
 from tests.test_control_safety import LaggingArm
 
 FLOOD_STATES = 10_000
@@ -195,8 +195,8 @@ WIGGLE = '''
     """`wiggle`: lift the TCP by `distance` and come to rest (a verb defined by this file alone)."""
     import numpy as np
 
-    from control.safety import StopCause
-    from control.tasks import Motion, Task
+    from tecdard.control.safety import StopCause
+    from tecdard.control.tasks import Motion, Task
     from tecdard.verbs import Field, TaskVerb
 
 
@@ -251,7 +251,7 @@ def wiggle_verb(tmp_path):
 
 
 def test_a_new_task_verb_is_one_file(model, wiggle_verb):
-    from tecdard import client_cli
+    from tecdard.cli import task_verbs as client_cli
     assert "wiggle" in C.task_verbs() and "wiggle" in C.verbs()
     fields = C.validate("wiggle", {}, C.Limits())
     assert fields == {"distance": 0.003, "speed": 0.02, "max_force_n": 5.0}
@@ -295,7 +295,7 @@ TCP_AT_ONSET = '''
     """`tcp-at-onset`: the contact is where the TCP was at onset, give or take 5 cm (a floor for any other)."""
     import numpy as np
 
-    from control.estimators import ContactEstimator, EstimatorSpec
+    from tecdard.control.estimators import ContactEstimator, EstimatorSpec
 
 
     class TcpAtOnset(ContactEstimator):

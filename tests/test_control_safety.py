@@ -10,8 +10,8 @@ from tecdard.robots.backend import JointState
 from tecdard.sim.world import SimTruth
 from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.control.modes import Mode
-from tecdard.control_thread import ControlParams, ControlThread
-from tecdard.messages import LatestValue, StartTask
+from tecdard.runtime.control_thread import ControlParams, ControlThread
+from tecdard.runtime.messages import LatestValue, StartTask
 
 AXIS = np.array([0.0, 1.0, 0.0])
 
@@ -117,7 +117,7 @@ def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
 
 def test_a_failing_annotation_never_costs_the_task_its_end_event():
     """The simulator's truth is added on the main thread; a failure there publishes the event as it is."""
-    from tecdard.daemon import MainLoop
+    from tecdard.runtime.daemon import MainLoop
 
     class Pub:
         def __init__(self):

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from tecdard.demo import distance_to_axis
+from tecdard.tools.demo import distance_to_axis
 from tests.conftest import sim_config, tcp_now
 
 HINGE_TOL_M = 0.010          # issue 2: hinge estimate within 10 mm of the true axis
@@ -331,7 +331,7 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
     # fed the true heights at the probed x-y: the kernel itself mixes in the table 4 cm from the box's
     # points (3.8 mm at one of them from exact heights), the touch adds no more than its points' error.
     from tecdard.control.mapping import kernel_depth, raster_xy
-    from tecdard.mapfiles import MapSettings
+    from tecdard.verbs.map.files import MapSettings
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     truth_z = np.array([scene.surface_z(x, y) for x, y in xy])
     query = raster_xy(np.array([0.32, -0.04]), np.array([0.04, 0.08]), 0.005)

@@ -11,7 +11,7 @@ import pytest
 
 from tecdard.robots.model import ArmModel
 from tecdard.config import dump_yaml
-from tecdard.demo import distance_to_axis
+from tecdard.tools.demo import distance_to_axis
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 from tests.fake_ur import wait_for
 

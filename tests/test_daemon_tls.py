@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from tecdard.client import Client, ClientError
-from tecdard.zenoh_io import TlsFiles
+from tecdard.cli.client import Client, ClientError
+from tecdard.api.session import TlsFiles
 from tests.certs import ScratchCA
 from tests.conftest import ROOT
 
@@ -57,8 +57,8 @@ def test_an_impostor_without_the_cas_certificate_cannot_answer_for_the_daemon(tm
     """After a crash, an impostor on the daemon's port answered stop with ok: true. A client that
     checks the daemon's certificate against the CA does not talk to it."""
     import zenoh
-    from tecdard.demo import free_port
-    from tecdard.zenoh_io import Keys, session_config
+    from tecdard.tools.demo import free_port
+    from tecdard.api.session import Keys, session_config
     ca, ids = pki
     (tmp_path / "rogue").mkdir()
     rogue_ca = ScratchCA(tmp_path / "rogue")
@@ -79,7 +79,7 @@ def test_an_impostor_without_the_cas_certificate_cannot_answer_for_the_daemon(tm
 ])
 def test_security_options_that_cannot_work_are_refused(zenoh_cfg, fragment):
     from tecdard.config import Config, ConfigError
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     from tests.conftest import sim_config
     with pytest.raises(ConfigError, match=fragment):
         Daemon(Config(sim_config(**zenoh_cfg)))
@@ -87,7 +87,7 @@ def test_security_options_that_cannot_work_are_refused(zenoh_cfg, fragment):
 
 def test_tls_beside_a_plain_endpoint_is_refused(pki):
     from tecdard.config import Config, ConfigError
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     from tests.conftest import sim_config
     ca, ids = pki
     cfg = sim_config(**{"zenoh.tls": {"ca": str(ca.path), "cert": str(ids["daemon"].cert),

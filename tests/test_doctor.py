@@ -6,9 +6,9 @@ import types
 
 import pytest
 
-from tecdard import doctor
+from tecdard.tools import doctor
 from tecdard.config import dump_yaml
-from tecdard.demo import free_port
+from tecdard.tools.demo import free_port
 from tests.conftest import ROOT, sim_config
 
 
@@ -69,7 +69,7 @@ def test_rtprio_is_tried_on_a_thread_of_its_own():
 
 def test_apply_rt_priority_says_so_in_one_line_when_refused(monkeypatch, caplog):
     import logging
-    from tecdard import realtime
+    from tecdard.runtime import realtime
 
     def refuse(*_):
         raise PermissionError(1, "Operation not permitted")

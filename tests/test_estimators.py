@@ -240,8 +240,8 @@ def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
     from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
-    from tecdard.localize import replay
-    from tecdard.recording import Recording
+    from tecdard.tools.localize import replay
+    from tecdard.recording.format import Recording
     from tecdard.control.geometry import quat_to_matrix
 
     fields, truth = generate(Scenario(kind=kind, radius=0.12, grip_force=grip_force, seed=seed))

@@ -13,9 +13,9 @@ import time
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from tecdard import commands as C
-from tecdard.intake import IntakeParams, QueryIntake
-from tecdard.zenoh_io import Keys
+from tecdard.api import commands as C
+from tecdard.runtime.intake import IntakeParams, QueryIntake
+from tecdard.api.session import Keys
 
 LIMITS = C.Limits(max_speed=0.05, min_speed=0.002, max_rotation_deg=90.0, max_probe_distance=0.02)
 KEYS = Keys("sim")

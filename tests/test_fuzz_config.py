@@ -53,7 +53,7 @@ def text_of(cfg: dict) -> str:
 
 def check(tmp_path, text: str | bytes) -> str:
     """"built" or "refused" (with one short line); any other exception fails the test."""
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     path = tmp_path / "fuzz.yaml"
     path.write_bytes(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
     try:

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from tecdard.sim.scenarios import Scenario, generate
-from tecdard.recording import MAX_DURATION_S, Recording, RecordingError, load_recording
+from tecdard.recording.format import MAX_DURATION_S, Recording, RecordingError, load_recording
 
 MAX_MESSAGE_CHARS = 300
 LOAD_TIME_MAX_S = 5.0           # any refusal, on this shared machine (the zip bomb took 35 s)
@@ -174,7 +174,7 @@ def localize(*args):
     """`tecdard localize ARGS` in this process (the subprocess path is tests/test_localize.py's)."""
     import contextlib
     import types
-    from tecdard.cli import main
+    from tecdard.cli.main import main
     err, out = io.StringIO(), io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         code = main(["localize", *map(str, args)])
@@ -228,7 +228,7 @@ def outcome(path) -> str:
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
-    from tecdard.localize import replay
+    from tecdard.tools.localize import replay
     try:
         rec = load_recording(path)
     except RecordingError as exc:

@@ -7,7 +7,7 @@ import numba
 import pytest
 from numba.core import config as numba_config
 
-from tecdard import kernel_cache
+from tecdard.tools import kernel_cache
 
 
 def test_the_installed_cache_is_warm():
@@ -22,7 +22,7 @@ def test_an_empty_cache_is_cold_and_the_start_says_so(tmp_path, monkeypatch, cap
     state = kernel_cache.state()
     assert not state.warm and state.fresh == 0 and state.path.startswith(str(tmp_path))
     assert "this start compiles them, about 90 s" in state.describe()
-    from tecdard.cli import announce_compile
+    from tecdard.cli.main import announce_compile
     with caplog.at_level(logging.INFO, logger="tecdar"):
         announce_compile()
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -45,7 +45,7 @@ def test_an_entry_numba_would_not_load_is_not_counted(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("cold", [False, True])
 def test_the_demo_waits_as_long_as_a_start_can_take(tmp_path, monkeypatch, cold):
-    from tecdard import demo
+    from tecdard.tools import demo
     if cold:
         monkeypatch.setattr(numba_config, "CACHE_DIR", str(tmp_path))
     budget, why = demo.startup_budget_s()
@@ -55,7 +55,8 @@ def test_the_demo_waits_as_long_as_a_start_can_take(tmp_path, monkeypatch, cold)
 
 def test_warm_says_compiled_when_it_compiled_and_loaded_when_it_loaded(monkeypatch, capsys):
     """It once said "loaded in 41 s" after a cold compile: the word comes from the state before."""
-    from tecdard import cli, kernel_cache
+    from tecdard.cli import main as cli
+    from tecdard.tools import kernel_cache
     cold = kernel_cache.CacheState(False, "/cache", 0, 26, "kernels.py")
     warm = kernel_cache.CacheState(True, "/cache", 26, 26, "kernels.py")
     for before, word in ((cold, "compiled in 41.0 s"), (warm, "loaded in 41.0 s")):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tecdard.sim.scenarios import Scenario, generate
-from tecdard.recording import FORMAT, Recording, RecordingError, load_recording, load_truth, save_recording
+from tecdard.recording.format import FORMAT, Recording, RecordingError, load_recording, load_truth, save_recording
 from tests.conftest import ROOT
 
 LOCALIZE_TOL_M = 3e-3
@@ -37,7 +37,7 @@ def localize(*args):
     import contextlib
     import io
     import types
-    from tecdard.cli import main
+    from tecdard.cli.main import main
     err, out = io.StringIO(), io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         code = main(["localize", *map(str, args)])

@@ -14,8 +14,8 @@ from tecdard.control.mapping import MapParams, MapRecord, MapTask, kernel_depth,
 from tecdard.control.planner import CartesianPlanner
 from tecdard.control.tasks import ContactView, TickInput
 from tecdard.sim.world import BoxScene
-from tecdard import commands as C
-from tecdard.mapfiles import MapSettings, colormap, write_map
+from tecdard.api import commands as C
+from tecdard.verbs.map.files import MapSettings, colormap, write_map
 
 TICK_S = 0.02
 R_TOOL_DOWN = np.diag([1.0, -1.0, -1.0])        # the TCP frame of the Panda's home pose
@@ -257,8 +257,8 @@ def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
     import queue
     from tecdard.robots.model import READY_Q, ArmModel
     from tecdard.control.modes import Mode
-    from tecdard.control_thread import ControlParams, ControlThread
-    from tecdard.messages import LatestValue
+    from tecdard.runtime.control_thread import ControlParams, ControlThread
+    from tecdard.runtime.messages import LatestValue
     ct = ControlThread(ControlParams(), ArmModel("panda"), robot=None, ring=None, contact=LatestValue(),
                        directive=LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim",
                        map_settings=MapSettings(output_dir=str(tmp_path)))
@@ -355,7 +355,7 @@ def test_map_defaults_are_the_papers_grid_in_two_orientations():
 
 
 def test_maps_go_to_the_state_directory_under_systemd_else_the_users(monkeypatch, tmp_path):
-    from tecdard.mapfiles import default_output_dir
+    from tecdard.verbs.map.files import default_output_dir
     monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/tecdar")
     assert default_output_dir() == "/var/lib/tecdar/maps"
     monkeypatch.delenv("STATE_DIRECTORY")
@@ -370,7 +370,8 @@ def test_a_map_is_written_private_and_complete_or_not_at_all(tmp_path, monkeypat
     """Files 0600 in a 0700 directory that appears in one rename; a writer that dies mid-way leaves
     only a hidden partial directory, which the next start removes."""
     import stat
-    from tecdard import files, mapfiles
+    from tecdard import files
+    from tecdard.verbs.map import files as mapfiles
     records = []
     task = MapTask("map-7", map_params(orientations=1, grid=(1, 2), depth=0.02),
                        lambda rec: records.append(rec) or done_now({}))

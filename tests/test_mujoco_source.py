@@ -9,10 +9,10 @@ pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` insta
 
 from tecdard.control.geometry import quat_to_matrix  # noqa: E402
 from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
-from tecdard import localize as L  # noqa: E402
+from tecdard.tools import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.estimation import build_pipeline  # noqa: E402
-from tecdard.recording import Recording  # noqa: E402
+from tecdard.recording.format import Recording  # noqa: E402
 
 RATE_TOL = 0.05              # the IMU's relative rate against (handle rate) / eta, steady motion
 ANGLE_TOL_DEG = 0.5

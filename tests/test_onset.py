@@ -130,7 +130,7 @@ def test_the_band_window_follows_the_source_rate():
 def test_the_daemon_tunes_onset_to_the_imu_source_in_use():
     """Issue 17: the onset detector took sim.imu.odr_hz even with imu.source: serial."""
     from tecdard.config import Config
-    from tecdard.daemon import Daemon
+    from tecdard.runtime.daemon import Daemon
     from tests.conftest import sim_config
     cfg = sim_config(**{"imu.source": "serial", "imu.serial": {"port": "/dev/null", "odr_hz": 1666},
                         "estimator.onset.band_threshold": 0.5})

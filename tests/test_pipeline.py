@@ -286,8 +286,8 @@ def _replay_estimates(fields, method, plane=True, arc_following=False, chunk_s=0
     largest weight of the free-eta estimate in its reports."""
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
-    from tecdard.localize import replay
-    from tecdard.recording import Recording
+    from tecdard.tools.localize import replay
+    from tecdard.recording.format import Recording
     rec = Recording.from_fields(fields)
     pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                           method=method, plane_normal=rec.plane_normal if plane else None)
@@ -383,8 +383,8 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.estimation import build_pipeline
-    from tecdard.localize import replay
-    from tecdard.recording import Recording
+    from tecdard.tools.localize import replay
+    from tecdard.recording.format import Recording
 
     fields, truth = generate(Scenario(kind="edge-arc", seed=4, duration_s=0.8))
     rec = Recording.from_fields(fields)

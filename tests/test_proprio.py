@@ -5,8 +5,8 @@ import numpy as np
 
 from tecdard.robots.backend import JointState
 from tecdard.robots.model import ArmModel
-from tecdard.messages import DropOldestRing
-from tecdard.workers import PROPRIO_RING, proprio_loop
+from tecdard.runtime.messages import DropOldestRing
+from tecdard.runtime.workers import PROPRIO_RING, proprio_loop
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 JOIN_S = 2.0

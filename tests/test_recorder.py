@@ -14,11 +14,11 @@ import pytest
 
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactEstimate, EstimatorDirective
-from tecdard import localize as L
-from tecdard import recorder as R
+from tecdard.tools import localize as L
+from tecdard.runtime import recorder as R
 from tecdard.config import Config
 from tecdard.estimation import build_pipeline
-from tecdard.recording import load_live, load_recording
+from tecdard.recording.format import load_live, load_recording
 from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
 
 TASK_TIMEOUT_S = 90.0
@@ -235,7 +235,7 @@ def test_plot_refuses_what_localize_refuses_with_the_same_line(tmp_path):
 def test_plot_without_matplotlib_says_what_to_install_in_one_line(tmp_path):
     rec = tmp_path / "arc.npz"
     assert tecdard("sim-record", str(rec), "--kind", "edge-arc").returncode == 0
-    code = ("import sys; sys.modules['matplotlib'] = None; from tecdard.cli import main; "
+    code = ("import sys; sys.modules['matplotlib'] = None; from tecdard.cli.main import main; "
             f"sys.exit(main(['plot', {str(rec)!r}, '-o', {str(tmp_path / 'x.png')!r}]))")
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2

@@ -223,7 +223,7 @@ def test_unplugging_the_imu_during_a_task_is_a_protective_stop_on_stale_data(mak
 def test_daemon_without_imu_data_comes_up_after_the_warm_up_timeout(make_daemon, pty):
     """The daemon is alive only once the onset detector has its IMU warm-up, but a silent board must not
     keep it down: it comes up after IMU_WARM_TIMEOUT_S, says why, and refuses tasks on stale data."""
-    from tecdard.daemon import IMU_WARM_TIMEOUT_S
+    from tecdard.runtime.daemon import IMU_WARM_TIMEOUT_S
 
     t0 = time.monotonic()
     d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)},

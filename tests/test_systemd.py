@@ -132,9 +132,9 @@ def test_the_daemon_makes_no_system_call_the_unit_refuses(tmp_path):
                    check=True, timeout=60)
     assert "chroot(" in probe.read_text()
     from tests.conftest import daemon_config
-    from tecdard.client import Client
+    from tecdard.cli.client import Client
     from tecdard.config import dump_yaml
-    from tecdard.demo import free_port
+    from tecdard.tools.demo import free_port
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cfg = daemon_config(**{"zenoh.listen": [endpoint], "control.rt_priority": 10,
                            "map.output_dir": str(tmp_path / "maps")})

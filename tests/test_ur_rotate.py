@@ -15,7 +15,7 @@ from tecdard.sim.imu import SimImuParams
 from tecdard.sim.process import SimSpec
 from tecdard.sim.robot import SimRobotParams
 from tecdard.sim.world import HingeParams
-from tecdard.demo import distance_to_axis
+from tecdard.tools.demo import distance_to_axis
 from tests.conftest import DaemonProcess
 from tests.fake_ur import FakeController, SimArmSpec, free_loopback_host
 from tests.test_daemon_ur import ur_config

@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from tecdard.demo import free_port
+from tecdard.tools.demo import free_port
 from tests.conftest import DaemonProcess, daemon_config
 
 pytest.importorskip("foxglove", reason="the `viz` extra, which `make test` installs")

@@ -20,22 +20,22 @@ from tecdard.drivers.ring import SampleRing
 from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from tecdard.robots import backends
 from tecdard.robots.model import ArmModel, UnknownRobotError
-from tecdard import commands as C
+from tecdard.api import commands as C
 from tecdard.config import Config, ConfigError
 from tecdard.estimation import build_pipeline
-from tecdard.intake import IntakeParams, QueryIntake
-from tecdard.messages import Stop
+from tecdard.runtime.intake import IntakeParams, QueryIntake
+from tecdard.runtime.messages import Stop
 from tecdard import __version__
-from tecdard.mapfiles import MapSettings
-from tecdard.recorder import Recorder, RecordParams, config_digest
-from tecdard.viz import LiveView, VizParams
-from tecdard.control_thread import ControlParams, ControlThread
-from tecdard.messages import LatestValue
-from tecdard.sdnotify import Notifier
-from tecdard.workers import EstimatorThread, acquisition_loop, proprio_loop
+from tecdard.verbs.map.files import MapSettings
+from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
+from tecdard.runtime.live_view import LiveView, VizParams
+from tecdard.runtime.control_thread import ControlParams, ControlThread
+from tecdard.runtime.messages import LatestValue
+from tecdard.runtime.sdnotify import Notifier
+from tecdard.runtime.workers import EstimatorThread, acquisition_loop, proprio_loop
 from tecdard.safejson import show
-from tecdard.zenoh_io import (DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, TlsFiles, access_control, dumps,
-                              endpoint_problem, session_config)
+from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, JSON, Keys, TlsFiles, access_control, dumps,
+                                 endpoint_problem, session_config)
 
 log = logging.getLogger("tecdar")
 

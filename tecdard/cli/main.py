@@ -16,7 +16,7 @@ from tecdard.safejson import show
 
 def announce_compile() -> None:
     """One log line before a start that must compile the estimator's kernels (tecdard.kernel_cache)."""
-    from tecdard import kernel_cache
+    from tecdard.tools import kernel_cache
     try:
         cache = kernel_cache.state()
     except Exception as exc:         # the check must never stop a start
@@ -27,7 +27,7 @@ def announce_compile() -> None:
 
 
 def _cmd_warm(args) -> int:
-    from tecdard import kernel_cache
+    from tecdard.tools import kernel_cache
     before = kernel_cache.state()
     if not before.warm:
         print(f"compiling the estimator's kernels into {before.path} (about {kernel_cache.COLD_COMPILE_S:.0f} s "
@@ -45,7 +45,7 @@ def _cmd_run(args) -> int:
     try:
         cfg = Config.load(args.config)
         announce_compile()
-        from tecdard.daemon import Daemon   # heavy imports only once the config file exists
+        from tecdard.runtime.daemon import Daemon   # heavy imports only once the config file exists
         daemon = Daemon(cfg, listen=[args.listen] if args.listen else None)
     except ConfigError as exc:
         print(f"tecdard: config error: {exc}", file=sys.stderr)
@@ -82,7 +82,7 @@ def _recording_and_pipeline(args):
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.control import estimators
     from tecdard.estimation import build_pipeline
-    from tecdard.recording import RecordingError, load_live, load_recording
+    from tecdard.recording.format import RecordingError, load_live, load_recording
 
     method = getattr(args, "method", None)
     if method is not None and method not in estimators.names():
@@ -110,7 +110,7 @@ def _recording_and_pipeline(args):
 
 def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0, on_estimate=None, on_event=None):
     """(rows, onset_t, last) of the replay: as fed live for a daemon recording, else causally in chunks."""
-    from tecdard import localize as L
+    from tecdard.tools import localize as L
     try:
         if live is not None:
             return L.replay_live(rec, live, pipeline, on_estimate)
@@ -122,7 +122,7 @@ def _estimates(args, rec, live, pipeline, rate_hz: float = 1000.0, on_estimate=N
 
 
 def _cmd_localize(args) -> int:
-    from tecdard import localize as L
+    from tecdard.tools import localize as L
 
     bad = functools.partial(_refused, "localize")
 
@@ -155,8 +155,8 @@ def _cmd_localize(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from tecdard import export
-    from tecdard.recording import load_truth
+    from tecdard.tools import export
+    from tecdard.recording.format import load_truth
 
     bad = functools.partial(_refused, "export")
 
@@ -184,7 +184,7 @@ def _cmd_calibrate_eta(args) -> int:
 
     import numpy as np
 
-    from tecdard import calibrate as K
+    from tecdard.tools import calibrate as K
 
     bad = functools.partial(_refused, "calibrate-eta")
 
@@ -239,8 +239,8 @@ def _cmd_calibrate_eta(args) -> int:
 def _cmd_plot(args) -> int:
     import numpy as np
 
-    from tecdard import plot
-    from tecdard.recording import load_truth
+    from tecdard.tools import plot
+    from tecdard.recording.format import load_truth
 
     bad = functools.partial(_refused, "plot")
 
@@ -267,7 +267,7 @@ def _cmd_sim_record(args) -> int:
     MuJoCo's physics (sim/mujoco_source.py), from the options the engine's scenario has."""
     import dataclasses
 
-    from tecdard.recording import Recording, save_recording
+    from tecdard.recording.format import Recording, save_recording
     if args.engine == "mujoco":
         try:
             import mujoco  # noqa: F401
@@ -391,7 +391,7 @@ def _cmd_imu(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from tecdard.demo import run_demo
+    from tecdard.tools.demo import run_demo
     return run_demo(args.config, args.angle)
 
 
@@ -469,11 +469,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="how long to read (default 2)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cmd_imu)
-    from tecdard.client_cli import add_parsers
+    from tecdard.cli.task_verbs import add_parsers
     add_parsers(sub)
     p = sub.add_parser("doctor", help="check whether this host is ready to run the daemon beside a real arm")
     p.add_argument("--config", default="/etc/tecdar/tecdard.yaml", help="the daemon's config (default: the unit's)")
-    p.set_defaults(func=lambda a: __import__("tecdard.doctor", fromlist=["main"]).main(a.config))
+    p.set_defaults(func=lambda a: __import__("tecdard.tools.doctor", fromlist=["main"]).main(a.config))
     p = sub.add_parser("warm", help="compile the estimator's kernels into numba's cache (make install does)")
     p.set_defaults(func=_cmd_warm)
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")

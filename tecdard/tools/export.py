@@ -18,7 +18,7 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
     try:
         import foxglove
 
-        from tecdard.foxglove_io import Channels
+        from tecdard.recording.foxglove import Channels
     except ImportError:
         raise ExportError("needs foxglove-sdk: pip install 'tecdar[viz]'") from None
     items = []                  # (t, order, kind, payload): written in time order

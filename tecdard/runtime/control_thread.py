@@ -23,11 +23,11 @@ from tecdard.control.modes import Mode
 from tecdard.control.planner import CartesianPlanner
 from tecdard.control.runner import TaskRunner
 from tecdard.control.servo import PlanSample, joint_velocities
-from tecdard import commands as C
+from tecdard.api import commands as C
 from tecdard import verbs
-from tecdard.mapfiles import MapSettings, MapWriter
-from tecdard.messages import Cancel, LatestValue, Reply, StartTask, Stop
-from tecdard.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
+from tecdard.verbs.map.files import MapSettings, MapWriter
+from tecdard.runtime.messages import Cancel, LatestValue, Reply, StartTask, Stop
+from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.safejson import show_name
 
 log = logging.getLogger("tecdar.control")

@@ -6,10 +6,10 @@ import json
 import sys
 import time
 
-from tecdard.client import Client, ClientError
+from tecdard.cli.client import Client, ClientError
 from tecdard import verbs
-from tecdard.commands import task_verbs
-from tecdard.zenoh_io import TlsFiles
+from tecdard.api.commands import task_verbs
+from tecdard.api.session import TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"

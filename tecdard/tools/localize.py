@@ -8,7 +8,7 @@ import numpy as np
 
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactEstimate, ContactPipeline, EstimatorDirective
-from tecdard.recording import LiveLog, Recording
+from tecdard.recording.format import LiveLog, Recording
 
 DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")
 

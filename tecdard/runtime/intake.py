@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import zenoh
 
-from tecdard import commands as C
-from tecdard.messages import Cancel, Reply, StartTask, Stop
+from tecdard.api import commands as C
+from tecdard.runtime.messages import Cancel, Reply, StartTask, Stop
 from tecdard.safejson import show_name
-from tecdard.zenoh_io import JSON, Keys, dumps
+from tecdard.api.session import JSON, Keys, dumps
 
 log = logging.getLogger("tecdar.intake")
 

@@ -11,8 +11,8 @@ import numpy as np
 
 from tecdard.control.pipeline import ContactPipeline, EstimatorDirective
 from tecdard.drivers.ring import SampleRing
-from tecdard.messages import DropOldestRing, LatestValue
-from tecdard.recorder import Pass
+from tecdard.runtime.messages import DropOldestRing, LatestValue
+from tecdard.runtime.recorder import Pass
 
 log = logging.getLogger("tecdar.estimator")
 

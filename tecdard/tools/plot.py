@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tecdard.recording import Recording
+from tecdard.recording.format import Recording
 
 SIGMA_BAND = 3.0
 AXES = "xyz"

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from tecdard.client import Client, ClientError
+from tecdard.cli.client import Client, ClientError
 
 
 # A start waits while the daemon process runs, up to: (a loaded 2-core machine compiles in 50-90 s)
@@ -47,7 +47,7 @@ def stop_daemon(proc: subprocess.Popen, timeout: float = 5.0) -> int:
 
 def startup_budget_s() -> tuple[float, str]:
     """How long a start may take here, and why: a cold kernel cache compiles (tecdard.kernel_cache)."""
-    from tecdard import kernel_cache
+    from tecdard.tools import kernel_cache
     try:
         cache = kernel_cache.state()
     except Exception:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tecdard.messages import Inbox
+from tecdard.runtime.messages import Inbox
 
 log = logging.getLogger("tecdar.viz")
 
@@ -69,7 +69,7 @@ class LiveView:
     def run(self, stop: threading.Event) -> None:
         import foxglove
 
-        from tecdard.foxglove_io import Channels
+        from tecdard.recording.foxglove import Channels
         ctx = foxglove.Context()
         try:
             server = foxglove.start_server(name="tecdard", host=self.params.host, port=self.params.port, context=ctx)

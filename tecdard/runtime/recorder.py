@@ -32,10 +32,10 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from tecdard.control.geometry import matrix_to_quat
-from tecdard import commands as C
-from tecdard.messages import Inbox
+from tecdard.api import commands as C
+from tecdard.runtime.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
-from tecdard.recording import Recording, save_recording
+from tecdard.recording.format import Recording, save_recording
 
 log = logging.getLogger("tecdar.record")
 

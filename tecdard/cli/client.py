@@ -7,7 +7,7 @@ import time
 
 import zenoh
 
-from tecdard.zenoh_io import Keys, TlsFiles, dumps, session_config
+from tecdard.api.session import Keys, TlsFiles, dumps, session_config
 
 WAIT_REPORT_S = 10.0           # wait_alive says what it waits for this often
 # Until the daemon listens, a liveliness query returns at once (no route): without a pause a wait

@@ -20,7 +20,7 @@ import pwd
 import socket
 from dataclasses import dataclass
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 UDEV_RULE = ROOT / "systemd" / "99-tecdar-imu.rules"
 UDEV_RULE_DIRS = ("/etc/udev/rules.d", "/run/udev/rules.d", "/usr/lib/udev/rules.d", "/lib/udev/rules.d")
 DEFAULT_RT_PRIORITY = 80      # what the doctor tries when the config names none
@@ -56,7 +56,7 @@ def check_rt_kernel(sys_realtime: str = "/sys/kernel/realtime", version: str | N
 
 
 def check_rtprio(priority: int | None) -> Check:
-    from tecdard.realtime import can_set_fifo, rtprio_limit
+    from tecdard.runtime.realtime import can_set_fifo, rtprio_limit
     asked = priority is not None
     prio = priority if asked else DEFAULT_RT_PRIORITY
     soft, hard = rtprio_limit()
@@ -162,7 +162,7 @@ def _host_port(endpoint: str) -> tuple[str, str, int] | None:
 
 def _daemon_alive_at(endpoint: str, robot: str, tls) -> bool:
     try:
-        from tecdard.client import Client
+        from tecdard.cli.client import Client
         with Client(endpoint, robot=robot, tls=tls, open_timeout_s=CONNECT_TIMEOUT_S) as cli:
             return cli.alive(CONNECT_TIMEOUT_S)
     except Exception:
@@ -208,7 +208,7 @@ def check_endpoints(listen: list[str], connect: list[str], robot: str = "sim", t
 
 
 def check_kernel_cache() -> Check:
-    from tecdard import kernel_cache
+    from tecdard.tools import kernel_cache
     try:
         state = kernel_cache.state()
     except Exception as exc:
@@ -271,7 +271,7 @@ def check_franka_realtime(realtime: str, sys_realtime: str = "/sys/kernel/realti
     out = [Check("Franka realtime kernel", "pass" if kernel.status == "pass" else "fail",
                  kernel.detail + ("" if kernel.status == "pass" else ": franky refuses to connect with realtime: "
                                   "enforce (RealtimeException)"), kernel.fix)]
-    from tecdard.realtime import can_set_fifo
+    from tecdard.runtime.realtime import can_set_fifo
     problem = can_set_fifo(LIBFRANKA_RT_PRIORITY)
     out.append(Check("Franka SCHED_FIFO 99", "pass" if problem is None else "fail",
                      "libfranka's control thread can run at SCHED_FIFO 99" if problem is None else problem,
@@ -312,7 +312,7 @@ def load_daemon(config_path: str):
     from tecdard.config import Config, ConfigError
     try:
         cfg = Config.load(config_path)
-        from tecdard.daemon import Daemon
+        from tecdard.runtime.daemon import Daemon
         return Daemon(cfg), None
     except ConfigError as exc:
         return None, Check("config", "fail", f"{config_path}: {exc}", "correct the key named (docs: configs/sim.yaml)")

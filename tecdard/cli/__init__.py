@@ -1,0 +1,1 @@
+"""The `tecdard` command line and the Zenoh client it, the demo and the tests use."""
