@@ -1,4 +1,4 @@
-# tecdar: `make run` (demo on the simulated robot), `make test`, `make bench`.
+# tecdar: `make run` (demo on the simulated robot), `make test`, `make check` (quick tier), `make bench`.
 PY_BOOT ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # instead of compiling them (~60 s on 2 cores)
 WARM := $(VENV)/.warm
 
-.PHONY: install run test bench clean
+.PHONY: install run test check bench clean
 
 $(PY):
 	$(PY_BOOT) -m venv $(VENV)
@@ -28,6 +28,10 @@ run: $(WARM)
 
 test: $(WARM)
 	$(PY) -m pytest -q
+
+# the quick tier: pure logic and transports, without the whole-daemon runs (under 2 minutes)
+check: $(WARM)
+	$(PY) -m pytest -q -m "not slow"
 
 bench: $(WARM)
 	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import copy
+import importlib.abc
+import importlib.machinery
 import os
 import pathlib
 import signal
@@ -19,6 +21,33 @@ from tecdard.config import dump_yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
+# The folders that install under tecdard (pyproject's package-dir). From the checkout they are also
+# importable by their bare names, and a test that did so would pass here and fail on a wheel.
+CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim")
+# Whole-daemon runs and the real clients against their fakes: `make check` leaves them out.
+SLOW_FILES = {"test_daemon.py", "test_daemon_franka.py", "test_daemon_ur.py", "test_daemon_hostile.py",
+              "test_daemon_tls.py", "test_daemon_api.py", "test_recorder.py", "test_serial_imu.py", "test_ur_link.py",
+              "test_ur_rotate.py", "test_client_cli.py", "test_install.py", "test_systemd.py"}
+
+
+class _BareNames(importlib.abc.MetaPathFinder):
+    """Refuses `import control` (and the rest) from the checkout: ours is `tecdard.control`."""
+
+    def find_spec(self, name, path=None, target=None):
+        if path is None and name in CHECKOUT_ONLY_ROOTS:
+            spec = importlib.machinery.PathFinder.find_spec(name)
+            if spec is not None and spec.origin and pathlib.Path(spec.origin).resolve().is_relative_to(ROOT):
+                raise ImportError(f"{name}: installed as tecdard.{name}; import it by that name")
+        return None
+
+
+sys.meta_path.insert(0, _BareNames())
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in SLOW_FILES:
+            item.add_marker(pytest.mark.slow)
 
 
 # The whole-daemon tests run the simulated arm (1 kHz physics and the IMU at 6.7 kHz, a process of

@@ -1,0 +1,88 @@
+"""The project installs under one import root: beside python-control (`pip install control`, whose
+import name is `control`), editable and as a built wheel, both import and `tecdard --help` runs.
+
+Each case is a fresh venv. Its dependencies come from this suite's own venv through a .pth line
+(pip counts them as installed), so the only downloads are python-control itself and the build
+backend, both cached by pip after the first run.
+"""
+import pathlib
+import site
+import subprocess
+import sys
+import zipfile
+
+import pytest
+
+from tests.conftest import ROOT
+
+INSTALL_TIMEOUT_S = 600.0
+# Imported in each venv: one module of every folder we install, none that compiles the kernels.
+OURS = ("tecdard.cli.main", "tecdard.api.commands", "tecdard.runtime.messages", "tecdard.recording.format",
+        "tecdard.tools.localize", "tecdard.verbs", "tecdard.drivers.serial_imu", "tecdard.control.geometry",
+        "tecdard.robots.model", "tecdard.sim.world")
+PROBE = """
+import pathlib, sys, control
+import {ours}
+assert hasattr(control, "TransferFunction"), control.__file__       # python-control, whole
+venv = pathlib.Path(sys.prefix)
+assert pathlib.Path(control.__file__).is_relative_to(venv), control.__file__
+for name in {names!r}:
+    print(name, sys.modules[name].__file__)
+"""
+
+
+def fresh_venv(path: pathlib.Path) -> pathlib.Path:
+    """A venv without pip whose site-packages also sees this suite's (the dependencies)."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(path)], check=True, timeout=120)
+    py = path / "bin" / "python"
+    (ours,) = [p for p in site.getsitepackages() if p.endswith("site-packages")]
+    target = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    # the suite's path, then its own .pth lines (cmeel's adds Pinocchio's prefix), not its editable install
+    lines = [ours] + [line for pth in sorted(pathlib.Path(ours).glob("*.pth")) if not pth.name.startswith("__editable__")
+                      for line in pth.read_text().splitlines()]
+    pathlib.Path(target, "suite-deps.pth").write_text("\n".join(lines) + "\n")
+    return py
+
+
+def pip(py: pathlib.Path, *args: str) -> None:
+    res = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--quiet",
+                          "--disable-pip-version-check", *args], capture_output=True, text=True,
+                         timeout=INSTALL_TIMEOUT_S)
+    assert res.returncode == 0, res.stderr[-2000:]
+
+
+def check(py: pathlib.Path, cwd: pathlib.Path) -> dict:
+    """Both import, from outside the checkout; returns where each of ours came from."""
+    code = PROBE.format(ours=", ".join(OURS), names=OURS)
+    res = subprocess.run([str(py), "-c", code], cwd=cwd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    help_ = subprocess.run([str(py.parent / "tecdard"), "--help"], cwd=cwd, capture_output=True, text=True,
+                           timeout=120)
+    assert help_.returncode == 0 and "localize" in help_.stdout and "run" in help_.stdout, help_.stderr
+    return dict(line.split(" ", 1) for line in res.stdout.splitlines())
+
+
+@pytest.mark.parametrize("how", ["editable", "wheel"])
+def test_tecdar_installs_beside_python_control(tmp_path, how):
+    py = fresh_venv(tmp_path / "venv")
+    pip(py, "control")
+    if how == "editable":
+        pip(py, "--no-deps", "-e", str(ROOT))
+    else:
+        dist = tmp_path / "dist"
+        res = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "-w", str(dist),
+                              str(ROOT)], capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S)
+        assert res.returncode == 0, res.stderr[-2000:]
+        (wheel,) = dist.glob("tecdar-*.whl")
+        with zipfile.ZipFile(wheel) as zf:
+            roots = {name.split("/")[0] for name in zf.namelist()}
+        assert roots == {"tecdard", wheel.name.split("-")[0] + "-" + wheel.name.split("-")[1] + ".dist-info"}, roots
+        pip(py, "--no-deps", str(wheel))
+    files = check(py, tmp_path)
+    for name, path in files.items():
+        where = pathlib.Path(path)
+        if how == "editable":
+            assert where.is_relative_to(ROOT), (name, path)          # the checkout's own folders
+        else:
+            assert where.is_relative_to(tmp_path / "venv"), (name, path)
