@@ -17,7 +17,7 @@ $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
 	touch $(STAMP)
 
-$(WARM): $(STAMP) control/kernels.py
+$(WARM): $(STAMP) $(wildcard control/estimators/kernels/*.py)
 	$(PY) -m tecdard warm
 	touch $(WARM)
 

@@ -17,16 +17,20 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.control.ekf import ContactKF, ContactKfParams, PaperEKF, PaperEkfParams, cross_rows  # noqa: E402
+from tecdard.control.estimators.ekf import ContactKF, ContactKfParams  # noqa: E402
+from tecdard.control.estimators.paper_ekf import PaperEKF, PaperEkfParams  # noqa: E402
 from tecdard.control.geometry import Plane, quat_to_matrix  # noqa: E402
-from tecdard.control.kernels import K_MIN, block_update  # noqa: E402
+from tecdard.control.estimators.kernels.model import block_update  # noqa: E402
+from tecdard.control.estimators.kernels.records import Frame, contiguous  # noqa: E402
+from tecdard.control.geometry import cross_rows  # noqa: E402
+from tecdard.control.measurements import Samples  # noqa: E402
 from tecdard.control import estimators  # noqa: E402
 
 METHODS = tuple(m for m in estimators.names() if m != "ekf-reference")   # the reference is ekf, slower
 from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
 from tecdard.tools import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
-from tecdard.estimation import build_pipeline  # noqa: E402
+from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402
 
 OUT = ROOT / "benchmarks"
@@ -46,7 +50,7 @@ ESTIMATOR_CONFIG = {"estimator": {"fingertip_lag_s": 0.0}}
 
 
 def run_method(rec: Recording, truth: dict, method: str) -> dict:
-    pipe = build_pipeline(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+    pipe = ContactPipeline.from_config(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                           method=method, plane_normal=rec.plane_normal)
     t0 = time.perf_counter()
     rows, onset_t, _ = L.replay(rec, pipe, 1000.0)
@@ -106,9 +110,10 @@ def bench_speed(n_blocks: int = 2000) -> dict:
         v = cross_rows(w, p + [0.0, 0.0, 0.0])
         dt = np.full(blk, 1 / 6667)
         times = np.empty(n_blocks)
+        run = Samples.of(dt, w, p, v)
         for k in range(n_blocks):
             t0 = time.perf_counter()
-            kf.update(dt, w, p, v)
+            kf.update(run)
             times[k] = time.perf_counter() - t0
         key = f"ekf{'_planar' if planar else ''}_block{blk}"
         out[f"{key}_us"] = float(np.median(times) * 1e6)
@@ -119,7 +124,7 @@ def bench_speed(n_blocks: int = 2000) -> dict:
     w = rng.normal(0, 0.1, 3)
     for k in range(5000):
         t0 = time.perf_counter()
-        ekf.update(np.array([1 / 6667]), w[None], np.zeros((1, 3)), np.zeros((1, 3)))
+        ekf.update(Samples.of(np.array([1 / 6667]), w[None], np.zeros((1, 3)), np.zeros((1, 3))))
         times[k] = time.perf_counter() - t0
     out["paper_ekf_step_us"] = float(np.median(times) * 1e6)
     return out
@@ -138,7 +143,7 @@ def localize_speed() -> dict:
     for name, plane in (("planar", rec.plane_normal), ("3d", None)):
         walls, cpus = [], []
         for _ in range(LOCALIZE_RUNS):
-            pipe = build_pipeline(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
+            pipe = ContactPipeline.from_config(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
                                   rec.imu_rate_hz, method="ekf", plane_normal=plane)
             pipe.params.plane_normal = plane
             w0, c0 = time.perf_counter(), time.process_time()
@@ -171,7 +176,7 @@ def filterpy_peer() -> dict:
     ours = PaperEKF(prm)
     ours.start(p[0], v[0])
     t0 = time.perf_counter()
-    ours.update(np.full(n, 1 / 6667), w, p, v)
+    ours.update(Samples.of(np.full(n, 1 / 6667), w, p, v))
     t_ours = time.perf_counter() - t0
     fk = ExtendedKalmanFilter(dim_x=9, dim_z=6)
     fk.x = np.concatenate([p[0], v[0], p[0]])
@@ -217,7 +222,7 @@ def filterpy_peer() -> dict:
         c_lin = kf.c.copy()
         first = kf.steps == 0
         t0 = time.perf_counter()
-        kf.update(np.full(len(w[sl]), 1 / 6667), w[sl], p[sl], v[sl])
+        kf.update(Samples.of(np.full(len(w[sl]), 1 / 6667), w[sl], p[sl], v[sl]))
         t_ours += time.perf_counter() - t0
         if first:
             # the onset block is iterated: linearise filterpy's noise about the same point
@@ -245,10 +250,11 @@ def _first_linearisation(prm, p, v, w, sl):
     kf.start(p[0], v[0])
     x = kf.x
     n = len(w[sl])
+    run, _ = kf._inputs(Samples.of(np.full(n, 1 / 6667), w[sl], p[sl], v[sl]))
+    kf.set_correlation(1.0)
     for _ in range(2):
-        x = block_update(kf.x, kf.P, x, np.full(n, 1 / 6667), w[sl], p[sl], v[sl], w[sl], np.zeros((n, 3)), p[sl],
-                         np.full(n, prm.sigma_v ** 2), np.zeros(n), np.eye(3), np.zeros(3), kf.origin, prm.q_c, 1.0,
-                         prm.sigma_p ** 2, prm.sigma_w ** 2, 0.0, prm.gate_nis, K_MIN, kf.k_prior_mean, False, False)[0]
+        x = block_update(kf.x, kf.P, x, run, 0, n, contiguous(Frame(np.eye(3), np.zeros(3), kf.origin)),
+                         kf._run_params(), False, False)[0]
     return x[:3]
 
 

@@ -37,7 +37,7 @@ from tecdard.control.geometry import quat_to_matrix  # noqa: E402
 from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
 from tecdard.tools import localize as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
-from tecdard.estimation import build_pipeline  # noqa: E402
+from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402
 
 METHODS = ("ekf", "paper-ekf", "svd-geo", "svd-diff")
@@ -50,7 +50,7 @@ LAGS_S = (0.0, 0.0015, 0.003, 0.0045, 0.006)
 
 
 def evaluate(rec: Recording, truth: dict, method: str, **estimator) -> dict:
-    pipe = build_pipeline(Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
+    pipe = ContactPipeline.from_config(Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
                           rec.imu_rate_hz, method=method)
     pipe.begin(float(truth["onset_t"]))
     rows, _, _ = L.replay(rec, pipe)
@@ -67,7 +67,7 @@ def evaluate(rec: Recording, truth: dict, method: str, **estimator) -> dict:
 
 
 def latency(rec: Recording, truth: dict) -> float | None:
-    pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     _, onset_t, _ = L.replay(rec, pipe)
     return None if onset_t is None else onset_t - float(truth["onset_t"])
 

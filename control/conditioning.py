@@ -16,14 +16,10 @@ class GyroConditioner:
         w_obj = w_tcp + eta * (w_imu_world - w_tcp).
     """
 
-    def __init__(self, R_tcp_imu: np.ndarray, eta: float = 2.0, bias_tau_s: float = 0.5,
-                 lpf_window: int = 1):
-        if eta <= 0:
-            raise ValueError("eta: must be > 0")
+    def __init__(self, R_tcp_imu: np.ndarray, bias_tau_s: float = 0.5, lpf_window: int = 1):
         if lpf_window < 1:
             raise ValueError("lpf_window: must be >= 1 sample")
         self.R_tcp_imu = np.asarray(R_tcp_imu, dtype=float)
-        self.eta = eta
         self.bias_tau_s = bias_tau_s
         self.lpf_window = lpf_window
         self.bias = np.zeros(3)        # rad/s, IMU frame
@@ -51,7 +47,7 @@ class GyroConditioner:
 
     def bias_state(self) -> np.ndarray:
         """(4,): the bias (rad/s, IMU frame) and the rest time averaged into it (s; 0: none yet), the
-        state a replay starts from (tecdard.localize.replay_live)."""
+        state a replay starts from (tecdard.tools.localize.replay_live)."""
         return np.append(self.bias, self._bias_s if self._bias_ready else 0.0)
 
     def set_bias_state(self, state) -> None:
@@ -84,12 +80,12 @@ class GyroConditioner:
         return out
 
     def object_rate_world(self, w_imu: np.ndarray, R_world_tcp: np.ndarray, w_tcp_world: np.ndarray,
-                          eta: float | None = None) -> np.ndarray:
+                          eta) -> np.ndarray:
         """Object angular velocity in the world (n, 3) from filtered IMU-frame gyro (n, 3).
 
-        R_world_tcp is (n, 3, 3) or (3, 3); w_tcp_world (n, 3) or (3,) is the gripper's own rate.
+        R_world_tcp is (n, 3, 3) or (3, 3); w_tcp_world (n, 3) or (3,) is the gripper's own rate; eta
+        a number or (n, 1), the transmission at each sample's grip force (measurements.EtaSchedule).
         """
-        eta = self.eta if eta is None else eta
         w_tcp_imu = w_imu @ self.R_tcp_imu.T
         if R_world_tcp.ndim == 2:
             w_world = w_tcp_imu @ R_world_tcp.T

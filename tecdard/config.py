@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import yaml
 
-from tecdard.safejson import finite, show, show_name
+from tecdard.safejson import finite, is_number, show, show_name
 
 MAX_CONFIG_BYTES = 1 << 20     # a config file is refused unread beyond this
 MAX_NESTING = 16               # mappings and lists nested deeper are refused
@@ -110,6 +110,12 @@ class Section:
     def has(self, key: str) -> bool:
         return key in self._data
 
+    def error(self, key: str | None, message: str) -> ConfigError:
+        """The error to raise for a problem with `key` of this section (None: the section itself), as
+        one line naming it: `raise section.error("band_hz", "expected ...")`. A module raises the error
+        of the section it was given, and never imports this module to do so (Klipper's config.error)."""
+        return ConfigError(f"{self._name(key) if key is not None else self.path or 'the file'}: {message}")
+
     def _raw(self, key: str, default: Any) -> Any:
         if key in self._data and self._data[key] is not None:
             self._used.add(key)
@@ -194,6 +200,24 @@ class Section:
             raise ConfigError(f"{self._name(key)}: expected {n} numbers, got {len(value)}")
         for v in out:
             self._check_bounds(key, v, minval, maxval, None)
+        return out
+
+    def getrows(self, key: str, default: Any = REQUIRED, *, width: int, max_rows: int = MAX_LIST_ITEMS,
+                what: str = "row") -> list[list[float]]:
+        """A non-empty list of at most max_rows rows of `width` finite numbers each (a table such as
+        [[grip force N, eta], ...]); `what` names a row in the errors."""
+        value = self._raw(key, default)
+        kind = "pairs" if width == 2 else "rows"
+        if not isinstance(value, list) or not value or len(value) > max_rows:
+            raise self.error(key, f"expected a list of up to {max_rows} {what} {kind}")
+        out = []
+        for row in value:
+            if not isinstance(row, list) or len(row) != width or not all(is_number(x) for x in row):
+                raise self.error(key, f"expected {what} {kind}, got {show(row)}")
+            numbers = [finite(x) for x in row]
+            if any(x is None for x in numbers):
+                raise self.error(key, f"{show(row)} is not finite")
+            out.append(numbers)
         return out
 
     def getvec3(self, key: str, default: Any = REQUIRED, *, unit: bool = False) -> list[float]:

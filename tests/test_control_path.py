@@ -291,52 +291,76 @@ def test_a_tasks_own_reaction_is_a_protective_stop(model, wiggle_verb):
 
 # -- an estimator is one file ----------------------------------------------------------------
 
-TCP_AT_ONSET = '''
-    """`tcp-at-onset`: the contact is where the TCP was at onset, give or take 5 cm (a floor for any other)."""
+TOOL_TIP = '''
+    """`tool-tip`: the contact is where the tool model puts the tip at onset (a floor for any other).
+    Its option, `estimator.tool_tip.tip_in_tcp`, is its own; so is its input, the TCP's orientation."""
+    from dataclasses import dataclass
+
     import numpy as np
 
-    from tecdard.control.estimators import ContactEstimator, EstimatorSpec
+    from tecdard.control.estimators.base import ContactEstimator, EstimatorSpec
 
 
-    class TcpAtOnset(ContactEstimator):
-        method = "tcp-at-onset"
+    @dataclass
+    class ToolTipOptions:
+        tip_in_tcp: tuple = (0.0, 0.0, 0.1)     # m, TCP frame
+        std_m: float = 0.05
 
-        def __init__(self, plane):
-            self.plane, self.p_c = plane, np.zeros(3)
+        @classmethod
+        def from_config(cls, section):
+            return cls(tuple(section.getvec3("tip_in_tcp", [0.0, 0.0, 0.1])),
+                       section.getfloat("std_m", 0.05, above=0.0, maxval=1.0))
+
+
+    class ToolTip(ContactEstimator):
+        method = "tool-tip"
+
+        def __init__(self, options, plane):
+            self.options, self.p_c = options, None
 
         def start(self, p_g, v_g):
-            self.p_c, self.steps = np.array(p_g, float), 0
+            self.p_c, self.steps = None, 0
 
-        def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None):
-            self.steps += len(dt)
+        def update(self, samples):
+            if self.p_c is None and len(samples):
+                self.p_c = samples.p[0] + samples.R[0] @ np.array(self.options.tip_in_tcp)
+            self.steps += len(samples)
 
         def report(self):
-            cov = np.eye(3) * 0.05 ** 2
-            return self.p_c.copy(), cov, np.eye(3) * 0.05 ** 2
+            cov = np.eye(3) * self.options.std_m ** 2
+            return self.p_c.copy(), cov, cov
 
 
-    ESTIMATORS = (EstimatorSpec("tcp-at-onset", "the TCP at onset", lambda params, plane: TcpAtOnset(plane)),)
+    ESTIMATORS = (EstimatorSpec("tool-tip", "the tool model's tip at onset",
+                                lambda options, plane: ToolTip(options, plane), "tool_tip", ToolTipOptions),)
 '''
 
 
-def test_a_new_estimator_is_one_file(tmp_path):
+def test_a_new_estimator_with_its_own_option_and_input_is_one_file(tmp_path):
+    from tecdard.config import Config, ConfigError
     from tecdard.control import estimators
-    from tecdard.config import Config
-    from tecdard.estimation import build_pipeline
     from tests.test_pipeline import simulate
-    (tmp_path / "tcp_at_onset.py").write_text(textwrap.dedent(TCP_AT_ONSET))
+    (tmp_path / "tool_tip.py").write_text(textwrap.dedent(TOOL_TIP))
     estimators.__path__.append(str(tmp_path))
     try:
-        assert "tcp-at-onset" in estimators.names() and estimators.names()[0] == "ekf"
-        pipe = build_pipeline(Config({"estimator": {"method": "tcp-at-onset"}}).section("estimator"), np.eye(3))
-        assert pipe.method == "tcp-at-onset"
-        _, est, _center, _axis, _t_on, _ = simulate(np.eye(3), method="tcp-at-onset")
-        assert est.method == "tcp-at-onset" and est.nis_ratio is None
-        assert np.linalg.norm(est.p - [0.307, 0.0, 0.487]) < 1e-3        # the TCP when the hinge started to turn
+        assert "tool-tip" in estimators.names() and estimators.names()[0] == "ekf"
+        cfg = Config({"estimator": {"method": "tool-tip", "tool_tip": {"tip_in_tcp": [-0.15, 0.0, 0.0]}}})
+        pipe = ContactPipeline.from_config(cfg.section("estimator"), np.eye(3))
+        cfg.check_unused()                                   # its section was read, by its module
+        assert pipe.method == "tool-tip" and pipe.estimator.options.tip_in_tcp == (-0.15, 0.0, 0.0)
+        options = estimators.read_options(cfg.section("estimator"))
+        _, est, center, axis, _, _ = simulate(np.eye(3), method="tool-tip", options=options)
+        assert est.method == "tool-tip" and est.nis_ratio is None
+        # the hinge, 15 cm along the TCP's x (its orientation at onset turns the option into the world)
+        assert np.linalg.norm(est.p - center) < 1e-3
+        typo = Config({"estimator": {"tool_tip": {"tip_in_tcpp": [0.0, 0.0, 0.1]}}})
+        ContactPipeline.from_config(typo.section("estimator"), np.eye(3))
+        with pytest.raises(ConfigError, match="estimator.tool_tip.tip_in_tcpp: unknown option"):
+            typo.check_unused()
     finally:
         estimators.__path__.remove(str(tmp_path))
-        estimators.REGISTRY.pop("tcp-at-onset", None)
-        estimators._discovered.discard("tcp_at_onset")
+        estimators.REGISTRY.pop("tool-tip", None)
+        estimators._discovered.discard("tool_tip")
 
 
 def test_the_sensor_watch_holds_a_fault_while_its_condition_lasts():

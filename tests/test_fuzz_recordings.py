@@ -227,7 +227,7 @@ def outcome(path) -> str:
     """"refused" (one short line) or "replayed" (the replay ran without an exception)."""
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.config import Config
-    from tecdard.estimation import build_pipeline
+    from tecdard.control.pipeline import ContactPipeline
     from tecdard.tools.localize import replay
     try:
         rec = load_recording(path)
@@ -235,7 +235,7 @@ def outcome(path) -> str:
         msg = str(exc)
         assert msg and "\n" not in msg and len(msg) <= MAX_MESSAGE_CHARS, msg
         return "refused"
-    pipeline = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+    pipeline = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                               plane_normal=rec.plane_normal)
     replay(rec, pipeline)
     return "replayed"

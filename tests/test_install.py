@@ -6,6 +6,7 @@ Each case is a fresh venv. Its dependencies come from this suite's own venv thro
 backend, both cached by pip after the first run.
 """
 import pathlib
+import shutil
 import site
 import subprocess
 import sys
@@ -29,6 +30,28 @@ assert pathlib.Path(control.__file__).is_relative_to(venv), control.__file__
 for name in {names!r}:
     print(name, sys.modules[name].__file__)
 """
+
+
+def installed_sources() -> dict[str, pathlib.Path]:
+    """Every module of the checkout's installed folders, by its path in the wheel."""
+    out = {}
+    for folder, under in (("tecdard", "tecdard"), ("drivers", "tecdard/drivers"), ("control", "tecdard/control"),
+                          ("robots", "tecdard/robots"), ("sim", "tecdard/sim")):
+        for path in (ROOT / folder).rglob("*.py"):
+            out[f"{under}/{path.relative_to(ROOT / folder).as_posix()}"] = path
+    return out
+
+
+def checkout_copy(dest: pathlib.Path) -> pathlib.Path:
+    """The checkout's files (tracked and new, not ignored) copied to dest."""
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=ROOT, capture_output=True,
+                            check=True).stdout.decode().split("\0")
+    for name in filter(None, listed):
+        source = ROOT / name
+        if source.is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, dest / name)
+    return dest
 
 
 def fresh_venv(path: pathlib.Path) -> pathlib.Path:
@@ -70,14 +93,17 @@ def test_tecdar_installs_beside_python_control(tmp_path, how):
     if how == "editable":
         pip(py, "--no-deps", "-e", str(ROOT))
     else:
-        dist = tmp_path / "dist"
+        dist, src = tmp_path / "dist", checkout_copy(tmp_path / "src")     # setuptools builds in its source tree
         res = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "-w", str(dist),
-                              str(ROOT)], capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S)
+                              str(src)], capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S)
         assert res.returncode == 0, res.stderr[-2000:]
         (wheel,) = dist.glob("tecdar-*.whl")
         with zipfile.ZipFile(wheel) as zf:
-            roots = {name.split("/")[0] for name in zf.namelist()}
+            names = set(zf.namelist())
+        roots = {name.split("/")[0] for name in names}
         assert roots == {"tecdard", wheel.name.split("-")[0] + "-" + wheel.name.split("-")[1] + ".dist-info"}, roots
+        missing = sorted(set(installed_sources()) - names)
+        assert not missing, f"modules the wheel leaves out (pyproject's packages): {missing}"
         pip(py, "--no-deps", str(wheel))
     files = check(py, tmp_path)
     for name, path in files.items():

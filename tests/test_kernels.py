@@ -1,9 +1,10 @@
-"""The compiled estimator loops (control/kernels.py) against plain numpy evaluations of the same model."""
+"""The compiled estimator loops (control/estimators/kernels/) against plain numpy evaluations of the same model."""
 import numpy as np
 import pytest
+from numba import njit
 
-from tecdard.control import kernels as kern
-from tecdard.control import reference
+from tecdard.control.estimators import reference
+from tecdard.control.estimators.kernels import evidence, jit, linalg, model, records, report
 
 REL_TOL = 1e-9
 REFERENCE_REL_TOL = 1e-7    # the compiled run against control/reference.py: a collapsed and a stacked update
@@ -60,6 +61,20 @@ def planar_samples(w_n, t_n, r0, v2, var_v, var_w, k, c, k_lin, c_lin, corr, var
         yield H, y, R
 
 
+def linearised(k, c, k_lin, c_lin, nk):
+    """(x, x_lin, k_mean): the state and the linearisation point that put the model at (k, c) and
+    (k_lin, c_lin). With k held (nk 0) it is the prior mean, at both."""
+    if nk:
+        return np.append(c * k, k), np.append(c_lin * k_lin, k_lin), 1.0
+    return c * k, c_lin * k, k
+
+
+def run_params(corr, var_p, var_wn, radial_var, k_mean=1.0, gate_nis=16.3, q_c=0.0):
+    """The compiled run's parameters (records.RUN_PARAMS) that the block loops read."""
+    return records.record(records.RUN_PARAMS, corr=corr, var_p=var_p, var_wn=var_wn, radial_var=radial_var,
+                          k_mean=k_mean, gate_nis=gate_nis, q_c=q_c)
+
+
 def assert_same_information(A, b, A_ref, b_ref):
     np.testing.assert_allclose(A, A_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(A_ref).max())
     np.testing.assert_allclose(b, b_ref, rtol=REL_TOL, atol=REL_TOL * np.abs(b_ref).max())
@@ -79,10 +94,11 @@ def test_spatial_information_matches_numpy(turning, radial_var, nk):
     rng = np.random.default_rng(1)
     w, r0, v, var_v, var_w = block(rng)
     w_tcp = np.tile([0.0, -0.1, 0.05], (len(w), 1)) if turning else np.zeros_like(w)
-    args = (1.1, np.array([0.01, 0.0, -0.02]), 1.05, np.array([0.012, 0.001, -0.018]), 3.0, 2.5e-9, 1e-4,
-            radial_var, nk)
-    A, b, gated, nis, rejected = kern.spatial_information(w, w_tcp, r0, v, var_v, var_w, *args, np.eye(3 + nk),
-                                                       16.3, False)
+    k, c, k_lin, c_lin = 1.1, np.array([0.01, 0.0, -0.02]), 1.05 if nk else 1.1, np.array([0.012, 0.001, -0.018])
+    x, x_lin, k_mean = linearised(k, c, k_lin, c_lin, nk)
+    A, b, gated, nis, rejected = model.spatial_information(w, w_tcp, r0, v, var_v, var_w, x, x_lin, np.eye(3 + nk),
+                                                           run_params(3.0, 2.5e-9, 1e-4, radial_var, k_mean), False)
+    args = (k, c, k_lin, c_lin, 3.0, 2.5e-9, 1e-4, radial_var, nk)
     A_ref, b_ref = information(spatial_samples(w, w_tcp, r0, v, var_v, var_w, *args), 3 + nk)
     assert_same_information(A, b, A_ref, b_ref)
     assert not gated and len(nis) == 0 and rejected == 0
@@ -96,11 +112,11 @@ def test_planar_information_matches_numpy(turning, radial_var, nk):
     w, r0, v, var_v, var_w = block(rng)
     w_n, r2, v2 = w[:, 1].copy(), r0[:, :2].copy(), v[:, :2].copy()
     t_n = np.full(len(w_n), -0.1) if turning else np.zeros(len(w_n))
-    c, c_lin = np.array([0.01, -0.02]), np.array([0.012, -0.018])
-    A, b, gated, nis, rejected = kern.planar_information(
-        w_n, t_n, r2, v2, var_v, var_w, 1.1, c[0], c[1], 1.05, c_lin[0], c_lin[1], 3.0, 2.5e-9, 1e-4, radial_var,
-        nk, 1.0, 1.0, 16.3, False)
-    A_ref, b_ref = information(planar_samples(w_n, t_n, r2, v2, var_v, var_w, 1.1, c, 1.05, c_lin, 3.0, 2.5e-9,
+    k, c, k_lin, c_lin = 1.1, np.array([0.01, -0.02]), 1.05 if nk else 1.1, np.array([0.012, -0.018])
+    x, x_lin, k_mean = linearised(k, c, k_lin, c_lin, nk)
+    A, b, gated, nis, rejected = model.planar_information(w_n, t_n, r2, v2, var_v, var_w, x, x_lin, 0.5 * np.eye(2 + nk),
+                                                          run_params(3.0, 2.5e-9, 1e-4, radial_var, k_mean), False)
+    A_ref, b_ref = information(planar_samples(w_n, t_n, r2, v2, var_v, var_w, k, c, k_lin, c_lin, 3.0, 2.5e-9,
                                               1e-4, radial_var, nk), 2 + nk)
     assert_same_information(A, b, A_ref, b_ref)
 
@@ -112,10 +128,11 @@ def test_gate_rejects_an_outlier_once_armed():
     c = np.zeros(3)
     v = np.cross(w, r0)                    # consistent with contact at the origin, k = 1
     v[5] += [0.5, 0.0, 0.0]                # one glitch
-    args = (w, w_tcp, r0, v, var_v, var_w, 1.0, c, 1.0, c, 1.0, 2.5e-9, 1e-4, 0.0, 0)
-    _, _, gated, nis, rejected = kern.spatial_information(*args, np.eye(3) * 1e-12, 16.3, True)
+    args = (w, w_tcp, r0, v, var_v, var_w, c, c)
+    prm = run_params(1.0, 2.5e-9, 1e-4, 0.0)
+    _, _, gated, nis, rejected = model.spatial_information(*args, np.eye(3) * 1e-12, prm, True)
     assert gated and rejected == 1 and nis[5] > 16.3 and np.all(np.delete(nis, 5) < 16.3)
-    _, _, gated, _, rejected = kern.spatial_information(*args, np.eye(3) * 0.25, 16.3, True)
+    _, _, gated, _, rejected = model.spatial_information(*args, np.eye(3) * 0.25, prm, True)
     assert not gated and rejected == 0      # the prior is still wide: H P H^T is large against R
 
 
@@ -128,7 +145,7 @@ def test_collapsed_update_is_the_kalman_update_of_an_equivalent_measurement():
         A, b = B.T @ B, B.T @ rng.normal(size=rank)
         L = rng.normal(size=(4, 4))
         P, x = L @ L.T * 1e-3 + 1e-4 * np.eye(4), rng.normal(size=4)
-        x_new, P_new = kern.collapsed_update(x, P, A, b, True)
+        x_new, P_new = linalg.collapsed_update(x, P, A, b, True)
         lam, U = np.linalg.eigh(A)
         good = lam > 1e-12 * lam[-1]
         H = np.sqrt(lam[good])[:, None] * U[:, good].T
@@ -138,7 +155,7 @@ def test_collapsed_update_is_the_kalman_update_of_an_equivalent_measurement():
         np.testing.assert_allclose(x_new, x + Kg @ y, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(P_new, (np.eye(4) - Kg @ H) @ P, rtol=1e-7, atol=1e-12)
         np.testing.assert_allclose(P_new, P_new.T, atol=1e-15)
-        nis, r = kern.window_nis(A, b, P)
+        nis, r = linalg.window_nis(A, b, P)
         assert r == rank and nis == pytest.approx(y @ np.linalg.solve(S, y), rel=1e-7)
 
 
@@ -148,7 +165,7 @@ def test_sym_eig_matches_numpy_across_wide_ranges():
         for _ in range(50):
             B = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 6, size=(n, 1))
             S = B @ B.T
-            lam, V = kern.sym_eig(S)
+            lam, V = linalg.sym_eig(S)
             np.testing.assert_allclose(lam, np.linalg.eigvalsh(S), rtol=1e-9, atol=1e-12 * np.abs(S).max())
             np.testing.assert_allclose(V @ np.diag(lam) @ V.T, S, rtol=1e-9, atol=1e-10 * np.abs(S).max())
 
@@ -157,8 +174,9 @@ def test_kernels_divide_by_zero_as_numpy_does():
     """IEEE division, not Python's ZeroDivisionError: a degenerate sample cannot raise in the estimator thread."""
     n = 2
     zeros = np.zeros((n, 3))
-    A, b, *_ = kern.spatial_information(zeros, zeros, zeros, zeros, np.zeros(n), np.zeros(n), 1.0, np.zeros(3), 1.0,
-                                     np.zeros(3), 1.0, 0.0, 0.0, 0.0, 1, np.eye(4), 16.3, False)
+    x = np.array([0.0, 0.0, 0.0, 1.0])
+    A, b, *_ = model.spatial_information(zeros, zeros, zeros, zeros, np.zeros(n), np.zeros(n), x, x, np.eye(4),
+                                         run_params(1.0, 0.0, 0.0, 0.0), False)
     assert A.shape == (4, 4)
 
 
@@ -167,8 +185,8 @@ def test_jit_compiles_where_numba_cannot_cache():
     ns = {}
     exec("def twice(x):\n    return 2.0 * x\n", ns)        # no source file: nowhere to cache
     with pytest.raises(RuntimeError, match="cannot cache"):
-        kern.njit("float64(float64)", cache=True)(ns["twice"])
-    assert kern.jit("float64(float64)")(ns["twice"])(1.5) == 3.0
+        njit("float64(float64)", cache=True)(ns["twice"])
+    assert jit("float64(float64)")(ns["twice"])(1.5) == 3.0
 
 
 def random_cov(rng, n, scale):
@@ -196,25 +214,28 @@ def test_block_update_is_the_information_of_the_model_and_its_collapsed_update(p
     x_lin = x + np.append(rng.normal(0, 0.005, d), [0.02] * nk)
     P = random_cov(rng, d + nk, 1e-4)
     q_c, corr, var_p, var_wn, radial_var = 1e-6, 3.0, 2.5e-9, 1e-4, 2.5e-5
-    x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = kern.block_update(
-        x, P, x_lin, dt, w, p, v, w_v, np.zeros_like(w), p_v, var_v, var_w, E, n, origin, q_c, corr, var_p, var_wn,
-        radial_var, 16.3, kern.K_MIN, 1.2, False, True)
+    smp = records.contiguous(records.Samples(dt, w, np.zeros_like(w), p, v, w_v, np.zeros_like(w), p_v, var_v, var_w,
+                                             np.zeros(0, bool)))
+    frame = records.contiguous(records.Frame(E, n, origin))
+    prm = run_params(corr, var_p, var_wn, radial_var, k_mean=1.2, q_c=q_c)
+    x_new, P_new, P_prior, A, b, gated, nis, rejected, w_d, r_d, duration = model.block_update(
+        x, P, x_lin, smp, 0, len(dt), frame, prm, False, True)
     P_ref = P.copy()
     P_ref[range(d), range(d)] += q_c * dt.sum()
     k, k_lin = (x[d], x_lin[d]) if nk else (1.2, 1.2)          # k held at 1.2 when not a state
-    model = (k, x[:d] / k, k_lin, x_lin[:d] / k_lin, corr, var_p, var_wn, radial_var, nk)
+    point = (k, x[:d] / k, k_lin, x_lin[:d] / k_lin, corr, var_p, var_wn, radial_var, nk)
     if planar:
-        samples = planar_samples(w_v @ n, np.zeros(len(w)), r0 @ E.T, v @ E.T, var_v, var_w, *model)
+        samples = planar_samples(w_v @ n, np.zeros(len(w)), r0 @ E.T, v @ E.T, var_v, var_w, *point)
         np.testing.assert_allclose(w_d[:, 0], w @ n, rtol=1e-12)
     else:
-        samples = spatial_samples(w_v, np.zeros_like(w), r0, v, var_v, var_w, *model)
+        samples = spatial_samples(w_v, np.zeros_like(w), r0, v, var_v, var_w, *point)
         np.testing.assert_allclose(w_d, w, rtol=1e-12)
     A_ref, b_ref = information(samples, d + nk)
     assert_same_information(A, b, A_ref, b_ref)
     np.testing.assert_allclose(r_d, (p - origin) @ E.T, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(P_prior, P_ref, rtol=1e-12)
     assert duration == pytest.approx(dt.sum(), rel=1e-12)
-    x_ref, P_new_ref = kern.collapsed_update(x, P_ref, A_ref, b_ref, True)
+    x_ref, P_new_ref = linalg.collapsed_update(x, P_ref, A_ref, b_ref, True)
     np.testing.assert_allclose(x_new, x_ref, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(P_new, P_new_ref, rtol=1e-7, atol=1e-15)
     assert not gated and rejected == 0
@@ -240,10 +261,10 @@ def test_report_state_matches_numpy(planar, z, k_mean):
         info = 1.0 / P[d, d] - 1.0 / k_prior_var
         k_data = k_mean + z / np.sqrt(info)              # the data reject k = k_mean by z sigma
         x = np.append(rng.normal(0, 0.1, d), P[d, d] * (k_data * info + k_mean / k_prior_var))
-        assert kern.eta_evidence(x[d], P[d, d], k_mean, k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
-    wgt = kern.eta_weight(x[d], P[d, d], k_mean, k_prior_var, 3.0) if z is not None else 0.0
+        assert report.eta_evidence(x[d], P[d, d], k_mean, k_prior_var) == pytest.approx((k_data, z), rel=1e-9)
+    wgt = report.eta_weight(x[d], P[d, d], k_mean, k_prior_var, 3.0) if z is not None else 0.0
     assert wgt == (0.0 if z in (None, 1.0) else pytest.approx(min(max(z - 3.0, 0.0), 1.0)))
-    p, rep, stat = kern.report_state(x, P, d, 1.7, r_last, 0.0025, k_mean, k_prior_var, 3.0, E, origin, along)
+    p, rep, stat = report.report_state(x, P, d, 1.7, r_last, 0.0025, k_mean, k_prior_var, 3.0, E, origin, along)
     c_ref, rep_ref, stat_ref = reference.report(x, P, d, 1.7, r_last, 0.0025, k_mean, wgt)
     np.testing.assert_allclose(p, origin + c_ref @ E, rtol=1e-12)
     np.testing.assert_allclose(rep, E.T @ rep_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
@@ -256,7 +277,7 @@ def test_eta_weight_ignores_an_implausible_eta():
     info = 1.0 / pkk - 1.0 / k_prior_var
     for k_data, expected in ((1.15, 1.0), (1.25, 0.0)):   # 3 and 5 prior sigmas off
         x_k = pkk * (k_data * info + 1.0 / k_prior_var)
-        assert kern.eta_weight(x_k, pkk, 1.0, k_prior_var, 3.0) == expected
+        assert report.eta_weight(x_k, pkk, 1.0, k_prior_var, 3.0) == expected
 
 
 @pytest.mark.parametrize("rates", [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.3, 0.2, 0.0]])
@@ -267,9 +288,9 @@ def test_rotation_axes_match_numpy(rates):
     w = (rng.normal(size=(500, 3)) * np.array(rates) + 1e-6 * rng.normal(size=(500, 3))) @ Q.T
     w += 0.5 * np.array(rates) @ Q.T                    # a mean rate to sign the axis
     wwT, w_sum = np.zeros((3, 3)), np.zeros(3)
-    kern.rate_moments(w, np.full(len(w), 1e-3), wwT, w_sum)
+    report.rate_moments(w, np.full(len(w), 1e-3), wwT, w_sum)
     cov, stat = random_cov(rng, 3, 1e-6), random_cov(rng, 3, 1e-6)
-    axis, axes, cov_out, top = kern.rotation_axes(wwT, w_sum, len(w), 1e-12, cov, stat, 1e-6, 0.05, 0.25)
+    axis, axes, cov_out, top = report.rotation_axes(wwT, w_sum, len(w), 1e-12, cov, stat, 1e-6, 0.05, 0.25)
     lam, V = np.linalg.eigh(w.T @ w / len(w) - 1e-12 * np.eye(3))
     assert axes == (0 if lam[-1] < 1e-6 else 2 if lam[-2] > 0.05 * lam[-1] else 1)
     if axes == 0:
@@ -292,7 +313,7 @@ def test_plane_rotation_matches_numpy():
     E = np.vstack([e1, np.cross(n, e1)])
     stat = random_cov(rng, 3, 1e-6)
     for w_sum, sign in ((2.0 * n, 1.0), (-0.5 * n + 0.1 * e1, -1.0)):
-        s, top = kern.plane_rotation(stat, E, n, w_sum)
+        s, top = report.plane_rotation(stat, E, n, w_sum)
         assert s == sign and top == pytest.approx(np.linalg.eigvalsh(E @ stat @ E.T)[-1], rel=1e-12)
 
 
@@ -306,21 +327,24 @@ def test_position_increment_and_residual_match_numpy():
     s_x, s_xx, s_xy, s_y = X.sum(0), np.einsum("ija,ijb->ab", X, X), np.einsum("ija,ij->a", X, y), y.sum(0)
     lam, eta = np.eye(nx), np.ones(nx)
     lam0, eta0 = lam.copy(), eta.copy()
-    d_lam, d_eta = kern.position_increment(s_x, s_xx, s_xy, s_y, n, var, lam, eta)
+    ev = records.contiguous(records.Evidence(records.record(records.EVIDENCE_STATUS), np.zeros(3), np.zeros(d),
+                                             np.zeros(d), s_x, s_xx, s_xy, s_y, lam, eta))
+    lam, eta = ev.lam, ev.xi
+    d_lam, d_eta = evidence.position_increment(ev, n, var)
     lam_ref = (s_xx - s_x.T @ s_x / n) / var
     np.testing.assert_allclose(lam, lam_ref, rtol=1e-12)
     np.testing.assert_allclose(eta, (s_xy - s_x.T @ s_y / n) / var, rtol=1e-12)
     np.testing.assert_allclose(d_lam, lam_ref - lam0, rtol=1e-12)
     np.testing.assert_allclose(d_eta, eta - eta0, rtol=1e-12)
     k = 1.1
-    ratio = kern.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), n, var, k, 8)
+    ratio = evidence.position_residual(ev, float((y ** 2).sum()), n, var, k, 8)
     # regression of y - k G on [I (intercept q), -[Theta]x] per sample
     Z = np.concatenate([np.tile(np.eye(d), (n, 1)), X[:, :, :d].reshape(n * d, d)], axis=1)
     resid = (y - k * X[:, :, d]).ravel()
     fit = np.linalg.lstsq(Z, resid, rcond=None)
     rss = float(np.sum((resid - Z @ fit[0]) ** 2))
     assert ratio == pytest.approx(rss / (var * (d * n - d - np.linalg.matrix_rank(Z[:, d:]))), rel=1e-7)
-    assert kern.position_residual(s_x, s_xx, s_xy, s_y, float((y ** 2).sum()), 5, var, k, 8) == 1.0
+    assert evidence.position_residual(ev, float((y ** 2).sum()), 5, var, k, 8) == 1.0
 
 
 @pytest.mark.parametrize("planar", [False, True])
@@ -331,9 +355,10 @@ def test_the_compiled_run_keeps_the_state_of_the_reference_filter(planar, nk, ch
     (ContactKF.update) keeps the state, the counts, the consistency ratio and the slide flag of the
     numpy reference (control/reference.py) after every chunk (chunks of 150 are cut into blocks of
     max_block)."""
-    from tecdard.control.ekf import ContactKF, ContactKfParams
+    from tecdard.control.estimators.ekf import ContactKF, ContactKfParams
+    from tecdard.control.estimators.reference import ReferenceKF
     from tecdard.control.geometry import Plane
-    from tecdard.control.reference import ReferenceKF
+    from tecdard.control.measurements import Samples
     rng = np.random.default_rng(11)
     axis = np.array([0.0, -1.0, 0.0])
     t = np.arange(6000) / 6667.0
@@ -361,8 +386,9 @@ def test_the_compiled_run_keeps_the_state_of_the_reference_filter(planar, nk, ch
         f.start(pm[0], vm[0])
     for k0 in range(0, len(t), chunk):
         sl = slice(k0, k0 + chunk)
-        kf.update(dt[sl], w[sl], pm[sl], vm[sl], var_v[sl], var_w[sl], fresh[sl])
-        ref.update(dt[sl], w[sl], pm[sl], vm[sl], var_v[sl], var_w[sl], fresh[sl])
+        run = Samples.of(dt[sl], w[sl], pm[sl], vm[sl], var_v=var_v[sl], var_w=var_w[sl], fresh=fresh[sl])
+        kf.update(run)
+        ref.update(run)
         assert (kf.steps, kf.rejected, kf.positions.broken) == (ref.steps, ref.rejected, ref.positions.broken)
         np.testing.assert_allclose(kf.x, ref.x, rtol=REFERENCE_REL_TOL, atol=REFERENCE_REL_TOL * np.abs(ref.x).max())
         np.testing.assert_allclose(kf.P, ref.P, rtol=REFERENCE_REL_TOL, atol=REFERENCE_REL_TOL * np.abs(ref.P).max())

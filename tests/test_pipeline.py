@@ -7,8 +7,9 @@ from tecdard.control.conditioning import GyroConditioner
 from tecdard.control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, quat_to_matrix, relative_rotvec,
                                       rotvec_to_matrix, signed_angle, unit)
 from tecdard.control.onset import OnsetDetector
-from tecdard.control.kernels import eta_weight
-from tecdard.control.pipeline import DEFAULT_SATURATION, ContactPipeline, EtaSchedule, PipelineParams, ProprioTrack
+from tecdard.control.estimators.kernels.report import eta_weight
+from tecdard.control.measurements import EtaSchedule, ProprioTrack
+from tecdard.control.pipeline import DEFAULT_SATURATION, ContactPipeline, PipelineParams
 
 ODR_HZ = 6667.0
 PROPRIO_HZ = 65.0
@@ -16,7 +17,7 @@ TOL_M = 3e-3
 CLIPPED_EXTRA_ERR_M = 1e-3     # a clipped burst left out costs the estimate at most this
 
 
-def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf"):
+def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf", options=None):
     """A hinge rotated by a TCP that may itself turn about the hinge axis (rotating gripper); the
     fingertip without lag, and the pipeline told so."""
     rng = np.random.default_rng(seed)
@@ -37,7 +38,7 @@ def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane
     gyro = np.einsum("nji,nj->ni", R_world_imu, w_seen) + [0.01, -0.004, 0.007] + rng.normal(0, noise, (len(t), 3))
     accel = np.einsum("nji,nj->ni", R_world_imu, np.tile([0, 0, 9.81], (len(t), 1))) + rng.normal(0, 0.03, (len(t), 3))
     accel[(t >= t_on) & (t < t_on + 0.01)] += [2.0, 0.0, 0.0]
-    params = PipelineParams(method=method, plane_normal=plane, fingertip_lag_s=0.0)
+    params = PipelineParams(method=method, plane_normal=plane, fingertip_lag_s=0.0, options=options or {})
     pipe = ContactPipeline(OnsetDetector(0.4, warmup_s=0.05), GyroConditioner(R_tcp_imu, lpf_window=17), params)
     events, last, next_proprio = [], None, 0.0
     for k0 in range(0, len(t), 64):
@@ -135,7 +136,7 @@ def test_proprio_lookup_is_causal():
 def test_a_reported_tcp_rate_is_extrapolated_with_its_last_change_for_a_while_only():
     """Between samples a turning gripper's reported rate ramps on (its last change); if proprioception
     stalls, the ramp stops after WDOT_MAX_AGE_S instead of growing without bound."""
-    from tecdard.control.pipeline import WDOT_MAX_AGE_S
+    from tecdard.control.measurements import WDOT_MAX_AGE_S
     track = ProprioTrack()
     track.add(0.00, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.10]))
     track.add(0.01, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.12]))      # 2 rad/s^2
@@ -194,7 +195,7 @@ def test_conditioning_inverts_the_fingertip_model(q_mount, q_tcp, w_tcp, w_obj, 
     """For any mount, TCP orientation and rates: recover w_obj from what the gyro sees."""
     R_tcp_imu, R_world_tcp = quat_to_matrix(q_mount), quat_to_matrix(q_tcp)
     gyro = (R_world_tcp @ R_tcp_imu).T @ (w_tcp + (w_obj - w_tcp) / eta)
-    out = GyroConditioner(R_tcp_imu, eta=eta).object_rate_world(gyro[None], R_world_tcp, w_tcp[None])
+    out = GyroConditioner(R_tcp_imu).object_rate_world(gyro[None], R_world_tcp, w_tcp[None], eta)
     assert np.allclose(out[0], w_obj, atol=1e-9)
 
 
@@ -285,11 +286,11 @@ def _replay_estimates(fields, method, plane=True, arc_following=False, chunk_s=0
     """Every ContactEstimate of a recording's causal replay by `method`, the filter after it, and the
     largest weight of the free-eta estimate in its reports."""
     from tecdard.config import Config
-    from tecdard.estimation import build_pipeline
+    from tecdard.control.pipeline import ContactPipeline
     from tecdard.tools.localize import replay
     from tecdard.recording.format import Recording
     rec = Recording.from_fields(fields)
-    pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                           method=method, plane_normal=rec.plane_normal if plane else None)
     pipe.estimator.params.max_block = max_block
     pipe.set_arc_following(arc_following)
@@ -361,8 +362,8 @@ def test_one_compiled_call_per_batch_equals_one_per_segment(monkeypatch, plane):
     estimates are those of one `update` per segment (ContactEstimator.advance) bit for bit, through
     the gate and the slip that breaks the position evidence mid-batch (after which the segments
     distrust the velocity along the lever arm)."""
-    from tecdard.control.ekf import ContactKF
-    from tecdard.control.estimators import ContactEstimator
+    from tecdard.control.estimators.base import ContactEstimator
+    from tecdard.control.estimators.ekf import ContactKF
     fields = _troubled_recording()
     kw = dict(plane=plane, chunk_s=0.1 if plane else 0.007)
     batched, kf, _ = _replay_estimates(fields, "ekf", **kw)
@@ -382,7 +383,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
-    from tecdard.estimation import build_pipeline
+    from tecdard.control.pipeline import ContactPipeline
     from tecdard.tools.localize import replay
     from tecdard.recording.format import Recording
 
@@ -390,7 +391,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     rec = Recording.from_fields(fields)
 
     def final(rec, limits=None):
-        pipe = build_pipeline(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+        pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                               plane_normal=rec.plane_normal)
         if limits is not None:
             pipe.set_saturation(*limits)
@@ -413,7 +414,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
 def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
     """A rig's TCP can be ten times noisier than the configured encoder grade (the paper's 0.5 mm):
     the noise is measured from the positions' second differences, through a steady motion."""
-    from tecdard.control.pipeline import ProprioTrack
+    from tecdard.control.measurements import ProprioTrack
     rng = np.random.default_rng(3)
     for true_sigma, expected in ((5e-4, 5e-4), (1e-5, 5e-5)):      # noisier than configured; quieter: the floor
         track = ProprioTrack(sigma_p=5e-5)
@@ -427,7 +428,7 @@ def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
 def test_rate_history_means_a_span_and_counts_what_came_before_the_episode():
     """The mean over [t0, t1] of the rates stored (cumulative sums), the part before the episode's start
     as the rate given for it, one sample per period; a span in a gap takes the nearest rate."""
-    from tecdard.control.pipeline import RateHistory
+    from tecdard.control.measurements import RateHistory
     h = RateHistory()
     h.start(1.0)
     t = 1.0 + np.arange(100) * 1e-3
@@ -448,7 +449,7 @@ def test_rate_history_means_a_span_and_counts_what_came_before_the_episode():
 def test_the_tcp_rate_is_interpolated_where_it_belongs_and_extrapolated_past_the_newest():
     """Rates derived from orientations belong to the middle of their interval: between those times the
     rate is interpolated; past the newest, extrapolated with the last change (at most WDOT_MAX_AGE_S)."""
-    from tecdard.control.pipeline import WDOT_MAX_AGE_S
+    from tecdard.control.measurements import WDOT_MAX_AGE_S
     track = ProprioTrack()
     axis = np.array([0.0, 0.0, 1.0])
     for k in range(6):                          # the rate ramps at 1 rad/s^2, sampled every 10 ms

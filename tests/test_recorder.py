@@ -17,7 +17,7 @@ from tecdard.control.pipeline import ContactEstimate, EstimatorDirective
 from tecdard.tools import localize as L
 from tecdard.runtime import recorder as R
 from tecdard.config import Config
-from tecdard.estimation import build_pipeline
+from tecdard.control.pipeline import ContactPipeline
 from tecdard.recording.format import load_live, load_recording
 from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
 
@@ -33,7 +33,7 @@ IDLE_BEFORE_S = 2.0
 def replayed(path, config_path):
     rec = load_recording(path)
     live = load_live(path, rec)
-    pipe = build_pipeline(Config.load(config_path).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
+    pipe = ContactPipeline.from_config(Config.load(config_path).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
                           rec.imu_rate_hz)
     rows, onset_t, last = L.replay_live(rec, live, pipe)
     return live, rows, onset_t
@@ -277,7 +277,7 @@ def test_export_writes_the_imu_the_tcp_the_estimate_and_the_events_as_mcap(tmp_p
     rec = tmp_path / "hinge.npz"
     assert tecdard("sim-record", str(rec), "--kind", "hinge").returncode == 0
     topics = check_export(rec, tmp_path / "hinge.mcap")
-    n_est = len(L.replay(load_recording(rec), build_pipeline(Config({}).section("estimator"), np.eye(3), 6667.0))[0])
+    n_est = len(L.replay(load_recording(rec), ContactPipeline.from_config(Config({}).section("estimator"), np.eye(3), 6667.0))[0])
     assert len(topics["/contact"]) == n_est + 1                    # each estimate, and the truth
     assert any(b"contact_onset" in d for _, _, d in topics["/events"])
 

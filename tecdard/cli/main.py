@@ -81,7 +81,7 @@ def _recording_and_pipeline(args):
     --ignore-live) and a contact pipeline from args.config's `estimator` section; _BadInput otherwise."""
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.control import estimators
-    from tecdard.estimation import build_pipeline
+    from tecdard.control.pipeline import ContactPipeline
     from tecdard.recording.format import RecordingError, load_live, load_recording
 
     method = getattr(args, "method", None)
@@ -96,7 +96,7 @@ def _recording_and_pipeline(args):
     try:
         cfg = Config.load(args.config) if args.config else Config({})
         section = cfg.section("estimator")
-        pipeline = build_pipeline(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+        pipeline = ContactPipeline.from_config(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
                                   method=method, plane_normal=None if no_plane else rec.plane_normal)
         if no_plane:
             pipeline.params.plane_normal = None

@@ -22,7 +22,7 @@ from tecdard.robots import backends
 from tecdard.robots.model import ArmModel, UnknownRobotError
 from tecdard.api import commands as C
 from tecdard.config import Config, ConfigError
-from tecdard.estimation import build_pipeline
+from tecdard.control.pipeline import ContactPipeline
 from tecdard.runtime.intake import IntakeParams, QueryIntake
 from tecdard.runtime.messages import Stop
 from tecdard import __version__
@@ -176,7 +176,7 @@ class Daemon:
         # config until its first status packet reports its own, which the estimator then follows),
         # or the simulated one's.
         source_odr_hz = float(serial_params.odr_hz) if serial_params is not None else self.backend.imu_odr_hz
-        self.pipeline = build_pipeline(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
+        self.pipeline = ContactPipeline.from_config(cfg.section("estimator"), quat_to_matrix(np.array(mount)), source_odr_hz)
         self.method = self.pipeline.method
         self.record_params = RecordParams.from_config(cfg.section("record"))
         self.viz_params = VizParams.from_config(cfg.section("viz").section("foxglove"))

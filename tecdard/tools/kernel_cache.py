@@ -1,6 +1,6 @@
-"""The estimator's compiled kernels (control/kernels.py, numba) and their on-disk cache.
+"""The estimator's compiled kernels (control/estimators/kernels/, numba) and their on-disk cache.
 
-Importing control.kernels compiles each kernel for its signature, or loads it from numba's cache:
+Importing them compiles each kernel for its signature, or loads it from numba's cache:
 60-90 s of compiling on a 2-core machine against about 1.5 s of loading. `make install`
 warms the cache (`tecdard warm`); where a start still has to compile (a wheel install, a service
 with an empty NUMBA_CACHE_DIR), the daemon says so in one line before it does. `tecdard doctor`
@@ -19,7 +19,8 @@ import pickle
 import time
 from dataclasses import dataclass
 
-KERNELS_MODULE = "tecdard.control.kernels"
+KERNELS_PACKAGE = "tecdard.control.estimators.kernels"
+KERNEL_MODULES = ("linalg", "report", "model", "evidence", "run")     # each holds compiled functions
 COLD_COMPILE_S = 90.0          # a compile on 2 cores: 50-60 s measured before, 93 s on a fresh clone (2026-12-02)
 
 
@@ -42,11 +43,14 @@ class CacheState:
                 "`tecdard warm` (make install) does it ahead")
 
 
-def _source() -> str:
-    spec = importlib.util.find_spec(KERNELS_MODULE)
-    if spec is None or spec.origin is None:
-        raise RuntimeError(f"{KERNELS_MODULE} not found")
-    return spec.origin
+def _sources() -> list[str]:
+    out = []
+    for name in KERNEL_MODULES:
+        spec = importlib.util.find_spec(f"{KERNELS_PACKAGE}.{name}")
+        if spec is None or spec.origin is None:
+            raise RuntimeError(f"{KERNELS_PACKAGE}.{name} not found")
+        out.append(spec.origin)
+    return out
 
 
 def _expected(source: str) -> int:
@@ -54,18 +58,13 @@ def _expected(source: str) -> int:
         return sum(1 for line in f if line.startswith("@jit("))
 
 
-def state() -> CacheState:
-    """Whether importing control.kernels would load every kernel from numba's cache."""
-    import numba
+def _locator(source: str):
+    """numba's cache locator for functions of `source`, as numba picks it (None: nowhere writable)."""
     from numba.core import caching
-
-    source = _source()
-    expected = _expected(source)
 
     def probe():          # numba's locators read only the line number of the function
         pass
 
-    locator = None
     impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")     # renamed in numba 0.59
     for cls in impl._locator_classes:
         try:
@@ -73,11 +72,14 @@ def state() -> CacheState:
         except Exception:           # a locator that does not apply (IPython, zip) may raise
             locator = None
         if locator is not None:
-            break
-    if locator is None:
-        return CacheState(False, None, 0, expected, source)
-    path = locator.get_cache_path()
-    stamp = locator.get_source_stamp()
+            return locator
+    return None
+
+
+def _fresh(source: str, locator) -> int:
+    """Cache entries of `source` that numba would load: its version, and the source's stamp now."""
+    import numba
+    path, stamp = locator.get_cache_path(), locator.get_source_stamp()
     base = os.path.splitext(os.path.basename(source))[0]
     fresh = 0
     for index in glob.glob(os.path.join(glob.escape(path), f"{base}.*.nbi")):
@@ -91,11 +93,26 @@ def state() -> CacheState:
             continue
         if entry_stamp == stamp and overloads:
             fresh += 1
-    return CacheState(fresh >= expected > 0, path, fresh, expected, source)
+    return fresh
+
+
+def state() -> CacheState:
+    """Whether importing the kernels would load every one from numba's cache."""
+    sources = _sources()
+    expected = sum(_expected(s) for s in sources)
+    fresh, path = 0, None
+    for source in sources:
+        locator = _locator(source)
+        if locator is None:
+            return CacheState(False, None, 0, expected, os.path.dirname(source))
+        path = locator.get_cache_path()
+        fresh += _fresh(source, locator)
+    return CacheState(fresh >= expected > 0, path, fresh, expected, os.path.dirname(sources[0]))
 
 
 def warm() -> tuple[CacheState, float]:
     """Compile (or load) every kernel now, which caches them; returns the state after and the seconds."""
     t0 = time.monotonic()
-    importlib.import_module(KERNELS_MODULE)
+    for name in KERNEL_MODULES:
+        importlib.import_module(f"{KERNELS_PACKAGE}.{name}")
     return state(), time.monotonic() - t0

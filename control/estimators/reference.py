@@ -1,7 +1,7 @@
-"""`ekf` written out in numpy, in filterpy's shape: the readable statement of ContactKF's model, and
-the reference its compiled run (control/kernels.py) is tested against.
+"""`ekf-reference`: `ekf` written out in numpy, in filterpy's shape: the readable statement of ContactKF's
+model, and the reference its compiled run (control/estimators/kernels/) is tested against.
 
-ContactKF (control/ekf.py) documents the model; this module states it. The state is x = [m] or
+ContactKF (control/estimators/ekf.py) documents the model; this module states it. The state is x = [m] or
 [m, k]: k = eta_true / eta_used, m = k c, c the contact relative to the onset TCP (plane
 coordinates when planar). Each IMU sample i measures the TCP velocity
 
@@ -19,7 +19,7 @@ run applies the same information, collapsed to one equivalent measurement, so th
 rounding. What it adds to the filter:
 - the consistency ratio: a window's (about 10 ms of blocks) NIS against the prior at its start,
   over its rank, smoothed (the daemon's divergence stop reads it);
-- the positions as evidence (control.ekf.PositionEvidence: the running sums in compiled code,
+- the positions as evidence (control.estimators.positions.PositionEvidence: the running sums in compiled code,
   tested against numpy there), applied in information form;
 - the report: the scheduled estimate, eta's floor and the free-eta blend (`report`).
 """
@@ -29,20 +29,16 @@ import math
 
 import numpy as np
 
-from tecdard.control.ekf import (CONSISTENCY_TAU_S, CONSISTENCY_WINDOW_S, MIN_RESIDUAL_SAMPLES,
-                                 POSITION_RESIDUAL_LIMIT, UNOBSERVED_STD_M, ContactKfParams, ContactKfSettings,
-                                 PositionEvidence)
-from tecdard.control.estimators import ContactEstimator
-from tecdard.control.geometry import Plane
-from tecdard.control.kernels import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
+from tecdard.control.estimators.base import CONSISTENCY_TAU_S, UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec
+from tecdard.control.estimators.ekf import CONSISTENCY_WINDOW_S, ContactKfParams, ContactKfSettings
+from tecdard.control.estimators.kernels.model import GATE_HPH_RATIO
+from tecdard.control.estimators.kernels.report import ETA_PRIOR_LIMIT, K_MIN, eta_weight
+from tecdard.control.estimators.positions import MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT, PositionEvidence
+from tecdard.control.geometry import Plane, skew
+from tecdard.control.measurements import Samples
 
 J = np.array([[0.0, -1.0], [1.0, 0.0]])      # w x r in a plane: w_n J r
 RANK_RCOND = 1e-12                           # eigenvalues of a window's information below this x the largest: zero
-
-
-def skew(a: np.ndarray) -> np.ndarray:
-    """[a]x, so that skew(a) @ b = a x b."""
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
 
 def information_update(x: np.ndarray, P: np.ndarray, A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,14 +257,16 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
                                  w=w_now, w_tcp=w_tcp_now, r0=r0_now)
 
     # --- the run over a chunk (ContactEstimator)
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
-        n = len(dt)
-        var_v, var_w, w_tcp, w_v, w_tcp_v, p_v = self._inputs(n, w, p, var_v, var_w, w_tcp, paired)
+    def update(self, samples: Samples) -> None:
+        """A run of samples, as ContactKF takes them (ContactKfSettings._inputs)."""
+        run, use_fresh = self._inputs(samples)
+        n = len(run.dt)
         self._radial_var = self.radial_var_now()
         mb = self.params.max_block
         for b0 in range(0, n, mb):
             sl = slice(b0, b0 + mb)
-            args = (dt[sl], w[sl], w_tcp[sl], p[sl], v[sl], w_v[sl], w_tcp_v[sl], p_v[sl], var_v[sl], var_w[sl])
+            args = (run.dt[sl], run.w[sl], run.w_tcp[sl], run.p[sl], run.v[sl], run.w_v[sl], run.w_tcp_v[sl],
+                    run.p_v[sl], run.var_v[sl], run.var_w[sl])
             # at onset the noise is linearised about a guess: two passes on the first block (from the
             # same prior, not kept) linearise it about the data's own answer
             x_lin = self.kf.x
@@ -282,7 +280,7 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
                 self._window(blk)
             self.steps += len(args[0])
             self.r_last = blk["r0"][-1] - self.kf.x[:self.d] / self.k()
-            self._positions(blk, args[0], None if fresh is None else fresh[sl])
+            self._positions(blk, args[0], run.fresh[sl] if use_fresh else None)
 
     def _window(self, blk: dict) -> None:
         """The consistency ratio: the blocks of about CONSISTENCY_WINDOW_S are one measurement of the
@@ -356,3 +354,8 @@ class ReferenceKF(ContactKfSettings, ContactEstimator):
         along = UNOBSERVED_STD_M ** 2 * self.plane.nnT if self.plane is not None else np.zeros((3, 3))
         E = self.E
         return self.origin + c @ E, E.T @ rep @ E + along, E.T @ stat @ E + along
+
+
+ESTIMATORS = (EstimatorSpec("ekf-reference",
+                            "`ekf` in numpy, block by block: the readable model the compiled run is tested against",
+                            lambda options, plane: ReferenceKF(options, plane), "ekf", ContactKfParams),)

@@ -1,4 +1,5 @@
-"""The paper's comparison baselines: SVD and gradient descent on the geometric and differential constraints.
+"""The paper's comparison baselines (`svd-geo`, `gd-geo`, `svd-diff`, `gd-diff`): SVD and gradient descent on
+the geometric and differential constraints.
 
 - geometric (`*-geo`): p(t) - c = R(t) (p(0) - c), R(t) integrated from the
   gyro since onset; least squares over the whole observation period.
@@ -17,18 +18,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tecdard.control.ekf import UNOBSERVED_STD_M, cross_rows
-from tecdard.control.estimators import ContactEstimator
-from tecdard.control.geometry import Plane, rotvec_to_matrix
+from tecdard.control.estimators.base import UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec
+from tecdard.control.geometry import Plane, cross_rows, rotvec_to_matrix
+from tecdard.control.measurements import Samples
 
 RANK_RTOL = 1e-6
 
 
 @dataclass
 class BaselineParams:
+    """The `estimator.baseline` section, which the four share."""
     window_s: float = 0.03       # differential methods: sliding window
     gd_iterations: int = 10      # gradient steps per update
     min_dof: int = 6             # residual degrees of freedom before a std is reported
+
+    @classmethod
+    def from_config(cls, section) -> "BaselineParams":
+        return cls(window_s=section.getfloat("window_s", 0.03, above=0.0),
+                   gd_iterations=section.getint("gd_iterations", 10, minval=1, maxval=1000))
 
 
 class _LeastSquares(ContactEstimator):
@@ -109,10 +116,6 @@ class _LeastSquares(ContactEstimator):
         cov = self.covariance()
         return p_c, cov, cov
 
-    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        p_c, cov, _ = self.report()
-        return p_c, np.sqrt(np.maximum(np.diag(cov), 0.0))
-
 
 class DiffLeastSquares(_LeastSquares):
     """`svd-diff` / `gd-diff`: -[w]x c = v - w x (p - p0), over the last `window_s`."""
@@ -128,7 +131,9 @@ class DiffLeastSquares(_LeastSquares):
         self._blocks.clear()
         self._t = 0.0
 
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
+    def update(self, samples: Samples) -> None:
+        """dt, w, p and v of each sample (the rest of the record is unused)."""
+        dt, w, p, v = samples.dt, samples.w, samples.p, samples.v
         if len(dt) == 0:
             return
         if self.plane is not None:
@@ -172,8 +177,9 @@ class GeoLeastSquares(_LeastSquares):
         self._R = np.eye(self.d)
         self._theta = 0.0
 
-    def update(self, dt, w, p, v, var_v=None, var_w=None, fresh=None, w_tcp=None, paired=None) -> None:
+    def update(self, samples: Samples) -> None:
         """One geometric residual per update (per block), rotation integrated over the block's samples."""
+        dt, w, p = samples.dt, samples.w, samples.p
         if len(dt) == 0:
             return
         if self.plane is not None:
@@ -200,3 +206,13 @@ def make_baseline(method: str, plane: Plane | None = None, params: BaselineParam
 
 
 BASELINES = ("svd-geo", "gd-geo", "svd-diff", "gd-diff")
+
+
+def _spec(method: str) -> EstimatorSpec:
+    solver, kind = method.split("-")
+    what = "geometric (positions)" if kind == "geo" else "differential (velocities)"
+    return EstimatorSpec(method, f"{what} least squares by {'SVD' if solver == 'svd' else 'gradient descent'}",
+                         lambda options, plane: make_baseline(method, plane, options), "baseline", BaselineParams)
+
+
+ESTIMATORS = tuple(_spec(m) for m in BASELINES)
