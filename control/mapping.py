@@ -1,6 +1,7 @@
 """Tactile mapping (Experiment C of the paper): the grid-probing task and the kernel depth estimator."""
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 
@@ -127,8 +128,10 @@ class MapTask(Task):
     axis by `release_distance`, then vertically; `travel` to the next location. A TCP force above
     `abort_force_n` abandons the point (marked invalid) and lifts. Between passes the tool
     turns by `turn_yaw_rad` about world z (`turn`), which swaps the horizontal axis that a
-    probe resolves. When every point is done, `writer(record)` fuses and writes the map off the
-    control thread; it returns a future whose result is the summary for `task_done` (`write`).
+    probe resolves. When every point is done, `files.write(record)` fuses and writes the map off the
+    control thread; it returns a future whose result is the summary for `task_done` (`write`). A run
+    that ends early hands the points probed so far to `files.write_partial(task_id, record)`, which
+    announces them once written (tecdard.verbs.map.files.MapFiles).
 
     A probe turns the tool about a horizontal axis, so it resolves the contact in the vertical
     plane of the probe; the coordinate along the axis comes from the tool model. The tool tip is
@@ -137,16 +140,27 @@ class MapTask(Task):
     tool about it), its length set to each valid probe's measured reach.
     """
 
-    kind = "map"
-    trigger_phase = "descend"
-    touching_phases = ("settle", "probe", "retract", "lift")
+    class Phase(enum.StrEnum):
+        TRAVEL = "travel"
+        DESCEND = "descend"
+        SETTLE = "settle"
+        PROBE = "probe"
+        RETRACT = "retract"
+        LIFT = "lift"
+        TURN = "turn"
+        WRITE = "write"
 
-    def __init__(self, task_id: str, params: MapParams, writer):
+    kind = "map"
+    trigger_phase = Phase.DESCEND
+    touching_phases = (Phase.SETTLE, Phase.PROBE, Phase.RETRACT, Phase.LIFT)
+    FORCE_PHASES = (Phase.DESCEND, Phase.SETTLE, Phase.PROBE)   # the force may abandon the point here
+
+    def __init__(self, task_id: str, params: MapParams, files):
         super().__init__(task_id, np.array([0.0, 0.0, -1.0]), params.speed)
         if params.orientations not in (1, 2):
             raise ValueError("orientations: expected 1 or 2")
         self.m = params
-        self.writer = writer
+        self.files = files
         self.grid = params.grid_xy()
         self.yaws = [0.0, params.turn_yaw_rad][:params.orientations]
         self.points: list[MapPoint] = []
@@ -178,11 +192,13 @@ class MapTask(Task):
             out.append(self.grid.reshape(-1, 2) - tip_w[:2])
         return np.concatenate(out)
 
-    def partial_record(self) -> MapRecord | None:
-        """The points probed so far (a run that was stopped or failed), or None if there are none."""
-        if not self.points or self.status.phase == "write":
-            return None
-        return MapRecord(self.id, self.m, list(self.points), self.yaws[:self._pass + 1])
+    def ended_early(self) -> dict:
+        """A run that was stopped or failed: the points probed so far are written all the same (the
+        directory appears complete or not at all, and `map_written` says when it has)."""
+        if not self.points or self.status.phase == self.Phase.WRITE:
+            return {}
+        self.files.write_partial(self.id, MapRecord(self.id, self.m, list(self.points), self.yaws[:self._pass + 1]))
+        return {"map_pending": True}
 
     def _pass_axes(self) -> tuple[np.ndarray, np.ndarray]:
         """(e, a): the horizontal probing direction of this pass and the probe's rotation axis."""
@@ -225,7 +241,7 @@ class MapTask(Task):
         row, col = self._rc()
         self._point = MapPoint(self._pass, row, col, self.grid[row, col].copy())
         self._xy = self._aim(row, col)
-        self._enter("travel", t)
+        self._enter(self.Phase.TRAVEL, t)
 
     def _progress(self, stage: float) -> None:
         """Progress over every point of every pass, `stage` (0..1) into the current one; never backwards
@@ -234,22 +250,24 @@ class MapTask(Task):
         self.status.progress = max(self.status.progress, min(0.99 * (done + stage) / self.total_points, 0.99))
 
     def step(self, inp: TickInput) -> Motion | None:
-        if not self._running(inp):
-            return None
-        phase = self.status.phase
-        if phase == "write":
-            return self._step_write()
-        if phase == "turn":
-            return self._step_turn(inp)
+        """Task.step; in a phase that touches (descend, settle, probe) the force is checked first, and a
+        point abandoned for it holds this tick."""
+        if self._running(inp) and self.status.phase in self.FORCE_PHASES and self._aborted(inp):
+            return self._hold(inp)
+        return super().step(inp)
+
+    def _aborted(self, inp: TickInput) -> bool:
+        """A TCP force above abort_force_n abandons the point (its max force is kept either way)."""
+        if inp.force is None:
+            return False
         pt = self._point
-        if inp.force is not None and phase in ("descend", "settle", "probe"):
-            f = float(np.linalg.norm(inp.force))
-            pt.max_force_n = max(pt.max_force_n, f)
-            if f > self.m.abort_force_n:
-                pt.valid, pt.reason = False, "force"
-                self._end_probe(inp, "retract" if phase == "probe" else "lift")
-                return self._hold(inp)
-        return getattr(self, f"_step_{phase}")(inp)
+        f = float(np.linalg.norm(inp.force))
+        pt.max_force_n = max(pt.max_force_n, f)
+        if f <= self.m.abort_force_n:
+            return False
+        pt.valid, pt.reason = False, "force"
+        self._end_probe(inp, self.Phase.RETRACT if self.status.phase == self.Phase.PROBE else self.Phase.LIFT)
+        return True
 
     def _hold(self, inp: TickInput) -> Motion:
         p = inp.p_ref
@@ -270,7 +288,7 @@ class MapTask(Task):
         self._progress(0.0)
         if self._arrived(inp, target):
             self.episode += 1                       # a fresh contact episode for this point
-            self._enter("descend", inp.t)
+            self._enter(self.Phase.DESCEND, inp.t)
             return self._step_descend(inp)
         dist = float(np.linalg.norm(target - inp.p))
         return self._move(inp, target, self.m.travel_speed, dist / self.m.travel_speed)
@@ -285,11 +303,11 @@ class MapTask(Task):
             self._point.p_tcp = inp.p.copy()
             self._p_touch = inp.p.copy() if c.onset_p_tcp is None else np.asarray(c.onset_p_tcp, float).copy()
             self.episode += 1
-            self._enter("settle", inp.t)
+            self._enter(self.Phase.SETTLE, inp.t)
             return None
         if self._arrived(inp, target):
             self._point.reason = "no_contact"
-            self._end_probe(inp, "lift")
+            self._end_probe(inp, self.Phase.LIFT)
             return self._hold(inp)
         return self._move(inp, target, self.m.speed, self.m.depth / self.m.speed)
 
@@ -309,7 +327,7 @@ class MapTask(Task):
         self._t_dir = self._tangent()
         self.episode += 1
         self.commanded_onset = True
-        self._enter("probe", inp.t)
+        self._enter(self.Phase.PROBE, inp.t)
         return self._step_probe(inp)
 
     def _step_probe(self, inp: TickInput) -> Motion | None:
@@ -318,7 +336,7 @@ class MapTask(Task):
         self._progress(0.5 + 0.3 * min(max(s / self.m.probe_distance, 0.0), 1.0))
         if self._arrived(inp, target):
             self._record(inp.contact)
-            self._end_probe(inp, "retract")
+            self._end_probe(inp, self.Phase.RETRACT)
             return self._hold(inp)
         return self._move(inp, target, self.m.speed, self.m.probe_distance / self.m.speed)
 
@@ -358,7 +376,7 @@ class MapTask(Task):
     def _step_retract(self, inp: TickInput) -> Motion | None:
         self._progress(0.85)
         if self._arrived(inp, self._p_detect):
-            self._enter("lift", inp.t)
+            self._enter(self.Phase.LIFT, inp.t)
             return self._step_lift(inp)
         return self._move(inp, self._p_detect, self.m.speed, self.m.probe_distance / self.m.speed)
 
@@ -395,12 +413,12 @@ class MapTask(Task):
         self._pass += 1
         if self._pass < len(self.yaws):
             self._R_from = self._R_pass.copy()
-            self._enter("turn", inp.t)
+            self._enter(self.Phase.TURN, inp.t)
             self._turn_p = inp.p_ref.copy()
             return self._step_turn(inp)
-        self._enter("write", inp.t)
+        self._enter(self.Phase.WRITE, inp.t)
         self.status.progress = 0.99
-        self._future = self.writer(MapRecord(self.id, self.m, list(self.points), list(self.yaws)))
+        self._future = self.files.write(MapRecord(self.id, self.m, list(self.points), list(self.yaws)))
         return None
 
     def _step_turn(self, inp: TickInput) -> Motion | None:
@@ -423,7 +441,7 @@ class MapTask(Task):
                 return None
         return Motion(self._turn_p, np.zeros(3), R_target, w=Z_UP * rate, max_speed=self.m.travel_speed)
 
-    def _step_write(self) -> Motion | None:
+    def _step_write(self, inp: TickInput) -> Motion | None:
         fut = self._future
         if fut is None or not fut.done():
             return None                                   # hold still while the map is written
@@ -431,7 +449,10 @@ class MapTask(Task):
         if exc is not None:
             self._fail(f"map files not written: {exc}")
             return None
-        st = self.status
-        st.state, st.progress, st.result = "done", 1.0, fut.result()
+        self._done(fut.result())
         return None
+
+    STEPS = {Phase.TRAVEL: _step_travel, Phase.DESCEND: _step_descend, Phase.SETTLE: _step_settle,
+             Phase.PROBE: _step_probe, Phase.RETRACT: _step_retract, Phase.LIFT: _step_lift, Phase.TURN: _step_turn,
+             Phase.WRITE: _step_write}
 

@@ -112,9 +112,8 @@ class OnsetDetector:
 
         band = section.getfloats("band_hz", [40.0, 200.0], n=2, minval=1.0)
         if not band[0] < band[1] < odr_hz / 2:
-            from tecdard.config import ConfigError
-            raise ConfigError(f"{section.path}.band_hz: expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz "
-                              f"(half the IMU's rate), got {band}")
+            raise section.error("band_hz", f"expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz (half the IMU's "
+                                           f"rate), got {band}")
         axis = section.getvec3("accel_axis", None, unit=True) if section.has("accel_axis") else None
         try:
             return cls(
@@ -129,9 +128,9 @@ class OnsetDetector:
                 warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
                 odr_hz=odr_hz,
             )
-        except ValueError as exc:
-            from tecdard.config import ConfigError
-            raise ConfigError(f"{section.path}.{exc}") from None
+        except ValueError as exc:         # "accel_threshold: must be > 0": the key, then the problem
+            key, _, problem = str(exc).partition(": ")
+            raise section.error(key, problem) from None
 
     def rearm(self) -> None:
         """Start looking for the next onset; rest levels keep their last values."""

@@ -11,7 +11,7 @@ from tecdard.control import safety
 from tecdard.control.modes import Event, Mode, transition
 from tecdard.control.pipeline import EstimatorDirective
 from tecdard.control.planner import CartesianPlanner, PlannerError
-from tecdard.control.tasks import ContactView, Task, TickInput
+from tecdard.control.tasks import ContactView, Task, TaskState, TickInput
 
 REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 # The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan
@@ -24,14 +24,14 @@ class TaskRunner:
     the plan), and its end (done, failed, cancelled, stopped), braking to rest after it.
 
     `emit(kind, **fields)` takes its events (task_started, task_done, task_failed, protective_stop);
-    `on_rest()` is called when a brake has brought the arm to rest; `on_partial(task_id, record)`
-    gets what a task that ends early still has to write (a map's points)."""
+    `on_rest()` is called when a brake has brought the arm to rest. A task that ends early hands off
+    what it still has to write itself (Task.ended_early: a map's points)."""
 
     def __init__(self, planner: CartesianPlanner, limits: safety.SafetyLimits, emit: Callable,
-                 on_rest: Callable = lambda: None, on_partial: Callable = lambda task_id, record: None):
+                 on_rest: Callable = lambda: None):
         self.planner = planner
         self.limits = limits
-        self.emit, self.on_rest, self.on_partial = emit, on_rest, on_partial
+        self.emit, self.on_rest = emit, on_rest
         self.mode = Mode.IDLE
         self.task: Task | None = None
         self.directive = EstimatorDirective()
@@ -147,7 +147,7 @@ class TaskRunner:
                      bias_held=task.status.phase in task.touching_phases)
         if motion is None:
             st = task.status
-            if st.state in ("done", "failed"):
+            if st.state is not TaskState.RUNNING:
                 self.end(st.state, result=st.result, error=st.error)
             return self._brake_step()
         self.R_hold = motion.R
@@ -188,8 +188,8 @@ class TaskRunner:
         return p_cmd
 
     def end(self, outcome: str, result: dict | None = None, error: str = "") -> None:
-        """End the running task (if any): its end event, a fresh episode for the estimator, and what
-        a task that ends early still has to write handed to `on_partial`."""
+        """End the running task (if any): its end event and a fresh episode for the estimator; a task
+        that ends early writes what it still has (Task.ended_early)."""
         task = self.task
         if task is None:
             return
@@ -197,7 +197,7 @@ class TaskRunner:
         self.mode = transition(self.mode, Event.END)
         self._direct(episode=self.directive.episode + 1, armed=True, arc_following=False, bias_held=False,
                      begin_t=None)
-        if outcome == "done":
+        if outcome == TaskState.DONE:
             result = dict(result or {})
             if self.saturated:
                 # said in the result: those samples were left out, the estimate rests on the rest
@@ -206,13 +206,8 @@ class TaskRunner:
                                       "were left out of the estimate"]
             self.emit("task_done", task=task.id, verb=task.kind, result=result)
             return
-        extra = {}
-        partial = task.partial_record()
-        if partial is not None:
-            # nothing is lost: the points probed so far are fused and written all the same; the
-            # directory appears complete or not at all, and `map_written` says when it has
-            self.on_partial(task.id, partial)
-            extra["map_pending"] = True
+        # nothing is lost: a map's points probed so far are fused and written all the same
+        extra = task.ended_early()
         self.emit("task_failed", task=task.id, verb=task.kind, error=error, phase=task.status.phase, **extra)
 
     def _direct(self, **changes) -> None:

@@ -1,28 +1,24 @@
-"""Task state machines stepped by the 20 ms control tick: two-phase probing and hinge rotation (Algorithm 2)."""
+"""Task state machines stepped by the 20 ms control tick: what every task shares, and the simple ones
+(approach, point). The paper's Algorithm 2 (rotate, probe) is control.rotate, the tactile map
+control.mapping.
+
+Each task names its phases in an enum (`Phase`) and steps the phase it is in with the method
+`STEPS` gives for it: one dispatch for every task (Task.step).
+"""
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from tecdard.control.geometry import rotvec_to_matrix, signed_angle, unit
+from tecdard.control.geometry import unit
 
 LOOKAHEAD_S = 0.25            # arc target placed this far ahead along the arc, at the commanded speed
-PROBE_OVERSHOOT_M = 0.002     # phase-1 target lies beyond the probe distance so the TCP never stops there
 ANGLE_TOL_RAD = math.radians(0.2)
 PHASE_TIMEOUT_FACTOR = 4.0    # a phase may take this many times its nominal duration (+ slack)
 PHASE_TIMEOUT_SLACK_S = 2.0
-TOOL_TURN_RAMP_S = 0.5        # rotate: the tool's turning with the arc fades in over this long
-# Arc radius correction per newton of radial grasp force, m/(N s). It integrates the force, so
-# against a grasp of radial stiffness k the loop's bandwidth is ARC_ADMITTANCE_M_NS * k, behind a
-# delay of a control tick, the arm's command latency and the planner's response (50-80 ms on a
-# Franka). At 0.003 and a grasp of about 5 kN/m (franky-sim's cutter) that is 15/s and 60 deg of
-# lag at the crossover: the arc's end rang at 3 Hz, +-1.8 mm and +-8 N, and the estimator's
-# innovations stopped the task. At 0.001 (5/s, a 0.2 s time constant) it is well damped, and it
-# still follows a radius that drifts 0.3 mm/s (an estimate 2 mm off at 2 cm/s) within 0.1 mm.
-ARC_ADMITTANCE_M_NS = 0.001
-ARC_RADIAL_MAX_M = 0.02       # the radius correction stays within this
 
 
 @dataclass
@@ -65,10 +61,16 @@ class Motion:
     max_speed: float | None = None        # TCP speed cap for this motion, m/s (None: the task's speed)
 
 
+class TaskState(enum.StrEnum):
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+
+
 @dataclass
 class TaskStatus:
-    state: str = "running"              # running | done | failed
-    phase: str = "start"
+    state: TaskState = TaskState.RUNNING
+    phase: str = "start"                # the task's Phase (a str); "start" until its first tick
     progress: float = 0.0
     result: dict = field(default_factory=dict)
     error: str = ""
@@ -89,6 +91,8 @@ class Task:
     """
 
     kind = "task"
+    Phase: type = enum.StrEnum          # the task's phases (each task's own enum)
+    STEPS: dict = {}                    # Phase -> the method that steps it
     trigger_phase: str | None = None
     touching_phases: tuple = ()        # phases where the tool touches outside a contact episode
     absorbed_phases: tuple = ()        # phases where the grasp absorbs the TCP's motion along the lever arm
@@ -105,9 +109,17 @@ class Task:
         self.commanded_onset = False
         self._phase_t0 = 0.0
 
+    def step(self, inp: TickInput) -> Motion | None:
+        """Advance the state machine one tick: the step of the phase it is in (STEPS). Returns the
+        motion target, or None to brake or hold."""
+        if not self._running(inp):
+            return None
+        self._tick(inp)
+        return self.STEPS[self.status.phase](self, inp)
+
     def _running(self, inp: TickInput) -> bool:
         """False once done or failed; on the first tick, latches the start pose."""
-        if self.status.state != "running":
+        if self.status.state is not TaskState.RUNNING:
             return False
         if self.p_start is None:
             self.p_start = inp.p.copy()
@@ -116,7 +128,10 @@ class Task:
         return True
 
     def _started(self, inp: TickInput) -> None:
-        """Called once, on the first tick."""
+        """Called once, on the first tick: enter the first phase."""
+
+    def _tick(self, inp: TickInput) -> None:
+        """Called every tick before the phase's step."""
 
     def _enter(self, phase: str, t: float) -> None:
         self.status.phase = phase
@@ -126,253 +141,18 @@ class Task:
         """The current phase has taken far longer than its nominal duration."""
         return t - self._phase_t0 > PHASE_TIMEOUT_FACTOR * nominal_s + PHASE_TIMEOUT_SLACK_S
 
+    def _done(self, result: dict) -> None:
+        st = self.status
+        st.state, st.progress, st.result = TaskState.DONE, 1.0, result
+
     def _fail(self, message: str) -> None:
-        self.status.state = "failed"
+        self.status.state = TaskState.FAILED
         self.status.error = message
 
-    def partial_record(self):
-        """What a task that ends early still has to write (a map's points probed so far), or None."""
-        return None
-
-
-class TwoPhaseTask(Task):
-    """Algorithm 2 of the paper.
-
-    Phase 1 (`probe`): open-loop straight motion along `direction` for
-    `probe_distance` while the contact estimator converges. Phase 2 (`arc`):
-    each tick, a target on the circle about the current hinge estimate,
-    through the TCP's start position, `LOOKAHEAD_S` ahead at `speed`, with the
-    tangential target velocity, until the rotation reaches `angle_rad`. The
-    circle's radius follows the grasp force along the lever arm (a radial
-    admittance, not in the paper), so an estimate a little off does not drag
-    the object's base. With strategy `straight` phase 2 is instead a straight pull of the same
-    length as the arc (the paper's failure case).
-
-    Unlike the paper's pseudo-code, which computes the phase-1 direction from
-    the *true* contact point, the direction here comes from the command: the
-    controller does not know the geometry.
-    """
-
-    kind = "rotate"
-    absorbed_phases = ("arc",)
-
-    def __init__(self, task_id: str, angle_rad: float, speed: float, probe_distance: float,
-                 direction: np.ndarray, strategy: str = "arc", turn_tool: bool = False):
-        if strategy not in ("arc", "straight"):
-            raise ValueError("strategy: expected 'arc' or 'straight'")
-        super().__init__(task_id, direction, speed)
-        self.angle_rad = angle_rad
-        # Phase 1 stays short (the paper's 5 mm): a straight probe changes the lever arm as the
-        # object turns, which biases every estimator in proportion to the angle.
-        self.probe_distance = probe_distance
-        self.strategy = strategy
-        self._axis_sign = 1.0
-        self._straight_len = 0.0
-        self._angle = 0.0
-        self._radius = 0.0
-        self.turn_tool = turn_tool
-        self._turn = 0.0                # how far the tool has turned on the arc, rad
-        self._turn_t0 = None            # when it began to turn
-        self._phi_last = 0.0            # planned arc angle and time of the previous tick
-        self._t_last = None
-        self._f0 = None                 # TCP force at the start (the robot's bias and the grasp's preload)
-        self._radial = 0.0              # arc radius correction from the grasp force, m
-        self._end_p: np.ndarray | None = None   # the arc's end, kept once the look-ahead has reached it
-        self._t_radial = None
-
-    def _started(self, inp: TickInput) -> None:
-        self._enter("probe", inp.t)
-
-    def step(self, inp: TickInput) -> Motion | None:
-        """Advance the state machine; returns the motion target, or None to brake/hold."""
-        if not self._running(inp):
-            return None
-        if self._f0 is None and inp.force is not None:
-            self._f0 = np.asarray(inp.force, dtype=float).copy()
-        st = self.status
-        if st.phase == "probe":
-            return self._step_probe(inp)
-        if st.phase == "arc":
-            return self._step_arc(inp)
-        if st.phase == "straight":
-            return self._step_straight(inp)
-        return None
-
-    def _step_probe(self, inp: TickInput) -> Motion | None:
-        s = float(np.dot(inp.p - self.p_start, self.direction))
-        self.status.progress = 0.1 * min(max(s / self.probe_distance, 0.0), 1.0)
-        if s >= self.probe_distance:
-            c = inp.contact
-            if not c.tracking or c.p is None or c.axis is None:
-                self._fail("no contact onset detected during probing")
-                return None
-            self._axis_sign = self._orient_axis(c)
-            self.angle_rad = self._phase2_angle(c)
-            if self.strategy == "straight":
-                self._straight_len = self.angle_rad * self._radius_about(c.p, c.axis)
-                self._enter("straight", inp.t)
-                return self._step_straight(inp)
-            self._enter("arc", inp.t)
-            return self._step_arc(inp)
-        if self._timed_out(inp.t, self.probe_distance / self.speed):
-            self._fail("probing did not cover probe_distance in time")
-            return None
-        target = self.p_start + (self.probe_distance + PROBE_OVERSHOOT_M) * self.direction
-        return Motion(target, self.speed * self.direction, self.R_hold)
-
-    def _phase2_angle(self, c: ContactView) -> float:
-        """Rotation to perform in phase 2, rad, fixed when phase 1 ends."""
-        return self.angle_rad
-
-    def _orient_axis(self, c: ContactView) -> float:
-        """Sign making the rotation about the axis start along the probing direction."""
-        r = self.p_start - c.p
-        return 1.0 if float(np.dot(np.cross(c.axis, r), self.direction)) >= 0 else -1.0
-
-    def _radius_about(self, p_c: np.ndarray, axis: np.ndarray) -> float:
-        r = self.p_start - p_c
-        return float(np.linalg.norm(r - np.dot(r, axis) * axis))
-
-    def _step_arc(self, inp: TickInput) -> Motion | None:
-        c = inp.contact
-        a = self._axis_sign * unit(c.axis, "axis")
-        r0 = self.p_start - c.p
-        along = float(np.dot(r0, a))
-        r0_perp = r0 - along * a
-        rho = float(np.linalg.norm(r0_perp))
-        if rho < 0.01:
-            self._fail(f"hinge estimate {rho * 1000:.1f} mm from the TCP: too close to follow an arc")
-            return None
-        phi = signed_angle(r0, inp.p - c.p, a)
-        self._angle, self._radius = phi, rho
-        # The look-ahead advances from the *planned* position: the arm runs a little ahead of or
-        # behind the plan, and a target placed from the measured TCP would run away (or stall),
-        # making the planner cut across the arc.
-        p_ref = inp.p_ref
-        phi_plan = signed_angle(r0, p_ref - c.p, a)
-        self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
-        remaining = self.angle_rad - phi
-        if (self._end_p is not None or remaining <= ANGLE_TOL_RAD) and inp.planner_at_rest:
-            self._finish(c)
-            return None
-        if self._timed_out(inp.t, self.angle_rad * rho / self.speed):
-            self._fail("arc following did not reach the angle in time")
-            return None
-        lookahead = self.speed * LOOKAHEAD_S / rho
-        phi_t = min(phi_plan + lookahead, self.angle_rad)
-        Rot = rotvec_to_matrix(a * phi_t)
-        target = c.p + Rot @ r0 + self._radius_correction(inp, c.p, a) * (Rot @ r0_perp) / rho
-        tangent = np.cross(a, Rot @ r0_perp) / rho
-        v = self.speed * tangent if phi_t < self.angle_rad else np.zeros(3)
-        R, w = self._tool_on_arc(inp.t, phi_plan, a)
-        if phi_t >= self.angle_rad:
-            # The look-ahead has reached the arc's end: that end is kept from now on (the tool
-            # still turns with the plan). Re-placed each tick about the newest estimate and the
-            # admittance's radius, it moved by micrometres, the planner never came to rest, and on
-            # a soft grasp the arm crept and the handle sprang for half a second, which the
-            # estimator's divergence stop took for a failure (franky-sim). The task ends once the
-            # planner is at rest there.
-            if self._end_p is None:
-                self._end_p = target
-            target = self._end_p
-        # Ruckig's limits are per axis: without a duration it would race a look-ahead target
-        # with every axis at the limit (up to sqrt(2) x speed on a tilted arc).
-        return Motion(target, v, R, min_duration_s=(phi_t - phi_plan) * rho / self.speed, w=w)
-
-    def _radius_correction(self, inp: TickInput, p_c: np.ndarray, a: np.ndarray) -> float:
-        """Radial admittance: the handle's true circle is where the grasp force has no radial part.
-        Off it, the soft grasp stretches (the force pulls the TCP towards the hinge) or compresses;
-        the arc's radius moves with that force, so an estimate whose radius or centre is a little
-        off does not drag the object's base. The estimator distrusts the velocity along the lever
-        arm on the arc, so the correction does not feed back into the estimate."""
-        if inp.force is None or self._f0 is None:
-            return self._radial
-        dt = 0.0 if self._t_radial is None else inp.t - self._t_radial
-        self._t_radial = inp.t
-        r = inp.p - p_c
-        r = r - float(r @ a) * a
-        n = float(np.linalg.norm(r))
-        if n > 1e-6 and dt > 0:
-            f_r = float((np.asarray(inp.force, dtype=float) - self._f0) @ (r / n))
-            self._radial = min(max(self._radial + ARC_ADMITTANCE_M_NS * f_r * dt, -ARC_RADIAL_MAX_M),
-                               ARC_RADIAL_MAX_M)
-        return self._radial
-
-    def _tool_on_arc(self, t: float, phi_plan: float, a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """The tool's orientation on the arc: held, or (turn_tool) turned with the arc about the
-        estimated axis, with its rate as feed-forward. The turning rate fades in over
-        TOOL_TURN_RAMP_S (smoothstep) to the planned arc rate: a gripper rate that jumps would be
-        seen late by 65 Hz proprioception, from which the estimator takes the gripper's rate. The
-        tool then trails the handle by a constant angle (half the ramp times the arc rate: 1.1 to
-        2.9 deg over radii 25 to 10 cm at 2 cm/s), well inside the fingertips' stick range."""
-        if not self.turn_tool:
-            return self.R_hold, None
-        if self._turn_t0 is None:
-            self._turn_t0, self._phi_last = t, phi_plan
-        x = min((t - self._turn_t0) / TOOL_TURN_RAMP_S, 1.0)
-        fade = x * x * (3.0 - 2.0 * x)
-        step = fade * (phi_plan - self._phi_last)
-        dt = t - self._t_last if self._t_last is not None else 0.0
-        self._turn += step
-        self._phi_last, self._t_last = phi_plan, t
-        return rotvec_to_matrix(a * self._turn) @ self.R_hold, a * (step / dt if dt > 0 else 0.0)
-
-    def _step_straight(self, inp: TickInput) -> Motion | None:
-        s = float(np.dot(inp.p - self.p_start, self.direction))
-        self.status.progress = 0.1 + 0.9 * min(max(s / max(self._straight_len, 1e-9), 0.0), 1.0)
-        if s >= self._straight_len - 1e-4 and inp.planner_at_rest:
-            c = inp.contact
-            if c.p is not None:
-                self._angle = signed_angle(self.p_start - c.p, inp.p - c.p, self._axis_sign * c.axis)
-                self._radius = self._radius_about(c.p, c.axis)
-            self._finish(c)
-            return None
-        if self._timed_out(inp.t, self._straight_len / self.speed):
-            self._fail("straight pull did not finish in time")
-            return None
-        return Motion(self.p_start + self._straight_len * self.direction, np.zeros(3), self.R_hold)
-
-    def _finish(self, c: ContactView) -> None:
-        st = self.status
-        st.state = "done"
-        st.progress = 1.0
-        st.result = {
-            "hinge": {"p": c.p.tolist(), "std": c.std.tolist(), "axis": (self._axis_sign * c.axis).tolist()},
-            "p": c.p.tolist(),
-            "std": c.std.tolist(),
-            "angle_deg": math.degrees(self._angle),
-            "radius": self._radius,
-            "strategy": self.strategy,
-        }
-
-
-class RotateTask(TwoPhaseTask):
-    """Opens an articulated object; on the arc the tool turns with it (the grasp stays in stick)."""
-
-    kind = "rotate"
-
-    def __init__(self, *args, **kwargs):
-        kwargs.setdefault("turn_tool", True)
-        super().__init__(*args, **kwargs)
-
-
-class ProbeTask(TwoPhaseTask):
-    """Probe (Algorithm 2): phase 1 for `distance`, then arc-follow the same arc length; result is the contact."""
-
-    kind = "probe"
-
-    def __init__(self, task_id: str, speed: float, distance: float, direction: np.ndarray):
-        super().__init__(task_id, angle_rad=0.0, speed=speed, probe_distance=distance, direction=direction)
-        self._arc_len = distance
-
-    def _phase2_angle(self, c: ContactView) -> float:
-        return self._arc_len / max(self._radius_about(c.p, c.axis), 0.01)
-
-    def _finish(self, c: ContactView) -> None:
-        super()._finish(c)
-        self.status.result = {"p": c.p.tolist(), "std": c.std.tolist(),
-                              "axis": (self._axis_sign * c.axis).tolist(),
-                              "angle_deg": math.degrees(self._angle), "radius": self._radius}
+    def ended_early(self) -> dict:
+        """The task was stopped, cancelled or failed: hand off whatever it still has to write (a map's
+        points probed so far) and return the fields its `task_failed` event adds ({} by default)."""
+        return {}
 
 
 class ApproachTask(Task):
@@ -381,9 +161,13 @@ class ApproachTask(Task):
     ongoing-movement case). Never travels beyond `max_distance`: without a contact by then the
     task fails."""
 
+    class Phase(enum.StrEnum):
+        APPROACH = "approach"
+        CONTACT = "contact"
+
     kind = "approach"
-    trigger_phase = "approach"
-    absorbed_phases = ("contact",)
+    trigger_phase = Phase.APPROACH
+    absorbed_phases = (Phase.CONTACT,)
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float, max_distance: float,
                  stop_angle_rad: float):
@@ -392,24 +176,22 @@ class ApproachTask(Task):
         self.stop_angle_rad = stop_angle_rad
 
     def _started(self, inp: TickInput) -> None:
-        self._enter("approach", inp.t)
+        self._enter(self.Phase.APPROACH, inp.t)
 
-    def step(self, inp: TickInput) -> Motion | None:
-        if not self._running(inp):
-            return None
+    def _step(self, inp: TickInput) -> Motion | None:
+        """Both phases: along the direction until the contact shows, then on until it has turned enough."""
         st = self.status
         s = float(np.dot(inp.p - self.p_start, self.direction))
         # how far the plan has gone: the arm trails it by a hair at the end of a paced move
         s_plan = float(np.dot(inp.p_ref - self.p_start, self.direction))
         c = inp.contact
         if c.tracking and c.p is not None:
-            st.phase = "contact"
+            st.phase = self.Phase.CONTACT
             st.progress = 0.5 + 0.5 * min(c.angle_rad / self.stop_angle_rad, 1.0)
             if c.angle_rad >= self.stop_angle_rad or s_plan >= self.max_distance - 1e-5:
-                st.state, st.progress = "done", 1.0
-                st.result = {"p": c.p.tolist(), "std": c.std.tolist(),
-                             "axis": None if c.axis is None else c.axis.tolist(),
-                             "angle_deg": math.degrees(c.angle_rad), "travel": s}
+                self._done({"p": c.p.tolist(), "std": c.std.tolist(),
+                            "axis": None if c.axis is None else c.axis.tolist(),
+                            "angle_deg": math.degrees(c.angle_rad), "travel": s})
                 return None
         else:
             st.progress = 0.5 * min(max(s / self.max_distance, 0.0), 1.0)
@@ -421,6 +203,8 @@ class ApproachTask(Task):
         p_ref = inp.p_ref
         remaining = max(float(np.dot(target - p_ref, self.direction)), 0.0)
         return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
+
+    STEPS = {Phase.APPROACH: _step, Phase.CONTACT: _step}
 
 
 POINT_RESOLVED_STD_M = 0.02   # a point result needs every axis known this well
@@ -439,8 +223,12 @@ class PointTask(Task):
     A tool tilted in the grasp breaks the cone: see docs/zenoh-api.md.
     """
 
+    class Phase(enum.StrEnum):
+        OUT = "out"
+        CIRCLE = "circle"
+
     kind = "point"
-    absorbed_phases = ("out",)
+    absorbed_phases = (Phase.OUT,)
 
     def __init__(self, task_id: str, radius: float, speed: float, turns: float):
         super().__init__(task_id, np.array([1.0, 0.0, 0.0]), speed)
@@ -451,7 +239,7 @@ class PointTask(Task):
         self._psi_plan = 0.0
 
     def _started(self, inp: TickInput) -> None:
-        self._enter("out", inp.t)
+        self._enter(self.Phase.OUT, inp.t)
 
     def _on_circle(self, psi: float) -> np.ndarray:
         """The circle point at angle psi, at the start height."""
@@ -461,26 +249,26 @@ class PointTask(Task):
         d = p - self.p_start
         return math.atan2(float(d @ self.e2), float(d @ self.direction))
 
-    def step(self, inp: TickInput) -> Motion | None:
-        if not self._running(inp):
+    def _step_out(self, inp: TickInput) -> Motion | None:
+        """Tilt the tool out: the TCP to the circle's start, at the start height."""
+        st, p_ref = self.status, inp.p_ref
+        s_plan = float(np.dot(p_ref - self.p_start, self.direction))
+        st.progress = 0.1 * min(max(s_plan / self.radius, 0.0), 1.0)
+        if s_plan >= self.radius - 1e-4:
+            self._enter(self.Phase.CIRCLE, inp.t)
+            self._psi = self._psi_plan = 0.0
+            return self._step_circle(inp)
+        if self._timed_out(inp.t, self.radius / self.speed):
+            self._fail("tilting out to the circle did not finish in time")
             return None
-        st, c = self.status, inp.contact
-        p_ref = inp.p_ref
+        target = self._on_circle(0.0)
+        remaining = max(float(np.linalg.norm(target - p_ref)), 0.0)
+        return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
+
+    def _step_circle(self, inp: TickInput) -> Motion | None:
+        """Circle the TCP `turns` times; the angle travelled unwrapped, measured and planned."""
+        st, c, p_ref = self.status, inp.contact, inp.p_ref
         total = 2.0 * math.pi * self.turns
-        if st.phase == "out":
-            s_plan = float(np.dot(p_ref - self.p_start, self.direction))
-            st.progress = 0.1 * min(max(s_plan / self.radius, 0.0), 1.0)
-            if s_plan >= self.radius - 1e-4:
-                self._enter("circle", inp.t)
-                self._psi = self._psi_plan = 0.0
-            else:
-                if self._timed_out(inp.t, self.radius / self.speed):
-                    self._fail("tilting out to the circle did not finish in time")
-                    return None
-                target = self._on_circle(0.0)
-                remaining = max(float(np.linalg.norm(target - p_ref)), 0.0)
-                return Motion(target, np.zeros(3), self.R_hold, min_duration_s=remaining / self.speed)
-        # circle: unwrap the angle travelled, measured and planned
         self._psi += _wrap(self._angle_of(inp.p) - self._psi)
         self._psi_plan += _wrap(self._angle_of(p_ref) - self._psi_plan)
         st.progress = 0.1 + 0.9 * min(max(self._psi / total, 0.0), 1.0)
@@ -506,9 +294,10 @@ class PointTask(Task):
             self._fail(f"point contact not resolved: one-sigma {worst * 1e3:.0f} mm on some axis "
                        f"(a line contact, or slipping)")
             return
-        st.state, st.progress = "done", 1.0
-        st.result = {"p": c.p.tolist(), "std": c.std.tolist(), "turns": self._psi / (2.0 * math.pi),
-                     "lever_arm": float(np.linalg.norm(self.p_start - c.p))}
+        self._done({"p": c.p.tolist(), "std": c.std.tolist(), "turns": self._psi / (2.0 * math.pi),
+                    "lever_arm": float(np.linalg.norm(self.p_start - c.p))})
+
+    STEPS = {Phase.OUT: _step_out, Phase.CIRCLE: _step_circle}
 
 
 def _wrap(a: float) -> float:

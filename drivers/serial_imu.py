@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import collections
+import grp
+import os
+import pwd
 import time
 from dataclasses import dataclass
 
@@ -9,9 +12,11 @@ import numpy as np
 import serial
 import serial.tools.list_ports
 
+from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
 from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
 from tecdard.drivers.timesync import ClockSync, Unwrapper
+from tecdard.host import Check
 
 READ_CHUNK_BYTES = 1 << 16
 RETRY_MIN_S = 0.05
@@ -36,7 +41,6 @@ class SerialParams:
 
     @classmethod
     def from_config(cls, section) -> "SerialParams":
-        from tecdard.config import ConfigError
         d = cls()
         vid_pid = section.getstr("vid_pid", "") or None
         vid = pid = None
@@ -45,7 +49,7 @@ class SerialParams:
                 vid_s, pid_s = vid_pid.split(":")
                 vid, pid = int(vid_s, 16), int(pid_s, 16)
             except ValueError:
-                raise ConfigError(f"{section.path}.vid_pid: expected hex VID:PID such as 0483:5740, got {vid_pid!r}") from None
+                raise section.error("vid_pid", f"expected hex VID:PID such as 0483:5740, got {vid_pid!r}") from None
         p = cls(port=section.getstr("port", "") or None, vid=vid, pid=pid,
                 serial_number=section.getstr("serial_number", "") or None,
                 baud=section.getint("baud", d.baud, minval=1200),
@@ -53,13 +57,15 @@ class SerialParams:
                 gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
                 accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g))
         if p.port is None and p.vid is None:
-            raise ConfigError(f"{section.path}.port: give a port path or vid_pid")
+            raise section.error("port", "give a port path or vid_pid")
         try:
             Scaling(p.gyro_fs_dps, p.accel_fs_g)
-        except ValueError as exc:
-            raise ConfigError(f"{section.path}.{exc}") from None
-        if odr_problem(p.odr_hz):
-            raise ConfigError(f"{section.path}.{odr_problem(p.odr_hz)}")
+        except ValueError as exc:         # "gyro_fs_dps: ...": the key, then the problem
+            key, _, what = str(exc).partition(": ")
+            raise section.error(key, what) from None
+        problem = odr_problem(p.odr_hz)
+        if problem:                       # "odr_hz 1234 is not ...": the key, then the problem
+            raise section.error("odr_hz", problem.split(" ", 1)[1])
         return p
 
 
@@ -73,8 +79,8 @@ def find_port(vid: int, pid: int, serial_number: str | None = None, comports=Non
     raise PortError(f"no USB serial device {vid:04x}:{pid:04x}{sn} is connected")
 
 
-class SerialImuSource:
-    """Implements the IMU source interface: `read(timeout)` -> (t, gyro, accel) or None.
+class SerialImuSource(ImuSource):
+    """The fingertip board: `read(timeout)` -> (t, gyro, accel) or None (drivers.imu_source.ImuSource).
 
     t is the host's monotonic clock (s); gyro rad/s and accel m/s^2 in the IMU frame.
     If the port vanishes (unplug), the source reports a `fault` event, retries opening with
@@ -116,6 +122,16 @@ class SerialImuSource:
             reason = getattr(exc, "strerror", None) or str(exc).split(":")[-1].strip() or type(exc).__name__
             raise PortError(f"cannot open {path}: {reason}") from None
         self.port_path = path
+
+    def start(self) -> str | None:
+        """Open the port now; where it cannot be, say why and keep trying in the background (a fault
+        until it opens)."""
+        try:
+            self.open()
+        except PortError as exc:
+            self.mark_lost(str(exc))
+            return f"{exc}; retrying in the background"
+        return None
 
     def close(self) -> None:
         if self.ser is not None:
@@ -224,3 +240,48 @@ class SerialImuSource:
         out = list(self.events)
         self.events.clear()
         return out
+
+    def checks(self) -> list[Check]:
+        return [check_board(self.params)]
+
+
+def _access_problem(path: str) -> tuple[str, str] | None:
+    """None, or (what is wrong, the device's group)."""
+    if os.access(path, os.R_OK | os.W_OK):
+        return None
+    st = os.stat(path)
+    try:
+        group = grp.getgrgid(st.st_gid).gr_name
+    except KeyError:
+        group = str(st.st_gid)
+    user = pwd.getpwuid(os.getuid()).pw_name
+    return f"{path} is mode {st.st_mode & 0o777:o}, group {group}, and {user} may not read and write it", group
+
+
+def check_board(serial_params: "SerialParams", comports=None) -> Check:
+    """The board at its configured port (by path, or found by VID:PID) and readable and writable."""
+    if comports is None:
+        import serial.tools.list_ports
+        comports = serial.tools.list_ports.comports
+    p = serial_params
+    if p.port is not None:
+        path = p.port
+        if not os.path.exists(path):
+            fix = ("plug the board in; with the udev rule installed it appears as /dev/tecdar-imu"
+                   if "tecdar-imu" in path else "plug the board in, or correct imu.serial.port")
+            return Check("fingertip board", "fail", f"{path} does not exist", fix)
+    else:
+        try:
+            path = find_port(p.vid, p.pid, p.serial_number, comports)
+        except PortError as exc:
+            seen = ", ".join(f"{i.device} {i.vid:04x}:{i.pid:04x}" for i in comports() if i.vid is not None)
+            return Check("fingertip board", "fail", f"{exc}" + (f" (connected: {seen})" if seen else ""),
+                         "plug the board in, or correct imu.serial.vid_pid (`lsusb` lists the IDs)")
+    problem = _access_problem(path)
+    if problem is not None:
+        detail, group = problem
+        return Check("fingertip board", "fail", detail,
+                     f"`sudo usermod -aG {group} $USER` and log in again (the unit runs with "
+                     f"SupplementaryGroups={group}); the udev rule sets the group")
+    return Check("fingertip board", "pass", f"{path} (real path {os.path.realpath(path)}) readable and writable")
+

@@ -1,10 +1,10 @@
-"""Robot backend interfaces: reading state apart from commanding, in the manner of ur_rtde."""
+"""The one declared base of every robot backend (`RobotBackend`), as ros2_control's SystemInterface is: a
+lifecycle, then reading state apart from commanding (as ur_rtde separates them). `LinkBackend` is what
+the real arms share: a device client in a child process (robots.child_link), reconnected when lost."""
 from __future__ import annotations
 
-import multiprocessing
 import threading
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 import pinocchio as pin
@@ -35,178 +35,110 @@ def joint_rates(qd, nq: int) -> np.ndarray:
     return qd
 
 
-class StateSlot:
-    """The newest JointState of a robot link, between the thread that receives states and the
-    threads that read them: `publish` replaces it and wakes the waiters; `close` (the link has gone)
-    wakes them for good, and reads then raise `error()`."""
+class RobotBackend:
+    """What the daemon asks of a robot. Lifecycle: built from the config (reading only; a bad option is a
+    ConfigError from its section), `start` (connect, activate: BackendError naming the robot if it
+    cannot), `close` (deactivate, disconnect). Then `read_state`/`wait_state` (the control and
+    proprioception threads) and `command_joint_velocity`/`hold` (the control thread).
 
-    def __init__(self, error):
-        self._error = error                  # () -> the exception to raise once closed or before a state
-        self._state: JointState | None = None
-        self._cond = threading.Condition()
-        self.closed = threading.Event()
+    The optional behaviours are declared here with their defaults: `faults` (the robot's own, held
+    while they last), `annotate` (additions to the daemon's events), `imu_source` (which source reads
+    the fingertip), `checks` (for `tecdard doctor`)."""
 
-    def publish(self, js: JointState) -> None:
-        with self._cond:
-            self._state = js
-            self._cond.notify_all()
+    name = "robot"                      # robot.backend
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def start(self) -> None:
+        raise NotImplementedError
 
     def close(self) -> None:
-        with self._cond:
-            self.closed.set()
-            self._cond.notify_all()
+        raise NotImplementedError
 
-    def read(self) -> JointState:
-        if self._state is None:
-            raise self._error()
-        return self._state
-
-    def wait(self, seq: int, timeout: float) -> JointState:
-        """The newest state once its seq differs from `seq`, or after `timeout` s."""
-        with self._cond:
-            self._cond.wait_for(lambda: self.closed.is_set() or (self._state is not None and self._state.seq != seq),
-                                timeout)
-        if self.closed.is_set():
-            raise self._error()
-        return self.read()
-
-
-CHILD_STOP_S = 2.0      # a robot link's child process is waited for this long, then terminated
-
-
-def kill_child(proc) -> None:
-    """Terminate a child process that is still alive, and wait for it."""
-    if proc is not None and proc.is_alive():
-        proc.terminate()
-        proc.join(CHILD_STOP_S)
-
-
-def end_child(proc, conns) -> None:
-    """A child process that has been asked to stop: wait for it, terminate it if it does not, and
-    close the parent's ends of its pipes (a link that reconnects makes new ones)."""
-    proc.join(CHILD_STOP_S)
-    kill_child(proc)
-    for conn in conns:
-        conn.close()
-
-
-class RobotReceive(Protocol):
-    """Reading side: latest proprioception."""
-
-    def read_state(self) -> JointState: ...
+    # -- read ------------------------------------------------------------------------------
+    def read_state(self) -> JointState:
+        raise NotImplementedError
 
     def wait_state(self, seq: int, timeout: float) -> JointState:
         """The latest state, once its seq differs from `seq` or after `timeout` s (every new
         measurement, for the estimator, at the robot's own rate)."""
-        ...
+        raise NotImplementedError
 
+    # -- write -----------------------------------------------------------------------------
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        raise NotImplementedError
 
-class RobotControl(Protocol):
-    """Commanding side: joint velocity streaming, and a hold."""
+    def hold(self) -> None:
+        """Bring the arm to rest and keep it there."""
+        raise NotImplementedError
 
-    def command_joint_velocity(self, qd: np.ndarray) -> None: ...
+    # -- optional, with defaults ---------------------------------------------------------
+    def faults(self) -> dict[str, str]:
+        """The robot's own faults that hold now, code -> message (raised and cleared as the daemon's)."""
+        return {}
 
-    def hold(self) -> None: ...
+    def annotate(self, event: dict) -> dict:
+        """An event with what this backend adds to it (the simulator's truth on a task's end)."""
+        return event
 
+    def imu_source(self, kind: str, section):
+        """The fingertip's IMU source for `imu.source: kind` (`section`: the config's `imu`). A real arm
+        has the board on serial; the simulator's backend also has its own (sim, sim-wire)."""
+        from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
+        if kind != "serial":
+            raise section.error("source", f"with robot.backend {self.name} the fingertip board is read over "
+                                          "serial; set imu.source: serial")
+        return SerialImuSource(SerialParams.from_config(section.section("serial")))
 
-class ChildLink:
-    """What a robot link whose client runs in a child process (robots.ur_link, robots.franka_link)
-    shares: its command pipe, the newest state (`_states`, a StateSlot) and the child's end.
-    Subclasses set `error` (their BackendError) and `settings` (with `host`), and start the child."""
-
-    error = BackendError
-
-    def __init__(self, settings):
-        self.settings = settings
-        self._proc = None
-        self._cmd = self._state_rx = None
-        self._send_lock = threading.Lock()
-        self._states = StateSlot(lambda: self.error(self.fault or f"no state from {self.settings.host} yet"))
-        self.exited = self._states.closed
-        self.fault: str | None = None               # the link's own fault (lost), or None
-
-    def _spawn(self, target, name: str) -> None:
-        """Start the child `target(settings, cmd_rx, state_tx)` with a command pipe in and a state pipe out."""
-        ctx = multiprocessing.get_context("spawn")
-        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
-        self._state_rx, state_tx = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=target, args=(self.settings, cmd_rx, state_tx), name=name, daemon=True)
-        self._proc.start()
-        cmd_rx.close()
-        state_tx.close()
-
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        self._send(("close",), quiet=True)
-        end_child(self._proc, (self._cmd, self._state_rx))
-        self._proc = None
-
-    def _send(self, msg: tuple, quiet: bool = False) -> None:
-        try:
-            with self._send_lock:
-                self._cmd.send(msg)
-        except (OSError, ValueError, AttributeError, BrokenPipeError):
-            if not quiet:
-                raise self.error(f"the link to {self.settings.host} is not running") from None
-
-    def read_state(self) -> JointState:
-        return self._states.read()
-
-    def wait_state(self, seq: int, timeout: float) -> JointState:
-        """The latest state, once its seq differs from `seq` or after `timeout` s; the link's error
-        once it has gone."""
-        return self._states.wait(seq, timeout)
-
-
-def rig_section(ctx, backend: str, models: tuple[str, ...], arm: str, host_is: str):
-    """The `robot.<backend>` section of a real arm's backend, after the checks every such backend
-    makes: robot.model is one of `models`, the fingertip board is read over serial, and the
-    section names a host (ConfigError naming the key otherwise)."""
-    from tecdard.config import ConfigError
-    if ctx.model.name not in models:
-        raise ConfigError(f"robot.model: {ctx.model.name!r} is no {arm} arm; with robot.backend {backend} use one of "
-                          f"{', '.join(models)}")
-    if ctx.imu_source != "serial":
-        raise ConfigError(f"imu.source: with robot.backend {backend} the fingertip board is read over serial; "
-                          "set imu.source: serial")
-    section = ctx.cfg.section("robot").section(backend)
-    if not section.has("host"):
-        raise ConfigError(f"robot.{backend}.host: required with robot.backend {backend} ({host_is})")
-    return section
+    def checks(self) -> list:
+        """Whether this host can reach the robot (tecdard.host.Check each), for `tecdard doctor`."""
+        return []
 
 
 RECONNECT_S = (0.5, 1.0, 2.0, 4.0)      # back-off between reconnect attempts, then the last one repeated
-
-
 FK_CHECK_M = 0.003         # our FK and the robot's own TCP pose further apart than this: said at start
 FK_CHECK_RAD = 0.0175      # ... or turned by more than this (1 degree)
 
 
-class LinkBackend:
-    """Receive and control, as any backend, for a backend that reaches its robot through a
-    ChildLink (`self.link`, replaced when it reconnects; `self._stop` set on close). A link that is
-    down answers with its last state and takes no command: its fault has stopped the task already.
-    The fingertip board is read by the serial driver (imu.source: serial)."""
+def rig_section(ctx, backend: str, models: tuple[str, ...], arm: str, host_is: str):
+    """The `robot.<backend>` section of a real arm's backend, after the checks every such backend
+    makes: robot.model is one of `models` and the section names a host (a ConfigError from the
+    section naming the key otherwise)."""
+    robot = ctx.cfg.section("robot")
+    if ctx.model.name not in models:
+        raise robot.error("model", f"{ctx.model.name!r} is no {arm} arm; with robot.backend {backend} use one of "
+                                   f"{', '.join(models)}")
+    section = robot.section(backend)
+    if not section.has("host"):
+        raise section.error("host", f"required with robot.backend {backend} ({host_is})")
+    return section
 
-    imu = None
-    serial_params = None
-    imu_odr_hz = None
-    link: ChildLink
+
+class LinkBackend(RobotBackend):
+    """A backend that reaches its robot through a ChildLink (`self.link`, replaced when it reconnects;
+    `self._stop` set on close). A link that is down answers with its last state and takes no
+    command: its fault has stopped the task already. The fingertip board is read over serial."""
+
+    link: object                       # robots.child_link.ChildLink
     settings: object
     model: object                      # robots.model.ArmModel
     log: object                        # the backend's logger
     _stop: threading.Event
 
-    def _attach(self, ctx, link: ChildLink) -> None:
+    def _attach(self, ctx, link) -> None:
         """What every link backend holds once its settings are read: the arm model and the link
-        (not yet started); the backend is its own robot."""
+        (not yet started)."""
         self.nq = ctx.model.nq
         self.model = ctx.model
         self.link = link
-        self.robot = self
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
+
+    def _supervise_in_background(self, name: str) -> None:
+        self._supervisor = threading.Thread(target=self._supervise, name=name, daemon=True)
+        self._supervisor.start()
+
+    def _supervise(self) -> None:
+        raise NotImplementedError
 
     def _say_fk_offset(self, q, pose: np.ndarray, theirs: str, check: str) -> None:
         """Our FK of the joints q against the TCP pose (4 x 4) the robot reports: over FK_CHECK_M
@@ -242,7 +174,10 @@ class LinkBackend:
         return 0
 
     def close(self) -> None:
-        raise NotImplementedError
+        self._stop.set()
+        self.link.stop()
+        if self._supervisor is not None:
+            self._supervisor.join(2.0)
 
     def read_state(self) -> JointState:
         return self.link.read_state()
@@ -265,6 +200,3 @@ class LinkBackend:
             self.link.hold()
         except BackendError:
             pass
-
-    def stop(self) -> None:
-        self.close()

@@ -1,10 +1,7 @@
-"""The robot backends, by the name `robot.backend` gives: each a module with `build(BackendContext)`.
+"""The robot backends, by the name `robot.backend` gives: each a module with `build(BackendContext)` that
+returns a robots.backend.RobotBackend. Adding a backend is its module and one line in BACKENDS.
 
-A backend gives the daemon a robot to receive from and command (robots.backend's JointState,
-read_state/wait_state, command_joint_velocity, hold, stop), and may also be the IMU source. A robot
-with `faults()` (code -> message, while each holds) has them raised and cleared as the daemon's
-own faults. Its
-module is imported only when the config names it, so the daemon never loads a backend it does
+A module is imported only when the config names it, so the daemon never loads a backend it does
 not run (the simulator among them).
 """
 from __future__ import annotations
@@ -28,7 +25,6 @@ class BackendContext:
     cfg: object                 # tecdard.config.Config
     model: object               # robots.model.ArmModel, tool offset included
     q_home: np.ndarray          # rad
-    imu_source: str             # imu.source: sim | sim-wire | serial
     imu_mount: list             # imu.imu_in_tcp_quat (x, y, z, w)
     tick_s: float = 0.02        # control.tick_s: how long a joint velocity command holds
 
@@ -38,5 +34,7 @@ def names() -> tuple[str, ...]:
 
 
 def build(name: str, ctx: BackendContext):
-    """The backend `name`, built from the config (ConfigError on a bad option)."""
-    return importlib.import_module(BACKENDS[name]).build(ctx)
+    """The backend `name` (a robots.backend.RobotBackend), built from the config (ConfigError on a bad option)."""
+    backend = importlib.import_module(BACKENDS[name]).build(ctx)
+    backend.name = name
+    return backend

@@ -39,14 +39,16 @@ then runs as for a reflex.
 from __future__ import annotations
 
 import logging
-import threading
+import resource
 import time
 
 import numpy as np
 
+from tecdard.host import Check, can_set_fifo, check_rt_kernel
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
-from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings
+from tecdard.robots.franka_link import (LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, FrankaLink, FrankaLinkSettings,
+                                        server_version)
 
 log = logging.getLogger("tecdar.franka")
 
@@ -55,12 +57,16 @@ RECOVER_S = (0.5, 1.0, 2.0, 4.0)        # back-off before each automatic error r
 RECOVERY_SETTLE_S = 0.5                # a recovery franky calls failed counts if the error clears within this
 STALE_S = 2.0                           # no state from a running child for this long: the link is lost
                                         # (libfranka's own UDP timeout is 1 s)
+CHECK_TIMEOUT_S = 1.0                   # `tecdard doctor`: the Connect reply it waits for
+LIBFRANKA_RT_PRIORITY = 99              # libfranka puts its 1 kHz loop at SCHED_FIFO's highest priority
+LIBFRANKA_MEMLOCK_BYTES = 100 << 20     # Franka's setup guide: `memlock 102400` (KiB) beside `rtprio 99`
 
 
 class FrankaBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
 
     log = log
+
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "franka", FRANKA_MODELS, "Franka", "the robot's FCI address")
         self.settings = FrankaLinkSettings(
@@ -82,8 +88,7 @@ class FrankaBackend(LinkBackend):
         for note in self.link.notes:
             log.warning("robot.franka: %s", note)
         self._check_kinematics(self.link.identity)
-        self._supervisor = threading.Thread(target=self._supervise, name="franka-supervisor", daemon=True)
-        self._supervisor.start()
+        self._supervise_in_background("franka-supervisor")
 
     def _check_kinematics(self, identity: dict) -> None:
         """Our FK of the robot's joints against the O_T_EE it reports. A real arm's carries its end
@@ -92,12 +97,6 @@ class FrankaBackend(LinkBackend):
         the commanded joints, which equal the measured ones at rest."""
         self._say_fk_offset(identity["q"], np.array(identity["O_T_EE"]).reshape(4, 4, order="F"),
                             "the robot's O_T_EE", "the end effector set in Desk")
-
-    def close(self) -> None:
-        self._stop.set()
-        self.link.stop()
-        if self._supervisor is not None:
-            self._supervisor.join(2.0)
 
     def _supervise(self) -> None:
         """Reconnect a lost link with back-off; recover from a reflex with back-off."""
@@ -109,7 +108,7 @@ class FrankaBackend(LinkBackend):
             if not link.exited.is_set() and st is not None and time.monotonic() - st.rx_t > STALE_S:
                 link.fault = f"no state from {self.settings.host} for {time.monotonic() - st.rx_t:.1f} s"
                 link.stop()
-            if link.exited.is_set() or link._proc is None:
+            if link.exited.is_set() or not link.running:
                 attempt = self._reconnect(attempt)
                 if attempt is None:
                     return
@@ -138,6 +137,10 @@ class FrankaBackend(LinkBackend):
                 log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
             next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S) - 1)]
 
+    def checks(self) -> list[Check]:
+        """This host's real-time fitness for robot.franka.realtime, and the robot's FCI and server version."""
+        return check_franka_realtime(self.settings.realtime) + check_franka_robot(self.settings.host)
+
     def faults(self) -> dict[str, str]:
         """The robot's faults that hold now, code -> message (the daemon's `fault` events)."""
         out = {}
@@ -158,6 +161,54 @@ class FrankaBackend(LinkBackend):
             out["robot_reflex"] = (f"Franka robot {host}: {fault}; recovering by itself (franky's "
                                    f"recover_from_errors), then a new task may run")
         return out
+
+
+def check_franka_realtime(realtime: str, sys_realtime: str = "/sys/kernel/realtime", version: str | None = None,
+                          memlock: tuple[int, int] | None = None) -> list[Check]:
+    """Whether this host is fit for robot.franka.realtime: enforce. libfranka then refuses to
+    connect without a real-time kernel (franky's RealtimeException), raises its control thread to
+    SCHED_FIFO 99 and locks its memory; a real arm stops with communication_constraints_violation
+    when its 1 kHz packets come late."""
+    if realtime != "enforce":
+        return [Check("Franka realtime", "warn", "robot.franka.realtime: ignore: libfranka's 1 kHz loop runs "
+                      "without real-time priority; right for franky-sim, not for a real arm",
+                      "set realtime: enforce beside a real arm, on a host this doctor passes")]
+    kernel = check_rt_kernel(sys_realtime, version)
+    out = [Check("Franka realtime kernel", "pass" if kernel.status == "pass" else "fail",
+                 kernel.detail + ("" if kernel.status == "pass" else ": franky refuses to connect with realtime: "
+                                  "enforce (RealtimeException)"), kernel.fix)]
+    problem = can_set_fifo(LIBFRANKA_RT_PRIORITY)
+    out.append(Check("Franka SCHED_FIFO 99", "pass" if problem is None else "fail",
+                     "libfranka's control thread can run at SCHED_FIFO 99" if problem is None else problem,
+                     "`@realtime - rtprio 99` in /etc/security/limits.d/franka.conf with this user in group "
+                     "realtime, or LimitRTPRIO=99 in the unit"))
+    soft, hard = memlock or resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    ok = soft == resource.RLIM_INFINITY or soft >= LIBFRANKA_MEMLOCK_BYTES
+    shown = "unlimited" if soft == resource.RLIM_INFINITY else f"{soft >> 10} KiB"
+    out.append(Check("Franka memlock", "pass" if ok else "warn", f"RLIMIT_MEMLOCK {shown}",
+                     None if ok else "`@realtime - memlock 102400` in /etc/security/limits.d/franka.conf, or "
+                     "LimitMEMLOCK=infinity in the unit"))
+    return out
+
+
+def check_franka_robot(host: str, timeout_s: float = CHECK_TIMEOUT_S) -> list[Check]:
+    """A Franka robot at `host`: its FCI answers libfranka's Connect with the robot server version
+    this franky speaks."""
+    try:
+        status, version = server_version(host, timeout_s)
+    except ConnectionRefusedError:
+        return [Check(f"Franka robot {host}", "fail", f"port {ROBOT_PORT} refused the connection",
+                      "enable FCI in Desk (and open the brakes), and check robot.franka.host")]
+    except (OSError, ValueError) as exc:
+        return [Check(f"Franka robot {host}", "fail", f"no Connect reply on port {ROBOT_PORT}: "
+                      f"{getattr(exc, 'strerror', None) or exc or type(exc).__name__}",
+                      "check robot.franka.host, the network to the robot, and that FCI is enabled")]
+    if status != 0 or version != LIBFRANKA_ROBOT_SERVER_VERSION:
+        return [Check(f"Franka robot {host}", "fail", f"robot server version {version}; this franky (libfranka "
+                      f"0.21.2) speaks {LIBFRANKA_ROBOT_SERVER_VERSION}",
+                      "install the franky-control release built for the robot's system version, or update the "
+                      "robot")]
+    return [Check(f"Franka robot {host}", "pass", f"robot server version {version}, as this franky speaks")]
 
 
 def build(ctx: BackendContext) -> FrankaBackend:

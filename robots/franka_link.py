@@ -36,8 +36,9 @@ from multiprocessing.connection import wait
 import numpy as np
 
 from tecdard.drivers.timesync import SlewClock
-from tecdard.robots.backend import ChildLink, JointState, joint_rates, kill_child
+from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
+from tecdard.robots.child_link import ChildLink
 
 log = logging.getLogger("tecdar.franka")
 
@@ -201,47 +202,87 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
     except Exception as exc:
         state_tx.send(("error", connect_problem(settings.host, exc)))
         return
-    gripper = None
-    if settings.gripper:
-        try:
-            gripper = franky.Gripper(settings.host)
-        except Exception as exc:           # an arm without a hand, or its server down: said, not fatal
-            state_tx.send(("note", f"no gripper state from {settings.host}: {_first_line(exc)}"))
-    grip = {"width": None, "grasped": None}
-    closing = threading.Event()
+    _FrankaChild(franky, robot, settings, state_tx).run(first, cmd_rx)
 
-    def read_gripper() -> None:
+
+class _FrankaChild:
+    """The child's loop on a connected robot: its commands, its states at the daemon's rate, its faults."""
+
+    def __init__(self, franky, robot, settings: FrankaLinkSettings, state_tx):
+        self.franky, self.robot, self.settings, self.state_tx = franky, robot, settings, state_tx
+        self.gripper = self._gripper()
+        self.grip = {"width": None, "grasped": None}
+        self.closing = threading.Event()
+        self.force = _Force(robot.model, franky.Frame.EndEffector)
+        self.holding = True                  # a stop motion needs sending once, not every tick
+        self.fault = ""
+        self.lost = False
+        self.sent_mode = None
+        self.packed = np.empty(STATE_FLOATS)
+        self.sent_t = -np.inf
+        self.last_t = None
+        self.last_new = time.monotonic()
+        self.state_period = 1.0 / settings.state_rate_hz
+
+    def _gripper(self):
+        if not self.settings.gripper:
+            return None
+        try:
+            return self.franky.Gripper(self.settings.host)
+        except Exception as exc:           # an arm without a hand, or its server down: said, not fatal
+            self.state_tx.send(("note", f"no gripper state from {self.settings.host}: {_first_line(exc)}"))
+            return None
+
+    def _read_gripper(self) -> None:
         """The hand's state at GRIP_HZ on a thread of its own: its reads wait for its own server
         (2 s on a timeout), and the arm's states must not wait with them."""
-        while not closing.wait(1.0 / GRIP_HZ):
+        while not self.closing.wait(1.0 / GRIP_HZ):
             try:
-                gs = gripper.state
-                grip["width"], grip["grasped"] = float(gs.width), bool(gs.is_grasped)
+                gs = self.gripper.state
+                self.grip["width"], self.grip["grasped"] = float(gs.width), bool(gs.is_grasped)
             except Exception:
-                grip["width"] = grip["grasped"] = None
-    if gripper is not None:
-        threading.Thread(target=read_gripper, name="franka-gripper", daemon=True).start()
-    force = _Force(robot.model, franky.Frame.EndEffector)
-    ee = _matrix(first.O_T_EE)
-    state_tx.send(("ready", {"O_T_EE": tuple(ee.ravel(order="F")), "q": tuple(first.q),
-                             "gripper_version": int(gripper.server_version) if gripper is not None else None}))
-    last_t = None
-    last_new = time.monotonic()
-    holding = True                       # a stop motion needs sending once, not every tick
-    fault = ""
-    lost = False
-    sent_mode = None
-    packed = np.empty(STATE_FLOATS)
-    sent_t = -np.inf
-    state_period = 1.0 / settings.state_rate_hz
+                self.grip["width"] = self.grip["grasped"] = None
 
-    def report_fault(text: str) -> None:
-        nonlocal fault
-        if text != fault:
-            fault = text
-            state_tx.send(("fault", text) if text else ("clear",))
+    def run(self, first, cmd_rx) -> None:
+        if self.gripper is not None:
+            threading.Thread(target=self._read_gripper, name="franka-gripper", daemon=True).start()
+        ee = _matrix(first.O_T_EE)
+        gripper_version = int(self.gripper.server_version) if self.gripper is not None else None
+        self.state_tx.send(("ready", {"O_T_EE": tuple(ee.ravel(order="F")), "q": tuple(first.q),
+                                      "gripper_version": gripper_version}))
+        try:
+            while True:
+                while cmd_rx.poll():
+                    if not self._command(cmd_rx.recv()):
+                        return
+                # a motion's own exception (a reflex) surfaces here, once
+                self._call("motion", self.robot.poll_motion)
+                wait_s = self._state()
+                if wait_s is None:
+                    return
+                wait([cmd_rx], wait_s)
+        except (EOFError, OSError, BrokenPipeError):
+            return                      # the daemon has gone
+        except Exception as exc:        # franky's NetworkException: the robot has gone
+            self.lost = True
+            try:
+                self.state_tx.send(("lost", _first_line(exc)))
+            except (OSError, BrokenPipeError):
+                pass
+        finally:
+            self.closing.set()
+            if not self.lost:
+                try:
+                    self.robot.stop()
+                except Exception:
+                    pass
 
-    def run(what, fn) -> None:
+    def _report_fault(self, text: str) -> None:
+        if text != self.fault:
+            self.fault = text
+            self.state_tx.send(("fault", text) if text else ("clear",))
+
+    def _call(self, what: str, fn) -> None:
         """A franky call that may raise a motion's exception (a reflex, a preemption, a rejected
         motion): the fault holds until a command is taken again or the recovery clears it."""
         try:
@@ -252,90 +293,83 @@ def child_main(settings: FrankaLinkSettings, cmd_rx, state_tx) -> None:
                 raise
             if name == "ControlException" and "preempted" in str(exc).lower():
                 return                     # a motion replaced by the next command, or stopped: no fault
-            report_fault(f"{what}: {_first_line(exc)}")
+            self._report_fault(f"{what}: {_first_line(exc)}")
         else:
-            if fault and what != "motion" and not fault.startswith("robot mode"):
-                report_fault("")
+            if self.fault and what != "motion" and not self.fault.startswith("robot mode"):
+                self._report_fault("")
 
-    try:
-        while True:
-            while cmd_rx.poll():
-                msg = cmd_rx.recv()
-                if msg[0] == "qd":
-                    holding = False
-                    run("velocity command", lambda: robot.move(_motion(franky, settings, msg[1]), asynchronous=True))
-                elif msg[0] == "hold":
-                    if not holding:
-                        holding = True
-                        run("hold", lambda: robot.move(franky.JointVelocityStopMotion(), asynchronous=True))
-                elif msg[0] == "recover":
-                    ok = False
-                    try:
-                        ok = bool(robot.recover_from_errors())
-                    except Exception as exc:
-                        if type(exc).__name__ == "NetworkException":
-                            raise
-                        state_tx.send(("recovered", False, _first_line(exc)))
-                    else:
-                        if ok and not fault.startswith("robot mode"):
-                            report_fault("")
-                        state_tx.send(("recovered", ok, "" if ok else "the robot refused its error recovery"))
-                elif msg[0] == "close":
-                    return
-            # a motion's own exception (a reflex) surfaces here, once
-            run("motion", robot.poll_motion)
-            st = robot.state               # blocks for the next packet (1 ms) when no motion runs
-            now = time.monotonic()
-            t = float(st.time.to_sec())
-            if t == last_t:
-                if now - last_new > LINK_SILENT_S:
-                    lost = True
-                    state_tx.send(("lost", f"no state from the robot for {now - last_new:.1f} s"))
-                    return
-                wait([cmd_rx], STATE_POLL_S)
-                continue
-            last_t, last_new = t, now
-            if t - sent_t < state_period - 2.5e-4:
-                continue                   # between the states the daemon takes (faults and force are read at its rate)
-            sent_t = t
-            errors = repr(st.current_errors).strip()
-            errors = "" if errors in ("[]", "") else errors
-            mode = st.robot_mode.name
-            if errors or mode in ERROR_MODES:
-                report_fault(f"robot mode {mode}" + (f", errors {errors}" if errors else ""))
-            elif fault.startswith("robot mode"):
-                report_fault("")
-            f_ext, source = force(st)
-            if (mode, errors, source) != sent_mode:
-                sent_mode = (mode, errors, source)
-                state_tx.send(("mode", mode, errors, source))
-            # one float array per state: a dataclass took 43 us to pickle, a tenth of the loop at 1 kHz
-            packed[0], packed[1] = t, now
-            packed[2:9], packed[9:16] = st.q, st.dq
-            packed[16:32] = _matrix(st.O_T_EE).ravel(order="F")
-            packed[32:35] = f_ext
-            packed[35] = np.nan if grip["width"] is None else grip["width"]
-            packed[36] = np.nan if grip["grasped"] is None else float(grip["grasped"])
-            state_tx.send(("state", packed))
-            # nothing to read until a robot period before the next state the daemon takes: wait
-            # for a command meanwhile (it is carried out at once) rather than poll franky every
-            # STATE_POLL_S (waiting up to the next state itself missed it: 400 of 500 a second)
-            wait([cmd_rx], max(state_period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0))
-    except (EOFError, OSError, BrokenPipeError):
-        return                      # the daemon has gone
-    except Exception as exc:        # franky's NetworkException: the robot has gone
-        lost = True
+    def _command(self, msg: tuple) -> bool:
+        """One command from the daemon; False when it says close."""
+        franky, robot = self.franky, self.robot
+        if msg[0] == "qd":
+            self.holding = False
+            self._call("velocity command", lambda: robot.move(_motion(franky, self.settings, msg[1]), asynchronous=True))
+        elif msg[0] == "hold":
+            if not self.holding:
+                self.holding = True
+                self._call("hold", lambda: robot.move(franky.JointVelocityStopMotion(), asynchronous=True))
+        elif msg[0] == "recover":
+            self._recover()
+        elif msg[0] == "close":
+            return False
+        return True
+
+    def _recover(self) -> None:
+        ok = False
         try:
-            state_tx.send(("lost", _first_line(exc)))
-        except (OSError, BrokenPipeError):
-            pass
-    finally:
-        closing.set()
-        if not lost:
-            try:
-                robot.stop()
-            except Exception:
-                pass
+            ok = bool(self.robot.recover_from_errors())
+        except Exception as exc:
+            if type(exc).__name__ == "NetworkException":
+                raise
+            self.state_tx.send(("recovered", False, _first_line(exc)))
+        else:
+            if ok and not self.fault.startswith("robot mode"):
+                self._report_fault("")
+            self.state_tx.send(("recovered", ok, "" if ok else "the robot refused its error recovery"))
+
+    def _state(self) -> float | None:
+        """Read the robot's state and hand every one the daemon takes to it; how long to wait for a
+        command before the next read, or None when the robot has gone silent (`lost` sent)."""
+        st = self.robot.state                # blocks for the next packet (1 ms) when no motion runs
+        now = time.monotonic()
+        t = float(st.time.to_sec())
+        if t == self.last_t:
+            if now - self.last_new > LINK_SILENT_S:
+                self.lost = True
+                self.state_tx.send(("lost", f"no state from the robot for {now - self.last_new:.1f} s"))
+                return None
+            return STATE_POLL_S
+        self.last_t, self.last_new = t, now
+        if t - self.sent_t < self.state_period - 2.5e-4:
+            return 0.0                     # between the states the daemon takes (faults and force are read at its rate)
+        self.sent_t = t
+        self._send_state(st, t, now)
+        # nothing to read until a robot period before the next state the daemon takes: wait for a
+        # command meanwhile (it is carried out at once) rather than poll franky every STATE_POLL_S
+        # (waiting up to the next state itself missed it: 400 of 500 a second)
+        return max(self.state_period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0)
+
+    def _send_state(self, st, t: float, now: float) -> None:
+        errors = repr(st.current_errors).strip()
+        errors = "" if errors in ("[]", "") else errors
+        mode = st.robot_mode.name
+        if errors or mode in ERROR_MODES:
+            self._report_fault(f"robot mode {mode}" + (f", errors {errors}" if errors else ""))
+        elif self.fault.startswith("robot mode"):
+            self._report_fault("")
+        f_ext, source = self.force(st)
+        if (mode, errors, source) != self.sent_mode:
+            self.sent_mode = (mode, errors, source)
+            self.state_tx.send(("mode", mode, errors, source))
+        # one float array per state: a dataclass took 43 us to pickle, a tenth of the loop at 1 kHz
+        packed = self.packed
+        packed[0], packed[1] = t, now
+        packed[2:9], packed[9:16] = st.q, st.dq
+        packed[16:32] = _matrix(st.O_T_EE).ravel(order="F")
+        packed[32:35] = f_ext
+        packed[35] = np.nan if self.grip["width"] is None else self.grip["width"]
+        packed[36] = np.nan if self.grip["grasped"] is None else float(self.grip["grasped"])
+        self.state_tx.send(("state", packed))
 
 
 class FrankaLink(ChildLink):
@@ -344,53 +378,48 @@ class FrankaLink(ChildLink):
     and `robot_fault` what the robot reports (a reflex, a user stop)."""
 
     error = FrankaLinkError
+    process_name = "tecdar-franka"
+    reader_name = "franka-link"
+    child = staticmethod(child_main)
 
     def __init__(self, settings: FrankaLinkSettings):
-        super().__init__(settings)
+        super().__init__(settings, settings.connect_timeout_s)
         self.franka_state: FrankaState | None = None
         self._mode = ("", "", "")                   # the robot's mode, errors and force source, as last sent
         self._seq = 0
         self._sync = SlewClock()
         self._last_t = -np.inf
-        self._reader: threading.Thread | None = None
         self.robot_fault: str = ""                  # the robot's reflex or stop, "" when none
         self.recovery: threading.Event = threading.Event()   # set when a recovery answer arrives
         self.recovery_result: tuple[bool, str] = (False, "")
         self.identity: dict = {}                    # what the child read at connect (O_T_EE, q, gripper version)
         self.server_version: int | None = None      # the robot server's, from its Connect reply
-        self.notes: list[str] = []
 
     def start(self) -> None:
         """Check the robot server's version, then connect, all within settings.connect_timeout_s,
         or FrankaLinkError naming the host and what failed."""
         self._check_version()
-        self._spawn(child_main, "tecdar-franka")
-        host, timeout = self.settings.host, self.settings.connect_timeout_s
-        deadline = time.monotonic() + timeout
-        try:
-            while True:
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._state_rx.poll(left):
-                    raise FrankaLinkError(f"robot.franka.host: no answer from a Franka robot at {host} within "
-                                          f"{timeout:g} s (franky.Robot still waiting: nothing that speaks the FCI "
-                                          f"there, or a robot server this libfranka does not match)")
-                msg = self._state_rx.recv()
-                if msg[0] != "note":
-                    break
-                self.notes.append(msg[1])
-        except EOFError:
-            kill_child(self._proc)
-            raise FrankaLinkError(f"robot.franka.host: the link to {host} ended at start (exit code "
-                                  f"{self._proc.exitcode})") from None
-        except FrankaLinkError:
-            kill_child(self._proc)
-            raise
-        if msg[0] != "ready":
-            kill_child(self._proc)
-            raise FrankaLinkError(msg[1])
-        self.identity = msg[1]
-        self._reader = threading.Thread(target=self._read, name="franka-link", daemon=True)
-        self._reader.start()
+        super().start()
+
+    def _no_answer(self, timeout_s: float) -> str:
+        return (f"robot.franka.host: no answer from a Franka robot at {self.settings.host} within {timeout_s:g} s "
+                f"(franky.Robot still waiting: nothing that speaks the FCI there, or a robot server this libfranka "
+                f"does not match)")
+
+    def _ended(self, exitcode) -> str:
+        return f"robot.franka.host: the link to {self.settings.host} ended at start (exit code {exitcode})"
+
+    def _refused(self, reason: str) -> str:
+        return reason                               # the child's line (connect_problem) names host and cause
+
+    def _no_state(self) -> str:
+        return f"no state from {self.settings.host} yet"
+
+    def _not_running(self) -> str:
+        return f"the link to {self.settings.host} is not running"
+
+    def _ready(self, payload: tuple) -> None:
+        self.identity = payload[0]
 
     def _check_version(self) -> None:
         host, timeout = self.settings.host, self.settings.connect_timeout_s
@@ -408,38 +437,32 @@ class FrankaLink(ChildLink):
         if status == CONNECT_INCOMPATIBLE or version != LIBFRANKA_ROBOT_SERVER_VERSION:
             raise FrankaLinkError(version_mismatch(host, version))
 
-    def _read(self) -> None:
-        while True:
-            try:
-                msg = self._state_rx.recv()
-            except (EOFError, OSError):
-                break
-            if msg[0] == "state":
-                a = msg[1]
-                st = FrankaState(float(a[0]), float(a[1]), tuple(a[2:9]), tuple(a[9:16]), tuple(a[16:32]),
-                                 tuple(a[32:35]), self._mode[2], self._mode[0], self._mode[1],
-                                 None if a[35] != a[35] else float(a[35]), None if a[36] != a[36] else bool(a[36]))
-                self._sync.add(st.robot_t, st.rx_t)
-                self._seq += 1
-                self.franka_state = st
-                self._states.publish(self._joint_state(st))
-            elif msg[0] == "mode":
-                self._mode = msg[1:]
-            elif msg[0] == "fault":
-                self.robot_fault = msg[1]
-            elif msg[0] == "clear":
-                self.robot_fault = ""
-            elif msg[0] == "recovered":
-                self.recovery_result = (bool(msg[1]), msg[2])
-                self.recovery.set()
-            elif msg[0] == "note":
-                self.notes.append(msg[1])
-            elif msg[0] == "lost":
-                self.fault = msg[1]
-                break
+    def _handle(self, msg: tuple) -> None:
+        kind = msg[0]
+        if kind == "state":
+            a = msg[1]
+            st = FrankaState(float(a[0]), float(a[1]), tuple(a[2:9]), tuple(a[9:16]), tuple(a[16:32]),
+                             tuple(a[32:35]), self._mode[2], self._mode[0], self._mode[1],
+                             None if a[35] != a[35] else float(a[35]), None if a[36] != a[36] else bool(a[36]))
+            self._sync.add(st.robot_t, st.rx_t)
+            self._seq += 1
+            self.franka_state = st
+            self._states.publish(self._joint_state(st))
+        elif kind == "mode":
+            self._mode = msg[1:]
+        elif kind == "fault":
+            self.robot_fault = msg[1]
+        elif kind == "clear":
+            self.robot_fault = ""
+        elif kind == "recovered":
+            self.recovery_result = (bool(msg[1]), msg[2])
+            self.recovery.set()
+        elif kind == "note":
+            self.notes.append(msg[1])
+
+    def _gone(self) -> None:
         if self.fault is None:
             self.fault = f"the link to {self.settings.host} has gone"
-        self._states.close()
 
     def _joint_state(self, st: FrankaState) -> JointState:
         """A robot state as the daemon's: its clock, the measured joints (the daemon's FK gives the

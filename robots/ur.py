@@ -23,17 +23,19 @@ before the stop); the task it served already ended on the stop.
 from __future__ import annotations
 
 import logging
-import threading
+import socket
 
+from tecdard.host import Check
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
-from tecdard.robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings
+from tecdard.robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings, controller_identity
 
 log = logging.getLogger("tecdar.ur")
 
 UR_MODELS = ("ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e")   # CB3 (URDFs) and e-Series (robots/ur_dh.py)
 E_SERIES_MAJOR = 5                      # PolyScope 5 runs e-Series arms, 3 the CB3 ones
 FIRST_STATE_S = 2.0
+CHECK_TIMEOUT_S = 1.0                   # `tecdard doctor`: a port that does not answer within this is closed
 
 
 class UrBackend(LinkBackend):
@@ -42,7 +44,6 @@ class UrBackend(LinkBackend):
     log = log
 
     def __init__(self, ctx: BackendContext):
-        from tecdard.config import ConfigError
         section = rig_section(ctx, "ur", UR_MODELS, "UR", "the controller's address")
         self.settings = UrLinkSettings(
             host=section.getstr("host", max_len=253),
@@ -52,8 +53,8 @@ class UrBackend(LinkBackend):
             connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
             watchdog_hz=section.getfloat("watchdog_hz", 10.0, minval=2.0, maxval=500.0))
         if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
-            raise ConfigError(f"robot.ur.watchdog_hz: {self.settings.watchdog_hz:g} Hz would stop the arm between "
-                              f"two control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
+            raise section.error("watchdog_hz", f"{self.settings.watchdog_hz:g} Hz would stop the arm between two "
+                                               f"control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
         self._attach(ctx, UrLink(self.settings))
 
     # -- lifecycle ----------------------------------------------------------------
@@ -67,8 +68,7 @@ class UrBackend(LinkBackend):
             self.link.stop()
             raise
         self._check_kinematics()
-        self._supervisor = threading.Thread(target=self._supervise, name="ur-supervisor", daemon=True)
-        self._supervisor.start()
+        self._supervise_in_background("ur-supervisor")
 
     def _check_model(self, identity: dict) -> None:
         """robot.model against the arm the controller's dashboard reports: its type (UR5 for a UR5
@@ -97,12 +97,6 @@ class UrBackend(LinkBackend):
         js = self.link.wait_state(-1, FIRST_STATE_S)
         self._say_fk_offset(js.q, js.tcp_pose, "the one the controller reports",
                             "the controller's TCP setting and arm type")
-
-    def close(self) -> None:
-        self._stop.set()
-        self.link.stop()
-        if self._supervisor is not None:
-            self._supervisor.join(2.0)
 
     def _supervise(self) -> None:
         """Reconnect a lost link with back-off; re-upload the control script once a stop has cleared."""
@@ -144,11 +138,46 @@ class UrBackend(LinkBackend):
         return out
 
 
+    def checks(self) -> list[Check]:
+        """The controller's ports, its arm against robot.model, and remote control."""
+        return check_ur_controller(self.settings.host, self.model.name)
+
+
 def expected_controller_arm(identity: dict) -> str:
     """The arm a controller runs, as robot.model spells it but for case (UR5e), from its dashboard's
     model (UR5 for a UR5 or a UR5e) and software version (PolyScope 5: e-Series)."""
     e_series = int(identity["version"].split(".")[0]) >= E_SERIES_MAJOR
     return identity["model"].upper() + ("e" if e_series else "")
+
+
+def check_ur_controller(host: str, model: str) -> list[Check]:
+    """A UR controller at `host`: its dashboard, RTDE and script ports answer, it runs the arm
+    robot.model names, and it is in remote control (ur-rtde uploads its script only then)."""
+    ports = {"dashboard": 29999, "script": 30003, "RTDE": 30004}
+    closed = []
+    for name, port in ports.items():
+        try:
+            with socket.create_connection((host, port), timeout=CHECK_TIMEOUT_S):
+                pass
+        except OSError as exc:
+            closed.append(f"{name} {port}: {exc.strerror or exc}")
+    if closed:
+        return [Check(f"UR controller {host}", "fail", "; ".join(closed),
+                      "check robot.ur.host, the network to the controller, and that it is switched on")]
+    out = [Check(f"UR controller {host}", "pass", "dashboard, script and RTDE ports answer")]
+    identity = controller_identity(host)
+    if not identity:
+        out.append(Check("UR arm", "warn", "the dashboard did not say which arm this is",
+                         f"check that robot.model {model} is the controller's arm"))
+    else:
+        theirs = expected_controller_arm(identity)
+        ok = theirs.lower() == model
+        out.append(Check("UR arm", "pass" if ok else "fail", f"{theirs}, software {identity['version']}",
+                         None if ok else f"set robot.model: {theirs.lower()}"))
+        if identity.get("remote_control") is False:
+            out.append(Check("UR remote control", "fail", "the controller is in local control",
+                             "switch the pendant to remote control (e-Series: the icon at its top right)"))
+    return out
 
 
 def build(ctx: BackendContext) -> UrBackend:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import re
-import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import wait
@@ -30,8 +29,9 @@ import numpy as np
 import pinocchio as pin
 
 from tecdard.drivers.timesync import ClockSync
-from tecdard.robots.backend import ChildLink, JointState, joint_rates, kill_child
+from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
+from tecdard.robots.child_link import ChildLink
 
 log = logging.getLogger("tecdar.ur")
 
@@ -215,59 +215,51 @@ class UrLink(ChildLink):
     (command_joint_velocity, hold), as any robot backend; `fault` says why the link is unusable."""
 
     error = UrLinkError
+    process_name = "tecdar-ur"
+    reader_name = "ur-link"
+    child = staticmethod(child_main)
 
     def __init__(self, settings: UrLinkSettings):
-        super().__init__(settings)
+        super().__init__(settings, settings.connect_timeout_s)
         self.ur_state: UrState | None = None       # the newest controller state, as read (its base frame)
         self._seq = 0
         self._sync = ClockSync()
-        self._reader: threading.Thread | None = None
         self.refused: str | None = None             # the controller refuses commands (since this one), or None
         self.identity: dict = {}                    # the controller's arm type and version (controller_identity)
 
-    def start(self) -> None:
-        """Connect within settings.connect_timeout_s, or UrLinkError naming the host."""
-        self._spawn(child_main, "tecdar-ur")
-        host, timeout = self.settings.host, self.settings.connect_timeout_s
-        try:
-            if not self._state_rx.poll(timeout):
-                raise UrLinkError(f"robot.ur.host: no UR controller answered at {host} within {timeout:g} s")
-            msg = self._state_rx.recv()
-        except EOFError:
-            raise UrLinkError(f"robot.ur.host: the link to {host} ended at start (exit code "
-                              f"{self._proc.exitcode})") from None
-        except UrLinkError:
-            kill_child(self._proc)
-            raise
-        if msg[0] != "ready":
-            kill_child(self._proc)
-            raise UrLinkError(f"robot.ur.host: {host} refused the link: {msg[1]}")
-        self.identity = msg[1] or {}
-        self._reader = threading.Thread(target=self._read, name="ur-link", daemon=True)
-        self._reader.start()
+    def _no_answer(self, timeout_s: float) -> str:
+        return f"robot.ur.host: no UR controller answered at {self.settings.host} within {timeout_s:g} s"
 
-    def _read(self) -> None:
-        while True:
-            try:
-                msg = self._state_rx.recv()
-            except (EOFError, OSError):
-                break
-            if msg[0] == "state":
-                st: UrState = msg[1]
-                self._sync.add(st.controller_t, st.rx_t)
-                self._seq += 1
-                self.ur_state = st
-                self._states.publish(self._joint_state(st))
-            elif msg[0] == "refused":
-                self.refused = f"the controller refused {msg[1]}"
-            elif msg[0] == "accepted":
-                self.refused = None
-            elif msg[0] == "lost":
-                self.fault = msg[1]
-                break                        # the child may hang in its client's reconnect: stop() ends it
+    def _ended(self, exitcode) -> str:
+        return f"robot.ur.host: the link to {self.settings.host} ended at start (exit code {exitcode})"
+
+    def _refused(self, reason: str) -> str:
+        return f"robot.ur.host: {self.settings.host} refused the link: {reason}"
+
+    def _no_state(self) -> str:
+        return f"no state from {self.settings.host} yet"
+
+    def _not_running(self) -> str:
+        return f"the link to {self.settings.host} is not running"
+
+    def _ready(self, payload: tuple) -> None:
+        self.identity = payload[0] or {}
+
+    def _handle(self, msg: tuple) -> None:
+        if msg[0] == "state":
+            st: UrState = msg[1]
+            self._sync.add(st.controller_t, st.rx_t)
+            self._seq += 1
+            self.ur_state = st
+            self._states.publish(self._joint_state(st))
+        elif msg[0] == "refused":
+            self.refused = f"the controller refused {msg[1]}"
+        elif msg[0] == "accepted":
+            self.refused = None
+
+    def _gone(self) -> None:
         if self.fault is None:
             self.fault = f"the link to {self.settings.host} has gone"
-        self._states.close()
 
     def _joint_state(self, st: UrState) -> JointState:
         """A controller state as the daemon's: its clock, and the TCP's pose (a matrix), twist and force."""

@@ -16,7 +16,9 @@ import tempfile
 
 import numpy as np
 
-from tecdard.drivers.serial_imu import SerialParams
+from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
+from tecdard.host import Check
+from tecdard.robots.backend import JointState, RobotBackend
 from tecdard.robots.backends import BackendContext
 from tecdard.sim.board import BoardParams
 from tecdard.sim.imu import SimImuParams
@@ -35,69 +37,98 @@ def remove_stale_pty_dirs() -> None:
             shutil.rmtree(path, ignore_errors=True)
 
 
-class SimBackend:
-    """The robot (a SimProcess: receive and control as any backend), and with `imu.source: sim` the
-    IMU source too; with `sim-wire` the serial parameters of the board's pseudo-terminal."""
+class SimBackend(RobotBackend):
+    """The simulated arm (a SimProcess child) as a robot backend, and the simulator's own IMU sources:
+    `sim` (samples on a pipe) and `sim-wire` (tecdar-imu/1 on a pty, the real serial driver reading it)."""
 
     def __init__(self, ctx: BackendContext):
-        from tecdard.config import ConfigError
         sim = ctx.cfg.section("sim")
         sim_imu = sim.section("imu")
-        imu_params = SimImuParams.from_config(sim_imu, default_mount=ctx.imu_mount)
+        self.imu_params = SimImuParams.from_config(sim_imu, default_mount=ctx.imu_mount)
         robot_params = SimRobotParams.from_config(sim.section("robot"), ctx.q_home)
         hinge = HingeParams.from_config(sim.section("hinge")) if sim.has("hinge") else None
-        try:
-            pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+        pivot = PivotParams.from_config(sim.section("pivot")) if sim.has("pivot") else None
         if hinge is not None and pivot is not None:
-            raise ConfigError("sim.pivot: give one world, sim.hinge or sim.pivot, not both")
+            raise sim.error("pivot", "give one world, sim.hinge or sim.pivot, not both")
         model = ctx.model
         self.spec = SimSpec(arm=model.name, tool_offset=list(model.tool_offset), tool_quat=list(model.tool_quat),
-                            robot=robot_params, imu=imu_params, seed=sim.getint("seed", 0, minval=0),
-                            hinge=hinge, pivot=pivot,
-                            imu_out={"sim": "pipe", "sim-wire": "wire", "serial": "none"}[ctx.imu_source])
-        # the data rate of the simulated source: the chip's, or the board's (whole hertz on the wire)
-        self.imu_odr_hz = float(int(round(imu_params.odr_hz))) if ctx.imu_source == "sim-wire" else imu_params.odr_hz
-        self.serial_params: SerialParams | None = None
+                            robot=robot_params, imu=self.imu_params, seed=sim.getint("seed", 0, minval=0),
+                            hinge=hinge, pivot=pivot, imu_out="pipe")
         self.pty_dir: str | None = None
-        if ctx.imu_source == "sim-wire":
-            # made at start, removed at exit; one left by a killed daemon is removed by the next
-            self.pty_dir = os.path.join(tempfile.gettempdir(), f"{PTY_DIR_PREFIX}{os.getpid()}-{secrets.token_hex(4)}")
-            self.spec.pty_link = os.path.join(self.pty_dir, "ttyIMU")
-            self.spec.board = BoardParams(odr_hz=int(round(imu_params.odr_hz)), gyro_fs_dps=imu_params.gyro_fs_dps,
-                                          accel_fs_g=imu_params.accel_fs_g)
-            self.serial_params = SerialParams(port=self.spec.pty_link, odr_hz=self.spec.board.odr_hz,
-                                              gyro_fs_dps=self.spec.board.gyro_fs_dps,
-                                              accel_fs_g=self.spec.board.accel_fs_g)
         factory = self.spec.world_factory()
         if factory is not None:
             # the world is built once here, at the home pose, so a bad one never half-starts the daemon
             oMtcp = model.fk(ctx.q_home)
             try:
                 factory(oMtcp.translation, oMtcp.rotation)
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
+            except ValueError as exc:        # "hinge.point: ...": the world's key under `sim`
+                key, _, problem = str(exc).partition(": ")
+                raise sim.error(key, problem) from None
         # The simulated arm, world and IMU run in a process of their own, as a real arm and board do
         # (sim/process.py): the daemon's threads never starve them of the GIL.
-        self.robot = SimProcess(self.spec, model.nq)
-        self.imu = self.robot if ctx.imu_source == "sim" else None
+        self.process = SimProcess(self.spec, model.nq)
+
+    def imu_source(self, kind: str, section):
+        """sim: the child's samples on their pipe; sim-wire: the child's board on a pty, read by the
+        serial driver; serial: a real board (the simulated one silent)."""
+        if kind == "sim":
+            self.spec.imu_out = "pipe"
+            return self.process.imu
+        if kind == "sim-wire":
+            return SimWireSource(self._wire())
+        self.spec.imu_out = "none"
+        return super().imu_source(kind, section)
+
+    def _wire(self) -> SerialParams:
+        """The simulated board on a pty (made at start, removed at exit; one left by a killed daemon is
+        removed by the next): its serial parameters."""
+        imu = self.imu_params
+        self.spec.imu_out = "wire"
+        self.pty_dir = os.path.join(tempfile.gettempdir(), f"{PTY_DIR_PREFIX}{os.getpid()}-{secrets.token_hex(4)}")
+        self.spec.pty_link = os.path.join(self.pty_dir, "ttyIMU")
+        self.spec.board = BoardParams(odr_hz=int(round(imu.odr_hz)), gyro_fs_dps=imu.gyro_fs_dps,
+                                      accel_fs_g=imu.accel_fs_g)
+        return SerialParams(port=self.spec.pty_link, odr_hz=self.spec.board.odr_hz,
+                            gyro_fs_dps=self.spec.board.gyro_fs_dps, accel_fs_g=self.spec.board.accel_fs_g)
 
     def start(self) -> None:
         if self.pty_dir is not None:
             remove_stale_pty_dirs()
             os.makedirs(self.pty_dir, mode=0o700)
-        self.robot.start()
+        self.process.start()
 
     def close(self) -> None:
-        self.robot.stop()
+        self.process.stop()
         if self.pty_dir is not None:
             shutil.rmtree(self.pty_dir, ignore_errors=True)
             self.pty_dir = None
 
+    def read_state(self) -> JointState:
+        return self.process.read_state()
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        return self.process.wait_state(seq, timeout)
+
+    def command_joint_velocity(self, qd: np.ndarray) -> None:
+        self.process.command_joint_velocity(qd)
+
+    def hold(self) -> None:
+        self.process.hold()
+
+    def truth(self):
+        """The simulated world's truth now (sim.world.SimTruth), or None before the start."""
+        return self.process.truth()
+
     def annotate(self, event: dict) -> dict:
         """A task's end event with the simulated world's truth (docs/zenoh-api.md, `sim`)."""
-        return with_truth(event, self.robot.truth())
+        return with_truth(event, self.process.truth())
+
+
+class SimWireSource(SerialImuSource):
+    """`imu.source: sim-wire`: the serial driver on the simulated board's pty."""
+
+    def checks(self) -> list[Check]:
+        return [Check("fingertip board", "skip", "imu.source is sim-wire: the simulated board on a pty is read")]
 
 
 def with_truth(event: dict, truth) -> dict:

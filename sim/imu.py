@@ -64,8 +64,8 @@ class SimImuParams:
         try:
             Scaling(p.gyro_fs_dps, p.accel_fs_g)
         except ValueError as exc:
-            from tecdard.config import ConfigError
-            raise ConfigError(f"{section.path}.{exc}") from None
+            key, _, problem = str(exc).partition(": ")
+            raise section.error(key, problem) from None
         return p
 
     def true_eta(self) -> float:

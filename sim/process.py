@@ -7,8 +7,9 @@ Python process the 1 kHz physics, the 6.7 kHz IMU synthesis, the estimator and t
 all take turns on one GIL, and on a busy 2-core machine the physics thread was seen starved for
 50-60 ms. So the daemon runs the simulation in a child process (`SimProcess`), which looks to the
 daemon like any robot backend (read_state, command_joint_velocity, hold) and, with
-`imu.source: sim`, like an IMU source (read). With `sim-wire` the child writes the board's
-`tecdar-imu/1` stream to a pseudo-terminal that the daemon's serial driver reads.
+`imu.source: sim`, gives an IMU source (PipeImuSource). With `sim-wire` the child writes the board's
+`tecdar-imu/1` stream to a pseudo-terminal that the daemon's serial driver reads. The child and the
+daemon's handle on it are a robots.child_link child and ChildLink, as the UR and Franka links are.
 
 Links, each a one-way pipe:
 - commands, daemon -> child: (t_issued, qd), time-stamped on the shared monotonic clock, so the
@@ -23,22 +24,23 @@ from __future__ import annotations
 import fcntl
 import gc
 import logging
-import multiprocessing
 import struct
 import termios
-import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.reduction import ForkingPickler
 
 import numpy as np
 
-from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.lsm6dsr import Scaling
-from tecdard.sim.imu import SimImu, SimImuParams
-from tecdard.robots.backend import JointState, StateSlot, end_child, joint_rates, kill_child
+from tecdard.host import Check
+from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
+from tecdard.robots.child_link import ChildLink
 from tecdard.robots.model import ArmModel
+from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.sim.imu import SimImu, SimImuParams
 from tecdard.sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
 from tecdard.sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
 
@@ -70,6 +72,7 @@ class SimSpec:
     imu_out: str = "pipe"            # "pipe": samples to the daemon; "wire": tecdar-imu/1 on a pty; "none"
     pty_link: str | None = None      # with "wire": the board's stable device path
     board: BoardParams | None = None
+    log_level: int = logging.INFO    # the daemon's, for the child's own log lines
 
     def world_factory(self):
         if self.hinge is not None:
@@ -120,8 +123,8 @@ def _drain_imu(imu: SimImu):
     return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
 
 
-def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) -> None:
-    """The child process: build the simulation, then run it until told to stop.
+def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
+    """The child process: build the simulation, then run it until told to close.
 
     One thread does everything, slice by slice on an absolute schedule: take the commands that
     have arrived, integrate the physics up to now, send the IMU samples and the proprioception
@@ -129,7 +132,7 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
     threads of their own, the child spent much of its CPU handing the GIL between them, and on a
     loaded 2-core machine its physics fell behind real time.
     """
-    logging.basicConfig(level=log_level, format=LOG_FORMAT)
+    logging.basicConfig(level=spec.log_level, format=LOG_FORMAT)
     device = None
     try:
         wire = None
@@ -154,7 +157,7 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
                     msg = cmd_conn.recv()
                     if msg[0] == "cmd":
                         robot.command_at(msg[1], msg[2])
-                    elif msg[0] == "stop":
+                    elif msg[0] == "close":
                         return
             except (EOFError, OSError):
                 log.warning("sim: the daemon has gone; stopping")
@@ -193,118 +196,98 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn, log_level: int) ->
                         imu_tx.dropped, state_tx.dropped)
 
 
-class SimProcess:
-    """The daemon's handle on the simulation child: a robot backend and, with imu_out "pipe", an IMU source."""
+class SimProcess(ChildLink):
+    """The daemon's handle on the simulation child: receive and command as any robot link, the world's
+    truth, and (imu_out "pipe") the IMU chunks on a pipe of their own (PipeImuSource)."""
+
+    error = SimProcessError
+    process_name = "tecdar-sim"
+    reader_name = "sim-link"
+    extra_pipes = 1                   # the IMU chunks
+    child = staticmethod(child_main)
 
     def __init__(self, spec: SimSpec, nq: int):
+        super().__init__(spec, START_TIMEOUT_S)
         self.spec = spec
         self.nq = nq
-        self._proc = None
-        self._cmd = self._state_rx = self._imu_rx = None
-        self._send_lock = threading.Lock()
-        self._states = StateSlot(lambda: SimProcessError("the simulation process is not running"))
         self._truth: SimTruth | None = None
-        self._reader: threading.Thread | None = None
-        self.exited = self._states.closed
+        self.imu = PipeImuSource(self)
 
-    # -- lifecycle ----------------------------------------------------------
     def start(self) -> None:
         """Start the child and wait until it publishes its first state (SimProcessError if it cannot)."""
-        ctx = multiprocessing.get_context("spawn")   # never fork a process that already runs Zenoh's threads
-        cmd_rx, self._cmd = ctx.Pipe(duplex=False)
-        self._state_rx, state_tx = ctx.Pipe(duplex=False)
-        self._imu_rx, imu_tx = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(target=child_main, name="tecdar-sim", daemon=True,
-                                 args=(self.spec, cmd_rx, state_tx, imu_tx, logging.getLogger().getEffectiveLevel()))
-        self._proc.start()
-        for end in (cmd_rx, state_tx, imu_tx):
-            end.close()      # the child holds its own copies: EOF on either side means the other has gone
-        if not self._state_rx.poll(START_TIMEOUT_S):
-            kill_child(self._proc)
-            raise SimProcessError(f"the simulation process did not start within {START_TIMEOUT_S:.0f} s")
-        try:
-            msg = self._state_rx.recv()
-        except EOFError:
-            kill_child(self._proc)
-            raise SimProcessError(f"the simulation process exited at start (code {self._proc.exitcode})") from None
-        if msg[0] != "ready":
-            kill_child(self._proc)
-            raise SimProcessError(f"the simulation process failed at start: {msg[1]}")
-        _, state, self._truth = msg
+        self.spec.log_level = logging.getLogger().getEffectiveLevel()
+        super().start()
+
+    def _no_answer(self, timeout_s: float) -> str:
+        return f"the simulation process did not start within {timeout_s:.0f} s"
+
+    def _ended(self, exitcode) -> str:
+        return f"the simulation process exited at start (code {exitcode})"
+
+    def _refused(self, reason: str) -> str:
+        return f"the simulation process failed at start: {reason}"
+
+    def _no_state(self) -> str:
+        return "the simulation process is not running"
+
+    _not_running = _no_state
+
+    def _ready(self, payload: tuple) -> None:
+        state, self._truth = payload
         self._states.publish(state)
-        self._reader = threading.Thread(target=self._read_states, name="sim-link", daemon=True)
-        self._reader.start()
 
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        try:
-            with self._send_lock:
-                self._cmd.send(("stop",))
-        except (OSError, ValueError):
-            pass
-        end_child(self._proc, (self._cmd, self._state_rx, self._imu_rx))
-        self._proc = None
+    def _handle(self, msg: tuple) -> None:
+        if msg[0] == "state":
+            _, state, self._truth = msg
+            self._states.publish(state)
 
-    def _read_states(self) -> None:
-        while True:
-            try:
-                msg = self._state_rx.recv()
-            except (EOFError, OSError):
-                break
-            if msg[0] == "state":
-                _, state, self._truth = msg
-                self._states.publish(state)
-        self._states.close()
-        if self._proc is not None and self._proc.exitcode not in (None, 0):
-            log.error("the simulation process exited (code %s)", self._proc.exitcode)
+    def _gone(self) -> None:
+        proc = self._proc
+        if proc is not None and proc.exitcode not in (None, 0):
+            log.error("the simulation process exited (code %s)", proc.exitcode)
 
-    # -- RobotReceive / RobotControl ------------------------------------------
-    def read_state(self) -> JointState:
-        return self._states.read()
-
-    def wait_state(self, seq: int, timeout: float) -> JointState:
-        """The latest state, once its seq differs from `seq` or after `timeout` s; SimProcessError once
-        the child has gone."""
-        return self._states.wait(seq, timeout)
+    @property
+    def imu_rx(self):
+        """The IMU pipe's reading end, or None before the start."""
+        return self._extra_rx[0] if self._extra_rx else None
 
     def truth(self) -> SimTruth | None:
         return self._truth
 
     def command_joint_velocity(self, qd: np.ndarray) -> None:
-        qd = joint_rates(qd, self.nq)
-        t_issued = time.monotonic()
-        try:
-            with self._send_lock:
-                self._cmd.send(("cmd", t_issued, qd.copy()))
-        except (OSError, ValueError, AttributeError):
-            raise SimProcessError("the simulation process is not running") from None
+        self._send(("cmd", time.monotonic(), joint_rates(qd, self.nq).copy()))
 
     def hold(self) -> None:
         self.command_joint_velocity(np.zeros(self.nq))
 
-    # -- IMU source (imu_out "pipe") -----------------------------------------
+
+class PipeImuSource(ImuSource):
+    """`imu.source: sim`: the simulated chip's samples, as the child synthesises them, on their pipe."""
+
+    def __init__(self, link: SimProcess):
+        self.link = link
+
     @property
     def odr_hz(self) -> float:
         """The simulated chip's data rate, Hz."""
-        return float(self.spec.imu.odr_hz)
+        return float(self.link.spec.imu.odr_hz)
 
     @property
     def saturation(self) -> tuple[float, float]:
         """(gyro rad/s, accel m/s^2) at which the simulated chip clips (its int16 at the full scales)."""
-        return Scaling(self.spec.imu.gyro_fs_dps, self.spec.imu.accel_fs_g).saturation
+        return Scaling(self.link.spec.imu.gyro_fs_dps, self.link.spec.imu.accel_fs_g).saturation
 
     def read(self, timeout: float = 0.05):
         """Next chunk (t (n,), gyro (n,3), accel (n,3)) or None after `timeout` seconds."""
-        conn = self._imu_rx
+        conn = self.link.imu_rx
         try:
             if conn is not None and conn.poll(timeout):
                 return conn.recv()
         except (EOFError, OSError):
             pass
-        if conn is None or self.exited.is_set():
+        if conn is None or self.link.exited.is_set():
             time.sleep(timeout)      # the child has gone: no samples, and no busy loop
         return None
 
-    def close(self) -> None:
-        """The IMU source's close: the process itself is stopped by `stop()`."""
+    def checks(self) -> list[Check]:
+        return [Check("fingertip board", "skip", "imu.source is sim: the simulated fingertip is used")]

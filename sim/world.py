@@ -254,17 +254,11 @@ class BoxScene:
 
 
 def _boxes(section) -> list:
-    raw = section._raw("boxes", [])
-    name = f"{section.path}.boxes"
-    if not isinstance(raw, list):
-        raise ValueError(f"{name}: expected a list of [x0, y0, x1, y1, top_z]")
+    """sim.pivot.boxes: [[x0, y0, x1, y1, top_z], ...], each with x0 < x1 and y0 < y1."""
     out = []
-    for box in raw:
-        if (not isinstance(box, list) or len(box) != 5
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)):
-            raise ValueError(f"{name}: expected [x0, y0, x1, y1, top_z] numbers, got {box!r}")
+    for box in section.getrows("boxes", [], width=5, min_rows=0, what="[x0, y0, x1, y1, top_z]"):
         if box[0] >= box[2] or box[1] >= box[3]:
-            raise ValueError(f"{name}: a box needs x0 < x1 and y0 < y1, got {box!r}")
+            raise section.error("boxes", f"a box needs x0 < x1 and y0 < y1, got {box}")
         out.append(tuple(float(v) for v in box))
     return out
 

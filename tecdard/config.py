@@ -203,12 +203,12 @@ class Section:
         return out
 
     def getrows(self, key: str, default: Any = REQUIRED, *, width: int, max_rows: int = MAX_LIST_ITEMS,
-                what: str = "row") -> list[list[float]]:
-        """A non-empty list of at most max_rows rows of `width` finite numbers each (a table such as
-        [[grip force N, eta], ...]); `what` names a row in the errors."""
+                min_rows: int = 1, what: str = "row") -> list[list[float]]:
+        """A list of min_rows to max_rows rows of `width` finite numbers each (a table such as [[grip
+        force N, eta], ...]); `what` names a row in the errors."""
         value = self._raw(key, default)
         kind = "pairs" if width == 2 else "rows"
-        if not isinstance(value, list) or not value or len(value) > max_rows:
+        if not isinstance(value, list) or len(value) < min_rows or len(value) > max_rows:
             raise self.error(key, f"expected a list of up to {max_rows} {what} {kind}")
         out = []
         for row in value:

@@ -14,7 +14,11 @@ PARTIAL_PREFIX = ".partial-"   # what a writer killed mid-way leaves; readers sk
 
 
 class OutputError(OSError):
-    """An output directory that cannot be used; the message is one line."""
+    """A directory the daemon must write to cannot be used: `what` (the option naming it) and why."""
+
+    def __init__(self, what: str, reason: str):
+        super().__init__(f"{what}: {reason}")
+        self.what, self.reason = what, reason
 
 
 def state_dir() -> pathlib.Path:
@@ -35,13 +39,13 @@ def ensure_writable_dir(path: str | os.PathLike, what: str) -> pathlib.Path:
     try:
         p.mkdir(mode=DIR_MODE, parents=True, exist_ok=True)
         if not p.is_dir():
-            raise OutputError(f"{what}: {p} is not a directory")
+            raise OutputError(what, f"{p} is not a directory")
         with tempfile.NamedTemporaryFile(dir=p, prefix=PARTIAL_PREFIX):
             pass
     except OutputError:
         raise
     except OSError as exc:
-        raise OutputError(f"{what}: {p} is not writable ({exc.strerror or type(exc).__name__})") from None
+        raise OutputError(what, f"{p} is not writable ({exc.strerror or type(exc).__name__})") from None
     for stale in p.glob(PARTIAL_PREFIX + "*"):
         shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
     return p

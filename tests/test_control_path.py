@@ -2,7 +2,6 @@
 commands under a telemetry flood, a task verb added as one file, and a task's own safety reaction."""
 import dataclasses
 import json
-import queue
 import textwrap
 
 import numpy as np
@@ -15,10 +14,10 @@ from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.api import commands as C
 from tecdard import verbs
 from tecdard.runtime.control_thread import ControlParams, ControlThread
-from tecdard.runtime.daemon import TELEMETRY_PER_PASS, MainLoop, status_json
+from tecdard.runtime.main_loop import TELEMETRY_PER_PASS, MainLoop, status_json
 from tecdard.runtime.intake import QueryIntake
 from tecdard.control.pipeline import EstimatorDirective
-from tecdard.runtime.messages import DropOldestRing, LatestValue, StartTask, Stop
+from tecdard.runtime.messages import DropOldestRing, LatestValue, Outbox, StartTask, Stop
 from tecdard.api.session import Keys
 from tests.test_control_safety import LaggingArm
 
@@ -131,7 +130,7 @@ class FreshRing:
 
 def control_thread(model, directive=None):
     ct = ControlThread(ControlParams(tick_s=TICK_S), model, robot=None, ring=FreshRing(), contact=LatestValue(),
-                       directive=directive or LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"],
+                       directive=directive or LatestValue(), outbox=Outbox(FLOOD_STATES * 2), q_home=READY_Q["panda"],
                        robot_name="sim")
     ct.robot = LaggingArm(np.array(READY_Q["panda"], float), iter(lambda: 0.0, None))
     return ct
@@ -156,7 +155,7 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
     assert rotate.replies[0]["ok"] is True
     task = rotate.replies[0]["task"]
     for _ in range(FLOOD_STATES):          # the telemetry of a stalled main thread, ahead of everything below
-        ct.outbox.put(("state", {"t": 0.0, "seq": 0}))
+        ct.outbox.put("state", {"t": 0.0, "seq": 0})
     delivered = []
     sent = [FakeQuery(keys.cmd("cancel"), {"task": "rotate-0000"}, delivered),  # not the running task: no_task
             FakeQuery(keys.cmd("probe"), {}, delivered),                        # busy: the rotate runs
@@ -193,6 +192,8 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
 
 WIGGLE = '''
     """`wiggle`: lift the TCP by `distance` and come to rest (a verb defined by this file alone)."""
+    import enum
+
     import numpy as np
 
     from tecdard.control.safety import StopCause
@@ -201,6 +202,9 @@ WIGGLE = '''
 
 
     class WiggleTask(Task):
+        class Phase(enum.StrEnum):
+            LIFT = "lift"
+
         kind = "wiggle"
 
         def __init__(self, task_id, distance, speed, max_force_n):
@@ -214,15 +218,17 @@ WIGGLE = '''
                 return StopCause("wiggle_force", "pushed while wiggling")
             return None
 
-        def step(self, inp):
-            if not self._running(inp):
-                return None
+        def _started(self, inp):
+            self._enter(self.Phase.LIFT, inp.t)
+
+        def _step_lift(self, inp):
             target = self.p_start + self.direction * self.distance
             if inp.planner_at_rest and np.linalg.norm(inp.p_ref - target) < 1e-4:
-                self.status.state = "done"
-                self.status.result = {"lifted_m": float(inp.p[2] - self.p_start[2])}
+                self._done({"lifted_m": float(inp.p[2] - self.p_start[2])})
                 return None
             return Motion(target, np.zeros(3), self.R_hold)
+
+        STEPS = {Phase.LIFT: _step_lift}
 
 
     def build(f, ctx):
@@ -386,7 +392,7 @@ def test_a_robot_fault_stops_the_plan_where_the_controller_stopped_the_arm(model
     for k in range(1, 12):
         tick(ct, ct.robot, k)
     assert ct.runner.mode is Mode.BUSY and np.linalg.norm(ct.runner.planner.velocity) > 1e-3   # moving
-    ct._robot_faults = lambda: {"robot_protective_stop": "the controller reports a protective stop"}
+    ct.robot.faults = lambda: {"robot_protective_stop": "the controller reports a protective stop"}
     ct.robot.qd[:] = 0.0                               # the controller has halted the arm
     p_halted = model.fk(ct.robot.q).translation.copy()
     tick(ct, ct.robot, 12)

@@ -1,17 +1,16 @@
 """The control thread, ticked directly: its estimator checks (divergence, contact jumps), faults, and the servo."""
-import queue
 
 import numpy as np
 import pytest
 
 from tecdard.control.pipeline import ContactEstimate
 from tecdard.control.tasks import ApproachTask
-from tecdard.robots.backend import JointState
+from tecdard.robots.backend import JointState, RobotBackend
 from tecdard.sim.world import SimTruth
 from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.control.modes import Mode
 from tecdard.runtime.control_thread import ControlParams, ControlThread
-from tecdard.runtime.messages import LatestValue, StartTask
+from tecdard.runtime.messages import LatestValue, Outbox, StartTask
 
 AXIS = np.array([0.0, 1.0, 0.0])
 
@@ -22,8 +21,8 @@ def model():
 
 
 def control_thread(model, ring=None, **params):
-    return ControlThread(ControlParams(**params), model, robot=None, ring=ring, contact=LatestValue(),
-                         directive=LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim")
+    return ControlThread(ControlParams(**params), model, robot=RobotBackend(), ring=ring, contact=LatestValue(),
+                         directive=LatestValue(), outbox=Outbox(4096), q_home=READY_Q["panda"], robot_name="sim")
 
 
 def control(model, **params):
@@ -117,7 +116,7 @@ def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
 
 def test_a_failing_annotation_never_costs_the_task_its_end_event():
     """The simulator's truth is added on the main thread; a failure there publishes the event as it is."""
-    from tecdard.runtime.daemon import MainLoop
+    from tecdard.runtime.main_loop import MainLoop
 
     class Pub:
         def __init__(self):
@@ -129,15 +128,15 @@ def test_a_failing_annotation_never_costs_the_task_its_end_event():
     def broken(event):
         raise RuntimeError("world gone")
 
-    outbox = queue.Queue()
-    outbox.put(("event", {"t": 1.0, "kind": "task_failed", "task": "approach-1", "error": "no contact"}))
+    outbox = Outbox(16)
+    outbox.put("event", {"t": 1.0, "kind": "task_failed", "task": "approach-1", "error": "no contact"})
     events = Pub()
     main = MainLoop(None, None, outbox, Pub(), Pub(), events, annotate=broken)
     assert main.publish_telemetry(0.0) == 1
     assert '"kind":"task_failed"' in events.texts[0] and '"sim"' not in events.texts[0]
 
 
-class LaggingArm:
+class LaggingArm(RobotBackend):
     """A perfect velocity-controlled arm whose joint state reaches the controller `age` late,
     the age changing from tick to tick as 65 Hz samples met by 50 Hz ticks (and a loaded machine) do."""
 

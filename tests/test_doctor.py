@@ -6,8 +6,11 @@ import types
 
 import pytest
 
-from tecdard.tools import doctor
 from tecdard.config import dump_yaml
+from tecdard.host import check_rt_kernel
+from tecdard.robots.franka import check_franka_realtime, check_franka_robot
+from tecdard.robots.ur import check_ur_controller
+from tecdard.tools import doctor
 from tecdard.tools.demo import free_port
 from tests.conftest import ROOT, sim_config
 
@@ -42,9 +45,9 @@ def test_a_bad_config_fails_with_the_runs_own_line(tmp_path):
 def test_rt_kernel(tmp_path):
     flag = tmp_path / "realtime"
     flag.write_text("1\n")
-    assert doctor.check_rt_kernel(str(flag), "#1 SMP").status == "pass"
-    assert doctor.check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_RT Debian").status == "pass"
-    c = doctor.check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_DYNAMIC")
+    assert check_rt_kernel(str(flag), "#1 SMP").status == "pass"
+    assert check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_RT Debian").status == "pass"
+    c = check_rt_kernel(str(tmp_path / "none"), "#1 SMP PREEMPT_DYNAMIC")
     assert c.status == "warn" and "linux-image-rt" in c.fix
 
 
@@ -69,11 +72,12 @@ def test_rtprio_is_tried_on_a_thread_of_its_own():
 
 def test_apply_rt_priority_says_so_in_one_line_when_refused(monkeypatch, caplog):
     import logging
+    from tecdard import host
     from tecdard.runtime import realtime
 
     def refuse(*_):
         raise PermissionError(1, "Operation not permitted")
-    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(host.os, "sched_setscheduler", refuse)
     with caplog.at_level(logging.INFO, logger="tecdar"):
         assert realtime.apply_rt_priority(80) is False
     (line,) = [r.getMessage() for r in caplog.records]
@@ -82,20 +86,19 @@ def test_apply_rt_priority_says_so_in_one_line_when_refused(monkeypatch, caplog)
 
 
 def test_board_by_port_and_by_vid_pid(tmp_path):
-    from tecdard.drivers.serial_imu import SerialParams
-    assert doctor.check_board(None).status == "skip"
-    c = doctor.check_board(SerialParams(port="/dev/tecdar-imu-not-here"))
+    from tecdard.drivers.serial_imu import SerialParams, check_board
+    c = check_board(SerialParams(port="/dev/tecdar-imu-not-here"))
     assert c.status == "fail" and "does not exist" in c.detail and "plug" in c.fix
-    c = doctor.check_board(SerialParams(port=str(tmp_path / "tecdar-imu")))     # the udev rule's link, absent
+    c = check_board(SerialParams(port=str(tmp_path / "tecdar-imu")))     # the udev rule's link, absent
     assert c.status == "fail" and "/dev/tecdar-imu" in c.fix
     master, slave = os.openpty()
     try:
         pty = os.ttyname(slave)
-        assert doctor.check_board(SerialParams(port=pty)).status == "pass"
+        assert check_board(SerialParams(port=pty)).status == "pass"
         info = types.SimpleNamespace(device=pty, vid=0x0483, pid=0x5740, serial_number="A1")
         other = types.SimpleNamespace(device="/dev/ttyUSB9", vid=0x1a86, pid=0x7523, serial_number=None)
-        assert doctor.check_board(SerialParams(vid=0x0483, pid=0x5740), lambda: [other, info]).status == "pass"
-        c = doctor.check_board(SerialParams(vid=0x0483, pid=0x5740, serial_number="B2"), lambda: [other, info])
+        assert check_board(SerialParams(vid=0x0483, pid=0x5740), lambda: [other, info]).status == "pass"
+        c = check_board(SerialParams(vid=0x0483, pid=0x5740, serial_number="B2"), lambda: [other, info])
         assert c.status == "fail" and "0483:5740 serial B2" in c.detail and "1a86:7523" in c.detail
     finally:
         os.close(master)
@@ -155,6 +158,8 @@ def test_the_shipped_ur5e_config_is_valid_and_its_controller_is_checked(tmp_path
     assert text.splitlines()[0].startswith("PASS  config"), text
     assert f"PASS  UR controller {fake.host}: dashboard, script and RTDE ports answer" in text
     assert "PASS  UR arm: UR5e, software 5.11" in text
+    # the board is the rig's (imu.source serial): checked at its configured port, which is not here
+    assert "FAIL  fingertip board: /dev/tecdar-imu does not exist" in text, text
 
 
 @pytest.mark.parametrize("arm,remote,expect", [
@@ -166,7 +171,7 @@ def test_a_ur_controller_that_cannot_serve_this_config_fails(tmp_path, arm, remo
     from tests.fake_ur import FakeController, free_loopback_host
     fake = FakeController(free_loopback_host(), arm=arm, remote_control=remote)
     try:
-        checks = doctor.check_ur_controller(fake.host, "ur5e")
+        checks = check_ur_controller(fake.host, "ur5e")
     finally:
         fake.close()
     lines = [ln for c in checks for ln in c.lines()]
@@ -176,7 +181,7 @@ def test_a_ur_controller_that_cannot_serve_this_config_fails(tmp_path, arm, remo
 
 def test_no_ur_controller_at_the_host_fails_naming_the_ports():
     from tests.fake_ur import free_loopback_host
-    (check,) = doctor.check_ur_controller(free_loopback_host(), "ur5e")
+    (check,) = check_ur_controller(free_loopback_host(), "ur5e")
     assert check.status == "fail" and "dashboard 29999" in check.detail and "RTDE 30004" in check.detail
 
 
@@ -212,16 +217,17 @@ def test_the_shipped_fr3_config_is_valid_and_its_robot_and_realtime_are_checked(
     if kernel[0].startswith("FAIL"):
         assert "RealtimeException" in kernel[0]
     assert "Franka SCHED_FIFO 99" in text and "Franka memlock" in text
+    assert f"FAIL  fingertip board: {tmp_path / 'no-board'} does not exist" in text, text
 
 
 def test_franka_realtime_checks_read_the_host():
-    rt = doctor.check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_RT", memlock=(-1, -1))
+    rt = check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_RT", memlock=(-1, -1))
     kernel, _, memlock = rt
     assert kernel.status == "pass" and memlock.status == "pass"
-    low = doctor.check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_DYNAMIC", memlock=(65536, 65536))
+    low = check_franka_realtime("enforce", "/nonexistent", "#1 SMP PREEMPT_DYNAMIC", memlock=(65536, 65536))
     assert low[0].status == "fail" and "RealtimeException" in low[0].detail and low[0].fix
     assert low[2].status == "warn" and "64 KiB" in low[2].detail and "memlock 102400" in low[2].fix
-    (ignored,) = doctor.check_franka_realtime("ignore")
+    (ignored,) = check_franka_realtime("ignore")
     assert ignored.status == "warn" and "franky-sim" in ignored.detail
 
 
@@ -230,9 +236,9 @@ def test_a_franka_robot_of_another_version_or_none_fails(tmp_path):
     from tests.franka_sim import ServerProcess, free_franka_host
     srv = ServerProcess("--reply-version", "9")
     try:
-        (check,) = doctor.check_franka_robot(srv.host)
+        (check,) = check_franka_robot(srv.host)
     finally:
         srv.close()
     assert check.status == "fail" and "robot server version 9" in check.detail and "speaks 10" in check.detail
-    (none,) = doctor.check_franka_robot(free_franka_host())
+    (none,) = check_franka_robot(free_franka_host())
     assert none.status == "fail" and "refused" in none.detail and "FCI" in none.fix

@@ -15,13 +15,27 @@ from tecdard.control.planner import CartesianPlanner
 from tecdard.control.tasks import ContactView, TickInput
 from tecdard.sim.world import BoxScene
 from tecdard.api import commands as C
-from tecdard.verbs.map.files import MapSettings, colormap, write_map
+from tecdard.verbs.map.files import MapFiles, MapSettings, colormap, write_map
 
 TICK_S = 0.02
 R_TOOL_DOWN = np.diag([1.0, -1.0, -1.0])        # the TCP frame of the Panda's home pose
 TIP_TCP = np.array([0.06, 0.0, 0.104])          # a block held 30 deg off the vertical, 12 cm
 STIFFNESS_N_M = 3000.0                          # the grasp along the tool, as the simulator's
 POINT_TOL_M = 1e-6                              # the fake estimator is exact
+
+
+class Files:
+    """The map's files as MapTask takes them: `write` hands the finished record on (to `on_write`, which
+    returns its future), `write_partial` keeps what a run that ended early had."""
+
+    def __init__(self, on_write):
+        self.on_write, self.partial = on_write, []
+
+    def write(self, record):
+        return self.on_write(record)
+
+    def write_partial(self, task_id, record):
+        self.partial.append((task_id, record))
 
 
 def done_now(result):
@@ -153,7 +167,7 @@ P0 = np.array([0.307, 0.0, 0.487])
 
 def test_map_probes_every_grid_point_in_two_orientations_and_hands_the_record_to_the_writer():
     records = []
-    task = MapTask("map-1", map_params(), lambda rec: records.append(rec) or done_now({"path": "x"}))
+    task = MapTask("map-1", map_params(), Files(lambda rec: records.append(rec) or done_now({"path": "x"})))
     progress = []
     rig = FakeRig(SCENE, P0)
     orig_step = task.step
@@ -187,7 +201,7 @@ def test_each_lift_pulls_the_tool_out_along_its_axis_before_rising():
     """Lifted straight up with its tip pinned, a tool levers in a soft grasp; pulled out along its own
     axis it leaves the surface as it is. Every lift goes release_distance away from the tip along the
     tool, then straight up to the travel height."""
-    task = MapTask("map-1", map_params(release_distance=0.008), lambda rec: done_now({}))
+    task = MapTask("map-1", map_params(release_distance=0.008), Files(lambda rec: done_now({})))
     rig = FakeRig(SCENE, P0)
     rig.run(task)
     assert task.status.state == "done", task.status.error
@@ -210,7 +224,7 @@ def test_the_tool_model_follows_the_tool_turning_in_the_grasp():
     """The arm brakes after each touch with the tip pinned, so the tool turns in the soft grasp; the model
     turns with it (from the TCP's motion about the touched point) and takes each probe's reach, not the
     direction the probe reports. After every point of both passes it still points where the tool does."""
-    task = MapTask("map-5", map_params(), lambda rec: done_now({}))
+    task = MapTask("map-5", map_params(), Files(lambda rec: done_now({})))
     rig = FakeRig(SCENE, P0)
     rig.run(task)
     assert task.status.state == "done", task.status.error
@@ -223,7 +237,7 @@ def test_the_tool_model_follows_the_tool_turning_in_the_grasp():
 
 def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
     records = []
-    task = MapTask("map-2", map_params(orientations=1), lambda rec: records.append(rec) or done_now({}))
+    task = MapTask("map-2", map_params(orientations=1), Files(lambda rec: records.append(rec) or done_now({})))
     rig = FakeRig(SCENE, P0, trigger=False)
     rig.run(task)
     assert task.status.state == "done"
@@ -238,7 +252,7 @@ def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
 def test_nothing_within_depth_is_no_contact():
     records = []
     task = MapTask("map-3", map_params(orientations=1, grid=(1, 2), depth=0.02),
-                   lambda rec: records.append(rec) or done_now({}))
+                   Files(lambda rec: records.append(rec) or done_now({})))
     FakeRig(SCENE, P0).run(task)
     assert [pt.reason for pt in records[0].points] == ["no_contact", "no_contact"]
 
@@ -248,26 +262,26 @@ def test_a_failing_writer_fails_the_task():
         fut = concurrent.futures.Future()
         fut.set_exception(OSError("disk full"))
         return fut
-    task = MapTask("map-4", map_params(orientations=1, grid=(1, 1)), writer)
+    task = MapTask("map-4", map_params(orientations=1, grid=(1, 1)), Files(writer))
     FakeRig(SCENE, P0).run(task)
     assert task.status.state == "failed" and "disk full" in task.status.error
 
 
 def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
-    import queue
     from tecdard.robots.model import READY_Q, ArmModel
     from tecdard.control.modes import Mode
     from tecdard.runtime.control_thread import ControlParams, ControlThread
-    from tecdard.runtime.messages import LatestValue
+    from tecdard.runtime.messages import LatestValue, Outbox
+    files = MapFiles(MapSettings(output_dir=str(tmp_path)))
     ct = ControlThread(ControlParams(), ArmModel("panda"), robot=None, ring=None, contact=LatestValue(),
-                       directive=LatestValue(), outbox=queue.Queue(), q_home=READY_Q["panda"], robot_name="sim",
-                       map_settings=MapSettings(output_dir=str(tmp_path)))
-    task = MapTask("map-6", map_params(), lambda rec: done_now({}))
+                       directive=LatestValue(), outbox=Outbox(256), q_home=READY_Q["panda"], robot_name="sim",
+                       services={"map": files})
+    task = MapTask("map-6", map_params(), files)
     FakeRig(SCENE, P0).run(task, until=lambda t: len(t.points) == 3)
     ct.runner.task, ct.runner.mode = task, Mode.BUSY
     ct.runner.end("failed", error="stopped by command")
-    ct.maps.shutdown(wait=True)
-    for ev in ct.maps.announcements():
+    files.shutdown(wait=True)
+    for ev in files.announcements():
         ct._event(**ev)
     events = []
     while not ct.outbox.empty():
@@ -304,7 +318,7 @@ def read_png(path) -> np.ndarray:
 
 def test_write_map_writes_the_four_files(tmp_path):
     records = []
-    task = MapTask("map-5", map_params(), lambda rec: records.append(rec) or done_now({}))
+    task = MapTask("map-5", map_params(), Files(lambda rec: records.append(rec) or done_now({})))
     FakeRig(SCENE, P0).run(task)
     settings = MapSettings(output_dir=str(tmp_path), resolution_m=0.005, kernel_sigma_m=0.022)
     res = write_map(records[0], settings)
@@ -374,7 +388,7 @@ def test_a_map_is_written_private_and_complete_or_not_at_all(tmp_path, monkeypat
     from tecdard.verbs.map import files as mapfiles
     records = []
     task = MapTask("map-7", map_params(orientations=1, grid=(1, 2), depth=0.02),
-                       lambda rec: records.append(rec) or done_now({}))
+                       Files(lambda rec: records.append(rec) or done_now({})))
     FakeRig(SCENE, P0).run(task)
     settings = MapSettings(output_dir=str(tmp_path / "maps"))
     res = mapfiles.write_map(records[0], settings)

@@ -24,7 +24,7 @@ def test_the_child_streams_state_and_imu_follows_commands_and_stops():
         samples, t_end, stamps = 0, time.monotonic() + 0.5, []
         while time.monotonic() < t_end:
             sim.command_joint_velocity(np.r_[0.2, np.zeros(6)])     # the base joint turns
-            chunk = sim.read(0.05)
+            chunk = sim.imu.read(0.05)
             if chunk is not None:
                 t, gyro, accel = chunk
                 assert gyro.shape == accel.shape == (len(t), 3)

@@ -6,7 +6,8 @@ import pytest
 
 from tecdard.control.geometry import matrix_to_rotvec
 from tecdard.control.planner import CartesianPlanner
-from tecdard.control.tasks import TOOL_TURN_RAMP_S, ContactView, RotateTask, TickInput
+from tecdard.control.rotate import TOOL_TURN_RAMP_S, RotateTask
+from tecdard.control.tasks import ContactView, TickInput
 
 TICK_S = 0.02
 HINGE = np.array([0.157, 0.0, 0.487])

@@ -25,8 +25,7 @@ from tecdard.control.runner import TaskRunner
 from tecdard.control.servo import PlanSample, joint_velocities
 from tecdard.api import commands as C
 from tecdard import verbs
-from tecdard.verbs.map.files import MapSettings, MapWriter
-from tecdard.runtime.messages import Cancel, LatestValue, Reply, StartTask, Stop
+from tecdard.runtime.messages import Cancel, LatestValue, Outbox, Reply, StartTask, Stop
 from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.safejson import show_name
 
@@ -76,8 +75,7 @@ class ControlParams:
                          if section.has("rt_priority") else None),
         )
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
-            from tecdard.config import ConfigError
-            raise ConfigError(f"{section.path}.workspace_min: must be below workspace_max on every axis")
+            raise section.error("workspace_min", "must be below workspace_max on every axis")
         return p
 
     def safety_limits(self) -> safety.SafetyLimits:
@@ -94,28 +92,27 @@ class ControlThread:
     In: task commands through `submit` (StartTask, Cancel; a bounded queue read once per tick) and
     `request_stop` (a Stop from any thread: taken first on every tick, never behind anything).
     Out: a `Reply` per command on `replies` (unbounded: one per request), state and events on
-    `outbox`, and what the estimator should do as one `EstimatorDirective` in `directive`.
+    `outbox`, and what the estimator should do as one `EstimatorDirective` in `directive`. The verbs'
+    services (tecdard.verbs.VerbService, by verb) are handed to their tasks; their events are
+    published from here.
     """
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue, directive: LatestValue,
-                 outbox: queue.Queue, q_home: np.ndarray, robot_name: str, notifier=None,
-                 map_settings: MapSettings | None = None, imu_saturated_since=None):
+                 outbox: Outbox, q_home: np.ndarray, robot_name: str, notifier=None, services: dict | None = None,
+                 imu_saturated_since=None):
         self.params = params
         self.limits = params.safety_limits()
         self.model = model.clone()           # this thread's own pinocchio Data
         self.robot, self.ring, self.contact, self.outbox = robot, ring, contact, outbox
-        self._robot_faults = getattr(robot, "faults", None)     # a backend's own faults, where it has them
         self.q_home, self.robot_name, self.notifier = q_home, robot_name, notifier
-        self.map_settings = map_settings or MapSettings()
-        self.maps = MapWriter(self.map_settings)
+        self.services = dict(services or {})
         self.imu_saturated_since = imu_saturated_since or (lambda: None)   # latest value of the estimator thread
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
         self._stop_waiters: list = []
         self.runner = TaskRunner(CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk),
-                                 self.limits, self._event, on_rest=self._answer_stops,
-                                 on_partial=self.maps.write_partial)
+                                 self.limits, self._event, on_rest=self._answer_stops)
         self.directive = directive
         directive.set(self.runner.directive)
         self.stats = TickStats()
@@ -125,7 +122,6 @@ class ControlThread:
         self._seq = 0
         self._late_s = 0.0                 # how late the current tick started, s
         self.first_tick = threading.Event()
-        self.dropped = 0
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
         self._wd_last = 0.0
 
@@ -144,8 +140,9 @@ class ControlThread:
         self._stops.append(msg)
 
     def quiescent(self) -> bool:
-        """No task, the arm at rest after any stop, and every map written (for an orderly shutdown)."""
-        return self.runner.mode is Mode.IDLE and self.maps.idle
+        """No task, the arm at rest after any stop, and every verb's service idle (a map written), for
+        an orderly shutdown."""
+        return self.runner.mode is Mode.IDLE and all(s.idle for s in self.services.values())
 
     # -- the loop -------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -184,7 +181,11 @@ class ControlThread:
                 self.robot.hold()
             except Exception:
                 log.exception("hold on exit failed")
-            self.maps.shutdown()
+            for service in self.services.values():
+                try:
+                    service.shutdown()
+                except Exception:
+                    log.exception("shutting down a verb's service failed")
             self.runner.planner.release()
 
     def tick(self, now: float) -> None:
@@ -213,8 +214,9 @@ class ControlThread:
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
         self._publish_state(now, p, R, twist[:3], est)
-        for ev in self.maps.announcements():
-            self._event(**ev)
+        for service in self.services.values():
+            for ev in service.announcements():
+                self._event(**ev)
         if self._wd_interval and now - self._wd_last >= self._wd_interval:
             self._wd_last = now
             self.notifier.notify("WATCHDOG=1")
@@ -225,9 +227,8 @@ class ControlThread:
         one stops the running task. `p`: the measured TCP."""
         changes = [(c, None) for c in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
                                                            self.imu_saturated_since())]
-        if self._robot_faults is not None:
-            # the robot's own controller has stopped the arm where it is: the plan stops there too
-            changes += [(c, p) for c in self.sensors.update_robot(self._robot_faults())]
+        # the robot's own controller has stopped the arm where it is: the plan stops there too
+        changes += [(c, p) for c in self.sensors.update_robot(self.robot.faults())]
         for (kind, code, message), halted_at in changes:
             if kind == "fault":
                 self._event("fault", code=code, message=message)
@@ -279,8 +280,7 @@ class ControlThread:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
         R_hold = self.runner.R_hold if self.runner.R_hold is not None else np.eye(3)
         ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
-                                self.params.workspace_min, self.params.workspace_max, self.map_settings,
-                                self.maps.write)
+                                self.params.workspace_min, self.params.workspace_max, self.services.get(verb))
         try:
             task = spec.build(f, ctx)
         except verbs.BuildRefused as exc:
@@ -294,14 +294,8 @@ class ControlThread:
             self._reply(request, {"ok": True})
         self._stop_waiters.clear()
 
-    def _put(self, item) -> None:
-        try:
-            self.outbox.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
-
     def _event(self, kind: str, **fields) -> None:
-        self._put(("event", {"t": time.monotonic(), "kind": kind, **fields}))
+        self.outbox.event(kind, **fields)
 
     def _reply(self, request: int | None, payload: dict) -> None:
         if request is not None:
@@ -317,7 +311,8 @@ class ControlThread:
             "task": None if task is None else {"id": task.id, "kind": task.kind, "phase": task.status.phase,
                                                "progress": round(task.status.progress, 4)},
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
-            "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks},
+            "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
+                        "outbox_dropped": self.outbox.counts()},
         }
         self.latest_state.set(state)
-        self._put(("state", state))
+        self.outbox.put("state", state)

@@ -8,9 +8,15 @@ estimator through a `DropOldestRing` of its own.
 from __future__ import annotations
 
 import collections
+import logging
 import queue
 import threading
+import time
 from dataclasses import dataclass
+
+log = logging.getLogger("tecdar")
+
+DROP_LOG_S = 1.0              # a dropped event is logged at most once this often (with the count since)
 
 
 @dataclass(frozen=True)
@@ -109,3 +115,66 @@ class Inbox:
 
     def empty(self) -> bool:
         return self._q.empty()
+
+
+class Outbox:
+    """The threads' telemetry for the main thread to publish: `state`, `contact` and `event` messages in
+    one bounded queue that never blocks a producer. What does not fit is dropped and counted by kind
+    (`dropped`, in every state message's `control.outbox_dropped`); a dropped event is also logged,
+    at most one line a second with the count since the last."""
+
+    KINDS = ("state", "contact", "event")
+
+    def __init__(self, capacity: int):
+        self._q: queue.Queue = queue.Queue(capacity)
+        self.dropped = dict.fromkeys(self.KINDS, 0)
+        self._lock = threading.Lock()
+        self._logged_at = -float("inf")
+        self._unlogged = 0
+
+    def put(self, kind: str, body: dict) -> bool:
+        """A message of `kind`; False when the outbox was full (dropped and counted)."""
+        try:
+            self._q.put_nowait((kind, body))
+            return True
+        except queue.Full:
+            with self._lock:
+                self.dropped[kind] += 1
+            if kind == "event":
+                self._log_drop(body.get("kind"))
+            return False
+
+    def event(self, kind: str, **fields) -> bool:
+        """An event stamped now (monotonic s)."""
+        return self.put("event", {"t": time.monotonic(), "kind": kind, **fields})
+
+    def _log_drop(self, kind) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._unlogged += 1
+            if now - self._logged_at < DROP_LOG_S:
+                return
+            count, self._unlogged, self._logged_at = self._unlogged, 0, now
+        log.warning("event %s dropped: the outbox is full (%d events dropped since the last such line)", kind, count)
+
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.dropped)
+
+    def get(self, timeout: float | None = None):
+        """The oldest (kind, body); queue.Empty after `timeout` s (None: wait)."""
+        return self._q.get(timeout=timeout)
+
+    def get_nowait(self):
+        return self._q.get_nowait()
+
+    def qsize(self) -> int:
+        return self._q.qsize()
+
+    def empty(self) -> bool:
+        return self._q.empty()
+
+    @property
+    def queue(self):
+        """The queued messages, oldest first (a snapshot view, for tests)."""
+        return self._q.queue

@@ -8,35 +8,16 @@ the daemon logs one line and runs SCHED_OTHER. `tecdard doctor` reports the same
 from __future__ import annotations
 
 import logging
-import os
-import resource
-import threading
 
 import numpy as np
+
+from tecdard.host import set_fifo
 
 log = logging.getLogger("tecdar")
 
 MAX_RT_PRIORITY = 98          # 99 is the kernel's own watchdog threads' level: never above them
-
-
-def rtprio_limit() -> tuple[int, int]:
-    """(soft, hard) RLIMIT_RTPRIO; RLIM_INFINITY as 99."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
-    inf = resource.RLIM_INFINITY
-    return (99 if soft == inf else int(soft)), (99 if hard == inf else int(hard))
-
-
-def set_fifo(priority: int) -> str | None:
-    """SCHED_FIFO at `priority` for the calling thread; None, or why the host refused."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return None
-    except PermissionError:
-        soft, _ = rtprio_limit()
-        return (f"SCHED_FIFO {priority} refused (RLIMIT_RTPRIO {soft}, no CAP_SYS_NICE): the unit's "
-                f"LimitRTPRIO= or /etc/security/limits.d grants it")
-    except OSError as exc:
-        return f"SCHED_FIFO {priority} refused: {exc.strerror or exc}"
+TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 
 
 def apply_rt_priority(priority: int | None, what: str = "control thread") -> bool:
@@ -49,27 +30,6 @@ def apply_rt_priority(priority: int | None, what: str = "control thread") -> boo
         return True
     log.warning("control.rt_priority %d: %s; the %s runs SCHED_OTHER", priority, problem, what)
     return False
-
-
-def can_set_fifo(priority: int) -> str | None:
-    """Whether SCHED_FIFO at `priority` can be set here, tried on a short-lived thread of its own
-    (the caller's scheduling is never touched). None, or why not."""
-    out: list[str | None] = []
-
-    def probe():
-        problem = set_fifo(priority)
-        if problem is None:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        out.append(problem)
-
-    t = threading.Thread(target=probe, name="rt-probe")
-    t.start()
-    t.join(5.0)
-    return out[0] if out else "the probe thread did not finish"
-
-
-TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
-TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
 
 
 class TickStats:

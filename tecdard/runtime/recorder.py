@@ -73,9 +73,9 @@ class RecordParams:
                      pre_onset_s=section.getfloat("pre_onset_s", d.pre_onset_s, minval=0.0, maxval=10.0),
                      max_mb=section.getfloat("max_mb", d.max_mb, above=0.0, maxval=1e7))
         try:
-            ensure_writable_dir(params.dir, f"{section.path}.dir")
+            ensure_writable_dir(params.dir, "dir")
         except OutputError as exc:
-            raise ConfigError(str(exc)) from None
+            raise section.error("dir", exc.reason) from None
         return params
 
 

@@ -3,15 +3,15 @@ pipeline, and the robot's proprioception -> a ring of its own -> the pipeline.""
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 
 import numpy as np
 
 from tecdard.control.pipeline import ContactPipeline, EstimatorDirective
+from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.ring import SampleRing
-from tecdard.runtime.messages import DropOldestRing, LatestValue
+from tecdard.runtime.messages import DropOldestRing, LatestValue, Outbox
 from tecdard.runtime.recorder import Pass
 
 log = logging.getLogger("tecdar.estimator")
@@ -20,20 +20,15 @@ POP_MAX_SAMPLES = 4096
 POP_TIMEOUT_S = 0.02
 
 
-def acquisition_loop(source, ring: SampleRing, stop: threading.Event, outbox: queue.Queue | None = None) -> None:
+def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox) -> None:
     """Transport only: move timestamped SI samples from the source into the ring, and hand the
     source's events (port lost, port back) to the outbox."""
-    drain = getattr(source, "drain_events", None)
     while not stop.is_set():
         chunk = source.read(timeout=0.05)
         if chunk is not None:
             ring.push(*chunk)
-        if drain is not None and outbox is not None:
-            for ev in drain():
-                try:
-                    outbox.put_nowait(("event", {"t": time.monotonic(), **ev}))
-                except queue.Full:
-                    pass
+        for ev in source.drain_events():
+            outbox.put("event", {"t": time.monotonic(), **ev})
 
 
 PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
@@ -73,16 +68,15 @@ class EstimatorThread:
     thread's wishes as one `EstimatorDirective` (`directive`); estimates leave through the `contact`
     latest-value slot and the outbox."""
 
-    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: queue.Queue, min_batch: int = 1,
-                 saturation=None, odr_hz=None, taps: tuple = ()):
-        """`saturation()` gives the IMU source's clipping points (gyro rad/s, accel m/s^2), which
-        change with the full scales a board reports; `odr_hz()` its data rate, which a board
-        reports in its status packets (the onset detector's band window and `min_batch`, one
-        output period of samples, follow it)."""
+    def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: Outbox,
+                 source: ImuSource | None = None, min_batch: int = 1, taps: tuple = ()):
+        """`source` is read for its clipping points (gyro rad/s, accel m/s^2), which change with the
+        full scales a board reports, and its data rate, which a board reports in its status packets
+        (the onset detector's band window and `min_batch`, one output period of samples, follow it);
+        its samples come through the ring."""
         self.pipeline = pipeline
         self.taps = tuple(taps)         # each gets every pass (`feed(Pass)`, never blocking): recorder, live view
-        self.saturation = saturation
-        self.odr_hz = odr_hz
+        self.source = source
         self._odr_seen: float | None = None
         self.output_period_s = pipeline.params.output_period_s
         self.saturated_since: float | None = None   # latest value: the IMU stream has been clipped since then
@@ -96,10 +90,9 @@ class EstimatorThread:
         self.outbox = outbox
         self.proprio = DropOldestRing(PROPRIO_RING)
         self.directive = LatestValue(EstimatorDirective())
-        self.dropped = 0
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
-        if odr_hz is not None:
-            self._follow_odr(odr_hz())
+        if source is not None:
+            self._follow_odr(source.odr_hz)
 
     def _follow_odr(self, odr_hz: float) -> None:
         if odr_hz == self._odr_seen:
@@ -110,15 +103,9 @@ class EstimatorThread:
         self.min_batch = max(1, int(odr_hz * self.output_period_s))
         if problem is not None:
             log.warning("%s", problem)
-            self._put(("event", {"t": time.monotonic(), "kind": "warning", "code": "imu_rate", "message": problem}))
+            self.outbox.event("warning", code="imu_rate", message=problem)
         elif not first:
             log.info("IMU data rate now %g Hz: the onset detector's band window follows", odr_hz)
-
-    def _put(self, item) -> None:
-        try:
-            self.outbox.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
 
     def run(self, stop: threading.Event) -> None:
         pipe = self.pipeline
@@ -132,11 +119,11 @@ class EstimatorThread:
             if directive is not applied:
                 pipe.follow(directive, applied)
                 applied = directive
-            if self.odr_hz is not None:
-                self._follow_odr(self.odr_hz())
+            if self.source is not None:
+                self._follow_odr(self.source.odr_hz)
             batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, self.min_batch)
-            if self.saturation is not None:
-                limits = self.saturation()
+            if self.source is not None:
+                limits = self.source.saturation
                 if limits != sat_limits:
                     sat_limits = limits
                     pipe.set_saturation(*limits)
@@ -150,7 +137,7 @@ class EstimatorThread:
             if not self.warm.is_set() and pipe.warm:
                 self.warm.set()
             for ev in events:
-                self._put(("event", ev))
+                self.outbox.put("event", ev)
             if est is not None:
                 self.contact.set(est)
-                self._put(("contact", est.to_json()))
+                self.outbox.put("contact", est.to_json())

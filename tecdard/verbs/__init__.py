@@ -1,10 +1,11 @@
-"""The task verbs: one module per verb in this package, each defining `VERB`, a `TaskVerb`.
+"""The task verbs: one module (or package) per verb in this package, each defining `VERB`, a `TaskVerb`.
 
 A verb's module says everything the daemon and the CLI need of it: its payload fields with their
-types, defaults and limits (tecdard.commands validates any payload against them, and the CLI makes
-its options from them), and how the task is built from validated fields. Adding a verb is adding a
-module here (and its test); nothing else names the verbs. `discover()` imports every module of the
-package's path once, in name order.
+types, defaults and limits (tecdard.api.commands validates any payload against them, and the CLI
+makes its options from them), how the task is built from validated fields, and, where its tasks need
+one, its `service`: its long-lived part beside the control thread, built once from its own config
+section (the map's file writer). Adding a verb is adding a module here (and its test); nothing else
+names the verbs. `discover()` imports every module of the package's path once, in name order.
 """
 from __future__ import annotations
 
@@ -47,6 +48,25 @@ class BuildRefused(ValueError):
     command is refused as out_of_limits with this message."""
 
 
+class VerbService:
+    """A verb's long-lived part beside the control thread: what its tasks hand work to off the 20 ms
+    tick (the map's fusing and file writing), built once from the verb's config section. The control
+    thread asks it for its events every tick, waits for it to be idle before an orderly shutdown, and
+    shuts it down when it ends."""
+
+    def announcements(self) -> list[dict]:
+        """Event fields (kind first) of whatever it finished since the last call."""
+        return []
+
+    @property
+    def idle(self) -> bool:
+        """Nothing of its work is still under way."""
+        return True
+
+    def shutdown(self) -> None:
+        """Stop taking work (the daemon is ending)."""
+
+
 @dataclass(frozen=True)
 class TaskContext:
     """What a verb's `build` may know when the control thread starts its task."""
@@ -56,8 +76,7 @@ class TaskContext:
     max_speed_m_s: float               # the configured TCP speed limit
     workspace_min: tuple               # the workspace box, world, m
     workspace_max: tuple
-    map_settings: object = None        # tecdard.mapfiles.MapSettings
-    write_map: Callable | None = None  # hands a MapRecord to the map-writer thread, returns a Future
+    service: VerbService | None = None   # the verb's own service (TaskVerb.service), if it has one
 
 
 @dataclass(frozen=True)
@@ -67,6 +86,7 @@ class TaskVerb:
     fields: tuple                                  # Field, in validation order
     build: Callable                                # (fields: dict, ctx: TaskContext) -> control.tasks.Task
     self_check: dict = field(default_factory=dict)  # the required fields' values: Limits checks every default
+    service: Callable | None = None                # (its config section, named as the verb) -> VerbService
 
 
 REGISTRY: dict[str, TaskVerb] = {}
@@ -97,3 +117,9 @@ def names() -> tuple[str, ...]:
 
 def get(name: str) -> TaskVerb | None:
     return discover().get(name)
+
+
+def services(cfg) -> dict[str, VerbService]:
+    """Every verb's service, each built from the config section named as its verb (`map`)."""
+    return {verb.name: verb.service(cfg.section(verb.name)) for verb in discover().values()
+            if verb.service is not None}

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tecdard.control.tasks import ProbeTask
+from tecdard.control.rotate import ProbeTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (

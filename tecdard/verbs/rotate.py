@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from tecdard.control.tasks import RotateTask
+from tecdard.control.rotate import RotateTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (

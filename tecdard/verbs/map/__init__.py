@@ -7,6 +7,7 @@ import numpy as np
 
 from tecdard.control.mapping import MapParams, MapTask
 from tecdard.verbs import BuildRefused, Field, TaskVerb
+from tecdard.verbs.map.files import MapFiles
 
 MAP_AIM_MARGIN_M = 0.01      # a map's planned TCP positions keep this far inside the workspace box (x, y)
 
@@ -26,7 +27,7 @@ FIELDS = (
 
 def build(f: dict, ctx) -> MapTask:
     """A map run; refused when any of its moves would leave the workspace box."""
-    ms = ctx.map_settings
+    ms = ctx.service.settings
     p = ctx.p_tcp
     size = np.array(f["size"])
     origin = np.array(f["origin"]) if f["origin"] is not None else p[:2] - size / 2
@@ -37,7 +38,7 @@ def build(f: dict, ctx) -> MapTask:
                        probe_distance=ms.probe_distance_m, abort_force_n=ms.abort_force_n,
                        max_point_std_m=ms.max_point_std_m, tool_tip_tcp=np.array(ms.tool_tip_tcp),
                        turn_yaw_rad=math.radians(ms.turn_deg), release_distance=ms.release_distance_m)
-    task = MapTask(ctx.task_id, params, ctx.write_map)
+    task = MapTask(ctx.task_id, params, ctx.service)
     margin = np.array([MAP_AIM_MARGIN_M, MAP_AIM_MARGIN_M, 0.0])
     lo, hi = np.array(ctx.workspace_min) + margin, np.array(ctx.workspace_max) - margin
     for name, z in (("origin", p[2]), ("depth", p[2] - f["depth"])):
@@ -50,4 +51,4 @@ def build(f: dict, ctx) -> MapTask:
     return task
 
 
-VERB = TaskVerb("map", "probe a grid and write a tactile depth map", FIELDS, build)
+VERB = TaskVerb("map", "probe a grid and write a tactile depth map", FIELDS, build, service=MapFiles.from_config)

@@ -1,4 +1,5 @@
-"""Map output: fuse a finished map run into a depth raster and write depth.npy, points.csv, summary.json, depth.png."""
+"""The map verb's service: fuse a finished map run into a depth raster and write depth.npy, points.csv,
+summary.json and depth.png, on a thread of its own."""
 from __future__ import annotations
 
 import concurrent.futures
@@ -14,6 +15,7 @@ import numpy as np
 
 from tecdard.control.mapping import MapRecord, kernel_depth, raster_xy
 from tecdard.files import OutputError, atomic_dir, ensure_writable_dir, state_dir
+from tecdard.verbs import VerbService
 
 log = logging.getLogger("tecdar.map")
 
@@ -65,12 +67,11 @@ class MapSettings:
 
 def _checked_dir(section) -> str:
     """map.output_dir, created and proven writable at start-up (not at the end of a map)."""
-    from tecdard.config import ConfigError
     path = section.getstr("output_dir", default_output_dir())
     try:
-        ensure_writable_dir(path, f"{section.path}.output_dir")
+        ensure_writable_dir(path, "output_dir")
     except OutputError as exc:
-        raise ConfigError(str(exc)) from None
+        raise section.error("output_dir", exc.reason) from None
     return path
 
 
@@ -178,10 +179,16 @@ def write_png(path, rgb: np.ndarray) -> None:
     pathlib.Path(path).write_bytes(png)
 
 
-class MapWriter:
-    """Fuses and writes maps on a thread of its own, never on the control tick. A map that ends
-    early (stopped, cancelled, failed) is written all the same; `announcements()` gives, once each,
-    the `map_written` or `map_write_failed` event of every such map whose write has finished."""
+class MapFiles(VerbService):
+    """The map verb's service (tecdard.verbs.VerbService): fuses and writes maps on a thread of its own,
+    never on the control tick. A map that ends early (stopped, cancelled, failed) is written all the
+    same; `announcements()` gives, once each, the `map_written` or `map_write_failed` event of every
+    such map whose write has finished."""
+
+    @classmethod
+    def from_config(cls, section) -> "MapFiles":
+        """From the `map` section (MapSettings)."""
+        return cls(MapSettings.from_config(section))
 
     def __init__(self, settings: MapSettings):
         self.settings = settings

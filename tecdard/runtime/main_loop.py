@@ -1,0 +1,79 @@
+"""The main thread's pass: the control thread's replies, then the queued queries, then the telemetry."""
+from __future__ import annotations
+
+import logging
+import queue
+
+from tecdard.api.session import dumps
+from tecdard.runtime.intake import QueryIntake
+from tecdard.runtime.messages import Outbox
+
+log = logging.getLogger("tecdar")
+
+TELEMETRY_PER_PASS = 64        # state, contact and event messages published per pass, then queries again
+
+
+def status_json(control, intake=None) -> str | None:
+    """`status`: the control thread's newest state (at most a tick old), not the newest published
+    one, which can wait behind other telemetry while replies go first; with the command intake's
+    counts (`intake`: queries taken, stops, refusals, rate-limited and dropped queries)."""
+    state = control.latest_state.get()
+    if state is None:
+        return None
+    return dumps(state if intake is None else {**state, "intake": dict(intake.counters)})
+
+
+class MainLoop:
+    """One pass of the main thread: the control thread's replies first, then the queued queries
+    (bounded per ring), then at most TELEMETRY_PER_PASS telemetry messages. However much telemetry
+    waits, a command's reply waits at most one pass behind it."""
+
+    def __init__(self, intake: QueryIntake, control, outbox: Outbox, pub_state, pub_contact, pub_events,
+                 annotate=None, on_event=None):
+        """`annotate(event) -> event`: the backend's additions to events (the simulator's truth on
+        a task's end), applied here on the main thread, never on the control tick. `on_event(event)`
+        sees every event published (the recorder's)."""
+        self.intake, self.control, self.outbox = intake, control, outbox
+        self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
+        self.annotate = annotate
+        self.on_event = on_event
+
+    def serve_commands(self, now: float) -> None:
+        while True:
+            try:
+                self.intake.deliver(self.control.replies.get_nowait())
+            except queue.Empty:
+                break
+        self.intake.poll(now)
+
+    def publish_telemetry(self, wait_s: float) -> int:
+        """Publish up to TELEMETRY_PER_PASS queued messages, waiting up to wait_s for the first."""
+        try:
+            msg = self.outbox.get(timeout=wait_s) if wait_s > 0 else self.outbox.get_nowait()
+        except queue.Empty:
+            return 0
+        for n in range(1, TELEMETRY_PER_PASS + 1):
+            kind, body = msg[0], msg[1]
+            if kind == "event" and self.annotate is not None:
+                body = self._annotated(body)
+            text = dumps(body)
+            if kind == "event":
+                log.info("event %s", text)
+                if self.on_event is not None:
+                    self.on_event(body)
+            self.pub[kind].put(text)          # the threads put only these three kinds
+            if n == TELEMETRY_PER_PASS:
+                return n
+            try:
+                msg = self.outbox.get_nowait()
+            except queue.Empty:
+                return n
+        return TELEMETRY_PER_PASS
+
+    def _annotated(self, event: dict) -> dict:
+        try:
+            return self.annotate(event)
+        except Exception:
+            # an annotation is for tests and benchmarks: a failure never costs the event itself
+            log.exception("annotating a %s event failed", event.get("kind"))
+            return event

@@ -1,0 +1,111 @@
+"""The daemon's `zenoh` section: its mode and endpoints, mutual TLS and who may command, read and checked
+at start-up; and its session's network threads kept below the daemon's own."""
+from __future__ import annotations
+
+import os
+import pathlib
+from dataclasses import dataclass
+
+from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, Keys, TlsFiles, access_control, endpoint_problem,
+                                 session_config)
+from tecdard.runtime.intake import IntakeParams
+from tecdard.safejson import show
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"    # loopback; not 7447, zenohd's and rmw_zenohd's router port
+MAX_ENDPOINT_CHARS = 256
+ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """Peer (default: listens for clients itself, and may also connect to a router on the host) or
+    client (reaches everything through the routers in `connect`, listens on nothing)."""
+    mode: str
+    listen: list
+    connect: list
+    multicast: bool
+    tls: TlsFiles | None
+    commanders: list
+    intake: IntakeParams
+
+    @classmethod
+    def from_config(cls, section, listen: list[str] | None = None) -> "ZenohSettings":
+        """The `zenoh` section; `listen` (the command line's --listen) overrides zenoh.listen."""
+        mode = section.getstr("mode", "peer", choices=("peer", "client"))
+        configured = section.getstrlist("listen", [DEFAULT_ENDPOINT] if mode == "peer" else [],
+                                        max_len=MAX_ENDPOINT_CHARS, max_items=16)
+        listen = listen if listen is not None else configured
+        connect = section.getstrlist("connect", [], max_len=MAX_ENDPOINT_CHARS, max_items=16)
+        multicast = section.getbool("multicast_scouting", False)
+        if mode == "client" and listen:
+            raise section.error("listen", "a Zenoh client listens on nothing; leave it out with mode: client")
+        if mode == "client" and not connect:
+            raise section.error("connect", "mode client needs a router's endpoint to connect to")
+        if not listen and not connect:
+            raise section.error("listen", "empty, and nothing in zenoh.connect: no client could reach the daemon")
+        for key, endpoints in (("listen", listen), ("connect", connect)):
+            for ep in endpoints:
+                problem = endpoint_problem(ep)
+                if problem:
+                    raise section.error(key, f"{show(ep)}: {problem}")
+        tls, commanders = _security(section, listen + connect)
+        return cls(mode, list(listen), connect, multicast, tls, commanders, IntakeParams.from_config(section))
+
+    def session_config(self, keys: Keys):
+        """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint)."""
+        acl = access_control(keys, self.commanders) if self.commanders else None
+        return session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES, tls=self.tls,
+                              acl=acl, mode=self.mode)
+
+    def where(self) -> str:
+        parts = [f"listening on {', '.join(self.listen)}"] if self.listen else []
+        if self.connect:
+            parts.append(f"connecting to {', '.join(self.connect)}")
+        return f"Zenoh {self.mode}, " + " and ".join(parts)
+
+
+def _security(section, endpoints: list[str]) -> tuple[TlsFiles | None, list[str]]:
+    """zenoh.tls (mutual TLS: ca, cert, key) and zenoh.commanders (certificate common names that may
+    send commands), checked: the files readable, every endpoint tls/ when TLS is on (a tcp/ beside it
+    would let anyone in unauthenticated), and commanders only with TLS (names come from certificates)."""
+    tls = None
+    if section.has("tls"):
+        sec = section.section("tls")
+        files = {}
+        for key in ("ca", "cert", "key"):
+            path = sec.getstr(key)
+            try:
+                with open(path, "rb") as fh:
+                    if b"-----BEGIN" not in fh.read(64 * 1024):
+                        raise sec.error(key, f"{show(path)} is not a PEM file")
+            except OSError as exc:
+                raise sec.error(key, f"cannot read {show(path)} ({exc.strerror})") from None
+            files[key] = path
+        tls = TlsFiles(**files)
+        plain = [ep for ep in endpoints if not ep.startswith("tls/")]
+        if plain:
+            raise section.error("listen/connect", f"{show(plain[0])} is not a tls/ endpoint; with zenoh.tls every "
+                                                  "endpoint must be, or unauthenticated peers get in beside it")
+    elif any(ep.startswith("tls/") for ep in endpoints):
+        raise section.error("tls", "a tls/ endpoint needs zenoh.tls (ca, cert, key)")
+    commanders = section.getstrlist("commanders", [], max_len=256, max_items=64)
+    if commanders and tls is None:
+        raise section.error("commanders", "needs zenoh.tls (the names are certificates' common names)")
+    if section.has("commanders") and not commanders:
+        raise section.error("commanders", "an empty list would let nobody command; leave it out to let every "
+                                          "authenticated peer command")
+    return tls, commanders
+
+
+def renice_zenoh_threads() -> None:
+    """Zenoh's network threads (rx-*, tx-*, net-*, acc-*, app-*: Rust, outside the GIL) at a lower
+    CPU priority than the daemon's own threads. Under contention (a flood of queries decoded on
+    them, a loaded host) the control loop, the IMU path and the estimator are served first; a
+    process may always lower its own threads' priority. Best effort: Linux only, failures ignored."""
+    for task in pathlib.Path("/proc/self/task").glob("*"):
+        try:
+            name = (task / "comm").read_text().strip()
+            if name.split("-")[0] in ("rx", "tx", "net", "acc", "app"):
+                os.setpriority(os.PRIO_PROCESS, int(task.name), os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE)
+        except (OSError, ValueError):
+            pass
