@@ -48,10 +48,10 @@ def test_negative_vectors_work_as_typed(capsys):
 
 def test_the_default_endpoint_is_not_zenohs_router_port():
     """7447 is zenohd's and rmw_zenohd's default: a daemon there could not listen beside a router."""
-    from tecdard.cli.task_verbs import DEFAULT_ENDPOINT as CLI_DEFAULT
-    from tecdard.runtime.daemon import DEFAULT_ENDPOINT
+    from tecdard.api.session import DEFAULT_ENDPOINT
+    from tecdard.cli import task_verbs
     from tests.conftest import sim_config
-    assert DEFAULT_ENDPOINT == CLI_DEFAULT == sim_config()["zenoh"]["listen"][0]
+    assert task_verbs.DEFAULT_ENDPOINT == DEFAULT_ENDPOINT == sim_config()["zenoh"]["listen"][0]
     assert not DEFAULT_ENDPOINT.endswith(":7447")
 
 

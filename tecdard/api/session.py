@@ -11,6 +11,9 @@ JSON = zenoh.Encoding.APPLICATION_JSON
 # The daemon's transport drops any message larger than this before it reaches Python (Zenoh's own
 # default is 1 GiB); commands are refused with a reply above tecdard.commands.MAX_PAYLOAD_BYTES.
 DAEMON_MAX_MESSAGE_BYTES = 1 << 20
+# Where the daemon listens and clients connect by default: loopback, and not 7447, the port of zenohd
+# and of ROS 2's rmw_zenohd, beside which a daemon there could not start.
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"
 
 
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")

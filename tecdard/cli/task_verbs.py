@@ -9,10 +9,9 @@ import time
 from tecdard.cli.client import Client, ClientError
 from tecdard import verbs
 from tecdard.api.commands import task_verbs
-from tecdard.api.session import TlsFiles
+from tecdard.api.session import DEFAULT_ENDPOINT, TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"
 BAR_WIDTH = 30
 
 

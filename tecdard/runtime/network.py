@@ -6,12 +6,11 @@ import os
 import pathlib
 from dataclasses import dataclass
 
-from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, Keys, TlsFiles, access_control, endpoint_problem,
-                                 session_config)
+from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DEFAULT_ENDPOINT, Keys, TlsFiles, access_control,
+                                 endpoint_problem, session_config)
 from tecdard.runtime.intake import IntakeParams
 from tecdard.safejson import show
 
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"    # loopback; not 7447, zenohd's and rmw_zenohd's router port
 MAX_ENDPOINT_CHARS = 256
 ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
 
