@@ -392,8 +392,8 @@ class Measurements:
         up to each TCP position; the fingertip's twist reaches the IMU `lag` late, so the twist read
         now is the object's relative rotation at now - lag: each position pairs with the twist read
         lag after it, and with the gripper's own rotation up to its own time. Unpaired, the angle
-        trails the displacement by rate x lag, and the lever arm reads long by lag / t (MuJoCo arcs at
-        12 cm: 3-4 mm at 100 ms, 1.4 mm at 180 ms). A proprioception sample is a position measurement
+        trails the displacement by rate x lag, and the lever arm reads long by lag / t (millimetres
+        at 100 ms on a 12 cm arc: docs/estimation.md). A proprioception sample is a position measurement
         at the first IMU sample that sees it (extrapolated by less than one IMU period; later ones
         are not taken)."""
         lag = self.lag_s
@@ -438,9 +438,9 @@ class Measurements:
         var_v = np.where(tv < self.rates.t0, PRE_ONSET_VAR, var_v)
         # An arm already moving at the onset (an ongoing motion into an edge) first pushes through the
         # compliant grasp: the object takes up its rotation over the fingertip's and the grasp's give,
-        # and until then the TCP's velocity is not the pivot's. On MuJoCo's block slid into its edge at
-        # 20 mm/s the velocity's lever arm read 7x, 2x and 1.2x long over the first 5, 10 and 15 ms.
-        # That part of the velocity is distrusted as it decays, IMPACT_TAU_S (nothing from rest).
+        # and until then the TCP's velocity is not the pivot's (its lever arm reads several times too
+        # long over the first 10 ms: docs/estimation.md). That part of the velocity is distrusted as
+        # it decays, IMPACT_TAU_S (nothing from rest).
         if self.v_onset > 0.0:
             v_push = self.v_onset * np.exp(-np.maximum(tv - self.rates.t0, 0.0) / IMPACT_TAU_S)
             var_v = var_v + v_push * v_push

@@ -11,11 +11,6 @@ class Mode(enum.Enum):
     STOPPING = "stopping"    # braking to rest after `stop` or a protective stop
 
     @property
-    def moving(self) -> bool:
-        """The planner drives the arm (a task's step or a brake)."""
-        return self is not Mode.IDLE
-
-    @property
     def braking(self) -> bool:
         return self in (Mode.SETTLING, Mode.STOPPING)
 

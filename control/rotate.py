@@ -15,10 +15,9 @@ TOOL_TURN_RAMP_S = 0.5        # rotate: the tool's turning with the arc fades in
 # Arc radius correction per newton of radial grasp force, m/(N s). It integrates the force, so
 # against a grasp of radial stiffness k the loop's bandwidth is ARC_ADMITTANCE_M_NS * k, behind a
 # delay of a control tick, the arm's command latency and the planner's response (50-80 ms on a
-# Franka). At 0.003 and a grasp of about 5 kN/m (franky-sim's cutter) that is 15/s and 60 deg of
-# lag at the crossover: the arc's end rang at 3 Hz, +-1.8 mm and +-8 N, and the estimator's
-# innovations stopped the task. At 0.001 (5/s, a 0.2 s time constant) it is well damped, and it
-# still follows a radius that drifts 0.3 mm/s (an estimate 2 mm off at 2 cm/s) within 0.1 mm.
+# Franka). It is set for a soft grasp (about 5 kN/m: 5/s, well damped behind that delay; a
+# stiffer gain rings at the arc's end), and still follows a radius that drifts 0.3 mm/s (an
+# estimate 2 mm off at 2 cm/s) within 0.1 mm. docs/franka.md has the measurements.
 ARC_ADMITTANCE_M_NS = 0.001
 ARC_RADIAL_MAX_M = 0.02       # the radius correction stays within this
 
@@ -150,10 +149,10 @@ class TwoPhaseTask(Task):
         if phi_t >= self.angle_rad:
             # The look-ahead has reached the arc's end: that end is kept from now on (the tool
             # still turns with the plan). Re-placed each tick about the newest estimate and the
-            # admittance's radius, it moved by micrometres, the planner never came to rest, and on
-            # a soft grasp the arm crept and the handle sprang for half a second, which the
-            # estimator's divergence stop took for a failure (franky-sim). The task ends once the
-            # planner is at rest there.
+            # admittance's radius it would move by micrometres, the planner would never come to
+            # rest, and on a soft grasp the arm would creep and the handle spring, which the
+            # estimator's divergence stop takes for a failure. The task ends once the planner is at
+            # rest there.
             if self._end_p is None:
                 self._end_p = target
             target = self._end_p

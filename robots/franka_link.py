@@ -346,7 +346,7 @@ class _FrankaChild:
         self._send_state(st, t, now)
         # nothing to read until a robot period before the next state the daemon takes: wait for a
         # command meanwhile (it is carried out at once) rather than poll franky every STATE_POLL_S
-        # (waiting up to the next state itself missed it: 400 of 500 a second)
+        # (waiting up to the next state itself would miss it)
         return max(self.state_period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0)
 
     def _send_state(self, st, t: float, now: float) -> None:

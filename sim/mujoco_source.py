@@ -194,25 +194,8 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     import mujoco
     sc.validate()
     rng = np.random.default_rng(sc.seed)
-    yaw = math.radians(sc.yaw_deg)
-    Rz = rotvec_to_matrix(np.array([0.0, 0.0, yaw]))
-    axis = Rz @ np.array([0.0, 1.0, 0.0])                  # the hinge axis, horizontal
-    out_dir = Rz @ np.array([1.0, 0.0, 0.0])               # the handle lies along +x (yawed) from the hinge
-    if sc.world == "pen":       # tilted from the vertical through the tip by the circle's radius
-        h = math.sqrt(sc.radius ** 2 - sc.circle_radius ** 2)
-        p0 = HINGE + sc.circle_radius * out_dir + np.array([0.0, 0.0, h])
-    elif sc.world == "block":   # the top's middle, above the block's middle
-        h = math.sqrt(sc.radius ** 2 - BLOCK_HALF_WIDTH_M ** 2)
-        p0 = HINGE + BLOCK_HALF_WIDTH_M * out_dir + np.array([0.0, 0.0, h])
-        out_dir = (p0 - HINGE) / sc.radius          # the lever arm's direction, for the tangent below
-    else:
-        p0 = HINGE + sc.radius * out_dir
-    R0 = Rz @ np.diag([1.0, -1.0, -1.0])                   # tool down
-    # `ongoing`: the block and the gripper start along +x (away from the ridge) as far as the arm
-    # travels from the start to the onset
-    approach = sc.speed * (sc.rest_s - 0.5 * RAMP_S) if sc.motion == "ongoing" else 0.0
-    start = np.array([approach, 0.0, 0.0])
-    xml, L, _ = _mjcf(sc, p0, R0, axis, start)
+    path = _Path(sc)
+    xml, L, _ = _mjcf(sc, path.p0, path.R0, path.axis, path.start)
     model = mujoco.MjModel.from_xml_string(xml)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)        # the weld holds the pad where the model starts it: at the grasp
@@ -220,74 +203,12 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
         mujoco.mj_step(model, data)       # gravity loads the grasp and the fingertip: not part of the recording
     dt = model.opt.timestep
     n_rest, n_move = int(sc.rest_s / dt), int(sc.move_s / dt)
-    n = n_rest + n_move
-    t = np.arange(n) * dt
-    # the commanded motion: the TCP's speed rises as a half cosine over RAMP_S (peak acceleration
-    # speed * pi / (2 RAMP_S), 0.63 m/s^2 at 20 mm/s), then holds
-    # (`ongoing`: from the start)
-    t_go = 0.0 if sc.motion == "ongoing" else sc.rest_s
-    s_move = np.maximum(t - t_go, 0.0)
-    dist = np.where(s_move < RAMP_S, 0.5 * sc.speed * (s_move - RAMP_S / math.pi * np.sin(math.pi * s_move / RAMP_S)),
-                    0.5 * sc.speed * RAMP_S + sc.speed * (s_move - RAMP_S))
-    if sc.motion == "ongoing":
-        dist = dist - approach               # negative before the impact: the slide towards the ridge
-    tangent0 = np.cross(axis, out_dir)                     # the handle's tangent at the grasp (rising)
-    if tangent0[2] < 0:
-        tangent0 = -tangent0
-    sign = 1.0 if np.dot(np.cross(out_dir, tangent0), axis) > 0 else -1.0
-    gyro = np.empty((n, 3))
-    accel = np.empty((n, 3))
-    p_cmd = np.empty((n, 3))
-    R_cmd = np.empty((n, 3, 3))
-    v_cmd = np.empty((n, 3))
-    angle = np.empty(n)
-    gid, aid = model.sensor("gyro").adr[0], model.sensor("accel").adr[0]
-    hinge_q = model.joint("hinge").qposadr[0]
-    mocap = model.body("target").mocapid[0]
-    gripper = model.body("gripper").id
-    vel6 = np.zeros(6)
-    for k in range(n):
-        if sc.motion == "push":
-            p = p0 + dist[k] * tangent0
-            R = R0
-        elif sc.motion == "circle":       # about the vertical through the tip, the gripper held
-            psi = dist[k] / sc.circle_radius
-            p = HINGE + Rz @ np.array([sc.circle_radius * math.cos(psi), sc.circle_radius * math.sin(psi),
-                                       0.0]) + np.array([0.0, 0.0, p0[2] - HINGE[2]])
-            R = R0
-        elif sc.motion == "ongoing" and dist[k] < 0.0:    # sliding into the ridge, along -x
-            p = p0 - dist[k] * np.array([1.0, 0.0, 0.0])
-            R = R0
-        else:
-            theta = sign * dist[k] / sc.radius
-            Rt = rotvec_to_matrix(axis * theta)
-            p = HINGE + Rt @ (p0 - HINGE)
-            R = Rt @ R0 if sc.motion == "arc-turning" else R0
-        data.mocap_pos[mocap] = p
-        data.mocap_quat[mocap] = np.roll(matrix_to_quat(R), 1)
-        mujoco.mj_step(model, data)
-        gyro[k] = data.sensordata[gid:gid + 3]
-        accel[k] = data.sensordata[aid:aid + 3]
-        # the arm's TCP as its encoders would give it: the gripper body's own pose and velocity,
-        # behind the target (world-aligned, at the body's origin)
-        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, gripper, vel6, 0)
-        p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), vel6[3:]
-        if sc.world in ("pen", "block"):
-            q = data.qpos[hinge_q + (3 if sc.world == "block" else 0):][:4]
-            angle[k] = 2.0 * math.atan2(float(np.linalg.norm(q[1:])), abs(float(q[0])))
-        else:
-            angle[k] = data.qpos[hinge_q]
-    # the LSM6DSR: white noise at its densities, a turn-on bias, int16 at the full scales
-    g_lsb = sc.gyro_fs_dps * LSB_GYRO_RAD_S_PER_DPS / 32768.0
-    a_lsb = sc.accel_fs_g * G / 32768.0
-    gyro = gyro + rng.uniform(-sc.gyro_bias_max, sc.gyro_bias_max, 3) \
-        + rng.normal(0.0, sc.gyro_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
-    accel = accel + rng.normal(0.0, sc.accel_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
-    gyro = np.clip(np.round(gyro / g_lsb), -32768, 32767) * g_lsb
-    accel = np.clip(np.round(accel / a_lsb), -32768, 32767) * a_lsb
+    t = np.arange(n_rest + n_move) * dt
+    gyro, accel, p_cmd, R_cmd, v_cmd, angle = _simulate(mujoco, model, data, sc, path, t)
+    gyro, accel = _chip(sc, rng, gyro, accel)
     # proprioception at its own rate
     tcp_t = np.arange(0.3 / sc.tcp_hz, t[-1], 1.0 / sc.tcp_hz)
-    idx = np.clip(np.searchsorted(t, tcp_t), 0, n - 1)
+    idx = np.clip(np.searchsorted(t, tcp_t), 0, len(t) - 1)
     fields = {
         "imu_t": t, "gyro": gyro, "accel": accel, "tcp_t": t[idx],
         "tcp_pos": p_cmd[idx] + rng.normal(0.0, sc.tcp_noise, (len(idx), 3)),
@@ -302,7 +223,107 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     }
     # the onset: the arm starts to push the held handle (the handle itself may stick a little longer)
     point = sc.world == "pen"
-    truth = {"p_c": HINGE.copy(), "axis": np.zeros(3) if point else axis, "onset_t": np.array(t[n_rest]),
-             "kind": np.array("point-circle" if point else "edge-arc"), "radius": np.array(L), "eta": np.array(sc.eta), "angle_t": t,
-             "angle": angle - angle[0]}
+    truth = {"p_c": HINGE.copy(), "axis": np.zeros(3) if point else path.axis, "onset_t": np.array(t[n_rest]),
+             "kind": np.array("point-circle" if point else "edge-arc"), "radius": np.array(L),
+             "eta": np.array(sc.eta), "angle_t": t, "angle": angle - angle[0]}
     return fields, truth
+
+
+class _Path:
+    """The commanded TCP path of a scenario: where it starts (p0, R0, the world's start offset), the
+    hinge axis, and where the mocap target is at each time (`at`)."""
+
+    def __init__(self, sc: MujocoScenario):
+        self.sc = sc
+        self.Rz = rotvec_to_matrix(np.array([0.0, 0.0, math.radians(sc.yaw_deg)]))
+        self.axis = self.Rz @ np.array([0.0, 1.0, 0.0])            # the hinge axis, horizontal
+        out_dir = self.Rz @ np.array([1.0, 0.0, 0.0])              # the handle lies along +x (yawed) from the hinge
+        if sc.world == "pen":       # tilted from the vertical through the tip by the circle's radius
+            h = math.sqrt(sc.radius ** 2 - sc.circle_radius ** 2)
+            self.p0 = HINGE + sc.circle_radius * out_dir + np.array([0.0, 0.0, h])
+        elif sc.world == "block":   # the top's middle, above the block's middle
+            h = math.sqrt(sc.radius ** 2 - BLOCK_HALF_WIDTH_M ** 2)
+            self.p0 = HINGE + BLOCK_HALF_WIDTH_M * out_dir + np.array([0.0, 0.0, h])
+            out_dir = (self.p0 - HINGE) / sc.radius       # the lever arm's direction, for the tangent below
+        else:
+            self.p0 = HINGE + sc.radius * out_dir
+        self.R0 = self.Rz @ np.diag([1.0, -1.0, -1.0])             # tool down
+        # `ongoing`: the block and the gripper start along +x (away from the ridge) as far as the arm
+        # travels from the start to the onset
+        self.approach = sc.speed * (sc.rest_s - 0.5 * RAMP_S) if sc.motion == "ongoing" else 0.0
+        self.start = np.array([self.approach, 0.0, 0.0])
+        self.tangent0 = np.cross(self.axis, out_dir)              # the handle's tangent at the grasp (rising)
+        if self.tangent0[2] < 0:
+            self.tangent0 = -self.tangent0
+        self.sign = 1.0 if np.dot(np.cross(out_dir, self.tangent0), self.axis) > 0 else -1.0
+
+    def distance(self, t: np.ndarray) -> np.ndarray:
+        """The path length commanded at times t: the TCP's speed rises as a half cosine over RAMP_S (peak
+        acceleration speed * pi / (2 RAMP_S), 0.63 m/s^2 at 20 mm/s), then holds (`ongoing`: from the
+        start, negative before the impact: the slide towards the ridge)."""
+        sc = self.sc
+        t_go = 0.0 if sc.motion == "ongoing" else sc.rest_s
+        s_move = np.maximum(t - t_go, 0.0)
+        dist = np.where(s_move < RAMP_S,
+                        0.5 * sc.speed * (s_move - RAMP_S / math.pi * np.sin(math.pi * s_move / RAMP_S)),
+                        0.5 * sc.speed * RAMP_S + sc.speed * (s_move - RAMP_S))
+        return dist - self.approach if sc.motion == "ongoing" else dist
+
+    def at(self, dist: float) -> tuple[np.ndarray, np.ndarray]:
+        """(p, R) of the mocap target `dist` along the path."""
+        sc = self.sc
+        if sc.motion == "push":
+            return self.p0 + dist * self.tangent0, self.R0
+        if sc.motion == "circle":       # about the vertical through the tip, the gripper held
+            psi = dist / sc.circle_radius
+            p = HINGE + self.Rz @ np.array([sc.circle_radius * math.cos(psi), sc.circle_radius * math.sin(psi),
+                                            0.0]) + np.array([0.0, 0.0, self.p0[2] - HINGE[2]])
+            return p, self.R0
+        if sc.motion == "ongoing" and dist < 0.0:    # sliding into the ridge, along -x
+            return self.p0 - dist * np.array([1.0, 0.0, 0.0]), self.R0
+        theta = self.sign * dist / sc.radius
+        Rt = rotvec_to_matrix(self.axis * theta)
+        return HINGE + Rt @ (self.p0 - HINGE), (Rt @ self.R0 if sc.motion == "arc-turning" else self.R0)
+
+
+def _simulate(mujoco, model, data, sc: MujocoScenario, path: _Path, t: np.ndarray):
+    """Step the model along the path: (gyro, accel, p_tcp, R_tcp, v_tcp, object angle) at each step. The
+    arm's TCP is what its encoders would give: the gripper body's own pose and velocity, behind the
+    target (world-aligned, at the body's origin)."""
+    n = len(t)
+    dist = path.distance(t)
+    gyro, accel = np.empty((n, 3)), np.empty((n, 3))
+    p_cmd, R_cmd, v_cmd = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3))
+    angle = np.empty(n)
+    gid, aid = model.sensor("gyro").adr[0], model.sensor("accel").adr[0]
+    hinge_q = model.joint("hinge").qposadr[0]
+    mocap = model.body("target").mocapid[0]
+    gripper = model.body("gripper").id
+    vel6 = np.zeros(6)
+    for k in range(n):
+        p, R = path.at(dist[k])
+        data.mocap_pos[mocap] = p
+        data.mocap_quat[mocap] = np.roll(matrix_to_quat(R), 1)
+        mujoco.mj_step(model, data)
+        gyro[k] = data.sensordata[gid:gid + 3]
+        accel[k] = data.sensordata[aid:aid + 3]
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, gripper, vel6, 0)
+        p_cmd[k], R_cmd[k], v_cmd[k] = data.xpos[gripper], data.xmat[gripper].reshape(3, 3), vel6[3:]
+        if sc.world in ("pen", "block"):
+            q = data.qpos[hinge_q + (3 if sc.world == "block" else 0):][:4]
+            angle[k] = 2.0 * math.atan2(float(np.linalg.norm(q[1:])), abs(float(q[0])))
+        else:
+            angle[k] = data.qpos[hinge_q]
+    return gyro, accel, p_cmd, R_cmd, v_cmd, angle
+
+
+def _chip(sc: MujocoScenario, rng, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The LSM6DSR: white noise at its densities, a turn-on bias, int16 at the full scales."""
+    n = len(gyro)
+    g_lsb = sc.gyro_fs_dps * LSB_GYRO_RAD_S_PER_DPS / 32768.0
+    a_lsb = sc.accel_fs_g * G / 32768.0
+    gyro = gyro + rng.uniform(-sc.gyro_bias_max, sc.gyro_bias_max, 3) \
+        + rng.normal(0.0, sc.gyro_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
+    accel = accel + rng.normal(0.0, sc.accel_noise_density * math.sqrt(sc.imu_hz / 2.0), (n, 3))
+    return (np.clip(np.round(gyro / g_lsb), -32768, 32767) * g_lsb,
+            np.clip(np.round(accel / a_lsb), -32768, 32767) * a_lsb)

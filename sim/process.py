@@ -194,6 +194,19 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
         if imu_tx.dropped or state_tx.dropped:
             log.warning("sim: the daemon did not read: %d IMU and %d state messages dropped",
                         imu_tx.dropped, state_tx.dropped)
+        _say_losses(robot, device)
+
+
+def _say_losses(robot: SimRobot, device) -> None:
+    """At the child's end, one line for what the simulation itself lost on the way, if anything: slices
+    it ran late, stops by the arm's own command watchdog, IMU chunks and board frames it dropped."""
+    imu = robot.imu
+    losses = {"physics slices late": robot.overruns, "command watchdog stops": robot.watchdog_stops,
+              "IMU chunks dropped": imu.dropped_chunks if imu is not None else 0,
+              "board frames dropped": device.dropped_frames if device is not None else 0}
+    said = ", ".join(f"{n} {what}" for what, n in losses.items() if n)
+    if said:
+        log.info("sim: %s", said)
 
 
 class SimProcess(ChildLink):

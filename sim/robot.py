@@ -19,11 +19,10 @@ log = logging.getLogger("tecdar.sim")
 PHYSICS_RATE_HZ = 1000.0
 # The physics integrates in slices of this length. Each slice has a fixed cost (the IMU synthesis
 # of its samples, some fifty numpy calls, the truth and the bookkeeping) of about 1 ms on a shared
-# 2-core machine: at 2 ms slices that was most of the simulation's CPU, and a loaded machine then
-# saw the physics fall behind real time (slices of 150-200 ms, stale IMU data). Paced in real
-# time, the simulation alone takes 29 % of a core at 5 ms slices and 18 % at 10 ms. Commands and
-# proprioception keep their own stamps, so a longer slice delays only when a state or an IMU
-# chunk is handed on (by at most one slice, 5 ms on average), not what it says.
+# 2-core machine: short slices spend most of the simulation's CPU on that, and a loaded machine
+# then lets the physics fall behind real time. Commands and proprioception keep their own stamps,
+# so a longer slice delays only when a state or an IMU chunk is handed on (by at most one slice),
+# not what it says. docs/simulator.md has the costs measured.
 PHYSICS_WAKE_S = 0.01
 STATE_BACKLOG = 256        # proprioception samples kept for `drain_states` between two drains
 

@@ -125,7 +125,7 @@ class Publisher:
 
 
 class FreshRing:
-    total, last_t = 1, 0.0
+    total, last_t, overwritten = 1, 0.0, 0
 
 
 def control_thread(model, directive=None):

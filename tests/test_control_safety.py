@@ -165,7 +165,7 @@ class LaggingArm(RobotBackend):
 
 
 class FreshRing:
-    total, last_t = 1, 0.0
+    total, last_t, overwritten = 1, 0.0, 0
 
 
 def cruise_tcp_speeds(model, ages):
@@ -223,7 +223,7 @@ def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
     from tecdard.control.safety import STALE_JUDGE_LATE_S
 
     class Ring:
-        total, last_t = 1, 0.0
+        total, last_t, overwritten = 1, 0.0, 0
 
     ct = control(model, imu_stale_s=0.05, ring=Ring())
     ct._late_s = STALE_JUDGE_LATE_S + 0.05

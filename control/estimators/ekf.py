@@ -101,8 +101,7 @@ class ContactKfSettings:
         """The distrust of the velocity along the lever arm, (m/s)^2: the arc follower's, or once the
         positions have shown the TCP moving relative to the object (PositionEvidence.broken: a
         push that stretches the grasp, a slide), the slip's. The slip runs along the lever arm, and
-        taken as evidence it turned the estimate (MuJoCo pushes: 7-12 mm off at the end; 4-5 mm
-        with it)."""
+        taken as evidence it turns the estimate (docs/estimation.md: MuJoCo's pushes)."""
         if self.positions is not None and self.positions.broken:
             return max(self.radial_var, self.params.slip_radial_sigma ** 2)
         return self.radial_var

@@ -312,7 +312,7 @@ class ControlThread:
                                                "progress": round(task.status.progress, 4)},
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
-                        "outbox_dropped": self.outbox.counts()},
+                        "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
         }
         self.latest_state.set(state)
         self.outbox.put("state", state)

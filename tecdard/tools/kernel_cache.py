@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 KERNELS_PACKAGE = "tecdard.control.estimators.kernels"
 KERNEL_MODULES = ("linalg", "report", "model", "evidence", "run")     # each holds compiled functions
-COLD_COMPILE_S = 90.0          # a compile on 2 cores: 50-60 s measured before, 93 s on a fresh clone (2026-12-02)
+COLD_COMPILE_S = 90.0          # s, what a cold compile is said to take on 2 cores (benchmarks/startup.md)
 
 
 @dataclass(frozen=True)
