@@ -11,7 +11,7 @@ from tecdard.tools import kernel_cache
 
 
 def test_the_installed_cache_is_warm():
-    """`make install` ran `tecdard warm`: every kernel of control/kernels.py loads from the cache."""
+    """`make install` ran `tecdard warm`: every kernel of control/estimators/kernels/ loads from the cache."""
     state = kernel_cache.state()
     assert state.expected >= 20 and state.warm and state.fresh == state.expected, state
     assert "cached in" in state.describe()
@@ -22,9 +22,8 @@ def test_an_empty_cache_is_cold_and_the_start_says_so(tmp_path, monkeypatch, cap
     state = kernel_cache.state()
     assert not state.warm and state.fresh == 0 and state.path.startswith(str(tmp_path))
     assert "this start compiles them, about 90 s" in state.describe()
-    from tecdard.cli.main import announce_compile
     with caplog.at_level(logging.INFO, logger="tecdar"):
-        announce_compile()
+        kernel_cache.announce_compile()
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(lines) == 1 and "compiles" in lines[0] and str(tmp_path) in lines[0]
 
@@ -55,12 +54,10 @@ def test_the_demo_waits_as_long_as_a_start_can_take(tmp_path, monkeypatch, cold)
 
 def test_warm_says_compiled_when_it_compiled_and_loaded_when_it_loaded(monkeypatch, capsys):
     """It once said "loaded in 41 s" after a cold compile: the word comes from the state before."""
-    from tecdard.cli import main as cli
-    from tecdard.tools import kernel_cache
     cold = kernel_cache.CacheState(False, "/cache", 0, 26, "kernels.py")
     warm = kernel_cache.CacheState(True, "/cache", 26, 26, "kernels.py")
     for before, word in ((cold, "compiled in 41.0 s"), (warm, "loaded in 41.0 s")):
         monkeypatch.setattr(kernel_cache, "state", lambda b=before: b)
         monkeypatch.setattr(kernel_cache, "warm", lambda: (warm, 41.0))
-        assert cli._cmd_warm(None) == 0
+        assert kernel_cache.main(None) == 0
         assert capsys.readouterr().out.strip().endswith(word)

@@ -202,3 +202,79 @@ def grip_force_of(name: str, rec) -> float:
 
 def table_yaml(pooled) -> str:
     return "estimator.eta_table: [" + ", ".join(f"[{f:g}, {e:.3f}]" for f, e, _, _ in pooled) + "]"
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("calibrate-eta", help="eta per grip force from probes against a contact at a known place")
+    p.add_argument("recordings", nargs="+", help="REC.npz ... (each with a grip_force key or meta.grip_force)")
+    p.add_argument("--contact", help="the contact's position x,y,z (world, m)")
+    p.add_argument("--radius", type=float, help="or the lever arm from the TCP to the contact (m)")
+    p.add_argument("--config", help="YAML whose `estimator` section finds the onsets")
+    p.set_defaults(func=main)
+
+
+def _contact(args) -> np.ndarray | None:
+    """--contact as a point (m), None without one; ValueError naming what is wrong."""
+    if args.contact is None:
+        return None
+    try:
+        contact = np.array([float(x) for x in args.contact.split(",")])
+    except ValueError:
+        contact = None
+    if contact is None or contact.shape != (3,) or not np.all(np.isfinite(contact)):
+        from tecdard.safejson import show
+        raise ValueError(f"--contact: expected three numbers x,y,z in metres, got {show(args.contact)}")
+    return contact
+
+
+def main(args) -> int:
+    """`tecdard calibrate-eta`: the eta table (and the fingertip's lag with --contact); exit 2 with one line."""
+    import argparse
+    import pathlib
+
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+
+    def bad(msg: str) -> int:
+        return refused("calibrate-eta", msg)
+
+    if (args.contact is None) == (args.radius is None):
+        return bad("give the contact's position (--contact x,y,z, world, m) or the lever arm (--radius r, m)")
+    try:
+        contact = _contact(args)
+    except ValueError as exc:
+        return bad(str(exc))
+    if args.radius is not None and not (np.isfinite(args.radius) and 0.001 <= args.radius <= 2.0):
+        return bad(f"--radius: expected 0.001..2 m, got {args.radius!r}")
+    if len(args.recordings) < MIN_RECORDINGS:
+        return bad(f"needs at least {MIN_RECORDINGS} recordings (got {len(args.recordings)}): eta's uncertainty "
+                   "comes from more than one probe")
+    rows, lag_curves, lags = [], [], None
+    try:
+        for path in args.recordings:
+            one = argparse.Namespace(recording=path, config=args.config, method=None, ignore_live=False,
+                                     no_plane=False)
+            rec, live, pipeline = recording_and_pipeline(one)
+            _, onset_t, _ = estimates(one, rec, live, pipeline)
+            name = pathlib.Path(path).name
+            if onset_t is None:
+                raise CalibrationError(f"{name}: no contact onset detected")
+            force = grip_force_of(name, rec)
+            eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
+            rows.append((force, eta, se))
+            if contact is not None:
+                lags, rss = lag_residuals(rec, onset_t, contact)
+                lag_curves.append(rss)
+            print(f"{name}: grip {force:g} N, eta {eta:.3f} +- {se:.3f} ({n} windows)")
+    except (BadInput, CalibrationError) as exc:
+        return bad(str(exc))
+    pooled = pool(rows)
+    print("grip force N | eta | one-sigma | recordings")
+    for force, eta, sigma, n in pooled:
+        print(f"{force:12g} | {eta:.3f} | {sigma:.3f} | {n}")
+    print(table_yaml(pooled))
+    if lag_curves:
+        try:
+            print(f"estimator.fingertip_lag_s: {best_lag(lag_curves, lags):.4f}")
+        except LagAtBound as exc:            # eta stands; the lag is not found
+            return bad(str(exc))
+    return 0

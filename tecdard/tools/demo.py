@@ -108,3 +108,10 @@ def run_demo(config: str, angle_deg: float) -> int:
           f" p99 {ticks.get('work_ms_p99')} ms max {ticks.get('work_ms_max')} ms, lateness p99 {ticks.get('late_ms_p99')} ms")
     print(f"daemon exit     {code} (log: {log_path})")
     return 0 if code == 0 else 1
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")
+    p.add_argument("--config", default="configs/sim.yaml")
+    p.add_argument("--angle", type=float, default=30.0, help="rotation, degrees")
+    p.set_defaults(func=lambda args: run_demo(args.config, args.angle))

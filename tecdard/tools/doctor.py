@@ -183,3 +183,9 @@ def main(config_path: str, out=None) -> int:
     warned = [c for c in checks if c.status == "warn"]
     print(f"{len(checks)} checks: {len(failed)} failed, {len(warned)} warnings", file=out)
     return 1 if failed else 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("doctor", help="check whether this host is ready to run the daemon beside a real arm")
+    p.add_argument("--config", default="/etc/tecdar/tecdard.yaml", help="the daemon's config (default: the unit's)")
+    p.set_defaults(func=lambda args: main(args.config))

@@ -1,5 +1,5 @@
 """`tecdard export REC.npz --mcap OUT.mcap`: a recording, with the estimate replayed over it, as an MCAP
-file for Foxglove (tecdard/foxglove_io.py's topics). `.npz` stays the analysis format; MCAP is for looking."""
+file for Foxglove (tecdard/recording/foxglove.py's topics). `.npz` stays the analysis format; MCAP is for looking."""
 from __future__ import annotations
 
 import numpy as np
@@ -67,3 +67,35 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
         ch.close()
         writer.close()
     return len(items)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("export", help="write a recording and its replayed estimate as MCAP for Foxglove")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("--mcap", required=True, help="OUT.mcap (replaced if it exists)")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    """`tecdard export`: exit 0, or 2 with one line."""
+    from tecdard.recording.format import load_truth
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+
+    found, events = [], []
+    try:
+        rec, live, pipeline = recording_and_pipeline(args)
+        estimates(args, rec, live, pipeline, on_estimate=found.append, on_event=events.append)
+        if live is not None:
+            events = live.events          # the pipeline's and the daemon's, as they happened live
+        try:
+            truth = load_truth(args.recording)
+        except Exception:
+            truth = {}
+        n = write_mcap(args.mcap, rec, found, events, truth)
+    except (BadInput, ExportError) as exc:
+        return refused("export", str(exc))
+    print(f"{args.mcap}: {n} messages ({len(found)} estimates, {len(events)} events)")
+    return 0

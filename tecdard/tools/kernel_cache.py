@@ -116,3 +116,32 @@ def warm() -> tuple[CacheState, float]:
     for name in KERNEL_MODULES:
         importlib.import_module(f"{KERNELS_PACKAGE}.{name}")
     return state(), time.monotonic() - t0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("warm", help="compile the estimator's kernels into numba's cache (make install does)")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    """`tecdard warm`: compile (or load) the kernels now; an uncachable install still runs (each start
+    compiles), which is said, not an install failure."""
+    before = state()
+    if not before.warm:
+        print(f"compiling the estimator's kernels into {before.path} (about {COLD_COMPILE_S:.0f} s on 2 cores) ...",
+              flush=True)
+    after, took = warm()
+    print(f"{after.describe()}; {'loaded' if before.warm else 'compiled'} in {took:.1f} s")
+    return 0
+
+
+def announce_compile() -> None:
+    """One log line before a start that must compile the estimator's kernels."""
+    import logging
+    try:
+        cache = state()
+    except Exception as exc:         # the check must never stop a start
+        logging.getLogger("tecdar").debug("kernel cache check failed: %s", exc)
+        return
+    if not cache.warm:
+        logging.getLogger("tecdar").warning("%s", cache.describe())

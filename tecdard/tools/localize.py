@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import json
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from tecdard.control.geometry import quat_to_matrix
-from tecdard.control.pipeline import ContactEstimate, ContactPipeline, EstimatorDirective
 from tecdard.recording.format import LiveLog, Recording
+
+if TYPE_CHECKING:        # the pipeline (and its compiled kernels) loads when a replay runs, not for --help
+    from tecdard.control.pipeline import ContactEstimate, ContactPipeline
 
 DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")
 
@@ -67,6 +70,7 @@ def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline, on_est
     pipeline had at the start. Returns (rows (k, 7): t, p, std, one per estimate the live pass
     published; onset_t or None; last estimate). `pipeline` must be built from the daemon's
     estimator config: then its answer is the live one (docs/recordings.md states the tolerance)."""
+    from tecdard.control.pipeline import EstimatorDirective
     R = quat_to_matrix(rec.tcp_quat)
     force = rec.grip_force
     batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
@@ -131,3 +135,56 @@ def print_summary(s: dict, as_json: bool, out=None) -> None:
         p = ", ".join(f"{x:.4f}" for x in s["p_c"])
         sd = ", ".join(f"{x * 1e3:.1f}" for x in s["std"])
         print(f"onset {s['onset_t']:.4f} s; contact [{p}] m, one-sigma [{sd}] mm ({s['method']})", file=out)
+
+
+MAX_RATE_HZ = 100_000.0      # --rate: more rows per second than any IMU delivers is a typo
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("localize", help="estimate the contact in a recording (tecdar-recording/1)")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("--out", help="write estimates as CSV: t,px,py,pz,sx,sy,sz")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf); an unknown name lists them all")
+    p.add_argument("--rate", type=float, default=1000.0, help="at most this many rows per second (default 1000)")
+    p.add_argument("--json", action="store_true", help="print the summary as a JSON object")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--no-plane", action="store_true", help="ignore plane_normal: use the 3D estimator")
+    p.add_argument("--ignore-live", action="store_true",
+                   help="a daemon recording: replay it as any recording, not as its live estimator was fed")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    """`tecdard localize`: exit 0 (a contact), 1 (none) or 2 (bad input, one line)."""
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+    from tecdard.safejson import show
+
+    def bad(msg: str) -> int:
+        return refused("localize", msg)
+
+    if not 0 < args.rate <= MAX_RATE_HZ:
+        return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
+    out = None
+    if args.out:
+        try:
+            out = open(args.out, "w")             # before the replay: a bad path fails at once
+        except OSError as exc:
+            return bad(f"--out: cannot write {show(args.out, 200)} ({exc.strerror or type(exc).__name__})")
+    try:
+        rec, live, pipeline = recording_and_pipeline(args)
+        rows, onset_t, last = estimates(args, rec, live, pipeline, args.rate)
+    except BadInput as exc:
+        return bad(str(exc))
+    if out is not None:
+        try:
+            with out:
+                write_csv(out, rows)
+        except OSError as exc:
+            return bad(f"--out: writing {show(args.out, 200)} failed ({exc.strerror or type(exc).__name__})")
+    if onset_t is None or last is None:
+        if args.json:
+            print(json.dumps({"onset_t": None, "p_c": None, "std": None, "method": pipeline.method}))
+        print("tecdard localize: no contact detected", file=sys.stderr)
+        return EXIT_NO_CONTACT
+    print_summary(summary(onset_t, last), args.json)
+    return EXIT_OK

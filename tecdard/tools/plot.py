@@ -75,3 +75,36 @@ def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, o
         raise PlotError(f"-o: cannot write {out} ({getattr(exc, 'strerror', None) or exc})") from None
     finally:
         plt.close(fig)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("plot", help="draw a recording: IMU and onset, the estimate with its 3-sigma band, its error")
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("-o", "--out", required=True, help="image to write (png, pdf, svg)")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    """`tecdard plot`: exit 0, or 2 with one line."""
+    import pathlib
+
+    from tecdard.recording.format import load_truth
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+
+    try:
+        rec, live, pipeline = recording_and_pipeline(args)
+        rows, onset_t, _ = estimates(args, rec, live, pipeline)
+        try:
+            truth = load_truth(args.recording)     # optional: a truth that cannot be read is left out
+        except Exception:
+            truth = {}
+        if np.shape(truth.get("p_c")) != (3,) or not np.all(np.isfinite(truth.get("p_c", np.nan))):
+            truth.pop("p_c", None)
+        draw(rec, rows, onset_t, truth, args.out, f"{pathlib.Path(args.recording).name}, {pipeline.method}")
+    except (BadInput, PlotError) as exc:
+        return refused("plot", str(exc))
+    print(f"{args.out}: {len(rows)} estimates" + ("" if onset_t is not None else ", no contact detected"))
+    return 0

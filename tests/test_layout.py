@@ -1,0 +1,86 @@
+"""The house's shape (issue 31), kept: one import root, the runtime apart from the tools, config errors
+raised from the section a module was given, and functions and signatures of a readable size."""
+import ast
+import pathlib
+import re
+
+import pytest
+
+from tests.conftest import ROOT
+
+PRODUCTION = ("tecdard", "drivers", "control", "robots", "sim")
+BELOW_TECDARD = ("drivers", "control", "robots", "sim")      # installed as tecdard.drivers, ...
+MAX_FUNCTION_LINES = 100
+MAX_PARAMETERS = 12
+MAX_FILE_LINES = 550           # "not much over 500"
+BARE_IMPORT = re.compile(r"^\s*(from|import)\s+(control|drivers|robots|sim)(\.|\s|$)", re.M)
+
+
+def sources(*folders: str):
+    for folder in folders:
+        yield from sorted((ROOT / folder).rglob("*.py"))
+
+
+def imported_modules(path: pathlib.Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+    return out
+
+
+def test_every_import_is_under_the_one_root():
+    """Bare `control`, `drivers`, `robots` or `sim` would import the checkout's folders as top-level
+    packages (a second copy of each module) and fail on a wheel. Strings count too: a test's plugin
+    source, a benchmark's child script."""
+    found = [f"{p.relative_to(ROOT)}:{m.start()}" for folder in PRODUCTION + ("tests", "benchmarks")
+             for p in sources(folder) for m in BARE_IMPORT.finditer(p.read_text())]
+    assert not found, found
+
+
+def test_the_runtime_never_imports_a_tool_or_the_command_line():
+    found = [(str(p.relative_to(ROOT)), m) for p in sources("tecdard/runtime") for m in imported_modules(p)
+             if m.startswith(("tecdard.tools", "tecdard.cli"))]
+    assert not found, found
+
+
+def test_modules_below_tecdard_raise_their_sections_errors():
+    """Klipper's way: `raise section.error(key, message)`, never an import of the config module, and
+    nobody outside it reaches into a section's private state."""
+    imports = [str(p.relative_to(ROOT)) for p in sources(*BELOW_TECDARD) if "tecdard.config" in imported_modules(p)]
+    assert not imports, imports
+    private = "._" + "raw("          # spelled apart, so that this file does not find itself
+    raw = [str(p.relative_to(ROOT)) for p in sources(*PRODUCTION, "tests", "benchmarks")
+           if p.name != "config.py" and private in p.read_text()]
+    assert not raw, raw
+
+
+def _functions(path: pathlib.Path):
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            a = node.args
+            n = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + (a.vararg is not None) + (a.kwarg is not None)
+            if a.args and a.args[0].arg in ("self", "cls"):
+                n -= 1
+            yield node, node.end_lineno - node.lineno + 1, n
+
+
+@pytest.mark.parametrize("folder", PRODUCTION)
+def test_functions_files_and_signatures_stay_readable(folder):
+    """Records, not long lists of scalars (the compiled kernels included); functions split where they
+    grow; files that say one thing."""
+    long, wide, big = [], [], []
+    for path in sources(folder):
+        where = path.relative_to(ROOT)
+        lines = len(path.read_text().splitlines())
+        if lines > MAX_FILE_LINES:
+            big.append(f"{where}: {lines} lines")
+        for node, length, params in _functions(path):
+            if length > MAX_FUNCTION_LINES:
+                long.append(f"{where}:{node.lineno} {node.name}: {length} lines")
+            if params > MAX_PARAMETERS:
+                wide.append(f"{where}:{node.lineno} {node.name}: {params} parameters")
+    assert not (long or wide or big), long + wide + big
