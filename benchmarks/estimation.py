@@ -50,8 +50,9 @@ ESTIMATOR_CONFIG = {"estimator": {"fingertip_lag_s": 0.0}}
 
 
 def run_method(rec: Recording, truth: dict, method: str) -> dict:
-    pipe = ContactPipeline.from_config(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                          method=method, plane_normal=rec.plane_normal)
+    pipe = ContactPipeline.from_config(
+        Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+        method=method, plane_normal=rec.plane_normal)
     t0 = time.perf_counter()
     rows, onset_t, _ = L.replay(rec, pipe, 1000.0)
     wall = time.perf_counter() - t0
@@ -143,8 +144,9 @@ def localize_speed() -> dict:
     for name, plane in (("planar", rec.plane_normal), ("3d", None)):
         walls, cpus = [], []
         for _ in range(LOCALIZE_RUNS):
-            pipe = ContactPipeline.from_config(Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
-                                  rec.imu_rate_hz, method="ekf", plane_normal=plane)
+            pipe = ContactPipeline.from_config(
+                Config(ESTIMATOR_CONFIG).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+                method="ekf", plane_normal=plane)
             pipe.params.plane_normal = plane
             w0, c0 = time.perf_counter(), time.process_time()
             L.replay(rec, pipe, 1000.0)

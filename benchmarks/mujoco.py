@@ -50,8 +50,9 @@ LAGS_S = (0.0, 0.0015, 0.003, 0.0045, 0.006)
 
 
 def evaluate(rec: Recording, truth: dict, method: str, **estimator) -> dict:
-    pipe = ContactPipeline.from_config(Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
-                          rec.imu_rate_hz, method=method)
+    pipe = ContactPipeline.from_config(
+        Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+        method=method)
     pipe.begin(float(truth["onset_t"]))
     rows, _, _ = L.replay(rec, pipe)
     a = truth["axis"]
@@ -67,7 +68,8 @@ def evaluate(rec: Recording, truth: dict, method: str, **estimator) -> dict:
 
 
 def latency(rec: Recording, truth: dict) -> float | None:
-    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     _, onset_t, _ = L.replay(rec, pipe)
     return None if onset_t is None else onset_t - float(truth["onset_t"])
 

@@ -1,4 +1,4 @@
-"""Contact pipeline: onset trigger -> gyro conditioning -> measurements -> contact estimator, on IMU batches, causally.
+"""Contact pipeline: onset trigger -> gyro conditioning -> measurements -> estimator, on IMU batches, causally.
 
 Used by the daemon's estimator thread and by `tecdard localize` alike. The pipeline owns the
 episode: it finds the onset, conditions the gyro, leaves out what the chip clipped, hands each run

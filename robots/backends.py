@@ -11,7 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BACKENDS = {"sim": "tecdard.sim.backend", "ur": "tecdard.robots.ur", "franka": "tecdard.robots.franka"}     # name -> module
+BACKENDS = {                           # robot.backend -> the module whose build() makes it
+    "sim": "tecdard.sim.backend",
+    "ur": "tecdard.robots.ur",
+    "franka": "tecdard.robots.franka",
+}
 
 
 class BackendError(RuntimeError):

@@ -303,7 +303,8 @@ class _FrankaChild:
         franky, robot = self.franky, self.robot
         if msg[0] == "qd":
             self.holding = False
-            self._call("velocity command", lambda: robot.move(_motion(franky, self.settings, msg[1]), asynchronous=True))
+            motion = _motion(franky, self.settings, msg[1])
+            self._call("velocity command", lambda: robot.move(motion, asynchronous=True))
         elif msg[0] == "hold":
             if not self.holding:
                 self.holding = True
@@ -341,7 +342,7 @@ class _FrankaChild:
             return STATE_POLL_S
         self.last_t, self.last_new = t, now
         if t - self.sent_t < self.state_period - 2.5e-4:
-            return 0.0                     # between the states the daemon takes (faults and force are read at its rate)
+            return 0.0       # between the states the daemon takes (faults and force are read at its rate)
         self.sent_t = t
         self._send_state(st, t, now)
         # nothing to read until a robot period before the next state the daemon takes: wait for a

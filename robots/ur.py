@@ -53,8 +53,8 @@ class UrBackend(LinkBackend):
             connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
             watchdog_hz=section.getfloat("watchdog_hz", 10.0, minval=2.0, maxval=500.0))
         if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
-            raise section.error("watchdog_hz", f"{self.settings.watchdog_hz:g} Hz would stop the arm between two "
-                                               f"control ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
+            raise section.error("watchdog_hz", f"{self.settings.watchdog_hz:g} Hz would stop the arm between two control "
+                                               f"ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
         self._attach(ctx, UrLink(self.settings))
 
     # -- lifecycle ----------------------------------------------------------------

@@ -254,7 +254,8 @@ def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
     fields, truth = generate(Scenario(kind=kind, radius=0.12, grip_force=grip_force, seed=seed))
     rec = Recording.from_fields(fields)
     cfg = Config({"estimator": {**estimator, "ekf": {"estimate_eta": estimate_eta}}}).section("estimator")
-    pipe = ContactPipeline.from_config(cfg, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, plane_normal=rec.plane_normal)
+    pipe = ContactPipeline.from_config(
+        cfg, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, plane_normal=rec.plane_normal)
     rows, _, _ = replay(rec, pipe, 200.0)
     return in_plane_error(rows[-1, 1:4], truth["p_c"], truth["axis"]), pipe.estimator, rows[-1, 4:7]
 

@@ -235,8 +235,9 @@ def outcome(path) -> str:
         msg = str(exc)
         assert msg and "\n" not in msg and len(msg) <= MAX_MESSAGE_CHARS, msg
         return "refused"
-    pipeline = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                              plane_normal=rec.plane_normal)
+    pipeline = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+        plane_normal=rec.plane_normal)
     replay(rec, pipeline)
     return "replayed"
 

@@ -69,7 +69,8 @@ def test_a_gripper_turning_with_the_handle_leaves_the_fingertip_little_to_see():
 def test_the_estimator_finds_the_hinge_on_a_mujoco_arc_once_the_onset_is_given(arc):
     fields, truth = arc
     rec = Recording.from_fields(fields)
-    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     pipe.begin(float(truth["onset_t"]))           # a commanded onset: the slow start rings nothing
     rows, onset_t, last = L.replay(rec, pipe)
     d = last.p - truth["p_c"]
@@ -105,8 +106,8 @@ def test_the_fingertip_twist_lags_the_handle_by_its_time_constant(lag_s):
 def _replay(fields, truth, **estimator):
     """(rows, last estimate) of `ekf` over the recording from its true onset, commanded."""
     rec = Recording.from_fields(fields)
-    pipe = ContactPipeline.from_config(Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
-                          rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config({"estimator": estimator}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     pipe.begin(float(truth["onset_t"]))
     rows, _, last = L.replay(rec, pipe)
     return rows, last
@@ -139,7 +140,8 @@ def test_a_pen_on_its_tip_is_found_in_3d_once_its_top_has_circled():
     fields, truth = generate(MujocoScenario(motion="circle", radius=0.09, speed=0.03, seed=1))
     assert np.all(truth["axis"] == 0.0) and str(truth["kind"]) == "point-circle"
     rec = Recording.from_fields(fields)
-    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     pipe.begin(float(truth["onset_t"]))
     ests = []
     L.replay(rec, pipe, on_estimate=ests.append)
@@ -216,7 +218,8 @@ def test_an_ongoing_motion_meets_the_ridge_at_speed_and_the_block_turns_from_the
     assert abs(math.degrees(np.interp(on, truth["angle_t"], truth["angle"]))) < 0.1
     assert abs(math.degrees(np.interp(on + 1.0, truth["angle_t"], truth["angle"]))) > 8.0
     rec = Recording.from_fields(fields)
-    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     _, onset_t, _ = L.replay(rec, pipe)
     assert onset_t is not None and abs(onset_t - on) < 0.03, onset_t - on
 

@@ -290,8 +290,9 @@ def _replay_estimates(fields, method, plane=True, arc_following=False, chunk_s=0
     from tecdard.tools.localize import replay
     from tecdard.recording.format import Recording
     rec = Recording.from_fields(fields)
-    pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                          method=method, plane_normal=rec.plane_normal if plane else None)
+    pipe = ContactPipeline.from_config(
+        Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, method=method,
+        plane_normal=rec.plane_normal if plane else None)
     pipe.estimator.params.max_block = max_block
     pipe.set_arc_following(arc_following)
     estimates, weights = [], []
@@ -391,8 +392,9 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     rec = Recording.from_fields(fields)
 
     def final(rec, limits=None):
-        pipe = ContactPipeline.from_config(Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                              plane_normal=rec.plane_normal)
+        pipe = ContactPipeline.from_config(
+            Config({}).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
+            plane_normal=rec.plane_normal)
         if limits is not None:
             pipe.set_saturation(*limits)
         _, _, last = replay(rec, pipe)

@@ -33,8 +33,8 @@ IDLE_BEFORE_S = 2.0
 def replayed(path, config_path):
     rec = load_recording(path)
     live = load_live(path, rec)
-    pipe = ContactPipeline.from_config(Config.load(config_path).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat),
-                          rec.imu_rate_hz)
+    pipe = ContactPipeline.from_config(
+        Config.load(config_path).section("estimator"), quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
     rows, onset_t, last = L.replay_live(rec, live, pipe)
     return live, rows, onset_t
 
@@ -277,7 +277,8 @@ def test_export_writes_the_imu_the_tcp_the_estimate_and_the_events_as_mcap(tmp_p
     rec = tmp_path / "hinge.npz"
     assert tecdard("sim-record", str(rec), "--kind", "hinge").returncode == 0
     topics = check_export(rec, tmp_path / "hinge.mcap")
-    n_est = len(L.replay(load_recording(rec), ContactPipeline.from_config(Config({}).section("estimator"), np.eye(3), 6667.0))[0])
+    n_est = len(L.replay(load_recording(rec), ContactPipeline.from_config(
+        Config({}).section("estimator"), np.eye(3), 6667.0))[0])
     assert len(topics["/contact"]) == n_est + 1                    # each estimate, and the truth
     assert any(b"contact_onset" in d for _, _, d in topics["/events"])
 

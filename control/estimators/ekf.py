@@ -316,5 +316,5 @@ class ContactKF(ContactKfSettings, ContactEstimator):
                             self.params.eta_test_sigma, self._E, self.origin, self._along_var)
 
 
-ESTIMATORS = (EstimatorSpec("ekf", "our filter on the differential constraint (eta as a state, positions as evidence)",
-                            lambda options, plane: ContactKF(options, plane), "ekf", ContactKfParams),)
+ESTIMATORS = (EstimatorSpec("ekf", "our filter on the differential constraint (eta as a state, positions as "
+                                   "evidence)", lambda options, plane: ContactKF(options, plane), "ekf", ContactKfParams),)

@@ -55,9 +55,9 @@ class PositionEvidence:
         self.var = position_var(sigma_p)
         self.arc_var = arc_sigma ** 2    # m^2, the noise of positions taken while following an arc
         # the state the compiled run updates (kernels.records.Evidence): the counts (EVIDENCE_STATUS),
-        # the angle (planar) or rotation vector integrated, G, the gripper's own part of it, the regression's running sums (of the
-        # regressors X_k (d x (d+1)), X_k^T X_k, X_k^T y_k, y_k), and the marginal information handed
-        # over so far (Lambda, xi; eta is the transmission ratio)
+        # the angle (planar) or rotation vector integrated, G, the gripper's own part of it, the
+        # regression's running sums (of the regressors X_k (d x (d+1)), X_k^T X_k, X_k^T y_k, y_k),
+        # and the marginal information handed over so far (Lambda, xi; eta is the transmission ratio)
         self.ev = Evidence(record(EVIDENCE_STATUS), np.zeros(1 if d == 2 else 3), np.zeros(d), np.zeros(d),
                            np.zeros((d, nx)), np.zeros((nx, nx)), np.zeros(nx), np.zeros(d), np.zeros((nx, nx)),
                            np.zeros(nx))

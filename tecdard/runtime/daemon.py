@@ -132,11 +132,13 @@ class Daemon:
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
                                          taps=(self.recorder,) + ((self.view,) if self.view is not None else ()))
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
-                                     self.estimator.directive, self.outbox, self.q_home, self.robot_name, self.notifier,
-                                     self.services, imu_saturated_since=lambda: self.estimator.saturated_since)
+                                     self.estimator.directive, self.outbox, self.q_home, self.robot_name,
+                                     self.notifier, self.services,
+                                     imu_saturated_since=lambda: self.estimator.saturated_since)
         self.keys = Keys(self.robot_name)
-        self.intake = QueryIntake(self.keys, self.limits, self.control, lambda: status_json(self.control, self.intake),
-                                  self.zenoh.intake, record=self.recorder.request)
+        self.intake = QueryIntake(self.keys, self.limits, self.control,
+                                  lambda: status_json(self.control, self.intake), self.zenoh.intake,
+                                  record=self.recorder.request)
 
     def _note_event(self, event: dict) -> None:
         """Every published event, for the recorder and the live view (main thread; never blocks)."""

@@ -105,6 +105,7 @@ def renice_zenoh_threads() -> None:
         try:
             name = (task / "comm").read_text().strip()
             if name.split("-")[0] in ("rx", "tx", "net", "acc", "app"):
-                os.setpriority(os.PRIO_PROCESS, int(task.name), os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE)
+                nice = os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE
+                os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
         except (OSError, ValueError):
             pass
