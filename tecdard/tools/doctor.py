@@ -6,8 +6,10 @@ operator should know (a kernel that is not real-time, a CPU governor that scales
 is something `tecdard run` would refuse or that leaves the daemon without its data (the config, the
 board, the endpoint).
 
-Every check reads the host through arguments with the real defaults, so the tests can point them
-at a scratch directory.
+The host's checks are here; the daemon's robot backend and its IMU source give their own for their
+devices (RobotBackend.checks: a UR controller's ports and arm, a Franka's realtime fitness and robot
+server; ImuSource.checks: the fingertip board at its port). Every check reads the host through
+arguments with the real defaults, so the tests can point them at a scratch directory.
 """
 from __future__ import annotations
 
