@@ -57,27 +57,38 @@ Reaction = Callable[[SafetyInput], "StopCause | None"]
 # -- the IMU ------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class ImuVerdict:
-    stale: str | None          # the fault message when the IMU is stale, else None
+class Staleness:
+    stale: str | None          # the fault message when the stream is stale, else None
     deferred: bool             # judged on the next tick (this one started late)
 
 
 def imu_staleness(now: float, total: int, last_t: float, since_boot_s: float, late_s: float, deferred: bool,
-                  limits: SafetyLimits) -> ImuVerdict:
+                  limits: SafetyLimits) -> Staleness:
     """Whether the IMU stream is stale at `now`. `total` samples so far, the newest at `last_t`;
     `late_s`: how late this tick started; `deferred`: the previous tick put its judgement off."""
     if total == 0 and since_boot_s < IMU_STARTUP_GRACE_S:
-        return ImuVerdict(None, False)           # the first samples are still on their way
+        return Staleness(None, False)           # the first samples are still on their way
     age = now - last_t
     if age <= limits.imu_stale_s:
-        return ImuVerdict(None, False)
+        return Staleness(None, False)
     if late_s > STALE_JUDGE_LATE_S and not deferred:
-        return ImuVerdict(None, True)            # our own stall: judge on the next tick
+        return Staleness(None, True)            # our own stall: judge on the next tick
     limit_ms = limits.imu_stale_s * 1e3
     if total == 0:
-        return ImuVerdict(f"no IMU sample since the start, {since_boot_s * 1e3:.0f} ms ago (limit {limit_ms:.0f} ms)",
+        return Staleness(f"no IMU sample since the start, {since_boot_s * 1e3:.0f} ms ago (limit {limit_ms:.0f} ms)",
                           False)
-    return ImuVerdict(f"no IMU sample for {age * 1e3:.0f} ms (limit {limit_ms:.0f} ms)", False)
+    return Staleness(f"no IMU sample for {age * 1e3:.0f} ms (limit {limit_ms:.0f} ms)", False)
+
+
+def state_staleness(now: float, state_t: float, limit_s: float, late_s: float, deferred: bool) -> Staleness:
+    """Whether the robot's newest state (measured at `state_t`, the controller's clock mapped to
+    ours) is older than `limit_s` at `now`; our own stall is judged on the next tick, as for the IMU."""
+    age = now - state_t
+    if age <= limit_s:
+        return Staleness(None, False)
+    if late_s > STALE_JUDGE_LATE_S and not deferred:
+        return Staleness(None, True)
+    return Staleness(f"the robot's newest state is {age * 1e3:.0f} ms old (limit {limit_s * 1e3:.0f} ms)", False)
 
 
 def imu_saturation(now: float, saturated_since: float | None, limits: SafetyLimits) -> str | None:
@@ -90,15 +101,17 @@ def imu_saturation(now: float, saturated_since: float | None, limits: SafetyLimi
 
 
 class SensorWatch:
-    """The sensors' faults (imu_stale, imu_saturated, and the robot backend's own) as state: each
-    holds from when its condition is found until it clears. `update` returns what changed, as (event kind, code, message) with
-    kind `fault` or `fault_cleared`; a new fault is also a protective stop of the running task."""
+    """The sensors' faults (imu_stale, imu_saturated, robot_stale, and the robot backend's own) as
+    state: each holds from when its condition is found until it clears. The updates return what
+    changed, as (event kind, code, message) with kind `fault` or `fault_cleared`; a new fault is
+    also a protective stop of the running task."""
 
     def __init__(self, limits: SafetyLimits, t_boot: float):
         self.limits = limits
         self.t_boot = t_boot
         self.faults: dict[str, str] = {}
         self._stale_deferred = False
+        self._state_deferred = False
         self._robot_codes: set[str] = set()
 
     def update(self, now: float, total: int, last_t: float, late_s: float,
@@ -109,6 +122,12 @@ class SensorWatch:
         changes += self._set("imu_saturated", imu_saturation(now, saturated_since, self.limits),
                              keep=saturated_since is not None)
         return changes
+
+    def update_state_age(self, now: float, state_t: float, limit_s: float, late_s: float) -> list[tuple[str, str, str]]:
+        """`robot_stale` while the robot's newest state is older than `limit_s` (its backend's budget)."""
+        verdict = state_staleness(now, state_t, limit_s, late_s, self._state_deferred)
+        self._state_deferred = verdict.deferred
+        return self._set("robot_stale", verdict.stale, keep=verdict.deferred)
 
     def update_robot(self, current: dict[str, str]) -> list[tuple[str, str, str]]:
         """The robot backend's faults that hold now (code -> message): new ones are raised, those of

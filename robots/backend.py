@@ -3,6 +3,7 @@ lifecycle, then reading state apart from commanding (as ur_rtde separates them).
 the real arms share: a device client in a child process (robots.child_link), reconnected when lost."""
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -10,6 +11,7 @@ import numpy as np
 import pinocchio as pin
 
 from tecdard.robots.backends import BackendError
+from tecdard.robots.state_check import StateCheck
 
 
 @dataclass
@@ -46,6 +48,11 @@ class RobotBackend:
     the fingertip), `checks` (for `tecdard doctor`)."""
 
     name = "robot"                      # robot.backend
+    # How old the newest state may be before it is a fault (`robot_stale`, a protective stop) and the
+    # servo holds: `robot.max_state_age_s`, this by default (a backend's own default is its own).
+    STATE_AGE_S = 0.05
+    state_age_s = STATE_AGE_S
+    state_check = None                  # robots.state_check.StateCheck: every state passes it first
 
     # -- lifecycle ---------------------------------------------------------------------
     def start(self) -> None:
@@ -70,6 +77,24 @@ class RobotBackend:
     def hold(self) -> None:
         """Bring the arm to rest and keep it there."""
         raise NotImplementedError
+
+    def state_faults(self) -> dict[str, str]:
+        """`robot_state` while the state check holds a fault (a state refused, naming its reading)."""
+        check = self.state_check
+        return {} if check is None or check.fault is None else {"robot_state": check.fault}
+
+    def state_seen_t(self, js: JointState) -> float:
+        """When the newest state the robot sent was measured, `js` (the newest one published) or a
+        newer one the check refused: a controller that lies is robot_state's fault, not a silent one's."""
+        check = self.state_check
+        return js.t if check is None or check.fault is None else max(js.t, check.seen_t)
+
+    def _check_states(self, ctx, source: str) -> None:
+        """The state check and the age budget, from the `robot` section (`source` names who reports
+        the states in the fault's message)."""
+        robot = ctx.cfg.section("robot")
+        self.state_check = StateCheck.from_config(robot, ctx.model, source)
+        self.state_age_s = robot.getfloat("max_state_age_s", self.STATE_AGE_S, above=0.0, maxval=1.0)
 
     # -- optional, with defaults ---------------------------------------------------------
     def faults(self) -> dict[str, str]:
@@ -124,12 +149,14 @@ class LinkBackend(RobotBackend):
     log: object                        # the backend's logger
     _stop: threading.Event
 
-    def _attach(self, ctx, link) -> None:
-        """What every link backend holds once its settings are read: the arm model and the link
-        (not yet started)."""
+    def _attach(self, ctx, link, source: str) -> None:
+        """What every link backend holds once its settings are read: the arm model, the state
+        check (`source`: who reports the states) and the link (not yet started)."""
         self.nq = ctx.model.nq
         self.model = ctx.model
+        self._check_states(ctx, source)
         self.link = link
+        link.gate = self.state_check
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
 
@@ -163,6 +190,8 @@ class LinkBackend(RobotBackend):
             return None
         attempt += 1
         fresh = type(self.link)(self.settings)
+        self.state_check.reset()              # a new link: no previous state to measure a jump from
+        fresh.gate = self.state_check
         try:
             fresh.start()
         except BackendError as exc:
@@ -172,6 +201,14 @@ class LinkBackend(RobotBackend):
         self.link = fresh
         self.log.info("reconnected to %s", self.settings.host)
         return 0
+
+    def state_seen_t(self, js: JointState) -> float:
+        """As any backend's, but while the link is down its own fault (robot_link) says why no
+        state comes: never judged stale meanwhile (the servo holds all the same)."""
+        link = self.link
+        if link.exited.is_set() or link.fault:
+            return math.inf
+        return super().state_seen_t(js)
 
     def close(self) -> None:
         self._stop.set()

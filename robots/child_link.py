@@ -79,7 +79,8 @@ class ChildLink:
     """The daemon's handle on a child: its command pipe, its message reader, the newest state and the
     child's end. A subclass names its child (`child`, `process_name`), its error class and the
     lines it says at start (`_no_answer`, `_ended`, `_refused`), takes its messages (`_handle`) and
-    turns what the child read into JointStates (StateSlot.publish on `_states`)."""
+    turns what the child read into JointStates, which `_publish` hands on once they pass the
+    backend's `gate` (robots.state_check)."""
 
     error = BackendError
     process_name = "tecdar-link"
@@ -94,9 +95,10 @@ class ChildLink:
         self._extra_rx: list = []
         self._send_lock = threading.Lock()
         self._reader: threading.Thread | None = None
-        self._states = StateSlot(lambda: self.error(self.fault or self._no_state()))
+        self._states = StateSlot(lambda: self.error(self.fault or self._refused_states() or self._no_state()))
         self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost), or None
+        self.gate = None                            # robots.state_check.StateCheck: what a state must pass
         self.notes: list[str] = []                  # what the child said before it was ready
 
     @staticmethod
@@ -118,6 +120,10 @@ class ChildLink:
 
     def _not_running(self) -> str:
         return "the link is not running"
+
+    def _refused_states(self) -> str | None:
+        """Why the states that came were refused (the gate's fault), or None."""
+        return None if self.gate is None else self.gate.fault
 
     def _handle(self, msg: tuple) -> None:
         """One message from the child after `ready` (its kind first)."""
@@ -206,6 +212,12 @@ class ChildLink:
                 raise self.error(self._not_running()) from None
 
     # -- receive -------------------------------------------------------------------------------
+    def _publish(self, js: JointState) -> None:
+        """A state the child read, for the daemon's threads once it passes the gate; a state that
+        fails is dropped (the gate holds the fault naming it)."""
+        if self.gate is None or self.gate.admit(js):
+            self._states.publish(js)
+
     def read_state(self) -> JointState:
         return self._states.read()
 

@@ -78,7 +78,7 @@ class FrankaBackend(LinkBackend):
             gripper=section.getbool("gripper", True),
             grasp_force_n=section.getfloat("grasp_force_n", 20.0, above=0.0, maxval=140.0),
             state_rate_hz=section.getfloat("state_rate_hz", 500.0, minval=100.0, maxval=1000.0))
-        self._attach(ctx, FrankaLink(self.settings))
+        self._attach(ctx, FrankaLink(self.settings), f"Franka robot {self.settings.host}")
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:

@@ -448,7 +448,7 @@ class FrankaLink(ChildLink):
             self._sync.add(st.robot_t, st.rx_t)
             self._seq += 1
             self.franka_state = st
-            self._states.publish(self._joint_state(st))
+            self._publish(self._joint_state(st))
         elif kind == "mode":
             self._mode = msg[1:]
         elif kind == "fault":

@@ -55,7 +55,7 @@ class UrBackend(LinkBackend):
         if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
             raise section.error("watchdog_hz", f"{self.settings.watchdog_hz:g} Hz would stop the arm between two control "
                                                f"ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")
-        self._attach(ctx, UrLink(self.settings))
+        self._attach(ctx, UrLink(self.settings), f"UR controller {self.settings.host}")
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:

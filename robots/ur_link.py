@@ -9,8 +9,10 @@ In a child both cost the child only. The daemon sees a link that reports `lost` 
 
 The child connects (RTDEReceiveInterface, then RTDEControlInterface, which uploads its control
 script), then streams every new controller state to the parent and carries out speedJ and stop
-commands. The parent maps the controller's timestamps onto its monotonic clock (drivers.timesync:
-the lower envelope of arrival minus controller time) and hands out JointStates as any backend.
+commands. The parent maps the controller's timestamps onto its monotonic clock (drivers.timesync.
+SlewClock: the lower envelope of arrival minus controller time, which moves at most 2 ms a second,
+so a run of late states shows as late rather than moving the clock) and hands out JointStates as
+any backend, once they pass its state check (robots.state_check).
 
 Frames: the controller reports its TCP pose, speed and force in its own base frame, which is a UR
 model's world (robots.model.UR_ARMS), so they pass as they are; the pose's rotation vector becomes
@@ -28,7 +30,7 @@ import numpy as np
 
 import pinocchio as pin
 
-from tecdard.drivers.timesync import ClockSync
+from tecdard.drivers.timesync import SlewClock
 from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
 from tecdard.robots.child_link import ChildLink
@@ -223,7 +225,7 @@ class UrLink(ChildLink):
         super().__init__(settings, settings.connect_timeout_s)
         self.ur_state: UrState | None = None       # the newest controller state, as read (its base frame)
         self._seq = 0
-        self._sync = ClockSync()
+        self._sync = SlewClock()
         self.refused: str | None = None             # the controller refuses commands (since this one), or None
         self.identity: dict = {}                    # the controller's arm type and version (controller_identity)
 
@@ -251,7 +253,7 @@ class UrLink(ChildLink):
             self._sync.add(st.controller_t, st.rx_t)
             self._seq += 1
             self.ur_state = st
-            self._states.publish(self._joint_state(st))
+            self._publish(self._joint_state(st))
         elif msg[0] == "refused":
             self.refused = f"the controller refused {msg[1]}"
         elif msg[0] == "accepted":

@@ -41,6 +41,11 @@ class SimBackend(RobotBackend):
     """The simulated arm (a SimProcess child) as a robot backend, and the simulator's own IMU sources:
     `sim` (samples on a pipe) and `sim-wire` (tecdar-imu/1 on a pty, the real serial driver reading it)."""
 
+    # The simulated controller publishes at sim.robot.proprio_rate_hz (65 Hz, 15 ms) and hands its
+    # states over once a physics slice (10 ms), in a process that shares the host with the daemon
+    # (on a loaded 2-core machine it was seen 50-60 ms behind): twice a real arm's budget.
+    STATE_AGE_S = 0.1
+
     def __init__(self, ctx: BackendContext):
         sim = ctx.cfg.section("sim")
         sim_imu = sim.section("imu")
@@ -67,6 +72,8 @@ class SimBackend(RobotBackend):
         # The simulated arm, world and IMU run in a process of their own, as a real arm and board do
         # (sim/process.py): the daemon's threads never starve them of the GIL.
         self.process = SimProcess(self.spec, model.nq)
+        self._check_states(ctx, "simulated arm")
+        self.process.gate = self.state_check
 
     def imu_source(self, kind: str, section):
         """sim: the child's samples on their pipe; sim-wire: the child's board on a pty, read by the

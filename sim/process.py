@@ -247,12 +247,12 @@ class SimProcess(ChildLink):
 
     def _ready(self, payload: tuple) -> None:
         state, self._truth = payload
-        self._states.publish(state)
+        self._publish(state)
 
     def _handle(self, msg: tuple) -> None:
         if msg[0] == "state":
             _, state, self._truth = msg
-            self._states.publish(state)
+            self._publish(state)
 
     def _gone(self) -> None:
         proc = self._proc

@@ -101,3 +101,32 @@ def show_name(name: str, limit: int = SHOW_CHARS) -> str:
     """A field name or verb as it can be echoed: escaped (no control characters, ASCII), cut to `limit`."""
     text = json.dumps(str(name), ensure_ascii=True)[1:-1]
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def json_ready(x):
+    """A value JSON can carry as it is: numpy values as Python ones, NaN and infinities as null (JSON
+    has no such numbers, and strict parsers refuse them), anything else as its text."""
+    if isinstance(x, dict):
+        return {str(k): json_ready(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [json_ready(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer, np.bool_)):
+        return x.item()
+    return x if x is None or isinstance(x, (str, int, bool)) else str(x)
+
+
+def nonfinite_path(x, path: str = "") -> str | None:
+    """Where the first NaN or infinity in a value is ("tcp.p[2]"), or None."""
+    if isinstance(x, dict):
+        items = ((f"{path}.{k}" if path else str(k), v) for k, v in x.items())
+    elif isinstance(x, (list, tuple, np.ndarray)):
+        items = ((f"{path}[{i}]", v) for i, v in enumerate(x))
+    else:
+        return path or "(the value)" if isinstance(x, (float, np.floating)) and not np.isfinite(x) else None
+    for sub, v in items:
+        found = nonfinite_path(v, sub)
+        if found is not None:
+            return found
+    return None

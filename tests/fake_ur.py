@@ -297,6 +297,9 @@ class RtdeServer(_TcpServer):
         while started.is_set() and not self.stopped.is_set():
             for index, values in self.controller.samples_after(seen, 0.1):
                 seen = index + 1
+                wait = values["_due"] - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)           # a late sample: this one and every one after it
                 try:
                     for recipe_id, recipe in enumerate(outputs, start=1):
                         every = max(1, int(round(self.max_frequency_hz / recipe.frequency_hz)))
@@ -333,12 +336,13 @@ class ControllerState:
         with self.lock:
             return dict(self.values)
 
-    def publish(self, timestamp: float, **values) -> None:
+    def publish(self, timestamp: float, delay_s: float = 0.0, **values) -> None:
         """One controller cycle's sample: the shared values with the arm's `values`, at `timestamp`
-        (s on the controller's clock)."""
+        (s on the controller's clock); `delay_s`: RTDE sends it this late (a congested link)."""
         with self.lock:
             self.values.update(values)
-            self.samples.append((self.count, {**self.values, "timestamp": timestamp}))
+            self.samples.append((self.count, {**self.values, "timestamp": timestamp,
+                                              "_due": time.monotonic() + delay_s}))
             self.count += 1
             self.lock.notify_all()
 
@@ -791,13 +795,28 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
     period = 1.0 / rtde.max_frequency_hz
     t0 = time.monotonic() - CONTROLLER_UPTIME_S       # the controller was switched on a while before
 
+    lies: list = []                 # (until, lie) the test asked for: what the controller reports instead
+
     def sample(t: float, q, qd, force_base) -> None:
         """One cycle's state: its clock counts whole cycles since it started, as the real one does.
-        `force_base` None: the TCP force stays what the test set."""
+        `force_base` None: the TCP force stays what the test set. A lie in force changes it."""
         force = {} if force_base is None else {"actual_TCP_force": list(force_base) + [0.0] * 3}
-        controller.publish(round((t - t0) / period) * period, actual_q=list(q), target_q=list(q),
-                           actual_qd=list(qd), actual_TCP_pose=kinematics.pose(q),
-                           actual_TCP_speed=kinematics.speed(q, qd), **force)
+        stamp = round((t - t0) / period) * period
+        lie = next((lie for until, lie in lies if time.monotonic() < until), None)
+        if lie is None:
+            controller.publish(stamp, actual_q=list(q), target_q=list(q), actual_qd=list(qd),
+                               actual_TCP_pose=kinematics.pose(q), actual_TCP_speed=kinematics.speed(q, qd), **force)
+            return
+        if lie.get("freeze"):
+            last = controller.samples[-1][1]
+            controller.publish(last["timestamp"], **{k: v for k, v in last.items() if k not in ("timestamp", "_due")})
+            return
+        told = {"actual_q": list(q), "actual_qd": list(qd), "actual_TCP_pose": kinematics.pose(q),
+                "actual_TCP_speed": kinematics.speed(q, qd), **force}
+        for name, joints in lie.get("values", {}).items():
+            for j, value in joints.items():
+                told[name][int(j)] = value
+        controller.publish(stamp, delay_s=lie.get("delay_s", 0.0), target_q=list(q), **told)
 
     def run_cycles() -> None:
         t_next = time.monotonic()
@@ -829,6 +848,9 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
                     # a protective stop pauses the program, as PolyScope does
                     script.stop()
                     controller.update(runtime_state=RUNTIME_PAUSED)
+                conn.send(None)
+            elif msg[0] == "lie":
+                lies.append((time.monotonic() + msg[2], msg[1]))
                 conn.send(None)
             elif msg[0] == "inputs":
                 conn.send((rtde.read_inputs(), rtde.input_packages))
@@ -891,6 +913,15 @@ class FakeController:
     def set(self, **values) -> None:
         """Set output variables of the controller's state (robot_mode, safety_status_bits, actual_q ...)."""
         self._conn.send(("set", values))
+        self._conn.recv()
+
+    def lie(self, duration_s: float, values: dict | None = None, delay_s: float = 0.0, freeze: bool = False) -> None:
+        """For `duration_s` from now, the controller reports what it should not:
+        - `values`: {variable: {index: value}} in place of the arm's (actual_q {1: 7.0}: the shoulder
+          at 7 rad; nan works too);
+        - `delay_s`: every sample reaches RTDE's clients this late (and those after it, in order);
+        - `freeze`: the same sample again, its timestamp unchanged."""
+        self._conn.send(("lie", {"values": values or {}, "delay_s": delay_s, "freeze": freeze}, duration_s))
         self._conn.recv()
 
     def inputs(self) -> tuple[dict, int]:

@@ -227,14 +227,14 @@ def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
 
     ct = control(model, imu_stale_s=0.05, ring=Ring())
     ct._late_s = STALE_JUDGE_LATE_S + 0.05
-    ct._check_sensors(0.08, np.zeros(3))                       # 80 ms without a sample, but this tick is late
+    ct._check_sensors(0.08, np.zeros(3), 0.08)                       # 80 ms without a sample, but this tick is late
     assert "imu_stale" not in ct.faults and stops(ct) == []
     Ring.last_t = 0.09                           # the samples were only queued: no fault at all
     ct._late_s = 0.0
-    ct._check_sensors(0.10, np.zeros(3))
+    ct._check_sensors(0.10, np.zeros(3), 0.10)
     assert "imu_stale" not in ct.faults and stops(ct) == []
     ct._late_s = STALE_JUDGE_LATE_S + 0.05       # late again, and this time the IMU has gone
-    ct._check_sensors(0.20, np.zeros(3))
+    ct._check_sensors(0.20, np.zeros(3), 0.20)
     assert "imu_stale" not in ct.faults
-    ct._check_sensors(0.22, np.zeros(3))                       # a second late tick judges it: a protective stop
+    ct._check_sensors(0.22, np.zeros(3), 0.22)                       # a second late tick judges it: a protective stop
     assert "imu_stale" in ct.faults and [s["cause"] for s in stops(ct)] == ["imu_stale"]

@@ -85,17 +85,21 @@ def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_mid_task_is_a_f
         assert reply["ok"] is True, reply
         assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
         srv.kill()                                     # the simulator dies mid-task, as a robot's FCI would
+        # its states stop at once: stale within the budget, long before libfranka's own timeout
+        # (1 s) and the link's (2 s) say that the robot has gone
         ev = d.client.wait_event(("fault",), None, 10.0)
-        assert ev["code"] == "robot_link" and host in ev["message"]
+        assert ev["code"] == "robot_stale", ev
         stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
-        assert stop["cause"] == "robot_link"
+        assert stop["cause"] == "robot_stale"
         ended = d.client.wait_event(("task_failed", "task_done"), reply["task"], 5.0)
         assert ended["kind"] == "task_failed" and "protective stop" in ended["error"]
+        ev = d.client.wait_event(("fault",), None, 10.0)
+        assert ev["code"] == "robot_link" and host in ev["message"]
         refused = d.client.command("probe", {})
         assert refused["ok"] is False and refused["error"]["code"] == "fault"
         srv = ServerProcess(host=host)                 # back, at the same address
         cleared = d.client.wait_event(("fault_cleared",), None, 30.0)
-        assert cleared["code"] == "robot_link"
+        assert cleared["code"] == "robot_link"           # robot_stale cleared as the link's fault took over
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
     finally:
         d.close()

@@ -183,3 +183,49 @@ def test_commands_the_controller_refuses_are_a_fault_not_silence(tmp_path, board
         assert d.client.wait_event(("fault_cleared",), None, 5.0)["code"] == "robot_refused"
     finally:
         d.close()
+
+
+NAN = float("nan")
+UR_LIES = {
+    # what the controller reports for how long, the fault it must be, and what the fault's message says
+    "the shoulder at 7 rad": (dict(values={"actual_q": {1: 7.0}}), 0.5, "robot_state",
+                              "shoulder_lift_joint at 7.000 rad, outside its range"),
+    "the elbow at 6.5 rad": (dict(values={"actual_q": {2: 6.5}}), 0.5, "robot_state",
+                             "elbow_joint at 6.500 rad, outside its range"),
+    "a NaN shoulder": (dict(values={"actual_q": {1: NAN}}), 0.2, "robot_state",
+                       "shoulder_lift_joint position reads nan"),
+    "a NaN TCP pose": (dict(values={"actual_TCP_pose": {0: NAN}}), 0.2, "robot_state", "TCP position reads [nan, "),
+    "a wrist that jumps 0.3 rad": (dict(values={"actual_q": {3: Q_HOME[3] + 0.3}}), 0.03, "robot_state", "jumped"),
+    "every state 0.4 s late": (dict(delay_s=0.4), 3.0, "robot_stale", "ms old (limit 50 ms)"),
+    "a frozen state": (dict(freeze=True), 0.3, "robot_stale", "ms old (limit 50 ms)"),
+}
+APPROACH_RATE_BOUND = 0.1       # rad/s: an approach at 1 cm/s asks ~0.02 rad/s of a UR5's joints
+
+
+def test_a_controller_that_lies_is_a_fault_and_its_lie_never_drives_the_arm(tmp_path, board, fake):
+    """The red team's reproductions, one after the other on one daemon, each during an approach at
+    1 cm/s: every lie is a fault naming the reading and a protective stop, and no speedJ after it
+    is faster than the approach's own; the fault clears once the controller tells the truth."""
+    import time
+    d = DaemonProcess(tmp_path, ur_config(fake.host, str(board.link), **{"robot.max_state_age_s": ...}))
+    try:
+        for name, (lie, duration_s, code, said) in UR_LIES.items():
+            assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0), name
+            reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.01,
+                                                  "max_distance": 0.05})
+            assert reply["ok"] is True, (name, reply)
+            assert wait_for(lambda: any(abs(v) > 1e-3 for v in fake.arm()["qd"]), 5.0), name
+            t_lie = time.monotonic()
+            fake.lie(duration_s, **lie)
+            ev = d.client.wait_event(("fault",), None, 5.0)
+            while ev["t"] < t_lie - 0.5:             # a fault the last lie raised after the one it waited for
+                ev = d.client.wait_event(("fault",), None, 5.0)
+            assert ev["code"] == code and said in ev["message"], (name, ev)
+            failed = d.client.wait_event(("task_failed",), reply["task"], 5.0)
+            assert "protective stop" in failed["error"], (name, failed)
+            time.sleep(max(0.0, t_lie + duration_s - time.monotonic()) + 0.1)
+            rates = [max(abs(v) for v in target) for t, target in fake.arm()["speedj_t"] if t >= t_lie]
+            assert max(rates, default=0.0) < APPROACH_RATE_BOUND, (name, max(rates))
+    finally:
+        d.close()
+    assert "control error" not in d.log()

@@ -2,10 +2,15 @@
 from __future__ import annotations
 
 import json
+import logging
 import re
 from dataclasses import dataclass
 
 import zenoh
+
+from tecdard.safejson import json_ready, nonfinite_path
+
+log = logging.getLogger("tecdar")
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 # The daemon's transport drops any message larger than this before it reaches Python (Zenoh's own
@@ -125,4 +130,19 @@ class Keys:
 
 
 def dumps(obj) -> str:
-    return json.dumps(obj, separators=(",", ":"))
+    """Compact JSON for the wire, with no NaN or Infinity in it ever (JSON has no such numbers):
+    a non-finite number goes out as null, and where it was is logged once per place. A robot's
+    non-finite reading never gets this far (robots.state_check refuses it as a fault); this is
+    the last guard for whatever else computes one."""
+    try:
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        where = nonfinite_path(obj)
+        if where not in _NONFINITE_SAID and len(_NONFINITE_SAID) < NONFINITE_PLACES_SAID:
+            _NONFINITE_SAID.add(where)
+            log.warning("a non-finite number at %s went out as null", where)
+        return json.dumps(json_ready(obj), separators=(",", ":"), allow_nan=False)
+
+
+NONFINITE_PLACES_SAID = 64        # places of non-finite numbers logged, each once
+_NONFINITE_SAID: set = set()

@@ -24,6 +24,7 @@ from foxglove.messages import (Color, FrameTransform, FrameTransforms, LinePrimi
                                Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3)
 
 from tecdard.control.geometry import matrix_to_quat
+from tecdard.safejson import json_ready
 
 ELLIPSOID_MAX_M = 0.2          # a one-sigma ellipsoid is drawn at most this big per axis (a line contact's
                                # along-edge sigma is half a metre)
@@ -101,5 +102,6 @@ class Channels:
     def event(self, t: float, event: dict) -> None:
         kind = str(event.get("kind", ""))
         level = LogLevel.Warning if kind in ("protective_stop", "fault", "task_failed", "warning") else LogLevel.Info
-        self.events.log(Log(timestamp=_stamp(self._ns(t)), level=level, message=json.dumps(event, default=str), name=kind),
+        text = json.dumps(json_ready(event), allow_nan=False)
+        self.events.log(Log(timestamp=_stamp(self._ns(t)), level=level, message=text, name=kind),
                         log_time=self._ns(t))

@@ -193,10 +193,11 @@ class ControlThread:
         planner = runner.planner
         planner.advance(now)
         js = self.robot.read_state()
+        fresh = now - js.t <= self.robot.state_age_s     # the servo never commands from an older state
         oMtcp, twist = self.model.measured(js)
         p, R = oMtcp.translation.copy(), oMtcp.rotation.copy()
         est = self.contact.get()
-        self._check_sensors(now, p)
+        self._check_sensors(now, p, self.robot.state_seen_t(js))
         runner.check(js.tcp_force, est)
         self._handle_commands(now, p)
         p_plan, v_plan = planner.position, planner.velocity
@@ -205,7 +206,7 @@ class ControlThread:
         if planner.fallbacks != fallbacks:     # a task's step or a brake
             log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
                         planner.fallbacks)
-        if p_cmd is None:
+        if p_cmd is None or not fresh:
             self.robot.hold()
         else:
             plan = PlanSample(now, p_plan, v_plan, p_cmd, runner.R_hold, runner.w_ff)
@@ -222,13 +223,16 @@ class ControlThread:
             self.notifier.notify("WATCHDOG=1")
 
     # -- faults -------------------------------------------------------------------------
-    def _check_sensors(self, now: float, p: np.ndarray) -> None:
-        """The IMU's faults (stale, stuck at full scale) and the robot's (a backend's faults()): a new
-        one stops the running task. `p`: the measured TCP."""
+    def _check_sensors(self, now: float, p: np.ndarray, state_t: float) -> None:
+        """The IMU's faults (stale, stuck at full scale) and the robot's (its newest state too old, a
+        state refused, a backend's faults()): a new one stops the running task. `p`: the measured
+        TCP, `state_t`: when the newest robot state was measured."""
+        robot = self.robot
         changes = [(c, None) for c in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
                                                            self.imu_saturated_since())]
         # the robot's own controller has stopped the arm where it is: the plan stops there too
-        changes += [(c, p) for c in self.sensors.update_robot(self.robot.faults())]
+        changes += [(c, p) for c in self.sensors.update_state_age(now, state_t, robot.state_age_s, self._late_s)]
+        changes += [(c, p) for c in self.sensors.update_robot({**robot.faults(), **robot.state_faults()})]
         for (kind, code, message), halted_at in changes:
             if kind == "fault":
                 self._event("fault", code=code, message=message)

@@ -36,6 +36,7 @@ from tecdard.api import commands as C
 from tecdard.runtime.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
 from tecdard.recording.format import Recording, save_recording
+from tecdard.safejson import json_ready
 
 log = logging.getLogger("tecdar.record")
 
@@ -375,25 +376,12 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         "live_pass_end": ends.astype(np.int64),
         "live_tcp_pass": np.array([k for k, _ in rows], dtype=np.int64),
         "live_tcp_w": np.array([np.zeros(3) if x is None else x for x in w], dtype=float),
-        "live_changes": np.array(json.dumps(_finite(changes))),
+        "live_changes": np.array(json.dumps(json_ready(changes))),
         "live_bias0": np.asarray(first.bias, float),
         "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
-        "live_events": np.array(json.dumps(_finite(events))),
+        "live_events": np.array(json.dumps(json_ready(events))),
     }
     return rec, extra
-
-
-def _finite(x):
-    """JSON-ready: numpy values as Python ones, NaN and infinities as null (the reader refuses them)."""
-    if isinstance(x, dict):
-        return {str(k): _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple, np.ndarray)):
-        return [_finite(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, (np.integer, np.bool_)):
-        return x.item()
-    return x if x is None or isinstance(x, (str, int, bool)) else str(x)
 
 
 def config_digest(text: str) -> str:
