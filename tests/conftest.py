@@ -105,12 +105,13 @@ def sim_config(**overrides) -> dict:
 
 class DaemonProcess:
     def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp",
-                 router: str | None = None):
+                 router: str | None = None, endpoint: str | None = None):
         """`router`: the daemon runs as a Zenoh client of the router at that endpoint, listening on
-        nothing, and the test's client reaches it through the router."""
+        nothing, and the test's client reaches it through the router. `endpoint`: where it listens
+        (default: `protocol` on a free loopback port)."""
         cfg = copy.deepcopy(cfg)
         if router is None:
-            self.endpoint = f"{protocol}/127.0.0.1:{free_port()}"
+            self.endpoint = endpoint or f"{protocol}/127.0.0.1:{free_port()}"
             cfg["zenoh"]["listen"] = [self.endpoint]
         else:
             self.endpoint = router
@@ -159,11 +160,12 @@ class DaemonProcess:
 def make_daemon(tmp_path):
     started = []
 
-    def factory(env: dict | None = None, client_tls=None, protocol="tcp", router=None, **overrides) -> DaemonProcess:
+    def factory(env: dict | None = None, client_tls=None, protocol="tcp", router=None, endpoint=None,
+                **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
         d = DaemonProcess(sub, daemon_config(**overrides), env,
-                          client_tls=client_tls, protocol=protocol, router=router)
+                          client_tls=client_tls, protocol=protocol, router=router, endpoint=endpoint)
         started.append(d)
         return d
 

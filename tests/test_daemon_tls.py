@@ -18,7 +18,7 @@ REFUSED_WITHIN_S = 2.0        # a denied query reaches no queryable; the client 
 @pytest.fixture
 def pki(tmp_path):
     ca = ScratchCA(tmp_path)
-    return ca, {cn: ca.issue(cn) for cn in ("daemon", "operator", "intruder")}
+    return ca, {cn: ca.issue(cn) for cn in ("tecdard", "operator", "intruder")}
 
 
 def files(ca, ident) -> TlsFiles:
@@ -28,7 +28,7 @@ def files(ca, ident) -> TlsFiles:
 def test_mtls_and_the_acl_let_only_the_named_client_command(make_daemon, pki):
     ca, ids = pki
     d = make_daemon(protocol="tls", client_tls=files(ca, ids["operator"]),
-                    **{"zenoh.tls": {"ca": str(ca.path), "cert": str(ids["daemon"].cert), "key": str(ids["daemon"].key)},
+                    **{"zenoh.tls": {"ca": str(ca.path), "cert": str(ids["tecdard"].cert), "key": str(ids["tecdard"].key)},
                        "zenoh.commanders": ["operator"]})
     op = d.client
     assert op.command("status")["ok"] is True
@@ -62,7 +62,7 @@ def test_an_impostor_without_the_cas_certificate_cannot_answer_for_the_daemon(tm
     ca, ids = pki
     (tmp_path / "rogue").mkdir()
     rogue_ca = ScratchCA(tmp_path / "rogue")
-    fake = rogue_ca.issue("daemon")
+    fake = rogue_ca.issue("tecdard")
     endpoint = f"tls/127.0.0.1:{free_port()}"
     conf = session_config([endpoint], [], tls=TlsFiles(str(rogue_ca.path), str(fake.cert), str(fake.key)))
     with zenoh.open(conf) as session:
@@ -90,8 +90,8 @@ def test_tls_beside_a_plain_endpoint_is_refused(pki):
     from tecdard.runtime.daemon import Daemon
     from tests.conftest import sim_config
     ca, ids = pki
-    cfg = sim_config(**{"zenoh.tls": {"ca": str(ca.path), "cert": str(ids["daemon"].cert),
-                                      "key": str(ids["daemon"].key)},
+    cfg = sim_config(**{"zenoh.tls": {"ca": str(ca.path), "cert": str(ids["tecdard"].cert),
+                                      "key": str(ids["tecdard"].key)},
                         "zenoh.listen": ["tls/127.0.0.1:7448", "tcp/127.0.0.1:7449"]})
     with pytest.raises(ConfigError, match="is not a tls/ endpoint"):
         Daemon(Config(cfg))

@@ -94,25 +94,86 @@ def session_config(listen: list[str], connect: list[str], multicast_scouting: bo
     return conf
 
 
-def access_control(keys: "Keys", commanders: list[str]) -> dict:
-    """Zenoh ACL for the daemon: every authenticated peer may watch (state, contact, events, alive);
-    only peers whose certificate's common name is in `commanders` may query cmd/**. Anything else
-    is denied (a refused query reaches no queryable: its sender gets no reply)."""
+def access_control(keys: "Keys", commanders: list[str] | None = None) -> dict:
+    """The daemon's Zenoh access control, on every session it opens (default deny):
+    - anyone it lets in may subscribe to anything and ask for liveliness (it then gets what the
+      daemon publishes: `state`, `contact`, `events` and the `alive` token);
+    - the daemon publishes, holds its token and answers only on its own keys;
+    - queries on `cmd/**` come in from everyone, or with `commanders` (certificates' common
+      names, with mutual TLS) only from those peers; a refused query reaches no queryable;
+    - nothing else comes in: no other session's publication, token, queryable or reply, on any
+      key. So no one connected to the daemon can answer for it or publish as it through it, as a
+      Zenoh peer would otherwise route for its clients (a queryable on `**` included)."""
     watch = [keys.state, keys.contact, keys.events, keys.alive]
+    subjects = [{"id": "everyone"}]
+    if commanders:
+        subjects.append({"id": "commanders", "cert_common_names": list(commanders)})
     return {
         "enabled": True,
         "default_permission": "deny",
         "rules": [
-            {"id": "watch", "permission": "allow", "flows": ["egress", "ingress"], "key_exprs": watch,
-             "messages": ["put", "declare_subscriber", "liveliness_token", "liveliness_query",
-                          "declare_liveliness_subscriber", "query", "reply"]},
-            {"id": "command", "permission": "allow", "flows": ["egress", "ingress"],
-             "key_exprs": [keys.cmd_all], "messages": ["query", "reply", "declare_queryable"]},
+            {"id": "watch", "permission": "allow", "flows": ["ingress"], "key_exprs": ["**"],
+             "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]},
+            {"id": "publish", "permission": "allow", "flows": ["egress"], "key_exprs": watch,
+             "messages": ["put", "liveliness_token", "reply"]},
+            {"id": "serve", "permission": "allow", "flows": ["egress"], "key_exprs": [keys.cmd_all],
+             "messages": ["declare_queryable", "reply"]},
+            {"id": "command", "permission": "allow", "flows": ["ingress"], "key_exprs": [keys.cmd_all],
+             "messages": ["query"]},
         ],
-        "subjects": [{"id": "authenticated"}, {"id": "commanders", "cert_common_names": list(commanders)}],
-        "policies": [{"rules": ["watch"], "subjects": ["authenticated"]},
-                     {"rules": ["command"], "subjects": ["commanders"]}],
+        "subjects": subjects,
+        "policies": [{"rules": ["watch", "publish"], "subjects": ["everyone"]},
+                     {"rules": ["serve", "command"], "subjects": ["commanders" if commanders else "everyone"]}],
     }
+
+
+DAEMON_NAME = "tecdard"      # the daemon's certificate's common name that clients expect, unless told another
+
+
+def cert_common_name(path: str) -> str | None:
+    """The subject's common name of a PEM certificate, or None where it cannot be read."""
+    import ssl
+    try:
+        subject = ssl._ssl._test_decode_cert(path)["subject"]       # the standard library's own decoder
+    except Exception:
+        return None
+    return next((value for rdn in subject for key, value in rdn if key == "commonName"), None)
+
+
+def client_access_control(keys: "Keys", daemon_name: str | None) -> dict:
+    """A client's own access control (default deny): it takes publications, replies, liveliness
+    tokens and queryables on the robot's keys only from the node it connects to, and with mutual
+    TLS only if that node's certificate is named `daemon_name`. A process that takes the
+    daemon's port, or any other node, then answers nothing and publishes nothing the client sees."""
+    node = {"id": "daemon"} if daemon_name is None else {"id": "daemon", "cert_common_names": [daemon_name]}
+    mine = [keys.base_all]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [
+            {"id": "from_daemon", "permission": "allow", "flows": ["ingress"], "key_exprs": mine,
+             "messages": ["put", "reply", "liveliness_token", "declare_queryable"]},
+            {"id": "to_daemon", "permission": "allow", "flows": ["egress"], "key_exprs": mine,
+             "messages": ["query", "declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"]},
+        ],
+        "subjects": [node],
+        "policies": [{"rules": ["from_daemon", "to_daemon"], "subjects": ["daemon"]}],
+    }
+
+
+def client_config(endpoint: str, robot: str, tls: TlsFiles | None = None, daemon_name: str = DAEMON_NAME,
+                  open_timeout_s: float | None = None, connect_timeout_s: float = 1.0) -> zenoh.Config:
+    """A client's session: Zenoh client mode to the one endpoint, and nothing else. A peer learns
+    other peers' addresses by gossip and connects to them, where the daemon's access control does
+    not apply (an impostor answered the daemon's queries that way); a client reaches only the
+    node it names, which routes for it. With `tls` the node must hold a certificate named
+    `daemon_name` (client_access_control). The session opens once connected, or raises
+    zenoh.ZError after `connect_timeout_s`; once open it reconnects by itself."""
+    conf = session_config([], [endpoint], tls=tls, mode="client", open_timeout_s=open_timeout_s,
+                          acl=client_access_control(Keys(robot), daemon_name if tls is not None else None))
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("connect/timeout_ms", json.dumps({"client": max(1, int(connect_timeout_s * 1000))}))
+    return conf
 
 
 class Keys:
@@ -124,6 +185,7 @@ class Keys:
         self.alive = f"{base}/alive"
         self.cmd_prefix = f"{base}/cmd/"
         self.cmd_all = f"{base}/cmd/**"     # every key under cmd/: unknown verbs get an unknown_verb reply
+        self.base_all = f"{base}/**"
 
     def cmd(self, verb: str) -> str:
         return self.cmd_prefix + verb

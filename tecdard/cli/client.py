@@ -3,16 +3,18 @@ from __future__ import annotations
 
 import json
 import queue
+import threading
 import time
 
 import zenoh
 
-from tecdard.api.session import Keys, TlsFiles, dumps, session_config
+from tecdard.api.session import DAEMON_NAME, Keys, TlsFiles, client_config, dumps
 
 WAIT_REPORT_S = 10.0           # wait_alive says what it waits for this often
 # Until the daemon listens, a liveliness query returns at once (no route): without a pause a wait
 # spun a core at ~70 000 queries a second while the daemon started on the other one.
 ALIVE_POLL_S = 0.05
+FIRST_CONNECT_S = 0.25         # a new client tries this long to reach the daemon at once (then on first use)
 
 
 class ClientError(RuntimeError):
@@ -20,24 +22,50 @@ class ClientError(RuntimeError):
 
 
 class Client:
-    """Connects to a daemon's endpoint (no listening, no multicast scouting)."""
+    """The daemon's client: a Zenoh session in client mode to the daemon's endpoint and nothing else
+    (no gossip, no scouting), which takes what it receives on the robot's keys only from that node,
+    and with mutual TLS only if that node's certificate is named `daemon_name`
+    (tecdard.api.session.client_config). The session opens when the daemon is first reached
+    (`alive`, `wait_alive`, `command`), and reconnects by itself after that."""
 
     def __init__(self, endpoint: str, robot: str = "sim", tls: TlsFiles | None = None,
-                 open_timeout_s: float | None = None):
-        """`tls`: this client's certificate and key and the CA, for a daemon on a tls/ endpoint.
-        `open_timeout_s`: how long a transport's handshake may take (Zenoh's default, 10 s, is also
-        how long closing the session waits on an endpoint that accepts TCP but never answers)."""
+                 open_timeout_s: float | None = None, daemon_name: str = DAEMON_NAME):
+        """`tls`: this client's certificate and key and the CA, for a daemon on a tls/ endpoint;
+        `daemon_name`: the common name of the daemon's certificate (or of the router's, through
+        one). `open_timeout_s`: how long a transport's handshake may take (Zenoh's default, 10 s,
+        is also how long closing the session waits on an endpoint that accepts TCP but never answers)."""
+        self.endpoint, self.robot, self.tls = endpoint, robot, tls
+        self.daemon_name, self.open_timeout_s = daemon_name, open_timeout_s
         self.keys = Keys(robot)
-        self.session = zenoh.open(session_config([], [endpoint], tls=tls, open_timeout_s=open_timeout_s))
+        self.session = None
+        self._lock = threading.Lock()
         self.events: queue.Queue = queue.Queue()
         self.event_log: list[dict] = []       # every event seen, in order (wait_event consumes the queue)
         self.states: queue.Queue = queue.Queue(maxsize=1000)
         self.contacts: queue.Queue = queue.Queue(maxsize=10000)
-        self._subs = [
-            self.session.declare_subscriber(self.keys.events, self._on_event),
-            self.session.declare_subscriber(self.keys.state, lambda s: _put_latest(self.states, s)),
-            self.session.declare_subscriber(self.keys.contact, lambda s: _put_latest(self.contacts, s)),
-        ]
+        self._subs: list = []
+        client_config(endpoint, robot, tls, daemon_name)       # a malformed endpoint or file: zenoh.ZError now
+        self.connect(FIRST_CONNECT_S)
+
+    def connect(self, timeout: float = 1.0) -> bool:
+        """Open the session if it is not open yet: True once connected to the endpoint."""
+        with self._lock:
+            if self.session is not None:
+                return True
+            try:
+                session = zenoh.open(client_config(self.endpoint, self.robot, self.tls, self.daemon_name,
+                                                   self.open_timeout_s, connect_timeout_s=timeout))
+            except zenoh.ZError as exc:
+                if str(exc).startswith("Unable to connect"):
+                    return False                  # nothing there yet: the daemon may be starting
+                raise ClientError(f"cannot open a session to {self.endpoint}: {str(exc).splitlines()[0]}") from None
+            self._subs = [
+                session.declare_subscriber(self.keys.events, self._on_event),
+                session.declare_subscriber(self.keys.state, lambda s: _put_latest(self.states, s)),
+                session.declare_subscriber(self.keys.contact, lambda s: _put_latest(self.contacts, s)),
+            ]
+            self.session = session
+            return True
 
     def _on_event(self, sample) -> None:
         ev = json.loads(sample.payload.to_string())
@@ -45,9 +73,13 @@ class Client:
         self.events.put(ev)
 
     def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
-        self.session.close()
+        with self._lock:
+            if self.session is None:
+                return
+            for sub in self._subs:
+                sub.undeclare()
+            self.session.close()
+            self.session = None
 
     def __enter__(self) -> "Client":
         return self
@@ -56,6 +88,10 @@ class Client:
         self.close()
 
     def alive(self, timeout: float = 1.0) -> bool:
+        t0 = time.monotonic()
+        if not self.connect(timeout):
+            return False
+        timeout = max(timeout - (time.monotonic() - t0), 0.05)
         replies = self.session.liveliness().get(self.keys.alive, timeout=timeout)
         return any(r.ok is not None for r in replies)
 
@@ -83,6 +119,8 @@ class Client:
         """Send a command and return the decoded reply."""
         if isinstance(payload, dict):
             payload = dumps(payload)
+        if not self.connect(min(timeout, 2.0)):
+            raise ClientError(f"{verb}: nothing answers at {self.endpoint}")
         kwargs = {"timeout": timeout}
         if payload is not None:
             kwargs["payload"] = payload
@@ -94,6 +132,7 @@ class Client:
 
     def wait_event(self, kinds: tuple[str, ...], task: str | None = None, timeout: float = 60.0) -> dict:
         deadline = time.monotonic() + timeout
+        self.connect(min(timeout, FIRST_CONNECT_S))
         while True:
             left = deadline - time.monotonic()
             if left <= 0:

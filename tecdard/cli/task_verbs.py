@@ -9,7 +9,7 @@ import time
 from tecdard.cli.client import Client, ClientError
 from tecdard import verbs
 from tecdard.api.commands import task_verbs
-from tecdard.api.session import DEFAULT_ENDPOINT, TlsFiles
+from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
 BAR_WIDTH = 30
@@ -61,6 +61,9 @@ def add_parsers(sub) -> None:
         p.add_argument("--tls-ca", help="with a tls/ endpoint: the CA that signed the daemon's certificate")
         p.add_argument("--tls-cert", help="with a tls/ endpoint: this client's certificate (its CN may be a commander)")
         p.add_argument("--tls-key", help="with a tls/ endpoint: this client's private key")
+        p.add_argument("--tls-daemon-name", default=DAEMON_NAME, metavar="CN",
+                       help="with a tls/ endpoint: the common name of the daemon's certificate (or of the router's, "
+                            "through one); nothing else is answered or listened to (default %(default)s)")
         if verb in summaries:
             p.add_argument("--no-follow", action="store_true", help="return once the task is accepted")
         for opt, _field, typ, help_ in fields:
@@ -92,7 +95,7 @@ def run_verb(args) -> int:
         return EXIT_REFUSED
     tls = TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None
     try:
-        cli = Client(args.connect, robot=args.robot, tls=tls)
+        cli = Client(args.connect, robot=args.robot, tls=tls, daemon_name=args.tls_daemon_name)
     except Exception as exc:                      # zenoh refuses a malformed endpoint
         print(f"tecdard {args.verb}: cannot open a session to {args.connect}: {exc}", file=sys.stderr)
         return EXIT_NO_DAEMON

@@ -6,8 +6,8 @@ import os
 import pathlib
 from dataclasses import dataclass
 
-from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DEFAULT_ENDPOINT, Keys, TlsFiles, access_control,
-                                 endpoint_problem, session_config)
+from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DAEMON_NAME, DEFAULT_ENDPOINT, Keys, TlsFiles,
+                                 access_control, cert_common_name, endpoint_problem, session_config)
 from tecdard.runtime.intake import IntakeParams
 from tecdard.safejson import show
 
@@ -52,7 +52,7 @@ class ZenohSettings:
 
     def session_config(self, keys: Keys):
         """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint)."""
-        acl = access_control(keys, self.commanders) if self.commanders else None
+        acl = access_control(keys, self.commanders)
         return session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES, tls=self.tls,
                               acl=acl, mode=self.mode)
 
@@ -60,6 +60,11 @@ class ZenohSettings:
         parts = [f"listening on {', '.join(self.listen)}"] if self.listen else []
         if self.connect:
             parts.append(f"connecting to {', '.join(self.connect)}")
+        if self.tls is not None:
+            # what clients must expect (tecdard.api.session.client_access_control)
+            name = cert_common_name(self.tls.cert)
+            parts.append(f"TLS as {name!r}" + ("" if name == DAEMON_NAME else
+                                                 f" (clients expect {DAEMON_NAME!r} unless told --tls-daemon-name)"))
         return f"Zenoh {self.mode}, " + " and ".join(parts)
 
 

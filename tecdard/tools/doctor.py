@@ -88,9 +88,12 @@ def _host_port(endpoint: str) -> tuple[str, str, int] | None:
 
 
 def _daemon_alive_at(endpoint: str, robot: str, tls) -> bool:
+    """A daemon answers at the endpoint: with TLS, one holding a certificate of the same name as this one's."""
     try:
+        from tecdard.api.session import DAEMON_NAME, cert_common_name
         from tecdard.cli.client import Client
-        with Client(endpoint, robot=robot, tls=tls, open_timeout_s=CONNECT_TIMEOUT_S) as cli:
+        name = (cert_common_name(tls.cert) or DAEMON_NAME) if tls is not None else DAEMON_NAME
+        with Client(endpoint, robot=robot, tls=tls, open_timeout_s=CONNECT_TIMEOUT_S, daemon_name=name) as cli:
             return cli.alive(CONNECT_TIMEOUT_S)
     except Exception:
         return False
