@@ -184,3 +184,56 @@ def test_sigkill_while_a_map_is_written_leaves_it_whole_or_absent(make_daemon, t
     from tecdard.files import ensure_writable_dir
     ensure_writable_dir(out, "map.output_dir")                          # what the next start does
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_a_megabyte_payload_is_refused_with_a_reply_every_time(make_daemon):
+    """A 1 MB payload got no reply at all, a timeout (issue 32, item 11): the transport dropped a
+    mebibyte, and a payload under it cost the task class its whole budget, so the next one was
+    rate_limited. A refusal that costs nothing to send is sent."""
+    d = make_daemon()
+    for size in (1_000_000, 1 << 20):
+        for verb in ("status", "rotate", "record", "nonsense"):
+            for _ in range(3):
+                t0 = time.monotonic()
+                reply = d.client.command(verb, "x" * size, timeout=5.0)
+                assert reply["ok"] is False and reply["error"]["code"] == "payload_too_large", (size, verb, reply)
+                assert time.monotonic() - t0 < 2.0
+    assert d.proc.poll() is None
+
+
+def test_a_record_flood_neither_starves_other_verbs_nor_fills_the_disk(make_daemon, tmp_path):
+    """One client's record start/stop flood served another client's rotate 2 times in 20 and wrote
+    91 files in 20 s (issue 32, item 10): record has a class of its own, and captures on demand a
+    rate and count limit."""
+    import threading
+
+    from tecdard.cli.client import Client
+    d = make_daemon()
+    stop = threading.Event()
+    sent = [0]
+
+    def flood():
+        with Client(d.endpoint) as flooder:
+            while not stop.is_set():
+                for action in ("start", "stop"):
+                    try:
+                        flooder.command("record", {"action": action, "label": "flood"}, timeout=1.0)
+                    except Exception:
+                        pass
+                    sent[0] += 1
+    th = threading.Thread(target=flood, daemon=True)
+    th.start()
+    try:
+        time.sleep(0.5)
+        served = []
+        for _ in range(20):
+            served.append(d.client.command("rotate", {"angle_deg": 1000.0}, timeout=5.0)["error"]["code"])
+            time.sleep(0.2)
+    finally:
+        stop.set()
+        th.join(5.0)
+    assert served == ["out_of_limits"] * 20, served
+    time.sleep(1.0)
+    files = [f for f in os.listdir(d.config_path.parent / "recordings") if not f.startswith(".")]
+    print(f"{sent[0]} record queries sent; {len(files)} files written")
+    assert sent[0] > 40 and len(files) <= 11, (sent[0], files)

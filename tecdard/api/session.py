@@ -15,7 +15,9 @@ log = logging.getLogger("tecdar")
 JSON = zenoh.Encoding.APPLICATION_JSON
 # The daemon's transport drops any message larger than this before it reaches Python (Zenoh's own
 # default is 1 GiB); commands are refused with a reply above tecdard.commands.MAX_PAYLOAD_BYTES.
-DAEMON_MAX_MESSAGE_BYTES = 1 << 20
+# 2 MiB, so that a payload of a megabyte (either kind) is answered `payload_too_large`, not dropped;
+# the queries waiting in the intake's rings (132 at most) then hold at most 264 MiB.
+DAEMON_MAX_MESSAGE_BYTES = 2 << 20
 # Where the daemon listens and clients connect by default: loopback, and not 7447, the port of zenohd
 # and of ROS 2's rmw_zenohd, beside which a daemon there could not start.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7507"

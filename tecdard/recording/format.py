@@ -293,9 +293,10 @@ def load_truth(path: str | pathlib.Path) -> dict:
         return {k[len("truth_"):]: data[k] for k in data.files if k.startswith("truth_")}
 
 
-def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict | None = None) -> None:
+def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict | None = None,
+                   compress: bool = True) -> None:
     """Write `rec` to a path or an open binary file; `truth` as truth_* keys, `extra` as they are
-    (a daemon recording's live_* keys)."""
+    (a daemon recording's live_* keys). `compress` False: a plain zip, written at disk speed."""
     arrays = {
         "format": np.array(FORMAT), "imu_t": rec.imu_t, "gyro": rec.gyro, "accel": rec.accel,
         "tcp_t": rec.tcp_t, "tcp_pos": rec.tcp_pos, "tcp_quat": rec.tcp_quat,
@@ -312,7 +313,7 @@ def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict 
     for k, v in (truth or {}).items():
         arrays[f"truth_{k}"] = np.asarray(v)
     arrays.update(extra or {})
-    np.savez_compressed(path, **arrays)
+    (np.savez_compressed if compress else np.savez)(path, **arrays)
 
 
 @dataclass

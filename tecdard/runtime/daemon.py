@@ -37,7 +37,8 @@ log = logging.getLogger("tecdar")
 OUTBOX_SIZE = 4096
 THREAD_JOIN_S = 0.5
 MAIN_POLL_S = 0.005            # the main thread looks at the query ring and the replies at least this often
-SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop and a map to be written (unit: 5 s)
+SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop, a map and a recording to be written
+RECORDER_JOIN_S = 1.0          # then the recorder's thread this long more (the unit's TimeoutStopSec: 5 s)
 GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
 MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
@@ -179,7 +180,7 @@ class Daemon:
         self.notifier.notify("STOPPING=1")
         for th in self._threads:
             try:
-                th.join(THREAD_JOIN_S)
+                th.join(RECORDER_JOIN_S if th.name == "recorder" else THREAD_JOIN_S)
             except Exception:
                 log.exception("joining %s", th.name)
         for step in (self.robot.hold, self.backend.close, self.imu.close):
@@ -252,10 +253,15 @@ class Daemon:
                 if shutdown_by is None:
                     log.info("shutting down: stopping the task and the arm first")
                     self.control.request_stop(Stop(None, "daemon shutting down"))
+                    # a capture is closed and written now, while the arm stops, not after it
+                    self.recorder.close_capture("daemon stopping")
                     shutdown_by = now + SHUTDOWN_GRACE_S
-                elif self.control.quiescent() or now > shutdown_by:
+                elif (self.control.quiescent() and self.recorder.idle) or now > shutdown_by:
                     if not self.control.quiescent():
                         log.warning("shutting down before the arm came to rest or the map was written "
                                     "(%.1f s grace)", SHUTDOWN_GRACE_S)
+                    if not self.recorder.idle:
+                        log.warning("shutting down while a recording is still being written (%.1f s grace; "
+                                    "%.1f s more are given to it)", SHUTDOWN_GRACE_S, RECORDER_JOIN_S)
                     break
             main.publish_telemetry(MAIN_POLL_S)

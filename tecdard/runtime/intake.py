@@ -3,9 +3,10 @@
 The queryables under `tecdar/{robot}/cmd/`:
 - `cmd/stop` has a callback of its own (Zenoh's callback thread): it registers the query and hands
   a `Stop` to the control thread at once, so a stop never waits behind other queries.
-- each task verb and `cancel` (the "task" class), `cmd/status` ("status"), and `cmd/**` for every
-  other key ("other": unknown verbs such as `cmd/stop/now`, which get `unknown_verb`) fill Zenoh
-  ring channels of their own that the main thread polls. A flood overwrites the oldest queued
+- each task verb and `cancel` (the "task" class), `cmd/record` ("record": a capture costs a file,
+  so a flood of it must not spend the task verbs' budget), `cmd/status` ("status"), and `cmd/**`
+  for every other key ("other": unknown verbs such as `cmd/stop/now`, which get `unknown_verb`)
+  fill Zenoh ring channels of their own that the main thread polls. A flood overwrites the oldest queued
   queries of its own class in Zenoh's memory (their senders get no reply) without costing Python
   anything, and a flood of `status` never pushes a `rotate` out of its ring. (`cmd/**` also sees a
   copy of every query to a known verb; it drops those unanswered.)
@@ -35,12 +36,13 @@ from tecdard.api.session import JSON, Keys, dumps
 
 log = logging.getLogger("tecdar.intake")
 
-BACKLOG = {"task": 8, "status": 64, "other": 16}   # queries waiting per ring (the oldest are overwritten)
+BACKLOG = {"task": 8, "record": 4, "status": 64, "other": 16}   # queries waiting per ring (the oldest overwritten)
 QUERIES_PER_POLL = 16          # per ring and pass; then the main thread serves replies and telemetry
 MAX_PENDING_STOPS = 64         # stop queries waiting for the arm to come to rest; more are dropped (the stop holds)
 REFUSALS_PER_S = 100.0         # budget of rate_limited replies; beyond it a query is left to its ring
 REFUSAL_BURST = 50
 PAYLOAD_COST_BYTES = 1024      # a query costs one token plus one per this many payload bytes
+MIN_BURST = 5.0                # a class's burst: a second's worth of its rate, and never fewer queries than this
 LOG_REFUSALS_PER_S = 5         # refusals logged one by one per second; the rest are counted
 
 
@@ -50,15 +52,18 @@ class IntakeParams:
     max_task_rate_hz: float = 20.0
     max_status_rate_hz: float = 100.0
     max_other_rate_hz: float = 20.0
+    max_record_rate_hz: float = 10.0
 
     @classmethod
     def from_config(cls, section) -> "IntakeParams":
         d = cls()
         return cls(**{name: section.getfloat(name, getattr(d, name), minval=1.0, maxval=10000.0)
-                      for name in ("max_task_rate_hz", "max_status_rate_hz", "max_other_rate_hz")})
+                      for name in ("max_task_rate_hz", "max_status_rate_hz", "max_other_rate_hz",
+                                   "max_record_rate_hz")})
 
     def rate(self, klass: str) -> float:
-        return {"task": self.max_task_rate_hz, "status": self.max_status_rate_hz}.get(klass, self.max_other_rate_hz)
+        return {"task": self.max_task_rate_hz, "status": self.max_status_rate_hz,
+                "record": self.max_record_rate_hz}.get(klass, self.max_other_rate_hz)
 
 
 class TokenBucket:
@@ -103,9 +108,10 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel", "record")}
+        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",)}
+        self._record_key = keys.cmd("record")
         self._known_keys = {keys.cmd(v) for v in C.verbs()}
-        self._parse = {k: TokenBucket(self.params.rate(k), self.params.rate(k)) for k in BACKLOG}
+        self._parse = {k: TokenBucket(self.params.rate(k), max(self.params.rate(k), MIN_BURST)) for k in BACKLOG}
         self._refuse = TokenBucket(REFUSALS_PER_S, REFUSAL_BURST)
         self._log_second, self._logged, self._unlogged = 0, 0, 0
         self._rings: list[tuple[str, object]] = []        # (class, queryable), polled in this order
@@ -115,7 +121,7 @@ class QueryIntake:
     def declare(self, session: zenoh.Session) -> None:
         self._declared.append(session.declare_queryable(self._stop_key, self.on_stop))
         rings = [("task", key) for key in sorted(self._task_keys)]
-        rings += [("status", self.keys.cmd("status")), ("other", self.keys.cmd_all)]
+        rings += [("record", self._record_key), ("status", self.keys.cmd("status")), ("other", self.keys.cmd_all)]
         for klass, key in rings:
             ring = session.declare_queryable(key, zenoh.handlers.RingChannel(BACKLOG[klass]))
             self._rings.append((klass, ring))
@@ -176,6 +182,8 @@ class QueryIntake:
     def _class(self, key: str) -> str:
         if key in self._task_keys:
             return "task"
+        if key == self._record_key:
+            return "record"
         return "status" if key == self.keys.cmd("status") else "other"
 
     def handle(self, query, key: str, payload, now: float) -> None:
@@ -188,8 +196,10 @@ class QueryIntake:
             return          # the stop queryable has it (a stop's copies elsewhere are not answered)
         klass = self._class(key)
         size = len(payload) if payload is not None else 0
-        # parsing costs by size; an oversized payload is refused unread, at the cost of the largest one parsed
-        if not self._parse[klass].take(now, 1.0 + min(size, C.MAX_PAYLOAD_BYTES) / PAYLOAD_COST_BYTES):
+        # parsing costs by size; an oversized payload is refused unread, at the cost of an empty query
+        # (the refusal costs nothing to send, so it is sent)
+        cost = 1.0 + (size / PAYLOAD_COST_BYTES if size <= C.MAX_PAYLOAD_BYTES else 0.0)
+        if not self._parse[klass].take(now, cost):
             if self._refuse.take(now):
                 self.counters["rate_limited"] += 1
                 self._send(query, C.CommandError(C.RATE_LIMITED, f"{show_name(verb)}: over "

@@ -5,9 +5,21 @@ samples it added, the directive and data rate in force, the IMU batch, the event
 that came out. `record.pre_onset_s` of that is kept in a bounded buffer; a contact onset (with
 `record.enabled`) or a `record start` command opens a capture that runs until the episode or its
 task ends, or `record stop`. The recorder's own thread writes the file (a temporary name, then one
-rename), under a disk budget that deletes the oldest recordings first. A full disk or a write
-error is a logged warning and a counted drop; nothing here ever blocks the estimator or the
-control thread: the hand-over is a bounded queue whose overflow is dropped and counted.
+rename); nothing here ever blocks the estimator or the control thread: the hand-over is a bounded
+queue whose overflow is dropped and counted.
+
+What is never lost, and what can be:
+- Before each write the directory is made room in, as journald's SystemMaxUse= and
+  SystemKeepFree= do: the oldest of the daemon's own recordings (by their names, OWN_NAME; no other
+  file is ever touched) go until the recordings fit `record.max_mb` and the filesystem keeps
+  `record.keep_free_mb` free. A write that would still not fit is refused with a
+  `recording_failed` event naming the shortfall, and the older recordings stay.
+- A capture still open is written every `record.checkpoint_s` (10 s) to its final name
+  (uncompressed: fast), so a daemon killed with SIGKILL loses at most the last 10 s of it (and
+  the passes still queued); the file it leaves says so in its meta (`ended`).
+- On SIGTERM the daemon closes the capture at once and writes it (uncompressed) while the arm
+  stops, well within the unit's stop timeout (docs/recordings.md).
+- A full disk or a write error is a logged warning, a `recording_failed` event and a count.
 
 Beyond the format's keys a daemon recording carries what a faithful replay needs (`live_*`, see
 docs/recordings.md): each pass's batch boundary, the pass at which each proprioception sample
@@ -18,6 +30,7 @@ from __future__ import annotations
 
 import collections
 import datetime
+import errno
 import hashlib
 import json
 import logging
@@ -33,6 +46,7 @@ import numpy as np
 
 from tecdard.control.geometry import matrix_to_quat
 from tecdard.api import commands as C
+from tecdard.runtime.intake import TokenBucket
 from tecdard.runtime.messages import Inbox
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
 from tecdard.recording.format import Recording, save_recording
@@ -47,6 +61,12 @@ MAX_LABEL_CHARS = 40
 TASK_END_KINDS = ("task_done", "task_failed")
 PRE_EVENTS = 64             # daemon events kept from before a capture (those in its window are written)
 TASK_END_GRACE_S = 0.5       # after its episode, a capture waits this long for its task's end event
+CHECKPOINT_S = 10.0          # a capture still open is written this often (what SIGKILL can cost): record.checkpoint_s
+# The daemon's own recordings, by name (file_name): <YYYYmmdd-HHMMSS>-<task or idle>[-<label>][~n].npz.
+# Only these are ever deleted to make room.
+OWN_NAME = re.compile(r"^\d{8}-\d{6}-[A-Za-z0-9_.-]+?(~\d+)?\.npz$")
+KEEP_FREE_FRACTION = 0.15    # record.keep_free_mb by default: journald's SystemKeepFree= default,
+KEEP_FREE_CAP_MB = 4096.0    # 15 % of the filesystem, at most 4 GiB
 
 
 class EmptyCapture(ValueError):
@@ -64,15 +84,24 @@ class RecordParams:
     dir: str = field(default_factory=default_dir)
     pre_onset_s: float = 1.0              # the buffer kept before an onset (or a `record start`)
     max_mb: float = 2000.0                # the recordings directory's budget: the oldest go first
+    keep_free_mb: float | None = None     # free space kept on the filesystem; None: journald's default
+    max_on_demand_per_min: float = 2.0    # captures on demand started per minute, after a burst of ...
+    max_on_demand_burst: int = 10         # ... this many
+    checkpoint_s: float = CHECKPOINT_S    # an open capture is written this often
 
     @classmethod
     def from_config(cls, section) -> "RecordParams":
-        from tecdard.config import ConfigError
         d = cls()
         params = cls(enabled=section.getbool("enabled", False),
                      dir=section.getstr("dir", default_dir()),
                      pre_onset_s=section.getfloat("pre_onset_s", d.pre_onset_s, minval=0.0, maxval=10.0),
-                     max_mb=section.getfloat("max_mb", d.max_mb, above=0.0, maxval=1e7))
+                     max_mb=section.getfloat("max_mb", d.max_mb, above=0.0, maxval=1e7),
+                     keep_free_mb=section.getoptfloat("keep_free_mb", None, minval=0.0, maxval=1e7),
+                     max_on_demand_per_min=section.getfloat("max_on_demand_per_min", d.max_on_demand_per_min,
+                                                            above=0.0, maxval=600.0),
+                     max_on_demand_burst=section.getint("max_on_demand_burst", d.max_on_demand_burst, minval=1,
+                                                        maxval=1000),
+                     checkpoint_s=section.getfloat("checkpoint_s", d.checkpoint_s, minval=1.0, maxval=MAX_CAPTURE_S))
         try:
             ensure_writable_dir(params.dir, "dir")
         except OutputError as exc:
@@ -110,6 +139,8 @@ class Capture:
     manual: bool = False
     lost_at_open: int = 0         # the recorder's dropped count when it opened (its own losses: the difference)
     end_by: float | None = None   # its episode has ended: written at its task's end, or at this time
+    path: pathlib.Path | None = None      # where it is written (fixed at its first checkpoint)
+    saved_at: float = field(default_factory=time.monotonic)   # its last checkpoint (or its opening)
 
 
 class Recorder:
@@ -127,6 +158,7 @@ class Recorder:
         self._capture: Capture | None = None
         self._task: tuple[str, str] | None = None       # (id, verb) of the running task
         self._manual: str | None = None                  # main thread: the label of a capture on demand
+        self._starts = TokenBucket(params.max_on_demand_per_min / 60.0, params.max_on_demand_burst)
 
     # -- hand-over (other threads) -------------------------------------------------
     def feed(self, p: Pass) -> None:
@@ -144,6 +176,11 @@ class Recorder:
             if self._manual is not None:
                 raise C.CommandError(C.BUSY, f"record: a capture on demand is running (label "
                                              f"{self._manual!r}); record stop first")
+            if not self._starts.take(time.monotonic()):
+                p = self.params
+                raise C.CommandError(C.RATE_LIMITED, f"record: at most {p.max_on_demand_burst} captures on demand "
+                                                     f"in a row, then {p.max_on_demand_per_min:g} a minute "
+                                                     "(record.max_on_demand_per_min); try again later")
             self._manual = clean_label(label)
             self._inbox.put(("command", "start", self._manual))
             return {"ok": True, "recording": True, "label": self._manual, "dir": self.params.dir}
@@ -152,6 +189,16 @@ class Recorder:
         label, self._manual = self._manual, None
         self._inbox.put(("command", "stop", label))
         return {"ok": True, "recording": False, "label": label}
+
+    def close_capture(self, why: str) -> None:
+        """Any thread: close the open capture and write it now, uncompressed (the daemon is stopping:
+        the write must end well within the unit's stop timeout)."""
+        self._inbox.put(("command", "close", why))
+
+    @property
+    def idle(self) -> bool:
+        """Nothing waiting to be taken and no capture open (the daemon may stop without losing one)."""
+        return self._capture is None and self._inbox.empty()
 
     @property
     def dropped_passes(self) -> int:
@@ -172,7 +219,7 @@ class Recorder:
                 self._capture = None
         if self._capture is not None:            # the daemon stops: what was captured is kept
             try:
-                self._write(self._capture, "daemon stopping")
+                self._write(self._capture, "daemon stopping", compress=False)
             except Exception:
                 log.exception("recorder: the capture open at shutdown was lost")
 
@@ -225,6 +272,9 @@ class Recorder:
             self._open("manual", label, task, verb, episode, manual=True)
         elif action == "stop" and self._capture is not None:
             self._finish("record stop")
+        elif action == "close" and self._capture is not None:
+            cap, self._capture = self._capture, None
+            self._write(cap, label, compress=False)
 
     def _open(self, reason: str, label: str, task, verb, episode: int, manual: bool = False) -> None:
         t0 = next((p.t_end for p in self._pre if p.t_end is not None), None)
@@ -250,6 +300,9 @@ class Recorder:
             self._finish("the episode ended")
         elif cap is not None and now - cap.t_open > MAX_CAPTURE_S:
             self._finish(f"longer than {MAX_CAPTURE_S:g} s")
+        elif cap is not None and now - cap.saved_at >= self.params.checkpoint_s:
+            cap.saved_at = now
+            self._write(cap, "", checkpoint=True)
 
     def _finish(self, why: str) -> None:
         cap, self._capture = self._capture, None
@@ -257,67 +310,102 @@ class Recorder:
             self._write(cap, why)
 
     # -- writing --------------------------------------------------------------------
-    def _write(self, cap: Capture, why: str) -> None:
+    def _write(self, cap: Capture, why: str, checkpoint: bool = False, compress: bool = True) -> None:
+        """Write the capture to its file (a checkpoint: so far, uncompressed, no event), after making
+        room for it; a failure is a warning, an event and a count, never an exception."""
         lost = self.dropped_passes - cap.lost_at_open
+        ended = ("still open: a checkpoint (the daemon did not close this capture; the last "
+                 f"{self.params.checkpoint_s:g} s at most are missing)") if checkpoint else why
         try:
-            rec, extra = build(cap, {**self.meta, "ended": why, "passes_lost": lost})
+            rec, extra = build(cap, {**self.meta, "ended": ended, "passes_lost": lost})
         except EmptyCapture as exc:
-            log.info("recording not written (%s): %s", why, exc)
+            if not checkpoint:
+                log.info("recording not written (%s): %s", why, exc)
             return
         directory = pathlib.Path(self.params.dir)
-        path = directory / file_name(cap, datetime.datetime.now())
-        n = 2
-        while path.exists():
-            path = path.with_name(f"{path.stem.rsplit('~', 1)[0]}~{n}.npz")
-            n += 1
+        path = cap.path or self._new_path(directory, cap)
+        need = sum(np.asarray(v).nbytes for v in (rec.imu_t, rec.gyro, rec.accel, rec.tcp_t, rec.tcp_pos,
+                                                  rec.tcp_quat, *extra.values()))
         tmp = None
         try:
             directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+            self._make_room(directory, need, keep=path)
             fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX + path.stem + "-", suffix=".npz", dir=directory)
             with os.fdopen(fd, "wb") as f:
-                save_recording(f, rec, extra=extra)
+                save_recording(f, rec, extra=extra, compress=compress)
                 f.flush()
                 os.fsync(f.fileno())
             os.chmod(tmp, FILE_MODE)
             os.replace(tmp, path)
+            cap.path = path
         except OSError as exc:
             self.write_failures += 1
-            log.warning("recording %s not written: %s (%d so far)", path.name, exc.strerror or exc, self.write_failures)
+            reason = exc.strerror or str(exc) or type(exc).__name__
+            log.warning("recording %s not written: %s (%d so far)", path.name, reason, self.write_failures)
             if tmp is not None:
                 try:
                     os.unlink(tmp)
                 except OSError:
                     pass
-            self.emit("recording_failed", file=path.name, message=f"{exc.strerror or type(exc).__name__}",
-                      failures=self.write_failures)
+            self.emit("recording_failed", file=path.name, message=reason, failures=self.write_failures)
+            return
+        if checkpoint:
+            log.debug("recording %s: checkpoint written", path.name)
             return
         size = path.stat().st_size
         log.info("recording %s written (%s, %.1f s, %d kB)", path.name, why,
                  rec.imu_t[-1] - rec.imu_t[0], size // 1024)
         self.emit("recording_written", path=str(path), task=cap.task, label=cap.label, reason=why,
                   duration_s=float(rec.imu_t[-1] - rec.imu_t[0]), bytes=size, passes_lost=lost)
-        self._enforce_budget(directory, keep=path)
 
-    def _enforce_budget(self, directory: pathlib.Path, keep: pathlib.Path) -> None:
+    @staticmethod
+    def _new_path(directory: pathlib.Path, cap: Capture) -> pathlib.Path:
+        path = directory / file_name(cap, datetime.datetime.now())
+        n = 2
+        while path.exists():
+            path = path.with_name(f"{path.stem.rsplit('~', 1)[0]}~{n}.npz")
+            n += 1
+        return path
+
+    def _make_room(self, directory: pathlib.Path, need: int, keep: pathlib.Path) -> None:
+        """Delete the oldest of the daemon's own recordings (never `keep`, never another file) until
+        `need` more bytes fit record.max_mb and leave record.keep_free_mb free on the filesystem;
+        OSError (ENOSPC) naming the shortfall when they cannot."""
+        own = sorted(((f, f.stat()) for f in directory.iterdir() if OWN_NAME.match(f.name) and f != keep),
+                     key=lambda fs: fs[1].st_mtime)
+        used = sum(st.st_size for _, st in own)
+        replaced = keep.stat().st_size if keep.exists() else 0
+        vfs = os.statvfs(directory)
+        free = vfs.f_bavail * vfs.f_frsize + replaced
+        keep_free = keep_free_bytes(self.params.keep_free_mb, vfs)
+        if free + used - need < keep_free:           # not even with every older recording gone: keep them
+            raise OSError(errno.ENOSPC, f"{need / 1e6:.1f} MB would leave {max(free + used - need, 0) / 1e6:.0f} MB "
+                                        f"free on the filesystem even without our {len(own)} older recordings, "
+                                        f"under record.keep_free_mb ({keep_free / 1e6:.0f} MB)")
         budget = self.params.max_mb * 1e6
-        try:
-            files = sorted((f for f in directory.glob("*.npz") if not f.name.startswith(PARTIAL_PREFIX)),
-                           key=lambda f: f.stat().st_mtime)
-            total = sum(f.stat().st_size for f in files)
-        except OSError as exc:
-            log.warning("recordings budget not checked: %s", exc)
-            return
-        for f in files:
-            if total <= budget or f == keep:
-                continue
+        while own and (used + need > budget or free - need < keep_free):
+            f, st = own.pop(0)
             try:
-                size = f.stat().st_size
                 f.unlink()
-                total -= size
-                log.info("recording %s deleted: the recordings are over record.max_mb (%g MB)", f.name,
-                         self.params.max_mb)
             except OSError as exc:
-                log.warning("recording %s not deleted: %s", f.name, exc)
+                log.warning("recording %s not deleted: %s", f.name, exc.strerror or exc)
+                continue
+            used -= st.st_size
+            free += st.st_size
+            log.info("recording %s deleted, the oldest: %s", f.name,
+                     f"the recordings are over record.max_mb ({self.params.max_mb:g} MB)" if used + need > budget
+                     else f"the filesystem keeps record.keep_free_mb ({keep_free / 1e6:.0f} MB) free")
+        if free - need < keep_free:                   # an older one could not be deleted
+            raise OSError(errno.ENOSPC, f"{need / 1e6:.1f} MB would leave {max(free - need, 0) / 1e6:.0f} MB free "
+                                        f"on the filesystem, under record.keep_free_mb ({keep_free / 1e6:.0f} MB)")
+
+
+def keep_free_bytes(keep_free_mb: float | None, vfs) -> float:
+    """record.keep_free_mb in bytes; by default journald's SystemKeepFree=: 15 % of the filesystem, at
+    most 4 GiB."""
+    if keep_free_mb is not None:
+        return keep_free_mb * 1e6
+    return min(KEEP_FREE_FRACTION * vfs.f_blocks * vfs.f_frsize, KEEP_FREE_CAP_MB * 1024 * 1024)
 
 
 def file_name(cap: Capture, now: datetime.datetime) -> str:
