@@ -83,3 +83,61 @@ def _replace_dir(tmp: pathlib.Path, final: pathlib.Path) -> None:
     os.replace(final, old)
     os.replace(tmp, final)
     shutil.rmtree(old, ignore_errors=True)
+
+
+# -- what the offline tools write ---------------------------------------------------------
+
+def check_output(out: str | os.PathLike, option: str, inputs=()) -> pathlib.Path:
+    """An output path a tool may write, checked before any work: not one of its `inputs` (the same
+    file under any name), not a directory, in a directory that exists and can be written.
+    OutputError naming `option` otherwise."""
+    path = pathlib.Path(out)
+    for given in inputs:
+        same = path.exists() and os.path.exists(given) and os.path.samefile(path, given)
+        if same or os.path.abspath(path) == os.path.abspath(given):
+            raise OutputError(option, f"{out} is the input {given}: refused (it would be overwritten); "
+                                      "write the output elsewhere")
+    if path.is_dir():
+        raise OutputError(option, f"cannot write {out} (a directory)")
+    parent = path.parent if str(path.parent) else pathlib.Path(".")
+    if not parent.is_dir():
+        raise OutputError(option, f"cannot write {out} (no directory {parent})")
+    if path.exists() and not path.is_file():
+        if not os.access(path, os.W_OK):
+            raise OutputError(option, f"cannot write {out} (permission denied)")
+    elif not os.access(parent, os.W_OK):
+        raise OutputError(option, f"cannot write {out} (directory {parent} not writable)")
+    return path
+
+
+@contextlib.contextmanager
+def replacing(out: str | os.PathLike, option: str):
+    """Write a tool's output whole or not at all: yields the path to write. A regular file (new, or
+    one that is there) is written under a temporary name beside it and renamed over it once
+    complete, so a failed write (a full disk, an exception) leaves what was there as it was; for
+    a device or a FIFO (/dev/null, /dev/stdout) the output is made in the temporary directory and
+    then copied to it. Any failure is OutputError naming `option`, with the reason in one line."""
+    path = pathlib.Path(out)
+    device = path.exists() and not path.is_file()
+    folder = tempfile.gettempdir() if device else (path.parent if str(path.parent) else ".")
+    fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX + path.name + "-", suffix=path.suffix, dir=folder)
+    os.close(fd)
+    try:
+        yield pathlib.Path(tmp)
+        if device:
+            with open(tmp, "rb") as src, open(path, "wb") as dst:
+                shutil.copyfileobj(src, dst)
+            os.unlink(tmp)
+            return
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)               # as a plain open() would have made it
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError):
+            raise OutputError(option, f"writing {out} failed ({exc.strerror or exc})") from None
+        raise

@@ -29,6 +29,10 @@ MAX_ABS_TIME_S = 1e10            # timestamps beyond this are no clock a rig kee
 MAX_STRING_BYTES = 1 << 20       # `format` and `meta`
 MAX_META_DEPTH = 32
 MAX_HEADER_BYTES = 10_000        # numpy's own bound for a .npy header
+MAX_TRUTH_BYTES = 8 * MAX_IMU_SAMPLES   # a truth_* member: at most a series as long as the IMU's may be
+MAX_TRUTH_TOTAL_BYTES = 2 * MAX_TRUTH_BYTES
+MAX_TRUTH_KEYS = 64
+MAX_EVENTS = 100_000             # live_events: a 120 s capture holds hundreds
 # The IMU's median sample rate: the onset detector's band (40-200 Hz by default) needs the rate above
 # twice its top, and a fingertip IMU at under 100 Hz is no contact sensor (sim.imu.odr_hz's range).
 IMU_RATE_RANGE_HZ = (100.0, 20_000.0)
@@ -288,9 +292,25 @@ def _rows(data: _Npz, key: str, n: int, of: str, required: bool = True) -> bool:
 
 
 def load_truth(path: str | pathlib.Path) -> dict:
-    """The `truth_*` keys of a simulated recording (benchmarks and tests only; estimators never see them)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {k[len("truth_"):]: data[k] for k in data.files if k.startswith("truth_")}
+    """The `truth_*` keys of a simulated recording (benchmarks and tests only; estimators never see
+    them), each through the bounded reader: a member whose header declares more than
+    MAX_TRUTH_BYTES, or that is not a plain array, is RecordingError naming it, before a byte of it
+    is decompressed (a 1.6 MB file once took 1.2 GB and 21 s through np.load)."""
+    data = _Npz(pathlib.Path(path))
+    try:
+        out, total = {}, 0
+        for key in [k for k in data.infos if k.startswith("truth_")][:MAX_TRUTH_KEYS]:
+            dtype, shape, _, nbytes, _ = data.header(key)
+            total += nbytes
+            if nbytes > MAX_TRUTH_BYTES or total > MAX_TRUTH_TOTAL_BYTES:
+                raise RecordingError(f"{key}: {nbytes} bytes declared, at most {MAX_TRUTH_BYTES} for a truth "
+                                     f"(and {MAX_TRUTH_TOTAL_BYTES} for them all)")
+            if dtype.kind not in "fiuUb":
+                raise RecordingError(f"{key}: dtype {show(str(dtype))}; expected numbers or a string")
+            out[key[len("truth_"):]] = data.read(key)
+        return out
+    finally:
+        data.close()
 
 
 def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict | None = None,
@@ -348,9 +368,29 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
                 raise RecordingError("live_changes: expected [{\"pass\": int, \"directive\": {...}, ...}]")
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), _array(data, "live_tcp_w", (n_tcp, 3)),
                        changes, _array(data, "live_bias0", (4,)), _array(data, "live_est", (None, 7)),
-                       _json_list(data, "live_events"))
+                       _events(data, rec))
     finally:
         data.close()
+
+
+def _events(data: _Npz, rec: Recording) -> list:
+    """live_events checked as strictly as the arrays: at most MAX_EVENTS, each a JSON object with a
+    string `kind` and a finite `t` within MAX_DURATION_S of the recording's samples."""
+    events = _json_list(data, "live_events")
+    if len(events) > MAX_EVENTS:
+        raise RecordingError(f"live_events: {len(events)} events, at most {MAX_EVENTS}")
+    lo = min(rec.imu_t[0], rec.tcp_t[0]) - MAX_DURATION_S
+    hi = max(rec.imu_t[-1], rec.tcp_t[-1]) + MAX_DURATION_S
+    for i, ev in enumerate(events):
+        if not isinstance(ev, dict):
+            raise RecordingError(f"live_events[{i}]: expected a JSON object, got {show(ev)}")
+        if not isinstance(ev.get("kind"), str):
+            raise RecordingError(f"live_events[{i}].kind: expected a string, got {show(ev.get('kind'))}")
+        t = ev.get("t")
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or not lo <= t <= hi:
+            raise RecordingError(f"live_events[{i}].t: {show(t)} is no time within {MAX_DURATION_S:g} s of the "
+                                 f"recording ({rec.imu_t[0]:.3f} to {rec.imu_t[-1]:.3f} s)")
+    return events
 
 
 def _json_list(data: _Npz, key: str) -> list:

@@ -19,6 +19,11 @@ class BadInput(Exception):
     """A command-line tool's input that cannot be used; the message is one line (exit 2)."""
 
 
+def show_path_error(exc) -> str:
+    """A tecdard.files.OutputError as the tools say it: the option, then why (paths escaped, cut)."""
+    return f"{exc.what}: {show(exc.reason, 300)[1:-1]}" if isinstance(exc.reason, str) else str(exc)
+
+
 def recording_and_pipeline(args):
     """The recording named by args.recording, its live_* log (None for any other, or with
     --ignore-live) and a contact pipeline from args.config's `estimator` section; BadInput otherwise."""

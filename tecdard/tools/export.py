@@ -44,7 +44,7 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
     try:
         writer = foxglove.open_mcap(out, allow_overwrite=True, context=ctx)
     except Exception as exc:
-        raise ExportError(f"--mcap: cannot write {out} ({exc})") from None
+        raise ExportError(f"--mcap: cannot write {out} ({_first_line(exc)})") from None
     # MCAP's times: the recording's first sample at the Unix epoch (a recording's clock is its own)
     ch = Channels(ctx, origin_s=min(rec.imu_t[0], rec.tcp_t[0]))
     try:
@@ -65,8 +65,16 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
                 ch.event(t, x)
     finally:
         ch.close()
-        writer.close()
+        try:
+            writer.close()
+        except Exception as exc:            # foxglove's FoxgloveError (a RuntimeError): a write failed
+            raise ExportError(f"--mcap: writing failed ({_first_line(exc)})") from None
     return len(items)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:200] if text else type(exc).__name__
 
 
 def add_parser(sub) -> None:
@@ -81,21 +89,23 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     """`tecdard export`: exit 0, or 2 with one line."""
-    from tecdard.recording.format import load_truth
-    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+    from tecdard.files import OutputError, check_output, replacing
+    from tecdard.recording.format import RecordingError, load_truth
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused, show_path_error
 
     found, events = [], []
     try:
+        check_output(args.mcap, "--mcap", [args.recording])       # never over the input, and before the replay
         rec, live, pipeline = recording_and_pipeline(args)
         estimates(args, rec, live, pipeline, on_estimate=found.append, on_event=events.append)
         if live is not None:
             events = live.events          # the pipeline's and the daemon's, as they happened live
-        try:
-            truth = load_truth(args.recording)
-        except Exception:
-            truth = {}
-        n = write_mcap(args.mcap, rec, found, events, truth)
-    except (BadInput, ExportError) as exc:
+        truth = load_truth(args.recording)
+        with replacing(args.mcap, "--mcap") as tmp:     # a failed write leaves what was there
+            n = write_mcap(str(tmp), rec, found, events, truth)
+    except (BadInput, ExportError, RecordingError) as exc:
         return refused("export", str(exc))
+    except OutputError as exc:
+        return refused("export", show_path_error(exc))
     print(f"{args.mcap}: {n} messages ({len(found)} estimates, {len(events)} events)")
     return 0

@@ -156,31 +156,26 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     """`tecdard localize`: exit 0 (a contact), 1 (none) or 2 (bad input, one line)."""
-    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
-    from tecdard.safejson import show
+    from tecdard.files import OutputError, check_output, replacing
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused, show_path_error
 
     def bad(msg: str) -> int:
         return refused("localize", msg)
 
     if not 0 < args.rate <= MAX_RATE_HZ:
         return bad(f"--rate: must be in (0, {MAX_RATE_HZ:g}] rows per second, got {args.rate:g}")
-    out = None
-    if args.out:
-        try:
-            out = open(args.out, "w")             # before the replay: a bad path fails at once
-        except OSError as exc:
-            return bad(f"--out: cannot write {show(args.out, 200)} ({exc.strerror or type(exc).__name__})")
     try:
+        if args.out:
+            check_output(args.out, "--out", [args.recording])      # before the replay: a bad path fails at once
         rec, live, pipeline = recording_and_pipeline(args)
         rows, onset_t, last = estimates(args, rec, live, pipeline, args.rate)
+        if args.out:
+            with replacing(args.out, "--out") as tmp:        # whole or not at all: a full disk leaves the old one
+                write_csv(tmp, rows)
     except BadInput as exc:
         return bad(str(exc))
-    if out is not None:
-        try:
-            with out:
-                write_csv(out, rows)
-        except OSError as exc:
-            return bad(f"--out: writing {show(args.out, 200)} failed ({exc.strerror or type(exc).__name__})")
+    except OutputError as exc:
+        return bad(show_path_error(exc))
     if onset_t is None or last is None:
         if args.json:
             print(json.dumps({"onset_t": None, "p_c": None, "std": None, "method": pipeline.method}))

@@ -5,6 +5,8 @@ Matplotlib is an extra (`pip install 'tecdar[viz]'`); without it the command say
 """
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 
 from tecdard.recording.format import Recording
@@ -17,14 +19,34 @@ class PlotError(Exception):
     """What keeps a plot from being drawn, in one line."""
 
 
-def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, out: str, title: str) -> None:
-    """Draw to `out` (the format from its suffix: png, pdf, svg). `rows` (k, 7): t, p, std."""
+def image_format(out: str) -> str:
+    """The image format `out` asks for by its suffix (PNG without one: the file is written as named,
+    never NAME.png); PlotError for a suffix matplotlib cannot write."""
+    plt = _pyplot()
+    suffix = pathlib.Path(out).suffix.lower().lstrip(".")
+    if not suffix:
+        return "png"
+    known = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    if suffix not in known:
+        raise PlotError(f"-o: no image format for .{suffix[:10]} (known: {', '.join(sorted(known))})")
+    return suffix
+
+
+def _pyplot():
     try:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
         raise PlotError("needs matplotlib: pip install 'tecdar[viz]'") from None
+    return plt
+
+
+def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, out: str, title: str,
+         fmt: str = "png") -> None:
+    """Draw to the file `out` in the image format `fmt`. `rows` (k, 7): t, p, std."""
+    plt = _pyplot()
     p_true = truth.get("p_c")
     n_panels = 2 + 3 + (1 if p_true is not None and len(rows) else 0)
     fig, axes = plt.subplots(n_panels, 1, figsize=(10, 2.2 * n_panels), sharex=True)
@@ -70,9 +92,9 @@ def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, o
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     try:
-        fig.savefig(out, dpi=110)
-    except (OSError, ValueError) as exc:
-        raise PlotError(f"-o: cannot write {out} ({getattr(exc, 'strerror', None) or exc})") from None
+        fig.savefig(out, dpi=110, format=fmt)
+    except ValueError as exc:
+        raise PlotError(f"-o: cannot write {out} ({exc})") from None
     finally:
         plt.close(fig)
 
@@ -89,22 +111,25 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     """`tecdard plot`: exit 0, or 2 with one line."""
-    import pathlib
-
-    from tecdard.recording.format import load_truth
-    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused
+    from tecdard.files import OutputError, check_output, replacing
+    from tecdard.recording.format import RecordingError, load_truth
+    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused, show_path_error
 
     try:
+        check_output(args.out, "-o", [args.recording])          # never over the input, and before the replay
+        fmt = image_format(args.out)
         rec, live, pipeline = recording_and_pipeline(args)
         rows, onset_t, _ = estimates(args, rec, live, pipeline)
-        try:
-            truth = load_truth(args.recording)     # optional: a truth that cannot be read is left out
-        except Exception:
-            truth = {}
-        if np.shape(truth.get("p_c")) != (3,) or not np.all(np.isfinite(truth.get("p_c", np.nan))):
+        truth = load_truth(args.recording)
+        p_c = truth.get("p_c")
+        if np.shape(p_c) != (3,) or np.asarray(p_c).dtype.kind not in "fiu" or not np.all(np.isfinite(p_c)):
             truth.pop("p_c", None)
-        draw(rec, rows, onset_t, truth, args.out, f"{pathlib.Path(args.recording).name}, {pipeline.method}")
-    except (BadInput, PlotError) as exc:
+        with replacing(args.out, "-o") as tmp:                  # a failed write leaves what was there
+            draw(rec, rows, onset_t, truth, str(tmp), f"{pathlib.Path(args.recording).name}, {pipeline.method}", fmt)
+    except (BadInput, PlotError, RecordingError) as exc:
         return refused("plot", str(exc))
-    print(f"{args.out}: {len(rows)} estimates" + ("" if onset_t is not None else ", no contact detected"))
+    except OutputError as exc:
+        return refused("plot", show_path_error(exc))
+    print(f"{args.out}: {len(rows)} estimates ({fmt.upper()})"
+          + ("" if onset_t is not None else ", no contact detected"))
     return 0
