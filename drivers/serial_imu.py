@@ -103,7 +103,9 @@ class SerialImuSource(ImuSource):
         self.status: StatusPacket | None = None
         self.latest: tuple[float, np.ndarray, np.ndarray] | None = None
         self._retry_at = 0.0
-        self._last_t: float | None = None
+        self._last_t: float | None = None        # the last sample time handed on (host clock)
+        self._last_mcu: float | None = None      # the board's time of the last sample read
+        self.clock_steps = 0                     # the board's clock stepped back (re-anchored)
         self._retry_s = RETRY_MIN_S
         self.port_path: str | None = None
 
@@ -162,6 +164,7 @@ class SerialImuSource(ImuSource):
         self.reconnects += 1
         self.unwrap.reset()
         self.sync.reset()
+        self._last_mcu = None
         self.events.append({"kind": "fault_cleared", "code": "imu_disconnected",
                             "message": f"IMU port {self.port_path} back"})
         return True
@@ -208,23 +211,52 @@ class SerialImuSource(ImuSource):
                 self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
                 self.odr_hz = float(pkt.odr_hz)
             elif isinstance(pkt, SamplesPacket):
-                n = len(pkt.raw)
-                t0 = self.unwrap(pkt.t0_us)
-                mcu = t0 + np.arange(n) / self.odr_hz
-                self.sync.add(mcu[-1], host_s)
-                ts.append(mcu)
+                ts.append(self._packet_times(pkt, host_s))
                 raws.append(pkt.raw)
         if not raws:
             return None
-        t = self.sync.to_host(np.concatenate(ts))
-        # The fit moves as the lower envelope is learned (most in the first seconds or after a
-        # burst); the times handed on never go backwards whatever it does.
-        if self._last_t is not None and t[0] <= self._last_t:
-            t = np.maximum(t, self._last_t + MIN_STEP_S * np.arange(1, len(t) + 1))
-        self._last_t = float(t[-1])
+        t = self._increasing(np.concatenate(ts))
         gyro, accel = self.scaling.to_si(np.vstack(raws))
         self.latest = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
         return t, gyro, accel
+
+    def _packet_times(self, pkt: SamplesPacket, host_s: float) -> np.ndarray:
+        """One packet's sample times on the host's clock, mapped as it arrives: a clock sync that
+        re-anchors at this packet never moves the packets before it.
+
+        The board's clock stepping back (a glitch, or the board restarting its clock: the
+        packet's first sample is not after the last one's) re-anchors the mapping here, at once:
+        the samples keep coming and are mapped by their arrival. Waiting for ClockSync to see a
+        run of late packets left them mapped up to the step into the past (2 s for a reset, and
+        `imu_stale` while they streamed). Each step is counted (`clock_steps`) and said once."""
+        n = len(pkt.raw)
+        t0 = self.unwrap(pkt.t0_us)
+        if self._last_mcu is not None and t0 <= self._last_mcu:
+            self.clock_steps += 1
+            step_ms = (self._last_mcu - t0) * 1e3
+            if self.clock_steps == 1:
+                self.events.append({"kind": "warning", "code": "imu_clock_step",
+                                    "message": f"the IMU board's clock stepped back {step_ms:.1f} ms (a glitch or "
+                                               "a restart of the board); its times are re-anchored to their arrival"})
+            self.sync.reset()
+        mcu = t0 + np.arange(n) / self.odr_hz
+        self._last_mcu = float(mcu[-1])
+        self.sync.add(mcu[-1], host_s)
+        return self.sync.to_host(mcu)
+
+    def _increasing(self, t: np.ndarray) -> np.ndarray:
+        """Every sample after the one before it, checked sample by sample (the fit moves as its
+        lower envelope is learned, and re-anchors on a clock step): a time at or before the last
+        one handed on is moved to just after it."""
+        prev = -np.inf if self._last_t is None else self._last_t
+        floor = np.maximum.accumulate(np.concatenate([[prev], t]))[:-1]
+        bad = t <= floor
+        if bad.any():                              # rare: at a re-anchor's seam
+            t = t.copy()
+            for i in range(int(np.argmax(bad)), len(t)):
+                t[i] = max(t[i], (t[i - 1] if i else prev) + MIN_STEP_S)
+        self._last_t = float(t[-1])
+        return t
 
     @property
     def saturation(self) -> tuple[float, float]:
@@ -233,7 +265,8 @@ class SerialImuSource(ImuSource):
 
     def counters(self) -> dict:
         out = self.parser.counters.as_dict()
-        out.update(disconnects=self.disconnects, reconnects=self.reconnects, clock_resets=self.sync.resets)
+        out.update(disconnects=self.disconnects, reconnects=self.reconnects, clock_resets=self.sync.resets,
+                   clock_steps=self.clock_steps)
         return out
 
     def drain_events(self) -> list[dict]:

@@ -265,3 +265,39 @@ def test_clock_sync_spreads_a_refit_instead_of_jumping():
             mcu_all.append(mcu)
     spacing = np.diff(mapped) / np.diff(mcu_all)
     assert np.all(np.abs(spacing - 1.0) < REFIT_SLEW_RATE + 1e-3), (spacing.min(), spacing.max())
+
+
+def _source_and_packets(steps_us: dict, n_packets: int = 40, per_packet: int = 8, odr: int = 6667):
+    """A serial source and n packets of a board whose clock steps back by steps_us[k] µs at packet k."""
+    from tecdard.drivers.imu_wire import encode_samples, encode_status
+    from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
+    src = SerialImuSource(SerialParams(port="/dev/null", odr_hz=odr))
+    src.decode(encode_status(odr, 2000, 8), 0.0)
+    frames, t_us, back = [], 60_000_000, 0
+    for k in range(n_packets):
+        back += steps_us.get(k, 0)
+        frames.append(encode_samples(k, t_us - back, np.zeros((per_packet, 6), np.int16)))
+        t_us += round(per_packet * 1e6 / odr)
+    return src, frames
+
+
+@pytest.mark.parametrize("step_us", [20_000, 2_000_000])
+def test_a_board_clock_that_steps_back_inside_one_read_never_hands_on_times_that_go_back(step_us):
+    """A 20 ms glitch or a 2 s reset of the board's clock inside one serial read: every sample's
+    time is checked, the mapping re-anchors at the step (counted), the times stay increasing and
+    near their arrival, never seconds in the past (which raised imu_stale while samples came)."""
+    from tecdard.recording.format import _increasing
+    src, frames = _source_and_packets({25: step_us})
+    host = 1000.0
+    out = []
+    for k in range(0, 20, 5):                      # steady reads first: the fit learns the clock
+        out.append(src.decode(b"".join(frames[k:k + 5]), host + k * 0.006))
+    last = src.decode(b"".join(frames[20:40]), host + 0.125)          # the step is in this one read
+    out.append(last)
+    t = np.concatenate([o[0] for o in out])
+    assert len(t) == 40 * 8                        # nothing dropped
+    assert np.all(np.diff(t) > 0)
+    _increasing(t, "imu_t")                        # what localize demands of a recording
+    assert src.clock_steps == 1 and src.counters()["clock_steps"] == 1
+    assert last[0][-1] > host + 0.125 - 0.05       # the newest sample is near its arrival, not 2 s back
+    assert [e["code"] for e in src.drain_events()] == ["imu_clock_step"]
