@@ -51,6 +51,8 @@ def test_unit_file_declares_notify_watchdog_and_hardening():
     assert "tecdard run --config" in svc["ExecStart"]
     text = (ROOT / "systemd" / "tecdard.service").read_text()
     assert "DeviceAllow=char-ttyACM rw" in text
+    # a ceiling on the unit's memory (issue 32, item 9), above what the daemon runs at
+    assert svc["MemoryMax"] == "1G" and svc["MemoryHigh"] == "768M"
     # numba finds no writable cache in a read-only install: it must be given one
     assert svc["CacheDirectory"] == "tecdar" and "NUMBA_CACHE_DIR=/var/cache/tecdar" in svc["Environment"]
 

@@ -75,3 +75,51 @@ def test_a_live_view_whose_port_is_taken_leaves_the_daemon_running(tmp_path):
         finally:
             d.close()
     assert "viz.foxglove: cannot serve on 127.0.0.1:%d" % port in d.log()
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024.0
+
+
+def test_viewers_that_never_read_are_capped_in_number_and_in_bytes(tmp_path):
+    """150 viewers that never read took the daemon from 282 MB to 1.7 GB, and imu_stale came while
+    idle (issue 32, item 9): beyond viz.foxglove.max_viewers a viewer is turned away (503), and what
+    waits for one that does not read is bounded by viz.foxglove.viewer_buffer_mb."""
+    from websockets.exceptions import InvalidStatus
+    port = free_port()
+    d = DaemonProcess(tmp_path, daemon_config(**{"viz.foxglove": {"enabled": True, "port": port, "max_viewers": 3,
+                                                                  "viewer_buffer_mb": 1.0}}))
+    viewers, refused = [], 0
+    try:
+        time.sleep(2.0)
+        rss0 = rss_mb(d.proc.pid)
+        for _ in range(12):
+            try:
+                ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5.0,
+                                       max_queue=1)          # once a frame waits, nothing more is read
+            except InvalidStatus as exc:
+                assert exc.response.status_code == 503
+                refused += 1
+                continue
+            channels = {}
+            while set(channels) != TOPICS:
+                msg = json.loads(ws.recv(timeout=5.0))
+                if msg.get("op") == "advertise":
+                    channels.update({c["topic"]: c for c in msg["channels"]})
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": k, "channelId": channels[topic]["id"]} for k, topic in enumerate(sorted(TOPICS), start=1)]}))
+            viewers.append(ws)                 # and never read again
+        assert len(viewers) == 3 and refused == 9
+        time.sleep(15.0)                       # the IMU's 0.5 MB/s and the TCP's frames pile up for them
+        grown = rss_mb(d.proc.pid) - rss0
+        print(f"daemon RSS {rss0:.0f} MB, {grown:+.0f} MB after 15 s of 3 viewers that never read")
+        assert grown < 60.0, f"{grown:.0f} MB for 3 viewers that never read"
+        state = d.client.command("status")["state"]
+        assert state["faults"] == [], state["faults"]
+    finally:
+        for ws in viewers:
+            ws.close()
+        d.close()
+    assert "imu_stale" not in d.log()
+    assert "a viewer turned away, 3 are connected (viz.foxglove.max_viewers)" in d.log()

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tecdard.runtime.messages import Inbox
+from tecdard.runtime.view_gate import ViewerGate, backlog_messages
 
 log = logging.getLogger("tecdar.viz")
 
@@ -34,13 +35,18 @@ class VizParams:
     enabled: bool = False
     host: str = "127.0.0.1"      # loopback: another machine reaches it through an SSH tunnel, or set the host
     port: int = 8765             # Foxglove's usual
+    max_viewers: int = 4         # more are turned away (503)
+    viewer_buffer_mb: float = 2.0    # what may wait for one viewer; a slow one loses its oldest frames
 
     @classmethod
     def from_config(cls, section) -> "VizParams":
         from tecdard.config import ConfigError
         d = cls()
         params = cls(enabled=section.getbool("enabled", d.enabled), host=section.getstr("host", d.host, max_len=253),
-                     port=section.getint("port", d.port, minval=1, maxval=65535))
+                     port=section.getint("port", d.port, minval=1, maxval=65535),
+                     max_viewers=section.getint("max_viewers", d.max_viewers, minval=1, maxval=64),
+                     viewer_buffer_mb=section.getfloat("viewer_buffer_mb", d.viewer_buffer_mb, minval=0.25,
+                                                       maxval=64.0))
         if params.enabled:
             try:
                 import foxglove  # noqa: F401
@@ -57,6 +63,7 @@ class LiveView:
         self.emit = emit or (lambda kind, **f: None)
         self.inbox = Inbox(QUEUE_ITEMS)
         self.port: int | None = None
+        self.gate: ViewerGate | None = None
         self.ready = threading.Event()
 
     def feed(self, p) -> None:
@@ -71,18 +78,33 @@ class LiveView:
 
         from tecdard.recording.foxglove import Channels
         ctx = foxglove.Context()
+        buffer_bytes = int(self.params.viewer_buffer_mb * 1e6)
         try:
-            server = foxglove.start_server(name="tecdard", host=self.params.host, port=self.params.port, context=ctx)
-        except Exception as exc:          # the port is taken: the daemon runs on without its view
+            # the server on a loopback port of its own, behind the gate (runtime.view_gate)
+            server = foxglove.start_server(name="tecdard", host="127.0.0.1", port=0, context=ctx,
+                                           message_backlog_size=backlog_messages(buffer_bytes))
+        except Exception as exc:
+            log.error("viz.foxglove: the live view's server did not start (%s); no live view", _line(exc))
+            self.emit("warning", code="viz_unavailable", message="viz.foxglove: the live view's server did not start")
+            self.ready.set()
+            return
+        try:
+            self.gate = ViewerGate(self.params.host, self.params.port, server.port, self.params.max_viewers,
+                                   buffer_bytes)
+        except OSError as exc:            # the port is taken: the daemon runs on without its view
+            server.stop()
             log.error("viz.foxglove: cannot serve on %s:%d (%s); no live view", self.params.host, self.params.port,
-                      str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__)
+                      _line(exc))
             self.emit("warning", code="viz_unavailable",
                       message=f"viz.foxglove: cannot serve on {self.params.host}:{self.params.port}")
             self.ready.set()
             return
-        self.port = server.port
+        self.port = self.gate.port
+        gate = threading.Thread(target=self.gate.run, args=(stop,), name="viz-gate", daemon=True)
+        gate.start()
         channels = Channels(ctx, origin_s=time.monotonic(), epoch_s=time.time())
-        log.info("live view: Foxglove WebSocket server on ws://%s:%d", self.params.host, self.port)
+        log.info("live view: Foxglove WebSocket server on ws://%s:%d (at most %d viewers, %.1f MB each)",
+                 self.params.host, self.port, self.params.max_viewers, self.params.viewer_buffer_mb)
         self.ready.set()
         try:
             t_next = time.monotonic()
@@ -96,6 +118,7 @@ class LiveView:
                     t_next = time.monotonic()
         finally:
             channels.close()
+            gate.join(1.0)
             server.stop()
 
     def _publish(self, ch, items: list) -> None:
@@ -119,3 +142,7 @@ class LiveView:
                     ch.event(float(t) if isinstance(t, (int, float)) else time.monotonic(), ev)
         except Exception:                # a view's failure costs a frame, never the daemon
             log.exception("live view: a frame was lost")
+
+
+def _line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
