@@ -31,13 +31,15 @@ def test_eta_is_recovered_at_three_grip_forces_with_a_known_contact(probes):
     p_c = load_truth(probes[0])["p_c"]
     res = tecdard("calibrate-eta", *map(str, probes), "--contact", ",".join(f"{x:.9f}" for x in p_c))
     assert res.returncode == 0, res.stderr
-    rows = re.findall(r"^\s*([\d.]+) \| ([\d.]+) \| ([\d.]+) \| (\d+)$", res.stdout, re.M)
-    got = {float(f): (float(e), float(s), int(n)) for f, e, s, n in rows}
+    rows = re.findall(r"^\s*([\d.]+) \| ([\d.]+) \| ([\d.]+) \| (\d+) \| ([\d.]+) / (\d+) \| ([\d.]+)$",
+                      res.stdout, re.M)
+    got = {float(f): (float(e), float(s), int(n), float(c), int(d), float(sp)) for f, e, s, n, c, d, sp in rows}
     assert set(got) == set(ETAS)
     for force, eta in ETAS.items():
-        e, s, n = got[force]
+        e, s, n, chi2, dof, spread = got[force]
         assert n == 2 and abs(e - eta) / eta < ETA_TOL, (force, e, eta)
         assert 0 < s < 0.05 * eta
+        assert dof == 1 and chi2 < 10.8 and spread < ETA_TOL * eta        # the two probes agree
     (table,) = [ln for ln in res.stdout.splitlines() if ln.startswith("estimator.eta_table:")]
     values = np.array(yaml.safe_load(table)["estimator.eta_table"])     # ready to paste into the config
     np.testing.assert_allclose(values[:, 0], sorted(ETAS))
@@ -95,3 +97,63 @@ def test_a_lag_that_fits_best_at_the_end_of_the_search_is_refused():
     assert abs(K.best_lag([inside, 2 * inside], lags) - 0.0061) < 1e-6
     with pytest.raises(K.LagAtBound, match=r"end of the search, 20 ms"):
         K.best_lag([(lags - 0.035) ** 2], lags)
+
+
+def test_non_physical_inputs_and_fits_are_refused_and_disagreement_is_reported(probes, tmp_path):
+    """Issue 32, item 14: meta.grip_force 1e308 tracebacked; --contact 1e6,1e6,1e6 exited 0 with an
+    eta of -0.000; two recordings at eta 1.0 and 4.0 pooled to 1.151 without a word."""
+    import json
+    from tecdard.recording.format import load_recording, save_recording
+    p_c = load_truth(probes[0])["p_c"]
+    contact = ",".join(f"{x:.9f}" for x in p_c)
+    rec = load_recording(probes[0])
+    rec.grip_force = None
+    rec.meta = {**rec.meta, "grip_force": 1e308}
+    huge = tmp_path / "huge-grip.npz"
+    save_recording(huge, rec)
+    res = tecdard("calibrate-eta", str(huge), str(probes[1]), "--contact", contact)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert "grip force 1e+308 N is no gripper's" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    res = tecdard("calibrate-eta", str(probes[0]), str(probes[1]), "--contact", "1e6,1e6,1e6")
+    assert res.returncode == 2 and "--contact: 1.732e+06 m from the TCP" in res.stderr, res.stderr
+    # two probes at one grip force but eta 1.0 and 4.0 (a changed fingertip, a slipping grasp)
+    apart = []
+    for eta, seed in ((1.0, 5), (4.0, 6)):
+        path = tmp_path / f"arc-eta{eta:g}.npz"
+        made = tecdard("sim-record", str(path), "--kind", "edge-arc", "--radius", "0.08", "--grip-force", "25",
+                       "--eta", str(eta), "--seed", str(seed))
+        assert made.returncode == 0, made.stderr
+        apart.append(str(path))
+    res = tecdard("calibrate-eta", *apart, "--radius", "0.08")
+    assert res.returncode == 2 and "estimator.eta_table" not in res.stdout, res.stdout
+    err = res.stderr.strip()
+    assert "grip 25 N: the recordings disagree beyond their errors" in err and "chi-square" in err, err
+    assert len(err.splitlines()) == 1
+
+
+def test_any_grip_force_and_contact_are_taken_or_refused_in_one_line():
+    """The fuzz tier of calibrate-eta's own inputs: meta.grip_force and --contact, whatever they hold."""
+    import argparse
+    import types
+
+    from hypothesis import given, settings, strategies as st
+
+    from tecdard.tools.calibrate import CalibrationError, _contact, grip_force_of
+
+    numbers = st.one_of(st.floats(), st.integers(-10 ** 400, 10 ** 400), st.booleans(), st.none(), st.text(max_size=5))
+
+    @settings(max_examples=300, deadline=None, database=None)
+    @given(value=numbers, text=st.text(max_size=40))
+    def run(value, text):
+        rec = types.SimpleNamespace(grip_force=None, meta={"grip_force": value})
+        try:
+            f = grip_force_of("r.npz", rec)
+            assert 0.0 <= f <= 1000.0
+        except CalibrationError as exc:
+            assert "\n" not in str(exc) and str(exc).startswith("r.npz: ")
+        try:
+            c = _contact(argparse.Namespace(contact=text))
+            assert c.shape == (3,) and np.all(np.isfinite(c))
+        except ValueError as exc:
+            assert str(exc).startswith("--contact: ") and "\n" not in str(exc)
+    run()

@@ -14,6 +14,13 @@ force (the `grip_force` key's median, rounded to 0.1 N) are pooled: the inverse-
 the spread between recordings where there are several. The printed `estimator.eta_table` goes
 into the daemon's config.
 
+What is refused, one line each (exit 2): a grip force no gripper has (beyond the daemon's 0..1000 N),
+a contact no lever arm reaches (under 1 mm or over 2 m from the TCP), an eta no fingertip has
+(outside the daemon's (0, 100], or within two standard errors of zero), and recordings at one
+grip force that disagree beyond their own errors: their chi-square, printed for every force with
+the spread, over its 99.9 % quantile (two probes at eta 1.0 and 4.0 once pooled to 1.151 without
+a word).
+
 With `--contact`, the fingertip's lag (`estimator.fingertip_lag_s`) is fitted too: the twist the
 gyro reads lags the object's by the silicone's time constant, which shows where the rates change
 (the probe's start). At each proprioception sample in the first LAG_SPAN_S of the motion, the
@@ -27,7 +34,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from tecdard.control.geometry import quat_to_matrix
+from tecdard.control.pipeline import MAX_ETA, MAX_GRIP_FORCE_N
 
 WINDOW_S = 0.01               # samples averaged per window
 MIN_SPEED_M_S = 0.002         # windows with a slower TCP carry no rate information
@@ -38,6 +48,8 @@ FORCE_ROUND_N = 0.1
 LAG_MAX_S = 0.020             # the fingertip lag searched, 0 to this (a best fit at it is said, best_lag)
 LAG_STEP_S = 0.00025
 LAG_SPAN_S = 0.3              # the part of a probe fitted: its start (where the rates change) and enough to pin eta
+MIN_LEVER_M, MAX_LEVER_M = 0.001, 2.0    # --contact's distance from the TCP, as --radius's bounds
+CONSISTENCY_Z = 3.09          # recordings at one grip force agree when their chi-square is under its 99.9 % quantile
 
 
 class CalibrationError(Exception):
@@ -174,34 +186,89 @@ def best_lag(curves: list[np.ndarray], lags: np.ndarray) -> float:
     return float(lags[k])
 
 
-def pool(rows: list[tuple[float, float, float]]) -> list[tuple[float, float, float, int]]:
-    """[(force, eta, se)] per recording -> [(force, eta, its one-sigma, recordings)] per force."""
+@dataclass(frozen=True)
+class Pooled:
+    """The recordings at one grip force, pooled."""
+    force: float               # N
+    eta: float                 # the inverse-variance mean
+    sigma: float               # its one-sigma (widened to the spread where the recordings disagree more)
+    n: int                     # recordings
+    chi2: float                # sum of ((eta_i - eta) / se_i)^2: n - 1 when they agree within their errors
+    spread: float              # max - min of the recordings' etas
+
+    @property
+    def dof(self) -> int:
+        return self.n - 1
+
+    @property
+    def consistent(self) -> bool:
+        """Within their own errors: chi2 under its 99.9 % quantile for n - 1 degrees of freedom."""
+        return self.dof == 0 or self.chi2 <= chi2_quantile(self.dof, CONSISTENCY_Z)
+
+
+def chi2_quantile(dof: int, z: float) -> float:
+    """The chi-square quantile at the standard normal's z (Wilson-Hilferty; 11.1 for one degree of
+    freedom at z 3.09, the exact 10.8)."""
+    c = 2.0 / (9.0 * dof)
+    return dof * (1.0 - c + z * np.sqrt(c)) ** 3
+
+
+def pool(rows: list[tuple[float, float, float]]) -> list[Pooled]:
+    """[(force, eta, se)] per recording -> one Pooled per grip force."""
     out = []
     for force in sorted({r[0] for r in rows}):
         group = [(e, s) for f, e, s in rows if f == force]
         e = np.array([g[0] for g in group])
-        w = 1.0 / np.maximum(np.array([g[1] for g in group]), 1e-6) ** 2
+        se = np.maximum(np.array([g[1] for g in group]), 1e-6)
+        w = 1.0 / se ** 2
         mean = float((w * e).sum() / w.sum())
         sigma = float(np.sqrt(1.0 / w.sum()))
+        chi2 = float((((e - mean) / se) ** 2).sum())
         if len(group) > 1:        # the recordings disagree more than their own errors say: take that
             sigma = max(sigma, float(e.std(ddof=1) / np.sqrt(len(group))))
-        out.append((force, mean, sigma, len(group)))
+        out.append(Pooled(force, mean, sigma, len(group), chi2, float(e.max() - e.min())))
     return out
+
+
+def check_fit(name: str, eta: float, se: float) -> None:
+    """A recording's eta must be one a fingertip can have: in (0, MAX_ETA] as the daemon's own
+    estimator.eta_table takes it, and told apart from zero (eta > 2 se); CalibrationError otherwise."""
+    if not (np.isfinite(eta) and np.isfinite(se)) or not 0.0 < eta <= MAX_ETA:
+        raise CalibrationError(f"{name}: eta {eta:.3f} +- {se:.3f} is no fingertip's (the daemon takes (0, "
+                               f"{MAX_ETA:g}]); check --contact or --radius against the probe's geometry")
+    if eta <= 2.0 * se:
+        raise CalibrationError(f"{name}: eta {eta:.3f} +- {se:.3f} cannot be told from zero; the probe says "
+                               "nothing of it (check --contact or --radius, and that the probe turned the object)")
+
+
+def check_lever(name: str, rec, onset_t: float, contact) -> None:
+    """The contact must be where a fingertip's lever arm can reach: MIN_LEVER_M..MAX_LEVER_M from the
+    TCP after the onset (--contact 1e6,1e6,1e6 once gave an eta of -0.000 and exit 0)."""
+    after = rec.tcp_t >= onset_t
+    r = float(np.median(np.linalg.norm(rec.tcp_pos[after if after.any() else slice(None)] - contact, axis=1)))
+    if not MIN_LEVER_M <= r <= MAX_LEVER_M:
+        raise CalibrationError(f"--contact: {r:.4g} m from the TCP in {name}; a lever arm is {MIN_LEVER_M:g}.."
+                               f"{MAX_LEVER_M:g} m (world frame, metres)")
 
 
 def grip_force_of(name: str, rec) -> float:
     f = None
     if rec.grip_force is not None:
         f = float(np.median(rec.grip_force))
-    elif isinstance(rec.meta.get("grip_force"), (int, float)):
-        f = float(rec.meta["grip_force"])
-    if f is None or not np.isfinite(f) or f < 0:
+    elif isinstance(rec.meta.get("grip_force"), (int, float)) and not isinstance(rec.meta["grip_force"], bool):
+        try:
+            f = float(rec.meta["grip_force"])
+        except OverflowError:  # an integer beyond any float
+            f = float("inf")
+    if f is None:
         raise CalibrationError(f"{name}: no grip force (neither a grip_force key nor meta.grip_force)")
+    if not np.isfinite(f) or not 0.0 <= f <= MAX_GRIP_FORCE_N:
+        raise CalibrationError(f"{name}: grip force {f:.6g} N is no gripper's (the daemon takes 0..{MAX_GRIP_FORCE_N:g} N)")
     return round(f / FORCE_ROUND_N) * FORCE_ROUND_N
 
 
-def table_yaml(pooled) -> str:
-    return "estimator.eta_table: [" + ", ".join(f"[{f:g}, {e:.3f}]" for f, e, _, _ in pooled) + "]"
+def table_yaml(pooled: list[Pooled]) -> str:
+    return "estimator.eta_table: [" + ", ".join(f"[{p.force:g}, {p.eta:.3f}]" for p in pooled) + "]"
 
 
 def add_parser(sub) -> None:
@@ -248,7 +315,7 @@ def main(args) -> int:
     if len(args.recordings) < MIN_RECORDINGS:
         return bad(f"needs at least {MIN_RECORDINGS} recordings (got {len(args.recordings)}): eta's uncertainty "
                    "comes from more than one probe")
-    rows, lag_curves, lags = [], [], None
+    rows, lag_curves, lags, names = [], [], None, []
     try:
         for path in args.recordings:
             one = argparse.Namespace(recording=path, config=args.config, method=None, ignore_live=False,
@@ -259,8 +326,12 @@ def main(args) -> int:
             if onset_t is None:
                 raise CalibrationError(f"{name}: no contact onset detected")
             force = grip_force_of(name, rec)
+            if contact is not None:
+                check_lever(name, rec, onset_t, contact)
             eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
+            check_fit(name, eta, se)
             rows.append((force, eta, se))
+            names.append((force, name, eta, se))
             if contact is not None:
                 lags, rss = lag_residuals(rec, onset_t, contact)
                 lag_curves.append(rss)
@@ -268,9 +339,17 @@ def main(args) -> int:
     except (BadInput, CalibrationError) as exc:
         return bad(str(exc))
     pooled = pool(rows)
-    print("grip force N | eta | one-sigma | recordings")
-    for force, eta, sigma, n in pooled:
-        print(f"{force:12g} | {eta:.3f} | {sigma:.3f} | {n}")
+    print("grip force N | eta | one-sigma | recordings | chi-square / dof | spread")
+    for p in pooled:
+        agree = f"{p.chi2:.1f} / {p.dof}" if p.dof else "-"
+        print(f"{p.force:12g} | {p.eta:.3f} | {p.sigma:.3f} | {p.n} | {agree} | {p.spread:.3f}")
+    apart = [p for p in pooled if not p.consistent]
+    if apart:
+        p = apart[0]
+        each = ", ".join(f"{e:.3f} +- {se:.3f} in {n}" for f, n, e, se in names if f == p.force)
+        return bad(f"grip {p.force:g} N: the recordings disagree beyond their errors ({each}; chi-square "
+                   f"{p.chi2:.1f} for {p.dof} degrees of freedom, over {chi2_quantile(p.dof, CONSISTENCY_Z):.1f}): "
+                   "no table; probe again, or calibrate them apart")
     print(table_yaml(pooled))
     if lag_curves:
         try:
