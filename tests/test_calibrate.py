@@ -52,6 +52,7 @@ def test_eta_from_the_lever_arm_alone(probes):
     assert abs(float(line.split("|")[1]) - ETAS[20.0]) / ETAS[20.0] < ETA_TOL
 
 
+@pytest.mark.slow
 def test_too_few_recordings_and_probes_that_never_turned_are_one_line_errors(probes, tmp_path):
     res = tecdard("calibrate-eta", str(probes[0]), "--radius", "0.08")
     assert res.returncode == 2 and "needs at least 2 recordings" in res.stderr
@@ -99,6 +100,7 @@ def test_a_lag_that_fits_best_at_the_end_of_the_search_is_refused():
         K.best_lag([(lags - 0.035) ** 2], lags)
 
 
+@pytest.mark.slow
 def test_non_physical_inputs_and_fits_are_refused_and_disagreement_is_reported(probes, tmp_path):
     """Issue 32, item 14: meta.grip_force 1e308 tracebacked; --contact 1e6,1e6,1e6 exited 0 with an
     eta of -0.000; two recordings at eta 1.0 and 4.0 pooled to 1.151 without a word."""

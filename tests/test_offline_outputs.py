@@ -77,6 +77,7 @@ def test_an_output_that_is_the_input_is_refused_and_the_recording_kept(arrays, t
         assert rec.read_bytes() == before
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not HAS_FOXGLOVE, reason="the viz extra (foxglove-sdk) is installed by `make test`")
 def test_a_failed_export_leaves_the_good_mcap_it_would_have_replaced(arrays, tmp_path):
     rec = tmp_path / "REC.npz"
@@ -100,6 +101,7 @@ def test_a_failed_export_leaves_the_good_mcap_it_would_have_replaced(arrays, tmp
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not HAS_MATPLOTLIB, reason="the viz extra (matplotlib) is installed by `make test`")
 def test_plot_writes_where_it_was_asked_and_never_beside_a_device(arrays, tmp_path):
     rec = tmp_path / "REC.npz"
@@ -128,6 +130,7 @@ HOSTILE_EVENTS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(HOSTILE_EVENTS))
 def test_hostile_live_events_are_one_line_refusals_in_every_tool(arrays, tmp_path, case):
     events, said = HOSTILE_EVENTS[case]
@@ -151,6 +154,7 @@ def bomb_member(zf: zipfile.ZipFile, name: str, n: int) -> None:
             f.write(zeros)
 
 
+@pytest.mark.slow
 def test_a_truth_member_is_read_through_the_bounded_reader(arrays, tmp_path):
     """A 1.6 MB file with a truth member of 1.2 GB took 1.2 GB and 21 s in plot and export."""
     from tecdard.recording.format import RecordingError, load_truth

@@ -82,6 +82,7 @@ def rss_mb(pid: int) -> float:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024.0
 
 
+@pytest.mark.slow
 def test_viewers_that_never_read_are_capped_in_number_and_in_bytes(tmp_path):
     """150 viewers that never read took the daemon from 282 MB to 1.7 GB, and imu_stale came while
     idle (issue 32, item 9): beyond viz.foxglove.max_viewers a viewer is turned away (503), and what

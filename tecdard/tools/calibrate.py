@@ -263,7 +263,8 @@ def grip_force_of(name: str, rec) -> float:
     if f is None:
         raise CalibrationError(f"{name}: no grip force (neither a grip_force key nor meta.grip_force)")
     if not np.isfinite(f) or not 0.0 <= f <= MAX_GRIP_FORCE_N:
-        raise CalibrationError(f"{name}: grip force {f:.6g} N is no gripper's (the daemon takes 0..{MAX_GRIP_FORCE_N:g} N)")
+        raise CalibrationError(f"{name}: grip force {f:.6g} N is no gripper's "
+                               f"(the daemon takes 0..{MAX_GRIP_FORCE_N:g} N)")
     return round(f / FORCE_ROUND_N) * FORCE_ROUND_N
 
 
