@@ -1,12 +1,14 @@
 """The client verbs against a running daemon: exit codes, refusals, following a task to the end."""
 import json
 
+import pytest
+
 from tests.conftest import tecdard
 
 
 def test_verbs_against_a_daemon(shared_daemon):
     ep = shared_daemon.endpoint
-    status = tecdard("status", "--connect", ep)
+    status = tecdard("status", "--connect", ep, "--json")
     assert status.returncode == 0
     assert json.loads(status.stdout)["state"]["mode"] == "idle"
     refused = tecdard("rotate", "--connect", ep, "--angle-deg", "500")
@@ -65,7 +67,7 @@ def test_the_cli_reaches_the_daemon_through_a_local_zenoh_router(make_daemon):
     with zenoh.open(session_config([router_ep], [], mode="router")):
         d = make_daemon(router=router_ep)
         assert "Zenoh client" in d.log() and "connecting to " + router_ep in d.log()
-        status = tecdard("status", "--connect", router_ep)
+        status = tecdard("status", "--connect", router_ep, "--json")
         assert status.returncode == 0, status.stderr
         assert json.loads(status.stdout)["state"]["mode"] == "idle"
         refused = tecdard("probe", "--connect", router_ep, "--direction", "-0.26,0,0.96", "--distance", "5")
@@ -82,9 +84,151 @@ def test_the_cli_offers_every_task_verb_and_rotates_with_the_tool_held():
     options = client_cli.verb_options()
     assert set(C.verbs()) == set(options)
     for verb in C.task_verbs():
-        assert [field for _opt, field, _t, _h in options[verb]] == [f.name for f in C.task_verbs_registry.get(verb).fields]
+        assert [field for _opt, field, _t, _h, _c in options[verb]] == [f.name for f in C.task_verbs_registry.get(verb).fields]
     parser = argparse.ArgumentParser()
     client_cli.add_parsers(parser.add_subparsers(dest="cmd"))
     args = parser.parse_args(["rotate", "--angle-deg", "10", "--no-turn-tool"])
     assert args.turn_tool is False
     assert parser.parse_args(["rotate", "--angle-deg", "10"]).turn_tool is None      # the daemon's default
+
+
+# -- issue 33: Ctrl-C, --timeout, one-line errors, output for people ------------------------------
+
+def _cli(*args, env=None):
+    """The command line as a process of its own, with Ctrl-C's default (a shell's background job has
+    SIGINT ignored, which Python would keep)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from tests.conftest import ROOT
+    return subprocess.Popen([sys.executable, "-m", "tecdard", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, **(env or {})},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _still(cli, seconds=0.5) -> float:
+    """How far the TCP moves in `seconds` (m)."""
+    import time
+    import numpy as np
+    from tests.conftest import tcp_now
+    p0 = tcp_now(cli)
+    time.sleep(seconds)
+    return float(np.linalg.norm(tcp_now(cli) - p0))
+
+
+def _wait_for_line(proc, text: str, timeout: float = 60.0) -> list[str]:
+    import time
+    lines, deadline = [], time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"no {text!r} from the CLI: {lines}")
+
+
+@pytest.mark.slow
+def test_ctrl_c_cancels_the_task_it_started_and_says_so(make_daemon):
+    """Issue 33: `tecdard rotate` then Ctrl-C printed a traceback and the task ran on."""
+    import signal
+    import time
+    from tests.conftest import STILL_M
+    d = make_daemon()
+    proc = _cli("rotate", "--connect", d.endpoint, "--angle-deg", "30", "--speed", "0.005")
+    accepted = _wait_for_line(proc, "accepted as task")[-1]
+    task = accepted.split()[-1]
+    time.sleep(3.0)                      # the probe has begun: the arm moves
+    assert d.client.command("status")["state"]["task"]["id"] == task
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert lines[-1] == f"tecdard rotate: interrupted; task {task} cancelled and the arm stopped", err
+    assert "Traceback" not in err
+    state = d.client.command("status")["state"]
+    assert state["mode"] == "idle" and state["task"] is None
+    assert _still(d.client) < STILL_M
+    assert any(e.get("kind") == "task_failed" and e.get("task") == task for e in d.client.event_log)
+
+
+@pytest.mark.slow
+def test_a_timeout_with_the_task_still_running_cancels_it_and_names_stop(make_daemon):
+    from tests.conftest import STILL_M
+    d = make_daemon()
+    res = tecdard("rotate", "--connect", d.endpoint, "--angle-deg", "30", "--speed", "0.005", "--timeout", "3")
+    assert res.returncode == 1, res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("tecdard rotate: still running after --timeout 3 s; task ") and \
+        last.endswith("cancelled and the arm stopped"), res.stderr
+    assert d.client.command("status")["state"]["mode"] == "idle"
+    assert _still(d.client) < STILL_M
+
+
+@pytest.mark.slow
+def test_help_env_status_and_results_read_as_a_person_reads_them(make_daemon):
+    """--help shows the running daemon's limits with units and an example; TECDAR_CONNECT and
+    TECDAR_ROBOT set the defaults; status and a task's result are tables in mm and degrees; a robot
+    name that does not answer is told which do."""
+    d = make_daemon(**{"limits.max_rotation_deg": 45.0})
+    env = {"TECDAR_CONNECT": d.endpoint, "TECDAR_ROBOT": "sim"}
+    proc = _cli("rotate", "--help", env=env)
+    out, _ = proc.communicate(timeout=60)
+    flat = " ".join(out.split())
+    assert "limits 0.1..45 deg" in flat and "unit m/s" in flat and "default 0.02 m/s" in flat, out
+    assert "{arc,straight}" in out and "example: tecdard rotate --angle-deg 30" in out
+    assert f"limits: the running daemon's (sim at {d.endpoint})" in out
+    proc = _cli("status", env=env)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "mode       idle" in out and " mm" in out and "{" not in out, out
+    proc = _cli("status", "--robot", "left-arm", "--wait-alive", "1", env=env)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 3
+    assert err.strip().splitlines()[-1].endswith(f"robots that answer at {d.endpoint}: sim (--robot or $TECDAR_ROBOT)")
+    proc = _cli("rotate", "--angle-deg", "10", env=env)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert "rotate done" in out and "  hinge  " in out and "  angle  " in out and " deg" in out, out
+    assert "\x1b" not in err             # not a terminal: whole lines, no escapes
+
+
+def test_bad_input_on_the_command_line_is_one_line(tmp_path):
+    """argparse's usage dumps, NaN in a field, an endpoint without its protocol: one line each."""
+    from tecdard.tools.demo import free_port
+    port = free_port()
+    for args, expect in [
+        (("rotate", "--angle-deg", "x"), "tecdard rotate: argument --angle-deg: expected a number, got 'x'"),
+        (("rotate", "--angle-deg", "nan"), "tecdard rotate: argument --angle-deg: expected a finite number"),
+        (("probe", "--direction", "0,inf,1"), "tecdard probe: argument --direction: expected finite numbers"),
+        (("rotate", "--strategy", "spiral", "--angle-deg", "5"), "argument --strategy: invalid choice: 'spiral'"),
+        (("status", "--connect", f"127.0.0.1:{port}"), f"tecdard status: --connect 127.0.0.1:{port}: expected "
+                                                      "<protocol>/<address>"),
+        (("run", "--config", str(tmp_path / "none.yaml")), "tecdard: config error:"),
+        (("frobnicate",), "tecdard: argument cmd: invalid choice: 'frobnicate'"),
+    ]:
+        res = tecdard(*args)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and expect in lines[0], (args, res.stderr)
+        assert "usage:" not in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.slow
+def test_a_taken_port_says_what_took_it(tmp_path):
+    import socket
+    from tecdard.config import dump_yaml
+    from tests.conftest import sim_config
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        ep = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        path = tmp_path / "tecdard.yaml"
+        path.write_text(dump_yaml(sim_config(**{"zenoh.listen": [ep]})))
+        res = tecdard("run", "--config", path, timeout=180)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1
+    assert lines[-1] == (f"tecdard: {ep}: port {ep.rpartition(':')[2]} is taken: another tecdard? "
+                         f"`tecdard status --connect {ep}` (or set zenoh.listen / --listen to a free port)"), res.stderr
+    assert ".cargo" not in res.stderr

@@ -95,6 +95,19 @@ class Client:
         replies = self.session.liveliness().get(self.keys.alive, timeout=timeout)
         return any(r.ok is not None for r in replies)
 
+    def robots_alive(self, timeout: float = 1.0) -> list[str]:
+        """The robot names whose daemons hold a liveliness token at this endpoint (with the client
+        opened for robot "*")."""
+        if not self.connect(timeout):
+            return []
+        names = set()
+        for r in self.session.liveliness().get(self.keys.alive, timeout=timeout):
+            if r.ok is not None:
+                parts = str(r.ok.key_expr).split("/")
+                if len(parts) == 3:
+                    names.add(parts[1])
+        return sorted(names)
+
     def wait_alive(self, timeout: float = 30.0, running=None, waiting=None) -> None:
         """Until the daemon's liveliness token is there (it declares it once READY: its threads run
         and the IMU has warmed the onset detector). `running()` False (a daemon process that exited)

@@ -33,8 +33,20 @@ def _cmd_run(args) -> int:
     except Exception as exc:        # zenoh.ZError: cannot listen (address in use, no such interface)
         if type(exc).__module__.split(".")[0] != "zenoh":
             raise
-        print(f"tecdard: Zenoh: {str(exc).splitlines()[0][:300]}", file=sys.stderr)
+        print(f"tecdard: {listen_error(exc, daemon.zenoh.listen)}", file=sys.stderr)
         return 1
+
+
+def listen_error(exc: Exception, listen: list[str]) -> str:
+    """Zenoh's refusal to listen as one line: a taken port names what to do."""
+    from tecdard.cli.task_verbs import one_line
+    text = str(exc)
+    if "Address already in use" in text:
+        taken = next((ep for ep in listen if ep in text), listen[0] if listen else "?")
+        port = taken.rpartition(":")[2]
+        return (f"{taken}: port {port} is taken: another tecdard? `tecdard status --connect {taken}` "
+                "(or set zenoh.listen / --listen to a free port)")
+    return f"Zenoh: {one_line(exc)}"
 
 
 _NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)")
@@ -53,11 +65,23 @@ def join_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
-def parser() -> argparse.ArgumentParser:
-    """Every subcommand: `run`, the client's (cli.task_verbs) and each tool's own (its add_parser)."""
-    from tecdard.cli.task_verbs import add_parsers
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line naming the option, and where help is (not a usage dump)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (`{self.prog} --help`)\n")
+
+
+def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """Every subcommand: `run`, the client's (cli.task_verbs) and each tool's own (its add_parser).
+    With --help in `argv`, the task verbs' limits are a running daemon's where one answers."""
+    from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
     from tecdard.tools import calibrate, demo, doctor, export, imu, kernel_cache, localize, plot, sim_record
-    top = argparse.ArgumentParser(prog="tecdard", description="Transient extrinsic contact detection and ranging daemon")
+    argv = argv or []
+    limits, note = None, ""
+    if ("-h" in argv or "--help" in argv) and argv and argv[0] in verb_options():
+        limits, note = help_limits(argv)
+    top = OneLineParser(prog="tecdard", description="Transient extrinsic contact detection and ranging daemon")
     top.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = top.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("run", help="run the daemon")
@@ -66,14 +90,15 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_run)
     for tool in (localize, plot, export, calibrate, sim_record, imu):
         tool.add_parser(sub)
-    add_parsers(sub)
+    add_parsers(sub, limits, note)
     for tool in (doctor, kernel_cache, demo):
         tool.add_parser(sub)
     return top
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(join_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    argv = join_negative_values(sys.argv[1:] if argv is None else list(argv))
+    args = parser(argv).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     return args.func(args)

@@ -21,6 +21,7 @@ all is Zenoh's access control (docs/zenoh-api.md, "Who may command the robot").
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import threading
@@ -102,6 +103,7 @@ class QueryIntake:
         self.limits = limits
         self.control = control
         self.status_json = status_json
+        self._limits_json = dumps(dataclasses.asdict(limits))    # status tells clients the limits (the CLI's --help)
         self.params = params or IntakeParams()
         self._stop_key = keys.cmd("stop")
         self._pending: dict[int, zenoh.Query] = {}
@@ -214,7 +216,8 @@ class QueryIntake:
             raw = None if payload is None else (payload if isinstance(payload, (bytes, str)) else payload.to_bytes())
             fields = C.admit(verb, raw, self.limits)
             if verb == "status":
-                self._send_text(query, '{"ok":true,"state":' + (self.status_json() or "null") + "}")
+                self._send_text(query, '{"ok":true,"state":' + (self.status_json() or "null")
+                                + ',"limits":' + self._limits_json + "}")
                 return
             if verb == "record":
                 if self.record is None:

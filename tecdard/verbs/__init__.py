@@ -87,6 +87,7 @@ class TaskVerb:
     build: Callable                                # (fields: dict, ctx: TaskContext) -> control.tasks.Task
     self_check: dict = field(default_factory=dict)  # the required fields' values: Limits checks every default
     service: Callable | None = None                # (its config section, named as the verb) -> VerbService
+    example: str = ""                              # one command line, for the CLI's help
 
 
 REGISTRY: dict[str, TaskVerb] = {}

@@ -9,7 +9,7 @@ from tecdard.control.tasks import ApproachTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (
-    Field("direction", "direction", help="required, unit vector x,y,z (world)"),
+    Field("direction", "direction", help="unit vector x,y,z (world)"),
     Field("speed", "number", lambda lim: lim.default_speed, lambda lim: lim.min_speed, lambda lim: lim.max_speed,
           "m/s", "TCP speed"),
     Field("max_distance", "number", lambda lim: lim.max_approach_distance, 0.001,
@@ -25,4 +25,5 @@ def build(f: dict, ctx) -> ApproachTask:
 
 
 VERB = TaskVerb("approach", "approach until contact and localise it", FIELDS, build,
-                self_check={"direction": [0.0, 0.0, -1.0]})
+                self_check={"direction": [0.0, 0.0, -1.0]},
+                example="tecdard approach --direction 0,0,-1 --speed 0.01 --max-distance 0.05")

@@ -17,4 +17,5 @@ def build(f: dict, ctx) -> PointTask:
     return PointTask(ctx.task_id, f["radius"], f["speed"], f["turns"])
 
 
-VERB = TaskVerb("point", "circle about a point contact and localise it", FIELDS, build)
+VERB = TaskVerb("point", "circle about a point contact and localise it", FIELDS, build,
+                example="tecdard point --radius 0.01 --turns 1")

@@ -19,4 +19,5 @@ def build(f: dict, ctx) -> ProbeTask:
     return ProbeTask(ctx.task_id, f["speed"], f["distance"], np.array(f["direction"]))
 
 
-VERB = TaskVerb("probe", "probe along a direction and localise the contact", FIELDS, build)
+VERB = TaskVerb("probe", "probe along a direction and localise the contact", FIELDS, build,
+                example="tecdard probe --direction 0,0,-1 --distance 0.005 --speed 0.005")

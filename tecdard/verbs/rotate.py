@@ -9,13 +9,15 @@ from tecdard.control.rotate import RotateTask
 from tecdard.verbs import Field, TaskVerb
 
 FIELDS = (
-    Field("angle_deg", "number", lo=0.1, hi=lambda lim: lim.max_rotation_deg, unit="deg", help="required"),
+    Field("angle_deg", "number", lo=0.1, hi=lambda lim: lim.max_rotation_deg, unit="deg",
+          help="how far to turn the object"),
     Field("speed", "number", lambda lim: lim.default_speed, lambda lim: lim.min_speed, lambda lim: lim.max_speed,
           "m/s", "TCP speed"),
     Field("probe_distance", "number", lambda lim: lim.default_probe_distance, 0.0005,
           lambda lim: lim.max_probe_distance, "m", "phase-1 probe length"),
     Field("direction", "direction", lambda lim: lim.default_direction, help="unit vector x,y,z (world)"),
-    Field("strategy", "choice", "arc", choices=("arc", "straight"), help="arc (default) or straight"),
+    Field("strategy", "choice", "arc", choices=("arc", "straight"),
+          help="arc: follow the estimated hinge; straight: the paper's pull, which drags an unfixed base"),
     Field("turn_tool", "bool", True, help="the gripper turns with the object (default; --no-turn-tool: held)"),
 )
 
@@ -26,4 +28,5 @@ def build(f: dict, ctx) -> RotateTask:
 
 
 VERB = TaskVerb("rotate", "turn the held object about its estimated hinge", FIELDS, build,
-                self_check={"angle_deg": 0.1})
+                self_check={"angle_deg": 0.1},
+                example="tecdard rotate --angle-deg 30 --speed 0.01")

@@ -51,4 +51,5 @@ def build(f: dict, ctx) -> MapTask:
     return task
 
 
-VERB = TaskVerb("map", "probe a grid and write a tactile depth map", FIELDS, build, service=MapFiles.from_config)
+VERB = TaskVerb("map", "probe a grid and write a tactile depth map", FIELDS, build, service=MapFiles.from_config,
+               example="tecdard map --origin 0.31,-0.165 --size 0.43,0.33 --grid 5,6 --depth 0.25")
