@@ -19,6 +19,9 @@ from tecdard.tools.demo import free_port
 from tecdard.config import dump_yaml
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# a developer's shell may point the command line at their own daemon: never the tests'
+for _name in ("TECDAR_CONNECT", "TECDAR_ROBOT"):
+    os.environ.pop(_name, None)
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
 # The folders that install under tecdard (pyproject's package-dir). From the checkout they are also
@@ -81,8 +84,10 @@ def tecdard(*args, timeout: float = 120.0) -> subprocess.CompletedProcess:
 
 
 def daemon_config(**overrides) -> dict:
-    """configs/sim.yaml with the allowances above for a test's daemon, and `overrides` (sim_config's)."""
-    return sim_config(**{"control.imu_stale_s": TEST_IMU_STALE_S,
+    """configs/sim.yaml with the allowances above for a test's daemon, listening on a free port (never
+    the default 7507, where a developer's own daemon may run), and `overrides` (sim_config's)."""
+    return sim_config(**{"zenoh.listen": [f"tcp/127.0.0.1:{free_port()}"],
+                         "control.imu_stale_s": TEST_IMU_STALE_S,
                          "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
                          "control.max_nis_ratio": TEST_MAX_NIS_RATIO, "robot.max_state_age_s": TEST_STATE_AGE_S,
                          **overrides})
@@ -154,6 +159,26 @@ class DaemonProcess:
         finally:
             self.terminate()
             self._log.close()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def default_endpoint_taken():
+    """The default endpoint is held for the whole run, as a developer's own daemon would hold it: a
+    test that starts a daemon or a client on it fails here every time, not only on their machine.
+    Where something already holds it, that something is the decoy."""
+    import socket
+    from tecdard.api.session import DEFAULT_ENDPOINT
+    host, _, port = DEFAULT_ENDPOINT.removeprefix("tcp/").rpartition(":")
+    decoy = socket.socket()
+    try:
+        decoy.bind((host, int(port)))
+        decoy.listen()
+    except OSError:
+        decoy.close()
+        decoy = None
+    yield
+    if decoy is not None:
+        decoy.close()
 
 
 @pytest.fixture
