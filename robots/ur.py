@@ -150,6 +150,25 @@ def expected_controller_arm(identity: dict) -> str:
     return identity["model"].upper() + ("e" if e_series else "")
 
 
+DASHBOARD_BANNER = "Connected: Universal Robots Dashboard Server"    # the dashboard's first line, CB3 and e-Series
+
+
+def dashboard_banner(host: str, port: int = 29999) -> str:
+    """The first line the dashboard server sends on a new connection ("" if none within the timeout)."""
+    try:
+        with socket.create_connection((host, port), timeout=CHECK_TIMEOUT_S) as s:
+            s.settimeout(CHECK_TIMEOUT_S)
+            data = b""
+            while b"\n" not in data and len(data) < 256:
+                chunk = s.recv(256)
+                if not chunk:
+                    break
+                data += chunk
+    except OSError:
+        return ""
+    return data.split(b"\n")[0].decode("utf-8", "replace").strip()
+
+
 def check_ur_controller(host: str, model: str) -> list[Check]:
     """A UR controller at `host`: its dashboard, RTDE and script ports answer, it runs the arm
     robot.model names, and it is in remote control (ur-rtde uploads its script only then)."""
@@ -164,6 +183,12 @@ def check_ur_controller(host: str, model: str) -> list[Check]:
     if closed:
         return [Check(f"UR controller {host}", "fail", "; ".join(closed),
                       "check robot.ur.host, the network to the controller, and that it is switched on")]
+    banner = dashboard_banner(host)
+    if not banner.startswith(DASHBOARD_BANNER):
+        said = repr(banner[:60]) if banner else "nothing"
+        return [Check(f"UR controller {host}", "fail", f"ports 29999, 30003 and 30004 accept connections, but "
+                      f"29999 said {said}, not a UR dashboard's greeting",
+                      "check robot.ur.host: another device or a program listens there")]
     out = [Check(f"UR controller {host}", "pass", "dashboard, script and RTDE ports answer")]
     identity = controller_identity(host)
     if not identity:

@@ -242,3 +242,57 @@ def test_a_franka_robot_of_another_version_or_none_fails(tmp_path):
     assert check.status == "fail" and "robot server version 9" in check.detail and "speaks 10" in check.detail
     (none,) = check_franka_robot(free_franka_host())
     assert none.status == "fail" and "refused" in none.detail and "FCI" in none.fix
+
+
+# -- issue 33: the rig configs, a listener that is no UR, a missing config ---------------------------
+
+@pytest.mark.parametrize("name", ["sim.yaml", "ur5e.yaml", "fr3.yaml"])
+def test_run_checks_on_each_shipped_config_checks_its_board(tmp_path, name):
+    """`doctor` read an attribute that had been renamed and skipped the board on exactly the rig
+    configs: run_checks itself, on each shipped config, checks the board the config names."""
+    import yaml
+    from tests.fake_ur import free_loopback_host
+    cfg = yaml.safe_load((ROOT / "configs" / name).read_text())
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    if "ur" in cfg["robot"]:
+        cfg["robot"]["ur"]["host"] = free_loopback_host()           # nothing there
+    if "franka" in cfg["robot"]:
+        cfg["robot"]["franka"]["host"] = free_loopback_host((1337,))
+    if cfg.get("imu", {}).get("source") == "serial":
+        cfg["imu"]["serial"]["port"] = str(tmp_path / "no-board")
+    path = tmp_path / name
+    path.write_text(dump_yaml(cfg))
+    checks = {c.name: c for c in doctor.run_checks(str(path))}
+    assert checks["config"].status == "pass", checks["config"]
+    board = checks["fingertip board"]
+    if name == "sim.yaml":
+        assert board.status in ("pass", "skip") and "serial" not in board.detail.split(":")[0]
+    else:
+        assert board.status == "fail" and f"{tmp_path / 'no-board'} does not exist" in board.detail, board
+    rig = [c for c in checks.values() if c.name.startswith(("UR controller", "Franka robot"))]
+    assert (name == "sim.yaml") == (not rig)
+    assert all(c.status == "fail" for c in rig), rig                       # no controller at that host
+
+
+def test_a_listener_that_is_not_a_ur_dashboard_fails(tmp_path):
+    """The UR check passed on any TCP listener: it now reads the dashboard's greeting."""
+    from tecdard.robots.ur import check_ur_controller
+    from tests.fake_ur import free_loopback_host
+    host = free_loopback_host()
+    servers = [socket.create_server((host, port)) for port in (29999, 30003, 30004)]
+    try:
+        (check,) = check_ur_controller(host, "ur5e")
+    finally:
+        for s in servers:
+            s.close()
+    assert check.status == "fail" and "29999 said nothing, not a UR dashboard's greeting" in check.detail, check
+    assert "robot.ur.host" in check.fix
+
+
+def test_a_missing_config_names_its_path_once_and_how_to_make_one(tmp_path):
+    path = tmp_path / "etc" / "tecdard.yaml"
+    out = io.StringIO()
+    assert doctor.main(str(path), out) == 1
+    first, fix = out.getvalue().splitlines()[:2]
+    assert first == f"FAIL  config: {path}: no such file"
+    assert "configs/ur5e.yaml" in fix and str(path) in fix and "key named" not in fix

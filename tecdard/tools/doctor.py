@@ -153,12 +153,18 @@ def check_kernel_cache() -> Check:
 def load_daemon(config_path: str):
     """The config checked as `tecdard run` checks it: (Daemon, None) or (None, Check that failed)."""
     from tecdard.config import Config, ConfigError
+    if not pathlib.Path(config_path).is_file():
+        return None, Check("config", "fail", f"{config_path}: no such file",
+                           f"start from a shipped one: `sudo install -D -m 644 {ROOT / 'configs' / 'ur5e.yaml'} "
+                           f"{config_path}` (or fr3.yaml, sim.yaml), edit it, or name yours with --config")
     try:
         cfg = Config.load(config_path)
         from tecdard.runtime.daemon import Daemon
         return Daemon(cfg), None
     except ConfigError as exc:
-        return None, Check("config", "fail", f"{config_path}: {exc}", "correct the key named (docs: configs/sim.yaml)")
+        text = str(exc)
+        return None, Check("config", "fail", text if text.startswith(str(config_path)) else f"{config_path}: {text}",
+                           "correct the option named (configs/sim.yaml documents every option)")
 
 
 def run_checks(config_path: str) -> list[Check]:
