@@ -154,6 +154,7 @@ class MapTask(Task):
     trigger_phase = Phase.DESCEND
     touching_phases = (Phase.SETTLE, Phase.PROBE, Phase.RETRACT, Phase.LIFT)
     FORCE_PHASES = (Phase.DESCEND, Phase.SETTLE, Phase.PROBE)   # the force may abandon the point here
+    FREE_PHASES = (Phase.TRAVEL, Phase.TURN)                    # a force here fails the map (dragging)
 
     def __init__(self, task_id: str, params: MapParams, files):
         super().__init__(task_id, np.array([0.0, 0.0, -1.0]), params.speed)
@@ -254,7 +255,21 @@ class MapTask(Task):
         point abandoned for it holds this tick."""
         if self._running(inp) and self.status.phase in self.FORCE_PHASES and self._aborted(inp):
             return self._hold(inp)
+        if self._running(inp) and self.status.phase in self.FREE_PHASES and self._dragging(inp):
+            return None
         return super().step(inp)
+
+    def _dragging(self, inp: TickInput) -> bool:
+        """In free air (travel, turn) a TCP force above abort_force_n means the tool is caught on
+        something or drags what it holds: the map fails (the points so far are written)."""
+        if inp.force is None:
+            return False
+        f = float(np.linalg.norm(inp.force))
+        if f <= self.m.abort_force_n:
+            return False
+        self._fail(f"{self.status.phase}: {f:.1f} N on the TCP in free air (limit {self.m.abort_force_n:g} N, "
+                   "map.abort_force_n): the tool is caught on something or drags what it holds")
+        return True
 
     def _aborted(self, inp: TickInput) -> bool:
         """A TCP force above abort_force_n abandons the point (its max force is kept either way)."""
@@ -449,7 +464,14 @@ class MapTask(Task):
         if exc is not None:
             self._fail(f"map files not written: {exc}")
             return None
-        self._done(fut.result())
+        result = fut.result()
+        summary = result.get("summary", {})
+        if not summary.get("valid"):
+            reasons = ", ".join(f"{k} {v}" for k, v in (summary.get("invalid") or {}).items()) or "none probed"
+            self._fail(f"map: none of the {summary.get('points', 0)} points is valid ({reasons}); "
+                       f"what was probed is in {result.get('path')}")
+            return None
+        self._done(result)
         return None
 
     STEPS = {Phase.TRAVEL: _step_travel, Phase.DESCEND: _step_descend, Phase.SETTLE: _step_settle,

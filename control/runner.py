@@ -42,6 +42,7 @@ class TaskRunner:
         self._speed_cap = None                 # the planner's current TCP speed cap, m/s
         self._steady_since = None              # when the plan last became steady in the trigger's phase
         self._last_est = None                  # the contact estimate seen on the previous tick
+        self.qd_cmd: np.ndarray | None = None  # this tick's joint velocities from a joint-space task (home)
 
     # -- commands ---------------------------------------------------------------------
     def busy(self) -> str | None:
@@ -106,10 +107,14 @@ class TaskRunner:
         elif est is not None:
             self._last_est = est
 
-    def step(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> np.ndarray | None:
-        """The commanded TCP position one tick ahead, or None: the arm is to be held (idle)."""
+    def step(self, now: float, p: np.ndarray, R: np.ndarray, est, force, q: np.ndarray | None = None,
+             q_t: float | None = None, v: np.ndarray | None = None) -> np.ndarray | None:
+        """The commanded TCP position one tick ahead, or None: the arm is to be held (idle). A
+        joint-space task leaves its joint velocities in `qd_cmd` instead (the plan then follows the
+        measured TCP: `v` its velocity, so that a stop brakes from there)."""
+        self.qd_cmd = None
         if self.mode is Mode.BUSY:
-            p_cmd = self._step_task(now, p, R, est, force)
+            p_cmd = self._step_task(now, p, R, est, force, q, q_t, v)
         elif self.mode.braking:
             p_cmd = self._brake_step()
         else:
@@ -121,7 +126,8 @@ class TaskRunner:
             return None
         return p_cmd
 
-    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force) -> np.ndarray:
+    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force, q=None, q_t=None,
+                   v=None) -> np.ndarray:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self.task_t0:
             self.saturated = max(self.saturated, est.saturated)
@@ -132,7 +138,7 @@ class TaskRunner:
         if task.trigger_phase is not None:
             self._direct(armed=self._trigger_armed(now, task))
         episode = task.episode
-        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force))
+        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force, q, q_t))
         if task.episode != episode:
             # the task starts a fresh contact episode: older onsets no longer count
             self.task_t0 = now
@@ -152,6 +158,11 @@ class TaskRunner:
             return self._brake_step()
         self.R_hold = motion.R
         self.w_ff = np.zeros(3) if motion.w is None else motion.w
+        if motion.qd is not None:
+            # a joint-space move (its path was checked against the workspace box when it was planned)
+            self.planner.reset(p, v)
+            self.qd_cmd = np.asarray(motion.qd, dtype=float)
+            return p
         cap = task.speed if motion.max_speed is None else motion.max_speed
         if cap != self._speed_cap:
             self._speed_cap = cap

@@ -43,6 +43,8 @@ class TickInput:
     planner_at_rest: bool
     p_plan: np.ndarray | None = None   # where the planner has the TCP now (None: use p)
     force: np.ndarray | None = None    # force of the world on the TCP, world, N (None: not measured)
+    q: np.ndarray | None = None        # measured joint positions, rad (joint-space tasks: home)
+    q_t: float | None = None           # when `q` was measured, s, monotonic
 
     @property
     def p_ref(self) -> np.ndarray:
@@ -59,6 +61,7 @@ class Motion:
     min_duration_s: float | None = None   # reach the target no sooner than this (paces look-ahead targets)
     w: np.ndarray | None = None           # angular velocity feed-forward of the orientation target, world, rad/s
     max_speed: float | None = None        # TCP speed cap for this motion, m/s (None: the task's speed)
+    qd: np.ndarray | None = None          # joint velocities instead of a Cartesian target, rad/s (home)
 
 
 class TaskState(enum.StrEnum):

@@ -122,6 +122,11 @@ class SimBackend(RobotBackend):
     def hold(self) -> None:
         self.process.hold()
 
+    @property
+    def world_control(self) -> "WorldControl | None":
+        """`home --reset-world`'s hooks on the simulated world (None without a world)."""
+        return WorldControl(self.process) if self.process.spec.world_factory() is not None else None
+
     def truth(self):
         """The simulated world's truth now (sim.world.SimTruth), or None before the start."""
         return self.process.truth()
@@ -129,6 +134,20 @@ class SimBackend(RobotBackend):
     def annotate(self, event: dict) -> dict:
         """A task's end event with the simulated world's truth (docs/zenoh-api.md, `sim`)."""
         return with_truth(event, self.process.truth())
+
+
+class WorldControl:
+    """The simulated world, for a task: let go of the held object, and build a fresh world around the
+    gripper (a message each to the simulation process; nothing waits on the control tick)."""
+
+    def __init__(self, process):
+        self.process = process
+
+    def let_go(self) -> None:
+        self.process.world("let_go")
+
+    def rebuild(self) -> None:
+        self.process.world("rebuild")
 
 
 class SimWireSource(SerialImuSource):

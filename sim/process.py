@@ -157,6 +157,9 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
                     msg = cmd_conn.recv()
                     if msg[0] == "cmd":
                         robot.command_at(msg[1], msg[2])
+                    elif msg[0] == "world":
+                        robot.let_go() if msg[1] == "let_go" else robot.rebuild_world()
+                        log.info("sim: the world %s", "is let go" if msg[1] == "let_go" else "is rebuilt at the TCP")
                     elif msg[0] == "close":
                         return
             except (EOFError, OSError):
@@ -272,6 +275,10 @@ class SimProcess(ChildLink):
 
     def hold(self) -> None:
         self.command_joint_velocity(np.zeros(self.nq))
+
+    def world(self, action: str) -> None:
+        """"let_go" of the held object, or "rebuild" a fresh world around the gripper."""
+        self._send(("world", action))
 
 
 class PipeImuSource(ImuSource):

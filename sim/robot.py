@@ -75,6 +75,7 @@ class SimRobot:
         self.qd = np.zeros(model.nq)
         self.t = clock()
         oMtcp, twist = self.model.fk_twist(self.q, self.qd)
+        self._world_factory = world_factory
         self.world = world_factory(oMtcp.translation.copy(), oMtcp.rotation.copy()) if world_factory else None
         self._v_prev = twist[:3].copy()
         self._cmds: collections.deque = collections.deque(maxlen=64)   # (t_effective, qd), from any thread
@@ -225,6 +226,21 @@ class SimRobot:
             self._truth = self._make_truth()
         if self.imu is not None:
             self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs)
+
+    def let_go(self) -> None:
+        """The gripper lets go of the object: no world until `rebuild` (`home --reset-world`)."""
+        with self._lock:
+            self.world = None
+            self._truth = None
+
+    def rebuild_world(self) -> None:
+        """A fresh world around the gripper where it is now, as at the start (the arm at q_home)."""
+        if self._world_factory is None:
+            return
+        with self._lock:
+            oMtcp = self.model.fk(self.q)
+            self.world = self._world_factory(oMtcp.translation.copy(), oMtcp.rotation.copy())
+            self._truth = self._make_truth()
 
     def _make_truth(self) -> SimTruth | None:
         return SimTruth(**self.world.truth()) if self.world is not None else None

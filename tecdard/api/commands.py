@@ -82,6 +82,8 @@ class Limits:
     default_map_depth: float = 0.1         # m, deepest descent below the start height
     max_map_depth: float = 0.4             # m
     max_map_points: int = 400              # rows x cols
+    default_home_joint_speed_deg_s: float = 10.0   # home: the fastest joint's speed
+    max_home_joint_speed_deg_s: float = 20.0
 
     @property
     def default_map_speed(self) -> float:
@@ -132,12 +134,17 @@ class Limits:
             default_map_depth=section.getfloat("default_map_depth", d.default_map_depth, above=0.0, maxval=1.0),
             max_map_depth=section.getfloat("max_map_depth", d.max_map_depth, above=0.0, maxval=1.0),
             max_map_points=section.getint("max_map_points", d.max_map_points, minval=1, maxval=10000),
+            default_home_joint_speed_deg_s=section.getfloat("default_home_joint_speed_deg_s",
+                                                            d.default_home_joint_speed_deg_s, minval=1.0,
+                                                            maxval=90.0),
+            max_home_joint_speed_deg_s=section.getfloat("max_home_joint_speed_deg_s", d.max_home_joint_speed_deg_s,
+                                                        minval=1.0, maxval=90.0),
         )
 
 
 # The limits key that holds each field's default.
 DEFAULT_KEYS = {"distance": "default_probe_distance", "probe_distance": "default_probe_distance",
-                "radius": "default_point_radius", "depth": "default_map_depth", "size": "default_map_size",
+                "joint_speed_deg_s": "default_home_joint_speed_deg_s", "radius": "default_point_radius", "depth": "default_map_depth", "size": "default_map_size",
                 "speed": "default_speed", "stop_angle_deg": "default_stop_angle_deg",
                 "max_distance": "max_approach_distance", "direction": "default_direction"}
 

@@ -38,7 +38,7 @@ def result_lines(verb: str, result: dict) -> list[str]:
     rows: list[tuple[str, str]] = []
     contact = result.get("hinge") if isinstance(result.get("hinge"), dict) else result
     if "p" in contact:
-        name = "hinge" if "hinge" in result else "contact"
+        name = "hinge" if "hinge" in result else "TCP" if verb == "home" else "contact"
         rows.append((name, mm(contact.get("p"))))
         if "std" in contact:
             rows.append(("one-sigma", mm(contact.get("std"))

@@ -202,12 +202,14 @@ class ControlThread:
         self._handle_commands(now, p)
         p_plan, v_plan = planner.position, planner.velocity
         fallbacks = planner.fallbacks
-        p_cmd = runner.step(now, p, R, est, js.tcp_force)
+        p_cmd = runner.step(now, p, R, est, js.tcp_force, np.asarray(js.q, dtype=float), js.t, twist[:3])
         if planner.fallbacks != fallbacks:     # a task's step or a brake
             log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
                         planner.fallbacks)
         if p_cmd is None or not fresh:
             self.robot.hold()
+        elif runner.qd_cmd is not None:           # a joint-space task (home)
+            self.robot.command_joint_velocity(runner.qd_cmd)
         else:
             plan = PlanSample(now, p_plan, v_plan, p_cmd, runner.R_hold, runner.w_ff)
             self.robot.command_joint_velocity(joint_velocities(self.model, js, oMtcp, plan, self.params.tick_s,
@@ -283,8 +285,12 @@ class ControlThread:
         if spec is None:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
         R_hold = self.runner.R_hold if self.runner.R_hold is not None else np.eye(3)
+        js = self.robot.read_state()
         ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
-                                self.params.workspace_min, self.params.workspace_max, self.services.get(verb))
+                                self.params.workspace_min, self.params.workspace_max, self.services.get(verb),
+                                q=np.asarray(js.q, dtype=float).copy(), q_home=self.q_home.copy(),
+                                fk=lambda q: self.model.fk(q).translation.copy(),
+                                world=getattr(self.robot, "world_control", None))
         try:
             task = spec.build(f, ctx)
         except verbs.BuildRefused as exc:

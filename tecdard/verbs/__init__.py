@@ -77,6 +77,10 @@ class TaskContext:
     workspace_min: tuple               # the workspace box, world, m
     workspace_max: tuple
     service: VerbService | None = None   # the verb's own service (TaskVerb.service), if it has one
+    q: np.ndarray | None = None          # the measured joints, rad
+    q_home: np.ndarray | None = None     # robot.q_home, rad
+    fk: Callable | None = None           # q -> the TCP position, world, m
+    world: object | None = None          # the simulator's world control (let go, rebuild); None on a real arm
 
 
 @dataclass(frozen=True)
