@@ -330,8 +330,10 @@ ROTATE_TIMEOUT_S = 60.0
 # and the daemon then sees a robot whose world ran late, which no real controller does. Over the
 # last 38 rotates (hinge always within 1.5 mm when they finished) 3 ended on the conftest
 # allowances: the divergence stop at 20-23x (against 1.0-2.5 over whole runs that kept time), or no
-# IMU sample for 204-210 ms. The estimate and the motion are what these tests judge.
-FRANKY_SIM_STALLS = {"control.max_nis_ratio": 50.0, "control.imu_stale_s": 0.5}
+# IMU sample for 204-210 ms. The estimate and the motion are what these tests judge. The robot's
+# states come from the same stalled process: the stale-state stop (issue 32) ended two rotates at
+# 252-271 ms against the conftest's 250 ms on a loaded machine, so it gets the IMU's allowance.
+FRANKY_SIM_STALLS = {"control.max_nis_ratio": 50.0, "control.imu_stale_s": 0.5, "robot.max_state_age_s": 0.5}
 
 
 def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:

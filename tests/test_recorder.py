@@ -432,3 +432,51 @@ def test_sigterm_during_a_capture_writes_it_and_sigkill_costs_at_most_a_checkpoi
     (name,) = files
     rec = load_recording(tmp_path / "kill" / "recordings" / name)
     assert rec.meta["ended"].startswith("still open: a checkpoint") and rec.imu_t[-1] - rec.imu_t[0] > 2.5
+
+
+def test_a_task_is_never_filed_inside_an_idle_capture(tmp_path):
+    """Issue 33: a spurious onset after a task's end opened an idle capture, and the next task was
+    filed inside it. Whatever the trigger does, an idle capture closes before the task's first pass."""
+    from tecdard.recording.format import load_recording
+    params = R.RecordParams(enabled=True, dir=str(tmp_path), pre_onset_s=0.1)
+    items = [("feed", a_pass(0.01 * k, episode=1)) for k in range(10)]
+    items.append(("feed", a_pass(0.1, episode=1, onset=True, est=True)))          # an onset at rest, no task
+    items += [("feed", a_pass(0.11 + 0.01 * k, episode=1, est=True)) for k in range(10)]
+    items.append(("note_event", {"kind": "task_started", "task": "rotate-1", "verb": "rotate", "t": 0.21}))
+    items += [("feed", a_pass(0.21 + 0.01 * k, episode=2)) for k in range(10)]     # the task's own episode
+    items.append(("feed", a_pass(0.31, episode=2, onset=True, est=True)))
+    items += [("feed", a_pass(0.32 + 0.01 * k, episode=2, est=True)) for k in range(10)]
+    items.append(("note_event", {"kind": "task_done", "task": "rotate-1", "verb": "rotate", "t": 0.42}))
+    rec, events = run_recorder(params, items)
+    written = sorted(tmp_path.glob("*.npz"))
+    assert [p.name.split("-", 2)[2] for p in written] == ["idle.npz", "rotate-1.npz"], written
+    idle = load_recording(written[0])
+    assert idle.meta["task"] is None and float(idle.imu_t[-1]) < 0.21      # nothing of the task's passes
+    task = load_recording(written[1])
+    assert task.meta["task"] == "rotate-1" and float(task.imu_t[0]) >= 0.21 - params.pre_onset_s
+
+
+def test_an_idle_capture_is_closed_after_max_idle_capture_s(tmp_path):
+    """One idle capture ran 113 s on an arm at rest: it is closed after record.max_idle_capture_s."""
+    params = R.RecordParams(enabled=True, dir=str(tmp_path), pre_onset_s=0.1, max_idle_capture_s=0.5)
+    rec = R.Recorder(params, lambda kind, **f: None, {"robot": "sim", "imu_in_tcp_quat": [0, 0, 0, 1],
+                                                      "plane_normal": None})
+    stop = threading.Event()
+    th = threading.Thread(target=rec.run, args=(stop,))
+    th.start()
+    try:
+        rec.feed(a_pass(0.0, episode=1))
+        rec.feed(a_pass(0.01, episode=1, onset=True, est=True))
+        t_open = time.monotonic()
+        k = 0
+        while rec._capture is None or time.monotonic() - t_open < 2.0:
+            k += 1
+            rec.feed(a_pass(0.02 + 0.01 * k, episode=1, est=True))
+            time.sleep(0.01)
+            if rec._capture is None and time.monotonic() - t_open > 0.3:
+                break
+        closed_after = time.monotonic() - t_open
+    finally:
+        stop.set()
+        th.join(10.0)
+    assert closed_after < 1.5 and list(tmp_path.glob("*-idle.npz")), closed_after

@@ -127,7 +127,10 @@ class Daemon:
             "robot": self.robot_name, "backend": backend_name, "model": self.model.name, "version": __version__,
             "config_digest": config_digest(json.dumps(cfg.data, sort_keys=True, default=str)),
             "estimator": self.method, "imu_in_tcp_quat": list(mount),
-            "plane_normal": self.pipeline.params.plane_normal})
+            "plane_normal": self.pipeline.params.plane_normal,
+            # a grip force the backend does not measure is the configured one: recorded, and said so
+            "grip_force": self.pipeline.params.grip_force_n, "grip_force_assumed": True,
+            "fingertip_lag_s_assumed": self.pipeline.params.fingertip_lag_s})
         self.view = LiveView(self.viz_params, quat_to_matrix(np.array(mount)), self.outbox.event) \
             if self.viz_params.enabled else None
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,

@@ -88,6 +88,7 @@ class RecordParams:
     max_on_demand_per_min: float = 2.0    # captures on demand started per minute, after a burst of ...
     max_on_demand_burst: int = 10         # ... this many
     checkpoint_s: float = CHECKPOINT_S    # an open capture is written this often
+    max_idle_capture_s: float = 10.0      # a capture with no task (an onset at rest) is closed after this
 
     @classmethod
     def from_config(cls, section) -> "RecordParams":
@@ -101,7 +102,9 @@ class RecordParams:
                                                             above=0.0, maxval=600.0),
                      max_on_demand_burst=section.getint("max_on_demand_burst", d.max_on_demand_burst, minval=1,
                                                         maxval=1000),
-                     checkpoint_s=section.getfloat("checkpoint_s", d.checkpoint_s, minval=1.0, maxval=MAX_CAPTURE_S))
+                     checkpoint_s=section.getfloat("checkpoint_s", d.checkpoint_s, minval=1.0, maxval=MAX_CAPTURE_S),
+                     max_idle_capture_s=section.getfloat("max_idle_capture_s", d.max_idle_capture_s, minval=0.5,
+                                                         maxval=MAX_CAPTURE_S))
         try:
             ensure_writable_dir(params.dir, "dir")
         except OutputError as exc:
@@ -235,6 +238,11 @@ class Recorder:
 
     def _on_pass(self, p: Pass) -> None:
         cap = self._capture
+        if cap is not None and not cap.manual and cap.task is None and p.directive.episode != cap.episode:
+            # an idle capture (no task) whose episode was released, by a task's start or otherwise:
+            # closed before this pass, which belongs to what comes next (never a task in an idle file)
+            self._finish("the episode ended")
+            cap = None
         if cap is not None and not cap.manual and cap.end_by is None and p.directive.episode != cap.episode:
             # the pipeline was released before this pass: its task's end event is on its way (or
             # there is no task): wait for it a little, so that the file holds it
@@ -252,6 +260,9 @@ class Recorder:
         kind = ev.get("kind")
         if kind == "task_started":
             self._task = (str(ev.get("task")), str(ev.get("verb")))
+            cap = self._capture
+            if cap is not None and not cap.manual and cap.task != self._task[0]:
+                self._finish("a task started")          # a task is never filed inside another capture
         cap = self._capture
         if cap is None:
             self._pre_events.append(ev)
@@ -300,6 +311,10 @@ class Recorder:
             self._finish("the episode ended")
         elif cap is not None and now - cap.t_open > MAX_CAPTURE_S:
             self._finish(f"longer than {MAX_CAPTURE_S:g} s")
+        elif (cap is not None and cap.task is None and not cap.manual
+              and now - cap.t_open > self.params.max_idle_capture_s):
+            # an onset with no task (a bump, the arm's own motion) is not followed for minutes
+            self._finish(f"no task, {self.params.max_idle_capture_s:g} s (record.max_idle_capture_s)")
         elif cap is not None and now - cap.saved_at >= self.params.checkpoint_s:
             cap.saved_at = now
             self._write(cap, "", checkpoint=True)
@@ -444,10 +459,12 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         imu_t=imu[:, 0].copy(), gyro=imu[:, 1:4].copy(), accel=imu[:, 4:7].copy(), tcp_t=tcp_t,
         tcp_pos=np.array([s[1] for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
         imu_in_tcp_quat=np.asarray(meta["imu_in_tcp_quat"], float),
-        grip_force=grip if np.all(np.isfinite(grip)) else None,
+        grip_force=grip if len(grip) and np.all(np.isfinite(grip)) else None,
         plane_normal=None if meta.get("plane_normal") is None else np.asarray(meta["plane_normal"], float),
         tcp_vel=np.array(vel) if all(v is not None for v in vel) else None,
         meta={k: v for k, v in meta.items() if k not in ("imu_in_tcp_quat", "plane_normal")} |
+        # measured grip forces are the recording's own (the grip_force key); the configured one is assumed
+        {"grip_force_assumed": bool(meta.get("grip_force_assumed")) and not np.all(np.isfinite(grip))} |
         {"task": cap.task, "verb": cap.verb, "label": cap.label, "reason": cap.reason})
     # each pass's batch end (into imu_t), and the pass at which each proprioception sample arrived
     ends = np.cumsum([len(p.batch) for p in passes])

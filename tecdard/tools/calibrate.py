@@ -47,6 +47,7 @@ MIN_RECORDINGS = 2
 FORCE_ROUND_N = 0.1
 LAG_MAX_S = 0.020             # the fingertip lag searched, 0 to this (a best fit at it is said, best_lag)
 LAG_STEP_S = 0.00025
+LAG_SE_SPAN_S = 0.002        # the residual's curvature is fitted this far either side of its minimum
 LAG_SPAN_S = 0.3              # the part of a probe fitted: its start (where the rates change) and enough to pin eta
 MIN_LEVER_M, MAX_LEVER_M = 0.001, 2.0    # --contact's distance from the TCP, as --radius's bounds
 CONSISTENCY_Z = 3.09          # recordings at one grip force agree when their chi-square is under its 99.9 % quantile
@@ -126,8 +127,8 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
     return eta, se, len(a_all)
 
 
-def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lags on the grid (k,), the residual sum of squares at each, eta fitted per lag) of one
+def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(lags on the grid (k,), the residual sum of squares at each, the residuals' count) of one
     recording with a known contact: the object's relative rate across the lever arm at each
     proprioception sample in the probe's first LAG_SPAN_S against the gyro's LAG later."""
     t = rec.imu_t
@@ -142,7 +143,7 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
     lags = np.arange(0.0, LAG_MAX_S + 1e-12, LAG_STEP_S)
     rss = np.full(len(lags), np.inf)
     if len(sel) < 5:
-        return lags, rss
+        return lags, rss, 0
     r = rec.tcp_pos[sel] - contact
     n2 = np.einsum("ij,ij->i", r, r)
     u = r / np.sqrt(n2)[:, None]
@@ -162,7 +163,26 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
             continue
         eta = float(np.sum(a * b)) / bb
         rss[k] = float(np.sum((a - eta * b) ** 2))
-    return lags, rss
+    return lags, rss, a.size
+
+
+def lag_uncertainty(curves: list[np.ndarray], lags: np.ndarray, samples: int) -> float | None:
+    """The lag's one-sigma from the summed residual's curvature about its minimum (a least-squares
+    parabola over LAG_SE_SPAN_S either side): the lag at which the residual has grown by one
+    sample's variance. None where the curve has no minimum there. The lag shows only where the rates
+    change, the probe's first tenth of a second, which proprioception samples a few times: with
+    three probes this is a millisecond or more, and it is printed so that a fit of 0 ms is not read
+    as a measurement of none."""
+    total = np.sum(np.vstack(curves), axis=0)
+    k = int(np.argmin(total))
+    near = np.abs(lags - lags[k]) <= LAG_SE_SPAN_S
+    x, y = lags[near], total[near]
+    if len(x) < 5 or not np.all(np.isfinite(y)) or samples <= 3:
+        return None
+    c2, _, _ = np.polyfit(x - lags[k], y, 2)
+    if c2 <= 0:
+        return None
+    return float(np.sqrt(total[k] / (samples - 2) / c2))
 
 
 class LagAtBound(CalibrationError):
@@ -230,6 +250,25 @@ def pool(rows: list[tuple[float, float, float]]) -> list[Pooled]:
     return out
 
 
+def outliers(rows: list[tuple[float, str, float, float]]) -> list[tuple[str, str]]:
+    """[(force, name, eta, se)] -> [(name, why)] for each recording whose eta disagrees with the others
+    at its grip force beyond CONSISTENCY_Z of their combined error (leave-one-out; three or more
+    recordings at a force, so that the others say which one is off: 0.72 among 1.98 and 2.00)."""
+    out = []
+    for force in sorted({r[0] for r in rows}):
+        group = [r for r in rows if r[0] == force]
+        if len(group) < 3:
+            continue
+        for _, name, eta, se in group:
+            others = [(e, s) for _, n, e, s in group if n != name]
+            (rest,) = pool([(force, e, s) for e, s in others])
+            z = abs(eta - rest.eta) / np.hypot(se, rest.sigma)
+            if z > CONSISTENCY_Z:
+                out.append((name, f"eta {eta:.3f} +- {se:.3f} against {rest.eta:.3f} +- {rest.sigma:.3f} of the "
+                                  f"other {len(others)} at grip {force:g} N ({z:.1f} sigma)"))
+    return out
+
+
 def check_fit(name: str, eta: float, se: float) -> None:
     """A recording's eta must be one a fingertip can have: in (0, MAX_ETA] as the daemon's own
     estimator.eta_table takes it, and told apart from zero (eta > 2 se); CalibrationError otherwise."""
@@ -249,6 +288,13 @@ def check_lever(name: str, rec, onset_t: float, contact) -> None:
     if not MIN_LEVER_M <= r <= MAX_LEVER_M:
         raise CalibrationError(f"--contact: {r:.4g} m from the TCP in {name}; a lever arm is {MIN_LEVER_M:g}.."
                                f"{MAX_LEVER_M:g} m (world frame, metres)")
+
+
+def is_idle_capture(rec) -> bool:
+    """A daemon's recording of a contact onset with no task running (the arm's own motion, or a
+    bump): no probe of a known contact."""
+    meta = rec.meta or {}
+    return "robot" in meta and meta.get("reason") == "episode" and meta.get("task") is None
 
 
 def grip_force_of(name: str, rec) -> float:
@@ -316,7 +362,7 @@ def main(args) -> int:
     if len(args.recordings) < MIN_RECORDINGS:
         return bad(f"needs at least {MIN_RECORDINGS} recordings (got {len(args.recordings)}): eta's uncertainty "
                    "comes from more than one probe")
-    rows, lag_curves, lags, names = [], [], None, []
+    curves, counts, lags, names = {}, {}, None, []
     try:
         for path in args.recordings:
             one = argparse.Namespace(recording=path, config=args.config, method=None, ignore_live=False,
@@ -324,6 +370,9 @@ def main(args) -> int:
             rec, live, pipeline = recording_and_pipeline(one)
             _, onset_t, _ = estimates(one, rec, live, pipeline)
             name = pathlib.Path(path).name
+            if is_idle_capture(rec):
+                print(f"{name}: an idle capture (a contact onset with no task running): left out")
+                continue
             if onset_t is None:
                 raise CalibrationError(f"{name}: no contact onset detected")
             force = grip_force_of(name, rec)
@@ -331,14 +380,24 @@ def main(args) -> int:
                 check_lever(name, rec, onset_t, contact)
             eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
             check_fit(name, eta, se)
-            rows.append((force, eta, se))
             names.append((force, name, eta, se))
             if contact is not None:
-                lags, rss = lag_residuals(rec, onset_t, contact)
-                lag_curves.append(rss)
-            print(f"{name}: grip {force:g} N, eta {eta:.3f} +- {se:.3f} ({n} windows)")
+                lags, rss, count = lag_residuals(rec, onset_t, contact)
+                curves[name] = rss
+                counts[name] = count
+            assumed = " (assumed: the daemon's estimator.grip_force_n)" if rec.meta.get("grip_force_assumed") else ""
+            print(f"{name}: grip {force:g} N{assumed}, eta {eta:.3f} +- {se:.3f} ({n} windows)")
     except (BadInput, CalibrationError) as exc:
         return bad(str(exc))
+    for name, why in outliers(names):
+        print(f"{name}: an outlier, left out: {why}")
+        names = [r for r in names if r[1] != name]
+        curves.pop(name, None)
+        counts.pop(name, None)
+    if len(names) < MIN_RECORDINGS:
+        return bad(f"{len(names)} recording(s) left to fit; needs at least {MIN_RECORDINGS}")
+    rows = [(f, e, se) for f, _, e, se in names]
+    lag_curves = list(curves.values())
     pooled = pool(rows)
     print("grip force N | eta | one-sigma | recordings | chi-square / dof | spread")
     for p in pooled:
@@ -354,7 +413,13 @@ def main(args) -> int:
     print(table_yaml(pooled))
     if lag_curves:
         try:
-            print(f"estimator.fingertip_lag_s: {best_lag(lag_curves, lags):.4f}")
+            lag = best_lag(lag_curves, lags)
+            se = lag_uncertainty(lag_curves, lags, sum(counts.values()))
+            said = "" if se is None else f"   # +- {se:.4f} s (one-sigma, from {len(lag_curves)} probes' starts)"
+            print(f"estimator.fingertip_lag_s: {lag:.4f}{said}")
+            if lag < LAG_STEP_S:
+                print("the lag fits best at 0: the fingertip's lag is under the search's step, or the probes' "
+                      "starts were too few or too smooth to show it")
         except LagAtBound as exc:            # eta stands; the lag is not found
             return bad(str(exc))
     return 0
