@@ -465,10 +465,12 @@ class MapTask(Task):
             self._fail(f"map files not written: {exc}")
             return None
         result = fut.result()
-        summary = result.get("summary", {})
-        if not summary.get("valid"):
-            reasons = ", ".join(f"{k} {v}" for k, v in (summary.get("invalid") or {}).items()) or "none probed"
-            self._fail(f"map: none of the {summary.get('points', 0)} points is valid ({reasons}); "
+        if not any(pt.valid for pt in self.points):
+            reasons: dict = {}
+            for pt in self.points:
+                reasons[pt.reason] = reasons.get(pt.reason, 0) + 1
+            said = ", ".join(f"{k} {v}" for k, v in reasons.items()) or "none probed"
+            self._fail(f"map: none of the {len(self.points)} points is valid ({said}); "
                        f"what was probed is in {result.get('path')}")
             return None
         self._done(result)

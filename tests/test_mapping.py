@@ -240,7 +240,8 @@ def test_a_missed_impact_is_abandoned_on_force_and_the_point_marked_invalid():
     task = MapTask("map-2", map_params(orientations=1), Files(lambda rec: records.append(rec) or done_now({})))
     rig = FakeRig(SCENE, P0, trigger=False)
     rig.run(task)
-    assert task.status.state == "done"
+    # every point abandoned: the map is written, and it is a failure (issue 33: "map done" with 0 of 4)
+    assert task.status.state == "failed" and "none of the 4 points is valid (force 4)" in task.status.error
     (rec,) = records
     assert [pt.reason for pt in rec.points] == ["force"] * 4
     assert not any(pt.valid for pt in rec.points)

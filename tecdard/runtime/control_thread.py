@@ -288,7 +288,7 @@ class ControlThread:
         js = self.robot.read_state()
         ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
                                 self.params.workspace_min, self.params.workspace_max, self.services.get(verb),
-                                q=np.asarray(js.q, dtype=float).copy(), q_home=self.q_home.copy(),
+                                q=np.array(js.q, dtype=float), q_home=np.array(self.q_home, dtype=float),
                                 fk=lambda q: self.model.fk(q).translation.copy(),
                                 world=getattr(self.robot, "world_control", None))
         try:
