@@ -21,7 +21,12 @@ $(WARM): $(STAMP) $(wildcard control/estimators/kernels/*.py)
 	$(PY) -m tecdard warm
 	touch $(WARM)
 
-install: $(WARM)
+# a rig's install: the daemon with the arms' clients and the viewers, none of the test, bench or
+# simulator extras (`make run` and `make test` install those into the same .venv when asked)
+install: $(PY)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[ur,franka,viz]'
+	$(PY) -m tecdard warm
 
 run: $(WARM)
 	$(PY) -m tecdard demo --config configs/sim.yaml

@@ -84,3 +84,17 @@ def test_functions_files_and_signatures_stay_readable(folder):
             if params > MAX_PARAMETERS:
                 wide.append(f"{where}:{node.lineno} {node.name}: {params} parameters")
     assert not (long or wide or big), long + wide + big
+
+
+def test_the_client_imports_without_the_estimator_pinocchio_or_numba():
+    """A planner's process takes `tecdard.client` alone (issue 33): none of the daemon's heavy parts."""
+    import subprocess
+    import sys
+    code = ("import sys\n"
+            "for m in ('pinocchio', 'numba', 'ruckig', 'mujoco', 'tecdard.control', 'tecdard.runtime', "
+            "'tecdard.robots'):\n"
+            "    sys.modules[m] = None\n"
+            "from tecdard.client import Client, ClientError\n"
+            "print(Client.__name__)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.strip() == "Client", res.stderr

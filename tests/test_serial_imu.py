@@ -292,3 +292,26 @@ def test_sim_wire_leaves_no_temporary_directories(make_daemon):
     assert len(mine) == 1 and not stale.exists()
     assert d.terminate() == 0
     assert not mine[0].exists()
+
+
+def test_fake_board_lets_the_serial_path_be_tried_on_a_desk(tmp_path):
+    """Issue 33: `tecdard fake-board` runs the simulated board on a pty and prints its path; `tecdard
+    imu` reads it as it reads a board."""
+    import subprocess
+    import sys
+    import time
+    from tests.conftest import ROOT, tecdard
+    link = tmp_path / "fake-imu"
+    proc = subprocess.Popen([sys.executable, "-m", "tecdard", "fake-board", "--link", str(link), "--seconds", "30"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith(f"fake board streaming tecdar-imu/1 at 6667 Hz on {link}"), first
+        res = tecdard("imu", "--port", str(link), "--seconds", "1.5")
+        assert res.returncode == 0, res.stderr
+        assert "status: ODR 6667 Hz, gyro 4000 dps, accel 16 g" in res.stdout, res.stdout
+        assert "crc_errors 0" in res.stdout
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert proc.returncode == 0 and not link.exists()

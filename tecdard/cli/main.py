@@ -76,7 +76,8 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """Every subcommand: `run`, the client's (cli.task_verbs) and each tool's own (its add_parser).
     With --help in `argv`, the task verbs' limits are a running daemon's where one answers."""
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
-    from tecdard.tools import calibrate, demo, doctor, export, imu, kernel_cache, localize, plot, sim_record
+    from tecdard.tools import (calibrate, demo, doctor, export, fake_board, imu, kernel_cache, localize, plot,
+                               sim_record)
     argv = argv or []
     limits, note = None, ""
     if ("-h" in argv or "--help" in argv) and argv and argv[0] in verb_options():
@@ -88,7 +89,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="YAML configuration file")
     p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7507)")
     p.set_defaults(func=_cmd_run)
-    for tool in (localize, plot, export, calibrate, sim_record, imu):
+    for tool in (localize, plot, export, calibrate, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
     for tool in (doctor, kernel_cache, demo):
