@@ -98,3 +98,23 @@ def test_the_client_imports_without_the_estimator_pinocchio_or_numba():
             "print(Client.__name__)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.strip() == "Client", res.stderr
+
+
+def test_every_markdown_table_has_as_many_cells_as_its_header():
+    """benchmarks/daemon.md's table did not render: its separator and its failed rows were short."""
+    import pathlib
+    import re
+    root = pathlib.Path(__file__).resolve().parents[1]
+    bad = []
+    for path in [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "benchmarks").glob("*.md"))]:
+        header = None
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if not line.startswith("|"):
+                header = None
+                continue
+            cells = len(re.split(r"(?<!\\)\|", line.strip().strip("|")))
+            if header is None:
+                header = cells
+            elif cells != header:
+                bad.append(f"{path.name}:{n}: {cells} cells, header {header}")
+    assert not bad, bad
