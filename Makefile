@@ -52,6 +52,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.mujoco
 	$(PY) -m benchmarks.poses
 	$(PY) -m benchmarks.startup --cold
+	$(PY) -m benchmarks.figure
 
 clean:
 	rm -rf $(VENV) build *.egg-info
