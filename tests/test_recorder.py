@@ -480,3 +480,30 @@ def test_an_idle_capture_is_closed_after_max_idle_capture_s(tmp_path):
         stop.set()
         th.join(10.0)
     assert closed_after < 1.5 and list(tmp_path.glob("*-idle.npz")), closed_after
+
+
+def test_plot_reads_as_a_person_reads_it(tmp_path):
+    """Issue 33: the plot in mm, the unobservable axis said instead of banded, the TCP, the angle, the
+    task's marks, and the error panel with a truth (the figure's text, drawn as SVG text)."""
+    pytest.importorskip("matplotlib", reason="the `viz` extra, which `make test` installs")
+    import matplotlib
+    from tecdard.recording.format import load_recording, load_truth
+    from tecdard.tools.plot import draw
+    rec_path = tmp_path / "arc.npz"
+    assert tecdard("sim-record", str(rec_path), "--kind", "edge-arc", "--radius", "0.12").returncode == 0
+    rec = load_recording(rec_path)
+    truth = load_truth(rec_path)
+    t = rec.imu_t
+    onset = float(t[len(t) // 3])
+    k = np.arange(50)
+    rows = np.column_stack([onset + 0.01 * k, np.tile(truth["p_c"], (50, 1)) + 1e-3,
+                            np.tile([0.004, 0.5, 0.003], (50, 1))])
+    events = [{"kind": "task_started", "t": float(t[0]) + 0.1}, {"kind": "task_done", "t": float(t[-1]) - 0.1}]
+    out = tmp_path / "arc.svg"
+    with matplotlib.rc_context({"svg.fonttype": "none"}):
+        draw(rec, rows, onset, truth, str(out), "arc", fmt="svg", events=events)
+    text = out.read_text()
+    for label in ("contact x, mm", "unobservable", "(one-sigma 500 mm)", "TCP from its start", "fingertip turned",
+                  "since the onset, deg", "error, mm", "onset", "start", "done", "time since the recording"):
+        assert label in text, label
+    assert text.count("±3σ") == 2                  # x and z banded; y, along the hinge, not

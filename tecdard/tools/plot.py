@@ -1,5 +1,7 @@
-"""`tecdard plot REC.npz -o out.png`: a recording at a glance: the IMU with the onset, the estimate
-converging with its 3-sigma band per axis, and its error against the truth where a recording has one.
+"""`tecdard plot REC.npz -o out.png`: a recording at a glance: the IMU with the onset, the TCP's motion
+(mm) and the fingertip's turn (deg), the estimate converging in mm with its 3-sigma band per axis (an
+axis it cannot observe, along a hinge, is said, not banded), its error against the truth where a
+recording has one, and a daemon recording's task start, end and stops marked.
 
 Matplotlib is an extra (`pip install 'tecdar[viz]'`); without it the command says so in one line.
 """
@@ -43,56 +45,100 @@ def _pyplot():
     return plt
 
 
+UNOBSERVABLE_M = 0.1     # an axis whose one-sigma ends above this is unobservable (along a hinge): no band
+EVENT_KINDS = {"task_started": "start", "contact_onset": "onset", "task_done": "done", "task_failed": "failed",
+               "protective_stop": "stop", "fault": "fault"}
+BIAS_S = 0.2             # the gyro bias for the angle: the mean over this long before the onset
+
+
+def turned_deg(rec: Recording, onset_t: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The fingertip's rotation since the onset (deg), its gyro integrated less the bias at rest
+    before it: (t, angle). None without an onset or rest before it."""
+    if onset_t is None:
+        return None
+    t = rec.imu_t
+    pre = (t < onset_t) & (t >= onset_t - BIAS_S)
+    if np.count_nonzero(pre) < 10:
+        return None
+    after = t >= onset_t
+    w = rec.gyro[after] - rec.gyro[pre].mean(axis=0)
+    dt = np.diff(t[after], prepend=t[after][0])
+    return t[after], np.degrees(np.linalg.norm(np.cumsum(w * dt[:, None], axis=0), axis=1))
+
+
 def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, out: str, title: str,
-         fmt: str = "png") -> None:
-    """Draw to the file `out` in the image format `fmt`. `rows` (k, 7): t, p, std."""
+         fmt: str = "png", events: list | None = None) -> None:
+    """Draw to the file `out` in the image format `fmt`. `rows` (k, 7): t, p, std (m); drawn in mm.
+    `events`: a daemon recording's (task start and end, stops), marked on every panel."""
     plt = _pyplot()
     p_true = truth.get("p_c")
-    n_panels = 2 + 3 + (1 if p_true is not None and len(rows) else 0)
-    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 2.2 * n_panels), sharex=True)
+    has_err = p_true is not None and len(rows) > 0
+    n_panels = 4 + 3 + (1 if has_err else 0)
+    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 1.9 * n_panels), sharex=True, constrained_layout=True)
     t0 = rec.imu_t[0]
     t = rec.imu_t - t0
-    for ax, data, what in ((axes[0], rec.gyro, "gyro, rad/s (IMU frame)"), (axes[1], rec.accel, "accel, m/s² (IMU frame)")):
+    for ax, data, what in ((axes[0], rec.gyro, "gyro, rad/s\n(IMU frame)"),
+                           (axes[1], rec.accel, "accel, m/s²\n(IMU frame)")):
         for k in range(3):
             ax.plot(t, data[:, k], lw=0.6, label=AXES[k])
         ax.set_ylabel(what, fontsize=8)
-        ax.legend(loc="upper right", fontsize=7, ncol=3)
-    for ax in axes:
-        if onset_t is not None:
-            ax.axvline(onset_t - t0, color="k", ls="--", lw=0.8)
-    if onset_t is not None:
-        axes[0].text(onset_t - t0, axes[0].get_ylim()[1], " onset", va="top", fontsize=8)
+        ax.legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+    tcp = (rec.tcp_pos - rec.tcp_pos[0]) * 1e3
+    for k in range(3):
+        axes[2].plot(rec.tcp_t - t0, tcp[:, k], lw=1.0, label=AXES[k])
+    axes[2].set_ylabel("TCP from its start,\nmm (world)", fontsize=8)
+    axes[2].legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+    turned = turned_deg(rec, onset_t)
+    if turned is not None:
+        axes[3].plot(turned[0] - t0, turned[1], lw=1.0, color="C4")
+    axes[3].set_ylabel("fingertip turned\nsince the onset, deg", fontsize=8)
     te = rows[:, 0] - t0 if len(rows) else np.zeros(0)
     for k in range(3):
-        ax = axes[2 + k]
+        ax = axes[4 + k]
+        label = f"contact {AXES[k]}, mm"
         if len(rows):
-            p, s = rows[:, 1 + k], rows[:, 4 + k]
+            p, sd = rows[:, 1 + k] * 1e3, rows[:, 4 + k] * 1e3
             ax.plot(te, p, lw=1.0, color=f"C{k}", label=f"estimate {AXES[k]}")
-            ax.fill_between(te, p - SIGMA_BAND * s, p + SIGMA_BAND * s, color=f"C{k}", alpha=0.2,
-                            label=f"±{SIGMA_BAND:g}σ")
+            unobservable = np.isfinite(sd[-1]) and sd[-1] > UNOBSERVABLE_M * 1e3
+            if unobservable:      # along a hinge: the band would hide everything else
+                label += f"\nunobservable\n(one-sigma {sd[-1]:.0f} mm)"
+            else:
+                ax.fill_between(te, p - SIGMA_BAND * sd, p + SIGMA_BAND * sd, color=f"C{k}", alpha=0.2,
+                                label=f"±{SIGMA_BAND:g}σ")
             finite = p[np.isfinite(p)]
             if len(finite):     # the band starts wide: show where the estimate lives
                 lo, hi = np.percentile(finite, [2, 98])
-                pad = max(0.01, 0.5 * (hi - lo))
+                pad = max(10.0, 0.5 * (hi - lo))
                 ax.set_ylim(lo - pad, hi + pad)
         if p_true is not None:
-            ax.axhline(float(np.asarray(p_true)[k]), color="k", lw=0.8, label="truth")
-        ax.set_ylabel(f"contact {AXES[k]}, m", fontsize=8)
-        ax.legend(loc="upper right", fontsize=7, ncol=3)
-    if n_panels == 6:
+            ax.axhline(float(np.asarray(p_true)[k]) * 1e3, color="k", lw=0.8, label="truth")
+        ax.set_ylabel(label, fontsize=8)
+        ax.legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+    if has_err:
         d = rows[:, 1:4] - np.asarray(p_true, float)
         axis = truth.get("axis")
         line = truth.get("kind") is not None and "point" not in str(truth.get("kind")) and np.shape(axis) == (3,)
         if line:        # a line contact: along the edge is unobservable; the error is in the plane of rotation
             a = np.asarray(axis, float) / np.linalg.norm(axis)
             d = d - np.outer(d @ a, a)
-        axes[5].semilogy(te, np.maximum(np.linalg.norm(d, axis=1), 1e-6) * 1e3, lw=1.0)
-        axes[5].set_ylabel("error, mm" + (" (in the plane\nof rotation)" if line else " (3D)"), fontsize=8)
-    axes[-1].set_xlabel(f"time since the first sample, s ({title})")
+        axes[-1].semilogy(te, np.maximum(np.linalg.norm(d, axis=1), 1e-6) * 1e3, lw=1.0)
+        axes[-1].set_ylabel("error, mm" + ("\n(in the plane\nof rotation)" if line else " (3D)"), fontsize=8)
+    marks = [(onset_t, "onset")] if onset_t is not None else []
+    for ev in events or []:
+        name = EVENT_KINDS.get(ev.get("kind"))
+        if name and isinstance(ev.get("t"), (int, float)) and name != "onset":
+            marks.append((float(ev["t"]), name))
+    for when, name in marks:
+        for ax in axes:
+            ax.axvline(when - t0, color="k" if name == "onset" else "0.5", ls="--", lw=0.8)
+        axes[0].annotate(name, (when - t0, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
+                         rotation=90, va="top", ha="right")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time since the recording's first sample, s")
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
     try:
-        fig.savefig(out, dpi=110, format=fmt)
+        fig.savefig(out, dpi=100, format=fmt)
     except ValueError as exc:
         raise PlotError(f"-o: cannot write {out} ({exc})") from None
     finally:
@@ -125,7 +171,8 @@ def main(args) -> int:
         if np.shape(p_c) != (3,) or np.asarray(p_c).dtype.kind not in "fiu" or not np.all(np.isfinite(p_c)):
             truth.pop("p_c", None)
         with replacing(args.out, "-o") as tmp:                  # a failed write leaves what was there
-            draw(rec, rows, onset_t, truth, str(tmp), f"{pathlib.Path(args.recording).name}, {pipeline.method}", fmt)
+            draw(rec, rows, onset_t, truth, str(tmp), f"{pathlib.Path(args.recording).name}, {pipeline.method}", fmt,
+                 events=None if live is None else live.events)
     except (BadInput, PlotError, RecordingError) as exc:
         return refused("plot", str(exc))
     except OutputError as exc:
