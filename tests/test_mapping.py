@@ -3,6 +3,7 @@ import concurrent.futures
 import csv
 import json
 import math
+import pathlib
 import struct
 import zlib
 
@@ -334,7 +335,38 @@ def test_write_map_writes_the_four_files(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["valid"] == 8 and summary["depth"]["shape"] == [16, 16] and summary["kernel"]["k"] == 4
     assert res["summary"] == summary
-    img = read_png(out / "depth.png")
+    data = (out / "depth.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    w, h = struct.unpack(">II", data[16:24])
+    assert (w, h) == (640, 500)                       # the figure (matplotlib, the viz extra)
+
+
+def test_the_depth_image_has_axes_in_mm_and_a_labelled_colour_bar(tmp_path, monkeypatch):
+    """Issue 33: a person reads the map's image: world x and y in mm, the height's colour bar
+    labelled, the probes marked. Without matplotlib it is the raw raster with its colour bar."""
+    pytest.importorskip("matplotlib", reason="the `viz` extra, which `make test` installs")
+    import matplotlib
+    from tecdard.verbs.map import files as map_files
+    records = []
+    task = MapTask("map-6", map_params(), Files(lambda rec: records.append(rec) or done_now({})))
+    FakeRig(SCENE, P0).run(task)
+    rec = records[0]
+    settings = MapSettings(output_dir=str(tmp_path), resolution_m=0.005, kernel_sigma_m=0.022)
+    _, height = map_files.fuse(rec, settings)
+    svg = tmp_path / "depth.svg"
+    with matplotlib.rc_context({"svg.fonttype": "none", "savefig.format": "svg"}):
+        import matplotlib.figure
+        real = matplotlib.figure.Figure.savefig
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                            lambda self, path, **kw: real(self, path, **{**kw, "format": "svg"}))
+        assert map_files.draw_depth(svg, height, rec, rec.params)
+    text = svg.read_text()
+    for label in ("world x, mm", "world y, mm", "surface height, world z, mm", "probe, valid (8)",
+                  "tactile depth map map-6: 8 of 8 probes valid"):
+        assert label in text, label
+    monkeypatch.setattr(map_files, "draw_depth", lambda *a: False)         # no matplotlib: the raw raster
+    res = map_files.write_map(rec, settings)
+    img = read_png(pathlib.Path(res["files"]["depth.png"]))
     assert img.shape[0] == 16 * 8 and img.shape[1] > 16 * 8
 
 

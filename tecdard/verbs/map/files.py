@@ -125,8 +125,42 @@ def _write_files(record: MapRecord, settings: MapSettings, out: pathlib.Path) ->
         "median_std_z": float(np.median([pt.std[2] for pt in valid])) if valid else None,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    write_png(out / "depth.png", heatmap_rgb(height, query, valid, record.points, m))
+    if not draw_depth(out / "depth.png", height, record, m):       # without matplotlib: the raw raster
+        write_png(out / "depth.png", heatmap_rgb(height, query, valid, record.points, m))
     return summary
+
+
+def draw_depth(path, height: np.ndarray, record, m) -> bool:
+    """depth.png as a figure a person reads: world x and y in mm on the axes, the surface height in mm
+    on a labelled colour bar, the probes marked (valid, invalid). False where matplotlib (the `viz`
+    extra) is not installed. The object-oriented API only (no pyplot): this runs on the map writer's
+    thread."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return False
+    x0, y0 = (float(v) * 1e3 for v in m.origin_xy)
+    x1, y1 = x0 + float(m.size_xy[0]) * 1e3, y0 + float(m.size_xy[1]) * 1e3
+    fig = Figure(figsize=(6.4, 5.0), constrained_layout=True)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    im = ax.imshow(height * 1e3, origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("surface height, world z, mm")
+    good = np.array([pt.p[:2] for pt in record.points if pt.valid]).reshape(-1, 2) * 1e3
+    bad = np.array([pt.grid_xy for pt in record.points if not pt.valid]).reshape(-1, 2) * 1e3
+    if len(good):
+        ax.plot(good[:, 0], good[:, 1], "k.", ms=5, label=f"probe, valid ({len(good)})")
+    if len(bad):
+        ax.plot(bad[:, 0], bad[:, 1], "x", color="tab:red", ms=6, label=f"probe, invalid ({len(bad)})")
+    if len(good) or len(bad):
+        ax.legend(loc="upper right", fontsize=8, framealpha=0.7)
+    ax.set_xlabel("world x, mm")
+    ax.set_ylabel("world y, mm")
+    ax.set_title(f"tactile depth map {record.task_id}: {len(good)} of {len(record.points)} probes valid", fontsize=9)
+    fig.savefig(path, dpi=100, format="png")
+    return True
 
 
 def colormap(t: np.ndarray) -> np.ndarray:
