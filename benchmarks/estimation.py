@@ -378,11 +378,15 @@ def main() -> int:
 
     # RMSE against time since onset and against induced rotation angle (constrained line contact, 12 cm).
     base = [lab for lab in results if lab.startswith("radius 12")] or [next(iter(results))]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    # each method its own line style and marker: where two agree (svd and gd on one cost), both show
+    styles = {"ekf": dict(ls="-", marker="o"), "paper-ekf": dict(ls="-", marker="s"),
+              "svd-geo": dict(ls="--", marker="^", ms=8, mfc="none"), "gd-geo": dict(ls=":", marker="v", ms=5),
+              "svd-diff": dict(ls="--", marker="D", ms=8, mfc="none"), "gd-diff": dict(ls=":", marker="x", ms=6)}
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     for m in METHODS:
         rs = [r for lab in base for r in results[lab][m] if r["detected"]]
         rm = [np.sqrt(np.mean([np.interp(tb, r["since"], r["err"] ** 2) for r in rs])) for tb in TIME_BINS_S]
-        ax.plot(TIME_BINS_S * 1e3, np.array(rm) * 1e3, marker="o", label=m)
+        ax.plot(TIME_BINS_S * 1e3, np.array(rm) * 1e3, label=m, **styles.get(m, {"marker": "o"}))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time since onset (ms)")
@@ -390,40 +394,37 @@ def main() -> int:
     ax.set_title("Constrained line contact, L = 12 cm, 20 mm/s")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    fig.tight_layout()
     fig.savefig(OUT / "estimation_rmse_time.png", dpi=110)
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
     angle_bins = np.radians([0.25, 0.5, 1, 1.5, 2, 3, 4, 6, 8])
     for m in METHODS:
         rs = [r for lab in base for r in results[lab][m] if r["detected"]]
         rm = [np.sqrt(np.mean([np.interp(ab, r["angle"], r["err"] ** 2) for r in rs])) for ab in angle_bins]
-        ax.plot(np.degrees(angle_bins), np.array(rm) * 1e3, marker="o", label=m)
+        ax.plot(np.degrees(angle_bins), np.array(rm) * 1e3, label=m, **styles.get(m, {"marker": "o"}))
     ax.set_yscale("log")
     ax.set_xlabel("induced rotation (deg)")
     ax.set_ylabel("RMSE (mm)")
     ax.set_title("Constrained line contact, L = 12 cm")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    fig.tight_layout()
     fig.savefig(OUT / "estimation_rmse_angle.png", dpi=110)
-    fig, axs = plt.subplots(1, 3, figsize=(13, 4))
+    fig, axs = plt.subplots(1, 3, figsize=(13, 4.4), constrained_layout=True)
     groups = [("radius", [lab for lab in results if lab.startswith("radius")]),
               ("speed", ["speed 10 mm/s", "radius 12 cm", "speed 30 mm/s"]),
-              ("grip force (eta calibrated at 30 N)", ["grip 20 N", "radius 12 cm", "grip 40 N"])]
+              ("grip force\n(eta calibrated at 30 N)", ["grip 20 N", "radius 12 cm", "grip 40 N"])]
     for ax, (name, labs) in zip(axs, groups):
         labs = [lab for lab in labs if lab in results]
         for m in ("ekf", "paper-ekf", "svd-diff", "svd-geo"):
             ax.plot(range(len(labs)), [np.median([r["e180"] for r in results[lab][m] if r["detected"]]) * 1e3
-                                       for lab in labs], marker="o", label=m)
+                                       for lab in labs], label=m, **styles.get(m, {"marker": "o"}))
         ax.set_xticks(range(len(labs)))
         ax.set_xticklabels([lab.replace("radius 12 cm", "12 cm / 20 mm/s / 30 N") for lab in labs], rotation=30,
                            fontsize=8)
-        ax.set_title(f"error at 180 ms vs {name}")
+        ax.set_title(f"error at 180 ms vs {name}", fontsize=10)
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
     axs[0].set_ylabel("error (mm)")
     axs[0].legend()
-    fig.tight_layout()
     fig.savefig(OUT / "estimation_sweeps.png", dpi=110)
     (OUT / "README.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

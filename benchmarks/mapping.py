@@ -21,7 +21,6 @@ from tecdard.sim.world import CONTAINER_M, mapping_scene  # noqa: E402
 from tecdard.cli.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import free_port, start_daemon, stop_daemon  # noqa: E402
-from tecdard.verbs.map.files import colormap, write_png  # noqa: E402
 
 HOME_TCP = np.array([0.307, 0.0, 0.52])      # start pose: tool down, above the container
 TOOL_LENGTH_M = 0.12            # the paper's eraser, 11 cm, held 30 deg off the vertical
@@ -31,6 +30,27 @@ SCENE_ORIGIN_XY = (0.27, -0.175)  # a Panda reaches the whole container from her
 NEAR_M = 0.003                  # per-point error: the nearest true surface within this, horizontally
 INSET_M = 0.01                  # the map region stays this far inside the walls
 TASK_TIMEOUT_S = 3600.0
+
+
+def draw_truth(path: pathlib.Path, truth: np.ndarray, out: dict) -> None:
+    """The true height field over the map's region, axes in mm and a labelled colour bar, on the
+    daemon's depth map's colour scale (its summary's z_min..z_max)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    summary = out["result"]["summary"]
+    x0, y0 = (v * 1e3 for v in summary["origin"])
+    x1, y1 = x0 + summary["size"][0] * 1e3, y0 + summary["size"][1] * 1e3
+    lo, hi = summary["depth"]["z_min"], summary["depth"]["z_max"]
+    fig, ax = plt.subplots(figsize=(6.4, 5.0), constrained_layout=True)
+    im = ax.imshow(truth * 1e3, origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", interpolation="nearest",
+                   vmin=None if lo is None else lo * 1e3, vmax=None if hi is None else hi * 1e3)
+    fig.colorbar(im, ax=ax).set_label("surface height, world z, mm")
+    ax.set_xlabel("world x, mm")
+    ax.set_ylabel("world y, mm")
+    ax.set_title("the true height field (the simulated container)", fontsize=9)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def home_q(cfg: dict) -> list[float]:
@@ -143,9 +163,7 @@ def main() -> int:
         m = evaluate(out)
         shutil.copy(out["result"]["files"]["depth.png"], here / "mapping_depth.png")
         shutil.copy(out["result"]["files"]["points.csv"], here / "mapping_points.csv")
-        lo, hi = float(np.nanmin(m["truth"])), float(np.nanmax(m["truth"]))
-        img = colormap((m["truth"] - lo) / (hi - lo))[::-1]
-        write_png(here / "mapping_truth.png", np.repeat(np.repeat(img, 5, axis=0), 5, axis=1))
+        draw_truth(here / "mapping_truth.png", m["truth"], out)
     lines = [
         f"# Tactile mapping ({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores)", "",
         "`python -m benchmarks.mapping`: the whole daemon maps the simulated container of the paper's",
@@ -173,8 +191,8 @@ def main() -> int:
         "first per-point line counts those as errors of the full height, the second does not.",
         "The probes are in [mapping_points.csv](mapping_points.csv).", "",
         "![map](mapping_depth.png) ![truth](mapping_truth.png)", "",
-        "Left: depth.png as written by the daemon (black: valid probes, red: invalid; colour bar bottom",
-        "to top = z_min..z_max of summary.json). Right: the true height field at the same scale.", "",
+        "Left: depth.png as written by the daemon (black dots: valid probes, red crosses: invalid).",
+        "Right: the true height field over the same region, on the same colour scale.", "",
     ]
     (here / "mapping.md").write_text("\n".join(lines))
     print("\n".join(lines))
