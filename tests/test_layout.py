@@ -118,3 +118,23 @@ def test_every_markdown_table_has_as_many_cells_as_its_header():
             elif cells != header:
                 bad.append(f"{path.name}:{n}: {cells} cells, header {header}")
     assert not bad, bad
+
+
+def test_the_shipped_foxglove_layout_names_only_what_tecdar_writes():
+    """Issue 33: a Foxglove layout ships with the project; every topic it reads is one that the export
+    and the live view write, and every panel in its tree is configured."""
+    import json
+    import pathlib
+    import re
+    root = pathlib.Path(__file__).resolve().parents[1]
+    layout = json.loads((root / "docs" / "foxglove" / "tecdar-layout.json").read_text())
+    src = (root / "tecdard" / "recording" / "foxglove.py").read_text()
+    topics = set(re.findall(r'"(/[a-z_/]+)"', src.split("TOPICS = ")[1].split(")")[0]))
+    assert {"/imu", "/tf", "/contact", "/events", "/imu/mean", "/joint_states", "/robot_description"} <= topics
+    text = json.dumps(layout["configById"])
+    used = set(re.findall(r'"(/[a-z_/]+)(?:\.[a-z.]+)?"', text))
+    assert used and used <= topics, used - topics
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+    assert set(leaves(layout["layout"])) == set(layout["configById"])

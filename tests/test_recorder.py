@@ -82,6 +82,16 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
         assert len(topics["/contact"]) == len(live.est)
         kinds = [name for name, _, _ in topics["/events"]]
         assert len(kinds) == len(live.events)
+        # issue 33: wall-clock times, the arm's joints and its description, as a lab's other data has them
+        times = [t for msgs in topics.values() for _, t, _ in msgs]
+        assert abs(min(times) / 1e9 - time.time()) < 3600, min(times)
+        assert len(topics["/joint_states"]) == len(rec.tcp_t) and live.q is not None and live.q.shape[1] == 7
+        (desc,) = [json.loads(d)["data"] for _, _, d in topics["/robot_description"]]
+        assert "panda_link0" in desc and "package://" not in desc
+        from mcap.reader import make_reader
+        with open(tmp_path / "live.mcap", "rb") as f:
+            meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        assert float(meta["tecdar"]["wall_minus_monotonic_s"]) > 1e9 and meta["tecdar"]["model"] == "panda"
 
 
 def test_record_on_demand_and_its_refusals(tmp_path):
@@ -366,7 +376,10 @@ def check_export(rec_path, mcap_path, *extra) -> dict:
     topics = read_mcap(mcap_path)
     rec = load_recording(rec_path)
     assert {name for name, _, _ in topics["/tf"]} == {"foxglove.FrameTransforms"}
-    assert len(topics["/tf"]) == len(rec.tcp_t)                   # one per proprioception sample
+    # one per proprioception sample, and the arm's root link placed once with its description
+    assert len(topics["/tf"]) == len(rec.tcp_t) + ("/robot_description" in topics)
+    means = [json.loads(d) for _, _, d in topics["/imu/mean"]]     # what a Plot panel draws: scalars
+    assert len(means) == len(topics["/imu"]) and set(means[0]["gyro"]) == {"x", "y", "z"}
     assert {name for name, _, _ in topics["/contact"]} == {"foxglove.SceneUpdate"}
     assert {name for name, _, _ in topics["/events"]} == {"foxglove.Log"}
     imu = [json.loads(d) for _, _, d in topics["/imu"]]

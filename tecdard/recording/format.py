@@ -32,6 +32,8 @@ MAX_HEADER_BYTES = 10_000        # numpy's own bound for a .npy header
 MAX_TRUTH_BYTES = 8 * MAX_IMU_SAMPLES   # a truth_* member: at most a series as long as the IMU's may be
 MAX_TRUTH_TOTAL_BYTES = 2 * MAX_TRUTH_BYTES
 MAX_TRUTH_KEYS = 64
+MAX_JOINTS = 12                  # live_q: the joints of one arm
+MAX_JOINT_RAD = 100.0            # live_q: no revolute joint turns further (a corrupt file beyond)
 MAX_EVENTS = 100_000             # live_events: a 120 s capture holds hundreds
 # The IMU's median sample rate: the onset detector's band (40-200 Hz by default) needs the rate above
 # twice its top, and a fingertip IMU at under 100 Hz is no contact sensor (sim.imu.odr_hz's range).
@@ -346,6 +348,7 @@ class LiveLog:
     bias0: np.ndarray            # (4,) the gyro bias at the first pass (rad/s, IMU frame) and its rest time (s)
     est: np.ndarray              # (K, 7) the live estimates: t, p, std
     events: list
+    q: np.ndarray | None = None  # (M, n) the measured joints at each proprioception sample, rad (newer recordings)
 
 
 def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
@@ -366,9 +369,18 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
         for c in changes:
             if not isinstance(c, dict) or not isinstance(c.get("pass"), int) or not isinstance(c.get("directive"), dict):
                 raise RecordingError("live_changes: expected [{\"pass\": int, \"directive\": {...}, ...}]")
+        q = None
+        if "live_q" in data:
+            declared = data.header("live_q")[1]
+            if len(declared) != 2 or not 1 <= declared[1] <= MAX_JOINTS:     # refused before it is read
+                raise RecordingError(f"live_q: expected shape ({n_tcp}, 1..{MAX_JOINTS}), got {declared}")
+            q = _array(data, "live_q", (n_tcp, declared[1]))
+            if np.any(np.abs(q) > MAX_JOINT_RAD):
+                raise RecordingError(f"live_q: expected ({n_tcp}, 1..{MAX_JOINTS}) joint angles within "
+                                     f"{MAX_JOINT_RAD:g} rad")
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), _array(data, "live_tcp_w", (n_tcp, 3)),
                        changes, _array(data, "live_bias0", (4,)), _array(data, "live_est", (None, 7)),
-                       _events(data, rec))
+                       _events(data, rec), q)
     finally:
         data.close()
 

@@ -465,6 +465,8 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         meta={k: v for k, v in meta.items() if k not in ("imu_in_tcp_quat", "plane_normal")} |
         # measured grip forces are the recording's own (the grip_force key); the configured one is assumed
         {"grip_force_assumed": bool(meta.get("grip_force_assumed")) and not np.all(np.isfinite(grip))} |
+        # the stamps are the monotonic clock's: the wall clock's offset from it lines them up with a lab's data
+        {"clock": {"stamps": "CLOCK_MONOTONIC, s", "wall_minus_monotonic_s": time.time() - time.monotonic()}} |
         {"task": cap.task, "verb": cap.verb, "label": cap.label, "reason": cap.reason})
     # each pass's batch end (into imu_t), and the pass at which each proprioception sample arrived
     ends = np.cumsum([len(p.batch) for p in passes])
@@ -486,6 +488,9 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
         "live_events": np.array(json.dumps(json_ready(events))),
     }
+    q = [s[6] for _, s in rows if len(s) > 6]
+    if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
+        extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
     return rec, extra
 
 

@@ -57,7 +57,9 @@ def proprio_loop(robot, model, ring: DropOldestRing, stop: threading.Event) -> N
             log.exception("proprioception: joint state %d skipped", js.seq)
             continue
         grip = np.nan if js.grip_force is None else float(js.grip_force)
-        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(), grip))
+        # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
+        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(), grip,
+                   np.array(js.q, dtype=float)))
         if ring.overwritten != logged and (logged == 0 or ring.overwritten - logged >= 1000):
             logged = ring.overwritten
             log.warning("the estimator fell behind: %d proprioception samples overwritten", logged)
@@ -114,7 +116,7 @@ class EstimatorThread:
         while not stop.is_set():
             proprio = self.proprio.drain()
             for sample in proprio:
-                pipe.add_proprio(*sample)
+                pipe.add_proprio(*sample[:6])
             directive = self.directive.get()
             if directive is not applied:
                 pipe.follow(directive, applied)

@@ -13,12 +13,22 @@ class ExportError(Exception):
     """What keeps an export from being written, in one line."""
 
 
-def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int:
-    """Write the recording, its estimates (ContactEstimate) and events to `out`; the messages written."""
+def wall_clock_offset(meta: dict) -> float | None:
+    """A daemon recording's wall clock minus its monotonic stamps (s), or None where it has none."""
+    clock = (meta or {}).get("clock")
+    off = clock.get("wall_minus_monotonic_s") if isinstance(clock, dict) else None
+    if isinstance(off, (int, float)) and not isinstance(off, bool) and np.isfinite(off) and 0 < off < 1e11:
+        return float(off)
+    return None
+
+
+def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.ndarray | None = None) -> int:
+    """Write the recording, its estimates (ContactEstimate), events and (a daemon recording's) joints to
+    `out`; the messages written."""
     try:
         import foxglove
 
-        from tecdard.recording.foxglove import Channels
+        from tecdard.recording.foxglove import Channels, robot_description
     except ImportError:
         raise ExportError("needs foxglove-sdk: pip install 'tecdar[viz]'") from None
     items = []                  # (t, order, kind, payload): written in time order
@@ -32,6 +42,17 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
     R = quat_to_matrix(rec.tcp_quat)
     for j in range(len(rec.tcp_t)):
         items.append((rec.tcp_t[j], 1, "tcp", j))
+    desc = None
+    model = (rec.meta or {}).get("model")
+    if q is not None and isinstance(model, str):
+        try:
+            desc = robot_description(model)
+        except Exception:                   # an arm we have no URDF for: the joints still go out
+            desc = None
+        if desc is not None and len(desc.joint_names) != q.shape[1]:
+            raise ExportError(f"live_q: {q.shape[1]} joints, but meta.model {model} has {len(desc.joint_names)}")
+        for j in range(len(rec.tcp_t)):
+            items.append((rec.tcp_t[j], 4, "joints", j))
     for est in estimates:
         items.append((est.t, 2, "contact", est))
     for ev in events:
@@ -45,9 +66,22 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
         writer = foxglove.open_mcap(out, allow_overwrite=True, context=ctx)
     except Exception as exc:
         raise ExportError(f"--mcap: cannot write {out} ({_first_line(exc)})") from None
-    # MCAP's times: the recording's first sample at the Unix epoch (a recording's clock is its own)
-    ch = Channels(ctx, origin_s=min(rec.imu_t[0], rec.tcp_t[0]))
+    offset = wall_clock_offset(rec.meta)
+    if offset is not None:          # a daemon's recording: its monotonic stamps moved to wall-clock time
+        ch = Channels(ctx, origin_s=0.0, epoch_s=offset)
+        clock = {"log_time": "wall clock (UTC, ns since the Unix epoch)", "wall_minus_monotonic_s": repr(offset)}
+    else:                           # a recording with a clock of its own: its first sample at the epoch
+        first = min(rec.imu_t[0], rec.tcp_t[0])
+        ch = Channels(ctx, origin_s=first)
+        clock = {"log_time": "the recording's own clock, its first sample at the Unix epoch (no wall clock in it)",
+                 "first_sample_s": repr(float(first))}
+    meta = rec.meta or {}
+    writer.write_metadata("tecdar", {**clock, **{k: str(meta[k]) for k in ("robot", "model", "backend", "task", "verb")
+                                                  if meta.get(k) is not None}})
+    names = desc.joint_names if desc is not None else [f"joint{i + 1}" for i in range(0 if q is None else q.shape[1])]
     try:
+        if desc is not None:
+            ch.robot(min(rec.imu_t[0], rec.tcp_t[0]), desc)
         p_true = truth.get("p_c")
         if np.shape(p_true) == (3,) and np.all(np.isfinite(p_true)):
             axis = truth.get("axis") if np.shape(truth.get("axis")) == (3,) else None
@@ -61,6 +95,8 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict) -> int
                 ch.tcp(t, rec.tcp_pos[x], R[x], R_mount)
             elif kind == "contact":
                 ch.contact(t, x.p, x.cov, x.axis)
+            elif kind == "joints":
+                ch.joint_states(t, names, q[x])
             else:
                 ch.event(t, x)
     finally:
@@ -102,7 +138,7 @@ def main(args) -> int:
             events = live.events          # the pipeline's and the daemon's, as they happened live
         truth = load_truth(args.recording)
         with replacing(args.mcap, "--mcap") as tmp:     # a failed write leaves what was there
-            n = write_mcap(str(tmp), rec, found, events, truth)
+            n = write_mcap(str(tmp), rec, found, events, truth, None if live is None else live.q)
     except (BadInput, ExportError, RecordingError) as exc:
         return refused("export", str(exc))
     except OutputError as exc:
