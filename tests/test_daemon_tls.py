@@ -48,7 +48,8 @@ def test_mtls_and_the_acl_let_only_the_named_client_command(make_daemon, pki):
     # the command line, as an operator types it
     res = subprocess.run([sys.executable, "-m", "tecdard", "status", "--connect", d.endpoint,
                           "--tls-ca", str(ca.path), "--tls-cert", str(ids["operator"].cert),
-                          "--tls-key", str(ids["operator"].key)], capture_output=True, text=True, timeout=60, cwd=ROOT)
+                          "--tls-key", str(ids["operator"].key), "--json"], capture_output=True, text=True, timeout=60,
+                         cwd=ROOT)
     assert res.returncode == 0 and '"ok": true' in res.stdout, res.stderr
     assert d.proc.poll() is None
 
