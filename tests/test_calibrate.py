@@ -186,6 +186,7 @@ def test_the_daemons_own_probes_on_the_simulator_calibrate_to_its_eta_and_lag(ma
     d = make_daemon(**{"record.enabled": True, "record.dir": str(rec_dir)})
     done, tasks = 0, []
     for _ in range(8):
+        time.sleep(1.0)               # probes start from rest: the gyro's bias is taken before the onset
         reply = d.client.command("probe", {})
         assert reply["ok"], reply
         ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 60)
@@ -218,3 +219,16 @@ def test_the_daemons_own_probes_on_the_simulator_calibrate_to_its_eta_and_lag(ma
     assert abs(float(eta) - 2.0) < 0.06, res.stdout
     lag, se = re.findall(r"estimator.fingertip_lag_s: ([0-9.]+)   # \+- ([0-9.]+) s", res.stdout)[0]
     assert abs(float(lag) - 0.003) < 0.0025 and float(se) < 0.003, res.stdout
+
+
+def test_a_probe_that_did_not_start_from_rest_is_left_out_in_one_line(probes):
+    """The gyro's bias is its mean before the onset: a probe sent right after a move (a `home`) once
+    read eta 2.04 among 1.98s. An arm that moved in that window is said and left out."""
+    from tecdard.recording.format import load_recording
+    from tecdard.tools.calibrate import BIAS_WINDOW_S, NotAtRest, check_rest
+    rec = load_recording(probes[0])
+    speed = np.linalg.norm(rec.tcp_vel, axis=1)
+    moving_t = float(rec.tcp_t[np.argmax(speed > 0.005)])
+    check_rest("a.npz", rec, float(rec.tcp_t[0]) + 0.5 * BIAS_WINDOW_S)       # too little window: not judged
+    with pytest.raises(NotAtRest, match=r"a.npz: the arm moved in the 0.2 s before the onset \("):
+        check_rest("a.npz", rec, moving_t + BIAS_WINDOW_S)

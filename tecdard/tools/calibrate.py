@@ -57,6 +57,34 @@ class CalibrationError(Exception):
     """What keeps a calibration from being made, in one line naming the file or the option."""
 
 
+class NotAtRest(CalibrationError):
+    """The arm moved in the bias window before the onset: that recording is left out, said in a line."""
+
+
+REST_SPEED_M_S = 0.001        # the TCP is at rest below this (the gyro bias window before the onset)
+REST_RATE_RAD_S = 0.005       # and the gripper turns slower than this
+
+
+def check_rest(name: str, rec, onset_t: float) -> None:
+    """The gyro's bias is its mean over BIAS_WINDOW_S before the onset, which holds only if the arm was
+    at rest then (a probe sent right after a `home` once read eta 2.04 against 1.98)."""
+    sel = (rec.tcp_t >= onset_t - BIAS_WINDOW_S) & (rec.tcp_t < onset_t)
+    if np.count_nonzero(sel) < 2:
+        return
+    # over the whole window, so that the encoders' noise averages out (one sample's rate reads 1-2 deg/s)
+    idx = np.flatnonzero(sel)
+    span = float(rec.tcp_t[idx[-1]] - rec.tcp_t[idx[0]])
+    if span <= 0:
+        return
+    speed = float(np.linalg.norm(rec.tcp_pos[idx[-1]] - rec.tcp_pos[idx[0]])) / span
+    R = quat_to_matrix(rec.tcp_quat[[idx[0], idx[-1]]])
+    turn = float(np.arccos(np.clip((np.trace(R[0].T @ R[1]) - 1.0) / 2.0, -1.0, 1.0)))
+    rate = turn / span
+    if speed > REST_SPEED_M_S or rate > REST_RATE_RAD_S:
+        raise NotAtRest(f"{name}: the arm moved in the {BIAS_WINDOW_S:g} s before the onset ({speed * 1e3:.1f} mm/s, "
+                        f"{np.degrees(rate):.2f} deg/s): no gyro bias to take; left out (start probes from rest)")
+
+
 def gripper_rates(rec) -> np.ndarray:
     """The gripper's own rate (world, rad/s) at each proprioception sample, from its orientations."""
     R_world_tcp = quat_to_matrix(rec.tcp_quat)
@@ -75,6 +103,7 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
     pre = (t < onset_t) & (t >= onset_t - BIAS_WINDOW_S)
     if np.count_nonzero(pre) < 10:
         raise CalibrationError(f"{name}: less than {BIAS_WINDOW_S:g} s at rest before the onset for the gyro bias")
+    check_rest(name, rec, onset_t)
     bias = rec.gyro[pre].mean(axis=0)
     R_tcp_imu = quat_to_matrix(rec.imu_in_tcp_quat)
     R_world_tcp = quat_to_matrix(rec.tcp_quat)
@@ -378,7 +407,11 @@ def main(args) -> int:
             force = grip_force_of(name, rec)
             if contact is not None:
                 check_lever(name, rec, onset_t, contact)
-            eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
+            try:
+                eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
+            except NotAtRest as exc:
+                print(str(exc))
+                continue
             check_fit(name, eta, se)
             names.append((force, name, eta, se))
             if contact is not None:
