@@ -432,7 +432,7 @@ def test_a_map_is_written_private_and_complete_or_not_at_all(tmp_path, monkeypat
     # a writer killed after two files: nothing under the task's name
     def dies(*_args):
         raise KeyboardInterrupt
-    monkeypatch.setattr(mapfiles, "write_png", dies)
+    monkeypatch.setattr(mapfiles, "draw_depth", dies)          # the last file written
     with pytest.raises(KeyboardInterrupt):
         mapfiles.write_map(MapRecord("map-8", records[0].params, records[0].points, records[0].yaw_rad), settings)
     assert not (tmp_path / "maps" / "map-8").exists()

@@ -55,12 +55,13 @@ def test_every_state_arrives_once_in_order_as_tcp_pose_and_twist():
     got = run(ScriptedArm(reported, failures=2), DropOldestRing(PROPRIO_RING))   # a failing link is waited out
     model = ArmModel("panda")
     assert [m[0] for m in got] == [js.t for js in reported]
-    for (t, p, v, R, w, grip), js in zip(got, reported):
+    for (t, p, v, R, w, grip, q), js in zip(got, reported):
         assert np.isnan(grip)                               # not measured: the configured constant applies
         oMtcp, twist = model.fk_twist(js.q, js.qd)
         np.testing.assert_allclose(p, oMtcp.translation, atol=1e-12)
         np.testing.assert_allclose(R, oMtcp.rotation, atol=1e-12)
         np.testing.assert_allclose(np.r_[v, w], twist, atol=1e-12)
+        np.testing.assert_array_equal(q, js.q)                # the joints ride along for the recorder
 
 
 def test_a_reported_tcp_twist_is_used_and_a_full_ring_overwrites_the_oldest_without_blocking():
@@ -69,7 +70,7 @@ def test_a_reported_tcp_twist_is_used_and_a_full_ring_overwrites_the_oldest_with
     got = run(ScriptedArm(states(10, twist)), ring)
     assert len(got) == 4 and ring.overwritten == 6          # the newest kept; the loop went on
     assert [m[0] for m in got] == [0.06, 0.07, 0.08, 0.09]
-    for _, _, v, _, w, _ in got:
+    for _, _, v, _, w, _, _ in got:
         np.testing.assert_array_equal(np.r_[v, w], twist)
 
 
@@ -90,6 +91,6 @@ def test_a_reported_tcp_pose_and_grip_force_are_what_reaches_the_estimator():
         js.tcp_pose, js.grip_force = pose, 20.0 + k
     got = run(ScriptedArm(reported), DropOldestRing(PROPRIO_RING))
     assert [m[5] for m in got] == [20.0, 21.0, 22.0]
-    for _, p, _, R, _, _ in got:
+    for _, p, _, R, _, _, _ in got:
         np.testing.assert_array_equal(p, pose[:3, 3])
         np.testing.assert_array_equal(R, np.eye(3))

@@ -66,7 +66,9 @@ class Channels:
     in seconds on the daemon's clock become `t - origin_s + epoch_s` (MCAP and Foxglove want
     nanoseconds since the Unix epoch, never negative)."""
 
-    def __init__(self, context=None, origin_s: float = 0.0, epoch_s: float = 0.0):
+    def __init__(self, context=None, origin_s: float = 0.0, epoch_s: float = 0.0, arm: bool = True):
+        """`arm`: the /joint_states and /robot_description channels too (the export's; the live view
+        has no joints to send)."""
         self.origin_s, self.epoch_s = float(origin_s), float(epoch_s)
         self.imu = foxglove.Channel("/imu", message_encoding="json", context=context,
                                     schema=foxglove.Schema(name="tecdar.ImuBatch", encoding="jsonschema",
@@ -77,17 +79,21 @@ class Channels:
         self.imu_mean = foxglove.Channel("/imu/mean", message_encoding="json", context=context,
                                          schema=foxglove.Schema(name="tecdar.ImuMean", encoding="jsonschema",
                                                                 data=json.dumps(IMU_MEAN_SCHEMA).encode()))
-        self.joints = JointStatesChannel("/joint_states", context=context)
-        self.description = foxglove.Channel("/robot_description", message_encoding="json", context=context,
-                                            schema=foxglove.Schema(name="std_msgs/msg/String", encoding="jsonschema",
-                                                                   data=json.dumps(STRING_SCHEMA).encode()))
+        self.joints = self.description = None
+        if arm:
+            self.joints = JointStatesChannel("/joint_states", context=context)
+            self.description = foxglove.Channel("/robot_description", message_encoding="json", context=context,
+                                                schema=foxglove.Schema(name="std_msgs/msg/String",
+                                                                       encoding="jsonschema",
+                                                                       data=json.dumps(STRING_SCHEMA).encode()))
 
     def _ns(self, t: float) -> int:
         return max(0, int(round((float(t) - self.origin_s + self.epoch_s) * 1e9)))
 
     def close(self) -> None:
         for ch in (self.imu, self.tf, self.contact_ch, self.events, self.imu_mean, self.joints, self.description):
-            ch.close()
+            if ch is not None:
+                ch.close()
 
     def imu_batch(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         if len(t):

@@ -102,7 +102,7 @@ class LiveView:
         self.port = self.gate.port
         gate = threading.Thread(target=self.gate.run, args=(stop,), name="viz-gate", daemon=True)
         gate.start()
-        channels = Channels(ctx, origin_s=time.monotonic(), epoch_s=time.time())
+        channels = Channels(ctx, origin_s=time.monotonic(), epoch_s=time.time(), arm=False)
         log.info("live view: Foxglove WebSocket server on ws://%s:%d (at most %d viewers, %.1f MB each)",
                  self.params.host, self.port, self.params.max_viewers, self.params.viewer_buffer_mb)
         self.ready.set()
@@ -131,7 +131,7 @@ class LiveView:
                 ch.imu_batch(b[:, 0], b[:, 1:4], b[:, 4:7])
             if ch.tf.has_sinks():
                 for p in passes:
-                    for t, pos, _v, R, _w, _grip in p.proprio:
+                    for t, pos, _v, R, *_ in p.proprio:
                         ch.tcp(t, pos, R, self.R_tcp_imu)
             est = next((p.estimate for p in reversed(passes) if p.estimate is not None), None)
             if est is not None and ch.contact_ch.has_sinks():

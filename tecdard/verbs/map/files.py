@@ -240,7 +240,9 @@ class MapFiles(VerbService):
 
     @property
     def idle(self) -> bool:
-        return all(f.done() for f in self._writes)
+        """Every write done, and every early-ended map's `map_written` handed on (an orderly
+        shutdown waits for both: a map written after the arm came to rest was once never said)."""
+        return all(f.done() for f in self._writes) and not self._partial
 
     def announcements(self) -> list[dict]:
         """Event fields (kind first) for each early-ended map written since the last call."""
