@@ -139,3 +139,45 @@ def test_the_daemon_tunes_onset_to_the_imu_source_in_use():
     assert d.estimator.min_batch == int(1666 * d.pipeline.params.output_period_s)
     d = Daemon(Config(sim_config(**{"sim.imu.odr_hz": 3333.0})))
     assert d.pipeline.detector.odr_hz == 3333.0
+
+
+def test_after_an_episode_the_rest_levels_are_learnt_afresh():
+    """Issue 34: after a task the trigger re-armed against the rest levels from before it. The arm had
+    turned the IMU meanwhile, so gravity read 0.5 m/s^2 off them and the trigger fired at rest on
+    the first batch: a `contact_onset` after every task's end."""
+    odr = 6667.0
+    rng = np.random.default_rng(3)
+
+    def rest(t0: float, g, n: int = 667):
+        t = t0 + np.arange(n) / odr
+        return t, np.tile(g, (n, 1)) + rng.normal(0, 0.03, (n, 3))
+
+    for relearn, fires in ((False, True), (True, False)):
+        det = OnsetDetector(accel_threshold=0.4, warmup_s=0.1, odr_hz=odr)
+        for k in range(2):
+            t, a = rest(0.1 * k, [0.0, 0.0, 9.81])
+            assert det.process(t, a) == -1
+        a[100] += [0.0, 0.0, 5.0]                     # the contact
+        assert det.process(t + 0.1, a) == 100 and not det.armed
+        det.relearn() if relearn else det.rearm()     # the episode ends, the IMU now turned by 3 deg
+        tilted = [0.0, 9.81 * np.sin(np.radians(3.0)), 9.81 * np.cos(np.radians(3.0))]
+        t, a = rest(1.0, tilted)
+        assert (det.process(t, a) >= 0) == fires
+    t, a = rest(2.0, tilted)
+    det.process(t, a)
+    t, a = rest(2.1, tilted)
+    a[300] += [0.0, 0.0, 5.0]                          # and the next contact is caught, once warm again
+    assert det.process(t, a) == 300
+
+
+def test_a_pipeline_relearns_rest_only_after_an_episode_that_ran():
+    from tecdard.config import Config
+    from tecdard.control.pipeline import ContactPipeline
+    pipe = ContactPipeline.from_config(Config({}).section("estimator"), np.eye(3), 6667.0)
+    det = pipe.detector
+    det.process(np.arange(1000) / 6667.0, np.tile([0.0, 0.0, 9.81], (1000, 1)))
+    pipe.release()                                     # no episode ran: the levels stand
+    assert det.rest_accel is not None and det.warm
+    pipe.tracking = True
+    pipe.release()                                     # one did: learnt afresh
+    assert det.rest_accel is None and det.armed and not det.warm
