@@ -137,16 +137,6 @@ class OnsetDetector:
         self.armed = True
         self._last_true = {}
 
-    def relearn(self) -> None:
-        """Rearm with rest levels learnt afresh (`warmup_s` of data before it can fire again). After a
-        contact episode the levels are those from before it: the arm has since turned the IMU (gravity
-        reads differently) and the task's motion is over, so the old levels fired at rest on the
-        first batch after the end of every task (a spurious `contact_onset`, issue 34)."""
-        self.rearm()
-        self.rest_accel = None
-        self.rest_gyro = None
-        self._seen_s = 0.0
-
     def _conditions(self, accel: np.ndarray, gyro: np.ndarray | None) -> dict:
         out = {}
         if self.accel_threshold is not None:

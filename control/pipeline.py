@@ -214,18 +214,13 @@ class ContactPipeline:
             self.hold_bias(new.bias_held)
 
     def release(self) -> None:
-        """End the contact episode: back to bias tracking and an armed trigger (after an episode that
-        ran, with rest levels learnt afresh: OnsetDetector.relearn)."""
-        ran = self.tracking
+        """End the contact episode: back to bias tracking and an armed trigger."""
         self.tracking = False
         self.onset_t = None
         self.onset_p_tcp = None
         self._begin_t = None
         self.cond.freeze_bias(False)
-        if ran:
-            self.detector.relearn()
-        else:
-            self.detector.rearm()
+        self.detector.rearm()
         self.set_arc_following(False)
 
     # -- batches -------------------------------------------------------------------------------
