@@ -84,7 +84,8 @@ def test_the_cli_offers_every_task_verb_and_rotates_with_the_tool_held():
     options = client_cli.verb_options()
     assert set(C.verbs()) == set(options)
     for verb in C.task_verbs():
-        assert [field for _opt, field, _t, _h, _c in options[verb]] == [f.name for f in C.task_verbs_registry.get(verb).fields]
+        fields = [f.name for f in C.task_verbs_registry.get(verb).fields]
+        assert [field for _opt, field, _t, _h, _c in options[verb]] == fields
     parser = argparse.ArgumentParser()
     client_cli.add_parsers(parser.add_subparsers(dest="cmd"))
     args = parser.parse_args(["rotate", "--angle-deg", "10", "--no-turn-tool"])

@@ -106,7 +106,8 @@ def test_every_markdown_table_has_as_many_cells_as_its_header():
     import re
     root = pathlib.Path(__file__).resolve().parents[1]
     bad = []
-    for path in [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "benchmarks").glob("*.md"))]:
+    pages = [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "benchmarks").glob("*.md"))]
+    for path in pages:
         header = None
         for n, line in enumerate(path.read_text().splitlines(), 1):
             if not line.startswith("|"):

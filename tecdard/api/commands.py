@@ -144,7 +144,8 @@ class Limits:
 
 # The limits key that holds each field's default.
 DEFAULT_KEYS = {"distance": "default_probe_distance", "probe_distance": "default_probe_distance",
-                "joint_speed_deg_s": "default_home_joint_speed_deg_s", "radius": "default_point_radius", "depth": "default_map_depth", "size": "default_map_size",
+                "joint_speed_deg_s": "default_home_joint_speed_deg_s", "radius": "default_point_radius",
+                "depth": "default_map_depth", "size": "default_map_size",
                 "speed": "default_speed", "stop_angle_deg": "default_stop_angle_deg",
                 "max_distance": "max_approach_distance", "direction": "default_direction"}
 
