@@ -21,6 +21,7 @@ from tecdard.robots.state_check import FAULT_HOLD_S, StateCheck
 from tecdard.runtime.control_thread import ControlParams, ControlThread
 from tecdard.runtime.messages import LatestValue, Outbox, StartTask
 from tests.conftest import daemon_config
+from tests.test_control_safety import drained_events as events
 
 TICK_S = 0.02
 APPROACH_RATE_BOUND = 0.1     # rad/s: the approach asks ~0.03 rad/s; the lies asked up to 3.14 rad/s
@@ -97,15 +98,6 @@ def control_on(feed: Feed) -> ControlThread:
                        feed.model, robot=feed.backend, ring=Ring(), contact=LatestValue(), directive=LatestValue(),
                        outbox=Outbox(4096), q_home=feed.q0, robot_name="lies")
     return ct
-
-
-def events(ct, *kinds):
-    out = []
-    while not ct.outbox.empty():
-        kind, *rest = ct.outbox.get_nowait()
-        if kind == "event" and rest[0]["kind"] in kinds:
-            out.append(rest[0])
-    return out
 
 
 def run_approach(feed: Feed, lie, ticks: int = 60, lie_at: int = 20):

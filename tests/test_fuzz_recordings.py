@@ -22,10 +22,9 @@ LOAD_TIME_MAX_S = 5.0           # any refusal, on this shared machine (the zip b
 RSS_GROWTH_MAX_KB = 200_000     # and no allocation of what a header merely declares (the bomb took 8.9 GB)
 
 
-@pytest.fixture(scope="module")
-def arrays():
-    """A short valid recording's members, as savez would write them."""
-    fields, _ = generate(Scenario(kind="edge-arc", seed=3, duration_s=0.3, rest_s=0.1))
+def recording_members(with_truth: bool = False) -> dict:
+    """A short valid recording's members, as savez would write them (and its truth_* with_truth)."""
+    fields, truth = generate(Scenario(kind="edge-arc", seed=3, duration_s=0.3, rest_s=0.1))
     rec = Recording.from_fields(fields)
     out = {"format": np.array("tecdar-recording/1"), "imu_t": rec.imu_t, "gyro": rec.gyro, "accel": rec.accel,
            "tcp_t": rec.tcp_t, "tcp_pos": rec.tcp_pos, "tcp_quat": rec.tcp_quat,
@@ -33,7 +32,14 @@ def arrays():
     for key in ("grip_force", "tcp_vel", "plane_normal"):
         if getattr(rec, key) is not None:
             out[key] = getattr(rec, key)
+    if with_truth:
+        out.update({f"truth_{k}": np.asarray(v) for k, v in truth.items()})
     return out
+
+
+@pytest.fixture(scope="module")
+def arrays():
+    return recording_members()
 
 
 def write(path, arrays, compressed=True):

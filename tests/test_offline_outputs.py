@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from tecdard.recording.format import Recording, load_recording
-from tecdard.sim.scenarios import Scenario, generate
+from tecdard.recording.format import load_recording
 from tests.conftest import ROOT, tecdard
+from tests.test_fuzz_recordings import recording_members
 
 HAS_FOXGLOVE = __import__("importlib").util.find_spec("foxglove") is not None
 HAS_MATPLOTLIB = __import__("importlib").util.find_spec("matplotlib") is not None
@@ -29,16 +29,7 @@ ONE_LINE_CHARS = 400
 
 @pytest.fixture(scope="module")
 def arrays():
-    fields, truth = generate(Scenario(kind="edge-arc", seed=3, duration_s=0.3, rest_s=0.1))
-    rec = Recording.from_fields(fields)
-    out = {"format": np.array("tecdar-recording/1"), "imu_t": rec.imu_t, "gyro": rec.gyro, "accel": rec.accel,
-           "tcp_t": rec.tcp_t, "tcp_pos": rec.tcp_pos, "tcp_quat": rec.tcp_quat,
-           "imu_in_tcp_quat": rec.imu_in_tcp_quat, "meta": np.array(json.dumps({"robot": "sim"}))}
-    for key in ("grip_force", "tcp_vel", "plane_normal"):
-        if getattr(rec, key) is not None:
-            out[key] = getattr(rec, key)
-    out.update({f"truth_{k}": np.asarray(v) for k, v in truth.items()})
-    return out
+    return recording_members(with_truth=True)
 
 
 def live_keys(arrays, events) -> dict:
