@@ -199,7 +199,7 @@ class ControlThread:
         est = self.contact.get()
         self._check_sensors(now, p, self.robot.state_seen_t(js))
         runner.check(js.tcp_force, est)
-        self._handle_commands(now, p)
+        self._handle_commands(now, p, js)
         p_plan, v_plan = planner.position, planner.velocity
         fallbacks = planner.fallbacks
         p_cmd = runner.step(now, p, R, est, js.tcp_force, np.asarray(js.q, dtype=float), js.t, twist[:3])
@@ -254,7 +254,7 @@ class ControlThread:
         self._answer_stops()
 
     # -- commands -------------------------------------------------------------------
-    def _handle_commands(self, now: float, p: np.ndarray) -> None:
+    def _handle_commands(self, now: float, p: np.ndarray, js) -> None:
         while self._stops:                       # stop first, whatever else is queued
             stop = self._stops.popleft()
             self._stop_waiters.append(stop.request)
@@ -271,10 +271,11 @@ class ControlThread:
                     which = "" if msg.task is None else " " + show_name(msg.task)
                     self._reply(msg.request, C.CommandError(C.NO_TASK, f"task: no running task{which}").reply())
             elif isinstance(msg, StartTask):
-                self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p))
+                self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p, js))
 
-    def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray) -> dict:
-        """Start the verb's task from validated fields at the measured TCP position `p`; the command's reply."""
+    def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray, js) -> dict:
+        """Start the verb's task from validated fields at the measured TCP position `p` (of the tick's
+        joint state `js`); the command's reply."""
         running = self.runner.busy()
         if running is not None:
             return C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply()
@@ -285,7 +286,6 @@ class ControlThread:
         if spec is None:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
         R_hold = self.runner.R_hold if self.runner.R_hold is not None else np.eye(3)
-        js = self.robot.read_state()
         ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
                                 self.params.workspace_min, self.params.workspace_max, self.services.get(verb),
                                 q=np.array(js.q, dtype=float), q_home=np.array(self.q_home, dtype=float),
