@@ -334,6 +334,9 @@ ROTATE_TIMEOUT_S = 60.0
 # states come from the same stalled process: the stale-state stop (issue 32) ended two rotates at
 # 252-271 ms against the conftest's 250 ms on a loaded machine, so it gets the IMU's allowance.
 FRANKY_SIM_STALLS = {"control.max_nis_ratio": 50.0, "control.imu_stale_s": 0.5, "robot.max_state_age_s": 0.5}
+# Runs that kept time were at most 35 ms behind (benchmarks.franka); the failures on record came
+# with stalls of 70-240 ms (CI, 2026-12-03: 126 ms behind, divergence at 60x).
+SIM_LATE_S = 0.070
 
 
 def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
@@ -342,6 +345,7 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
     Returns its task_done or task_failed event, the scene's truth after it, the events and the
     daemon's log."""
     import json
+    tmp_path.mkdir(parents=True, exist_ok=True)
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
     srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, *sim_args)
     try:
@@ -362,8 +366,14 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
 def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     """The paper's task through the real client: probe, localise the hinge from the fingertip's
     gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
-    within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still."""
-    ev, truth, _, log = cutter_run(tmp_path)
+    within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still. A run that
+    failed while franky-sim fell behind its own schedule (SIM_LATE_S) judged the simulator, not the
+    daemon: it is run once more, and said so."""
+    ev, truth, _, log = cutter_run(tmp_path / "first")
+    if ev["kind"] == "task_failed" and truth["worst_behind_s"] > SIM_LATE_S:
+        print(f"franky-sim fell {truth['worst_behind_s'] * 1e3:.0f} ms behind and the rotate failed "
+              f"({ev['error']}): run again")
+        ev, truth, _, log = cutter_run(tmp_path / "again")
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     res = ev["result"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
