@@ -1,4 +1,5 @@
-"""Contact-onset detection on IMU batches: accelerometer threshold, gyro threshold, accelerometer band energy."""
+"""Contact-onset detection on IMU batches: accelerometer threshold, gyro threshold, accelerometer band energy,
+and the fingertip's twist relative to the gripper; each on what the arm's own motion does not explain."""
 from __future__ import annotations
 
 import math
@@ -6,6 +7,11 @@ import math
 import numpy as np
 
 MODES = ("any", "all")
+BACKDATE_MAX_S = 0.1          # a twist onset is dated back at most this far
+# The twist trigger's default, rad/s: the fingertip turning relative to the gripper at 1.7 deg/s. Its
+# noise over 33 samples of an LSM6DSR at 6.7 kHz is about 0.0015 rad/s (norm); a 12 cm lever turned at
+# 2 cm/s twists a fingertip of eta 2 at 0.083 rad/s.
+TWIST_THRESHOLD_RAD_S = 0.03
 
 
 class SlidingBandEnergy:
@@ -53,27 +59,44 @@ class OnsetDetector:
     - `accel_threshold` (m/s^2): |accel - rest| (or its component on `accel_axis`, IMU frame);
     - `gyro_threshold` (rad/s): |gyro - rest|;
     - `band_threshold` (m/s^2 RMS): accelerometer energy in `band_hz` over one window of
-      odr/band_hz[0] samples (the paper's way to catch heavy objects such as a book).
-    Rest levels are tracked while armed (time constant `rest_tau_s`); nothing fires until
-    `warmup_s` of data has been seen. After firing it stays disarmed until `rearm()`.
+      odr/band_hz[0] samples (the paper's way to catch heavy objects such as a book);
+    - `twist_threshold` (rad/s): the gyro's mean over `twist_window` samples, less its rest: the
+      fingertip turning relative to the gripper, which a contact that already exists (a grasped
+      hinge the arm starts to turn) shows without any impact. It is the one condition whose onset
+      is dated back (`onset_from_t`): to the last sample at which that mean was within a quarter of
+      the threshold, at most BACKDATE_MAX_S before it fired.
+
+    What the arm's own motion explains is taken off first when the caller knows it (`explained`:
+    the specific force and the gripper's rate the robot's state predicts, IMU frame, and what each
+    may be off by, which widens the thresholds): the arm's starts, stops and turns then are not contacts. The rest levels are those of the remainder
+    (the accelerometer's bias and the mount's error; the gyro's bias), tracked while armed (time
+    constant `rest_tau_s`); nothing fires until `warmup_s` of data has been seen. After firing it
+    stays disarmed until `rearm()`, and after `rearm(settle=True)` until the remainder has been
+    still for `settle_s` (its rest levels follow it meanwhile, `settle_s` / 4).
     """
 
     def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,
                  band_threshold: float | None = None, band_hz=(40.0, 200.0), mode: str = "any",
                  coincidence_s: float = 0.02, rest_tau_s: float = 0.5, warmup_s: float = 0.1,
-                 odr_hz: float = 6667.0):
+                 odr_hz: float = 6667.0, twist_threshold: float | None = None, twist_window: int = 33,
+                 settle_s: float = 0.25):
         if mode not in MODES:
             raise ValueError("mode: expected 'any' or 'all'")
-        if accel_threshold is None and gyro_threshold is None and band_threshold is None:
-            raise ValueError("onset: enable at least one of accel_threshold, gyro_threshold, band_threshold")
+        if accel_threshold is None and gyro_threshold is None and band_threshold is None and twist_threshold is None:
+            raise ValueError("onset: enable at least one of accel_threshold, gyro_threshold, band_threshold, "
+                             "twist_threshold")
         for name, v in (("accel_threshold", accel_threshold), ("gyro_threshold", gyro_threshold),
-                        ("band_threshold", band_threshold)):
+                        ("band_threshold", band_threshold), ("twist_threshold", twist_threshold)):
             if v is not None and v <= 0:
                 raise ValueError(f"{name}: must be > 0")
+        if twist_window < 1:
+            raise ValueError("twist_window: must be >= 1 sample")
         self.accel_threshold = accel_threshold
         self.accel_axis = None if accel_axis is None else np.asarray(accel_axis, float) / np.linalg.norm(accel_axis)
         self.gyro_threshold = gyro_threshold
         self.band_threshold = band_threshold
+        self.twist_threshold = twist_threshold
+        self.twist_window = int(twist_window)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
         self.odr_hz = float(odr_hz)
         self.band = SlidingBandEnergy(odr_hz, *band_hz) if band_threshold is not None else None
@@ -81,11 +104,19 @@ class OnsetDetector:
         self.coincidence_s = coincidence_s
         self.rest_tau_s = rest_tau_s
         self.warmup_s = warmup_s
+        self.settle_s = settle_s
         self.rest_accel = None
         self.rest_gyro = None
         self._seen_s = 0.0
         self._last_true = {}
         self.armed = True
+        self.settling = False          # rearm(settle=True): not until the remainder has been still settle_s
+        self._still_since = None       # the remainder has been still since this time (settling)
+        self._explaining = None        # whether the last batch came with what the arm's motion explains
+        self._twist_hist = np.zeros((0, 3))
+        self._twist_quiet_t = -np.inf  # the last time the twist's mean was within a quarter of its threshold
+        self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
+        self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
     def set_odr(self, odr_hz: float) -> str | None:
         """The source's data rate changed (a board's status packet): the band-energy window is
@@ -127,47 +158,107 @@ class OnsetDetector:
                 rest_tau_s=section.getfloat("rest_tau_s", 0.5, above=0.0),
                 warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
                 odr_hz=odr_hz,
+                twist_threshold=opt("twist_threshold", TWIST_THRESHOLD_RAD_S),
+                twist_window=section.getint("twist_window", 33, minval=1, maxval=2000),
+                settle_s=section.getfloat("settle_s", 0.25, minval=0.0, maxval=10.0),
             )
         except ValueError as exc:         # "accel_threshold: must be > 0": the key, then the problem
             key, _, problem = str(exc).partition(": ")
             raise section.error(key, problem) from None
 
-    def rearm(self) -> None:
-        """Start looking for the next onset; rest levels keep their last values."""
+    def rearm(self, settle: bool = False) -> None:
+        """Start looking for the next onset; rest levels keep their last values. With `settle`
+        (after a contact episode or a task) only once the remainder has been still `settle_s`:
+        the fingertip rings and the grasp re-seats after a touch and a stop."""
         self.armed = True
         self._last_true = {}
+        self.onset_from_t = None
+        self.fired_by = None
+        if settle and self.settle_s > 0.0:
+            self.settling = True
+            self._still_since = None
 
-    def _conditions(self, accel: np.ndarray, gyro: np.ndarray | None) -> dict:
-        out = {}
+    def _restart(self) -> None:
+        """Learn the rest levels afresh (the remainder changed meaning: the arm's motion is, or is no
+        longer, taken off)."""
+        self.rest_accel = None
+        self.rest_gyro = None
+        self._seen_s = 0.0
+        self._twist_hist = np.zeros((0, 3))
+        self._twist_quiet_t = -np.inf
+
+    def _twist(self, t: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+        """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
+        w = self.twist_window
+        ext = np.vstack([self._twist_hist, gyro])
+        c = np.cumsum(np.vstack([np.zeros((1, 3)), ext]), axis=0)
+        n_hist = len(self._twist_hist)
+        idx = np.arange(n_hist + 1, n_hist + len(gyro) + 1)
+        lo = np.maximum(idx - w, 0)
+        out = (c[idx] - c[lo]) / (idx - lo)[:, None] - self.rest_gyro
+        self._twist_hist = ext[-(w - 1):].copy() if w > 1 else np.zeros((0, 3))
+        return out
+
+    def _conditions(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None, allow_a=0.0,
+                    allow_w=0.0) -> tuple[dict, dict]:
+        """(condition -> fired per sample, condition -> its value over its threshold per sample).
+        allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s)."""
+        out, level = {}, {}
         if self.accel_threshold is not None:
             dev = accel - self.rest_accel
             if self.accel_axis is not None:
-                out["accel"] = np.abs(dev @ self.accel_axis) > self.accel_threshold
+                level["accel"] = np.abs(dev @ self.accel_axis) / (self.accel_threshold + allow_a)
             else:
-                out["accel"] = np.einsum("ij,ij->i", dev, dev) > self.accel_threshold ** 2
+                level["accel"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.accel_threshold + allow_a)
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
-            out["gyro"] = np.einsum("ij,ij->i", dev, dev) > self.gyro_threshold ** 2
+            level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
+        if self.twist_threshold is not None and gyro is not None:
+            tw = self._twist(t, gyro)
+            level["twist"] = np.sqrt(np.einsum("ij,ij->i", tw, tw)) / (self.twist_threshold + allow_w)
         if self.band is not None:
-            out["band"] = self.band.process(accel - self.rest_accel) > self.band_threshold ** 2
-        return out
+            level["band"] = np.sqrt(self.band.process(accel - self.rest_accel)) / self.band_threshold
+        for name, x in level.items():
+            out[name] = x > 1.0
+        return out, level
 
     @property
     def warm(self) -> bool:
         """Rest levels set from `warmup_s` of data: an onset can fire from the next batch on."""
         return self.rest_accel is not None and self._seen_s >= self.warmup_s
 
-    def process(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None) -> int:
-        """Index into the batch of the first sample that fires, or -1."""
+    def process(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None = None, explained=None,
+                first: int = 0) -> int:
+        """Index into the batch of the first sample that fires, or -1. `explained`: None, or (specific
+        force (n, 3), gyro rate (n, 3), their allowances (n,) m/s^2 and (n,) rad/s) that the arm's own
+        motion accounts for, IMU frame, taken off the samples first. Samples before index `first` never fire (an earlier episode's)."""
         n = len(t)
         if n == 0:
             return -1
+        explaining = explained is not None
+        if explaining != self._explaining:
+            if self._explaining is not None:
+                self._restart()
+            self._explaining = explaining
+        allow_a = allow_w = 0.0
+        if explaining:
+            accel = accel - explained[0]
+            if gyro is not None:
+                gyro = gyro - explained[1]
+            allow_a, allow_w = explained[2], explained[3]
         if self.rest_accel is None:
             self.rest_accel = accel.mean(axis=0)
             self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
-        conds = self._conditions(accel, gyro)
+        conds, level = self._conditions(t, accel, gyro, allow_a, allow_w)
+        if "twist" in level:
+            quiet = np.flatnonzero(level["twist"] <= 0.25)
+            quiet_t = self._twist_quiet_t
         hit = -1
-        if self.armed and self._seen_s >= self.warmup_s and conds:
+        if self.settling:
+            self._settle(t, level)
+        elif self.armed and self._seen_s >= self.warmup_s and conds:
+            if first > 0:
+                conds = {k: np.where(np.arange(n) >= first, v, False) for k, v in conds.items()}
             if self.mode == "any":
                 fired = np.logical_or.reduce(list(conds.values()))
                 idx = np.flatnonzero(fired)
@@ -176,14 +267,39 @@ class OnsetDetector:
                 hit = self._coincidence(t, conds)
             if hit >= 0:
                 self.armed = False
+                self.fired_by = next(k for k, v in conds.items() if v[hit])
+                self.onset_from_t = None
+                if self.fired_by == "twist":
+                    before = quiet[quiet < hit]
+                    since = float(t[before[-1]]) if len(before) else quiet_t
+                    self.onset_from_t = max(since, float(t[hit]) - BACKDATE_MAX_S)
+        if "twist" in level and len(quiet):
+            self._twist_quiet_t = float(t[quiet[-1]])
         if hit < 0:
             dt = float(t[-1] - t[0]) if n > 1 else 0.0
-            alpha = 1.0 - math.exp(-(dt + 1e-4) / self.rest_tau_s)
+            tau = self.settle_s / 4.0 if self.settling else self.rest_tau_s
+            # a cumulative mean until tau of data has been seen, then exponential forgetting: the
+            # first levels are not one batch's (an arm starting as the recording starts)
+            alpha = max((dt + 1e-4) / (self._seen_s + dt + 1e-4), 1.0 - math.exp(-(dt + 1e-4) / tau))
             self.rest_accel = self.rest_accel + alpha * (accel.mean(axis=0) - self.rest_accel)
             if gyro is not None:
                 self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
             self._seen_s += dt
         return hit
+
+    def _settle(self, t: np.ndarray, level: dict) -> None:
+        """While settling: the remainder still (every condition under half its threshold) for
+        settle_s ends it."""
+        still = np.logical_and.reduce([x < 0.5 for x in level.values()])
+        moving = np.flatnonzero(~still)
+        if len(moving):
+            self._still_since = float(t[moving[-1]]) if moving[-1] < len(t) - 1 else None
+            if self._still_since is None:
+                return
+        elif self._still_since is None:
+            self._still_since = float(t[0])
+        if float(t[-1]) - self._still_since >= self.settle_s:
+            self.settling = False
 
     def _coincidence(self, t: np.ndarray, conds: dict) -> int:
         """First sample at which every condition has been true within coincidence_s."""

@@ -17,9 +17,9 @@ from tecdard.control.conditioning import GyroConditioner
 from tecdard.control.estimators.base import UNOBSERVED_STD_M, Snapshot
 from tecdard.control.estimators.kernels.report import plane_rotation, rate_moments, rotation_axes
 from tecdard.control.geometry import Plane
-from tecdard.control.measurements import (FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements, ProprioTrack,
-                                          RigNoise)
-from tecdard.control.onset import OnsetDetector
+from tecdard.control.measurements import (ACCEL_WINDOW_S, FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule,
+                                          Measurements, ProprioTrack, RigNoise)
+from tecdard.control.onset import BACKDATE_MAX_S, OnsetDetector
 from tecdard.drivers.lsm6dsr import Scaling
 
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma (x the root NIS ratio above 1) is below this
@@ -32,6 +32,7 @@ SATURATED_BATCH_FRACTION = 0.5    # a batch this clipped counts toward a clipped
 MAX_ETA = 100.0               # eta is 1-3 for real fingertips (the paper's 2.0 at 30 N)
 MAX_GRIP_FORCE_N = 1000.0
 MAX_ETA_ROWS = 100
+SPECIFIC_FORCE_AT_REST = np.array([0.0, 0.0, 9.81])   # world (z up): an accelerometer at rest reads +g up
 
 
 @dataclass
@@ -72,6 +73,7 @@ class EstimatorDirective:
     arc_following: bool = False        # the arm follows an arc about the estimate (ContactKF.radial_var)
     bias_held: bool = False            # the tool touches outside an episode: no gyro bias tracking
     begin_t: float | None = None       # with a new episode: start it at this time without the trigger
+    since_t: float | None = None       # with a new episode: samples stamped before this are an earlier episode's
 
 
 @dataclass
@@ -121,6 +123,8 @@ class ContactPipeline:
         self._dt_sample = 1.0 / 6667.0
         self._angle = 0.0
         self._begin_t: float | None = None
+        self._since_t: float | None = None   # the episode's start: no onset from samples stamped before it
+        self._pre = None                     # the last BACKDATE_MAX_S of idle samples (t, w_f, ok, accel)
         self._g_sat, self._a_sat = DEFAULT_SATURATION
         self.saturated = 0                   # samples of the current episode clipped at full scale
         self.saturated_since: float | None = None   # the stream has been mostly clipped since this time
@@ -204,6 +208,7 @@ class ContactPipeline:
         fresh = new.episode != old.episode
         if fresh:
             self.release()
+            self._since_t = new.since_t
             if new.begin_t is not None:
                 self.begin(new.begin_t)
         if fresh or new.armed != old.armed:
@@ -214,13 +219,15 @@ class ContactPipeline:
             self.hold_bias(new.bias_held)
 
     def release(self) -> None:
-        """End the contact episode: back to bias tracking and an armed trigger."""
+        """End the contact episode: back to bias tracking, and a trigger armed once the fingertip
+        has settled (OnsetDetector.rearm: a touch and a stop ring it)."""
         self.tracking = False
         self.onset_t = None
         self.onset_p_tcp = None
         self._begin_t = None
+        self._pre = None
         self.cond.freeze_bias(False)
-        self.detector.rearm()
+        self.detector.rearm(settle=True)
         self.set_arc_following(False)
 
     # -- batches -------------------------------------------------------------------------------
@@ -241,15 +248,18 @@ class ContactPipeline:
             return events, []
         t, gyro, accel = batch[:, 0], batch[:, 1:4], batch[:, 4:7]
         clipped, tainted = self._clipping(t, gyro, accel)
-        start = 0
+        if len(t) > 1:
+            self._dt_sample = (t[-1] - t[0]) / (len(t) - 1)
+        start, pre = 0, None
         if not self.tracking:
-            start = self._onset(t, gyro, accel, events)
+            start, pre = self._onset(t, gyro, accel, tainted, events)
             if start < 0:
                 return events, []
         w_f = self.cond.lowpass(gyro)[start:]
-        if len(t) > 1:
-            self._dt_sample = (t[-1] - t[0]) / (len(t) - 1)
-        samples = self.measure.take(t[start:], w_f, ~tainted[start:], accel[start:], (self._dt_sample, self._t_prev))
+        ts, ok, acc = t[start:], ~tainted[start:], accel[start:]
+        if pre is not None:                # an onset dated back into earlier batches
+            ts, w_f, ok, acc = (np.concatenate([a, b]) for a, b in zip(pre, (ts, w_f, ok, acc)))
+        samples = self.measure.take(ts, w_f, ok, acc, (self._dt_sample, self._t_prev))
         self._set_eta_uncertainty(self.measure.grip_force_now)
         self.saturated += int(np.count_nonzero(clipped[start:]))
         estimates: list[ContactEstimate] = []
@@ -280,44 +290,91 @@ class ContactPipeline:
         self._since_gyro_sat = int(since[-1])
         return clipped, since < self.cond.lpf_window
 
-    def _onset(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, events: list) -> int:
+    def _explained(self, t: np.ndarray):
+        """What the arm's own motion accounts for at each sample, IMU frame: (the specific force of the
+        TCP's acceleration and gravity (n, 3), the gripper's rate (n, 3)), from the robot's state held
+        at each sample (causal; samples before the first state take the first state's); None before any.
+        The IMU's offset from the TCP is left out (its centripetal and tangential terms are millimetres
+        per second squared at the gripper's rates)."""
+        if self.proprio.n == 0:
+            return None
+        R = self.proprio.lookup(t)[2]
+        M = R @ self.cond.R_tcp_imu                        # world <- IMU, (n, 3, 3)
+        a_world, w_world = self.proprio.accel_at(t), self.proprio.rate_at(t)
+        f = np.einsum("nji,nj->ni", M, a_world + SPECIFIC_FORCE_AT_REST)
+        w = np.einsum("nji,nj->ni", M, w_world)
+        # The acceleration is a fit over ACCEL_WINDOW_S and trails the arm's by about half of it: by half
+        # its change over that window (jerk x window / 2). So do the rates. That much is allowed for.
+        da = a_world - self.proprio.accel_at(t - ACCEL_WINDOW_S)
+        dw = w_world - self.proprio.rate_at(t - ACCEL_WINDOW_S)
+        return f, w, 0.5 * np.sqrt(np.einsum("ij,ij->i", da, da)), 0.5 * np.sqrt(np.einsum("ij,ij->i", dw, dw))
+
+    def _keep_idle(self, t, w_f, ok, accel) -> None:
+        """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them."""
+        if self._pre is None:
+            self._pre = (t, w_f, ok, accel)
+        else:
+            self._pre = tuple(np.concatenate([a, b]) for a, b in zip(self._pre, (t, w_f, ok, accel)))
+        keep = int(np.searchsorted(self._pre[0], float(t[-1]) - BACKDATE_MAX_S, side="left"))
+        if keep:
+            self._pre = tuple(a[keep:] for a in self._pre)
+
+    def _onset(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, tainted: np.ndarray, events: list):
         """Look for the onset in a batch while no episode runs (or begin the one the controller asked
-        for); the index it starts at, or -1. At the onset the estimator starts from the TCP then."""
+        for): (the index in the batch it starts at, or -1; the earlier batches' samples it starts
+        with, when dated back into them, else None). At the onset the estimator starts from the TCP then."""
         if self._begin_t is not None:
             hit = int(np.searchsorted(t, self._begin_t, side="left"))
             hit = hit if hit < len(t) else -1
+            start_t = None
         else:
-            hit = self.detector.process(t, accel, gyro)
+            first = 0 if self._since_t is None else int(np.searchsorted(t, self._since_t, side="left"))
+            hit = self.detector.process(t, accel, gyro, self._explained(t), first)
+            start_t = self.detector.onset_from_t if hit >= 0 else None
         if hit < 0:
             self._track_bias(t, gyro)
-            self.cond.lowpass(gyro)      # keep the filter history warm
-            return -1
-        self._track_bias(t[:hit], gyro[:hit])
-        p, v, _, _, var_v0, _, force_on, ok = self.proprio.lookup(t[hit:hit + 1])
+            self._keep_idle(t, self.cond.lowpass(gyro), ~tainted, accel)   # the filter's history stays warm
+            return -1, None
+        detected_t = float(t[hit])
+        start, pre = hit, None
+        if start_t is not None and start_t < detected_t:
+            start = int(np.searchsorted(t, start_t, side="left"))
+            if start == 0 and self._pre is not None and len(self._pre[0]):
+                k = int(np.searchsorted(self._pre[0], start_t, side="left"))
+                if k < len(self._pre[0]):
+                    pre = tuple(a[k:] for a in self._pre)
+        t_on = float(pre[0][0]) if pre is not None else float(t[start])
+        self._track_bias(t[:start], gyro[:start])
+        p, v, _, _, var_v0, _, force_on, ok = self.proprio.lookup(np.array([t_on]))
         if not ok[0]:
             self.detector.rearm()        # no proprioception yet: cannot start
-            self.cond.lowpass(gyro)
-            return -1
+            self._keep_idle(t, self.cond.lowpass(gyro), ~tainted, accel)
+            return -1, None
         commanded, self._begin_t = self._begin_t is not None, None
+        trigger = "commanded" if commanded else self.detector.fired_by
+        self._pre = None
         self.cond.freeze_bias(True)
         self._set_eta_uncertainty(float(force_on[0]))    # eta's prior for the episode
         self.estimator.set_position_noise(self.proprio.sigma_p_effective())
         self.estimator.start(p[0], v[0])
         self.tracking = True
-        self.onset_t = float(t[hit])
+        self.onset_t = t_on
         self.onset_p_tcp = p[0].copy()
         # the speed beyond the velocity's own noise (3 sigma): from rest, none
         v_onset = max(float(np.linalg.norm(v[0])) - 3.0 * math.sqrt(max(float(var_v0[0]), 0.0)), 0.0)
         self.measure.begin(self.onset_t, v_onset, self.onset_t - self.cond.group_delay_samples * self._dt_sample)
-        self._t_prev = float(t[hit])
+        self._t_prev = t_on
         self._wwT[:] = 0.0
         self._w_sum[:] = 0.0
         self._n_w = 0
         self._angle = 0.0
-        self._t_out = -np.inf
+        # estimates are published from the detection on: the samples before it (an onset dated back)
+        # are the estimator's, but nothing was known of the contact then
+        self._t_out = detected_t - self.params.output_period_s if detected_t > t_on else -np.inf
         self.saturated = 0
-        events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist(), "commanded": commanded})
-        return hit
+        events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist(), "commanded": commanded,
+                       "trigger": trigger, "detected_t": detected_t})
+        return start, pre
 
     def _set_eta_uncertainty(self, force_n: float) -> None:
         """Away from the calibrated grip forces eta is extrapolated: tell the estimator how much less it is

@@ -73,6 +73,11 @@ class TwoPhaseTask(Task):
         self._t_radial = None
 
     def _started(self, inp: TickInput) -> None:
+        # The tool holds the object from the start (the paper's Algorithm 2 begins grasped): the probe
+        # starts the contact episode itself, as it starts the motion, rather than wait for a trigger
+        # that a smooth start from rest gives no impact to fire on.
+        self.episode += 1
+        self.commanded_onset = True
         self._enter(self.Phase.PROBE, inp.t)
 
     def _tick(self, inp: TickInput) -> None:
@@ -84,8 +89,12 @@ class TwoPhaseTask(Task):
         self.status.progress = 0.1 * min(max(s / self.probe_distance, 0.0), 1.0)
         if s >= self.probe_distance:
             c = inp.contact
-            if not c.tracking or c.p is None or c.axis is None:
-                self._fail("no contact onset detected during probing")
+            if not c.tracking or c.p is None:
+                self._fail("no contact estimate after probing (the estimator has not started)")
+                return None
+            if c.axis is None:
+                self._fail(f"no axis yet: the fingertip saw no rotation over the {self.probe_distance * 1e3:.0f} mm "
+                           "probe (is the tool holding the object, and does it turn?)")
                 return None
             self._axis_sign = self._orient_axis(c)
             self.angle_rad = self._phase2_angle(c)

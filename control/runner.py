@@ -63,7 +63,7 @@ class TaskRunner:
         self._steady_since = None
         # a fresh contact episode for this task; with a trigger phase the trigger is armed once the
         # approach moves at constant speed (the arm's own acceleration at the start looks like an impact)
-        self._direct(episode=self.directive.episode + 1, armed=task.trigger_phase is None, begin_t=None)
+        self._direct(episode=self.directive.episode + 1, armed=task.trigger_phase is None, begin_t=None, since_t=now)
         self.emit("task_started", task=task.id, verb=task.kind, params=params)
 
     def cancel(self, task_id: str | None) -> bool:
@@ -93,6 +93,7 @@ class TaskRunner:
         """After a failed tick the caller has held the arm: the plan starts from where it is."""
         self.planner.reset(self.planner.position)
         self.mode = transition(self.mode, Event.RESET)
+        self._direct(armed=True)
 
     # -- each tick ------------------------------------------------------------------------
     def check(self, force, est) -> None:
@@ -145,7 +146,7 @@ class TaskRunner:
             self._last_est = None
             begin_t = now if task.commanded_onset else None
             task.commanded_onset = False
-            self._direct(episode=self.directive.episode + 1, begin_t=begin_t,
+            self._direct(episode=self.directive.episode + 1, begin_t=begin_t, since_t=now,
                          armed=self.directive.armed if task.trigger_phase is None else False)
         # the task says where its TCP motion along the lever arm is absorbed by the grasp, and where
         # it touches outside an episode (the gyro's bias is then held)
@@ -195,6 +196,7 @@ class TaskRunner:
             p_cmd, v_cmd = self.planner.position, np.zeros(3)
         if self.mode.braking and float(np.linalg.norm(v_cmd)) < REST_SPEED_M_S and self.planner.at_rest:
             self.mode = transition(self.mode, Event.AT_REST)
+            self._direct(armed=True)          # at rest: the trigger may arm (once the fingertip has settled)
             self.on_rest()
         return p_cmd
 
@@ -206,8 +208,10 @@ class TaskRunner:
             return
         self.task = None
         self.mode = transition(self.mode, Event.END)
-        self._direct(episode=self.directive.episode + 1, armed=True, arc_following=False, bias_held=False,
-                     begin_t=None)
+        # the trigger stays disarmed while the arm brakes: it arms at rest (_brake_step), and the
+        # estimator waits for the fingertip to settle after that (OnsetDetector.rearm)
+        self._direct(episode=self.directive.episode + 1, armed=False, arc_following=False, bias_held=False,
+                     begin_t=None, since_t=None)
         if outcome == TaskState.DONE:
             result = dict(result or {})
             if self.saturated:

@@ -242,6 +242,9 @@ class PointTask(Task):
         self._psi_plan = 0.0
 
     def _started(self, inp: TickInput) -> None:
+        # the tool touches its point from the start: the tilt starts the contact episode itself
+        self.episode += 1
+        self.commanded_onset = True
         self._enter(self.Phase.OUT, inp.t)
 
     def _on_circle(self, psi: float) -> np.ndarray:

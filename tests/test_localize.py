@@ -109,8 +109,12 @@ def test_localize_3d_point_contact(tmp_path):
 def test_no_contact_exits_1(tmp_path):
     path = scenario_file(tmp_path / "quiet.npz", kind="edge-arc", seed=1, speed=0.02, ring_gain=0.0, duration_s=0.3)
     rec = load_recording(path)
-    rec.gyro[:] = rec.gyro[:1]          # nothing happens at all
+    rec.gyro[:] = rec.gyro[:1]          # nothing happens at all: the arm at rest, the fingertip still
     rec.accel[:] = rec.accel[:1]
+    rec.tcp_pos[:] = rec.tcp_pos[:1]
+    rec.tcp_quat[:] = rec.tcp_quat[:1]
+    if rec.tcp_vel is not None:
+        rec.tcp_vel[:] = 0.0
     save_recording(path, rec)
     res = localize(path, "--json")
     assert res.returncode == 1

@@ -13,7 +13,7 @@ from tecdard.recording.format import LiveLog, Recording
 if TYPE_CHECKING:        # the pipeline (and its compiled kernels) loads when a replay runs, not for --help
     from tecdard.control.pipeline import ContactEstimate, ContactPipeline
 
-DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t")
+DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t", "since_t")
 
 EXIT_OK, EXIT_NO_CONTACT, EXIT_BAD_INPUT = 0, 1, 2
 
