@@ -12,6 +12,7 @@ BACKDATE_MAX_S = 0.1          # a twist onset is dated back at most this far
 # noise over 33 samples of an LSM6DSR at 6.7 kHz is about 0.0015 rad/s (norm); a 12 cm lever turned at
 # 2 cm/s twists a fingertip of eta 2 at 0.083 rad/s.
 TWIST_THRESHOLD_RAD_S = 0.03
+TWIST_WINDOW_S = 0.005        # the twist is the gyro's mean over this long (33 samples at 6.7 kHz)
 
 
 class SlidingBandEnergy:
@@ -60,11 +61,12 @@ class OnsetDetector:
     - `gyro_threshold` (rad/s): |gyro - rest|;
     - `band_threshold` (m/s^2 RMS): accelerometer energy in `band_hz` over one window of
       odr/band_hz[0] samples (the paper's way to catch heavy objects such as a book);
-    - `twist_threshold` (rad/s): the gyro's mean over `twist_window` samples, less its rest: the
+    - `twist_threshold` (rad/s): the gyro's mean over TWIST_WINDOW_S, less its rest: the
       fingertip turning relative to the gripper, which a contact that already exists (a grasped
       hinge the arm starts to turn) shows without any impact. It is the one condition whose onset
-      is dated back (`onset_from_t`): to the last sample at which that mean was within a quarter of
-      the threshold, at most BACKDATE_MAX_S before it fired.
+      is dated back (`onset_from_t`): to the last sample at which that mean was within twice its
+      rms at rest (or a twentieth of the threshold), less the mean's group delay, at most
+      BACKDATE_MAX_S before it fired.
 
     What the arm's own motion explains is taken off first when the caller knows it (`explained`:
     the specific force and the gripper's rate the robot's state predicts, IMU frame, and what each
@@ -78,8 +80,7 @@ class OnsetDetector:
     def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,
                  band_threshold: float | None = None, band_hz=(40.0, 200.0), mode: str = "any",
                  coincidence_s: float = 0.02, rest_tau_s: float = 0.5, warmup_s: float = 0.1,
-                 odr_hz: float = 6667.0, twist_threshold: float | None = None, twist_window: int = 33,
-                 settle_s: float = 0.25):
+                 odr_hz: float = 6667.0, twist_threshold: float | None = None, settle_s: float = 0.25):
         if mode not in MODES:
             raise ValueError("mode: expected 'any' or 'all'")
         if accel_threshold is None and gyro_threshold is None and band_threshold is None and twist_threshold is None:
@@ -89,14 +90,12 @@ class OnsetDetector:
                         ("band_threshold", band_threshold), ("twist_threshold", twist_threshold)):
             if v is not None and v <= 0:
                 raise ValueError(f"{name}: must be > 0")
-        if twist_window < 1:
-            raise ValueError("twist_window: must be >= 1 sample")
         self.accel_threshold = accel_threshold
         self.accel_axis = None if accel_axis is None else np.asarray(accel_axis, float) / np.linalg.norm(accel_axis)
         self.gyro_threshold = gyro_threshold
         self.band_threshold = band_threshold
         self.twist_threshold = twist_threshold
-        self.twist_window = int(twist_window)
+        self.twist_window = max(1, int(round(TWIST_WINDOW_S * odr_hz)))
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
         self.odr_hz = float(odr_hz)
         self.band = SlidingBandEnergy(odr_hz, *band_hz) if band_threshold is not None else None
@@ -114,7 +113,8 @@ class OnsetDetector:
         self._still_since = None       # the remainder has been still since this time (settling)
         self._explaining = None        # whether the last batch came with what the arm's motion explains
         self._twist_hist = np.zeros((0, 3))
-        self._twist_quiet_t = -np.inf  # the last time the twist's mean was within a quarter of its threshold
+        self._twist_quiet_t = -np.inf  # the last time the twist's mean was within its noise
+        self._twist_ms = 0.0           # the twist's mean square at rest, (rad/s)^2
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
@@ -159,7 +159,6 @@ class OnsetDetector:
                 warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
                 odr_hz=odr_hz,
                 twist_threshold=opt("twist_threshold", TWIST_THRESHOLD_RAD_S),
-                twist_window=section.getint("twist_window", 33, minval=1, maxval=2000),
                 settle_s=section.getfloat("settle_s", 0.25, minval=0.0, maxval=10.0),
             )
         except ValueError as exc:         # "accel_threshold: must be > 0": the key, then the problem
@@ -186,6 +185,7 @@ class OnsetDetector:
         self._seen_s = 0.0
         self._twist_hist = np.zeros((0, 3))
         self._twist_quiet_t = -np.inf
+        self._twist_ms = 0.0
 
     def _twist(self, t: np.ndarray, gyro: np.ndarray) -> np.ndarray:
         """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
@@ -251,7 +251,9 @@ class OnsetDetector:
             self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
         conds, level = self._conditions(t, accel, gyro, allow_a, allow_w)
         if "twist" in level:
-            quiet = np.flatnonzero(level["twist"] <= 0.25)
+            # within twice its own noise (its rms at rest), or a twentieth of the threshold
+            quiet_level = max(2.0 * math.sqrt(self._twist_ms), 0.05 * self.twist_threshold) / self.twist_threshold
+            quiet = np.flatnonzero(level["twist"] * (1.0 + allow_w / self.twist_threshold) <= quiet_level)
             quiet_t = self._twist_quiet_t
         hit = -1
         if self.settling:
@@ -270,8 +272,10 @@ class OnsetDetector:
                 self.fired_by = next(k for k, v in conds.items() if v[hit])
                 self.onset_from_t = None
                 if self.fired_by == "twist":
+                    # the mean describes the middle of its window: its group delay is taken off
                     before = quiet[quiet < hit]
                     since = float(t[before[-1]]) if len(before) else quiet_t
+                    since -= 0.5 * (self.twist_window - 1) / self.odr_hz
                     self.onset_from_t = max(since, float(t[hit]) - BACKDATE_MAX_S)
         if "twist" in level and len(quiet):
             self._twist_quiet_t = float(t[quiet[-1]])
@@ -284,6 +288,9 @@ class OnsetDetector:
             self.rest_accel = self.rest_accel + alpha * (accel.mean(axis=0) - self.rest_accel)
             if gyro is not None:
                 self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
+            if "twist" in level and not self.settling:
+                ms = float(np.mean((level["twist"] * (self.twist_threshold + allow_w)) ** 2))
+                self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)
             self._seen_s += dt
         return hit
 

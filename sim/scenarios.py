@@ -162,3 +162,96 @@ def generate(sc: Scenario):
     truth = {"p_c": truth_p, "axis": a, "onset_t": np.array(t_on), "kind": np.array(sc.kind),
              "radius": np.array(L), "eta": np.array(eta), "angle_t": t, "angle": obj_angle}
     return fields, truth
+
+
+@dataclass
+class FreeAirMoves:
+    """The arm carrying the tool through the air, touching nothing: jerk-limited starts and stops
+    (Ruckig, the daemon's own planner's limits) along random directions, the tool turning about the
+    TCP's z as it goes, with rests between. What the onset trigger must never take for a contact."""
+    moves: int = 10
+    max_speed: float = 0.1            # m/s per axis
+    max_accel: float = 0.5            # m/s^2 per axis (configs' control.max_accel)
+    max_jerk: float = 5.0             # m/s^3 per axis (control.max_jerk)
+    max_rate: float = 0.5             # rad/s, the tool turning
+    max_alpha: float = 2.0            # rad/s^2
+    reach: float = 0.1                # m, targets within this of the start per axis
+    rest_s: tuple = (0.2, 0.5)        # s, the rest before each move (uniform)
+    imu_hz: float = 6667.0
+    tcp_hz: float = 500.0
+    gyro_noise: float = 5e-3          # rad/s per sample
+    accel_noise: float = 0.034        # m/s^2 per sample
+    gyro_bias: float = 0.02
+    accel_bias: float = 0.05
+    tcp_noise: float = 5e-5
+    tcp_vel_noise: float = 1e-3
+    imu_in_tcp_quat: tuple = (0.0, 0.0, 0.0, 1.0)
+    seed: int = 0
+
+
+def free_air(sc: FreeAirMoves):
+    """(recording fields, truth) of `sc`: truth holds the moves' start and end times (no contact)."""
+    import ruckig
+    rng = np.random.default_rng(sc.seed)
+    step = 1e-3
+    otg, inp, out = ruckig.Ruckig(4, step), ruckig.InputParameter(4), ruckig.OutputParameter(4)
+    inp.max_velocity = [sc.max_speed] * 3 + [sc.max_rate]
+    inp.max_acceleration = [sc.max_accel] * 3 + [sc.max_alpha]
+    inp.max_jerk = [sc.max_jerk] * 3 + [10.0 * sc.max_alpha]
+    x = np.zeros(4)
+    rows, moves = [], []
+    t = 0.0
+    for _ in range(sc.moves):
+        for _ in range(int(rng.uniform(*sc.rest_s) / step)):
+            rows.append(np.concatenate([[t], x, np.zeros(8)]))
+            t += step
+        inp.current_position, inp.current_velocity, inp.current_acceleration = x.tolist(), [0.0] * 4, [0.0] * 4
+        inp.target_position = np.concatenate([rng.uniform(-sc.reach, sc.reach, 3),
+                                              [rng.uniform(-0.5, 0.5)]]).tolist()
+        inp.target_velocity, inp.target_acceleration = [0.0] * 4, [0.0] * 4
+        t_start = t
+        while True:
+            res = otg.update(inp, out)
+            rows.append(np.concatenate([[t], out.new_position, out.new_velocity, out.new_acceleration]))
+            t += step
+            out.pass_to_input(inp)
+            if res == ruckig.Result.Finished:
+                break
+        x = np.array(out.new_position)
+        moves.append((t_start, t))
+    for _ in range(int(sc.rest_s[1] / step)):
+        rows.append(np.concatenate([[t], x, np.zeros(8)]))
+        t += step
+    k = np.array(rows)
+    imu_t = np.arange(0.0, k[-1, 0], 1.0 / sc.imu_hz)
+    col = [np.interp(imu_t, k[:, 0], k[:, i]) for i in range(1, 13)]
+    p0 = np.array([0.5, 0.0, 0.3])
+    p = p0 + np.column_stack(col[0:3])
+    yaw, yaw_rate = col[3], col[7]
+    acc = np.column_stack(col[8:11])
+    R0 = rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))             # the tool pointing down
+    z = np.array([0.0, 0.0, 1.0])
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    Rz = np.zeros((len(yaw), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s_, s_, c, 1.0
+    R_tcp = Rz @ R0
+    R_world_imu = R_tcp @ quat_to_matrix(np.array(sc.imu_in_tcp_quat, float))
+    w_world = yaw_rate[:, None] * z
+    n = len(imu_t)
+    gyro = np.einsum("nji,nj->ni", R_world_imu, w_world) + rng.uniform(-sc.gyro_bias, sc.gyro_bias, 3) \
+        + rng.normal(0.0, sc.gyro_noise, (n, 3))
+    accel = np.einsum("nji,nj->ni", R_world_imu, acc - GRAVITY_WORLD) + rng.uniform(-sc.accel_bias, sc.accel_bias, 3) \
+        + rng.normal(0.0, sc.accel_noise, (n, 3))
+    tcp_t = np.arange(0.3 / sc.tcp_hz, imu_t[-1], 1.0 / sc.tcp_hz)
+    idx = np.searchsorted(imu_t, tcp_t)
+    vel = np.column_stack([np.interp(tcp_t, k[:, 0], k[:, i]) for i in (5, 6, 7)])
+    fields = {
+        "imu_t": imu_t, "gyro": gyro, "accel": accel, "tcp_t": tcp_t,
+        "tcp_pos": p[idx] + rng.normal(0.0, sc.tcp_noise, (len(idx), 3)),
+        "tcp_quat": np.array([matrix_to_quat(R) for R in R_tcp[idx]]),
+        "tcp_vel": vel + rng.normal(0.0, sc.tcp_vel_noise, (len(idx), 3)),
+        "imu_in_tcp_quat": np.array(sc.imu_in_tcp_quat, float) / np.linalg.norm(sc.imu_in_tcp_quat),
+        "meta": {"simulated": True, "kind": "free-air", "moves": sc.moves, "seed": sc.seed},
+    }
+    truth = {"moves": np.array(moves), "onset_t": np.array(np.nan), "kind": np.array("free-air")}
+    return fields, truth

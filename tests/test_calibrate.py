@@ -221,10 +221,10 @@ def test_a_probe_that_did_not_start_from_rest_is_left_out_in_one_line(probes):
     """The gyro's bias is its mean before the onset: a probe sent right after a move (a `home`) once
     read eta 2.04 among 1.98s. An arm that moved in that window is said and left out."""
     from tecdard.recording.format import load_recording
-    from tecdard.tools.calibrate import BIAS_WINDOW_S, NotAtRest, check_rest
+    from tecdard.tools.calibrate import BIAS_WINDOW_S, ONSET_GUARD_S, NotAtRest, check_rest
     rec = load_recording(probes[0])
     speed = np.linalg.norm(rec.tcp_vel, axis=1)
     moving_t = float(rec.tcp_t[np.argmax(speed > 0.005)])
-    check_rest("a.npz", rec, float(rec.tcp_t[0]) + 0.5 * BIAS_WINDOW_S)       # too little window: not judged
+    check_rest("a.npz", rec, float(rec.tcp_t[0]) + ONSET_GUARD_S + 0.01)      # too little window: not judged
     with pytest.raises(NotAtRest, match=r"a.npz: the arm moved in the 0.2 s before the onset \("):
-        check_rest("a.npz", rec, moving_t + BIAS_WINDOW_S)
+        check_rest("a.npz", rec, moving_t + ONSET_GUARD_S + BIAS_WINDOW_S)

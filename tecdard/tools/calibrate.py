@@ -43,6 +43,9 @@ WINDOW_S = 0.01               # samples averaged per window
 MIN_SPEED_M_S = 0.002         # windows with a slower TCP carry no rate information
 MIN_TURN_RAD = np.radians(2.0)    # a probe must turn the object at least this much
 BIAS_WINDOW_S = 0.2           # the gyro bias: the mean over this long before the onset (at rest)
+# The bias window ends this long before the onset: a probe's start from rest, with no impact, is found by
+# the fingertip's twist and dated back to 3-10 ms after the arm began to move (control.onset)
+ONSET_GUARD_S = 0.015
 MIN_RECORDINGS = 2
 FORCE_ROUND_N = 0.1
 LAG_MAX_S = 0.020             # the fingertip lag searched, 0 to this (a best fit at it is said, best_lag)
@@ -68,7 +71,7 @@ REST_RATE_RAD_S = 0.005       # and the gripper turns slower than this
 def check_rest(name: str, rec, onset_t: float) -> None:
     """The gyro's bias is its mean over BIAS_WINDOW_S before the onset, which holds only if the arm was
     at rest then (a probe sent right after a `home` once read eta 2.04 against 1.98)."""
-    sel = (rec.tcp_t >= onset_t - BIAS_WINDOW_S) & (rec.tcp_t < onset_t)
+    sel = (rec.tcp_t >= onset_t - ONSET_GUARD_S - BIAS_WINDOW_S) & (rec.tcp_t < onset_t - ONSET_GUARD_S)
     if np.count_nonzero(sel) < 2:
         return
     # over the whole window, so that the encoders' noise averages out (one sample's rate reads 1-2 deg/s)
@@ -100,7 +103,7 @@ def gripper_rates(rec) -> np.ndarray:
 def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = None) -> tuple[float, float, int]:
     """(eta, its standard error, windows used) from one recording whose onset is at onset_t."""
     t = rec.imu_t
-    pre = (t < onset_t) & (t >= onset_t - BIAS_WINDOW_S)
+    pre = (t < onset_t - ONSET_GUARD_S) & (t >= onset_t - ONSET_GUARD_S - BIAS_WINDOW_S)
     if np.count_nonzero(pre) < 10:
         raise CalibrationError(f"{name}: less than {BIAS_WINDOW_S:g} s at rest before the onset for the gyro bias")
     check_rest(name, rec, onset_t)
@@ -161,14 +164,14 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
     recording with a known contact: the object's relative rate across the lever arm at each
     proprioception sample in the probe's first LAG_SPAN_S against the gyro's LAG later."""
     t = rec.imu_t
-    pre = (t < onset_t) & (t >= onset_t - BIAS_WINDOW_S)
+    pre = (t < onset_t - ONSET_GUARD_S) & (t >= onset_t - ONSET_GUARD_S - BIAS_WINDOW_S)
     bias = rec.gyro[pre].mean(axis=0)
     R_tcp_imu = quat_to_matrix(rec.imu_in_tcp_quat)
     R_world_tcp = quat_to_matrix(rec.tcp_quat)
     j_of_t = np.clip(np.searchsorted(rec.tcp_t, t, side="right") - 1, 0, len(rec.tcp_t) - 1)
     w_seen = np.einsum("kij,kj->ki", R_world_tcp[j_of_t], (rec.gyro - bias) @ R_tcp_imu.T)
     v_tcp = rec.tcp_vel if rec.tcp_vel is not None else np.gradient(rec.tcp_pos, rec.tcp_t, axis=0)
-    sel = np.flatnonzero((rec.tcp_t >= onset_t) & (rec.tcp_t < onset_t + LAG_SPAN_S))
+    sel = np.flatnonzero((rec.tcp_t >= onset_t - ONSET_GUARD_S) & (rec.tcp_t < onset_t + LAG_SPAN_S))
     lags = np.arange(0.0, LAG_MAX_S + 1e-12, LAG_STEP_S)
     rss = np.full(len(lags), np.inf)
     if len(sel) < 5:
