@@ -307,7 +307,8 @@ class ContactPipeline:
         # its change over that window (jerk x window / 2). So do the rates. That much is allowed for.
         da = a_world - self.proprio.accel_at(t - ACCEL_WINDOW_S)
         dw = w_world - self.proprio.rate_at(t - ACCEL_WINDOW_S)
-        return f, w, 0.5 * np.sqrt(np.einsum("ij,ij->i", da, da)), 0.5 * np.sqrt(np.einsum("ij,ij->i", dw, dw))
+        return (f, w, 0.5 * np.sqrt(np.einsum("ij,ij->i", da, da)), 0.5 * np.sqrt(np.einsum("ij,ij->i", dw, dw)),
+                np.sqrt(np.einsum("ij,ij->i", a_world, a_world)))
 
     def _keep_idle(self, t, w_f, ok, accel) -> None:
         """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them."""
@@ -368,9 +369,9 @@ class ContactPipeline:
         self._w_sum[:] = 0.0
         self._n_w = 0
         self._angle = 0.0
-        # estimates are published from the detection on: the samples before it (an onset dated back)
-        # are the estimator's, but nothing was known of the contact then
-        self._t_out = detected_t - self.params.output_period_s if detected_t > t_on else -np.inf
+        # an onset dated back: the estimates from it on are made now, each from the samples up to its
+        # own time (causal; the live daemon publishes them as one burst at the detection)
+        self._t_out = -np.inf
         self.saturated = 0
         events.append({"kind": "contact_onset", "t": self.onset_t, "p_tcp": p[0].tolist(), "commanded": commanded,
                        "trigger": trigger, "detected_t": detected_t})

@@ -27,6 +27,11 @@ Motions (`motion`):
 - `ongoing` (the block): the arm, moving from the recording's start and at `speed` after RAMP_S,
   slides the block along the table into the ridge (the onset, at `rest_s`, is that impact) and
   goes on, on the arc about the edge.
+- `carry` (the block, lifted CARRY_LIFT_M clear of the table): no contact at all. After `rest_s`
+  the arm moves it back and forth along x, each move a start (a half cosine of speed peaking at
+  CARRY_ACCEL, the daemon's configured maximum), CARRY_CRUISE_S at `speed` and a stop, then
+  CARRY_REST_S still: what the onset trigger must never fire on
+  (truth's onset_t is NaN, its `moves` the moves' start and end times).
 
 Proprioception is the mocap pose at `tcp_hz` with Gaussian position noise, and optionally the TCP
 velocity with noise.
@@ -75,7 +80,7 @@ class MujocoScenario:
         """The cutter on its hinge (line contact), a pen on its tip (point contact), or a block
         tipped up on its bottom edge against a ridge on the table (a line contact through real
         contacts: they may give and slide)."""
-        return {"circle": "pen", "tilt": "block", "ongoing": "block"}.get(self.motion, "cutter")
+        return {"circle": "pen", "tilt": "block", "ongoing": "block", "carry": "block"}.get(self.motion, "cutter")
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
@@ -94,7 +99,10 @@ class MujocoScenario:
                 raise ValueError(f"{name}: {v:g} is outside [{lo:g}, {hi:g}]")
 
 
-MOTIONS = ("arc", "arc-turning", "push", "slip", "circle", "tilt", "ongoing")
+MOTIONS = ("arc", "arc-turning", "push", "slip", "circle", "tilt", "ongoing", "carry")
+CARRY_LIFT_M = 0.05                        # `carry`: the block held this far above where it would stand
+CARRY_CRUISE_S, CARRY_REST_S = 0.25, 0.25
+CARRY_ACCEL = 0.5                          # m/s^2, `carry`'s peak acceleration (the configs' control.max_accel)
 BLOCK_HALF_WIDTH_M = 0.03                  # the block: the TCP grasps its top, this far from the pivot edge in x
 HINGE = np.array([0.40, 0.0, 0.30])        # the hinge point (the pen's tip), world (the robot base), m
 RAMP_S = 0.05                              # the arm reaches its speed in this long
@@ -223,6 +231,8 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     }
     # the onset: the arm starts to push the held handle (the handle itself may stick a little longer)
     point = sc.world == "pen"
+    if sc.motion == "carry":
+        return fields, {"onset_t": np.array(np.nan), "kind": np.array("free-air"), "moves": np.array(path.moves(t[-1]))}
     truth = {"p_c": HINGE.copy(), "axis": np.zeros(3) if point else path.axis, "onset_t": np.array(t[n_rest]),
              "kind": np.array("point-circle" if point else "edge-arc"), "radius": np.array(L),
              "eta": np.array(sc.eta), "angle_t": t, "angle": angle - angle[0]}
@@ -251,7 +261,7 @@ class _Path:
         # `ongoing`: the block and the gripper start along +x (away from the ridge) as far as the arm
         # travels from the start to the onset
         self.approach = sc.speed * (sc.rest_s - 0.5 * RAMP_S) if sc.motion == "ongoing" else 0.0
-        self.start = np.array([self.approach, 0.0, 0.0])
+        self.start = np.array([self.approach, 0.0, CARRY_LIFT_M if sc.motion == "carry" else 0.0])
         self.tangent0 = np.cross(self.axis, out_dir)              # the handle's tangent at the grasp (rising)
         if self.tangent0[2] < 0:
             self.tangent0 = -self.tangent0
@@ -262,6 +272,8 @@ class _Path:
         acceleration speed * pi / (2 RAMP_S), 0.63 m/s^2 at 20 mm/s), then holds (`ongoing`: from the
         start, negative before the impact: the slide towards the ridge)."""
         sc = self.sc
+        if sc.motion == "carry":
+            return self._carry(t)
         t_go = 0.0 if sc.motion == "ongoing" else sc.rest_s
         s_move = np.maximum(t - t_go, 0.0)
         dist = np.where(s_move < RAMP_S,
@@ -269,9 +281,33 @@ class _Path:
                         0.5 * sc.speed * RAMP_S + sc.speed * (s_move - RAMP_S))
         return dist - self.approach if sc.motion == "ongoing" else dist
 
+    @property
+    def carry_ramp_s(self) -> float:
+        """`carry`'s start and stop: a half cosine of speed whose peak acceleration is CARRY_ACCEL."""
+        return max(RAMP_S, self.sc.speed * math.pi / (2.0 * CARRY_ACCEL))
+
+    def moves(self, t_end: float) -> list[tuple[float, float]]:
+        """`carry`: each move's (start, end) time up to t_end."""
+        span = 2 * self.carry_ramp_s + CARRY_CRUISE_S
+        starts = np.arange(self.sc.rest_s, t_end - span - CARRY_REST_S, span + CARRY_REST_S)
+        return [(float(t0), float(t0 + span)) for t0 in starts]
+
+    def _carry(self, t: np.ndarray) -> np.ndarray:
+        """The signed distance along x at times t: moves out and back (see the module's `carry`)."""
+        sc, ramp = self.sc, self.carry_ramp_s
+        v = np.zeros(len(t))
+        for k, (t0, t1) in enumerate(self.moves(float(t[-1]) + 1.0)):
+            up = np.clip((t - t0) / ramp, 0.0, 1.0)
+            down = np.clip((t1 - t) / ramp, 0.0, 1.0)
+            shape = 0.5 * (1 - np.cos(np.pi * np.minimum(up, down)))
+            v += np.where((t >= t0) & (t <= t1), (1.0 if k % 2 == 0 else -1.0) * sc.speed * shape, 0.0)
+        return np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+
     def at(self, dist: float) -> tuple[np.ndarray, np.ndarray]:
         """(p, R) of the mocap target `dist` along the path."""
         sc = self.sc
+        if sc.motion == "carry":
+            return self.p0 + self.start + dist * np.array([1.0, 0.0, 0.0]), self.R0
         if sc.motion == "push":
             return self.p0 + dist * self.tangent0, self.R0
         if sc.motion == "circle":       # about the vertical through the tip, the gripper held
