@@ -11,8 +11,8 @@ from tecdard.control.onset import OnsetDetector
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.recording.format import Recording
 from tecdard.sim.scenarios import FreeAirMoves, Scenario, free_air, generate
+from tecdard.tools.localize import replay_onsets
 
-BATCH_S = 0.02
 IMPACT_LATENCY_S = 0.005        # the issue's bound for a real impact
 
 
@@ -21,31 +21,9 @@ def pipeline_for(rec: Recording) -> ContactPipeline:
                                        rec.imu_rate_hz)
 
 
-def onsets(rec: Recording, pipe: ContactPipeline | None = None, episode_s: float = 0.3) -> list[dict]:
-    """Every contact_onset of a causal replay, the episode released `episode_s` after each (as a
-    task's end releases it), the trigger then re-armed as the daemon re-arms it."""
-    pipe = pipe or pipeline_for(rec)
-    R = quat_to_matrix(rec.tcp_quat)
-    batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
-    ends = np.searchsorted(rec.imu_t, np.arange(rec.imu_t[0], rec.imu_t[-1] + BATCH_S, BATCH_S)[1:], side="right")
-    found, j, start, release_at = [], 0, 0, None
-    for end in ends:
-        if end <= start:
-            continue
-        t_end = rec.imu_t[end - 1]
-        while j < len(rec.tcp_t) and rec.tcp_t[j] <= t_end:
-            pipe.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if rec.tcp_vel is None else rec.tcp_vel[j], R[j], None)
-            j += 1
-        if release_at is not None and t_end >= release_at:
-            pipe.release()
-            release_at = None
-        events, _ = pipe.process_all(batch[start:end])
-        start = end
-        for ev in events:
-            if ev["kind"] == "contact_onset":
-                found.append(ev)
-                release_at = ev["detected_t"] + episode_s
-    return found
+def onsets(rec: Recording, pipe: ContactPipeline | None = None) -> list[dict]:
+    """Every contact_onset of a causal replay, each episode released 0.3 s after it."""
+    return replay_onsets(rec, pipe or pipeline_for(rec))
 
 
 @pytest.fixture(scope="module")

@@ -63,6 +63,35 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
 
 
+def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 0.3, chunk_s: float = 0.02) -> list:
+    """Every contact_onset event of a causal replay, each episode released `episode_s` after its
+    detection (as a task's end releases it; the trigger then settles and re-arms as the daemon's
+    does): how often the trigger fires over a whole recording, not only its first onset."""
+    R = quat_to_matrix(rec.tcp_quat)
+    batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
+    grid = np.arange(rec.imu_t[0] + chunk_s, rec.imu_t[-1] + chunk_s, chunk_s)
+    ends = np.unique(np.append(np.searchsorted(rec.imu_t, grid, side="right"), len(rec.imu_t)))
+    found, j, start, release_at = [], 0, 0, None
+    for end in ends:
+        if end <= start:
+            continue
+        t_end = rec.imu_t[end - 1]
+        while j < len(rec.tcp_t) and rec.tcp_t[j] <= t_end:
+            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if rec.tcp_vel is None else rec.tcp_vel[j], R[j],
+                                 None)
+            j += 1
+        if release_at is not None and t_end >= release_at:
+            pipeline.release()
+            release_at = None
+        events, _ = pipeline.process_all(batch[start:end])
+        start = end
+        for ev in events:
+            if ev["kind"] == "contact_onset":
+                found.append(ev)
+                release_at = ev["detected_t"] + episode_s
+    return found
+
+
 def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline, on_estimate=None):
     """Run the pipeline over a daemon recording as the live estimator ran: the same passes (each
     pass's IMU batch), each proprioception sample added before the pass it reached live, the

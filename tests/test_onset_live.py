@@ -1,0 +1,86 @@
+"""The onset trigger in the running daemon (issue 34): tasks in a row on the simulator, recording on,
+give one contact onset per contact episode and one recording per task, and the daemon's own stops
+and rests give none: no idle capture. benchmarks/onset_live.py runs the same with 20 of each verb."""
+import time
+
+import numpy as np
+import pytest
+
+from tests.test_home import until_idle
+
+ROUNDS = 3                     # of each verb here; 20 in benchmarks/onset_live.py
+TASK_TIMEOUT_S = 60.0
+REST_S = 5.0                   # at rest after the tasks, the trigger armed: nothing may fire
+
+
+def run_rounds(d, tasks: list[tuple[str, dict]], rounds: int) -> list[tuple[str, str, dict]]:
+    """Each task of `tasks`, then `home` with a fresh world, `rounds` times: (verb, task id, end event)."""
+    done = []
+    for _ in range(rounds):
+        for verb, params in tasks + [("home", {"reset_world": True})]:
+            until_idle(d.client)
+            reply = d.client.command(verb, params)
+            assert reply["ok"], reply
+            ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+            assert ev["kind"] == "task_done", f"{verb}: {ev.get('error')}\n{d.log()[-2000:]}"
+            done.append((verb, reply["task"], ev))
+    until_idle(d.client)
+    return done
+
+
+def recorded(rec_dir, done, timeout_s: float = 20.0) -> tuple[dict, list]:
+    """(task id -> its recordings, idle captures), once every task's recording is written."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        files = sorted(p.name for p in rec_dir.glob("*.npz"))
+        per_task = {task: [f for f in files if task in f] for _, task, _ in done}
+        idle = [f for f in files if "-idle" in f]
+        if all(per_task.values()) or time.monotonic() > deadline:
+            return per_task, idle
+        time.sleep(0.2)
+
+
+def check_counts(d, rec_dir, done, episodes: dict) -> None:
+    """One onset per contact episode (episodes: verb -> onsets each of its tasks begins), none else;
+    one recording per task; no idle capture; the onsets of a task within it."""
+    time.sleep(REST_S)
+    onsets = [e for e in d.client.event_log if e["kind"] == "contact_onset"]
+    expected = sum(episodes.get(verb, 0) for verb, _, _ in done)
+    summary = [(e["t"], e.get("trigger"), e["commanded"]) for e in onsets]
+    assert len(onsets) == expected, summary
+    started = {e["task"]: e["t"] for e in d.client.event_log if e["kind"] == "task_started"}
+    ended = {e["task"]: e["t"] for e in d.client.event_log if e["kind"] in ("task_done", "task_failed")}
+    for verb, task, _ in done:
+        inside = [e for e in onsets if started[task] <= e["t"] <= ended[task]]
+        assert len(inside) == episodes.get(verb, 0), (verb, task, summary)
+    per_task, idle = recorded(rec_dir, done)
+    assert idle == [], idle
+    assert all(len(v) == 1 for v in per_task.values()), per_task
+
+
+@pytest.mark.slow
+def test_probes_and_rotates_in_a_row_give_one_onset_each_and_no_idle_capture(make_daemon, tmp_path):
+    rec_dir = tmp_path / "recordings"
+    d = make_daemon(**{"record.enabled": True, "record.dir": str(rec_dir)})
+    done = run_rounds(d, [("probe", {}), ("rotate", {"angle_deg": 5.0})], ROUNDS)
+    assert all(abs(ev["result"]["sim"]["angle_deg"] - 5.0) < 1.0 for verb, _, ev in done if verb == "rotate")
+    check_counts(d, rec_dir, done, {"probe": 1, "rotate": 1})
+
+
+@pytest.mark.slow
+def test_approaches_and_points_in_a_row_give_one_onset_each_and_no_idle_capture(make_daemon, tmp_path):
+    """A block held nearly level comes down onto a table (the approach's onset is its impact), and a
+    pen on its tip is circled (the point task's onset is its own, as it tilts the pen out)."""
+    tool_m, tilt = 0.12, np.radians(10.0)
+    tip_tcp = [float(tool_m * np.cos(tilt)), 0.0, float(tool_m * np.sin(tilt))]
+    table = float(0.487 - tool_m * np.sin(tilt) - 0.012)
+    rec_dir = tmp_path / "recordings"
+    d = make_daemon(**{"record.enabled": True, "record.dir": str(rec_dir), "sim.hinge": ...,
+                       "sim.pivot": {"tip_in_tcp": tip_tcp, "table_height": table, "edge_x": 1.0}})
+    done = run_rounds(d, [("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
+                                        "stop_angle_deg": 3.0})], ROUNDS)
+    for _, _, ev in done[::2]:
+        assert abs(ev["result"]["travel"] - 0.012) < 0.006, ev["result"]
+    onsets = [e for e in d.client.event_log if e["kind"] == "contact_onset"]
+    assert all(e["trigger"] == "accel" and not e["commanded"] for e in onsets), onsets
+    check_counts(d, rec_dir, done, {"approach": 1})
