@@ -1,0 +1,87 @@
+"""The onset trigger in the running daemon, 20 tasks of each verb in a row (issue 34); writes
+benchmarks/onset_live.md.
+
+    python -m benchmarks.onset_live [--rounds N]
+
+The simulated robot with recording on, as tests/test_onset_live.py runs it with 3 of each: probes
+and rotates (5 deg) on the cutter, each followed by `home --reset-world`; approaches onto a table
+with a block held nearly level (stopped 3 deg after the impact), each followed by a home. Counted:
+contact onsets (all, and inside their own task), recordings per task, idle captures, and onsets in
+the rest that follows.
+"""
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.conftest import DaemonProcess, daemon_config  # noqa: E402
+from tests.test_onset_live import REST_S, TICK_S, recorded, run_rounds  # noqa: E402
+
+OUT = ROOT / "benchmarks" / "onset_live.md"
+
+
+def scene(kind: str) -> dict:
+    if kind == "cutter":
+        return {}
+    tool_m, tilt = 0.12, np.radians(10.0)
+    tip_tcp = [float(tool_m * np.cos(tilt)), 0.0, float(tool_m * np.sin(tilt))]
+    return {"sim.hinge": ..., "sim.pivot": {"tip_in_tcp": tip_tcp, "table_height": float(0.487 - tip_tcp[2] - 0.012),
+                                            "edge_x": 1.0}}
+
+
+def run(kind: str, tasks: list, rounds: int, episodes: dict) -> str:
+    with tempfile.TemporaryDirectory() as tmp:
+        rec_dir = pathlib.Path(tmp) / "recordings"
+        d = DaemonProcess(pathlib.Path(tmp), daemon_config(**{"record.enabled": True, "record.dir": str(rec_dir),
+                                                               **scene(kind)}))
+        try:
+            started_at = time.monotonic()
+            done = run_rounds(d, tasks, rounds)
+            wall = time.monotonic() - started_at
+            n_before = len([e for e in d.client.event_log if e["kind"] == "contact_onset"])
+            time.sleep(REST_S)
+            onsets = [e for e in d.client.event_log if e["kind"] == "contact_onset"]
+            started = {e["task"]: e["t"] for e in d.client.event_log if e["kind"] == "task_started"}
+            ended = {e["task"]: e["t"] for e in d.client.event_log if e["kind"] in ("task_done", "task_failed")}
+            per_verb = {}
+            for verb, task, _ in done:
+                inside = sum(started[task] - TICK_S <= e["t"] <= ended[task] for e in onsets)
+                per_verb.setdefault(verb, []).append(inside)
+            per_task, idle = recorded(rec_dir, [x for x in done if episodes.get(x[0], 0)])
+            files = [len(v) for v in per_task.values()]
+        finally:
+            d.close()
+    cells = ", ".join(f"{verb} {len(v)} tasks: {sum(v)} onsets inside them" for verb, v in per_verb.items())
+    triggers = sorted({str(e.get("trigger")) for e in onsets})
+    return (f"| {kind} | {cells} | {len(onsets)} ({'/'.join(triggers)}) | {len(onsets) - n_before} | "
+            f"{sum(f == 1 for f in files)}/{len(files)} | {len(idle)} | {wall:.0f} s |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=20)
+    args = ap.parse_args()
+    rows = [run("cutter", [("probe", {}), ("rotate", {"angle_deg": 5.0})], args.rounds, {"probe": 1, "rotate": 1}),
+            run("table", [("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
+                                        "stop_angle_deg": 3.0})], args.rounds, {"approach": 1})]
+    text = "\n".join([
+        "# The onset trigger in the running daemon", "",
+        f"`python -m benchmarks.onset_live --rounds {args.rounds}`: the simulated robot, recording on; each task "
+        "followed by `home --reset-world`. Expected: one onset inside each probe, rotate and approach, none in a "
+        f"home or the {REST_S:g} s of rest after; one recording per task with an episode; no idle capture.", "",
+        "| scene | onsets inside each verb's tasks | onsets in all (by trigger) | in the rest after | one recording "
+        "per task | idle captures | wall |", "|---|---|---|---|---|---|---|", *rows, ""])
+    OUT.write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
