@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 MODES = ("any", "all")
-BACKDATE_MAX_S = 0.1          # a twist onset is dated back at most this far
+BACKDATE_MAX_S = 0.3          # a twist onset is dated back at most this far
+TWIST_HOLD_S = 0.2            # a twist fires once it has held one way this long (OnsetDetector._held)
 # The twist trigger's default, rad/s: the fingertip turning relative to the gripper at 1.7 deg/s, over
 # TWIST_WINDOW_S. Its noise over 33 samples of an LSM6DSR at 6.7 kHz is about 0.0015 rad/s (norm); a
 # 12 cm lever turned at 2 cm/s twists a fingertip of eta 2 at 0.083 rad/s.
@@ -129,6 +130,9 @@ class OnsetDetector:
         self._twist_hist = np.zeros((0, 3))
         self._twist_quiet_t = -np.inf  # the last time the twist's mean was within its noise
         self._twist_ms = 0.0           # the twist's mean square at rest, (rad/s)^2
+        self._candidate = None         # a twist holding: (since, its direction, the quiet time before it)
+        self._quiet = np.zeros(0, dtype=int)
+        self._twist_vec, self._twist_now = np.zeros((0, 3)), np.zeros(0)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
@@ -196,6 +200,7 @@ class OnsetDetector:
         self._last_true = {}
         self.onset_from_t = None
         self.fired_by = None
+        self._candidate = None
         if settle and self.settle_s > 0.0:
             self.settling = True
             self._still_since = None
@@ -209,6 +214,7 @@ class OnsetDetector:
         self._twist_hist = np.zeros((0, 3))
         self._twist_quiet_t = -np.inf
         self._twist_ms = 0.0
+        self._candidate = None
 
     def _swing(self, t: np.ndarray, a_arm: np.ndarray) -> np.ndarray:
         """The envelope of the arm's acceleration (n,), m/s^2: its running maximum, decaying with
@@ -220,7 +226,13 @@ class OnsetDetector:
         self._swing_env, self._swing_t = float(env[-1]), float(t[-1])
         return env
 
-    def _twist(self, t: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+    def _twist_norm(self, gyro: np.ndarray) -> np.ndarray:
+        """|twist| per sample (n,), rad/s (the batch's twist, computed once: _twist)."""
+        self._twist_vec = self._twist(gyro)
+        self._twist_now = np.sqrt(np.einsum("ij,ij->i", self._twist_vec, self._twist_vec))
+        return self._twist_now
+
+    def _twist(self, gyro: np.ndarray) -> np.ndarray:
         """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
         w = self.twist_window
         ext = np.vstack([self._twist_hist, gyro])
@@ -246,14 +258,57 @@ class OnsetDetector:
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
+        tw = None
         if self.twist_threshold is not None and gyro is not None:
-            tw = self._twist(t, gyro)
-            level["twist"] = np.sqrt(np.einsum("ij,ij->i", tw, tw)) / (self.twist_threshold + allow_w)
+            tw = self._twist_vec
+            level["twist"] = self._twist_now / (self.twist_threshold + allow_w)
         if self.band is not None:
             level["band"] = np.sqrt(self.band.process(accel - self.rest_accel)) / self.band_threshold
         for name, x in level.items():
             out[name] = x > 1.0
+        if tw is not None:
+            out["twist"] = self._held(t, tw, out["twist"], 0.5 * (self.twist_threshold + allow_w))
         return out, level
+
+    def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor) -> np.ndarray:
+        """The twist fires only once it has held one way for TWIST_HOLD_S: over its threshold at the
+        start, then never under `floor` (half of it) along that direction. A grasped hinge the arm
+        turns keeps twisting one way as long as the arm moves; a held object swinging in the grasp
+        turns back within half its period. True at the sample where the hold completes."""
+        n = len(t)
+        fired = np.zeros(n, dtype=bool)
+        floor = np.broadcast_to(floor, (n,))
+        i = 0
+        while i < n:
+            if self._candidate is None:
+                up = np.flatnonzero(over[i:])
+                if not len(up):
+                    break
+                i += int(up[0])
+                self._candidate = (float(t[i]), tw[i] / np.linalg.norm(tw[i]), self._quiet_before(t, i))
+            t0, u, _ = self._candidate
+            drop = np.flatnonzero(tw[i:] @ u < floor[i:])
+            held = np.flatnonzero(t[i:] - t0 >= TWIST_HOLD_S)
+            k_drop = int(drop[0]) if len(drop) else n
+            k_held = int(held[0]) if len(held) else n
+            if k_held < n and k_held <= k_drop:
+                fired[i + k_held] = True
+                break
+            if k_drop >= n - i:
+                break
+            self._candidate = None
+            i += k_drop + 1
+        return fired
+
+    def _quiet_before(self, t: np.ndarray, k: int) -> float:
+        """The last time before sample k of this batch at which the twist was within its noise."""
+        before = self._quiet[self._quiet < k]
+        return float(t[before[-1]]) if len(before) else self._twist_quiet_t
+
+    @property
+    def pending(self) -> bool:
+        """A twist is holding (TWIST_HOLD_S): neither the rest levels nor the gyro's bias may learn from it."""
+        return self._candidate is not None
 
     @property
     def warm(self) -> bool:
@@ -284,12 +339,15 @@ class OnsetDetector:
         if self.rest_accel is None:
             self.rest_accel = accel.mean(axis=0)
             self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
+        self._quiet = np.zeros(0, dtype=int)
+        if self.twist_threshold is not None and gyro is not None:
+            # where the twist is within twice its own noise (its rms at rest), or a twentieth of the threshold
+            quiet_level = max(2.0 * math.sqrt(self._twist_ms), 0.05 * self.twist_threshold)
+            self._quiet = np.flatnonzero(self._twist_norm(gyro) <= quiet_level)
         conds, level = self._conditions(t, accel, gyro, allow_a, allow_w)
-        if "twist" in level:
-            # within twice its own noise (its rms at rest), or a twentieth of the threshold
-            quiet_level = max(2.0 * math.sqrt(self._twist_ms), 0.05 * self.twist_threshold) / self.twist_threshold
-            quiet = np.flatnonzero(level["twist"] * (1.0 + allow_w / self.twist_threshold) <= quiet_level)
-            quiet_t = self._twist_quiet_t
+        if self.settling or not self.armed:
+            self._candidate = None        # a twist counts only from when the trigger may fire
+        quiet = self._quiet
         hit = -1
         if self.settling:
             self._settle(t, level)
@@ -306,15 +364,15 @@ class OnsetDetector:
                 self.armed = False
                 self.fired_by = next(k for k, v in conds.items() if v[hit])
                 self.onset_from_t = None
-                if self.fired_by == "twist":
-                    # the mean describes the middle of its window: its group delay is taken off
-                    before = quiet[quiet < hit]
-                    since = float(t[before[-1]]) if len(before) else quiet_t
-                    since -= 0.5 * (self.twist_window - 1) / self.odr_hz
+                if self._candidate is not None and self._candidate[0] <= float(t[hit]):
+                    # a twist holding since before (any condition may fire first: a hinge's friction
+                    # breaking away): from where it left its noise, less its mean's group delay
+                    since = self._candidate[2] - 0.5 * (self.twist_window - 1) / self.odr_hz
                     self.onset_from_t = max(since, float(t[hit]) - BACKDATE_MAX_S)
-        if "twist" in level and len(quiet):
+                self._candidate = None
+        if len(quiet):
             self._twist_quiet_t = float(t[quiet[-1]])
-        if hit < 0:
+        if hit < 0 and not self.pending:
             dt = float(t[-1] - t[0]) if n > 1 else 0.0
             tau = self.settle_s / 4.0 if self.settling else self.rest_tau_s
             # a cumulative mean until tau of data has been seen, then exponential forgetting: the
@@ -324,7 +382,7 @@ class OnsetDetector:
             if gyro is not None:
                 self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
             if "twist" in level and not self.settling:
-                ms = float(np.mean((level["twist"] * (self.twist_threshold + allow_w)) ** 2))
+                ms = float(np.mean(self._twist_now ** 2))
                 self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)
             self._seen_s += dt
         return hit

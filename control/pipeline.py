@@ -311,11 +311,13 @@ class ContactPipeline:
                 np.sqrt(np.einsum("ij,ij->i", a_world, a_world)))
 
     def _keep_idle(self, t, w_f, ok, accel) -> None:
-        """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them."""
+        """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them, each with the
+        gyro bias its filtered rate was made with."""
+        rows = (t, w_f, ok, accel, np.tile(self.cond.bias, (len(t), 1)))
         if self._pre is None:
-            self._pre = (t, w_f, ok, accel)
+            self._pre = rows
         else:
-            self._pre = tuple(np.concatenate([a, b]) for a, b in zip(self._pre, (t, w_f, ok, accel)))
+            self._pre = tuple(np.concatenate([a, b]) for a, b in zip(self._pre, rows))
         keep = int(np.searchsorted(self._pre[0], float(t[-1]) - BACKDATE_MAX_S, side="left"))
         if keep:
             self._pre = tuple(a[keep:] for a in self._pre)
@@ -333,19 +335,24 @@ class ContactPipeline:
             hit = self.detector.process(t, accel, gyro, self._explained(t), first)
             start_t = self.detector.onset_from_t if hit >= 0 else None
         if hit < 0:
-            self._track_bias(t, gyro)
+            if not self.detector.pending:      # a twist that may be a contact is not bias
+                self._track_bias(t, gyro)
             self._keep_idle(t, self.cond.lowpass(gyro), ~tainted, accel)   # the filter's history stays warm
             return -1, None
         detected_t = float(t[hit])
         start, pre = hit, None
         if start_t is not None and start_t < detected_t:
+            # dated back: the gyro's bias as it stood then (it has tracked some of the twist since)
             start = int(np.searchsorted(t, start_t, side="left"))
             if start == 0 and self._pre is not None and len(self._pre[0]):
                 k = int(np.searchsorted(self._pre[0], start_t, side="left"))
                 if k < len(self._pre[0]):
-                    pre = tuple(a[k:] for a in self._pre)
+                    pre_t, pre_w, pre_ok, pre_a, pre_bias = (a[k:] for a in self._pre)
+                    self.cond.bias = pre_bias[0].copy()
+                    pre = (pre_t, pre_w + (pre_bias - self.cond.bias), pre_ok, pre_a)
+        else:
+            self._track_bias(t[:start], gyro[:start])
         t_on = float(pre[0][0]) if pre is not None else float(t[start])
-        self._track_bias(t[:start], gyro[:start])
         p, v, _, _, var_v0, _, force_on, ok = self.proprio.lookup(np.array([t_on]))
         if not ok[0]:
             self.detector.rearm()        # no proprioception yet: cannot start
