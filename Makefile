@@ -51,6 +51,8 @@ bench: $(WARM)
 	$(PY) -m benchmarks.viz
 	$(PY) -m benchmarks.mujoco
 	$(PY) -m benchmarks.poses
+	$(PY) -m benchmarks.onset
+	$(PY) -m benchmarks.onset_live
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.figure
 
