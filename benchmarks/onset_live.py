@@ -65,6 +65,47 @@ def run(kind: str, tasks: list, rounds: int, episodes: dict) -> str:
             f"{sum(f == 1 for f in files)}/{len(files)} | {len(idle)} | {wall:.0f} s |")
 
 
+def approach_errors(speeds=(0.01, 0.02, 0.03), runs: int = 3) -> list[str]:
+    """Approaches into the table at the paper's speeds (0.01-0.03 m/s), the block stopped 5 deg after
+    the impact: the hinge's in-plane error at the stop (the task's result) and 30 ms after the onset
+    (the daemon's own recording, replayed as it ran live)."""
+    from tecdard.config import Config
+    from tecdard.control.geometry import quat_to_matrix
+    from tecdard.control.pipeline import ContactPipeline
+    from tecdard.recording.format import load_live, load_recording
+    from tecdard.tools import localize as L
+    from tecdard.tools.demo import distance_to_axis
+    axis = np.array([0.0, 1.0, 0.0])
+    rows = []
+    for speed in speeds:
+        at_stop, at_30 = [], []
+        with tempfile.TemporaryDirectory() as tmp:
+            rec_dir = pathlib.Path(tmp) / "recordings"
+            d = DaemonProcess(pathlib.Path(tmp), daemon_config(**{"record.enabled": True, "record.dir": str(rec_dir),
+                                                                   **scene("table")}))
+            try:
+                done = run_rounds(d, [("approach", {"direction": [0.0, 0.0, -1.0], "speed": speed,
+                                                    "max_distance": 0.08, "stop_angle_deg": 5.0})], runs)
+                per_task, _ = recorded(rec_dir, [x for x in done if x[0] == "approach"])
+                for verb, task, ev in done:
+                    if verb != "approach":
+                        continue
+                    contact = np.array(ev["result"]["sim"]["contact"])
+                    at_stop.append(distance_to_axis(np.array(ev["result"]["p"]), contact, axis))
+                    path = rec_dir / per_task[task][0]
+                    rec = load_recording(path)
+                    pipe = ContactPipeline.from_config(Config.load(d.config_path).section("estimator"),
+                                                       quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz)
+                    out, onset_t, _ = L.replay_live(rec, load_live(path, rec), pipe)
+                    k = int(np.searchsorted(out[:, 0], onset_t + 0.030))
+                    at_30.append(distance_to_axis(out[min(k, len(out) - 1), 1:4], contact, axis))
+            finally:
+                d.close()
+        fmt = (lambda e: f"{np.median(e) * 1e3:.1f} [{np.min(e) * 1e3:.1f}-{np.max(e) * 1e3:.1f}]")
+        rows.append(f"| {speed * 1000:.0f} mm/s | {fmt(at_30)} | {fmt(at_stop)} |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=20)
@@ -78,7 +119,13 @@ def main() -> None:
         "followed by `home --reset-world`. Expected: one onset inside each probe, rotate and approach, none in a "
         f"home or the {REST_S:g} s of rest after; one recording per task with an episode; no idle capture.", "",
         "| scene | onsets inside each verb's tasks | onsets in all (by trigger) | in the rest after | one recording "
-        "per task | idle captures | wall |", "|---|---|---|---|---|---|---|", *rows, ""])
+        "per task | idle captures | wall |", "|---|---|---|---|---|---|---|", *rows, "",
+        "## `approach` into an edge at the paper's speeds", "",
+        "A block held nearly level, 12 cm from its edge, brought down onto the table; stopped 5 deg after the "
+        "impact. The edge's in-plane error, mm, median [range] of 3 runs: 30 ms after the onset (the daemon's "
+        "own recording replayed as it ran) and at the stop (the task's result). The paper reports 11 mm in its "
+        "ongoing-motion case.", "",
+        "| speed | 30 ms after the onset | at the stop |", "|---|---|---|", *approach_errors(), ""])
     OUT.write_text(text)
     print(text)
 

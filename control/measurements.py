@@ -33,6 +33,7 @@ RATE_HISTORY_S = 0.2          # the object's rates kept for that pairing (propri
 # 0.05 m/s^2).
 ACCEL_WINDOW_S = 0.02
 ACCEL_MIN_STATES = 4
+SPECIFIC_FORCE_AT_REST = np.array([0.0, 0.0, 9.81])   # world (z up): an accelerometer at rest reads +g up
 
 
 @dataclass(frozen=True)
@@ -111,6 +112,12 @@ class ProprioTrack:
         self.var_v = np.zeros(size)
         self.a = np.zeros(size)            # |acceleration| estimate, m/s^2
         self.acc = np.zeros((size, 3))     # the TCP's acceleration, world, m/s^2 (a fit over ACCEL_WINDOW_S)
+        self.acc_ok = np.zeros(size, dtype=bool)   # acc[k] has been fitted
+        # per state, what it says of the arm's own motion for the onset trigger (explained): the specific
+        # force and the gripper's rate in the IMU frame, how far they may trail, |acceleration|
+        self.imu_mount = np.eye(3)         # R_tcp_imu
+        self.expl = np.zeros((size, 9))
+        self.expl_ok = np.zeros(size, dtype=bool)
         self.alpha = np.zeros(size)        # |angular acceleration| estimate of the TCP, rad/s^2
         self.tw = np.zeros(size)           # time the TCP rate belongs to
         self.R = np.tile(np.eye(3), (size, 1, 1))
@@ -156,13 +163,12 @@ class ProprioTrack:
                 wdot = (w - self.w[n - 1]) / (t - self.t[n - 1])
         a = math.dist(v, self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6) if n else 0.0
         alpha = math.dist(w, self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6) if n else 0.0
-        acc = self._fit_accel(n, tv, v)
         if n == self.size:
-            for arr in (self.t, self.p, self.v, self.tv, self.pv, self.hv, self.var_v, self.a, self.acc, self.alpha,
-                        self.tw, self.R, self.w, self.wdot, self.force):
+            for arr in (self.t, self.p, self.v, self.tv, self.pv, self.hv, self.var_v, self.a, self.acc, self.acc_ok,
+                        self.expl, self.expl_ok, self.alpha, self.tw, self.R, self.w, self.wdot, self.force):
                 arr[:-1] = arr[1:]
             n -= 1
-        self.acc[n] = acc
+        self.acc_ok[n] = self.expl_ok[n] = False       # fitted when first asked for (accel_at, explained)
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
         self.pv[n], self.hv[n] = pv, hv
         self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
@@ -170,25 +176,62 @@ class ProprioTrack:
         self.n = n + 1
         self.added += 1
 
-    def _fit_accel(self, n: int, tv: float, v: np.ndarray) -> np.ndarray:
-        """The TCP's acceleration as of a new velocity (v at tv) and the n held before it: the slope of
-        the least-squares line through those of the last ACCEL_WINDOW_S (at least ACCEL_MIN_STATES)."""
-        if n == 0:
+    def _fit_accel(self, k: int) -> np.ndarray:
+        """The TCP's acceleration as of state k: the slope of the least-squares line through the
+        velocities of the last ACCEL_WINDOW_S up to it (at least ACCEL_MIN_STATES)."""
+        if k == 0:
             return np.zeros(3)
-        k0 = int(np.searchsorted(self.tv[:n], tv - ACCEL_WINDOW_S, side="left"))
-        k0 = max(min(k0, n - ACCEL_MIN_STATES + 1), 0)
-        ts = np.append(self.tv[k0:n], tv)
-        vs = np.vstack([self.v[k0:n], v])
-        dt = ts - ts.mean()
+        tv = self.tv[:k + 1]
+        k0 = int(np.searchsorted(tv, tv[k] - ACCEL_WINDOW_S, side="left"))
+        k0 = max(min(k0, k - ACCEL_MIN_STATES + 1), 0)
+        dt = tv[k0:] - float(np.add.reduce(tv[k0:])) / (k + 1 - k0)
         den = float(dt @ dt)
         if den <= 0.0:
             return np.zeros(3)
-        return (dt @ (vs - vs.mean(axis=0))) / den
+        return (dt @ self.v[k0:k + 1]) / den
 
     def accel_at(self, ts: np.ndarray) -> np.ndarray:
         """The TCP's acceleration (world, m/s^2) held by the newest state at or before each time ts (n,)."""
         j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
+        for k in np.unique(j[~self.acc_ok[j]]):
+            self._fitted(int(k))
         return self.acc[j]
+
+    def _fitted(self, k: int) -> np.ndarray:
+        if not self.acc_ok[k]:
+            self.acc[k] = self._fit_accel(k)
+            self.acc_ok[k] = True
+        return self.acc[k]
+
+    def explained(self, ts: np.ndarray) -> np.ndarray | None:
+        """What the arm's own motion accounts for at the IMU samples stamped ts (n,), from the state
+        each holds (causal; samples before the first state take the first state's): (n, 9) rows of
+        the specific force (gravity and the TCP's acceleration) and the gripper's rate, both in the
+        IMU's frame (`imu_mount`: R_tcp_imu), half the change of the acceleration and of the rate
+        over the ACCEL_WINDOW_S before the state (m/s^2, rad/s: how far a fit over that window may
+        trail the arm), and |acceleration|. None before any state. Each state's row is made once."""
+        if self.n == 0:
+            return None
+        j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
+        if not self.expl_ok[j[-1]] or not self.expl_ok[j[0]]:
+            for k in range(int(j[0]), int(j[-1]) + 1):
+                if not self.expl_ok[k]:
+                    self._explain(k)
+        return self.expl[j]
+
+    def _explain(self, k: int) -> None:
+        before = max(int(np.searchsorted(self.tv[:k + 1], self.tv[k] - ACCEL_WINDOW_S, side="right")) - 1, 0)
+        acc = self._fitted(k)
+        da = acc - self._fitted(before)
+        dw = self.w[k] - self.w[before]
+        M = self.R[k] @ self.imu_mount                      # world <- IMU
+        row = self.expl[k]
+        row[0:3] = (acc + SPECIFIC_FORCE_AT_REST) @ M
+        row[3:6] = self.w[k] @ M
+        row[6] = 0.5 * math.sqrt(float(da @ da))
+        row[7] = 0.5 * math.sqrt(float(dw @ dw))
+        row[8] = math.sqrt(float(acc @ acc))
+        self.expl_ok[k] = True
 
     def sigma_p_effective(self) -> float:
         """The TCP position's noise, m: the configured sigma_p, or more where the positions show it.

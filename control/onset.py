@@ -80,8 +80,9 @@ class OnsetDetector:
 
     What the arm's own motion explains is taken off first when the caller knows it (`explained`:
     the specific force and the gripper's rate the robot's state predicts, IMU frame, and what each
-    may be off by, which widens the thresholds): the arm's starts, stops and turns then are not contacts. The rest levels are those of the remainder
-    (the accelerometer's bias and the mount's error; the gyro's bias), tracked while armed (time
+    may be off by, which widens the thresholds): the arm's starts, stops and turns then are not
+    contacts. The rest levels are those of the remainder (the accelerometer's bias and the mount's
+    error; the gyro's bias), tracked while armed (time
     constant `rest_tau_s`); nothing fires until `warmup_s` of data has been seen. After firing it
     stays disarmed until `rearm()`, and after `rearm(settle=True)` until the remainder has been
     still for `settle_s` (its rest levels follow it meanwhile, `settle_s` / 4).
@@ -319,7 +320,8 @@ class OnsetDetector:
                 first: int = 0) -> int:
         """Index into the batch of the first sample that fires, or -1. `explained`: None, or (specific
         force (n, 3), gyro rate (n, 3), their allowances (n,) m/s^2 and (n,) rad/s, the arm's own
-        acceleration's magnitude (n,) m/s^2) that the arm's own motion accounts for, IMU frame, taken off the samples first. Samples before index `first` never fire (an earlier episode's)."""
+        acceleration's magnitude (n,) m/s^2) that the arm's own motion accounts for, IMU frame, taken
+        off the samples first. Samples before index `first` never fire (an earlier episode's)."""
         n = len(t)
         if n == 0:
             return -1

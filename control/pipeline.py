@@ -7,6 +7,7 @@ each output time.
 """
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
 
@@ -17,8 +18,8 @@ from tecdard.control.conditioning import GyroConditioner
 from tecdard.control.estimators.base import UNOBSERVED_STD_M, Snapshot
 from tecdard.control.estimators.kernels.report import plane_rotation, rate_moments, rotation_axes
 from tecdard.control.geometry import Plane
-from tecdard.control.measurements import (ACCEL_WINDOW_S, FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule,
-                                          Measurements, ProprioTrack, RigNoise)
+from tecdard.control.measurements import (FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements,
+                                          ProprioTrack, RigNoise)
 from tecdard.control.onset import BACKDATE_MAX_S, OnsetDetector
 from tecdard.drivers.lsm6dsr import Scaling
 
@@ -32,7 +33,6 @@ SATURATED_BATCH_FRACTION = 0.5    # a batch this clipped counts toward a clipped
 MAX_ETA = 100.0               # eta is 1-3 for real fingertips (the paper's 2.0 at 30 N)
 MAX_GRIP_FORCE_N = 1000.0
 MAX_ETA_ROWS = 100
-SPECIFIC_FORCE_AT_REST = np.array([0.0, 0.0, 9.81])   # world (z up): an accelerometer at rest reads +g up
 
 
 @dataclass
@@ -110,6 +110,7 @@ class ContactPipeline:
         self.estimator = estimators.build(self.method, self.params.options, self.plane)
         self.eta = EtaSchedule(self.params.eta_table)
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.noise.sigma_p, sigma_v=self.params.noise.sigma_v)
+        self.proprio.imu_mount = np.asarray(conditioner.R_tcp_imu, dtype=float)
         self.measure = Measurements(conditioner, self.eta, self.proprio, self.params.grip_force_n,
                                     self.params.fingertip_lag_s)
         self.tracking = False
@@ -124,7 +125,7 @@ class ContactPipeline:
         self._angle = 0.0
         self._begin_t: float | None = None
         self._since_t: float | None = None   # the episode's start: no onset from samples stamped before it
-        self._pre = None                     # the last BACKDATE_MAX_S of idle samples (t, w_f, ok, accel)
+        self._pre = collections.deque()      # the last BACKDATE_MAX_S of idle batches (_keep_idle)
         self._g_sat, self._a_sat = DEFAULT_SATURATION
         self.saturated = 0                   # samples of the current episode clipped at full scale
         self.saturated_since: float | None = None   # the stream has been mostly clipped since this time
@@ -225,7 +226,7 @@ class ContactPipeline:
         self.onset_t = None
         self.onset_p_tcp = None
         self._begin_t = None
-        self._pre = None
+        self._pre.clear()
         self.cond.freeze_bias(False)
         self.detector.rearm(settle=True)
         self.set_arc_following(False)
@@ -291,36 +292,29 @@ class ContactPipeline:
         return clipped, since < self.cond.lpf_window
 
     def _explained(self, t: np.ndarray):
-        """What the arm's own motion accounts for at each sample, IMU frame: (the specific force of the
-        TCP's acceleration and gravity (n, 3), the gripper's rate (n, 3)), from the robot's state held
-        at each sample (causal; samples before the first state take the first state's); None before any.
-        The IMU's offset from the TCP is left out (its centripetal and tangential terms are millimetres
+        """What the arm's own motion accounts for at each sample, IMU frame (ProprioTrack.explained):
+        (the specific force of the TCP's acceleration and gravity (n, 3), the gripper's rate (n, 3),
+        how far each may trail the arm (n,) (n,), |acceleration| (n,)); None before any state. The
+        IMU's offset from the TCP is left out (its centripetal and tangential terms are millimetres
         per second squared at the gripper's rates)."""
-        if self.proprio.n == 0:
+        rows = self.proprio.explained(t)
+        if rows is None:
             return None
-        R = self.proprio.lookup(t)[2]
-        M = R @ self.cond.R_tcp_imu                        # world <- IMU, (n, 3, 3)
-        a_world, w_world = self.proprio.accel_at(t), self.proprio.rate_at(t)
-        f = np.einsum("nji,nj->ni", M, a_world + SPECIFIC_FORCE_AT_REST)
-        w = np.einsum("nji,nj->ni", M, w_world)
-        # The acceleration is a fit over ACCEL_WINDOW_S and trails the arm's by about half of it: by half
-        # its change over that window (jerk x window / 2). So do the rates. That much is allowed for.
-        da = a_world - self.proprio.accel_at(t - ACCEL_WINDOW_S)
-        dw = w_world - self.proprio.rate_at(t - ACCEL_WINDOW_S)
-        return (f, w, 0.5 * np.sqrt(np.einsum("ij,ij->i", da, da)), 0.5 * np.sqrt(np.einsum("ij,ij->i", dw, dw)),
-                np.sqrt(np.einsum("ij,ij->i", a_world, a_world)))
+        return rows[:, 0:3], rows[:, 3:6], rows[:, 6], rows[:, 7], rows[:, 8]
 
     def _keep_idle(self, t, w_f, ok, accel) -> None:
-        """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them, each with the
-        gyro bias its filtered rate was made with."""
-        rows = (t, w_f, ok, accel, np.tile(self.cond.bias, (len(t), 1)))
-        if self._pre is None:
-            self._pre = rows
-        else:
-            self._pre = tuple(np.concatenate([a, b]) for a, b in zip(self._pre, rows))
-        keep = int(np.searchsorted(self._pre[0], float(t[-1]) - BACKDATE_MAX_S, side="left"))
-        if keep:
-            self._pre = tuple(a[keep:] for a in self._pre)
+        """The last BACKDATE_MAX_S of idle samples, for an onset dated back into them, each batch with
+        the gyro bias its filtered rate was made with (joined only when an onset is dated back)."""
+        self._pre.append((t, w_f, ok, accel, self.cond.bias.copy()))
+        while len(self._pre) > 1 and self._pre[1][0][0] <= float(t[-1]) - BACKDATE_MAX_S:
+            self._pre.popleft()
+
+    def _pre_rows(self):
+        """The kept idle samples as one run: (t, w_f, ok, accel, the bias per sample)."""
+        if not self._pre:
+            return None
+        return tuple(np.concatenate(x) for x in zip(*[(t, w, ok, a, np.tile(b, (len(t), 1)))
+                                                      for t, w, ok, a, b in self._pre]))
 
     def _onset(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, tainted: np.ndarray, events: list):
         """Look for the onset in a batch while no episode runs (or begin the one the controller asked
@@ -344,10 +338,11 @@ class ContactPipeline:
         if start_t is not None and start_t < detected_t:
             # dated back: the gyro's bias as it stood then (it has tracked some of the twist since)
             start = int(np.searchsorted(t, start_t, side="left"))
-            if start == 0 and self._pre is not None and len(self._pre[0]):
-                k = int(np.searchsorted(self._pre[0], start_t, side="left"))
-                if k < len(self._pre[0]):
-                    pre_t, pre_w, pre_ok, pre_a, pre_bias = (a[k:] for a in self._pre)
+            kept = self._pre_rows() if start == 0 else None
+            if kept is not None and len(kept[0]):
+                k = int(np.searchsorted(kept[0], start_t, side="left"))
+                if k < len(kept[0]):
+                    pre_t, pre_w, pre_ok, pre_a, pre_bias = (a[k:] for a in kept)
                     self.cond.bias = pre_bias[0].copy()
                     pre = (pre_t, pre_w + (pre_bias - self.cond.bias), pre_ok, pre_a)
         else:
@@ -360,7 +355,7 @@ class ContactPipeline:
             return -1, None
         commanded, self._begin_t = self._begin_t is not None, None
         trigger = "commanded" if commanded else self.detector.fired_by
-        self._pre = None
+        self._pre.clear()
         self.cond.freeze_bias(True)
         self._set_eta_uncertainty(float(force_on[0]))    # eta's prior for the episode
         self.estimator.set_position_noise(self.proprio.sigma_p_effective())

@@ -337,6 +337,7 @@ FRANKY_SIM_STALLS = {"control.max_nis_ratio": 50.0, "control.imu_stale_s": 0.5, 
 # Runs that kept time were at most 35 ms behind (benchmarks.franka); the failures on record came
 # with stalls of 70-240 ms (CI, 2026-12-03: 126 ms behind, divergence at 60x).
 SIM_LATE_S = 0.070
+SIM_ATTEMPTS = 3
 
 
 def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
@@ -368,12 +369,16 @@ def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
     within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still. A run that
     failed while franky-sim fell behind its own schedule (SIM_LATE_S) judged the simulator, not the
-    daemon: it is run once more, and said so."""
-    ev, truth, _, log = cutter_run(tmp_path / "first")
-    if ev["kind"] == "task_failed" and truth["worst_behind_s"] > SIM_LATE_S:
+    daemon: it is run again, and said so; three such runs in a row are a skip that says so."""
+    for attempt in range(SIM_ATTEMPTS):
+        ev, truth, _, log = cutter_run(tmp_path / f"run{attempt}")
+        if ev["kind"] != "task_failed" or truth["worst_behind_s"] <= SIM_LATE_S:
+            break
         print(f"franky-sim fell {truth['worst_behind_s'] * 1e3:.0f} ms behind and the rotate failed "
               f"({ev['error']}): run again")
-        ev, truth, _, log = cutter_run(tmp_path / "again")
+    else:
+        pytest.skip(f"franky-sim could not keep its schedule on this machine in {SIM_ATTEMPTS} runs (last "
+                    f"{truth['worst_behind_s'] * 1e3:.0f} ms behind): no judgement of the daemon")
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     res = ev["result"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))

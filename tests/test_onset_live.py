@@ -10,7 +10,7 @@ from tests.test_home import until_idle
 
 ROUNDS = 3                     # of each verb here; 20 in benchmarks/onset_live.py
 TASK_TIMEOUT_S = 60.0
-REST_S = 5.0                   # at rest after the tasks, the trigger armed: nothing may fire
+REST_S = 3.0                   # at rest after the tasks, the trigger armed: nothing may fire
 TICK_S = 0.02
 
 

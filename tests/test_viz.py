@@ -97,8 +97,9 @@ def test_viewers_that_never_read_are_capped_in_number_and_in_bytes(tmp_path):
         rss0 = rss_mb(d.proc.pid)
         for _ in range(12):
             try:
+                # once a frame waits, nothing more is read; its close does not wait for the frames queued
                 ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5.0,
-                                       max_queue=1)          # once a frame waits, nothing more is read
+                                       max_queue=1, close_timeout=1.0)
             except InvalidStatus as exc:
                 assert exc.response.status_code == 503
                 refused += 1
