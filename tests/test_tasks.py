@@ -150,3 +150,25 @@ def test_the_arcs_end_is_kept_while_the_estimate_jitters():
     assert len(ends) > 5 and all(np.array_equal(e, ends[0][1]) for _, e in ends)
     assert t - ends[0][0] < 1.0                           # at rest at the kept end soon after
     assert abs(task.status.result["angle_deg"] - 30.0) < 0.3
+
+
+def test_a_rotate_starts_its_own_episode_and_a_probe_that_turned_nothing_says_no_axis_yet():
+    """Issue 34: the probe's episode began only if the arm's own start crossed the accelerometer's
+    threshold, and a probe without it failed "no contact onset detected". The task now starts its
+    episode on its first tick (a commanded onset); a probe over which nothing turned is "no axis yet"."""
+    task = RotateTask("rotate-1", math.radians(10.0), 0.02, 0.005, np.array([0.0, 0.0, 1.0]))
+    planner = CartesianPlanner(TICK_S, 0.05, 0.5, 5.0)
+    planner.reset(P0, speed=0.02)
+    t, p = TICK_S, P0.copy()
+    task.step(TickInput(t, p.copy(), R0, ContactView(tracking=False), planner.at_rest, planner.position, None))
+    assert task.episode == 1 and task.commanded_onset
+    still = ContactView(tracking=True, p=P0.copy(), std=np.full(3, 0.5), axis=None, onset_t=t, in_plane_std=0.5)
+    for _ in range(200):
+        t += TICK_S
+        planner.advance(t)
+        motion = task.step(TickInput(t, p.copy(), R0, still, planner.at_rest, planner.position, None))
+        if motion is None:
+            break
+        p, _ = planner.step(motion.p, motion.v, motion.min_duration_s)
+    assert task.status.state == "failed"
+    assert task.status.error.startswith("no axis yet: the fingertip saw no rotation over the 5 mm probe")
