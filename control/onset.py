@@ -18,8 +18,8 @@ TWIST_WINDOW_S = 0.005
 # (sim.mujoco_source `carry`, eta 2) holding a 0.3 kg block 6 cm below the grasp reads up to 0.5 m/s^2
 # per m/s^2 of the arm's acceleration beyond the arm's own: that much is allowed for the accelerometer.
 # Its twist swings at up to 0.3 rad/s at 4 Hz, as large as a grasped hinge's when the arm starts to
-# turn it (0.04-0.25 rad/s): no allowance tells those apart without losing the hinge, so none is made
-# by default (SWING_TWIST 0; docs/estimation.md says what that costs).
+# turn it (0.04-0.25 rad/s): an allowance that covered it would lose the hinge. The twist's hold
+# (TWIST_HOLD_S) tells them apart instead, so none is made by default (SWING_TWIST 0).
 SWING_ACCEL = 0.5
 SWING_TWIST = 0.0
 SWING_TAU_S = 0.1
