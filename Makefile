@@ -53,6 +53,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.poses
 	$(PY) -m benchmarks.onset
 	$(PY) -m benchmarks.onset_live
+	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.figure
 

@@ -286,7 +286,7 @@ def main() -> int:
              "paper's container, [mapping.md](mapping.md); hostile input, [hostile.md](hostile.md); the UR",
              "backend against the fake controller, [ur.md](ur.md); what live recording and the live view cost," +
              " [viz.md](viz.md); the estimators on MuJoCo recordings, [mujoco.md](mujoco.md); the onset trigger,"
-             " [onset.md](onset.md) and [onset_live.md](onset_live.md); and start-up,"
+             " [onset.md](onset.md), [onset_live.md](onset_live.md) and [onset_study.md](onset_study.md); and start-up,"
              " [startup.md](startup.md).",
              "Every page is written by its benchmark.", "",
              "Simulated recordings (`sim/scenarios.py`), LSM6DSR-grade gyro noise (5e-3 rad/s per sample at "
