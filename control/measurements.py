@@ -168,7 +168,7 @@ class ProprioTrack:
                         self.expl, self.expl_ok, self.alpha, self.tw, self.R, self.w, self.wdot, self.force):
                 arr[:-1] = arr[1:]
             n -= 1
-        self.acc_ok[n] = self.expl_ok[n] = False       # fitted when first asked for (accel_at, explained)
+        self.acc_ok[n] = self.expl_ok[n] = False       # fitted when first asked for (explained)
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
         self.pv[n], self.hv[n] = pv, hv
         self.a[n], self.alpha[n], self.tw[n], self.R[n], self.w[n], self.force[n] = a, alpha, tw, R, w, force
@@ -189,13 +189,6 @@ class ProprioTrack:
         if den <= 0.0:
             return np.zeros(3)
         return (dt @ self.v[k0:k + 1]) / den
-
-    def accel_at(self, ts: np.ndarray) -> np.ndarray:
-        """The TCP's acceleration (world, m/s^2) held by the newest state at or before each time ts (n,)."""
-        j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
-        for k in np.unique(j[~self.acc_ok[j]]):
-            self._fitted(int(k))
-        return self.acc[j]
 
     def _fitted(self, k: int) -> np.ndarray:
         if not self.acc_ok[k]:

@@ -19,9 +19,8 @@ TWIST_WINDOW_S = 0.005
 # per m/s^2 of the arm's acceleration beyond the arm's own: that much is allowed for the accelerometer.
 # Its twist swings at up to 0.3 rad/s at 4 Hz, as large as a grasped hinge's when the arm starts to
 # turn it (0.04-0.25 rad/s): an allowance that covered it would lose the hinge. The twist's hold
-# (TWIST_HOLD_S) tells them apart instead, so none is made by default (SWING_TWIST 0).
+# (TWIST_HOLD_S) tells them apart instead.
 SWING_ACCEL = 0.5
-SWING_TWIST = 0.0
 SWING_TAU_S = 0.1
 
 
@@ -116,9 +115,9 @@ class OnsetDetector:
         self.warmup_s = warmup_s
         self.settle_s = settle_s
         # a held object swings in the soft grasp as the arm accelerates: the accelerometer's remainder
-        # (m/s^2) and the twist (rad/s) per m/s^2 of the arm's acceleration envelope are allowed for
-        # (set_swing; none by default, the config's SWING_ACCEL and SWING_TWIST)
-        self.swing_accel = self.swing_twist = 0.0
+        # per m/s^2 of the arm's acceleration envelope is allowed for (none by default; the config's
+        # swing_accel, SWING_ACCEL)
+        self.swing_accel = 0.0
         self._swing_env, self._swing_t = 0.0, None
         self.rest_accel = None
         self.rest_gyro = None
@@ -133,7 +132,6 @@ class OnsetDetector:
         self._twist_ms = 0.0           # the twist's mean square at rest, (rad/s)^2
         self._candidate = None         # a twist holding: (since, its direction, the quiet time before it)
         self._quiet = np.zeros(0, dtype=int)
-        self._twist_vec, self._twist_now = np.zeros((0, 3)), np.zeros(0)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
@@ -165,8 +163,7 @@ class OnsetDetector:
             raise section.error("band_hz", f"expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz (half the IMU's "
                                            f"rate), got {band}")
         axis = section.getvec3("accel_axis", None, unit=True) if section.has("accel_axis") else None
-        swing = (section.getfloat("swing_accel", SWING_ACCEL, minval=0.0, maxval=10.0),
-                 section.getfloat("swing_twist_rad_s_per_m_s2", SWING_TWIST, minval=0.0, maxval=10.0))
+        swing_accel = section.getfloat("swing_accel", SWING_ACCEL, minval=0.0, maxval=10.0)
         try:
             det = cls(
                 accel_threshold=opt("accel_threshold", 0.4),
@@ -185,13 +182,8 @@ class OnsetDetector:
         except ValueError as exc:         # "accel_threshold: must be > 0": the key, then the problem
             key, _, problem = str(exc).partition(": ")
             raise section.error(key, problem) from None
-        det.set_swing(*swing)
+        det.swing_accel = swing_accel
         return det
-
-    def set_swing(self, accel: float, twist_rad_s_per_m_s2: float) -> None:
-        """How much a held object's swing in the grasp moves the accelerometer's remainder and the
-        twist per m/s^2 of the arm's acceleration (SWING_ACCEL, SWING_TWIST)."""
-        self.swing_accel, self.swing_twist = float(accel), float(twist_rad_s_per_m_s2)
 
     def rearm(self, settle: bool = False) -> None:
         """Start looking for the next onset; rest levels keep their last values. With `settle`
@@ -227,12 +219,6 @@ class OnsetDetector:
         self._swing_env, self._swing_t = float(env[-1]), float(t[-1])
         return env
 
-    def _twist_norm(self, gyro: np.ndarray) -> np.ndarray:
-        """|twist| per sample (n,), rad/s (the batch's twist, computed once: _twist)."""
-        self._twist_vec = self._twist(gyro)
-        self._twist_now = np.sqrt(np.einsum("ij,ij->i", self._twist_vec, self._twist_vec))
-        return self._twist_now
-
     def _twist(self, gyro: np.ndarray) -> np.ndarray:
         """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
         w = self.twist_window
@@ -246,9 +232,10 @@ class OnsetDetector:
         return out
 
     def _conditions(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None, allow_a=0.0,
-                    allow_w=0.0) -> tuple[dict, dict]:
+                    allow_w=0.0, twist=None) -> tuple[dict, dict]:
         """(condition -> fired per sample, condition -> its value over its threshold per sample).
-        allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s)."""
+        allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s); twist:
+        None, or the batch's twist (_twist, (n, 3)) and its norm (n,)."""
         out, level = {}, {}
         if self.accel_threshold is not None:
             dev = accel - self.rest_accel
@@ -259,16 +246,14 @@ class OnsetDetector:
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
-        tw = None
-        if self.twist_threshold is not None and gyro is not None:
-            tw = self._twist_vec
-            level["twist"] = self._twist_now / (self.twist_threshold + allow_w)
+        if twist is not None:
+            level["twist"] = twist[1] / (self.twist_threshold + allow_w)
         if self.band is not None:
             level["band"] = np.sqrt(self.band.process(accel - self.rest_accel)) / self.band_threshold
         for name, x in level.items():
             out[name] = x > 1.0
-        if tw is not None:
-            out["twist"] = self._held(t, tw, out["twist"], 0.5 * (self.twist_threshold + allow_w))
+        if twist is not None:
+            out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * (self.twist_threshold + allow_w))
         return out, level
 
     def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor) -> np.ndarray:
@@ -337,16 +322,18 @@ class OnsetDetector:
                 gyro = gyro - explained[1]
             swing = self._swing(t, explained[4])
             allow_a = explained[2] + self.swing_accel * swing
-            allow_w = explained[3] + self.swing_twist * swing
+            allow_w = explained[3]
         if self.rest_accel is None:
             self.rest_accel = accel.mean(axis=0)
             self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
-        self._quiet = np.zeros(0, dtype=int)
+        self._quiet, twist = np.zeros(0, dtype=int), None
         if self.twist_threshold is not None and gyro is not None:
+            tw = self._twist(gyro)
+            twist = tw, np.sqrt(np.einsum("ij,ij->i", tw, tw))
             # where the twist is within twice its own noise (its rms at rest), or a twentieth of the threshold
             quiet_level = max(2.0 * math.sqrt(self._twist_ms), 0.05 * self.twist_threshold)
-            self._quiet = np.flatnonzero(self._twist_norm(gyro) <= quiet_level)
-        conds, level = self._conditions(t, accel, gyro, allow_a, allow_w)
+            self._quiet = np.flatnonzero(twist[1] <= quiet_level)
+        conds, level = self._conditions(t, accel, gyro, allow_a, allow_w, twist)
         if self.settling or not self.armed:
             self._candidate = None        # a twist counts only from when the trigger may fire
         quiet = self._quiet
@@ -383,8 +370,8 @@ class OnsetDetector:
             self.rest_accel = self.rest_accel + alpha * (accel.mean(axis=0) - self.rest_accel)
             if gyro is not None:
                 self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
-            if "twist" in level and not self.settling:
-                ms = float(np.mean(self._twist_now ** 2))
+            if twist is not None and not self.settling:
+                ms = float(np.mean(twist[1] ** 2))
                 self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)
             self._seen_s += dt
         return hit

@@ -27,29 +27,12 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     recording is fed in chunks of chunk_s with the proprioception stamped up to each chunk's
     end; every estimate still uses only samples (and proprioception) stamped at or before it.
     """
-    R = quat_to_matrix(rec.tcp_quat)
-    vel = rec.tcp_vel
-    force = rec.grip_force
-    batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
     pipeline.params.output_period_s = max(1.0 / rate_hz, pipeline.params.output_period_s)
-    grid = np.arange(rec.imu_t[0] + chunk_s, rec.imu_t[-1] + chunk_s, chunk_s)
-    ends = np.unique(np.append(np.searchsorted(rec.imu_t, grid, side="right"), len(rec.imu_t)))
     rows: list[np.ndarray] = []
     last: ContactEstimate | None = None
     onset_t = None
-    j = 0           # next proprioception sample to hand over
-    start = 0
-    for end in ends:
-        if end <= start:
-            continue
-        t_end = rec.imu_t[end - 1]
-        while j < len(rec.tcp_t) and rec.tcp_t[j] <= t_end:
-            # The TCP's own rate is derived from the orientations by the pipeline (recordings carry none).
-            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], None,
-                                 np.nan if force is None else force[j])
-            j += 1
-        events, estimates = pipeline.process_all(batch[start:end])
-        start = end
+    for batch in fed_chunks(rec, pipeline, chunk_s):
+        events, estimates = pipeline.process_all(batch)
         for ev in events:
             if ev["kind"] == "contact_onset" and onset_t is None:
                 onset_t = ev["t"]
@@ -63,28 +46,38 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
 
 
-def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 0.3, chunk_s: float = 0.02) -> list:
-    """Every contact_onset event of a causal replay, each episode released `episode_s` after its
-    detection (as a task's end releases it; the trigger then settles and re-arms as the daemon's
-    does): how often the trigger fires over a whole recording, not only its first onset."""
+def fed_chunks(rec: Recording, pipeline: ContactPipeline, chunk_s: float):
+    """The recording's IMU samples as (n, 7) batches of chunk_s, each yielded once the pipeline has
+    been handed the proprioception stamped up to its end (the TCP's own rate is derived from the
+    orientations by the pipeline: recordings carry none)."""
     R = quat_to_matrix(rec.tcp_quat)
+    vel, force = rec.tcp_vel, rec.grip_force
     batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
     grid = np.arange(rec.imu_t[0] + chunk_s, rec.imu_t[-1] + chunk_s, chunk_s)
     ends = np.unique(np.append(np.searchsorted(rec.imu_t, grid, side="right"), len(rec.imu_t)))
-    found, j, start, release_at = [], 0, 0, None
+    j, start = 0, 0        # the next proprioception sample to hand over; the next IMU sample
     for end in ends:
         if end <= start:
             continue
         t_end = rec.imu_t[end - 1]
         while j < len(rec.tcp_t) and rec.tcp_t[j] <= t_end:
-            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if rec.tcp_vel is None else rec.tcp_vel[j], R[j],
-                                 None)
+            pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], None,
+                                 np.nan if force is None else force[j])
             j += 1
-        if release_at is not None and t_end >= release_at:
+        yield batch[start:end]
+        start = end
+
+
+def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 0.3, chunk_s: float = 0.02) -> list:
+    """Every contact_onset event of a causal replay, each episode released `episode_s` after its
+    detection (as a task's end releases it; the trigger then settles and re-arms as the daemon's
+    does): how often the trigger fires over a whole recording, not only its first onset."""
+    found, release_at = [], None
+    for batch in fed_chunks(rec, pipeline, chunk_s):
+        if release_at is not None and batch[-1, 0] >= release_at:
             pipeline.release()
             release_at = None
-        events, _ = pipeline.process_all(batch[start:end])
-        start = end
+        events, _ = pipeline.process_all(batch)
         for ev in events:
             if ev["kind"] == "contact_onset":
                 found.append(ev)
