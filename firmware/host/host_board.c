@@ -1,0 +1,522 @@
+/* The host board: the firmware's core, built natively against the LSM6DSR register model, streaming
+ * tecdar-imu/1 to a pseudo-terminal (or a file) as a board streams to its USB-serial bridge. The MCU clock,
+ * the chip's oscillator and the UART are modelled; the signal comes from a generator, a file, or stdin in
+ * real time (the simulator's fingertip). This is how the tests put the real firmware code in the loop. */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <getopt.h>
+#include <math.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <termios.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "../core/tfw_app.h"
+#include "../model/lsm6dsr_model.h"
+
+#define TIMING_QUEUE 4096
+#define STDIN_RECORD_BYTES 12
+#define WANDER_PERIOD_S 300.0
+
+typedef struct {
+    const char *pty_link, *out_path, *signal_path, *gen, *counters_path, *timing_path;
+    double seconds, mcu_ppm, mcu_wander_ppm, chip_ppm, stall_every_s, stall_ms, linger_s, wait_open_s;
+    long uart_baud, poll_us;
+    uint32_t t0_us;
+    int realtime, absent, st_fail, freq_fine;
+    int whoami;
+    int signal_gfs, signal_afs;
+    tfw_app_config cfg;
+} options;
+
+typedef struct {
+    int64_t end_offset;              /* the stream offset of the packet's last byte */
+    uint16_t seq;
+    uint8_t n;
+    uint32_t t0_us, first_in_us;
+} pending_packet;
+
+typedef struct {
+    options o;
+    lsm_model chip;
+    tfw_app app;
+    int out_fd;
+    FILE *signal_file, *timing;
+    int64_t t_ns;                    /* true time since start */
+    int64_t start_mono_ns;
+    int64_t bytes_out;
+    double uart_credit;
+    uint64_t rng;
+    pending_packet q[TIMING_QUEUE];
+    unsigned q_head, q_len;
+    int64_t first_fifo_ns;
+    uint64_t prev_batched;
+    uint64_t stdin_records;
+    int stdin_eof;
+    uint8_t stdin_buf[STDIN_RECORD_BYTES * 256];
+    size_t stdin_fill;
+    int64_t max_latency_us;
+    double latency_sum_us;
+    uint64_t latency_n;
+} board;
+
+static volatile sig_atomic_t stop_requested;
+
+static void on_signal(int sig) {
+    (void)sig;
+    stop_requested = 1;
+}
+
+static int64_t mono_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+/* the MCU's free-running microsecond counter at true time t: an offset, a rate error and a slow wander */
+static uint32_t mcu_us(const board *b, int64_t t_ns) {
+    double t = (double)t_ns * 1e-9;
+    double wander = b->o.mcu_wander_ppm * WANDER_PERIOD_S / (2 * M_PI) * (1 - cos(2 * M_PI * t / WANDER_PERIOD_S));
+    double us = t * 1e6 * (1 + b->o.mcu_ppm * 1e-6) + wander;
+    return b->o.t0_us + (uint32_t)(int64_t)floor(us);
+}
+
+static double noise(board *b) {
+    b->rng = b->rng * 6364136223846793005ULL + 1442695040888963407ULL;
+    return ((double)(b->rng >> 11) / 9007199254740992.0) - 0.5;
+}
+
+static void generator(void *ctx, int64_t t_ns, double g[3], double a[3]) {
+    board *b = ctx;
+    double t = (double)t_ns * 1e-9;
+    if (b->o.gen && strcmp(b->o.gen, "sine") == 0) {
+        g[0] = 100.0 * sin(2 * M_PI * 5.0 * t);
+        g[1] = 50.0 * cos(2 * M_PI * 3.0 * t);
+        g[2] = 10.0 * sin(2 * M_PI * 1.0 * t);
+        a[0] = 0.5 * sin(2 * M_PI * 7.0 * t);
+        a[1] = 0.25 * cos(2 * M_PI * 2.0 * t);
+        a[2] = 1.0 + 0.1 * sin(2 * M_PI * 11.0 * t);
+    } else {                         /* rest: gravity along +z and the noise of a chip at rest */
+        for (int k = 0; k < 3; k++) {
+            g[k] = 0.2 * noise(b);
+            a[k] = 0.004 * noise(b);
+        }
+        a[2] += 1.0;
+    }
+}
+
+static void raw_to_physical(const options *o, const uint8_t *p, double g[3], double a[3]) {
+    static const struct { int fs; double s; } GS[] = {{125, 4.375}, {250, 8.75}, {500, 17.5}, {1000, 35},
+                                                    {2000, 70}, {4000, 140}};
+    static const struct { int fs; double s; } AS[] = {{2, 0.061}, {4, 0.122}, {8, 0.244}, {16, 0.488}};
+    double gs = 140, as = 0.488;
+    for (size_t i = 0; i < 6; i++) {
+        if (GS[i].fs == o->signal_gfs) {
+            gs = GS[i].s;
+        }
+    }
+    for (size_t i = 0; i < 4; i++) {
+        if (AS[i].fs == o->signal_afs) {
+            as = AS[i].s;
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        g[k] = (int16_t)(p[2 * k] | (p[2 * k + 1] << 8)) * gs * 1e-3;
+        a[k] = (int16_t)(p[6 + 2 * k] | (p[7 + 2 * k] << 8)) * as * 1e-3;
+    }
+}
+
+static void from_file(void *ctx, int64_t t_ns, double g[3], double a[3]) {
+    board *b = ctx;
+    uint8_t rec[STDIN_RECORD_BYTES];
+    (void)t_ns;
+    if (fread(rec, 1, sizeof rec, b->signal_file) != sizeof rec) {
+        rewind(b->signal_file);      /* a signal file loops */
+        if (fread(rec, 1, sizeof rec, b->signal_file) != sizeof rec) {
+            memset(rec, 0, sizeof rec);
+        }
+    }
+    raw_to_physical(&b->o, rec, g, a);
+}
+
+/* push mode: every whole record on stdin is one sample of the chip, now */
+static void pump_stdin(board *b) {
+    for (;;) {
+        ssize_t r = read(STDIN_FILENO, b->stdin_buf + b->stdin_fill, sizeof b->stdin_buf - b->stdin_fill);
+        if (r == 0) {
+            b->stdin_eof = 1;
+            return;
+        }
+        if (r < 0) {
+            return;                  /* EAGAIN: nothing more now */
+        }
+        b->stdin_fill += (size_t)r;
+        size_t whole = b->stdin_fill / STDIN_RECORD_BYTES * STDIN_RECORD_BYTES;
+        for (size_t off = 0; off < whole; off += STDIN_RECORD_BYTES) {
+            double g[3], a[3];
+            raw_to_physical(&b->o, b->stdin_buf + off, g, a);
+            lsm_model_emit(&b->chip, g, a);
+            b->stdin_records++;
+        }
+        memmove(b->stdin_buf, b->stdin_buf + whole, b->stdin_fill - whole);
+        b->stdin_fill -= whole;
+    }
+}
+
+static int bus_transfer(void *ctx, const uint8_t *tx, uint8_t *rx, size_t n) {
+    return lsm_model_transfer(&((board *)ctx)->chip, tx, rx, n);
+}
+
+/* the firmware's busy-wait: time passes for the chip (and the wall clock in real time) */
+static void bus_delay(void *ctx, uint32_t us) {
+    board *b = ctx;
+    b->t_ns += (int64_t)us * 1000;
+    if (b->o.realtime) {
+        struct timespec ts = {(time_t)((b->start_mono_ns + b->t_ns) / 1000000000),
+                              (long)((b->start_mono_ns + b->t_ns) % 1000000000)};
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
+    }
+    if (!b->o.signal_path || strcmp(b->o.signal_path, "-") != 0) {
+        lsm_model_advance(&b->chip, b->t_ns);
+    }
+}
+
+static void drain_uart(board *b, double dt_s) {
+    b->uart_credit += (double)b->o.uart_baud / 10.0 * dt_s;
+    if (b->uart_credit > 4096) {
+        b->uart_credit = 4096;       /* an idle line stores no bytes for later */
+    }
+    while (b->uart_credit >= 1.0 && tfw_app_tx_pending(&b->app)) {
+        const uint8_t *p;
+        size_t n = tfw_app_tx_peek(&b->app, &p);
+        if (n > (size_t)b->uart_credit) {
+            n = (size_t)b->uart_credit;
+        }
+        ssize_t w = write(b->out_fd, p, n);
+        if (w <= 0) {
+            return;                  /* the reader is not reading: the bytes wait in the UART queue */
+        }
+        tfw_app_tx_done(&b->app, (size_t)w);
+        b->bytes_out += w;
+        b->uart_credit -= (double)w;
+    }
+    uint32_t now = mcu_us(b, b->t_ns);
+    while (b->q_len && b->q[b->q_head].end_offset <= b->bytes_out) {
+        pending_packet *pp = &b->q[b->q_head];
+        int64_t lat = (int64_t)(uint32_t)(now - pp->first_in_us);
+        if (lat > b->max_latency_us) {
+            b->max_latency_us = lat;
+        }
+        b->latency_sum_us += (double)lat;
+        b->latency_n++;
+        if (b->timing) {
+            fprintf(b->timing, "%u,%u,%u,%lld\n", pp->seq, pp->n, pp->t0_us, (long long)b->t_ns);
+        }
+        b->q_head = (b->q_head + 1) % TIMING_QUEUE;
+        b->q_len--;
+    }
+}
+
+/* each samples frame the firmware makes: when queued, its last byte's place in the stream */
+static void on_frame(void *ctx, const uint8_t *f, size_t len, uint32_t first_in_us, int queued) {
+    board *b = ctx;
+    if (!queued || b->q_len >= TIMING_QUEUE) {
+        return;
+    }
+    pending_packet *pp = &b->q[(b->q_head + b->q_len) % TIMING_QUEUE];
+    pp->end_offset = b->bytes_out + (int64_t)tfw_app_tx_pending(&b->app);
+    pp->seq = (uint16_t)(f[5] | (f[6] << 8));
+    pp->t0_us = (uint32_t)f[7] | ((uint32_t)f[8] << 8) | ((uint32_t)f[9] << 16) | ((uint32_t)f[10] << 24);
+    pp->n = f[11];
+    pp->first_in_us = first_in_us;
+    b->q_len++;
+    (void)len;
+}
+
+static int open_pty(const char *link) {
+    int fd = posix_openpt(O_RDWR | O_NOCTTY);
+    if (fd < 0 || grantpt(fd) || unlockpt(fd)) {
+        return -1;
+    }
+    const char *name = ptsname(fd);
+    int s = open(name, O_RDWR | O_NOCTTY);
+    if (s >= 0) {                    /* raw, as a USB-CDC or UART bridge delivers bytes */
+        struct termios tio;
+        tcgetattr(s, &tio);
+        cfmakeraw(&tio);
+        tcsetattr(s, TCSANOW, &tio);
+        close(s);
+    }
+    char tmp[4096];
+    snprintf(tmp, sizeof tmp, "%s.tmp", link);
+    unlink(tmp);
+    if (symlink(name, tmp) || rename(tmp, link)) {
+        return -1;
+    }
+    fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
+    return fd;
+}
+
+/* a pty master reports POLLHUP while no one holds the other end open */
+static int wait_reader(int fd, double seconds) {
+    int64_t end = mono_ns() + (int64_t)(seconds * 1e9);
+    while (mono_ns() < end && !stop_requested) {
+        struct pollfd p = {fd, POLLOUT, 0};
+        poll(&p, 1, 0);
+        if (!(p.revents & POLLHUP)) {
+            return 1;
+        }
+        usleep(2000);
+    }
+    return 0;
+}
+
+static void usage(FILE *f) {
+    fprintf(f,
+            "usage: host-board (--pty LINK | --out PATH|-) [options]\n"
+            "  --pty LINK          create a pseudo-terminal and link LINK to it\n"
+            "  --out PATH|-        write the stream to a file or stdout (no real time unless --realtime)\n"
+            "  --signal PATH|-     raw int16 gx gy gz ax ay az records (12 bytes, little-endian) at --signal-fs;\n"
+            "                      '-': from stdin, each record one chip sample as it arrives\n"
+            "  --signal-fs DPS,G   full scales of the signal's records (default 4000,16)\n"
+            "  --gen rest|sine     a generated signal (default rest)\n"
+            "  --seconds S         how long to stream, s (default: until stopped or stdin ends)\n"
+            "  --realtime          pace to the wall clock (always with --pty)\n"
+            "  --poll-us US        the firmware's poll period, us (default 250)\n"
+            "  --odr HZ --gyro-fs DPS --accel-fs G --batch N --deadline-us US --no-self-test\n"
+            "  --mcu-ppm PPM --mcu-wander-ppm PPM --chip-ppm PPM --freq-fine N --t0-us US\n"
+            "  --uart-baud BAUD    the UART's rate, 10 bits a byte (default 2000000)\n"
+            "  --stall-every S --stall-ms MS   the firmware stops polling MS ms every S s (forces FIFO overruns)\n"
+            "  --whoami 0xNN --absent --self-test-fail   a wrong part, no part, a failing self-test\n"
+            "  --counters PATH     the firmware's counters as JSON when it stops\n"
+            "  --timing PATH       one line per samples packet: seq,n,t0_us,true ns of its last byte\n"
+            "  --wait-open S       with --pty: wait up to S s for a reader before starting\n"
+            "  --linger S          with --pty: keep the port open S s after the stream ends\n");
+}
+
+static int parse(int argc, char **argv, options *o) {
+    static const struct option opts[] = {
+        {"pty", 1, 0, 'p'}, {"out", 1, 0, 'o'}, {"signal", 1, 0, 's'}, {"signal-fs", 1, 0, 'F'},
+        {"gen", 1, 0, 'g'}, {"seconds", 1, 0, 'S'}, {"realtime", 0, 0, 'r'}, {"poll-us", 1, 0, 'P'},
+        {"odr", 1, 0, 'O'}, {"gyro-fs", 1, 0, 'G'}, {"accel-fs", 1, 0, 'A'}, {"batch", 1, 0, 'b'},
+        {"deadline-us", 1, 0, 'd'}, {"no-self-test", 0, 0, 'N'}, {"mcu-ppm", 1, 0, 'm'},
+        {"mcu-wander-ppm", 1, 0, 'w'}, {"chip-ppm", 1, 0, 'c'}, {"freq-fine", 1, 0, 'f'}, {"t0-us", 1, 0, 't'},
+        {"uart-baud", 1, 0, 'u'}, {"stall-every", 1, 0, 'E'}, {"stall-ms", 1, 0, 'M'}, {"whoami", 1, 0, 'W'},
+        {"absent", 0, 0, 'a'}, {"self-test-fail", 0, 0, 'x'}, {"counters", 1, 0, 'C'}, {"timing", 1, 0, 'T'},
+        {"wait-open", 1, 0, 'L'}, {"linger", 1, 0, 'l'}, {"help", 0, 0, 'h'}, {0, 0, 0, 0}};
+    int c;
+    memset(o, 0, sizeof *o);
+    o->cfg = tfw_app_default_config();
+    o->uart_baud = 2000000;
+    o->poll_us = 250;
+    o->whoami = 0x6B;
+    o->signal_gfs = 4000;
+    o->signal_afs = 16;
+    while ((c = getopt_long(argc, argv, "", opts, NULL)) != -1) {
+        switch (c) {
+        case 'p': o->pty_link = optarg; o->realtime = 1; break;
+        case 'o': o->out_path = optarg; break;
+        case 's': o->signal_path = optarg; break;
+        case 'F':
+            if (sscanf(optarg, "%d,%d", &o->signal_gfs, &o->signal_afs) != 2) {
+                fprintf(stderr, "host-board: --signal-fs: expected DPS,G such as 4000,16, got %s\n", optarg);
+                return -1;
+            }
+            break;
+        case 'g': o->gen = optarg; break;
+        case 'S': o->seconds = atof(optarg); break;
+        case 'r': o->realtime = 1; break;
+        case 'P': o->poll_us = atol(optarg); break;
+        case 'O': o->cfg.sensor.odr_hz = (uint16_t)atoi(optarg); break;
+        case 'G': o->cfg.sensor.gyro_fs_dps = (uint16_t)atoi(optarg); break;
+        case 'A': o->cfg.sensor.accel_fs_g = (uint8_t)atoi(optarg); break;
+        case 'b': o->cfg.samples_per_packet = (uint8_t)atoi(optarg); break;
+        case 'd': o->cfg.flush_deadline_us = (uint32_t)atol(optarg); break;
+        case 'N': o->cfg.self_test = 0; break;
+        case 'm': o->mcu_ppm = atof(optarg); break;
+        case 'w': o->mcu_wander_ppm = atof(optarg); break;
+        case 'c': o->chip_ppm = atof(optarg); break;
+        case 'f': o->freq_fine = atoi(optarg); break;
+        case 't': o->t0_us = (uint32_t)strtoul(optarg, NULL, 0); break;
+        case 'u': o->uart_baud = atol(optarg); break;
+        case 'E': o->stall_every_s = atof(optarg); break;
+        case 'M': o->stall_ms = atof(optarg); break;
+        case 'W': o->whoami = (int)strtol(optarg, NULL, 0); break;
+        case 'a': o->absent = 1; break;
+        case 'x': o->st_fail = 1; break;
+        case 'C': o->counters_path = optarg; break;
+        case 'T': o->timing_path = optarg; break;
+        case 'L': o->wait_open_s = atof(optarg); break;
+        case 'l': o->linger_s = atof(optarg); break;
+        case 'h': usage(stdout); exit(0);
+        default: usage(stderr); return -1;
+        }
+    }
+    if (!o->pty_link == !o->out_path) {
+        fprintf(stderr, "host-board: give exactly one of --pty LINK and --out PATH\n");
+        return -1;
+    }
+    if (o->cfg.samples_per_packet < 1 || o->cfg.samples_per_packet > 64 || o->poll_us < 10 || o->uart_baud < 1200) {
+        fprintf(stderr, "host-board: --batch is 1..64, --poll-us at least 10, --uart-baud at least 1200\n");
+        return -1;
+    }
+    return 0;
+}
+
+static void write_counters(const board *b) {
+    if (!b->o.counters_path) {
+        return;
+    }
+    FILE *f = fopen(b->o.counters_path, "w");
+    if (!f) {
+        fprintf(stderr, "host-board: cannot write %s: %s\n", b->o.counters_path, strerror(errno));
+        return;
+    }
+    const tfw_app_counters *c = &b->app.counters;
+    fprintf(f,
+            "{\"samples_sent\": %u, \"packets_sent\": %u, \"status_sent\": %u, \"packets_dropped\": %u, "
+            "\"samples_dropped\": %u, \"status_dropped\": %u, \"fifo_overruns\": %u, \"overrun_statuses\": %u, "
+            "\"sensor_retries\": %u, \"max_poll_words\": %u, \"words_unpaired\": %u, \"words_read\": %u, "
+            "\"chip_samples\": %llu, \"chip_words_overwritten\": %llu, \"chip_overruns\": %llu, "
+            "\"bytes_out\": %lld, \"bytes_unsent\": %zu, \"stdin_records\": %llu, \"flags\": %u, "
+            "\"last_error\": %d, \"who_am_i\": %u, \"self_test_passed\": %u, \"stamp_anchors\": %u, "
+            "\"first_fifo_ns\": %lld, \"chip_period_ns\": %lld, \"true_ns\": %lld, "
+            "\"latency_max_us\": %lld, \"latency_mean_us\": %.1f, \"packets_timed\": %llu}\n",
+            c->samples_sent, c->packets_sent, c->status_sent, c->packets_dropped, c->samples_dropped,
+            c->status_dropped, c->fifo_overruns, c->overrun_statuses, c->sensor_retries, c->max_poll_words,
+            b->app.dev.words_unpaired, b->app.dev.words_read, (unsigned long long)b->chip.samples_made,
+            (unsigned long long)b->chip.words_overwritten, (unsigned long long)b->chip.overruns,
+            (long long)b->bytes_out, tfw_app_tx_pending(&b->app), (unsigned long long)b->stdin_records,
+            b->app.flags, b->app.last_error, b->app.dev.who_am_i, b->app.self_test.passed, b->app.stamp.anchors,
+            (long long)b->first_fifo_ns,
+            (long long)(1e9 / (lsm_model_odr_hz((uint8_t)(b->chip.reg[0x10] >> 4)) * (1 + b->o.chip_ppm * 1e-6)) + 0.5),
+            (long long)b->t_ns, (long long)b->max_latency_us,
+            b->latency_n ? b->latency_sum_us / (double)b->latency_n : 0.0, (unsigned long long)b->latency_n);
+    fclose(f);
+}
+
+int main(int argc, char **argv) {
+    static board b;                  /* static: the model's FIFO and the app are a few tens of kB */
+    if (parse(argc, argv, &b.o)) {
+        return 2;
+    }
+    signal(SIGINT, on_signal);
+    signal(SIGTERM, on_signal);
+    signal(SIGPIPE, SIG_IGN);
+    b.rng = 0x2545F4914F6CDD1DULL;
+    lsm_model_init(&b.chip);
+    b.chip.who_am_i = (uint8_t)b.o.whoami;
+    b.chip.reg[0x0F] = (uint8_t)b.o.whoami;
+    b.chip.absent = (uint8_t)b.o.absent;
+    b.chip.odr_ppm = b.o.chip_ppm;
+    b.chip.freq_fine = (int8_t)b.o.freq_fine;
+    b.chip.reg[0x63] = (uint8_t)b.o.freq_fine;
+    if (b.o.st_fail) {
+        b.chip.st_xl_mg = 10.0;      /* a deflection below the datasheet's window */
+        b.chip.st_g_dps = 0.0;
+    }
+    int push = b.o.signal_path && strcmp(b.o.signal_path, "-") == 0;
+    if (push) {
+        fcntl(STDIN_FILENO, F_SETFL, fcntl(STDIN_FILENO, F_GETFL) | O_NONBLOCK);
+    } else if (b.o.signal_path) {
+        b.signal_file = fopen(b.o.signal_path, "rb");
+        if (!b.signal_file) {
+            fprintf(stderr, "host-board: cannot read --signal %s: %s\n", b.o.signal_path, strerror(errno));
+            return 2;
+        }
+        b.chip.signal = from_file;
+        b.chip.signal_ctx = &b;
+    } else {
+        b.chip.signal = generator;
+        b.chip.signal_ctx = &b;
+    }
+    if (b.o.pty_link) {
+        b.out_fd = open_pty(b.o.pty_link);
+        if (b.out_fd < 0) {
+            fprintf(stderr, "host-board: cannot make a pseudo-terminal at %s: %s\n", b.o.pty_link, strerror(errno));
+            return 2;
+        }
+        if (b.o.wait_open_s > 0 && !wait_reader(b.out_fd, b.o.wait_open_s)) {
+            fprintf(stderr, "host-board: no reader opened %s within %.1f s\n", b.o.pty_link, b.o.wait_open_s);
+            return 3;
+        }
+    } else if (strcmp(b.o.out_path, "-") == 0) {
+        b.out_fd = STDOUT_FILENO;
+    } else {
+        b.out_fd = open(b.o.out_path, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        if (b.out_fd < 0) {
+            fprintf(stderr, "host-board: cannot write --out %s: %s\n", b.o.out_path, strerror(errno));
+            return 2;
+        }
+    }
+    if (b.o.timing_path) {
+        b.timing = fopen(b.o.timing_path, "w");
+        if (!b.timing) {
+            fprintf(stderr, "host-board: cannot write --timing %s: %s\n", b.o.timing_path, strerror(errno));
+            return 2;
+        }
+    }
+    tfw_bus bus = {bus_transfer, bus_delay, &b};
+    tfw_app_init(&b.app, &bus, &b.o.cfg);
+    b.app.on_frame = on_frame;
+    b.app.on_frame_ctx = &b;
+    b.start_mono_ns = mono_ns();
+    int rc = tfw_app_start(&b.app, mcu_us(&b, b.t_ns));
+    if (rc != TFW_LSM_OK) {
+        fprintf(stderr, "host-board: the sensor did not come up (error %d, WHO_AM_I 0x%02X); status only\n", rc,
+                b.app.dev.who_am_i);
+    }
+    b.prev_batched = b.chip.words_batched;
+    const int64_t poll_ns = b.o.poll_us * 1000;
+    const int64_t end_ns = b.o.seconds > 0 ? b.t_ns + (int64_t)(b.o.seconds * 1e9) : INT64_MAX;
+    while (!stop_requested && b.t_ns < end_ns && !(push && b.stdin_eof)) {
+        b.t_ns += poll_ns;
+        if (b.o.realtime) {
+            int64_t due = b.start_mono_ns + b.t_ns;
+            struct timespec ts = {(time_t)(due / 1000000000), (long)(due % 1000000000)};
+            clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
+        }
+        if (push) {
+            pump_stdin(&b);
+        } else {
+            lsm_model_advance(&b.chip, b.t_ns);
+        }
+        if (!b.first_fifo_ns && b.chip.words_batched) {
+            b.first_fifo_ns = b.chip.t_ns;
+        }
+        double t_s = (double)b.t_ns * 1e-9;
+        int stalled = b.o.stall_every_s > 0 && fmod(t_s, b.o.stall_every_s) >= b.o.stall_every_s - b.o.stall_ms * 1e-3;
+        if (!stalled) {
+            tfw_app_poll(&b.app, mcu_us(&b, b.t_ns));
+        }
+        drain_uart(&b, (double)poll_ns * 1e-9);
+    }
+    /* the stream has ended: what the UART still holds goes out, then the port stays open for the reader */
+    for (int i = 0; i < 1000 && tfw_app_tx_pending(&b.app) && !stop_requested; i++) {
+        b.t_ns += poll_ns;
+        drain_uart(&b, (double)poll_ns * 1e-9);
+        if (b.o.realtime) {
+            usleep((useconds_t)b.o.poll_us);
+        }
+    }
+    write_counters(&b);
+    if (b.timing) {
+        fclose(b.timing);
+    }
+    if (b.o.pty_link && b.o.linger_s > 0) {
+        int64_t end = mono_ns() + (int64_t)(b.o.linger_s * 1e9);
+        while (!stop_requested && mono_ns() < end) {
+            usleep(10000);
+        }
+    }
+    if (b.o.pty_link) {
+        unlink(b.o.pty_link);
+    }
+    return 0;
+}
