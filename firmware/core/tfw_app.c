@@ -111,17 +111,21 @@ static int bring_up(tfw_app *app) {
 int tfw_app_start(tfw_app *app, uint32_t now_us) {
     int rc = bring_up(app);
     app->last_now_us = now_us;
+    app->now64_us = now_us;
     app->next_status_us = now_us + app->cfg.status_period_us;
     send_status(app);
     return rc;
 }
 
+/* the 32-bit clock extended by its forward steps: a clock read that goes back (a timer glitch) is held,
+ * never taken for a wrap of 71 minutes */
 static int64_t now64(tfw_app *app, uint32_t now_us) {
-    if (now_us < app->last_now_us) {
-        app->now_hi++;
+    int32_t step = (int32_t)(now_us - app->last_now_us);
+    if (step > 0) {
+        app->now64_us += step;
+        app->last_now_us = now_us;
     }
-    app->last_now_us = now_us;
-    return (int64_t)(((uint64_t)app->now_hi << 32) | now_us);
+    return app->now64_us;
 }
 
 static void read_fifo(tfw_app *app, uint32_t now_us, int64_t t64) {

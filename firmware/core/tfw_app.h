@@ -57,7 +57,7 @@ typedef struct {
     uint8_t streaming;
     uint32_t next_status_us;
     uint32_t last_now_us;
-    uint32_t now_hi;                     /* the 32-bit clock's wraps: a 64-bit time for the stamp */
+    int64_t now64_us;                    /* the 32-bit clock unwrapped: a 64-bit time for the stamp */
     int last_error;                      /* tfw_lsm_err of the last bring-up */
     tfw_app_counters counters;
     /* optional, for a host's measurements: each samples frame as made, with the MCU time its first sample
