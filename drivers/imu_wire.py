@@ -18,6 +18,9 @@ SAMPLE_BYTES = 12
 MAX_SAMPLES = 64
 STATUS_BYTES = 6
 FLAG_FIFO_OVERRUN = 0x01
+FLAG_SELF_TEST_FAILED = 0x02   # the sensor's self-test failed at the board's start
+FLAG_SENSOR_ABSENT = 0x04      # the sensor did not answer (WHO_AM_I wrong or no reply): no samples follow
+RESTART_SEQ_JUMP = 32768       # a seq that goes back, or forward by more than this, is a board restart
 
 
 def crc16(data: bytes) -> int:
@@ -48,6 +51,7 @@ class SamplesPacket:
     seq: int
     t0_us: int
     raw: np.ndarray            # (n, 6) int16
+    restart: bool = False      # the board restarted before this packet (its seq went back or jumped)
 
 
 @dataclass
@@ -71,6 +75,7 @@ class Counters:
     status_packets: int = 0
     bad_status: int = 0         # status packets whose values are outside the protocol's ranges (ignored)
     fifo_overruns: int = 0
+    restarts: int = 0           # board restarts seen in seq (not counted as lost samples)
     bytes_in: int = 0
     bytes_consumed: int = 0     # bytes of frames that passed the CRC
 
@@ -155,15 +160,19 @@ class WireParser:
             if not 1 <= n <= MAX_SAMPLES or len(payload) != SAMPLES_HEADER_BYTES + SAMPLE_BYTES * n:
                 c.malformed += 1
                 return None
+            restart = False
             if self._last_seq is not None:
-                gap = (seq - self._last_seq - 1) & 0xFFFF
-                if gap:
-                    c.samples_lost += gap * self._last_n
+                step = (seq - self._last_seq) & 0xFFFF
+                if step == 0 or step > RESTART_SEQ_JUMP:
+                    c.restarts += 1          # the board started again: nothing was lost
+                    restart = True
+                elif step > 1:
+                    c.samples_lost += (step - 1) * self._last_n
             self._last_seq, self._last_n = seq, n
             raw = np.frombuffer(payload, dtype="<i2", offset=SAMPLES_HEADER_BYTES).reshape(n, 6)
             c.good_packets += 1
             c.samples += n
-            return SamplesPacket(seq, t0_us, raw)
+            return SamplesPacket(seq, t0_us, raw, restart)
         if ptype == TYPE_STATUS:
             if len(payload) != STATUS_BYTES:
                 c.malformed += 1

@@ -13,7 +13,8 @@ import serial
 import serial.tools.list_ports
 
 from tecdard.drivers.imu_source import ImuSource
-from tecdard.drivers.imu_wire import SamplesPacket, StatusPacket, WireParser
+from tecdard.drivers.imu_wire import (FLAG_SELF_TEST_FAILED, FLAG_SENSOR_ABSENT, SamplesPacket, StatusPacket,
+                                      WireParser)
 from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
 from tecdard.drivers.timesync import ClockSync, Unwrapper
 from tecdard.host import Check
@@ -207,10 +208,13 @@ class SerialImuSource(ImuSource):
                         self.events.append({"kind": "warning", "code": "imu_bad_status",
                                             "message": f"IMU status packet ignored: {problem}"})
                     continue
+                self._flags_changed(self.status, pkt)
                 self.status = pkt
                 self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
                 self.odr_hz = float(pkt.odr_hz)
             elif isinstance(pkt, SamplesPacket):
+                if pkt.restart:
+                    self._restarted()
                 ts.append(self._packet_times(pkt, host_s))
                 raws.append(pkt.raw)
         if not raws:
@@ -219,6 +223,32 @@ class SerialImuSource(ImuSource):
         gyro, accel = self.scaling.to_si(np.vstack(raws))
         self.latest = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
         return t, gyro, accel
+
+    def _restarted(self) -> None:
+        """The board started again (its seq went back or jumped): its clock did too, so the time fit
+        starts again from the next packet; nothing was lost."""
+        self.unwrap.reset()
+        self.sync.reset()
+        self._last_mcu = None
+        self.events.append({"kind": "warning", "code": "imu_board_restart",
+                            "message": f"the IMU board restarted ({self.parser.counters.restarts} so far); "
+                                       "its clock is fitted afresh"})
+
+    def _flags_changed(self, old: StatusPacket | None, new: StatusPacket) -> None:
+        """A status whose flags say something new: the sensor not answering is a fault until a status
+        says it answers; a failed self-test is a warning, said once each time the board reports it."""
+        was = 0 if old is None else old.flags
+        if new.flags & FLAG_SENSOR_ABSENT and not was & FLAG_SENSOR_ABSENT:
+            self.events.append({"kind": "fault", "code": "imu_sensor_absent",
+                                "message": "the IMU board says its LSM6DSR does not answer (wrong WHO_AM_I or no "
+                                           "reply): check the sensor's SPI wiring and supply"})
+        elif was & FLAG_SENSOR_ABSENT and not new.flags & FLAG_SENSOR_ABSENT:
+            self.events.append({"kind": "fault_cleared", "code": "imu_sensor_absent",
+                                "message": "the IMU board's sensor answers again"})
+        if new.flags & FLAG_SELF_TEST_FAILED and not was & FLAG_SELF_TEST_FAILED:
+            self.events.append({"kind": "warning", "code": "imu_self_test_failed",
+                                "message": "the IMU board's LSM6DSR failed its self-test at start: its samples "
+                                           "may be wrong; replace the fingertip's sensor"})
 
     def _packet_times(self, pkt: SamplesPacket, host_s: float) -> np.ndarray:
         """One packet's sample times on the host's clock, mapped as it arrives: a clock sync that
