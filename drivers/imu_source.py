@@ -11,7 +11,8 @@ import numpy as np
 
 from tecdard.drivers.lsm6dsr import Scaling
 
-IMU_SOURCES = ("sim", "sim-wire", "serial")    # imu.source: the simulator's, its board on a pty, a real board
+# imu.source: the simulator's samples, its Python board on a pty, the firmware's host board on a pty, a real board
+IMU_SOURCES = ("sim", "sim-wire", "sim-firmware", "serial")
 
 
 class ImuSource:

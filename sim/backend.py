@@ -27,6 +27,8 @@ from tecdard.sim.robot import SimRobotParams
 from tecdard.sim.world import HingeParams, PivotParams
 
 PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
+# sim-firmware: the firmware's host board, as `make firmware` builds it in a checkout
+HOST_BOARD = pathlib.Path(__file__).resolve().parents[1] / "firmware" / "build" / "host-board"
 
 
 def remove_stale_pty_dirs() -> None:
@@ -60,6 +62,7 @@ class SimBackend(RobotBackend):
                             robot=robot_params, imu=self.imu_params, seed=sim.getint("seed", 0, minval=0),
                             hinge=hinge, pivot=pivot, imu_out="pipe")
         self.pty_dir: str | None = None
+        self.host_board = sim.getstr("host_board", str(HOST_BOARD))
         factory = self.spec.world_factory()
         if factory is not None:
             # the world is built once here, at the home pose, so a bad one never half-starts the daemon
@@ -83,6 +86,14 @@ class SimBackend(RobotBackend):
             return self.process.imu
         if kind == "sim-wire":
             return SimWireSource(self._wire())
+        if kind == "sim-firmware":
+            if not os.access(self.host_board, os.X_OK):
+                raise section.error("source", f"sim-firmware runs the firmware's host board, and {self.host_board} "
+                                              "is not there (build it with `make firmware`, or set sim.host_board)")
+            params = self._wire()
+            self.spec.imu_out = "firmware"
+            self.spec.host_board = self.host_board
+            return SimWireSource(params)
         self.spec.imu_out = "none"
         return super().imu_source(kind, section)
 

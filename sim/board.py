@@ -8,6 +8,7 @@ import errno
 import os
 import pathlib
 import select
+import subprocess
 import threading
 import time
 import tty
@@ -186,3 +187,72 @@ class StreamThread:
     def join(self) -> None:
         self.stop.set()
         self.thread.join(2.0)
+
+
+class PyWire:
+    """`imu.source: sim-wire`: the simulated fingertip's samples encoded by the Python board onto a pty."""
+
+    def __init__(self, board: Board, device: PtyDevice):
+        self.board = board
+        self.device = device
+
+    @property
+    def dropped(self) -> int:
+        return self.device.dropped_frames
+
+    def send(self, raw: np.ndarray) -> None:
+        """Raw int16 samples (n, 6) as the chip made them; never blocks (frames the reader has no room for
+        are dropped and counted)."""
+        if self.device.master is not None:
+            try:
+                self.device.write_frames(self.board.packets_raw(raw))
+            except OSError:
+                self.device.dropped_frames += 1
+
+    def close(self) -> None:
+        self.device.close()
+
+
+# the largest write a pipe takes whole or not at all (POSIX PIPE_BUF), in whole 12-byte records
+ATOMIC_RECORDS = 4096 // 12
+
+
+class FirmwareWire:
+    """`imu.source: sim-firmware`: the firmware itself as the fingertip's board. The simulated chip's
+    samples go to the host board (firmware/build/host-board) on its stdin, into the LSM6DSR register
+    model, through the firmware's driver, batching, sample clock and encoder, and out on its pty."""
+
+    def __init__(self, binary: str, link: str, odr_hz: int, gyro_fs_dps: int, accel_fs_g: int):
+        self.proc = subprocess.Popen(
+            [binary, "--pty", link, "--signal", "-", "--signal-fs", f"{gyro_fs_dps},{accel_fs_g}",
+             "--odr", str(odr_hz), "--gyro-fs", str(gyro_fs_dps), "--accel-fs", str(accel_fs_g)],
+            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+        self.fd = self.proc.stdin.fileno()
+        os.set_blocking(self.fd, False)
+        self.dropped = 0                   # samples the host board had no room for
+
+    def send(self, raw: np.ndarray) -> None:
+        """Raw int16 samples (n, 6), each a 12-byte record; written in whole records (a pipe write of up to
+        4096 bytes is all or nothing), never blocking: what the board cannot take now is dropped."""
+        data = np.ascontiguousarray(raw, "<i2").tobytes()
+        step = ATOMIC_RECORDS * 12
+        for k in range(0, len(data), step):
+            try:
+                os.write(self.fd, data[k:k + step])
+            except BlockingIOError:
+                self.dropped += (len(data) - k) // 12
+                return
+            except OSError:                # the board has gone: its reader sees the port vanish
+                self.dropped += (len(data) - k) // 12
+                return
+
+    def close(self) -> None:
+        try:
+            self.proc.stdin.close()        # the end of the signal: the board stops and removes its port
+        except OSError:
+            pass
+        try:
+            self.proc.wait(2.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()

@@ -156,9 +156,9 @@ class SimImu:
     """The simulated device. The physics thread calls `feed()` with each slice of kinematics.
 
     Without `wire`, `read()` hands the acquisition thread SI samples (t, gyro, accel) on the
-    daemon's monotonic clock. With `wire` (an imu_emulator Board and PtyDevice), the samples
-    are encoded as `tecdar-imu/1` and written to the pseudo-terminal instead, so the whole
-    serial path (driver, parser, clock sync) runs in simulation.
+    daemon's monotonic clock. With `wire` (sim.board's PyWire or FirmwareWire), the samples go to a
+    board instead, which streams `tecdar-imu/1` to a pseudo-terminal, so the whole serial path
+    (driver, parser, clock sync; with FirmwareWire the firmware too) runs in simulation.
     """
 
     def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512, wire=None):
@@ -168,7 +168,7 @@ class SimImu:
         self.period = 1.0 / params.odr_hz
         self._next_t = None
         self._fifo: queue.Queue = queue.Queue(maxsize=fifo_chunks)
-        self.wire = wire                 # (Board, PtyDevice) or None
+        self.wire = wire                 # sim.board.PyWire or FirmwareWire, or None
         self.dropped_chunks = 0
         self.samples = 0
 
@@ -200,12 +200,7 @@ class SimImu:
         raw, gyro, accel = self.signal.sample(ts, kin[:, 0:3], kin[:, 3:6], kin[:, 6:9], R_world_tcp[-1])
         self.samples += n
         if self.wire is not None:
-            board, device = self.wire
-            if device.master is not None:
-                try:
-                    device.write_frames(board.packets_raw(raw))     # never blocks the physics thread
-                except OSError:
-                    self.dropped_chunks += 1
+            self.wire.send(raw)                                    # never blocks the physics thread
             return
         stamps = ts + self.rng.normal(0.0, self.params.timestamp_jitter_s, n) if self.params.timestamp_jitter_s else ts
         stamps = np.maximum.accumulate(stamps)
@@ -223,4 +218,4 @@ class SimImu:
 
     def close(self) -> None:
         if self.wire is not None:
-            self.wire[1].close()
+            self.wire.close()

@@ -39,7 +39,7 @@ from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
 from tecdard.robots.child_link import ChildLink
 from tecdard.robots.model import ArmModel
-from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.sim.board import Board, BoardParams, FirmwareWire, PtyDevice, PyWire
 from tecdard.sim.imu import SimImu, SimImuParams
 from tecdard.sim.robot import PHYSICS_WAKE_S, SimRobot, SimRobotParams
 from tecdard.sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
@@ -69,9 +69,11 @@ class SimSpec:
     seed: int = 0
     hinge: HingeParams | None = None
     pivot: PivotParams | None = None
-    imu_out: str = "pipe"            # "pipe": samples to the daemon; "wire": tecdar-imu/1 on a pty; "none"
-    pty_link: str | None = None      # with "wire": the board's stable device path
+    imu_out: str = "pipe"            # "pipe": samples to the daemon; "wire": tecdar-imu/1 on a pty from the
+                                     # Python board, "firmware": from the firmware's host board; "none"
+    pty_link: str | None = None      # with "wire" or "firmware": the board's stable device path
     board: BoardParams | None = None
+    host_board: str | None = None    # with "firmware": the host board's executable
     log_level: int = logging.INFO    # the daemon's, for the child's own log lines
 
     def world_factory(self):
@@ -133,12 +135,13 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
     loaded 2-core machine its physics fell behind real time.
     """
     logging.basicConfig(level=spec.log_level, format=LOG_FORMAT)
-    device = None
+    wire = None
     try:
-        wire = None
         if spec.imu_out == "wire":
-            device = PtyDevice(spec.pty_link)
-            wire = (Board(spec.board), device)
+            wire = PyWire(Board(spec.board), PtyDevice(spec.pty_link))
+        elif spec.imu_out == "firmware":
+            b = spec.board
+            wire = FirmwareWire(spec.host_board, spec.pty_link, b.odr_hz, b.gyro_fs_dps, b.accel_fs_g)
         robot = spec.build(wire=wire)
     except Exception as exc:
         state_conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -192,21 +195,21 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
                     t_next = time.monotonic()       # far behind: resume from now, not in a burst
     finally:
         robot.hold()
-        if device is not None:
-            device.close()
+        if wire is not None:
+            wire.close()
         if imu_tx.dropped or state_tx.dropped:
             log.warning("sim: the daemon did not read: %d IMU and %d state messages dropped",
                         imu_tx.dropped, state_tx.dropped)
-        _say_losses(robot, device)
+        _say_losses(robot, wire)
 
 
-def _say_losses(robot: SimRobot, device) -> None:
+def _say_losses(robot: SimRobot, wire) -> None:
     """At the child's end, one line for what the simulation itself lost on the way, if anything: slices
     it ran late, stops by the arm's own command watchdog, IMU chunks and board frames it dropped."""
     imu = robot.imu
     losses = {"physics slices late": robot.overruns, "command watchdog stops": robot.watchdog_stops,
               "IMU chunks dropped": imu.dropped_chunks if imu is not None else 0,
-              "board frames dropped": device.dropped_frames if device is not None else 0}
+              "board frames (or firmware samples) dropped": wire.dropped if wire is not None else 0}
     said = ", ".join(f"{n} {what}" for what, n in losses.items() if n)
     if said:
         log.info("sim: %s", said)

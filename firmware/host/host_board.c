@@ -182,7 +182,9 @@ static void bus_delay(void *ctx, uint32_t us) {
                               (long)((b->start_mono_ns + b->t_ns) % 1000000000)};
         clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
     }
-    if (!b->o.signal_path || strcmp(b->o.signal_path, "-") != 0) {
+    if (b->o.signal_path && strcmp(b->o.signal_path, "-") == 0) {
+        pump_stdin(b);               /* push mode: the signal keeps coming while the firmware waits */
+    } else {
         lsm_model_advance(&b->chip, b->t_ns);
     }
 }
