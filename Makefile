@@ -1,4 +1,5 @@
-# tecdar: `make run` (demo on the simulated robot), `make test`, `make check` (quick tier), `make bench`.
+# tecdar: `make run` (demo on the simulated robot), `make test`, `make check` (quick tier), `make bench`,
+# `make firmware` (the fingertip board's firmware: the host board and the STM32F405 image).
 PY_BOOT ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -7,7 +8,7 @@ STAMP := $(VENV)/.installed
 # instead of compiling them (~60 s on 2 cores)
 WARM := $(VENV)/.warm
 
-.PHONY: install run test check bench clean
+.PHONY: install run test check bench firmware clean
 
 $(PY):
 	$(PY_BOOT) -m venv $(VENV)
@@ -31,12 +32,22 @@ install: $(PY)
 run: $(WARM)
 	$(PY) -m tecdard demo --config configs/sim.yaml
 
+# the firmware's tests build it with the host's cc; the board image and its QEMU run need Debian's cross
+# toolchain and QEMU, which .ci/run installs (as root)
+CROSS_TOOLS = command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null
+NO_CROSS = echo "make: no arm-none-eabi-gcc or qemu-system-arm here: the firmware's board image is neither built nor run in QEMU (apt install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)"
+
 test: $(WARM)
+	@$(CROSS_TOOLS) || $(NO_CROSS)
 	$(PY) -m pytest -q
 
 # the quick tier: pure logic and transports, without the whole-daemon runs (under 2 minutes)
 check: $(WARM)
 	$(PY) -m pytest -q -m "not slow"
+
+firmware:
+	$(MAKE) -s -C firmware host
+	@if $(CROSS_TOOLS); then $(MAKE) -s -C firmware cross; else $(NO_CROSS); fi
 
 bench: $(WARM)
 	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
@@ -55,7 +66,8 @@ bench: $(WARM)
 	$(PY) -m benchmarks.onset_live
 	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.startup --cold
+	$(PY) -m benchmarks.firmware
 	$(PY) -m benchmarks.figure
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info firmware/build

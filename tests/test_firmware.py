@@ -351,6 +351,75 @@ def test_the_daemon_rotates_on_the_firmwares_stream_of_the_simulated_fingertip(h
     p = np.array(ev["result"]["hinge"]["p"]) - np.array(sim["hinge_point"])
     a = np.array(sim["hinge_axis"])
     assert np.linalg.norm(p - np.dot(p, a) * a) < ROTATE_HINGE_TOL_M
-    status = d.client.command("status")["state"]
     assert all(e["kind"] != "fault" for e in d.client.event_log)
-    return status
+
+
+def test_the_firmwares_sample_times_hold_the_drivers_budget_for_an_hour(host_build, tmp_path):
+    """An hour of the firmware in the host board (fast, not real time): the MCU crystal 80 ppm fast and
+    wandering by 20 ppm, the chip's oscillator 400 ppm slow, the us counter wrapping. Every fourth packet
+    reaches the driver's ClockSync at the time its last byte left the UART plus a USB latency (0.2 ms and
+    an exponential 0.5 ms); each sample time it maps stays within 0.5 ms of the sample's true time."""
+    timing, counters = tmp_path / "timing.csv", tmp_path / "c.json"
+    subprocess.run([str(HOST_BOARD), "--out", os.devnull, "--seconds", "3600", "--mcu-ppm", "80",
+                    "--mcu-wander-ppm", "20", "--chip-ppm", "-400", "--t0-us", str(2**32 - 1_000_000),
+                    "--no-self-test", "--poll-us", "500", "--timing", str(timing), "--timing-every", "4",
+                    "--counters", str(counters)], check=True, timeout=300)
+    fw = json.loads(counters.read_text())
+    first, n, t0_us, last_byte_ns = np.loadtxt(timing, delimiter=",", dtype=np.int64).T
+    assert fw["stamp_anchors"] == 1 and fw["samples_dropped"] == 0
+    true_first_s = (fw["first_fifo_ns"] + first * fw["chip_period_ns"]) * 1e-9
+    arrival_s = last_byte_ns * 1e-9 + 0.0002 + np.random.default_rng(3).exponential(0.0005, len(first))
+    from tecdard.drivers.timesync import Unwrapper
+    sync, unwrap, worst = ClockSync(), Unwrapper(), 0.0
+    for k in range(len(first)):
+        mcu_first = unwrap(int(t0_us[k]))
+        sync.add(mcu_first + (n[k] - 1) / ODR_HZ, arrival_s[k])
+        if k % 250 == 0 and k > 2000:                       # after the fit's first 10 s
+            worst = max(worst, abs(float(sync.to_host(np.array([mcu_first]))[0]) - true_first_s[k]))
+    assert worst < SAMPLE_TIME_TOL_S
+    assert sync.resets == 0
+
+
+# ---- the board port: cross-compiled, and run in QEMU -------------------------------------------------
+
+needs_cross = pytest.mark.skipif(CROSS is None or QEMU is None, reason=(
+    "the cross toolchain or QEMU is not installed (CI's .ci/run installs gcc-arm-none-eabi, "
+    "libnewlib-arm-none-eabi and qemu-system-arm)"))
+
+
+@pytest.fixture(scope="session")
+def cross_build():
+    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "cross"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return res.stdout
+
+
+@needs_cross
+def test_the_board_image_builds_warning_free_and_reports_its_size(cross_build):
+    m = re.search(r"flash (\d+) bytes .* RAM (\d+) bytes", cross_build)
+    assert m, cross_build
+    flash, ram = int(m.group(1)), int(m.group(2))
+    assert 0 < flash < 64 * 1024 and 0 < ram < 32 * 1024
+    assert (BUILD / "tecdar-imu-stm32f405.bin").stat().st_size == flash
+
+
+@needs_cross
+def test_the_board_image_streams_in_qemu_and_tecdard_imu_reads_it(cross_build):
+    """The STM32F405 image with the register model in place of the chip, on QEMU's netduinoplus2: its USART1
+    on a pty, read by `tecdard imu`: status and samples, no CRC error."""
+    qemu = subprocess.Popen([QEMU, "-M", "netduinoplus2", "-display", "none", "-monitor", "none", "-serial", "pty",
+                             "-kernel", str(BUILD / "tecdar-imu-stm32f405-qemu.elf")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = qemu.stdout.readline()
+        m = re.search(r"(/dev/pts/\d+)", line)
+        assert m, line
+        rep = tecdard_imu(m.group(1), 4.0)
+    finally:
+        qemu.kill()
+        qemu.wait()
+    c = rep["counters"]
+    assert rep["status"] == {"odr_hz": ODR_HZ, "gyro_fs_dps": 4000, "accel_fs_g": 16, "flags": 0}
+    assert c["samples"] > 5000 and c["status_packets"] >= 2
+    assert (c["crc_errors"], c["malformed"], c["samples_lost"]) == (0, 0, 0)
+    assert abs(rep["latest"]["accel_m_s2"][2] - 9.81) < 0.05

@@ -5,10 +5,12 @@
 
 #define Q 16
 #define MAX_SLEW_PPM 50            /* phase corrections move a step by at most this: within the spec's 100 ppm */
+#define CATCH_UP_SLEW_PPM 500      /* ... unless the phase is this far off (a start on a chip whose rate is off) */
+#define CATCH_UP_US 300
 #define MAX_RATE_ERROR_PPM 30000   /* the period estimate stays within 3 % of the chip's stated rate */
 #define REANCHOR_US 2000           /* a phase error beyond this is not slewed away but re-anchored */
-#define POINT_EVERY_WINDOWS 8u     /* a baseline point every 8 windows (2 s at 250 ms) */
-#define MIN_BASELINE_S 2
+#define POINT_EVERY_WINDOWS 4u     /* a baseline point every 4 windows (1 s at 250 ms) */
+#define MIN_BASELINE_S 1
 
 void tfw_stamp_init(tfw_stamp *s, uint32_t odr_mhz, uint32_t window_us) {
     memset(s, 0, sizeof *s);
@@ -29,7 +31,8 @@ static int64_t clamp64(int64_t v, int64_t lo, int64_t hi) { return v < lo ? lo :
 static void steer(tfw_stamp *s) {
     int64_t samples = (s->window_us << Q) / s->period_q;
     int64_t err_q = -s->best_lat_q;            /* the best read saw the newest sample at lat 0: shift by it */
-    int64_t max_slew = s->period_q * MAX_SLEW_PPM / 1000000;
+    int64_t far = err_q > ((int64_t)CATCH_UP_US << Q) || err_q < -((int64_t)CATCH_UP_US << Q);
+    int64_t max_slew = s->period_q * (far ? CATCH_UP_SLEW_PPM : MAX_SLEW_PPM) / 1000000;
     if (err_q > ((int64_t)REANCHOR_US << Q) || err_q < -((int64_t)REANCHOR_US << Q)) {
         tfw_stamp_reanchor(s);
         return;

@@ -27,7 +27,7 @@
 typedef struct {
     const char *pty_link, *out_path, *signal_path, *gen, *counters_path, *timing_path;
     double seconds, mcu_ppm, mcu_wander_ppm, chip_ppm, stall_every_s, stall_ms, linger_s, wait_open_s;
-    long uart_baud, poll_us;
+    long uart_baud, poll_us, timing_every;
     uint32_t t0_us;
     int realtime, absent, st_fail, freq_fine;
     int whoami;
@@ -40,6 +40,7 @@ typedef struct {
     uint16_t seq;
     uint8_t n;
     uint32_t t0_us, first_in_us;
+    uint64_t first_sample;           /* its first sample's index in the stream */
 } pending_packet;
 
 typedef struct {
@@ -55,7 +56,6 @@ typedef struct {
     uint64_t rng;
     pending_packet q[TIMING_QUEUE];
     unsigned q_head, q_len;
-    int64_t first_fifo_ns;
     uint64_t prev_batched;
     uint64_t stdin_records;
     int stdin_eof;
@@ -217,8 +217,9 @@ static void drain_uart(board *b, double dt_s) {
         }
         b->latency_sum_us += (double)lat;
         b->latency_n++;
-        if (b->timing) {
-            fprintf(b->timing, "%u,%u,%u,%lld\n", pp->seq, pp->n, pp->t0_us, (long long)b->t_ns);
+        if (b->timing && b->latency_n % (uint64_t)b->o.timing_every == 0) {
+            fprintf(b->timing, "%llu,%u,%u,%lld\n", (unsigned long long)pp->first_sample, pp->n, pp->t0_us,
+                    (long long)b->t_ns);
         }
         b->q_head = (b->q_head + 1) % TIMING_QUEUE;
         b->q_len--;
@@ -237,6 +238,7 @@ static void on_frame(void *ctx, const uint8_t *f, size_t len, uint32_t first_in_
     pp->t0_us = (uint32_t)f[7] | ((uint32_t)f[8] << 8) | ((uint32_t)f[9] << 16) | ((uint32_t)f[10] << 24);
     pp->n = f[11];
     pp->first_in_us = first_in_us;
+    pp->first_sample = b->app.counters.samples_sent;      /* the counters count it after this call */
     b->q_len++;
     (void)len;
 }
@@ -297,7 +299,8 @@ static void usage(FILE *f) {
             "  --stall-every S --stall-ms MS   the firmware stops polling MS ms every S s (forces FIFO overruns)\n"
             "  --whoami 0xNN --absent --self-test-fail   a wrong part, no part, a failing self-test\n"
             "  --counters PATH     the firmware's counters as JSON when it stops\n"
-            "  --timing PATH       one line per samples packet: seq,n,t0_us,true ns of its last byte\n"
+            "  --timing PATH       a line per samples packet: its first sample's index, n, t0_us, and the true\n"
+            "                      time (ns) its last byte left the UART; --timing-every K: every Kth packet\n"
             "  --wait-open S       with --pty: wait up to S s for a reader before starting\n"
             "  --linger S          with --pty: keep the port open S s after the stream ends\n");
 }
@@ -310,13 +313,14 @@ static int parse(int argc, char **argv, options *o) {
         {"deadline-us", 1, 0, 'd'}, {"no-self-test", 0, 0, 'N'}, {"mcu-ppm", 1, 0, 'm'},
         {"mcu-wander-ppm", 1, 0, 'w'}, {"chip-ppm", 1, 0, 'c'}, {"freq-fine", 1, 0, 'f'}, {"t0-us", 1, 0, 't'},
         {"uart-baud", 1, 0, 'u'}, {"stall-every", 1, 0, 'E'}, {"stall-ms", 1, 0, 'M'}, {"whoami", 1, 0, 'W'},
-        {"absent", 0, 0, 'a'}, {"self-test-fail", 0, 0, 'x'}, {"counters", 1, 0, 'C'}, {"timing", 1, 0, 'T'},
+        {"absent", 0, 0, 'a'}, {"self-test-fail", 0, 0, 'x'}, {"counters", 1, 0, 'C'}, {"timing", 1, 0, 'T'}, {"timing-every", 1, 0, 'K'},
         {"wait-open", 1, 0, 'L'}, {"linger", 1, 0, 'l'}, {"help", 0, 0, 'h'}, {0, 0, 0, 0}};
     int c;
     memset(o, 0, sizeof *o);
     o->cfg = tfw_app_default_config();
     o->uart_baud = 2000000;
     o->poll_us = 250;
+    o->timing_every = 1;
     o->whoami = 0x6B;
     o->signal_gfs = 4000;
     o->signal_afs = 16;
@@ -354,6 +358,7 @@ static int parse(int argc, char **argv, options *o) {
         case 'x': o->st_fail = 1; break;
         case 'C': o->counters_path = optarg; break;
         case 'T': o->timing_path = optarg; break;
+        case 'K': o->timing_every = atol(optarg) > 0 ? atol(optarg) : 1; break;
         case 'L': o->wait_open_s = atof(optarg); break;
         case 'l': o->linger_s = atof(optarg); break;
         case 'h': usage(stdout); exit(0);
@@ -396,7 +401,7 @@ static void write_counters(const board *b) {
             (unsigned long long)b->chip.words_overwritten, (unsigned long long)b->chip.overruns,
             (long long)b->bytes_out, tfw_app_tx_pending(&b->app), (unsigned long long)b->stdin_records,
             b->app.flags, b->app.last_error, b->app.dev.who_am_i, b->app.self_test.passed, b->app.stamp.anchors,
-            (long long)b->first_fifo_ns,
+            (long long)b->chip.first_fifo_ns,
             (long long)(1e9 / (lsm_model_odr_hz((uint8_t)(b->chip.reg[0x10] >> 4)) * (1 + b->o.chip_ppm * 1e-6)) + 0.5),
             (long long)b->t_ns, (long long)b->max_latency_us,
             b->latency_n ? b->latency_sum_us / (double)b->latency_n : 0.0, (unsigned long long)b->latency_n);
@@ -488,9 +493,6 @@ int main(int argc, char **argv) {
             pump_stdin(&b);
         } else {
             lsm_model_advance(&b.chip, b.t_ns);
-        }
-        if (!b.first_fifo_ns && b.chip.words_batched) {
-            b.first_fifo_ns = b.chip.t_ns;
         }
         double t_s = (double)b.t_ns * 1e-9;
         int stalled = b.o.stall_every_s > 0 && fmod(t_s, b.o.stall_every_s) >= b.o.stall_every_s - b.o.stall_ms * 1e-3;

@@ -48,6 +48,7 @@ void lsm_model_init(lsm_model *m) {
     m->st_g_dps = 300.0;
     reset_registers(m);
     m->accel_g[2] = 1.0;
+    m->first_fifo_ns = -1;
 }
 
 static double gyro_mdps_per_lsb(uint8_t ctrl2) {
@@ -98,6 +99,9 @@ static void fifo_push(lsm_model *m, uint8_t tag_sensor, const int16_t xyz[3]) {
     w[0] = (uint8_t)(tag | parity);
     put_xyz(w + 1, xyz);
     m->fifo_count++;
+    if (!m->words_batched) {
+        m->first_fifo_ns = m->t_ns;
+    }
     m->words_batched++;
 }
 

@@ -38,6 +38,7 @@ typedef struct {
     uint64_t words_batched;
     uint64_t words_overwritten;      /* lost to overruns */
     uint64_t overruns;
+    int64_t first_fifo_ns;           /* the time slot of the first word the FIFO took (-1: none yet) */
 } lsm_model;
 
 void lsm_model_init(lsm_model *m);
