@@ -23,6 +23,8 @@ READ_CHUNK_BYTES = 1 << 16
 RETRY_MIN_S = 0.05
 RETRY_MAX_S = 2.0
 MIN_STEP_S = 1e-6          # output times are strictly increasing by at least this
+LINKS = ("usb-cdc", "uart")
+UART_BITS_PER_BYTE = 10    # start, 8 data, stop
 
 
 class PortError(OSError):
@@ -36,6 +38,7 @@ class SerialParams:
     pid: int | None = None
     serial_number: str | None = None
     baud: int = 2_000_000             # USB-CDC ignores it; kept for UART bridges
+    link: str = "usb-cdc"             # "uart": a UART at `baud` behind a USB-serial bridge (its wire time known)
     odr_hz: int = DEFAULT_ODR_HZ      # used until the first status packet
     gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS
     accel_fs_g: int = DEFAULT_ACCEL_FS_G
@@ -54,6 +57,7 @@ class SerialParams:
         p = cls(port=section.getstr("port", "") or None, vid=vid, pid=pid,
                 serial_number=section.getstr("serial_number", "") or None,
                 baud=section.getint("baud", d.baud, minval=1200),
+                link=section.getstr("link", d.link, choices=LINKS),
                 odr_hz=section.getint("odr_hz", d.odr_hz, minval=1, maxval=65535),
                 gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
                 accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g))
@@ -68,6 +72,13 @@ class SerialParams:
         if problem:                       # "odr_hz 1234 is not ...": the key, then the problem
             raise section.error("odr_hz", problem.split(" ", 1)[1])
         return p
+
+
+def _frame_bytes(pkt) -> int:
+    """The bytes of a decoded packet's frame on the wire."""
+    if isinstance(pkt, SamplesPacket):
+        return 7 + 7 + 12 * len(pkt.raw)
+    return 7 + 6
 
 
 def find_port(vid: int, pid: int, serial_number: str | None = None, comports=None) -> str:
@@ -192,7 +203,17 @@ class SerialImuSource(ImuSource):
     def decode(self, data: bytes, host_s: float):
         """Bytes that arrived at host time host_s -> (t, gyro, accel) or None (no samples in them)."""
         ts, raws = [], []
-        for pkt in self.parser.feed(data):
+        pkts = self.parser.feed(data)
+        # On a UART link a packet's bytes take their time on the wire (110 bytes at 2 Mbaud: 0.55 ms), and the
+        # bytes after it in this read more: each packet is dated to when its first byte left the board, so that
+        # the clock fit does not take the wire time for the board's clock offset.
+        wire_s = [0.0] * len(pkts)
+        if self.params.link == "uart":
+            s_per_byte, behind = UART_BITS_PER_BYTE / self.params.baud, 0
+            for i in range(len(pkts) - 1, -1, -1):
+                behind += _frame_bytes(pkts[i])
+                wire_s[i] = behind * s_per_byte
+        for pkt, wire in zip(pkts, wire_s):
             if isinstance(pkt, StatusPacket):
                 # every field against the protocol's ranges before any is used: a status naming a
                 # range or a rate the chip has not is counted and ignored whole
@@ -215,7 +236,7 @@ class SerialImuSource(ImuSource):
             elif isinstance(pkt, SamplesPacket):
                 if pkt.restart:
                     self._restarted()
-                ts.append(self._packet_times(pkt, host_s))
+                ts.append(self._packet_times(pkt, host_s - wire))
                 raws.append(pkt.raw)
         if not raws:
             return None

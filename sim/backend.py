@@ -91,6 +91,7 @@ class SimBackend(RobotBackend):
                 raise section.error("source", f"sim-firmware runs the firmware's host board, and {self.host_board} "
                                               "is not there (build it with `make firmware`, or set sim.host_board)")
             params = self._wire()
+            params.link = "uart"             # the host board models its UART at 2 Mbaud
             self.spec.imu_out = "firmware"
             self.spec.host_board = self.host_board
             return SimWireSource(params)

@@ -190,9 +190,10 @@ static void bus_delay(void *ctx, uint32_t us) {
 }
 
 static void drain_uart(board *b, double dt_s) {
-    b->uart_credit += (double)b->o.uart_baud / 10.0 * dt_s;
-    if (b->uart_credit > 4096) {
-        b->uart_credit = 4096;       /* an idle line stores no bytes for later */
+    double per_step = (double)b->o.uart_baud / 10.0 * dt_s;
+    b->uart_credit += per_step;
+    if (b->uart_credit > per_step + 1.0) {
+        b->uart_credit = per_step + 1.0;   /* an idle line saves no time for later (one holding register) */
     }
     while (b->uart_credit >= 1.0 && tfw_app_tx_pending(&b->app)) {
         const uint8_t *p;

@@ -62,8 +62,7 @@ uint32_t board_clock_init(void) {
     if (!wait_set(&RCC_CR, RCC_CR_HSERDY)) {
         return 16000000u;                /* no crystal: stay on the 16 MHz HSI */
     }
-    /* PLL: VCO in = HSE / M = 1 MHz (2 MHz for 25 MHz parts below), VCO = x336, SYSCLK = /2 = 168 MHz,
-     * USB = /7 = 48 MHz */
+    /* PLL: VCO in = HSE / M = 1 MHz, VCO = x336, SYSCLK = /2 = 168 MHz, USB = /7 = 48 MHz */
     uint32_t m = HSE_HZ / 1000000u;
     RCC_PLLCFGR = m | (336u << 6) | (0u << 16) | (1u << 22) | (7u << 24);
     RCC_CR |= RCC_CR_PLLON;
