@@ -556,11 +556,11 @@ class SimArm:
     with when it was measured and delivered at most one slice late."""
 
     def __init__(self, spec: SimArmSpec):
-        from tecdard.sim.board import Board, PtyDevice
+        from tecdard.sim.board import Board, PtyDevice, PyWire
         from tecdard.sim.robot import PHYSICS_WAKE_S
         sim = spec.sim_spec
         self.device = PtyDevice(sim.pty_link)
-        self.robot = sim.build(wire=(Board(sim.board), self.device))
+        self.robot = sim.build(wire=PyWire(Board(sim.board), self.device))
         self.robot.sync_clock()
         self.slice_s = PHYSICS_WAKE_S
         self.q, self.qd = list(self.robot.q), [0.0] * len(self.robot.q)

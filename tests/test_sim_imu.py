@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from tecdard.sim.board import Board, BoardParams, PtyDevice
+from tecdard.sim.board import Board, BoardParams, PtyDevice, PyWire
 from tecdard.drivers.lsm6dsr import Scaling
 from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
 from tecdard.sim.imu import ETA_TRUE_TABLE, FingertipSignal, SimImu, SimImuParams
@@ -88,7 +88,7 @@ def test_impact_ring_scales_with_speed_and_mass():
 def test_wire_stream_round_trips_through_the_serial_driver(tmp_path):
     dev = PtyDevice(tmp_path / "ttyIMU")
     board = Board(BoardParams())
-    imu = SimImu(SimImuParams(), seed=1, wire=(board, dev))
+    imu = SimImu(SimImuParams(), seed=1, wire=PyWire(board, dev))
     src = SerialImuSource(SerialParams(port=str(dev.link)))
     src.open()
     try:
