@@ -62,6 +62,12 @@ class StatusPacket:
     flags: int
 
 
+def frame_bytes(pkt: "SamplesPacket | StatusPacket") -> int:
+    """The bytes of a decoded packet's whole frame on the wire."""
+    payload = SAMPLES_HEADER_BYTES + SAMPLE_BYTES * len(pkt.raw) if isinstance(pkt, SamplesPacket) else STATUS_BYTES
+    return HEADER_BYTES + payload + CRC_BYTES
+
+
 @dataclass
 class Counters:
     """Every counter the spec asks for, per stream."""

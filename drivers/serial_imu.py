@@ -14,7 +14,7 @@ import serial.tools.list_ports
 
 from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.imu_wire import (FLAG_SELF_TEST_FAILED, FLAG_SENSOR_ABSENT, SamplesPacket, StatusPacket,
-                                      WireParser)
+                                      WireParser, frame_bytes)
 from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
 from tecdard.drivers.timesync import ClockSync, Unwrapper
 from tecdard.host import Check
@@ -72,13 +72,6 @@ class SerialParams:
         if problem:                       # "odr_hz 1234 is not ...": the key, then the problem
             raise section.error("odr_hz", problem.split(" ", 1)[1])
         return p
-
-
-def _frame_bytes(pkt) -> int:
-    """The bytes of a decoded packet's frame on the wire."""
-    if isinstance(pkt, SamplesPacket):
-        return 7 + 7 + 12 * len(pkt.raw)
-    return 7 + 6
 
 
 def find_port(vid: int, pid: int, serial_number: str | None = None, comports=None) -> str:
@@ -211,7 +204,7 @@ class SerialImuSource(ImuSource):
         if self.params.link == "uart":
             s_per_byte, behind = UART_BITS_PER_BYTE / self.params.baud, 0
             for i in range(len(pkts) - 1, -1, -1):
-                behind += _frame_bytes(pkts[i])
+                behind += frame_bytes(pkts[i])
                 wire_s[i] = behind * s_per_byte
         for pkt, wire in zip(pkts, wire_s):
             if isinstance(pkt, StatusPacket):

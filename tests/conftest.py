@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from tecdard.cli.client import Client
-from tecdard.tools.demo import free_port
+from tecdard.tools.demo import distance_to_axis, free_port
 from tecdard.config import dump_yaml
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -217,3 +217,18 @@ def board(tmp_path):
     yield device
     streamer.join()
     device.close()
+
+
+def rotate_on_the_cutter(d, hinge_tol_m: float, angle_deg: float = 20.0) -> None:
+    """A `rotate` of angle_deg on the simulated paper cutter: it finishes, the handle turns within 2 degrees of
+    it, the hinge found is within hinge_tol_m of the true axis, and no fault was raised on the way."""
+    reply = d.client.command("rotate", {"angle_deg": angle_deg})
+    assert reply["ok"] is True, reply
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
+    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
+    sim = ev["result"]["sim"]
+    assert abs(sim["angle_deg"] - angle_deg) < 2.0
+    err = distance_to_axis(np.array(ev["result"]["hinge"]["p"]), np.array(sim["hinge_point"]),
+                           np.array(sim["hinge_axis"]))
+    assert err < hinge_tol_m
+    assert all(e["kind"] != "fault" for e in d.client.event_log)

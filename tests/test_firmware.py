@@ -5,20 +5,21 @@ import json
 import os
 import pathlib
 import re
+import select
 import shutil
-import struct
 import subprocess
 import sys
 import threading
 import time
+import tty
 
 import numpy as np
 import pytest
 
 from tecdard.drivers import imu_wire as W
 from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
-from tecdard.drivers.timesync import ClockSync
-from tests.conftest import ROOT
+from tecdard.sim.board import PtyDevice
+from tests.conftest import ROOT, rotate_on_the_cutter
 
 FIRMWARE = ROOT / "firmware"
 BUILD = FIRMWARE / "build"
@@ -243,7 +244,6 @@ class CorruptingRelay:
     error). Counts what it corrupted."""
 
     def __init__(self, dst_link):
-        from tecdard.sim.board import PtyDevice
         self.dst = PtyDevice(dst_link)
         self.src = None
         self.buf = bytearray()
@@ -252,13 +252,11 @@ class CorruptingRelay:
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     def start(self, src_link):
-        import tty
         self.src = os.open(os.path.realpath(src_link), os.O_RDWR | os.O_NOCTTY)
         tty.setraw(self.src)
         self.thread.start()
 
     def _run(self):
-        import select
         while not self.stop.is_set():
             r, _, _ = select.select([self.src], [], [], 0.1)
             if not r:
@@ -341,17 +339,7 @@ def test_the_daemon_rotates_on_the_firmwares_stream_of_the_simulated_fingertip(h
     """imu.source: sim-firmware: the simulated fingertip's samples go into the LSM6DSR model of the host board,
     the firmware reads them through its driver, batches, stamps and encodes them, and the daemon's serial
     driver reads its pty: the firmware's framing, batching and timing are part of a whole task."""
-    d = make_daemon(**{"imu.source": "sim-firmware"})
-    reply = d.client.command("rotate", {"angle_deg": 20.0})
-    assert reply["ok"] is True, reply
-    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
-    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
-    sim = ev["result"]["sim"]
-    assert abs(sim["angle_deg"] - 20.0) < 2.0
-    p = np.array(ev["result"]["hinge"]["p"]) - np.array(sim["hinge_point"])
-    a = np.array(sim["hinge_axis"])
-    assert np.linalg.norm(p - np.dot(p, a) * a) < ROTATE_HINGE_TOL_M
-    assert all(e["kind"] != "fault" for e in d.client.event_log)
+    rotate_on_the_cutter(make_daemon(**{"imu.source": "sim-firmware"}), ROTATE_HINGE_TOL_M)
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from tecdard.sim.board import Board, BoardParams, PtyDevice, StreamThread
 from tecdard.drivers.imu_wire import encode_status
 from tecdard.drivers.lsm6dsr import Scaling
 from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
-from tests.conftest import ROOT, sim_config
+from tests.conftest import ROOT, rotate_on_the_cutter, sim_config
 
 PRODUCT_IMU_STALE_S = sim_config()["control"]["imu_stale_s"]     # 50 ms, issue 6
 
@@ -170,17 +170,7 @@ def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
 
 def test_daemon_rotates_through_the_whole_serial_path_in_simulation(make_daemon):
     """imu.source: sim-wire: the simulated fingertip speaks tecdar-imu/1 on a pty, the real driver reads it."""
-    d = make_daemon(**{"imu.source": "sim-wire"})
-    reply = d.client.command("rotate", {"angle_deg": 20.0})
-    assert reply["ok"] is True
-    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
-    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
-    sim = ev["result"]["sim"]
-    assert abs(sim["angle_deg"] - 20.0) < 2.0
-    p = np.array(ev["result"]["hinge"]["p"]) - np.array(sim["hinge_point"])
-    a = np.array(sim["hinge_axis"])
-    assert np.linalg.norm(p - np.dot(p, a) * a) < 0.010
-    assert all(e["kind"] != "fault" for e in d.client.event_log)
+    rotate_on_the_cutter(make_daemon(**{"imu.source": "sim-wire"}), hinge_tol_m=0.010)
 
 
 def test_unplugging_the_imu_during_a_task_is_a_protective_stop_on_stale_data(make_daemon, pty):

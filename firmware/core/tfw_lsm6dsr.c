@@ -166,11 +166,23 @@ static int self_test_one(tfw_lsm6dsr *dev, uint8_t ready_bit, uint8_t reg, uint8
     return rc != TFW_LSM_OK ? rc : rc2;
 }
 
+/* the datasheet's two self-tests, in order: the sensor's control register and setting, its data-ready bit and
+ * output registers, its self-test bits, its sensitivity (thousandths of mg or dps per LSB) and pass window */
+static const struct {
+    uint8_t ctrl_reg, ctrl_value, ready_bit, out_reg, st_bits;
+    int32_t milli_per_lsb, min, max;
+} SELF_TESTS[2] = {
+    {LSM_CTRL1_XL, ST_XL_CTRL1, LSM_STATUS_XLDA, LSM_OUTX_L_A, ST_XL_POSITIVE, XL_MG_PER_LSB_4G_X1000,
+     ST_XL_MIN_MG, ST_XL_MAX_MG},
+    {LSM_CTRL2_G, ST_G_CTRL2, LSM_STATUS_GDA, LSM_OUTX_L_G, ST_G_POSITIVE, G_MDPS_PER_LSB_2000,
+     ST_G_MIN_DPS, ST_G_MAX_DPS},
+};
+
 int tfw_lsm_self_test_run(tfw_lsm6dsr *dev, tfw_lsm_self_test *result) {
     static const uint8_t zero_regs[] = {LSM_CTRL2_G, LSM_CTRL4_C, LSM_CTRL5_C, LSM_CTRL6_C,
                                         LSM_CTRL7_G, LSM_CTRL8_XL, LSM_CTRL10_C};
-    int32_t d[3];
-    int rc = TFW_LSM_OK;
+    int32_t *deltas[2] = {result->accel_delta_mg, result->gyro_delta_dps};
+    int rc = TFW_LSM_OK, rc_off = TFW_LSM_OK;
     memset(result, 0, sizeof *result);
     for (size_t i = 0; rc == TFW_LSM_OK && i < sizeof zero_regs; i++) {
         rc = tfw_lsm_write(dev, zero_regs[i], 0x00u);
@@ -178,39 +190,26 @@ int tfw_lsm_self_test_run(tfw_lsm6dsr *dev, tfw_lsm_self_test *result) {
     if (rc == TFW_LSM_OK) {
         rc = tfw_lsm_write(dev, LSM_CTRL3_C, LSM_CTRL3_BDU | LSM_CTRL3_IF_INC);
     }
-    if (rc == TFW_LSM_OK) {
-        rc = tfw_lsm_write(dev, LSM_CTRL1_XL, ST_XL_CTRL1);
+    result->passed = 1;
+    for (size_t k = 0; k < 2 && rc == TFW_LSM_OK; k++) {
+        int32_t d[3];
+        rc = tfw_lsm_write(dev, SELF_TESTS[k].ctrl_reg, SELF_TESTS[k].ctrl_value);
+        if (rc == TFW_LSM_OK) {
+            rc = self_test_one(dev, SELF_TESTS[k].ready_bit, SELF_TESTS[k].out_reg, SELF_TESTS[k].st_bits, d);
+        }
+        for (int a = 0; rc == TFW_LSM_OK && a < 3; a++) {
+            deltas[k][a] = d[a] * SELF_TESTS[k].milli_per_lsb / 1000;
+            if (deltas[k][a] < SELF_TESTS[k].min || deltas[k][a] > SELF_TESTS[k].max) {
+                result->passed = 0;
+            }
+        }
+        rc_off = tfw_lsm_write(dev, SELF_TESTS[k].ctrl_reg, 0x00u);     /* the sensor off again, whatever came */
     }
-    if (rc == TFW_LSM_OK) {
-        rc = self_test_one(dev, LSM_STATUS_XLDA, LSM_OUTX_L_A, ST_XL_POSITIVE, d);
-    }
-    for (int a = 0; rc == TFW_LSM_OK && a < 3; a++) {
-        result->accel_delta_mg[a] = d[a] * XL_MG_PER_LSB_4G_X1000 / 1000;
-    }
-    if (rc == TFW_LSM_OK) {
-        rc = tfw_lsm_write(dev, LSM_CTRL1_XL, 0x00u);
-    }
-    if (rc == TFW_LSM_OK) {
-        rc = tfw_lsm_write(dev, LSM_CTRL2_G, ST_G_CTRL2);
-    }
-    if (rc == TFW_LSM_OK) {
-        rc = self_test_one(dev, LSM_STATUS_GDA, LSM_OUTX_L_G, ST_G_POSITIVE, d);
-    }
-    for (int a = 0; rc == TFW_LSM_OK && a < 3; a++) {
-        result->gyro_delta_dps[a] = d[a] * G_MDPS_PER_LSB_2000 / 1000;
-    }
-    int rc2 = tfw_lsm_write(dev, LSM_CTRL2_G, 0x00u);
     if (rc != TFW_LSM_OK) {
+        result->passed = 0;
         return rc;
     }
-    result->passed = 1;
-    for (int a = 0; a < 3; a++) {
-        if (result->accel_delta_mg[a] < ST_XL_MIN_MG || result->accel_delta_mg[a] > ST_XL_MAX_MG ||
-            result->gyro_delta_dps[a] < ST_G_MIN_DPS || result->gyro_delta_dps[a] > ST_G_MAX_DPS) {
-            result->passed = 0;
-        }
-    }
-    return rc2;
+    return rc_off;
 }
 
 int tfw_lsm_configure(tfw_lsm6dsr *dev, const tfw_lsm_config *cfg) {

@@ -56,7 +56,6 @@ typedef struct {
     uint64_t rng;
     pending_packet q[TIMING_QUEUE];
     unsigned q_head, q_len;
-    uint64_t prev_batched;
     uint64_t stdin_records;
     int stdin_eof;
     uint8_t stdin_buf[STDIN_RECORD_BYTES * 256];
@@ -403,7 +402,7 @@ static void write_counters(const board *b) {
             (long long)b->bytes_out, tfw_app_tx_pending(&b->app), (unsigned long long)b->stdin_records,
             b->app.flags, b->app.last_error, b->app.dev.who_am_i, b->app.self_test.passed, b->app.stamp.anchors,
             (long long)b->chip.first_fifo_ns,
-            (long long)(1e9 / (lsm_model_odr_hz((uint8_t)(b->chip.reg[0x10] >> 4)) * (1 + b->o.chip_ppm * 1e-6)) + 0.5),
+            (long long)lsm_model_period_ns(&b->chip, (uint8_t)(b->chip.reg[0x10] >> 4)),
             (long long)b->t_ns, (long long)b->max_latency_us,
             b->latency_n ? b->latency_sum_us / (double)b->latency_n : 0.0, (unsigned long long)b->latency_n);
     fclose(f);
@@ -480,7 +479,6 @@ int main(int argc, char **argv) {
         fprintf(stderr, "host-board: the sensor did not come up (error %d, WHO_AM_I 0x%02X); status only\n", rc,
                 b.app.dev.who_am_i);
     }
-    b.prev_batched = b.chip.words_batched;
     const int64_t poll_ns = b.o.poll_us * 1000;
     const int64_t end_ns = b.o.seconds > 0 ? b.t_ns + (int64_t)(b.o.seconds * 1e9) : INT64_MAX;
     while (!stop_requested && b.t_ns < end_ns && !(push && b.stdin_eof)) {

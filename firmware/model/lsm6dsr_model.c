@@ -135,15 +135,15 @@ static void sample(lsm_model *m, int do_xl, int do_g, const double g_dps[3], con
     }
 }
 
-static int64_t period_ns(const lsm_model *m, uint8_t code) {
+int64_t lsm_model_period_ns(const lsm_model *m, uint8_t code) {
     double hz = lsm_model_odr_hz(code) * (1.0 + m->odr_ppm * 1e-6);
     return hz > 0 ? (int64_t)(1e9 / hz + 0.5) : 0;
 }
 
 void lsm_model_advance(lsm_model *m, int64_t t_ns) {
     for (;;) {
-        int64_t pxl = period_ns(m, (uint8_t)(m->reg[R_CTRL1_XL] >> 4));
-        int64_t pg = period_ns(m, (uint8_t)(m->reg[R_CTRL2_G] >> 4));
+        int64_t pxl = lsm_model_period_ns(m, (uint8_t)(m->reg[R_CTRL1_XL] >> 4));
+        int64_t pg = lsm_model_period_ns(m, (uint8_t)(m->reg[R_CTRL2_G] >> 4));
         /* a sensor switched on samples on the other's grid when their rates match, as the chip does */
         if (pxl && m->next_xl_ns < 0) {
             m->next_xl_ns = (pg == pxl && m->next_g_ns >= 0) ? m->next_g_ns : m->t_ns + pxl;

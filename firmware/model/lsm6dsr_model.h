@@ -1,7 +1,9 @@
 /* A register-level model of the ST LSM6DSR for the host board, the unit tests and the emulator build: SPI
  * transactions in, register contents and a tagged FIFO out, driven by a physical signal. It models what the
  * driver relies on (identity, reset, ODR, full scales, self-test response, FIFO continuous mode with
- * watermark, tags and overrun, burst reads that roll back at the FIFO's last register) and nothing more. */
+ * watermark, tags and overrun, burst reads that roll back at the FIFO's last register) and nothing more.
+ * Its register addresses and bits are its own, written again from the datasheet, not the driver's: a wrong
+ * constant in the driver then fails a test instead of agreeing with itself. */
 #ifndef LSM6DSR_MODEL_H
 #define LSM6DSR_MODEL_H
 
@@ -50,5 +52,7 @@ void lsm_model_emit(lsm_model *m, const double gyro_dps[3], const double accel_g
 int lsm_model_transfer(void *ctx, const uint8_t *tx, uint8_t *rx, size_t n);
 /* The model's output data rate of a CTRL1_XL/CTRL2_G code, Hz (0 when powered down). */
 double lsm_model_odr_hz(uint8_t code);
+/* Its sample period at that code with the chip's oscillator error, ns (0 when powered down). */
+int64_t lsm_model_period_ns(const lsm_model *m, uint8_t code);
 
 #endif

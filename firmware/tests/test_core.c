@@ -350,9 +350,16 @@ static uint32_t rig_mcu(const app_rig *a) {
     return a->mcu0 + (uint32_t)(int64_t)floor((double)a->r.chip.t_ns * 1e-3 * (1 + a->mcu_ppm * 1e-6));
 }
 
-static void app_rig_start(app_rig *a, const tfw_app_config *cfg) {
-    lsm_model_init(&a->r.chip);
-    a->r.chip.signal = sine_signal;
+/* a zeroed rig whose chip sees the sine signal; a test sets what it needs, then app_rig_begin */
+static app_rig *app_rig_new(void) {
+    static app_rig a;
+    memset(&a, 0, sizeof a);
+    lsm_model_init(&a.r.chip);
+    a.r.chip.signal = sine_signal;
+    return &a;
+}
+
+static void app_rig_begin(app_rig *a, const tfw_app_config *cfg) {
     tfw_bus bus = {rig_transfer, rig_delay, &a->r};
     tfw_app_init(&a->app, &bus, cfg);
     tfw_app_start(&a->app, rig_mcu(a));
@@ -367,10 +374,9 @@ typedef struct {
     uint32_t last_t0;
     uint8_t last_n;
     double max_step_err_us;
-    double max_t0_err_us;            /* t0 against the MCU time of the sample's making */
 } stream_stats;
 
-static void consume(app_rig *a, stream_stats *s, uint64_t *first_fifo_slot_ns) {
+static void consume(app_rig *a, stream_stats *s) {
     static uint8_t buf[TFW_TX_BYTES];
     const uint8_t *p;
     size_t len = 0, k;
@@ -407,7 +413,6 @@ static void consume(app_rig *a, stream_stats *s, uint64_t *first_fifo_slot_ns) {
             s->last_n = q[6];
             s->samples += q[6];
             s->packets++;
-            (void)first_fifo_slot_ns;
         }
         i += 7u + plen;
     }
@@ -418,112 +423,99 @@ static void run(app_rig *a, double seconds, uint32_t poll_us, stream_stats *s) {
     while (a->r.chip.t_ns < end) {
         lsm_model_advance(&a->r.chip, a->r.chip.t_ns + poll_us * 1000);
         tfw_app_poll(&a->app, rig_mcu(a));
-        consume(a, s, NULL);
+        consume(a, s);
     }
 }
 
 static void test_app_streams_with_a_status_each_second(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    app_rig_start(&a, &cfg);
-    CHECK_EQ(a.app.last_error, TFW_LSM_OK);
-    run(&a, 3.0, 200, &s);
+    app_rig_begin(a, &cfg);
+    CHECK_EQ(a->app.last_error, TFW_LSM_OK);
+    run(a, 3.0, 200, &s);
     CHECK_EQ(s.statuses, 4);                                    /* at start, then at 1, 2 and 3 s */
     CHECK_EQ(s.flags_or, 0);
     CHECK(abs((int)s.samples - 3 * 6667) < 20);
     CHECK_EQ(s.seq_gaps, 0);
-    CHECK_EQ(a.app.counters.samples_sent, s.samples);
-    CHECK(a.app.counters.max_poll_words <= TFW_POLL_MAX_WORDS);
+    CHECK_EQ(a->app.counters.samples_sent, s.samples);
+    CHECK(a->app.counters.max_poll_words <= TFW_POLL_MAX_WORDS);
     CHECK(s.max_step_err_us <= 100e-6 * 1200);                  /* within 100 ppm of a packet's 1.2 ms */
 }
 
 static void test_app_reports_an_overrun_in_the_next_status_only(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    app_rig_start(&a, &cfg);
-    run(&a, 1.2, 200, &s);
-    lsm_model_advance(&a.r.chip, a.r.chip.t_ns + 60000000);     /* the firmware stalls 60 ms: 800 words */
-    run(&a, 0.9, 200, &s);                                      /* past the status at 2 s */
-    CHECK_EQ(a.app.counters.fifo_overruns, 1);
-    CHECK_EQ(a.app.counters.overrun_statuses, 1);
+    app_rig_begin(a, &cfg);
+    run(a, 1.2, 200, &s);
+    lsm_model_advance(&a->r.chip, a->r.chip.t_ns + 60000000);   /* the firmware stalls 60 ms: 800 words */
+    run(a, 0.9, 200, &s);                                       /* past the status at 2 s */
+    CHECK_EQ(a->app.counters.fifo_overruns, 1);
+    CHECK_EQ(a->app.counters.overrun_statuses, 1);
     CHECK(s.flags_or & TFW_FLAG_FIFO_OVERRUN);
-    run(&a, 1.0, 200, &s);
+    run(a, 1.0, 200, &s);
     CHECK_EQ(s.last_flags, 0);                                  /* the next second was clean */
     CHECK_EQ(s.seq_gaps, 0);                                    /* lost in the sensor: no gap in seq */
 }
 
 static void test_app_self_test_failure_is_reported_and_samples_flow(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    lsm_model_init(&a.r.chip);
-    app_rig_start(&a, &cfg);
-    a.r.chip.st_xl_mg = 0.0;
-    a.app.flags = 0;
-    tfw_app_start(&a.app, rig_mcu(&a));                         /* again, with the deflection gone */
-    run(&a, 1.1, 200, &s);
+    a->r.chip.st_xl_mg = 0.0;                                   /* the accelerometer's deflection is gone */
+    app_rig_begin(a, &cfg);
+    run(a, 1.1, 200, &s);
     CHECK_EQ(s.last_flags, TFW_FLAG_SELF_TEST_FAILED);
     CHECK(s.samples > 6000);
 }
 
 static void test_app_without_a_sensor_sends_status_only_and_retries(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    lsm_model_init(&a.r.chip);
-    a.r.chip.absent = 1;
-    tfw_bus bus = {rig_transfer, rig_delay, &a.r};
-    tfw_app_init(&a.app, &bus, &cfg);
-    tfw_app_start(&a.app, rig_mcu(&a));
-    a.r.chip.signal = sine_signal;
-    run(&a, 2.5, 500, &s);
+    a->r.chip.absent = 1;
+    app_rig_begin(a, &cfg);
+    run(a, 2.5, 500, &s);
     CHECK_EQ(s.samples, 0);
     CHECK_EQ(s.statuses, 3);
     CHECK_EQ(s.last_flags, TFW_FLAG_SENSOR_ABSENT);
-    CHECK_EQ(a.app.counters.sensor_retries, 2);
-    a.r.chip.absent = 0;                                        /* the connector is reseated */
-    run(&a, 3.0, 500, &s);
+    CHECK_EQ(a->app.counters.sensor_retries, 2);
+    a->r.chip.absent = 0;                                       /* the connector is reseated */
+    run(a, 3.0, 500, &s);
     CHECK_EQ(s.last_flags, 0);
     CHECK(s.samples > 6000);
 }
 
 static void test_app_poll_work_is_bounded(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    app_rig_start(&a, &cfg);
-    run(&a, 0.2, 200, &s);
-    lsm_model_advance(&a.r.chip, a.r.chip.t_ns + 30000000);     /* 400 words waiting */
-    uint32_t before = a.app.dev.words_read;
-    tfw_app_poll(&a.app, rig_mcu(&a));
-    CHECK_EQ(a.app.dev.words_read - before, TFW_POLL_MAX_WORDS);
+    app_rig_begin(a, &cfg);
+    run(a, 0.2, 200, &s);
+    lsm_model_advance(&a->r.chip, a->r.chip.t_ns + 30000000);   /* 400 words waiting */
+    uint32_t before = a->app.dev.words_read;
+    tfw_app_poll(&a->app, rig_mcu(a));
+    CHECK_EQ(a->app.dev.words_read - before, TFW_POLL_MAX_WORDS);
 }
 
 static void test_app_sample_clock_follows_a_drifting_mcu(void) {
-    static app_rig a;
+    app_rig *a = app_rig_new();
     stream_stats s = {0};
-    memset(&a, 0, sizeof a);
     tfw_app_config cfg = tfw_app_default_config();
-    a.mcu_ppm = 95.0;                                           /* the crystal at the edge of its tolerance */
-    a.mcu0 = 4294000000u;                                       /* the us counter wraps 1 s in */
+    a->mcu_ppm = 95.0;                                          /* the crystal at the edge of its tolerance */
+    a->mcu0 = 4294000000u;                                      /* the us counter wraps 1 s in */
     cfg.self_test = 0;
-    app_rig_start(&a, &cfg);
-    run(&a, 30.0, 250, &s);
+    app_rig_begin(a, &cfg);
+    run(a, 30.0, 250, &s);
     CHECK_EQ(s.seq_gaps, 0);
     CHECK(s.max_step_err_us < 200e-6 * 1200);                   /* steps within 200 ppm (+1 us of rounding) */
-    CHECK_EQ(a.app.stamp.anchors, 1);
+    CHECK_EQ(a->app.stamp.anchors, 1);
     /* the newest sample's stamp against the MCU time it was made */
-    int64_t true_mcu = (int64_t)rig_mcu(&a);
+    int64_t true_mcu = (int64_t)rig_mcu(a);
     double lag_us = (double)(int32_t)((uint32_t)true_mcu - s.last_t0) - (s.last_n - 1) * 149.99;
     CHECK(lag_us >= 0 && lag_us < 2500);
-    double period_ppm = ((double)a.app.stamp.period_q / 65536.0 / (1e6 / 6667.0) - 1.0) * 1e6;
+    double period_ppm = ((double)a->app.stamp.period_q / 65536.0 / (1e6 / 6667.0) - 1.0) * 1e6;
     CHECK(fabs(period_ppm - 95.0) < 20.0);
     printf("     period %+.1f ppm (MCU +95 ppm), step error %.3f us, lag %.0f us\n", period_ppm,
            s.max_step_err_us, lag_us);
