@@ -15,7 +15,7 @@ $(PY):
 
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) $(wildcard control/estimators/kernels/*.py)
@@ -26,7 +26,7 @@ $(WARM): $(STAMP) $(wildcard control/estimators/kernels/*.py)
 # simulator extras (`make run` and `make test` install those into the same .venv when asked)
 install: $(PY)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[ur,franka,viz]'
+	$(PY) -m pip install --quiet -e '.[ur,franka,viz,ros2]'
 	$(PY) -m tecdard warm
 
 run: $(WARM)
@@ -50,7 +50,7 @@ firmware:
 	@if $(CROSS_TOOLS); then $(MAKE) -s -C firmware cross; else $(NO_CROSS); fi
 
 bench: $(WARM)
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim

@@ -48,6 +48,8 @@ class RobotBackend:
     the fingertip), `checks` (for `tecdard doctor`)."""
 
     name = "robot"                      # robot.backend
+    commands_arm = True                 # False: the daemon only observes the arm (task verbs are refused)
+    read_only_reason = ""               # with commands_arm False: the refusal's message
     # How old the newest state may be before it is a fault (`robot_stale`, a protective stop) and the
     # servo holds: `robot.max_state_age_s`, this by default (a backend's own default is its own).
     STATE_AGE_S = 0.05
@@ -113,6 +115,11 @@ class RobotBackend:
             raise section.error("source", f"with robot.backend {self.name} the fingertip board is read over "
                                           "serial; set imu.source: serial")
         return SerialImuSource(SerialParams.from_config(section.section("serial")))
+
+    def ros2_joint_states(self):
+        """The handler of the ROS 2 node's `ros2.joint_states` messages (msg, problem) for a backend that
+        reads the arm from ROS 2; None: the node does not subscribe."""
+        return None
 
     def checks(self) -> list:
         """Whether this host can reach the robot (tecdard.host.Check each), for `tecdard doctor`."""

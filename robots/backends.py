@@ -15,6 +15,7 @@ BACKENDS = {                           # robot.backend -> the module whose build
     "sim": "tecdard.sim.backend",
     "ur": "tecdard.robots.ur",
     "franka": "tecdard.robots.franka",
+    "ros2": "tecdard.robots.ros2_observer",
 }
 
 

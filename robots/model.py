@@ -89,6 +89,39 @@ def robots_dir() -> pathlib.Path:
     raise FileNotFoundError("example-robot-data: robots/ not found under any site-packages cmeel.prefix")
 
 
+def user_urdf(path: str, tcp_link: str | None) -> tuple[pin.Model, str, str]:
+    """A user's URDF (robot.urdf) as a Pinocchio model, its flange link and its name for messages;
+    UnknownRobotError in one line for a file that cannot be the arm: unreadable, not URDF, no
+    `tcp_link`, no joint, or a joint the daemon cannot servo (continuous, floating, planar)."""
+    if not tcp_link:
+        raise UnknownRobotError("robot.tcp_link: required with robot.urdf (the link the TCP is offset from)")
+    file = pathlib.Path(path)
+    if not file.is_file():
+        raise UnknownRobotError(f"robot.urdf: {path}: no such file")
+    try:
+        model = pin.buildModelFromUrdf(str(file))
+    except Exception as exc:          # pinocchio's parser: a ValueError or RuntimeError with a long message
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        raise UnknownRobotError(f"robot.urdf: {file.name} does not parse as URDF ({first})") from None
+    if model.njoints < 2:
+        raise UnknownRobotError(f"robot.urdf: {file.name} has no moving joint")
+    for j in range(1, model.njoints):
+        if model.joints[j].nq != 1 or model.joints[j].nv != 1:
+            raise UnknownRobotError(f"robot.urdf: {file.name}: joint {model.names[j]!r} is not revolute or "
+                                    f"prismatic with limits ({model.joints[j].shortname()})")
+    no_limit = [model.names[j] for j in range(1, model.njoints)
+                if not model.velocityLimit[model.joints[j].idx_v] > 0.0
+                or not model.upperPositionLimit[model.joints[j].idx_q] > model.lowerPositionLimit[model.joints[j].idx_q]]
+    if no_limit:
+        raise UnknownRobotError(f"robot.urdf: {file.name}: joint {no_limit[0]!r} has no position range or velocity "
+                                "limit (<limit lower upper velocity>): a joint state's jump cannot be judged")
+    if not model.existFrame(tcp_link):
+        links = sorted({f.name for f in model.frames if f.type == pin.FrameType.BODY})
+        raise UnknownRobotError(f"robot.tcp_link: {tcp_link!r} is no link of {file.name} (links: "
+                                f"{', '.join(links)[:300]})")
+    return model, tcp_link, file.name
+
+
 class ArmModel:
     """A fixed-base arm: Pinocchio model (gripper fingers locked), TCP frame = flange * tool offset.
 
@@ -96,21 +129,28 @@ class ArmModel:
     that every `pin.Data` has a single owner.
     """
 
-    def __init__(self, name: str, tool_offset: np.ndarray | None = None, tool_quat=None):
-        if name not in ARMS:
+    def __init__(self, name: str, tool_offset: np.ndarray | None = None, tool_quat=None, urdf: str | None = None,
+                 tcp_link: str | None = None):
+        """An arm of ARMS by `name`, or a user's URDF (`urdf`, its flange the link `tcp_link`; `name`
+        only labels it)."""
+        if urdf is not None:
+            full, flange, source = user_urdf(urdf, tcp_link)
+        elif name not in ARMS:
             raise UnknownRobotError(f"robot.model: unknown arm {name!r}; known: {', '.join(sorted(ARMS))}")
-        rel, flange = ARMS[name]
-        source = f"{name} (UR's DH parameters)" if rel is None else (robots_dir() / rel).name
-        full = ur_dh.build_model(name) if rel is None else pin.buildModelFromUrdf(str(robots_dir() / rel))
+        else:
+            rel, flange = ARMS[name]
+            source = f"{name} (UR's DH parameters)" if rel is None else (robots_dir() / rel).name
+            full = ur_dh.build_model(name) if rel is None else pin.buildModelFromUrdf(str(robots_dir() / rel))
         # Lock everything that is not a revolute arm joint (gripper fingers).
         lock = [j for j in range(1, full.njoints) if "finger" in full.names[j] or "gripper" in full.names[j].lower()]
         if lock:
             model = pin.buildReducedModel(full, lock, pin.neutral(full))
         else:
             model = full
-        if name in UR_ARMS:
+        if name in UR_ARMS and urdf is None:
             reroot(model, ur_dh.CONTROLLER_BASE)
         self.name = name
+        self.joint_names = [str(n) for n in model.names[1:]]       # in q's order
         self.tool_offset = [0.0, 0.0, 0.0] if tool_offset is None else [float(x) for x in tool_offset]   # flange -> TCP, m
         self.tool_quat = [0.0, 0.0, 0.0, 1.0] if tool_quat is None else [float(x) for x in tool_quat]   # (x, y, z, w)
         self.model = model

@@ -43,6 +43,7 @@ BAD_REQUEST = "bad_request"              # the request could not be handled (a b
 PAYLOAD_TOO_LARGE = "payload_too_large"
 RATE_LIMITED = "rate_limited"
 NOT_RECORDING = "not_recording"
+READ_ONLY = "read_only"                  # the daemon observes an arm that something else drives
 RECORD_ACTIONS = ("start", "stop")
 MAX_LABEL_CHARS = 64
 

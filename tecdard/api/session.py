@@ -96,10 +96,13 @@ def session_config(listen: list[str], connect: list[str], multicast_scouting: bo
     return conf
 
 
-def access_control(keys: "Keys", commanders: list[str] | None = None) -> dict:
+def access_control(keys: "Keys", commanders: list[str] | None = None, ros2: dict | None = None) -> dict:
     """The daemon's Zenoh access control, on every session it opens (default deny):
     - anyone it lets in may subscribe to anything and ask for liveliness (it then gets what the
       daemon publishes: `state`, `contact`, `events` and the `alive` token);
+    - with `ros2` (tecdard.ros2.node.acl_keys: the ROS 2 node's key expressions) also the node's
+      topics, tokens and services, its services commanded as the `cmd/**` keys are, and the
+      publications of the topic it subscribes to (joint states);
     - the daemon publishes, holds its token and answers only on its own keys;
     - queries on `cmd/**` come in from everyone, or with `commanders` (certificates' common
       names, with mutual TLS) only from those peers; a refused query reaches no queryable;
@@ -107,6 +110,9 @@ def access_control(keys: "Keys", commanders: list[str] | None = None) -> dict:
       key. So no one connected to the daemon can answer for it or publish as it through it, as a
       Zenoh peer would otherwise route for its clients (a queryable on `**` included)."""
     watch = [keys.state, keys.contact, keys.events, keys.alive]
+    ros2 = ros2 or {}
+    watch += ros2.get("publish", []) + ros2.get("tokens", [])
+    serve = [keys.cmd_all] + ros2.get("serve", [])
     subjects = [{"id": "everyone"}]
     if commanders:
         subjects.append({"id": "commanders", "cert_common_names": list(commanders)})
@@ -114,17 +120,22 @@ def access_control(keys: "Keys", commanders: list[str] | None = None) -> dict:
         "enabled": True,
         "default_permission": "deny",
         "rules": [
-            {"id": "watch", "permission": "allow", "flows": ["ingress"], "key_exprs": ["**"],
+            {"id": "watch", "permission": "allow", "flows": ["ingress"],
+             "key_exprs": ["**"] + (["@ros2_lv/**"] if ros2 else []),
              "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]},
             {"id": "publish", "permission": "allow", "flows": ["egress"], "key_exprs": watch,
              "messages": ["put", "liveliness_token", "reply"]},
-            {"id": "serve", "permission": "allow", "flows": ["egress"], "key_exprs": [keys.cmd_all],
+            {"id": "serve", "permission": "allow", "flows": ["egress"], "key_exprs": serve,
              "messages": ["declare_queryable", "reply"]},
-            {"id": "command", "permission": "allow", "flows": ["ingress"], "key_exprs": [keys.cmd_all],
+            {"id": "command", "permission": "allow", "flows": ["ingress"], "key_exprs": serve,
              "messages": ["query"]},
-        ],
+        ] + ([{"id": "subscribe", "permission": "allow", "flows": ["egress"], "key_exprs": ros2["subscribe"],
+               "messages": ["declare_subscriber"]},
+              {"id": "observe", "permission": "allow", "flows": ["ingress"], "key_exprs": ros2["subscribe"],
+               "messages": ["put"]}] if ros2.get("subscribe") else []),
         "subjects": subjects,
-        "policies": [{"rules": ["watch", "publish"], "subjects": ["everyone"]},
+        "policies": [{"rules": ["watch", "publish"] + (["subscribe", "observe"] if ros2.get("subscribe") else []),
+                      "subjects": ["everyone"]},
                      {"rules": ["serve", "command"], "subjects": ["commanders" if commanders else "everyone"]}],
     }
 

@@ -216,7 +216,7 @@ class ControlThread:
                                                                self.params.max_speed, self.q_home))
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
-        self._publish_state(now, p, R, twist[:3], est)
+        self._publish_state(now, p, R, twist[:3], est, js.t)
         for service in self.services.values():
             for ev in service.announcements():
                 self._event(**ev)
@@ -311,12 +311,13 @@ class ControlThread:
         if request is not None:
             self.replies.put(Reply(request, payload))
 
-    def _publish_state(self, now: float, p, R, v, est) -> None:
+    def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
         self._seq += 1
         task = self.runner.task
         state = {
             "t": now, "seq": self._seq, "mode": self.runner.mode.published(bool(self.faults)),
             "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
+            "tcp_t": tcp_t if math.isfinite(tcp_t) else None,     # when the robot measured that TCP
             "contact": None if est is None else est.to_json(),
             "task": None if task is None else {"id": task.id, "kind": task.kind, "phase": task.status.phase,
                                                "progress": round(task.status.progress, 4)},

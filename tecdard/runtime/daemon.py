@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import gc
+import pathlib
 import json
 import logging
 import signal
@@ -21,7 +22,8 @@ from tecdard.control.pipeline import ContactPipeline
 from tecdard.drivers.imu_source import IMU_SOURCES
 from tecdard.drivers.ring import SampleRing
 from tecdard.robots import backends
-from tecdard.robots.model import ArmModel, UnknownRobotError
+from tecdard.robots.model import READY_Q, ArmModel, UnknownRobotError
+from tecdard.ros2.node import Ros2Params
 from tecdard.runtime.control_thread import ControlParams, ControlThread
 from tecdard.runtime.intake import QueryIntake
 from tecdard.runtime.live_view import LiveView, VizParams
@@ -57,7 +59,8 @@ class Daemon:
         self.zenoh = ZenohSettings.from_config(cfg.section("zenoh"), listen)
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
-        self._check_home(robot)
+        if backend_name != "ros2":            # an observed arm is never sent home
+            self._check_home(robot)
         self.services = verbs.services(cfg)
         imu = cfg.section("imu")
         ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
@@ -71,12 +74,14 @@ class Daemon:
         self.pipeline = ContactPipeline.from_config(cfg.section("estimator"), quat_to_matrix(np.array(mount)),
                                                     self.imu.odr_hz)
         self.method = self.pipeline.method
+        self.ros2_params = Ros2Params.from_config(cfg.section("ros2"), self.robot_name)
         self.record_params = RecordParams.from_config(cfg.section("record"))
         self.viz_params = VizParams.from_config(cfg.section("viz").section("foxglove"))
         cfg.check_unused()
         self._build_threads(cfg, backend_name, mount, ring_capacity)
         try:
-            self.zenoh_config = self.zenoh.session_config(self.keys)
+            self.zenoh_config = self.zenoh.session_config(self.keys, None if self.ros2 is None else
+                                                          self.ros2.acl_keys(backend_name == "ros2"))
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints "
                               f"({str(exc).splitlines()[0][:200]})") from None
@@ -90,16 +95,25 @@ class Daemon:
             raise robot.error("name", f"{self.robot_name!r} must be ASCII letters, digits, '-' or '_'")
         model_name = robot.getstr("model", "panda", max_len=64)
         backend_name = robot.getstr("backend", "sim", choices=backends.names())
+        urdf = robot.getstr("urdf", "", max_len=4096) or None
+        tcp_link = robot.getstr("tcp_link", "", max_len=200) or None
+        if tcp_link is not None and urdf is None:
+            raise robot.error("tcp_link", "only with robot.urdf (an arm of robot.model has its own flange)")
         tool_offset = robot.getvec3("tool_offset", [0.0, 0.0, 0.0])
         if np.linalg.norm(tool_offset) > MAX_TOOL_OFFSET_M:
             raise robot.error("tool_offset", f"{np.linalg.norm(tool_offset):.3g} m from the flange, at most "
                                              f"{MAX_TOOL_OFFSET_M} m")
         tool_quat = robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0])
         try:
-            self.model = ArmModel(model_name, tool_offset, tool_quat)
+            self.model = ArmModel(model_name if urdf is None else f"urdf:{pathlib.Path(urdf).name}", tool_offset,
+                                  tool_quat, urdf=urdf, tcp_link=tcp_link)
         except UnknownRobotError as exc:
             raise ConfigError(str(exc)) from None
-        self.q_home = np.array(robot.getfloats("q_home", n=self.model.nq))
+        # an observed arm is never sent home: its q_home is only the state before the first joint state
+        ready = READY_Q.get(model_name, (self.model.q_min + self.model.q_max) / 2) if urdf is None \
+            else (self.model.q_min + self.model.q_max) / 2
+        self.q_home = np.array(robot.getfloats("q_home", *([list(ready)] if backend_name == "ros2" else []),
+                                               n=self.model.nq))
         outside = np.flatnonzero((self.q_home < self.model.q_min) | (self.q_home > self.model.q_max))
         if outside.size:
             j = int(outside[0])
@@ -133,8 +147,10 @@ class Daemon:
             "fingertip_lag_s_assumed": self.pipeline.params.fingertip_lag_s})
         self.view = LiveView(self.viz_params, quat_to_matrix(np.array(mount)), self.outbox.event) \
             if self.viz_params.enabled else None
+        self.ros2 = self._ros2_node(backend_name)
+        taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
-                                         taps=(self.recorder,) + ((self.view,) if self.view is not None else ()))
+                                         taps=taps)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
@@ -142,7 +158,23 @@ class Daemon:
         self.keys = Keys(self.robot_name)
         self.intake = QueryIntake(self.keys, self.limits, self.control,
                                   lambda: status_json(self.control, self.intake), self.zenoh.intake,
-                                  record=self.recorder.request)
+                                  record=self.recorder.request,
+                                  read_only=None if self.backend.commands_arm else self.backend.read_only_reason)
+        if self.ros2 is not None:
+            self.ros2.intake = self.intake
+
+    def _ros2_node(self, backend_name: str):
+        """The ROS 2 node (ros2.enabled, or an arm that ROS 2 drives, whose joint states it reads)."""
+        if not (self.ros2_params.enabled or backend_name == "ros2"):
+            return None
+        if not self.ros2_params.enabled:
+            log.info("robot.backend ros2: the ROS 2 node joins whatever ros2.enabled says (it reads the joint states)")
+        from tecdard.ros2.node import Ros2Node
+        try:
+            return Ros2Node(self.ros2_params, self.robot_name, None)
+        except ImportError as exc:
+            raise ConfigError(f"ros2: the ROS 2 node needs rosbags ({exc.name} is not installed: "
+                              "pip install 'tecdar[ros2]')") from None
 
     def _note_event(self, event: dict) -> None:
         """Every published event, for the recorder and the live view (main thread; never blocks)."""
@@ -207,6 +239,8 @@ class Daemon:
             pubs = tuple(session.declare_publisher(key, encoding=JSON)
                          for key in (self.keys.state, self.keys.contact, self.keys.events))
             self.intake.declare(session)
+            if self.ros2 is not None:
+                self.ros2.declare(session, self.backend.ros2_joint_states())
             # Everything built so far lives as long as the daemon. A full garbage collection walks
             # every tracked object with the GIL held: with the estimator's compiled loops (numba,
             # llvmlite) loaded that is ~116 000 objects and a 57 ms stall of every thread, several
@@ -225,6 +259,8 @@ class Daemon:
             finally:
                 # also when a start fails (a backend that cannot connect): what did start is stopped
                 self.intake.undeclare()
+                if self.ros2 is not None:
+                    self.ros2.undeclare()
                 self._shutdown()
                 if token is not None:
                     token.undeclare()
@@ -247,7 +283,7 @@ class Daemon:
     def _serve(self, pub_state, pub_contact, pub_events) -> None:
         """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
         main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events,
-                        annotate=self.backend.annotate, on_event=self._note_event)
+                        annotate=self.backend.annotate, on_event=self._note_event, ros2=self.ros2)
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()

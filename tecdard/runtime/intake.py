@@ -96,8 +96,13 @@ class QueryIntake:
     """
 
     def __init__(self, keys: Keys, limits: C.Limits, control, status_json, params: IntakeParams | None = None,
-                 record=None):
-        """`record(action, label) -> reply dict` answers `record` (CommandError to refuse)."""
+                 record=None, read_only: str | None = None):
+        """`record(action, label) -> reply dict` answers `record` (CommandError to refuse). `read_only`:
+        the daemon does not command this arm, and task verbs are refused with this message.
+
+        A query is a zenoh.Query or anything with its `key_expr`, `payload` and `reply(key, text,
+        encoding)`: the ROS 2 node's service calls come through here as their Zenoh verbs."""
+        self.read_only = read_only
         self.keys = keys
         self.record = record
         self.limits = limits
@@ -224,6 +229,8 @@ class QueryIntake:
                     raise C.CommandError(C.NOT_IMPLEMENTED, "record: this daemon does not record")
                 self._send(query, self.record(fields["action"], fields["label"]))
                 return
+            if self.read_only and verb in C.task_verbs():
+                raise C.CommandError(C.READ_ONLY, f"{verb}: {self.read_only}")
             request = self._register(query)
             msg = Cancel(request, fields["task"]) if verb == "cancel" else StartTask(request, verb, fields)
             if not self.control.submit(msg):

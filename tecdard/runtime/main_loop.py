@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import time
 
 from tecdard.api.session import dumps
 from tecdard.runtime.intake import QueryIntake
@@ -29,14 +30,16 @@ class MainLoop:
     waits, a command's reply waits at most one pass behind it."""
 
     def __init__(self, intake: QueryIntake, control, outbox: Outbox, pub_state, pub_contact, pub_events,
-                 annotate=None, on_event=None):
+                 annotate=None, on_event=None, ros2=None):
         """`annotate(event) -> event`: the backend's additions to events (the simulator's truth on
         a task's end), applied here on the main thread, never on the control tick. `on_event(event)`
-        sees every event published (the recorder's)."""
+        sees every event published (the recorder's). `ros2`: the ROS 2 node (tecdard.ros2.node), which
+        takes its service requests with the queries and encodes its messages in the same pass."""
         self.intake, self.control, self.outbox = intake, control, outbox
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
         self.annotate = annotate
         self.on_event = on_event
+        self.ros2 = ros2
 
     def serve_commands(self, now: float) -> None:
         while True:
@@ -45,12 +48,16 @@ class MainLoop:
             except queue.Empty:
                 break
         self.intake.poll(now)
+        if self.ros2 is not None:
+            self.ros2.poll(now)
 
     def publish_telemetry(self, wait_s: float) -> int:
         """Publish up to TELEMETRY_PER_PASS queued messages, waiting up to wait_s for the first."""
         try:
             msg = self.outbox.get(timeout=wait_s) if wait_s > 0 else self.outbox.get_nowait()
         except queue.Empty:
+            if self.ros2 is not None:
+                self.ros2.publish_pending(time.monotonic())
             return 0
         for n in range(1, TELEMETRY_PER_PASS + 1):
             kind, body = msg[0], msg[1]
@@ -62,13 +69,17 @@ class MainLoop:
                 if self.on_event is not None:
                     self.on_event(body)
             self.pub[kind].put(text)          # the threads put only these three kinds
+            if self.ros2 is not None:
+                self.ros2.on_telemetry(kind, body, text)
             if n == TELEMETRY_PER_PASS:
-                return n
+                break
             try:
                 msg = self.outbox.get_nowait()
             except queue.Empty:
-                return n
-        return TELEMETRY_PER_PASS
+                break
+        if self.ros2 is not None:
+            self.ros2.publish_pending(time.monotonic())
+        return n
 
     def _annotated(self, event: dict) -> dict:
         try:

@@ -50,9 +50,10 @@ class ZenohSettings:
         tls, commanders = _security(section, listen + connect)
         return cls(mode, list(listen), connect, multicast, tls, commanders, IntakeParams.from_config(section))
 
-    def session_config(self, keys: Keys):
-        """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint)."""
-        acl = access_control(keys, self.commanders)
+    def session_config(self, keys: Keys, ros2: dict | None = None):
+        """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint); `ros2`: the
+        ROS 2 node's key expressions, let through its access control."""
+        acl = access_control(keys, self.commanders, ros2)
         return session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES, tls=self.tls,
                               acl=acl, mode=self.mode)
 

@@ -1,0 +1,162 @@
+"""`robot.backend: ros2`: an arm that ROS 2 drives (ros2_control, MoveIt), observed through its joint states.
+
+The daemon reads `sensor_msgs/JointState` from `ros2.joint_states` (the ROS 2 node subscribes and
+hands each message here on Zenoh's thread), matches the names to the model's joints, and publishes
+the state on its own clock: the header's stamp (system clock) mapped to the daemon's monotonic one.
+The TCP comes from the daemon's own kinematics (Pinocchio FK of the model or of the user's URDF); the
+fingertip board is read over serial as on any arm. It never commands the arm: task verbs are refused
+with `read_only`, `stop` answers and leaves the arm to its driver.
+
+Faults, never a wrong TCP: a stream silent for longer than `robot.ros2.stale_s` (robot_stale), a
+state that jumps further than the joints' speed limits allow, out of range or non-finite
+(robot_state, robots.state_check), a message lacking a joint of the model, with mismatched array
+lengths, duplicated names, or a stamp that is zero or in the future (robot_joint_states). A message
+that names none of the model's joints (a gripper driver's, on the same topic) is skipped and
+counted; names the model does not have beside its own are ignored, as the interface says.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+
+from tecdard.robots.backend import JointState, RobotBackend
+from tecdard.robots.state_check import FAULT_HOLD_S
+
+log = logging.getLogger("tecdar.ros2")
+
+STALE_S = 0.1                    # robot.ros2.stale_s: a joint-state stream silent for longer is a fault
+MAX_FUTURE_S = 0.05              # a stamp further ahead of the system clock is refused (clocks not in sync)
+FAULT = "robot_joint_states"
+
+
+class Ros2Observer(RobotBackend):
+    commands_arm = False
+    read_only_reason = ("robot.backend ros2 observes an arm that ROS 2 drives: tasks are refused; command the arm "
+                        "through its own driver")
+
+    def __init__(self, ctx):
+        robot = ctx.cfg.section("robot")
+        section = robot.section("ros2")
+        self.stale_s = section.getfloat("stale_s", STALE_S, above=0.0, maxval=5.0)
+        self.model = ctx.model
+        self.names = list(ctx.model.joint_names)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self._check_states(ctx, "ROS 2 joint_states")
+        self.state_age_s = self.stale_s
+        self._cond = threading.Condition()
+        self._latest = JointState(-math.inf, np.array(ctx.q_home, float), np.zeros(len(self.names)), 0)
+        self._prev: JointState | None = None
+        self._fault: str | None = None
+        self._fault_t = -math.inf
+        self.skipped = 0                 # messages naming none of the model's joints
+        self.extra_names: set[str] = set()
+
+    # -- lifecycle: the node owns the subscription ------------------------------------------------
+    def start(self) -> None:
+        log.info("observing the arm through ROS 2 joint states (joints %s; stale after %.0f ms)",
+                 ", ".join(self.names), self.stale_s * 1e3)
+
+    def close(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def ros2_joint_states(self):
+        return self.on_joint_state
+
+    # -- read -------------------------------------------------------------------------------------
+    def read_state(self) -> JointState:
+        with self._cond:
+            return self._latest
+
+    def wait_state(self, seq: int, timeout: float) -> JointState:
+        with self._cond:
+            if self._latest.seq == seq:
+                self._cond.wait(timeout)
+            return self._latest
+
+    # -- write: never -----------------------------------------------------------------------------
+    def command_joint_velocity(self, qd) -> None:
+        raise RuntimeError("robot.backend ros2 does not command the arm")
+
+    def hold(self) -> None:
+        """The arm is ROS 2's: nothing to do (a protective stop here stops the daemon's tasks, of which
+        there are none, and says so in its fault)."""
+
+    def faults(self) -> dict[str, str]:
+        with self._cond:
+            if self._fault is not None and time.monotonic() - self._fault_t >= FAULT_HOLD_S:
+                self._fault = None
+            return {} if self._fault is None else {FAULT: self._fault}
+
+    # -- the node's handler (Zenoh's thread) ----------------------------------------------------------
+    def on_joint_state(self, msg, problem: str | None) -> None:
+        """One JointState message (or why none could be read): a new state, or a fault naming what is wrong."""
+        if msg is not None:
+            try:
+                problem = self._state(msg)
+            except Exception as exc:             # a message of the right type with values no arm sends
+                problem = f"joint_states: {type(exc).__name__}: {str(exc)[:120]}"
+        if problem is not None:
+            self._refuse(problem)
+
+    def _state(self, msg) -> str | None:
+        names = list(msg.name)
+        pos, vel = np.asarray(msg.position, float), np.asarray(msg.velocity, float)
+        if len(pos) != len(names):
+            return f"joint_states: {len(names)} names and {len(pos)} positions"
+        if len(vel) not in (0, len(names)):
+            return f"joint_states: {len(names)} names and {len(vel)} velocities"
+        if len(set(names)) != len(names):
+            return "joint_states: a joint is named twice"
+        mine = [n for n in names if n in self.index]
+        if not mine:
+            self.skipped += 1            # another driver's joints (a gripper's) on the same topic
+            return None
+        missing = [n for n in self.names if n not in names]
+        if missing:
+            return f"joint_states: no {missing[0]} (the model's joints: {', '.join(self.names)})"
+        extra = set(names) - set(self.names) - self.extra_names
+        if extra:
+            self.extra_names |= extra
+            log.info("joint_states: ignoring joints the model does not have: %s", ", ".join(sorted(extra)))
+        order = [names.index(n) for n in self.names]
+        q = pos[order]
+        stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        now_wall, now = time.time(), time.monotonic()
+        if stamp_s == 0.0:
+            return "joint_states: header.stamp is zero (the publisher must stamp its states)"
+        if stamp_s > now_wall + MAX_FUTURE_S:
+            return (f"joint_states: stamped {stamp_s - now_wall:.3f} s in the future (is this host's clock in sync "
+                    "with the publisher's?)")
+        t = now - (now_wall - stamp_s)           # the stamp on the daemon's monotonic clock
+        prev = self._prev
+        if len(vel):
+            qd = vel[order]
+        elif prev is not None and t > prev.t:
+            qd = (q - prev.q) / (t - prev.t)     # no velocities published: from the positions
+        else:
+            qd = np.zeros(len(self.names))
+        with self._cond:
+            js = JointState(t, q, qd, self._latest.seq + 1)
+            if prev is not None and t <= prev.t:
+                return f"joint_states: stamp {stamp_s:.6f} s is not after the previous state's"
+            if not self.state_check.admit(js):
+                return None                      # robot_state holds the fault, naming the reading
+            self._prev = js
+            self._latest = js
+            self._cond.notify_all()
+        return None
+
+    def _refuse(self, problem: str) -> None:
+        with self._cond:
+            if self._fault is None:
+                log.warning("%s", problem)
+            self._fault, self._fault_t = problem, time.monotonic()
+
+
+def build(ctx) -> Ros2Observer:
+    return Ros2Observer(ctx)

@@ -1,0 +1,131 @@
+"""An independent rmw_zenoh client in a process of its own: zenoh-ros2-sdk (ROBOTIS), for the ROS 2 tests.
+
+The SDK keeps one Zenoh session per process (a singleton) and fetches message definitions from the
+network unless they are on disk: this process points its registry at the ROS 2 wheels' own
+definitions (`<venv>/share/<package>/msg|srv`) and at the project's tecdar_msgs, with its clone cache
+in a temporary folder, so nothing reaches the network. Multicast scouting is off and it listens on
+loopback only (ZENOH_CONFIG_OVERRIDE, which the SDK reads).
+
+    python -m tests.ros2_client ROUTER_PORT ACTION [ARGS as JSON]
+
+Actions print one JSON line each:
+- `discover` {"timeout"}: the node names, topics and services the SDK's discovery sees.
+- `subscribe` {"topic", "type", "count", "timeout"}: the first `count` messages, as dicts.
+- `call` {"service", "type", "request", "timeout"}: the response, as a dict (null: no reply).
+- `publish` {"topic", "type", "messages", "period_s"}: publishes each message dict in turn.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import sys
+import tempfile
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def definitions_dir() -> str:
+    """A folder <package>/msg|srv/*: the wheels' stock definitions and tecdar_msgs, linked."""
+    share = pathlib.Path(sys.prefix) / "share"
+    out = pathlib.Path(tempfile.mkdtemp(prefix="ros2-defs-"))
+    for pkg in share.iterdir():
+        if (pkg / "msg").is_dir() or (pkg / "srv").is_dir():
+            (out / pkg.name).symlink_to(pkg)
+    (out / "tecdar_msgs").symlink_to(ROOT / "ros2" / "tecdar_msgs")
+    tf = out / "tf2_msgs" / "msg"          # no ros-tf2-msgs wheel: its one message, as tf2_msgs ships it
+    tf.mkdir(parents=True)
+    (tf / "TFMessage.msg").write_text("geometry_msgs/TransformStamped[] transforms\n")
+    return str(out)
+
+
+def to_dict(msg):
+    """A rosbags message as plain JSON values."""
+    if hasattr(msg, "__dataclass_fields__"):
+        return {k: to_dict(getattr(msg, k)) for k in msg.__dataclass_fields__ if k != "__msgtype__"}
+    if hasattr(msg, "tolist"):
+        return msg.tolist()
+    if isinstance(msg, (list, tuple)):
+        return [to_dict(x) for x in msg]
+    if isinstance(msg, float) and msg != msg:
+        return "nan"
+    return msg
+
+
+def main() -> None:
+    port, action = int(sys.argv[1]), sys.argv[2]
+    args = json.loads(sys.argv[3]) if len(sys.argv) > 3 else {}
+    os.environ["ZENOH_CONFIG_OVERRIDE"] = ('scouting/multicast/enabled=false;listen/endpoints=["tcp/127.0.0.1:0"];'
+                                           'connect/retry={"period_init_ms":100,"period_max_ms":200}')
+    os.environ["ZENOH_ROS2_SDK_CACHE"] = tempfile.mkdtemp(prefix="ros2-sdk-cache-")
+    import zenoh_ros2_sdk as sdk
+    sdk.get_registry(definitions_dir())
+    if action == "discover":
+        time.sleep(args.get("settle_s", 1.0))
+        from zenoh_ros2_sdk import ZenohSession
+        session = ZenohSession.get_instance("127.0.0.1", port)
+        tokens = [str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/**", timeout=args.get("timeout", 2.0))
+                  if r.ok is not None]
+        topics = sdk.get_topic_names_and_types(router_port=port, timeout=args.get("timeout", 2.0))
+        services = sdk.get_service_names_and_types(router_port=port, timeout=args.get("timeout", 2.0))
+        print(json.dumps({"tokens": tokens, "topics": topics, "services": services}), flush=True)
+    elif action == "subscribe":
+        got = []
+        sub = sdk.ROS2Subscriber(args["topic"], args["type"], lambda m: got.append(to_dict(m)), router_port=port,
+                                 node_name="tecdar_test_listener")
+        t_end = time.monotonic() + args.get("timeout", 10.0)
+        while len(got) < args.get("count", 1) and time.monotonic() < t_end:
+            time.sleep(0.01)
+        sub.close()
+        print(json.dumps({"messages": got[:args.get("count", 1)]}), flush=True)
+    elif action == "call":
+        cli = sdk.ROS2ServiceClient(args["service"], args["type"], router_port=port, timeout=args.get("timeout", 10.0),
+                                    node_name="tecdar_test_client")
+        time.sleep(args.get("settle_s", 0.5))
+        res = cli.call(**request(args.get("request", {})))
+        print(json.dumps({"response": None if res is None else to_dict(res)}), flush=True)
+        cli.close()
+    elif action == "publish":
+        pub = sdk.ROS2Publisher(args["topic"], args["type"], router_port=port, node_name="tecdar_test_arm")
+        time.sleep(args.get("settle_s", 0.5))
+        for msg in args["messages"]:
+            pub.publish(**joint_state(pub.session_mgr.store.types, msg))
+            time.sleep(args.get("period_s", 0.01))
+        print(json.dumps({"published": len(args["messages"])}), flush=True)
+        pub.close()
+    os._exit(0)           # the SDK's session threads would hold the process open
+
+
+def request(fields: dict) -> dict:
+    """Request fields from JSON: lists as float64 arrays (`grid`: int32), "nan" and "inf" as floats."""
+    import numpy as np
+    out = {}
+    for k, v in fields.items():
+        if isinstance(v, list):
+            v = np.array([float(x) for x in v], dtype=np.int32 if k == "grid" else np.float64)
+        elif v in ("nan", "inf", "-inf"):
+            v = float(v)
+        out[k] = v
+    return out
+
+
+def joint_state(types, msg: dict) -> dict:
+    """A JointState as dicts (stamp "now": the system clock's time, or [sec, nanosec]) as the SDK's
+    message classes: the header an object, the arrays float64."""
+    import numpy as np
+    hdr = msg.get("header", {})
+    if hdr.get("stamp") == "now":
+        t = time.time_ns() + int(hdr.get("offset_s", 0.0) * 1e9)
+        sec, nsec = t // 10**9, t % 10**9
+    else:
+        sec, nsec = hdr.get("stamp", [0, 0])
+    header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec),
+                                          frame_id=hdr.get("frame_id", ""))
+    return {"header": header, "name": list(msg.get("name", [])),
+            **{k: np.array([float(x) for x in msg.get(k, [])], dtype=np.float64)
+               for k in ("position", "velocity", "effort")}}
+
+
+if __name__ == "__main__":
+    main()
