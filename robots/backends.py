@@ -23,6 +23,11 @@ class BackendError(RuntimeError):
     """The robot backend could not start, or has gone (the daemon exits 1 with this line)."""
 
 
+class ModelMismatch(BackendError):
+    """The configured arm model does not fit the robot it meets at start (its joints are not the
+    robot's): a configuration error, the daemon exits 2 with this line."""
+
+
 @dataclass(frozen=True)
 class BackendContext:
     """What a backend may read when the daemon builds it: the whole config (its own section is

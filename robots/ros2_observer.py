@@ -24,11 +24,13 @@ import time
 import numpy as np
 
 from tecdard.robots.backend import JointState, RobotBackend
+from tecdard.robots.backends import ModelMismatch
 from tecdard.robots.state_check import FAULT_HOLD_S
 
 log = logging.getLogger("tecdar.ros2")
 
 STALE_S = 0.1                    # robot.ros2.stale_s: a joint-state stream silent for longer is a fault
+FIRST_STATE_S = 3.0              # robot.ros2.first_state_s: at start, joint states this long decide the model's fit
 MAX_FUTURE_S = 0.05              # a stamp further ahead of the system clock is refused (clocks not in sync)
 FAULT = "robot_joint_states"
 
@@ -42,6 +44,8 @@ class Ros2Observer(RobotBackend):
         robot = ctx.cfg.section("robot")
         section = robot.section("ros2")
         self.stale_s = section.getfloat("stale_s", STALE_S, above=0.0, maxval=5.0)
+        self.first_state_s = section.getfloat("first_state_s", FIRST_STATE_S, minval=0.0, maxval=60.0)
+        self.model_label = "robot.urdf" if ctx.cfg.section("robot").has("urdf") else "robot.model"
         self.model = ctx.model
         self.names = list(ctx.model.joint_names)
         self.index = {n: i for i, n in enumerate(self.names)}
@@ -54,11 +58,28 @@ class Ros2Observer(RobotBackend):
         self._fault_t = -math.inf
         self.skipped = 0                 # messages naming none of the model's joints
         self.extra_names: set[str] = set()
+        self.names_seen: list[str] | None = None     # the names of the first message that named none or not all
 
     # -- lifecycle: the node owns the subscription ------------------------------------------------
     def start(self) -> None:
+        """Waits up to first_state_s for a joint state: one that fits is the start; messages that name
+        other joints only are a model that does not fit the arm (ModelMismatch: exit 2); none at all
+        is an arm whose driver has not started yet (robot_stale until it does)."""
         log.info("observing the arm through ROS 2 joint states (joints %s; stale after %.0f ms)",
                  ", ".join(self.names), self.stale_s * 1e3)
+        t_end = time.monotonic() + self.first_state_s
+        with self._cond:
+            while self._latest.seq == 0 and time.monotonic() < t_end:
+                self._cond.wait(min(0.05, max(0.0, t_end - time.monotonic())))
+            names = self.names_seen
+            if self._latest.seq > 0:
+                return
+        if names is not None:
+            missing = [n for n in self.names if n not in names]
+            raise ModelMismatch(f"{self.model_label}: the joint states name {', '.join(names) or 'no joint'}, and "
+                                f"the model's joints are {', '.join(self.names)} (missing: {', '.join(missing)})")
+        log.warning("no joint states within %.1f s: robot_stale until the arm's driver publishes them",
+                    self.first_state_s)
 
     def close(self) -> None:
         with self._cond:
@@ -113,10 +134,14 @@ class Ros2Observer(RobotBackend):
         if len(set(names)) != len(names):
             return "joint_states: a joint is named twice"
         mine = [n for n in names if n in self.index]
+        missing = [n for n in self.names if n not in names]
+        # an arm's stream that is not the model's: some of its joints, or as many joints as it has but none
+        # of them (a gripper's few joints on the same topic are another driver's, not a misfit)
+        if self.names_seen is None and ((mine and missing) or (not mine and len(names) >= len(self.names))):
+            self.names_seen = names
         if not mine:
             self.skipped += 1            # another driver's joints (a gripper's) on the same topic
             return None
-        missing = [n for n in self.names if n not in names]
         if missing:
             return f"joint_states: no {missing[0]} (the model's joints: {', '.join(self.names)})"
         extra = set(names) - set(self.names) - self.extra_names

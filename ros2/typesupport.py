@@ -21,6 +21,9 @@ DISTROS = ("jazzy", "kilted", "rolling", "humble")
 HASH_NOT_SUPPORTED = "TypeHashNotSupported"       # what Humble's rmw_zenoh puts where the hash goes
 SERVICE_EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
 ENCAPSULATION_BYTES = 4                            # CDR's header: representation id and options
+# bytes a decoded message may be followed by: rclpy's serialiser leaves 8 (its buffer's tail), alignment
+# padding up to 7; anything longer is not the message it says it is
+MAX_TRAILING_BYTES = 16
 
 
 class TypeError_(ValueError):
@@ -135,8 +138,14 @@ class TypeSupport:
             raise TypeError_(f"{ros_type}: {len(raw)} bytes, not a CDR payload")
         if raw[0] != 0 or raw[1] not in (0, 1):
             raise TypeError_(f"{ros_type}: encapsulation {raw[:2].hex()} is not plain CDR (0000 or 0001)")
+        msgdef = self.store.get_msgdef(ros_type)
+        decode = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
         try:
-            return self.store.deserialize_cdr(raw, ros_type)
+            msg, end = decode(memoryview(raw)[ENCAPSULATION_BYTES:], 0, msgdef.cls, self.store)
         except Exception as exc:
             raise TypeError_(f"{ros_type}: {len(raw)} bytes that do not decode ({type(exc).__name__}: "
                              f"{str(exc)[:120]})") from None
+        extra = len(raw) - ENCAPSULATION_BYTES - end
+        if extra > MAX_TRAILING_BYTES:
+            raise TypeError_(f"{ros_type}: {extra} bytes after the message's end (at most {MAX_TRAILING_BYTES})")
+        return msg

@@ -24,9 +24,12 @@ def _cmd_run(args) -> int:
     except ConfigError as exc:
         print(f"tecdard: config error: {exc}", file=sys.stderr)
         return 2
-    from tecdard.robots.backends import BackendError
+    from tecdard.robots.backends import BackendError, ModelMismatch
     try:
         return daemon.run()
+    except ModelMismatch as exc:
+        print(f"tecdard: config error: {exc}", file=sys.stderr)
+        return 2
     except BackendError as exc:
         print(f"tecdard: {exc}", file=sys.stderr)
         return 1
