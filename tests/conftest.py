@@ -26,7 +26,7 @@ SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
 # The folders that install under tecdard (pyproject's package-dir). From the checkout they are also
 # importable by their bare names, and a test that did so would pass here and fail on a wheel.
-CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim")
+CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim", "ros2")
 # Whole-daemon runs and the real clients against their fakes: `make check` leaves them out.
 SLOW_FILES = {"test_daemon.py", "test_daemon_franka.py", "test_daemon_ur.py", "test_daemon_hostile.py",
               "test_daemon_tls.py", "test_daemon_api.py", "test_recorder.py", "test_serial_imu.py", "test_ur_link.py",

@@ -9,10 +9,14 @@ loopback only (ZENOH_CONFIG_OVERRIDE, which the SDK reads).
     python -m tests.ros2_client ROUTER_PORT ACTION [ARGS as JSON]
 
 Actions print one JSON line each:
-- `discover` {"timeout"}: the node names, topics and services the SDK's discovery sees.
-- `subscribe` {"topic", "type", "count", "timeout"}: the first `count` messages, as dicts.
-- `call` {"service", "type", "request", "timeout"}: the response, as a dict (null: no reply).
-- `publish` {"topic", "type", "messages", "period_s"}: publishes each message dict in turn.
+- `discover` {"timeout"}: the tokens, topics and services the SDK's discovery sees (asked again until
+  it sees topics and services, or `timeout`).
+- `subscribe` {"topic", "type", "count", "timeout"}: {"subscribed"} once it is, then the first `count`
+  messages (or all that came within `timeout`), as dicts.
+- `call` {"service", "type", "request", "timeout", "request_definition", "response_definition"}: the
+  response, as a dict (null: no reply).
+- `publish` {"topic", "type", "message", "count", "period_s"}: publishes the JointState `message` (a
+  dict; stamp "now": each time it is sent) `count` times, `period_s` apart.
 """
 from __future__ import annotations
 
@@ -62,26 +66,34 @@ def main() -> None:
     import zenoh_ros2_sdk as sdk
     sdk.get_registry(definitions_dir())
     if action == "discover":
-        time.sleep(args.get("settle_s", 1.0))
         from zenoh_ros2_sdk import ZenohSession
         session = ZenohSession.get_instance("127.0.0.1", port)
-        tokens = [str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/**", timeout=args.get("timeout", 2.0))
-                  if r.ok is not None]
-        topics = sdk.get_topic_names_and_types(router_port=port, timeout=args.get("timeout", 2.0))
-        services = sdk.get_service_names_and_types(router_port=port, timeout=args.get("timeout", 2.0))
+        t_end = time.monotonic() + args.get("timeout", 10.0)
+        while True:             # as a user runs `ros2 topic list` again while the graph settles
+            tokens = [str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/**", timeout=1.0)
+                      if r.ok is not None]
+            topics = sdk.get_topic_names_and_types(router_port=port, timeout=1.0)
+            services = sdk.get_service_names_and_types(router_port=port, timeout=1.0)
+            if (topics and services) or time.monotonic() > t_end:
+                break
+            time.sleep(0.2)
         print(json.dumps({"tokens": tokens, "topics": topics, "services": services}), flush=True)
     elif action == "subscribe":
         got = []
         sub = sdk.ROS2Subscriber(args["topic"], args["type"], lambda m: got.append(to_dict(m)), router_port=port,
                                  node_name="tecdar_test_listener")
+        print(json.dumps({"subscribed": args["topic"]}), flush=True)
         t_end = time.monotonic() + args.get("timeout", 10.0)
         while len(got) < args.get("count", 1) and time.monotonic() < t_end:
             time.sleep(0.01)
         sub.close()
         print(json.dumps({"messages": got[:args.get("count", 1)]}), flush=True)
     elif action == "call":
+        # a service with an empty request (std_srvs/Trigger) is given its definitions: the SDK's loader
+        # refuses an empty request part of a .srv file
         cli = sdk.ROS2ServiceClient(args["service"], args["type"], router_port=port, timeout=args.get("timeout", 10.0),
-                                    node_name="tecdar_test_client")
+                                    node_name="tecdar_test_client", request_definition=args.get("request_definition"),
+                                    response_definition=args.get("response_definition"))
         time.sleep(args.get("settle_s", 0.5))
         res = cli.call(**request(args.get("request", {})))
         print(json.dumps({"response": None if res is None else to_dict(res)}), flush=True)
@@ -89,10 +101,12 @@ def main() -> None:
     elif action == "publish":
         pub = sdk.ROS2Publisher(args["topic"], args["type"], router_port=port, node_name="tecdar_test_arm")
         time.sleep(args.get("settle_s", 0.5))
-        for msg in args["messages"]:
-            pub.publish(**joint_state(pub.session_mgr.store.types, msg))
-            time.sleep(args.get("period_s", 0.01))
-        print(json.dumps({"published": len(args["messages"])}), flush=True)
+        t_next = time.monotonic()
+        for _ in range(args["count"]):          # on an absolute schedule, as a driver publishes
+            pub.publish(**joint_state(pub.session_mgr.store.types, args["message"]))
+            t_next += args.get("period_s", 0.01)
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        print(json.dumps({"published": args["count"]}), flush=True)
         pub.close()
     os._exit(0)           # the SDK's session threads would hold the process open
 

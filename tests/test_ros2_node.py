@@ -1,0 +1,280 @@
+"""The daemon as a ROS 2 node over rmw_zenoh, driven by an independent client (issue 36): zenoh-ros2-sdk
+(ROBOTIS) discovers it, subscribes to its topics, calls its services and publishes the joint states
+of an arm that ROS 2 drives; a Zenoh router between them, as `rmw_zenohd` would be; and the raw
+protocol (tokens, attachments, sequence numbers) read off a plain Zenoh session."""
+import json
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from tecdard.api.session import session_config
+from tecdard.robots.model import READY_Q, ArmModel
+from tecdard.ros2 import rmw
+from tecdard.tools.demo import distance_to_axis, free_port
+from tests.conftest import ROOT, DaemonProcess, daemon_config
+
+pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk is installed by `make test` (extra ros2-test)")
+pytestmark = pytest.mark.slow
+
+SDK_TIMEOUT_S = 60.0
+HINGE_TOL_M = 0.005            # the ROS contact is the estimator's: within the rotate tests' hinge tolerance
+IMU_RATE_HZ = 1000.0
+IMU_SPACING_TOL = 0.5          # averaged IMU messages 1 ms apart, give or take half a period
+GRAVITY_TOL_M_S2 = 0.3
+PANDA = [f"panda_joint{i}" for i in range(1, 8)]
+Q = list(READY_Q["panda"])
+FK_TOL_M = 1e-6
+# zenoh-ros2-sdk 0.1.8 refuses a service whose request part is empty (std_srvs/Trigger): a comment-only
+# request part is the same (empty) request, and the SDK then hashes it itself
+TRIGGER_DEFS = {"request_definition": "# no fields", "response_definition": "bool success\nstring message\n"}
+
+
+@pytest.fixture
+def router():
+    """A Zenoh router on a free loopback port (eclipse-zenoh in router mode, as rmw_zenohd is)."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "tests.zenoh_router", str(port)], cwd=ROOT, stdout=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout.readline().strip() == "router ready"
+    yield port
+    proc.kill()
+    proc.wait()
+
+
+def sdk(port: int, action: str, args: dict | None = None, timeout: float = SDK_TIMEOUT_S) -> dict:
+    res = subprocess.run([sys.executable, "-m", "tests.ros2_client", str(port), action, json.dumps(args or {})],
+                         cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    lines = [x for x in res.stdout.splitlines() if x.startswith("{")]
+    assert lines, res.stdout + res.stderr
+    return json.loads(lines[-1])
+
+
+class Subscription:
+    """zenoh-ros2-sdk subscribed in the background; `result()`: the messages it took."""
+
+    def __init__(self, port: int, topic: str, ros_type: str, count: int, timeout: float):
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(port), "subscribe",
+                                      json.dumps({"topic": topic, "type": ros_type, "count": count,
+                                                  "timeout": timeout})],
+                                     cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        assert "subscribed" in line, line + self.proc.stderr.read()
+
+    def result(self, timeout: float = SDK_TIMEOUT_S) -> list:
+        out, err = self.proc.communicate(timeout=timeout)
+        lines = [x for x in out.splitlines() if x.startswith("{")]
+        assert lines, err[-3000:]
+        return json.loads(lines[-1])["messages"]
+
+
+def ros2_daemon(tmp_path, port: int, **overrides) -> DaemonProcess:
+    cfg = daemon_config(**{"ros2": {"enabled": True}, "zenoh.connect": [f"tcp/127.0.0.1:{port}"], **overrides})
+    return DaemonProcess(tmp_path, cfg)
+
+
+def rotate_request(**fields) -> dict:
+    return {"angle_deg": "nan", "speed": "nan", "probe_distance": "nan", "direction": [], "strategy": "",
+            "turn_tool": 0, **fields}
+
+
+def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(tmp_path, router):
+    d = ros2_daemon(tmp_path, router)
+    try:
+        seen = sdk(router, "discover", {"timeout": 10.0})
+        topics = dict((name, types) for name, types in seen["topics"])
+        assert "/sim/contact" in topics, seen
+        assert topics["/sim/contact"] == ["geometry_msgs/msg/PoseWithCovarianceStamped"]
+        assert topics["/sim/imu"] == ["sensor_msgs/msg/Imu"] and topics["/tf"] == ["tf2_msgs/msg/TFMessage"]
+        assert topics["/diagnostics"] == ["diagnostic_msgs/msg/DiagnosticArray"]
+        assert topics["/sim/events"] == ["tecdar_msgs/msg/Event"]
+        services = dict((name, types) for name, types in seen["services"])
+        assert services["/sim/stop"] == ["std_srvs/srv/Trigger"]
+        assert services["/sim/rotate"] == ["tecdar_msgs/srv/Rotate"]
+        assert {"/sim/probe", "/sim/point", "/sim/approach", "/sim/map", "/sim/cancel", "/sim/status"} <= set(services)
+
+        imu = sdk(router, "subscribe", {"topic": "/sim/imu", "type": "sensor_msgs/msg/Imu", "count": 50})["messages"]
+        assert len(imu) == 50
+        t = np.array([m["header"]["stamp"]["sec"] + m["header"]["stamp"]["nanosec"] * 1e-9 for m in imu])
+        assert abs(t[-1] - time.time()) < 2.0
+        gaps = np.diff(t) * IMU_RATE_HZ
+        assert np.median(gaps) == pytest.approx(1.0, abs=IMU_SPACING_TOL)
+        for m in imu:
+            assert m["header"]["frame_id"] == "fingertip_imu" and m["orientation_covariance"][0] == -1.0
+            a = m["linear_acceleration"]
+            assert abs(math.hypot(a["x"], a["y"], a["z"]) - 9.81) < GRAVITY_TOL_M_S2
+
+        contact = Subscription(router, "/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 100000, 40.0)
+        events = Subscription(router, "/sim/events", "tecdar_msgs/msg/Event", 100000, 40.0)
+        reply = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                     "request": rotate_request(angle_deg=20.0)})["response"]
+        assert reply["ok"] is True and reply["task"], reply
+        busy = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                    "request": rotate_request(angle_deg=20.0)})["response"]
+        assert busy["ok"] is False and busy["error_code"] == "busy"
+        ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
+        assert ev["kind"] == "task_done", ev
+        sim = ev["result"]["sim"]
+        contacts = contact.result()
+        assert contacts, "no contact on /sim/contact"
+        last = contacts[-1]["pose"]
+        p = np.array([last["pose"]["position"][k] for k in "xyz"])
+        assert distance_to_axis(p, np.array(sim["hinge_point"]), np.array(sim["hinge_axis"])) < HINGE_TOL_M
+        assert np.allclose(p, ev["result"]["hinge"]["p"], atol=1e-3)
+        cov = np.array(last["covariance"]).reshape(6, 6)
+        assert np.all(np.diag(cov)[:3] > 0) and np.all(np.diag(cov)[3:] >= 1e8)
+        assert contacts[-1]["header"]["frame_id"] == "base_link"
+        ros_events = events.result()
+        kinds = [(e["kind"], e["task"]) for e in ros_events]
+        assert ("task_started", reply["task"]) in kinds and ("task_done", reply["task"]) in kinds
+        done = next(e for e in ros_events if e["kind"] == "task_done")
+        assert json.loads(done["detail_json"])["result"]["hinge"]["p"] == ev["result"]["hinge"]["p"]
+
+        stop = sdk(router, "call", {"service": "/sim/stop", "type": "std_srvs/srv/Trigger", **TRIGGER_DEFS})["response"]
+        assert stop["success"] is True
+        status = sdk(router, "call", {"service": "/sim/status", "type": "tecdar_msgs/srv/Status"})["response"]
+        assert status["ok"] is True and status["mode"] in ("idle", "stopped") and status["has_contact"] is True
+        assert json.loads(status["state_json"])["mode"] == status["mode"]
+    finally:
+        d.close()
+
+
+def test_bad_requests_get_the_zenoh_interfaces_codes_and_move_nothing(tmp_path, router):
+    d = ros2_daemon(tmp_path, router)
+    try:
+        def call(**fields):
+            return sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                        "request": rotate_request(**fields)})["response"]
+        for fields, code in ((dict(), "missing_field"), (dict(angle_deg=500.0), "out_of_limits"),
+                             (dict(angle_deg=10.0, direction=[1.0, 0.0]), "bad_type"),
+                             (dict(angle_deg=10.0, strategy="sideways"), "bad_type")):
+            reply = call(**fields)
+            assert reply["ok"] is False and reply["error_code"] == code, (fields, reply)
+        cancel = sdk(router, "call", {"service": "/sim/cancel", "type": "tecdar_msgs/srv/Cancel",
+                                      "request": {"task": "none-such"}})["response"]
+        assert cancel["ok"] is False and cancel["error_code"] == "no_task"
+        # a request that is not CDR, and one without an attachment: refused, the daemon serves on
+        with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
+            key = next(str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/**", timeout=2.0)
+                       if r.ok is not None and "/SS/" in str(r.ok.key_expr) and "%rotate" in str(r.ok.key_expr))
+            token = rmw.parse_token(key)
+            data_key = rmw.data_keyexpr(0, token.name, token.dds_type, token.type_hash)
+            att = rmw.attachment(1, time.time_ns(), bytes(16))
+            replies = list(s.get(data_key, payload=b"\x00\x01\x00\x00garbage", attachment=att, timeout=5.0))
+            assert replies and replies[0].ok is not None
+            assert rmw.parse_attachment(replies[0].ok.attachment.to_bytes())[0] == 1
+            assert b"bad_request" in replies[0].ok.payload.to_bytes()
+            assert list(s.get(data_key, payload=b"\x00\x01\x00\x00", timeout=2.0)) == []     # no attachment
+        assert d.client.command("status")["state"]["mode"] == "idle"
+        assert np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) < 1e-3
+    finally:
+        d.close()
+
+
+def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
+    """A plain Zenoh session through the router: the node's tokens field by field, and the imu topic's
+    samples with their 33-byte attachments, sequence numbers counting up by one from one GID."""
+    d = ros2_daemon(tmp_path, router, **{"ros2.namespace": "/lab/arm1", "ros2.domain_id": 7})
+    try:
+        with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
+            keys = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/7/**", timeout=2.0) if r.ok is not None]
+            tokens = [rmw.parse_token(k) for k in keys]
+            assert {t.session_id for t in tokens} and len({t.session_id for t in tokens}) == 1
+            assert all(t.domain_id == 7 and t.namespace == "/lab/arm1" and t.node_name == "tecdard" and t.enclave == ""
+                       for t in tokens)
+            kinds = [t.kind for t in tokens]
+            assert kinds.count("NN") == 1 and kinds.count("MP") == 7 and kinds.count("SS") >= 8
+            assert len({t.entity_id for t in tokens if t.kind != "NN"}) == len(tokens) - 1
+            by_name = {t.name: t for t in tokens if t.kind != "NN"}
+            assert by_name["/lab/arm1/imu"].qos == rmw.SENSOR_DATA and by_name["/lab/arm1/tcp_pose"].qos == rmw.SENSOR_DATA
+            assert by_name["/lab/arm1/contact"].qos == rmw.RELIABLE_10 and by_name["/tf"].qos == rmw.TF_QOS
+            assert by_name["/diagnostics"].dds_type == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
+            assert by_name["/lab/arm1/stop"].dds_type == "std_srvs::srv::dds_::Trigger_"
+            assert all(t.type_hash.startswith("RIHS01_") for t in by_name.values())
+            imu = by_name["/lab/arm1/imu"]
+            got = []
+            sub = s.declare_subscriber(rmw.data_keyexpr(7, imu.name, imu.dds_type, imu.type_hash),
+                                       lambda sample: got.append((sample.payload.to_bytes(),
+                                                                  sample.attachment.to_bytes())))
+            t_end = time.monotonic() + 10.0
+            while len(got) < 200 and time.monotonic() < t_end:
+                time.sleep(0.01)
+            sub.undeclare()
+        assert len(got) >= 200
+        atts = [rmw.parse_attachment(a) for _, a in got[:200]]
+        seqs = [a[0] for a in atts]
+        assert seqs == list(range(seqs[0], seqs[0] + 200))
+        assert len({a[2] for a in atts}) == 1 and abs(atts[-1][1] / 1e9 - time.time()) < 2.0
+        assert all(p[:4] == b"\x00\x01\x00\x00" for p, _ in got)
+    finally:
+        d.close()
+
+
+def observer_config(board, port: int, **extra) -> dict:
+    return daemon_config(**{"robot.backend": "ros2", "robot.ros2": {"stale_s": 0.1, "first_state_s": 10.0},
+                            "zenoh.connect": [f"tcp/127.0.0.1:{port}"], "imu.source": "serial",
+                            "imu.serial": {"port": str(board.link)}, "sim": ..., "robot.q_home": ..., **extra})
+
+
+def joint_states(q, n: int, names=PANDA) -> dict:
+    """The publish action's arguments: n JointStates of q at 100 Hz, each stamped as it is sent."""
+    return {"message": {"header": {"stamp": "now", "frame_id": ""}, "name": names, "position": [float(x) for x in q],
+                        "velocity": [0.0] * len(names)}, "count": n}
+
+
+def test_the_observer_backend_follows_an_arm_that_ros2_drives(tmp_path, router, board):
+    publisher = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(router), "publish",
+                                  json.dumps({"topic": "/joint_states", "type": "sensor_msgs/msg/JointState",
+                                              **joint_states(Q, 1500), "period_s": 0.01})],
+                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    d = DaemonProcess(tmp_path, observer_config(board, router))
+    try:
+        state = d.client.command("status")["state"]
+        fk = ArmModel("panda").fk(np.array(Q)).translation
+        assert np.linalg.norm(np.array(state["tcp"]["p"]) - fk) < FK_TOL_M
+        assert state["faults"] == []
+        for verb in (("rotate", {"angle_deg": 10}), ("probe", {})):
+            reply = d.client.command(*verb)
+            assert reply["ok"] is False and reply["error"]["code"] == "read_only"
+        ros = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                   "request": rotate_request(angle_deg=10.0)})["response"]
+        assert ros["ok"] is False and ros["error_code"] == "read_only"
+        assert d.client.command("stop")["ok"] is True
+        publisher.kill()
+        publisher.wait()
+        t_end = time.monotonic() + 5.0
+        codes = []
+        while time.monotonic() < t_end and "robot_stale" not in codes:
+            codes = [f["code"] for f in d.client.command("status")["state"]["faults"]]
+            time.sleep(0.05)
+        assert "robot_stale" in codes
+    finally:
+        publisher.kill()
+        d.close()
+
+
+def test_a_stream_without_a_joint_of_the_model_is_one_line_and_exit_2(tmp_path, router, board):
+    ur = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+          "wrist_3_joint", "x_joint"]
+    publisher = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(router), "publish",
+                                  json.dumps({"topic": "/joint_states", "type": "sensor_msgs/msg/JointState",
+                                              **joint_states(np.zeros(7), 2000, ur), "period_s": 0.01})],
+                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        cfg = tmp_path / "tecdard.yaml"
+        from tecdard.config import dump_yaml
+        c = observer_config(board, router)
+        c["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+        c.setdefault("record", {})["dir"] = str(tmp_path / "rec")
+        cfg.write_text(dump_yaml(c))
+        res = subprocess.run([sys.executable, "-m", "tecdard", "run", "--config", str(cfg)], cwd=ROOT,
+                             capture_output=True, text=True, timeout=90)
+        assert res.returncode == 2, res.stderr[-2000:]
+        line = res.stderr.strip().splitlines()[-1]
+        assert line.startswith("tecdard: config error: robot.model:") and "missing: panda_joint1" in line
+    finally:
+        publisher.kill()
