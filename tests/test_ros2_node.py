@@ -34,14 +34,31 @@ FK_TOL_M = 1e-6
 TRIGGER_DEFS = {"request_definition": "# no fields", "response_definition": "bool success\nstring message\n"}
 
 
-@pytest.fixture
-def router():
-    """A Zenoh router on a free loopback port (eclipse-zenoh in router mode, as rmw_zenohd is)."""
+def start_router():
+    """A Zenoh router on a free loopback port (eclipse-zenoh in router mode, as rmw_zenohd is): (port, process)."""
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "tests.zenoh_router", str(port)], cwd=ROOT, stdout=subprocess.PIPE,
                             text=True)
     assert proc.stdout.readline().strip() == "router ready"
+    return port, proc
+
+
+@pytest.fixture
+def router():
+    port, proc = start_router()
     yield port
+    proc.kill()
+    proc.wait()
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory):
+    """One router and one daemon with its ROS 2 node on it (default namespace /sim), for the tests that
+    only talk to it: (router port, daemon)."""
+    port, proc = start_router()
+    d = ros2_daemon(tmp_path_factory.mktemp("ros2"), port)
+    yield port, d
+    d.close()
     proc.kill()
     proc.wait()
 
@@ -82,97 +99,103 @@ def rotate_request(**fields) -> dict:
             "turn_tool": 0, **fields}
 
 
-def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(tmp_path, router):
-    d = ros2_daemon(tmp_path, router)
-    try:
-        seen = sdk(router, "discover", {"timeout": 10.0})
-        topics = dict((name, types) for name, types in seen["topics"])
-        assert "/sim/contact" in topics, seen
-        assert topics["/sim/contact"] == ["geometry_msgs/msg/PoseWithCovarianceStamped"]
-        assert topics["/sim/imu"] == ["sensor_msgs/msg/Imu"] and topics["/tf"] == ["tf2_msgs/msg/TFMessage"]
-        assert topics["/diagnostics"] == ["diagnostic_msgs/msg/DiagnosticArray"]
-        assert topics["/sim/events"] == ["tecdar_msgs/msg/Event"]
-        services = dict((name, types) for name, types in seen["services"])
-        assert services["/sim/stop"] == ["std_srvs/srv/Trigger"]
-        assert services["/sim/rotate"] == ["tecdar_msgs/srv/Rotate"]
-        assert {"/sim/probe", "/sim/point", "/sim/approach", "/sim/map", "/sim/cancel", "/sim/status"} <= set(services)
-
-        imu = sdk(router, "subscribe", {"topic": "/sim/imu", "type": "sensor_msgs/msg/Imu", "count": 50})["messages"]
-        assert len(imu) == 50
-        t = np.array([m["header"]["stamp"]["sec"] + m["header"]["stamp"]["nanosec"] * 1e-9 for m in imu])
-        assert abs(t[-1] - time.time()) < 2.0
-        gaps = np.diff(t) * IMU_RATE_HZ
-        assert np.median(gaps) == pytest.approx(1.0, abs=IMU_SPACING_TOL)
-        for m in imu:
-            assert m["header"]["frame_id"] == "fingertip_imu" and m["orientation_covariance"][0] == -1.0
-            a = m["linear_acceleration"]
-            assert abs(math.hypot(a["x"], a["y"], a["z"]) - 9.81) < GRAVITY_TOL_M_S2
-
-        contact = Subscription(router, "/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 100000, 40.0)
-        events = Subscription(router, "/sim/events", "tecdar_msgs/msg/Event", 100000, 40.0)
-        reply = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
-                                     "request": rotate_request(angle_deg=20.0)})["response"]
-        assert reply["ok"] is True and reply["task"], reply
-        busy = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
-                                    "request": rotate_request(angle_deg=20.0)})["response"]
-        assert busy["ok"] is False and busy["error_code"] == "busy"
-        ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
-        assert ev["kind"] == "task_done", ev
-        sim = ev["result"]["sim"]
-        contacts = contact.result()
-        assert contacts, "no contact on /sim/contact"
-        last = contacts[-1]["pose"]
-        p = np.array([last["pose"]["position"][k] for k in "xyz"])
-        assert distance_to_axis(p, np.array(sim["hinge_point"]), np.array(sim["hinge_axis"])) < HINGE_TOL_M
-        assert np.allclose(p, ev["result"]["hinge"]["p"], atol=1e-3)
-        cov = np.array(last["covariance"]).reshape(6, 6)
-        assert np.all(np.diag(cov)[:3] > 0) and np.all(np.diag(cov)[3:] >= 1e8)
-        assert contacts[-1]["header"]["frame_id"] == "base_link"
-        ros_events = events.result()
-        kinds = [(e["kind"], e["task"]) for e in ros_events]
-        assert ("task_started", reply["task"]) in kinds and ("task_done", reply["task"]) in kinds
-        done = next(e for e in ros_events if e["kind"] == "task_done")
-        assert json.loads(done["detail_json"])["result"]["hinge"]["p"] == ev["result"]["hinge"]["p"]
-
-        stop = sdk(router, "call", {"service": "/sim/stop", "type": "std_srvs/srv/Trigger", **TRIGGER_DEFS})["response"]
-        assert stop["success"] is True
-        status = sdk(router, "call", {"service": "/sim/status", "type": "tecdar_msgs/srv/Status"})["response"]
-        assert status["ok"] is True and status["mode"] in ("idle", "stopped") and status["has_contact"] is True
-        assert json.loads(status["state_json"])["mode"] == status["mode"]
-    finally:
-        d.close()
+def test_bad_requests_get_the_zenoh_interfaces_codes_and_move_nothing(node):
+    router, d = node
+    def call(**fields):
+        return sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                    "request": rotate_request(**fields)})["response"]
+    for fields, code in ((dict(), "missing_field"), (dict(angle_deg=500.0), "out_of_limits"),
+                         (dict(angle_deg=10.0, direction=[1.0, 0.0]), "bad_type"),
+                         (dict(angle_deg=10.0, strategy="sideways"), "bad_type")):
+        reply = call(**fields)
+        assert reply["ok"] is False and reply["error_code"] == code, (fields, reply)
+    cancel = sdk(router, "call", {"service": "/sim/cancel", "type": "tecdar_msgs/srv/Cancel",
+                                  "request": {"task": "none-such"}})["response"]
+    assert cancel["ok"] is False and cancel["error_code"] == "no_task"
+    # a request that is not CDR, and one without an attachment: refused, the daemon serves on
+    with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
+        key = next(str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/**", timeout=2.0)
+                   if r.ok is not None and "/SS/" in str(r.ok.key_expr) and "%rotate" in str(r.ok.key_expr))
+        token = rmw.parse_token(key)
+        data_key = rmw.data_keyexpr(0, token.name, token.dds_type, token.type_hash)
+        att = rmw.attachment(1, time.time_ns(), bytes(16))
+        replies = list(s.get(data_key, payload=b"\x00\x01\x00\x00garbage", attachment=att, timeout=5.0))
+        assert replies and replies[0].ok is not None
+        assert rmw.parse_attachment(replies[0].ok.attachment.to_bytes())[0] == 1
+        assert b"bad_request" in replies[0].ok.payload.to_bytes()
+        assert list(s.get(data_key, payload=b"\x00\x01\x00\x00", timeout=2.0)) == []     # no attachment
+    assert d.client.command("status")["state"]["mode"] == "idle"
+    assert np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) < 1e-3
 
 
-def test_bad_requests_get_the_zenoh_interfaces_codes_and_move_nothing(tmp_path, router):
-    d = ros2_daemon(tmp_path, router)
-    try:
-        def call(**fields):
-            return sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
-                                        "request": rotate_request(**fields)})["response"]
-        for fields, code in ((dict(), "missing_field"), (dict(angle_deg=500.0), "out_of_limits"),
-                             (dict(angle_deg=10.0, direction=[1.0, 0.0]), "bad_type"),
-                             (dict(angle_deg=10.0, strategy="sideways"), "bad_type")):
-            reply = call(**fields)
-            assert reply["ok"] is False and reply["error_code"] == code, (fields, reply)
-        cancel = sdk(router, "call", {"service": "/sim/cancel", "type": "tecdar_msgs/srv/Cancel",
-                                      "request": {"task": "none-such"}})["response"]
-        assert cancel["ok"] is False and cancel["error_code"] == "no_task"
-        # a request that is not CDR, and one without an attachment: refused, the daemon serves on
-        with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
-            key = next(str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/**", timeout=2.0)
-                       if r.ok is not None and "/SS/" in str(r.ok.key_expr) and "%rotate" in str(r.ok.key_expr))
-            token = rmw.parse_token(key)
-            data_key = rmw.data_keyexpr(0, token.name, token.dds_type, token.type_hash)
-            att = rmw.attachment(1, time.time_ns(), bytes(16))
-            replies = list(s.get(data_key, payload=b"\x00\x01\x00\x00garbage", attachment=att, timeout=5.0))
-            assert replies and replies[0].ok is not None
-            assert rmw.parse_attachment(replies[0].ok.attachment.to_bytes())[0] == 1
-            assert b"bad_request" in replies[0].ok.payload.to_bytes()
-            assert list(s.get(data_key, payload=b"\x00\x01\x00\x00", timeout=2.0)) == []     # no attachment
-        assert d.client.command("status")["state"]["mode"] == "idle"
-        assert np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) < 1e-3
-    finally:
-        d.close()
+def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(node):
+    router, d = node
+    seen = sdk(router, "discover", {"timeout": 10.0})
+    topics = dict((name, types) for name, types in seen["topics"])
+    assert "/sim/contact" in topics, seen
+    assert topics["/sim/contact"] == ["geometry_msgs/msg/PoseWithCovarianceStamped"]
+    assert topics["/sim/imu"] == ["sensor_msgs/msg/Imu"] and topics["/tf"] == ["tf2_msgs/msg/TFMessage"]
+    assert topics["/diagnostics"] == ["diagnostic_msgs/msg/DiagnosticArray"]
+    assert topics["/sim/events"] == ["tecdar_msgs/msg/Event"]
+    services = dict((name, types) for name, types in seen["services"])
+    assert services["/sim/stop"] == ["std_srvs/srv/Trigger"]
+    assert services["/sim/rotate"] == ["tecdar_msgs/srv/Rotate"]
+    assert {"/sim/probe", "/sim/point", "/sim/approach", "/sim/map", "/sim/cancel", "/sim/status"} <= set(services)
+
+    imu = sdk(router, "subscribe", {"topic": "/sim/imu", "type": "sensor_msgs/msg/Imu", "count": 50})["messages"]
+    assert len(imu) == 50
+    t = np.array([m["header"]["stamp"]["sec"] + m["header"]["stamp"]["nanosec"] * 1e-9 for m in imu])
+    assert abs(t[-1] - time.time()) < 2.0
+    gaps = np.diff(t) * IMU_RATE_HZ
+    assert np.median(gaps) == pytest.approx(1.0, abs=IMU_SPACING_TOL)
+    for m in imu:
+        assert m["header"]["frame_id"] == "fingertip_imu" and m["orientation_covariance"][0] == -1.0
+        a = m["linear_acceleration"]
+        assert abs(math.hypot(a["x"], a["y"], a["z"]) - 9.81) < GRAVITY_TOL_M_S2
+
+    contact = Subscription(router, "/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 100000, 40.0)
+    events = Subscription(router, "/sim/events", "tecdar_msgs/msg/Event", 100000, 40.0)
+    tf = Subscription(router, "/tf", "tf2_msgs/msg/TFMessage", 5, 40.0)
+    markers = Subscription(router, "/sim/contact_marker", "visualization_msgs/msg/Marker", 10, 40.0)
+    diagnostics = Subscription(router, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", 2, 40.0)
+    reply = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                 "request": rotate_request(angle_deg=20.0)})["response"]
+    assert reply["ok"] is True and reply["task"], reply
+    busy = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
+                                "request": rotate_request(angle_deg=20.0)})["response"]
+    assert busy["ok"] is False and busy["error_code"] == "busy"
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
+    assert ev["kind"] == "task_done", ev
+    sim = ev["result"]["sim"]
+    contacts = contact.result()
+    assert contacts, "no contact on /sim/contact"
+    last = contacts[-1]["pose"]
+    p = np.array([last["pose"]["position"][k] for k in "xyz"])
+    assert distance_to_axis(p, np.array(sim["hinge_point"]), np.array(sim["hinge_axis"])) < HINGE_TOL_M
+    assert np.allclose(p, ev["result"]["hinge"]["p"], atol=1e-3)
+    cov = np.array(last["covariance"]).reshape(6, 6)
+    assert np.all(np.diag(cov)[:3] > 0) and np.all(np.diag(cov)[3:] >= 1e8)
+    assert contacts[-1]["header"]["frame_id"] == "base_link"
+    ros_events = events.result()
+    kinds = [(e["kind"], e["task"]) for e in ros_events]
+    assert ("task_started", reply["task"]) in kinds and ("task_done", reply["task"]) in kinds
+    done = next(e for e in ros_events if e["kind"] == "task_done")
+    assert json.loads(done["detail_json"])["result"]["hinge"]["p"] == ev["result"]["hinge"]["p"]
+
+    frames = tf.result()
+    assert frames and all(f["transforms"][0]["child_frame_id"] == "sim/contact" and
+                          f["transforms"][0]["header"]["frame_id"] == "base_link" for f in frames)
+    shapes = {(m["id"], m["type"], m["action"]) for m in markers.result()}
+    assert (0, 2, 0) in shapes                   # the sphere, added
+    spheres = [m for m in markers.result() if m["type"] == 2]
+    assert all(m["scale"]["x"] > 0 and m["ns"] == "tecdar_contact" for m in spheres)
+    names = {st["name"] for d_ in diagnostics.result() for st in d_["status"]}
+    assert {"tecdard/sim: control", "tecdard/sim: faults", "tecdard/sim: fingertip IMU"} <= names
+    stop = sdk(router, "call", {"service": "/sim/stop", "type": "std_srvs/srv/Trigger", **TRIGGER_DEFS})["response"]
+    assert stop["success"] is True
+    status = sdk(router, "call", {"service": "/sim/status", "type": "tecdar_msgs/srv/Status"})["response"]
+    assert status["ok"] is True and status["mode"] in ("idle", "stopped") and status["has_contact"] is True
+    assert json.loads(status["state_json"])["mode"] == status["mode"]
 
 
 def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
