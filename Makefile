@@ -67,6 +67,7 @@ bench: $(WARM)
 	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.firmware
+	$(PY) -m benchmarks.ros2
 	$(PY) -m benchmarks.figure
 
 clean:

@@ -39,20 +39,26 @@ def header(ts, t_s: float, frame_id: str):
     return ts.cls("std_msgs/msg/Header")(stamp=ros_time(ts, t_s), frame_id=frame_id)
 
 
-def axis_quat(axis) -> np.ndarray:
-    """A rotation whose x axis is `axis` (unit, base frame), as (x, y, z, w); identity for None."""
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+def axis_quat(axis) -> tuple:
+    """A rotation whose x axis is `axis` (unit, base frame), as (x, y, z, w); identity for None. Plain
+    floats: this runs for every estimate on the publish pass, where numpy's small-array calls cost more
+    than the arithmetic."""
     if axis is None:
-        return np.array([0.0, 0.0, 0.0, 1.0])
-    x = np.asarray(axis, float)
-    n = np.linalg.norm(x)
-    if not np.isfinite(n) or n < 1e-9:
-        return np.array([0.0, 0.0, 0.0, 1.0])
-    x = x / n
-    helper = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    y = np.cross(helper, x)
-    y /= np.linalg.norm(y)
-    z = np.cross(x, y)
-    return matrix_to_quat(np.column_stack([x, y, z]))
+        return IDENTITY
+    ax, ay, az = (float(v) for v in axis)
+    n = math.sqrt(ax * ax + ay * ay + az * az)
+    if not math.isfinite(n) or n < 1e-9:
+        return IDENTITY
+    ax, ay, az = ax / n, ay / n, az / n
+    hx, hy, hz = (0.0, 0.0, 1.0) if abs(az) < 0.9 else (0.0, 1.0, 0.0)
+    yx, yy, yz = hy * az - hz * ay, hz * ax - hx * az, hx * ay - hy * ax       # y = helper x axis
+    m = math.sqrt(yx * yx + yy * yy + yz * yz)
+    yx, yy, yz = yx / m, yy / m, yz / m
+    zx, zy, zz = ay * yz - az * yy, az * yx - ax * yz, ax * yy - ay * yx       # z = x x y
+    return tuple(matrix_to_quat(np.array([[ax, yx, zx], [ay, yy, zy], [az, yz, zz]])).tolist())
 
 
 def _pose(ts, p, q):
@@ -62,33 +68,44 @@ def _pose(ts, p, q):
                 orientation=Q(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
 
 
-def contact(ts, est, t_wall: float, frame: str):
+def contact(ts, est, t_wall: float, frame: str, q=None):
     """geometry_msgs/PoseWithCovarianceStamped of a ContactEstimate: the estimate, its axis (x) where
-    there is one, its position covariance, and an orientation block of UNKNOWN_ORIENTATION_VAR."""
+    there is one (`q`: axis_quat of it, when the caller has it), its position covariance, and an
+    orientation block of UNKNOWN_ORIENTATION_VAR."""
     cov = np.zeros((6, 6))
     cov[:3, :3] = np.asarray(est.cov, float)
     cov[3:, 3:] = np.eye(3) * UNKNOWN_ORIENTATION_VAR
     PwC = ts.cls("geometry_msgs/msg/PoseWithCovariance")
     return ts.cls("geometry_msgs/msg/PoseWithCovarianceStamped")(
         header=header(ts, t_wall, frame),
-        pose=PwC(pose=_pose(ts, est.p, axis_quat(est.axis)), covariance=cov.ravel()))
+        pose=PwC(pose=_pose(ts, est.p, axis_quat(est.axis) if q is None else q), covariance=cov.ravel()))
+
+
+_STATIC: dict = {}
+
+
+def _marker_statics(ts) -> dict:
+    """A marker's parts that never change (no texture, no mesh, no lifetime), built once per typestore."""
+    if id(ts) not in _STATIC:
+        empty = np.zeros(0, np.uint8)
+        _STATIC[id(ts)] = dict(
+            lifetime=ts.cls("builtin_interfaces/msg/Duration")(sec=0, nanosec=0),
+            texture=ts.cls("sensor_msgs/msg/CompressedImage")(header=header(ts, 0.0, ""), format="", data=empty),
+            mesh_file=ts.cls("visualization_msgs/msg/MeshFile")(filename="", data=empty))
+    return _STATIC[id(ts)]
 
 
 def _marker(ts, hdr, ident: int, kind: int, action: int, p, q, scale, rgba):
     M = ts.cls("visualization_msgs/msg/Marker")
     V, C = ts.cls("geometry_msgs/msg/Vector3"), ts.cls("std_msgs/msg/ColorRGBA")
-    D = ts.cls("builtin_interfaces/msg/Duration")
     return M(header=hdr, ns=MARKER_NS, id=ident, type=kind, action=action, pose=_pose(ts, p, q),
              scale=V(x=float(scale[0]), y=float(scale[1]), z=float(scale[2])),
-             color=C(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3]), lifetime=D(sec=0, nanosec=0),
-             frame_locked=False, points=[], colors=[], texture_resource="",
-             texture=ts.cls("sensor_msgs/msg/CompressedImage")(header=hdr, format="", data=np.zeros(0, np.uint8)),
-             uv_coordinates=[], text="", mesh_resource="",
-             mesh_file=ts.cls("visualization_msgs/msg/MeshFile")(filename="", data=np.zeros(0, np.uint8)),
-             mesh_use_embedded_materials=False)
+             color=C(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3]), frame_locked=False, points=[], colors=[],
+             texture_resource="", uv_coordinates=[], text="", mesh_resource="", mesh_use_embedded_materials=False,
+             **_marker_statics(ts))
 
 
-def contact_markers(ts, est, t_wall: float, frame: str) -> list:
+def contact_markers(ts, est, t_wall: float, frame: str, q=None) -> list:
     """A sphere at the estimate as wide as its 3 sigma per axis, and for a line contact an arrow along
     its axis (deleted while there is none)."""
     hdr = header(ts, t_wall, frame)
@@ -97,7 +114,7 @@ def contact_markers(ts, est, t_wall: float, frame: str) -> list:
     colour = (0.1, 0.8, 0.2, 0.6) if est.converged else (1.0, 0.6, 0.0, 0.6)
     out = [_marker(ts, hdr, SPHERE_ID, SPHERE, ADD, est.p, (0.0, 0.0, 0.0, 1.0), size, colour)]
     if est.axis is not None:
-        out.append(_marker(ts, hdr, ARROW_ID, ARROW, ADD, est.p, axis_quat(est.axis),
+        out.append(_marker(ts, hdr, ARROW_ID, ARROW, ADD, est.p, axis_quat(est.axis) if q is None else q,
                            (ARROW_LENGTH_M, 0.004, 0.004), (0.2, 0.4, 1.0, 0.9)))
     else:
         out.append(_marker(ts, hdr, ARROW_ID, ARROW, DELETE, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0),
@@ -105,10 +122,10 @@ def contact_markers(ts, est, t_wall: float, frame: str) -> list:
     return out
 
 
-def contact_tf(ts, est, t_wall: float, frame: str, child: str):
+def contact_tf(ts, est, t_wall: float, frame: str, child: str, q=None):
     """tf2_msgs/TFMessage: base_frame -> `<robot>/contact`."""
     V, Q = ts.cls("geometry_msgs/msg/Vector3"), ts.cls("geometry_msgs/msg/Quaternion")
-    q = axis_quat(est.axis)
+    q = axis_quat(est.axis) if q is None else q
     tr = ts.cls("geometry_msgs/msg/Transform")(translation=V(x=float(est.p[0]), y=float(est.p[1]),
                                                                z=float(est.p[2])),
                                                  rotation=Q(x=float(q[0]), y=float(q[1]), z=float(q[2]),

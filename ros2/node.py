@@ -248,6 +248,8 @@ class Ros2Node:
         try:
             if kind == "state":
                 self._latest_state = body
+                if not self._wanted("tcp_pose"):
+                    return
                 tcp = body["tcp"]
                 t = body["t"] if body.get("tcp_t") is None else body["tcp_t"]
                 self._put("tcp_pose", M.tcp_pose(self.ts, tcp["p"], tcp["q"], self.wall(t), self.params.base_frame))
@@ -266,24 +268,37 @@ class Ros2Node:
             self._clock_next = now + 1.0
         passes = self._inbox.drain()
         try:
-            if "imu" in self._pubs:
+            if self._wanted("imu"):
                 batches = [p.batch for p in passes if len(p.batch)]
                 if batches:
                     blocks = self._imu_acc.add(np.concatenate(batches))
                     for t, gyro, accel in blocks[-IMU_BLOCKS_PER_PASS:]:
                         self._put("imu", M.imu(self.ts, self.wall(t), gyro, accel, self.params.imu_frame))
+            else:
+                self._imu_acc.reset()
             est = next((p.estimate for p in reversed(passes) if p.estimate is not None), None)
-            if est is not None:
-                t = self.wall(est.t)
-                self._put("contact", M.contact(self.ts, est, t, self.params.base_frame))
-                for marker in M.contact_markers(self.ts, est, t, self.params.base_frame):
+            if est is not None and (self._wanted("contact") or self._wanted("contact_marker") or self._wanted("/tf")):
+                t, q, base = self.wall(est.t), M.axis_quat(est.axis), self.params.base_frame
+                self._put("contact", M.contact(self.ts, est, t, base, q))
+                for marker in M.contact_markers(self.ts, est, t, base, q):
                     self._put("contact_marker", marker)
-                self._put("/tf", M.contact_tf(self.ts, est, t, self.params.base_frame, f"{self.robot}/contact"))
+                self._put("/tf", M.contact_tf(self.ts, est, t, base, f"{self.robot}/contact", q))
             if now >= self._diag_next:
                 self._diag_next = now + DIAGNOSTICS_PERIOD_S
                 self._put("/diagnostics", M.diagnostics(self.ts, self.wall(now), self._statuses()))
         except Exception:
             log.exception("ROS 2: a publish pass failed")
+
+    def _wanted(self, topic: str) -> bool:
+        """Whether anyone subscribes to `topic` (Zenoh's matching status, about 1 µs): a message nobody
+        takes is neither built nor encoded."""
+        pub = self._pubs.get(topic)
+        if pub is None:
+            return False
+        try:
+            return bool(pub[0].matching_status.matching)
+        except Exception:
+            return True
 
     def _put(self, topic: str, msg) -> None:
         pub, gid, seq, ros_type = self._pubs[topic]
@@ -416,6 +431,10 @@ class _BlockAverage:
 
     def __init__(self, rate_hz: float):
         self.rate_hz = rate_hz
+        self._held = np.zeros((0, 7))
+
+    def reset(self) -> None:
+        """Forget the samples held (nobody subscribes: the next block starts afresh)."""
         self._held = np.zeros((0, 7))
 
     def add(self, batch: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:

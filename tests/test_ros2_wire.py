@@ -361,3 +361,12 @@ def test_the_imu_is_averaged_over_blocks_on_an_absolute_grid():
     assert np.all(np.diff(times) > 0.5 / rate) and np.all(np.diff(times) < 1.5 / rate)
     first = b[np.floor(b[:, 0] * rate) == np.floor(b[0, 0] * rate)]
     assert np.allclose(blocks[0][1], first[:, 1:4].mean(axis=0)) and np.allclose(blocks[0][2], 9.81)
+
+
+def test_a_line_contacts_orientation_has_its_axis_as_x():
+    from tecdard.control.geometry import quat_to_matrix
+    for axis in ([0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.3, -0.2, 0.9]):
+        R = quat_to_matrix(np.array(M.axis_quat(axis)))
+        assert np.allclose(R[:, 0], np.array(axis) / np.linalg.norm(axis))
+        assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+    assert M.axis_quat(None) == M.axis_quat([0.0, 0.0, 0.0]) == (0.0, 0.0, 0.0, 1.0)
