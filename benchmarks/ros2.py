@@ -72,7 +72,7 @@ def encode_costs() -> dict[str, float]:
     return out
 
 
-def run(seconds: float, with_ros2: bool) -> dict:
+def run(seconds: float, with_ros2: bool, subscribed: bool = True) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         port, router = start_router()
         subs = []
@@ -82,7 +82,7 @@ def run(seconds: float, with_ros2: bool) -> dict:
                 overrides["ros2"] = {"enabled": True}
             d = DaemonProcess(pathlib.Path(tmp), daemon_config(**overrides))
             try:
-                if with_ros2:
+                if with_ros2 and subscribed:
                     for topic, typ in (("/sim/imu", "sensor_msgs/msg/Imu"),
                                        ("/sim/tcp_pose", "geometry_msgs/msg/PoseStamped")):
                         subs.append(subprocess.Popen(
@@ -116,6 +116,7 @@ def main() -> None:
     args = ap.parse_args()
     costs = encode_costs()
     off = run(args.seconds, False)
+    alone = run(args.seconds, True, subscribed=False)
     on = run(args.seconds, True)
     lines = [
         f"# The ROS 2 node: its cost ({time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
@@ -127,14 +128,16 @@ def main() -> None:
         f"At `imu_rate_hz` 1000 and 50 `tcp_pose` a second, the node encodes about "
         f"{(1000 * costs['imu'] + 50 * costs['tcp_pose']) / 1e4:.1f} % of one core's time.", "",
         f"## The daemon on the simulated robot, idle for {args.seconds:g} s, then one `rotate` of 20 deg", "",
-        "Without the node, and with it (a Zenoh router between it and zenoh-ros2-sdk subscribed to `imu` and "
-        "`tcp_pose`). CPU: the daemon's own process, the simulator's child excluded. Ticks: the control "
+        "Without the node; with it and nobody subscribed (a topic nobody takes is not built); and with "
+        "zenoh-ros2-sdk subscribed to `imu` (1 kHz) and `tcp_pose` through the router, in two processes of "
+        "their own on the same two cores. CPU: the daemon's own process, the simulator's child excluded. Ticks: the control "
         "thread's statistics over its last 1000 ticks, read from `status` at the end of each phase.", "",
         "| | CPU idle | CPU rotating | tick work p99 idle / rotating, ms | tick lateness p99 idle / rotating, ms "
         "| overruns | rotate |",
         "|---|---|---|---|---|---|---|",
     ]
-    for name, r in (("without the node", off), ("with the node", on)):
+    for name, r in (("without the node", off), ("with the node, nobody subscribed", alone),
+                    ("with the node, `imu` and `tcp_pose` subscribed", on)):
         lines.append(f"| {name} | {100 * r['idle_cpu']:.1f} % | {100 * r['rotate_cpu']:.1f} % | "
                      f"{r['idle'].get('work_ms_p99', float('nan')):.2f} / {r['rotate'].get('work_ms_p99', float('nan')):.2f} | "
                      f"{r['idle'].get('late_ms_p99', float('nan')):.2f} / {r['rotate'].get('late_ms_p99', float('nan')):.2f} | "

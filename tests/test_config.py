@@ -76,6 +76,16 @@ def run_with(tmp_path, cfg):
     ({"zenoh.mode": "client", "zenoh.connect": ["tcp/127.0.0.1:7447"]}, "zenoh.listen: a Zenoh client listens on nothing"),
     ({"zenoh.mode": "client", "zenoh.listen": ...}, "zenoh.connect: mode client needs a router"),
     ({"zenoh.listen": []}, "zenoh.listen: empty, and nothing in zenoh.connect"),
+    ({"ros2": {"enabled": True, "namespace": "lab/arm 1"}}, "ros2.namespace: 'lab/arm 1' is no ROS 2 namespace"),
+    ({"ros2": {"enabled": True, "distro": "iron"}}, "ros2.distro"),
+    ({"ros2": {"enabled": True, "base_frame": "/world"}}, "ros2.base_frame: '/world': a tf2 frame id"),
+    ({"ros2": {"enabled": True, "node_name": "tec-dar"}}, "ros2.node_name: 'tec-dar' is no ROS 2 node name"),
+    ({"ros2": {"enabld": True}}, "ros2.enabld: unknown option"),
+    ({"robot.ros2": {"stale_s": 0.1}}, "robot.ros2: unknown option"),
+    ({"robot.tcp_link": "tool0"}, "robot.tcp_link: only with robot.urdf"),
+    ({"robot.backend": "ros2", "sim": ..., "imu.source": "serial", "robot.urdf": "/nonexistent/arm.urdf",
+      "robot.tcp_link": "tool0"}, "robot.urdf: /nonexistent/arm.urdf: no such file"),
+    ({"robot.backend": "ros2", "sim": ..., "imu.source": "sim"}, "imu.source: with robot.backend ros2"),
 ])
 def test_run_refuses_bad_config_with_one_line(tmp_path, overrides, key):
     res = run_with(tmp_path, sim_config(**overrides))
