@@ -62,14 +62,14 @@ class Ros2Observer(RobotBackend):
 
     # -- lifecycle: the node owns the subscription ------------------------------------------------
     def start(self) -> None:
-        """Waits up to first_state_s for a joint state: one that fits is the start; messages that name
-        other joints only are a model that does not fit the arm (ModelMismatch: exit 2); none at all
-        is an arm whose driver has not started yet (robot_stale until it does)."""
+        """Waits up to first_state_s for a joint state: one that fits is the start; an arm's message that
+        does not fit, before any that does, is a model that does not fit the arm (ModelMismatch: exit
+        2); none at all is an arm whose driver has not started yet (robot_stale until it does)."""
         log.info("observing the arm through ROS 2 joint states (joints %s; stale after %.0f ms)",
                  ", ".join(self.names), self.stale_s * 1e3)
         t_end = time.monotonic() + self.first_state_s
         with self._cond:
-            while self._latest.seq == 0 and time.monotonic() < t_end:
+            while self._latest.seq == 0 and self.names_seen is None and time.monotonic() < t_end:
                 self._cond.wait(min(0.05, max(0.0, t_end - time.monotonic())))
             names = self.names_seen
             if self._latest.seq > 0:

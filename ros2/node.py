@@ -114,10 +114,9 @@ class ServiceCall:
 
 @dataclass
 class _Service:
-    name: str            # relative name (the verb)
+    verb: str            # its name, relative to the namespace
     srv_type: str
     key: str
-    verb: str
     ring: object = None
 
 
@@ -172,7 +171,7 @@ class Ros2Node:
             self._declared.append(self._pubs[topic][0])
         for verb, srv_type in self._service_types():
             key, _ = self._entity(rmw.SERVICE, verb, srv_type, SERVICE_QOS)
-            svc = _Service(verb, srv_type, key, verb)
+            svc = _Service(verb, srv_type, key)
             if verb == "stop":
                 svc.ring = session.declare_queryable(key, lambda q, s=svc: self._on_stop(s, q), complete=True)
                 self._stop = svc
@@ -186,9 +185,15 @@ class Ros2Node:
                  p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1)
 
     def _service_types(self) -> list[tuple[str, str]]:
+        """(verb, service type) of every service: a task verb without its .srv in tecdar_msgs (a verb
+        added without one) is not served, and said so."""
         out = [("stop", TRIGGER)]
         for verb in task_verbs.names():
-            out.append((verb, f"tecdar_msgs/srv/{verb.capitalize()}"))
+            srv_type = f"tecdar_msgs/srv/{verb.capitalize()}"
+            if srv_type in self.ts.services:
+                out.append((verb, srv_type))
+            else:
+                log.warning("ROS 2: no %s in tecdar_msgs: the verb %s is not served over ROS 2", srv_type, verb)
         return out + [("cancel", "tecdar_msgs/srv/Cancel"), ("status", "tecdar_msgs/srv/Status")]
 
     def _token(self, key: str) -> None:
@@ -338,7 +343,7 @@ class Ros2Node:
             seq, _t, client_gid = rmw.parse_attachment(_bytes(query.attachment))
         except ValueError as exc:
             self.counters["bad_requests"] += 1
-            log.info("ROS 2 %s: request refused: %s", svc.name, exc)
+            log.info("ROS 2 %s: request refused: %s", svc.verb, exc)
             return None
         try:
             raw = _bytes(query.payload) or b""
@@ -397,7 +402,7 @@ class Ros2Node:
             if call.query is not None:
                 call.query.reply(call.query.key_expr, payload, attachment=att)
         except Exception:
-            log.exception("ROS 2 %s: the reply was not sent", svc.name)
+            log.exception("ROS 2 %s: the reply was not sent", svc.verb)
 
 
 def _bytes(z) -> bytes | None:

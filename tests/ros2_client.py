@@ -12,7 +12,8 @@ Actions print one JSON line each:
 - `discover` {"timeout"}: the tokens, topics and services the SDK's discovery sees (asked again until
   it sees topics and services, or `timeout`).
 - `subscribe` {"topic", "type", "count", "timeout"}: {"subscribed"} once it is, then the first `count`
-  messages (or all that came within `timeout`), as dicts.
+  messages (or all that came within `timeout`), as dicts; with {"topics": [[topic, type, count], ...]}
+  several at once, the messages by topic.
 - `call` {"service", "type", "request", "timeout", "request_definition", "response_definition"}: the
   response, as a dict (null: no reply).
 - `publish` {"topic", "type", "message", "count", "period_s"}: publishes the JointState `message` (a
@@ -79,15 +80,21 @@ def main() -> None:
             time.sleep(0.2)
         print(json.dumps({"tokens": tokens, "topics": topics, "services": services}), flush=True)
     elif action == "subscribe":
-        got = []
-        sub = sdk.ROS2Subscriber(args["topic"], args["type"], lambda m: got.append(to_dict(m)), router_port=port,
-                                 node_name="tecdar_test_listener")
-        print(json.dumps({"subscribed": args["topic"]}), flush=True)
+        # one topic {"topic", "type", "count"}, or several {"topics": [[topic, type, count], ...]} in one session
+        wanted = args.get("topics") or [[args["topic"], args["type"], args.get("count", 1)]]
+        got = {topic: [] for topic, _, _ in wanted}
+        subs = [sdk.ROS2Subscriber(topic, typ, lambda m, t=topic: got[t].append(to_dict(m)), router_port=port,
+                                   node_name="tecdar_test_listener") for topic, typ, _ in wanted]
+        print(json.dumps({"subscribed": [w[0] for w in wanted]}), flush=True)
         t_end = time.monotonic() + args.get("timeout", 10.0)
-        while len(got) < args.get("count", 1) and time.monotonic() < t_end:
+        while any(len(got[t]) < n for t, _, n in wanted) and time.monotonic() < t_end:
             time.sleep(0.01)
-        sub.close()
-        print(json.dumps({"messages": got[:args.get("count", 1)]}), flush=True)
+        for sub in subs:
+            sub.close()
+        if "topics" in args:
+            print(json.dumps({"messages": {t: got[t][:n] for t, _, n in wanted}}), flush=True)
+        else:
+            print(json.dumps({"messages": got[args["topic"]][:args.get("count", 1)]}), flush=True)
     elif action == "call":
         # a service with an empty request (std_srvs/Trigger) is given its definitions: the SDK's loader
         # refuses an empty request part of a .srv file

@@ -72,17 +72,17 @@ def sdk(port: int, action: str, args: dict | None = None, timeout: float = SDK_T
 
 
 class Subscription:
-    """zenoh-ros2-sdk subscribed in the background; `result()`: the messages it took."""
+    """zenoh-ros2-sdk subscribed in the background to [topic, type, count] each, in one session;
+    `result()`: the messages it took, by topic."""
 
-    def __init__(self, port: int, topic: str, ros_type: str, count: int, timeout: float):
+    def __init__(self, port: int, topics: list, timeout: float):
         self.proc = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(port), "subscribe",
-                                      json.dumps({"topic": topic, "type": ros_type, "count": count,
-                                                  "timeout": timeout})],
+                                      json.dumps({"topics": topics, "timeout": timeout})],
                                      cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = self.proc.stdout.readline()
         assert "subscribed" in line, line + self.proc.stderr.read()
 
-    def result(self, timeout: float = SDK_TIMEOUT_S) -> list:
+    def result(self, timeout: float = SDK_TIMEOUT_S) -> dict:
         out, err = self.proc.communicate(timeout=timeout)
         lines = [x for x in out.splitlines() if x.startswith("{")]
         assert lines, err[-3000:]
@@ -153,11 +153,11 @@ def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(node):
         a = m["linear_acceleration"]
         assert abs(math.hypot(a["x"], a["y"], a["z"]) - 9.81) < GRAVITY_TOL_M_S2
 
-    contact = Subscription(router, "/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 100000, 40.0)
-    events = Subscription(router, "/sim/events", "tecdar_msgs/msg/Event", 100000, 40.0)
-    tf = Subscription(router, "/tf", "tf2_msgs/msg/TFMessage", 5, 40.0)
-    markers = Subscription(router, "/sim/contact_marker", "visualization_msgs/msg/Marker", 10, 40.0)
-    diagnostics = Subscription(router, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", 2, 40.0)
+    watch = Subscription(router, [["/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 10**6],
+                                  ["/sim/events", "tecdar_msgs/msg/Event", 10**6],
+                                  ["/tf", "tf2_msgs/msg/TFMessage", 5],
+                                  ["/sim/contact_marker", "visualization_msgs/msg/Marker", 10],
+                                  ["/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", 2]], 25.0)
     reply = sdk(router, "call", {"service": "/sim/rotate", "type": "tecdar_msgs/srv/Rotate",
                                  "request": rotate_request(angle_deg=20.0)})["response"]
     assert reply["ok"] is True and reply["task"], reply
@@ -167,7 +167,8 @@ def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(node):
     ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 90.0)
     assert ev["kind"] == "task_done", ev
     sim = ev["result"]["sim"]
-    contacts = contact.result()
+    seen = watch.result()
+    contacts = seen["/sim/contact"]
     assert contacts, "no contact on /sim/contact"
     last = contacts[-1]["pose"]
     p = np.array([last["pose"]["position"][k] for k in "xyz"])
@@ -176,20 +177,20 @@ def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(node):
     cov = np.array(last["covariance"]).reshape(6, 6)
     assert np.all(np.diag(cov)[:3] > 0) and np.all(np.diag(cov)[3:] >= 1e8)
     assert contacts[-1]["header"]["frame_id"] == "base_link"
-    ros_events = events.result()
+    ros_events = seen["/sim/events"]
     kinds = [(e["kind"], e["task"]) for e in ros_events]
     assert ("task_started", reply["task"]) in kinds and ("task_done", reply["task"]) in kinds
     done = next(e for e in ros_events if e["kind"] == "task_done")
     assert json.loads(done["detail_json"])["result"]["hinge"]["p"] == ev["result"]["hinge"]["p"]
 
-    frames = tf.result()
+    frames = seen["/tf"]
     assert frames and all(f["transforms"][0]["child_frame_id"] == "sim/contact" and
                           f["transforms"][0]["header"]["frame_id"] == "base_link" for f in frames)
-    shapes = {(m["id"], m["type"], m["action"]) for m in markers.result()}
+    shapes = {(m["id"], m["type"], m["action"]) for m in seen["/sim/contact_marker"]}
     assert (0, 2, 0) in shapes                   # the sphere, added
-    spheres = [m for m in markers.result() if m["type"] == 2]
+    spheres = [m for m in seen["/sim/contact_marker"] if m["type"] == 2]
     assert all(m["scale"]["x"] > 0 and m["ns"] == "tecdar_contact" for m in spheres)
-    names = {st["name"] for d_ in diagnostics.result() for st in d_["status"]}
+    names = {st["name"] for d_ in seen["/diagnostics"] for st in d_["status"]}
     assert {"tecdard/sim: control", "tecdard/sim: faults", "tecdard/sim: fingertip IMU"} <= names
     stop = sdk(router, "call", {"service": "/sim/stop", "type": "std_srvs/srv/Trigger", **TRIGGER_DEFS})["response"]
     assert stop["success"] is True
