@@ -70,7 +70,7 @@ class Ros2Params:
     def from_config(cls, section, robot: str) -> "Ros2Params":
         d = cls()
         namespace = section.getstr("namespace", "", max_len=200) or f"/{robot}"
-        if not namespace.startswith("/") or not _ros_name(namespace.strip("/"), allow_slash=True):
+        if namespace != "/" and (not namespace.startswith("/") or not _ros_name(namespace.strip("/"), allow_slash=True)):
             raise section.error("namespace", f"{namespace!r} is no ROS 2 namespace (/name or /a/b: letters, "
                                              "digits and '_')")
         node_name = section.getstr("node_name", d.node_name, max_len=100)

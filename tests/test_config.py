@@ -1,4 +1,5 @@
 """Configuration: typed getters, unknown keys, and `tecdard run` refusing bad configs with exit 2."""
+import json
 import subprocess
 import sys
 
@@ -86,6 +87,8 @@ def run_with(tmp_path, cfg):
     ({"robot.backend": "ros2", "sim": ..., "imu.source": "serial", "robot.urdf": "/nonexistent/arm.urdf",
       "robot.tcp_link": "tool0"}, "robot.urdf: /nonexistent/arm.urdf: no such file"),
     ({"robot.backend": "ros2", "sim": ..., "imu.source": "sim"}, "imu.source: with robot.backend ros2"),
+    ({"robot.backend": "ros2", "sim": ..., "imu.source": "serial", "robot.urdf": str(ROOT / "README.md"),
+      "robot.tcp_link": "tool0"}, "robot.urdf: README.md does not parse as URDF"),
 ])
 def test_run_refuses_bad_config_with_one_line(tmp_path, overrides, key):
     res = run_with(tmp_path, sim_config(**overrides))
@@ -215,3 +218,21 @@ def test_run_exits_2_with_one_line_on_what_used_to_be_a_traceback(tmp_path, make
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert res.returncode == 2, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr, res.stderr
+
+
+def test_an_arm_that_ros2_drives_is_built_from_a_users_urdf_with_its_node():
+    """robot.backend ros2 with a URDF: the model's joints are the file's, the ROS 2 node is on (it reads
+    the joint states) and the daemon's access control lets the joint states in."""
+    from tecdard.robots.model import robots_dir
+    from tecdard.runtime.daemon import Daemon
+    urdf = robots_dir() / "ur_description" / "urdf" / "ur5_robot.urdf"
+    cfg = sim_config(**{"robot.backend": "ros2", "sim": ..., "imu.source": "serial", "imu.serial": {"port": "/dev/null"},
+                        "robot.urdf": str(urdf), "robot.tcp_link": "tool0", "robot.q_home": ...,
+                        "zenoh.listen": ["tcp/127.0.0.1:0"]})
+    daemon = Daemon(Config(cfg))
+    assert daemon.model.joint_names == ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
+                                        "wrist_2_joint", "wrist_3_joint"]
+    assert daemon.ros2 is not None and daemon.backend.commands_arm is False
+    assert daemon.intake.read_only
+    rules = {r["id"]: r for r in json.loads(daemon.zenoh_config.get_json("access_control"))["rules"]}
+    assert rules["observe"]["key_exprs"] == ["0/joint_states/**"]
