@@ -57,6 +57,7 @@ class Ros2Observer(RobotBackend):
         self._fault: str | None = None
         self._fault_t = -math.inf
         self.skipped = 0                 # messages naming none of the model's joints
+        self.commands_dropped = 0
         self.extra_names: set[str] = set()
         self.names_seen: list[str] | None = None     # the names of the first message that named none or not all
 
@@ -101,7 +102,11 @@ class Ros2Observer(RobotBackend):
 
     # -- write: never -----------------------------------------------------------------------------
     def command_joint_velocity(self, qd) -> None:
-        raise RuntimeError("robot.backend ros2 does not command the arm")
+        """Never sent: no task starts on an observed arm. Were one sent by a bug, it is dropped (counted
+        and said once), never raised on the control tick."""
+        self.commands_dropped += 1
+        if self.commands_dropped == 1:
+            log.error("robot.backend ros2 does not command the arm: a joint velocity command was dropped")
 
     def hold(self) -> None:
         """The arm is ROS 2's: nothing to do (a protective stop here stops the daemon's tasks, of which

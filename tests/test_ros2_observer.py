@@ -118,8 +118,8 @@ def test_a_stream_that_stops_is_stale_after_stale_s(ts, observer):
 def test_the_observer_never_commands_the_arm(observer):
     assert observer.commands_arm is False and "refused" in observer.read_only_reason
     observer.hold()                                # a protective stop: nothing to do
-    with pytest.raises(RuntimeError):
-        observer.command_joint_velocity(np.zeros(7))
+    observer.command_joint_velocity(np.zeros(7))     # a bug's command: dropped and counted, never raised
+    assert observer.commands_dropped == 1
 
 
 def test_start_waits_for_the_first_state_and_a_stream_of_other_joints_is_a_model_mismatch(ts, observer):
