@@ -10,9 +10,10 @@ with `read_only`, `stop` answers and leaves the arm to its driver.
 Faults, never a wrong TCP: a stream silent for longer than `robot.ros2.stale_s` (robot_stale), a
 state that jumps further than the joints' speed limits allow, out of range or non-finite
 (robot_state, robots.state_check), a message lacking a joint of the model, with mismatched array
-lengths, duplicated names, or a stamp that is zero or in the future (robot_joint_states). A message
-that names none of the model's joints (a gripper driver's, on the same topic) is skipped and
-counted; names the model does not have beside its own are ignored, as the interface says.
+lengths, duplicated names, an arm's worth of joints none of which is the model's, or a stamp that is
+zero or in the future (robot_joint_states). A message with fewer joints than the model and none of
+its (a gripper driver's, on the same topic) is skipped and counted; names the model does not have
+beside its own are ignored, as the interface says.
 """
 from __future__ import annotations
 
@@ -144,9 +145,12 @@ class Ros2Observer(RobotBackend):
         # of them (a gripper's few joints on the same topic are another driver's, not a misfit)
         if self.names_seen is None and ((mine and missing) or (not mine and len(names) >= len(self.names))):
             self.names_seen = names
-        if not mine:
-            self.skipped += 1            # another driver's joints (a gripper's) on the same topic
+        if not mine and len(names) < len(self.names):
+            self.skipped += 1            # another driver's few joints (a gripper's) on the same topic
             return None
+        if not mine:
+            return (f"joint_states: {len(names)} joints and none of the model's ({', '.join(names[:3])}, ...; the "
+                    f"model's joints: {', '.join(self.names)})")
         if missing:
             return f"joint_states: no {missing[0]} (the model's joints: {', '.join(self.names)})"
         extra = set(names) - set(self.names) - self.extra_names

@@ -13,9 +13,10 @@ import pytest
 import zenoh
 
 from tecdard.api.session import session_config
-from tecdard.robots.model import READY_Q, ArmModel
+from tecdard.robots.model import READY_Q
 from tecdard.ros2 import rmw
 from tecdard.tools.demo import distance_to_axis, free_port
+from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
 
 pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk is installed by `make test` (extra ros2-test)")
@@ -31,6 +32,10 @@ Q = list(READY_Q["panda"])
 FK_TOL_M = 1e-6
 # zenoh-ros2-sdk 0.1.8 refuses a service whose request part is empty (std_srvs/Trigger): a comment-only
 # request part is the same (empty) request, and the SDK then hashes it itself
+ARC_DEG, ARC_SPEED_M_S = 20.0, 0.01   # the harness's arc about the hinge, as the rotate task would turn it
+ARC_RADIUS_M = 0.15            # the simulated cutter's handle: the TCP 150 mm from the hinge
+TCP_STILL_M = 1e-3             # a refused state never moves the TCP the daemon reports
+CONTACT_STILL_M = 0.002        # ... nor the contact (which drifts only slowly at rest)
 TRIGGER_DEFS = {"request_definition": "# no fields", "response_definition": "bool success\nstring message\n"}
 
 
@@ -238,10 +243,10 @@ def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
         d.close()
 
 
-def observer_config(board, port: int, **extra) -> dict:
+def observer_config(port_path: str, router: int, **extra) -> dict:
     return daemon_config(**{"robot.backend": "ros2", "robot.ros2": {"stale_s": 0.1, "first_state_s": 10.0},
-                            "zenoh.connect": [f"tcp/127.0.0.1:{port}"], "imu.source": "serial",
-                            "imu.serial": {"port": str(board.link)}, "sim": ..., "robot.q_home": ..., **extra})
+                            "zenoh.connect": [f"tcp/127.0.0.1:{router}"], "imu.source": "serial",
+                            "imu.serial": {"port": port_path}, "sim": ..., "robot.q_home": ..., **extra})
 
 
 def joint_states(q, n: int, names=PANDA) -> dict:
@@ -250,17 +255,66 @@ def joint_states(q, n: int, names=PANDA) -> dict:
                         "velocity": [0.0] * len(names)}, "count": n}
 
 
-def test_the_observer_backend_follows_an_arm_that_ros2_drives(tmp_path, router, board):
-    publisher = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(router), "publish",
-                                  json.dumps({"topic": "/joint_states", "type": "sensor_msgs/msg/JointState",
-                                              **joint_states(Q, 1500), "period_s": 0.01})],
-                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    d = DaemonProcess(tmp_path, observer_config(board, router))
+class RosArm:
+    """tests.ros2_arm: the simulator's Panda on the paper cutter, moved by the harness and published as
+    JointState at 200 Hz by zenoh-ros2-sdk, its fingertip board on a pty."""
+
+    def __init__(self, tmp_path, port: int):
+        cfg = tmp_path / "arm.yaml"
+        cfg.write_text(dump_yaml(daemon_config(**{"imu.source": "sim-wire"})))
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.ros2_arm", str(port), str(cfg)], cwd=ROOT,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.info = json.loads(self.proc.stdout.readline())
+
+    def say(self, line: str) -> dict:
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def close(self) -> None:
+        try:
+            self.say("quit")
+        except (OSError, ValueError):
+            pass
+        self.proc.kill()
+        self.proc.wait()
+
+
+def stamp_s(msg: dict) -> float:
+    return msg["header"]["stamp"]["sec"] + msg["header"]["stamp"]["nanosec"] * 1e-9
+
+
+def faults_of(d) -> list[str]:
+    return [f["code"] for f in d.client.command("status")["state"]["faults"]]
+
+
+def wait_fault(d, code: str, timeout_s: float = 5.0) -> bool:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if code in faults_of(d):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def contact_error_m(msg: dict, truth: dict) -> float:
+    p = np.array([msg["pose"]["pose"]["position"][k] for k in "xyz"])
+    return distance_to_axis(p, np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
+
+
+def test_the_observer_localises_the_hinge_of_an_arm_that_ros2_drives_and_bad_streams_are_faults(tmp_path, router):
+    """The arm moved by its own controller along an arc about the cutter's hinge, its joint states over
+    ROS 2 and its board on a pty: the daemon on robot.backend ros2 publishes the hinge within 5 mm. Then a
+    jump, the wrong joint names and a silent stream: each a fault, and nothing of them reaches the TCP
+    or a contact."""
+    arm = RosArm(tmp_path, router)
+    d = None
     try:
+        cfg = observer_config(arm.info["pty"], router)
+        (tmp_path / "d").mkdir()
+        d = DaemonProcess(tmp_path / "d", cfg)
         state = d.client.command("status")["state"]
-        fk = ArmModel("panda").fk(np.array(Q)).translation
-        assert np.linalg.norm(np.array(state["tcp"]["p"]) - fk) < FK_TOL_M
-        assert state["faults"] == []
+        assert state["faults"] == [] and state["tcp_t"] is not None
         for verb in (("rotate", {"angle_deg": 10}), ("probe", {})):
             reply = d.client.command(*verb)
             assert reply["ok"] is False and reply["error"]["code"] == "read_only"
@@ -268,17 +322,35 @@ def test_the_observer_backend_follows_an_arm_that_ros2_drives(tmp_path, router, 
                                    "request": rotate_request(angle_deg=10.0)})["response"]
         assert ros["ok"] is False and ros["error_code"] == "read_only"
         assert d.client.command("stop")["ok"] is True
-        publisher.kill()
-        publisher.wait()
-        t_end = time.monotonic() + 5.0
-        codes = []
-        while time.monotonic() < t_end and "robot_stale" not in codes:
-            codes = [f["code"] for f in d.client.command("status")["state"]["faults"]]
-            time.sleep(0.05)
-        assert "robot_stale" in codes
+
+        arc_s = math.radians(ARC_DEG) * ARC_RADIUS_M / ARC_SPEED_M_S
+        watch = Subscription(router, [["/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 10**6]],
+                             arc_s + 3.0)
+        done = arm.say(f"arc {ARC_DEG} {ARC_SPEED_M_S}")
+        t_done = time.time()
+        truth = done["truth"]
+        assert abs(abs(truth["angle_deg"]) - ARC_DEG) < 2.0
+        contacts = [m for m in watch.result()["/sim/contact"] if stamp_s(m) <= t_done]
+        assert contacts, d.log()[-2000:]
+        # the estimate as the arc ends (the arm then rests: nothing ends an observed contact's episode)
+        assert contact_error_m(contacts[-1], truth) < HINGE_TOL_M, [round(contact_error_m(m, truth) * 1e3, 2)
+                                                                   for m in contacts[::50]]
+        assert [e["kind"] for e in d.client.event_log].count("contact_onset") == 1
+
+        status = d.client.command("status")["state"]
+        p_before, c_before = np.array(status["tcp"]["p"]), np.array(status["contact"]["p"])
+        watch = Subscription(router, [["/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 10**6]], 6.0)
+        arm.say("fault jump")
+        assert wait_fault(d, "robot_state")
+        arm.say("fault names")
+        assert wait_fault(d, "robot_joint_states") and wait_fault(d, "robot_stale")
+        assert np.linalg.norm(np.array(d.client.command("status")["state"]["tcp"]["p"]) - p_before) < TCP_STILL_M
+        after = [np.array([m["pose"]["pose"]["position"][k] for k in "xyz"]) for m in watch.result()["/sim/contact"]]
+        assert all(np.linalg.norm(p - c_before) < CONTACT_STILL_M for p in after)
     finally:
-        publisher.kill()
-        d.close()
+        if d is not None:
+            d.close()
+        arm.close()
 
 
 def test_a_stream_without_a_joint_of_the_model_is_one_line_and_exit_2(tmp_path, router, board):
@@ -290,8 +362,7 @@ def test_a_stream_without_a_joint_of_the_model_is_one_line_and_exit_2(tmp_path, 
                                  cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         cfg = tmp_path / "tecdard.yaml"
-        from tecdard.config import dump_yaml
-        c = observer_config(board, router)
+        c = observer_config(str(board.link), router)
         c["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
         c.setdefault("record", {})["dir"] = str(tmp_path / "rec")
         cfg.write_text(dump_yaml(c))
