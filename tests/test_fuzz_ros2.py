@@ -1,0 +1,190 @@
+"""Fuzz tier for the ROS 2 node (issue 36): every service request and every JointState on the wire is
+untrusted. Hypothesis-generated CDR (valid requests with hostile values, truncated and random bytes,
+huge sequences) and attachments go through the node's real request path (Ros2Node._call, then the
+daemon's QueryIntake) and its joint-state path (the node's decoding, then the observer backend).
+Whatever comes: nothing raises, a request is answered at most once (an error reply with a known code)
+or handed to the control thread within the configured limits, and a joint state is a new state or a
+fault, never a state that fails the checks."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from tecdard.api import commands as C
+from tecdard.api.session import Keys
+from tecdard.runtime.intake import IntakeParams, QueryIntake
+from tecdard.runtime.messages import StartTask
+
+pytest.importorskip("rosbags", reason="rosbags is installed by `make test` (extra ros2)")
+from tecdard.ros2 import rmw  # noqa: E402
+from tecdard.ros2.node import Ros2Node, Ros2Params, _Service  # noqa: E402
+from tests.test_fuzz_commands import CODES, LIMITS, Sink  # noqa: E402
+
+CODES = CODES | {C.READ_ONLY}
+EXAMPLES = 500
+GID = bytes(range(16))
+
+
+def fuzz_settings(examples: int) -> settings:
+    return settings(max_examples=examples, deadline=None, database=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+class ZBytes:
+    def __init__(self, raw):
+        self.raw = raw
+
+    def to_bytes(self):
+        return self.raw
+
+
+class RosQuery:
+    """A Zenoh query as the node receives it: CDR payload, attachment, and its replies recorded."""
+
+    def __init__(self, payload: bytes, attachment: bytes | None):
+        self.payload = ZBytes(payload)
+        self.attachment = None if attachment is None else ZBytes(attachment)
+        self.key_expr = "0/sim/x/t/h"
+        self.replies = []
+
+    def reply(self, key, payload, attachment=None):
+        self.replies.append((bytes(payload), bytes(attachment)))
+
+
+@pytest.fixture(scope="module")
+def node():
+    n = Ros2Node(Ros2Params(enabled=True), "sim", None)
+    return n
+
+
+def serve(node, verb: str, srv_type: str, query: RosQuery, read_only=None):
+    sink = Sink()
+    intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams(max_task_rate_hz=1e4,
+                         max_status_rate_hz=1e4, max_other_rate_hz=1e4), read_only=read_only)
+    node.intake = intake
+    svc = _Service(verb, srv_type, "key")
+    call = node._call(svc, query)
+    if call is not None:
+        intake.handle(call, call.key_expr, call.payload, 0.0)
+    return sink
+
+
+def check_reply(node, srv_type: str, query: RosQuery, sink) -> None:
+    """At most one reply, a response of the service's type with the request's sequence number and GID,
+    and a refusal with a known code and one short line; or the command handed on, within limits."""
+    assert len(query.replies) + len(sink.submitted) <= 1
+    if query.replies:
+        payload, att = query.replies[0]
+        seq, _t, gid = rmw.parse_attachment(att)
+        assert gid == GID
+        res = node.ts.decode(payload, srv_type + "_Response")
+        if not res.ok:
+            assert res.error_code in CODES and "\n" not in res.error_message and len(res.error_message) < 400
+    for msg in sink.submitted:
+        assert isinstance(msg, StartTask)
+        for v in msg.fields.values():
+            for x in (v if isinstance(v, list) else [v]):
+                assert not isinstance(x, float) or math.isfinite(x)
+        if "speed" in msg.fields:
+            assert LIMITS.min_speed <= msg.fields["speed"] <= LIMITS.max_speed
+
+
+floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+arrays = st.lists(floats, max_size=8)
+
+
+@fuzz_settings(EXAMPLES)
+@given(angle=floats, speed=floats, probe=floats, direction=arrays, strategy=st.text(max_size=40),
+       turn=st.integers(0, 255), seq=st.integers(-2**63, 2**63 - 1))
+def test_any_rotate_request_is_refused_with_a_code_or_handed_on_within_limits(node, angle, speed, probe, direction,
+                                                                             strategy, turn, seq):
+    req = node.ts.cls("tecdar_msgs/srv/Rotate_Request")(angle_deg=angle, speed=speed, probe_distance=probe,
+                                                         direction=np.array(direction, float), strategy=strategy,
+                                                         turn_tool=turn)
+    raw = node.ts.encode(req, "tecdar_msgs/srv/Rotate_Request")
+    q = RosQuery(raw, rmw.attachment(seq, 0, GID))
+    sink = serve(node, "rotate", "tecdar_msgs/srv/Rotate", q)
+    check_reply(node, "tecdar_msgs/srv/Rotate", q, sink)
+    if q.replies:
+        assert rmw.parse_attachment(q.replies[0][1])[0] == seq
+
+
+@fuzz_settings(EXAMPLES)
+@given(grid=st.lists(st.integers(-2**31, 2**31 - 1), max_size=6), origin=arrays, size=arrays, depth=floats,
+       speed=floats, orientations=st.integers(0, 255))
+def test_any_map_request_is_refused_with_a_code_or_handed_on_within_limits(node, grid, origin, size, depth, speed,
+                                                                          orientations):
+    req = node.ts.cls("tecdar_msgs/srv/Map_Request")(grid=np.array(grid, np.int32), orientations=orientations,
+                                                      origin=np.array(origin, float), size=np.array(size, float),
+                                                      depth=depth, speed=speed)
+    q = RosQuery(node.ts.encode(req, "tecdar_msgs/srv/Map_Request"), rmw.attachment(1, 0, GID))
+    check_reply(node, "tecdar_msgs/srv/Map", q, serve(node, "map", "tecdar_msgs/srv/Map", q))
+
+
+@fuzz_settings(EXAMPLES)
+@given(raw=st.binary(max_size=300), cut=st.integers(0, 200), att=st.one_of(st.none(), st.binary(max_size=40)))
+def test_random_truncated_bytes_and_attachments_never_raise(node, raw, cut, att):
+    valid = node.ts.encode(node.ts.cls("tecdar_msgs/srv/Probe_Request")(
+        direction=np.array([0.0, 0.0, 1.0]), distance=0.005, speed=0.01), "tecdar_msgs/srv/Probe_Request")
+    for payload in (raw, valid[:cut], b"\x00\x01\x00\x00" + raw):
+        q = RosQuery(payload, att if att is not None and len(att) != rmw.ATTACHMENT_BYTES
+                     else rmw.attachment(1, 0, GID))
+        sink = serve(node, "probe", "tecdar_msgs/srv/Probe", q)
+        check_reply(node, "tecdar_msgs/srv/Probe", q, sink)
+
+
+def test_a_huge_sequence_is_refused_unread_and_a_bad_attachment_unanswered(node):
+    req = node.ts.cls("tecdar_msgs/srv/Probe_Request")(direction=np.zeros(300_000), distance=0.005, speed=0.01)
+    q = RosQuery(node.ts.encode(req, "tecdar_msgs/srv/Probe_Request"), rmw.attachment(9, 0, GID))
+    sink = serve(node, "probe", "tecdar_msgs/srv/Probe", q)
+    assert not sink.submitted
+    res = node.ts.decode(q.replies[0][0], "tecdar_msgs/srv/Probe_Response")
+    assert res.error_code == C.PAYLOAD_TOO_LARGE
+    for att in (None, b"", GID, rmw.attachment(1, 0, GID)[:-1]):
+        q = RosQuery(b"\x00\x01\x00\x00", att)
+        assert not serve(node, "probe", "tecdar_msgs/srv/Probe", q).submitted and q.replies == []
+    q = RosQuery(node.ts.encode(node.ts.cls("tecdar_msgs/srv/Probe_Request")(direction=np.zeros(0), distance=math.nan,
+                                                                             speed=math.nan),
+                                "tecdar_msgs/srv/Probe_Request"), rmw.attachment(2, 0, GID))
+    sink = serve(node, "probe", "tecdar_msgs/srv/Probe", q, read_only="observed")
+    assert not sink.submitted
+    assert node.ts.decode(q.replies[0][0], "tecdar_msgs/srv/Probe_Response").error_code == C.READ_ONLY
+
+
+# -- joint states --------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def observer():
+    from tecdard.config import Config
+    from tecdard.robots.backends import BackendContext
+    from tecdard.robots.model import READY_Q, ArmModel
+    from tecdard.robots.ros2_observer import Ros2Observer
+    return Ros2Observer(BackendContext(Config({}), ArmModel("panda"), np.array(READY_Q["panda"]), [0, 0, 0, 1]))
+
+
+PANDA = [f"panda_joint{i}" for i in range(1, 8)]
+
+
+@fuzz_settings(EXAMPLES)
+@given(names=st.lists(st.sampled_from(PANDA + ["", "x", "panda_finger_joint1"]), max_size=10),
+       position=st.lists(floats, max_size=10), velocity=st.lists(floats, max_size=10),
+       sec=st.integers(-2**31, 2**31 - 1), nsec=st.integers(0, 2**32 - 1), raw=st.binary(max_size=200),
+       cut=st.integers(0, 400))
+def test_any_joint_state_is_a_checked_state_or_a_fault(node, observer, names, position, velocity, sec, nsec, raw, cut):
+    T = node.ts.store.types
+    msg = T["sensor_msgs/msg/JointState"](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=""),
+        name=names, position=np.array(position, float), velocity=np.array(velocity, float), effort=np.zeros(0))
+    valid = node.ts.encode(msg, "sensor_msgs/msg/JointState")
+    for payload in (valid, valid[:cut], raw):
+        seq = observer.read_state().seq
+        try:
+            decoded, problem = node.ts.decode(payload, "sensor_msgs/msg/JointState"), None
+        except ValueError as exc:
+            decoded, problem = None, str(exc)
+        observer.on_joint_state(decoded, problem)
+        js = observer.read_state()
+        if js.seq != seq:              # a new state: it passed every check
+            check = observer.state_check
+            assert math.isfinite(js.t) and js.q.shape == (7,) and np.all(np.isfinite(js.q))
+            assert np.all(js.q >= check.q_min) and np.all(js.q <= check.q_max)
