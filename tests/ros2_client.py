@@ -13,7 +13,7 @@ Actions print one JSON line each:
   it sees topics and services, or `timeout`).
 - `subscribe` {"topic", "type", "count", "timeout"}: {"subscribed"} once it is, then the first `count`
   messages (or all that came within `timeout`), as dicts; with {"topics": [[topic, type, count], ...]}
-  several at once, the messages by topic.
+  several at once, the messages by topic. Each message carries "_rx", when it arrived (system clock).
 - `call` {"service", "type", "request", "timeout", "request_definition", "response_definition"}: the
   response, as a dict (null: no reply).
 - `publish` {"topic", "type", "message", "count", "period_s"}: publishes the JointState `message` (a
@@ -83,7 +83,8 @@ def main() -> None:
         # one topic {"topic", "type", "count"}, or several {"topics": [[topic, type, count], ...]} in one session
         wanted = args.get("topics") or [[args["topic"], args["type"], args.get("count", 1)]]
         got = {topic: [] for topic, _, _ in wanted}
-        subs = [sdk.ROS2Subscriber(topic, typ, lambda m, t=topic: got[t].append(to_dict(m)), router_port=port,
+        subs = [sdk.ROS2Subscriber(topic, typ, lambda m, t=topic: got[t].append({**to_dict(m), "_rx": time.time()}),
+                                   router_port=port,
                                    node_name="tecdar_test_listener") for topic, typ, _ in wanted]
         print(json.dumps({"subscribed": [w[0] for w in wanted]}), flush=True)
         t_end = time.monotonic() + args.get("timeout", 10.0)

@@ -129,6 +129,8 @@ def test_bad_requests_get_the_zenoh_interfaces_codes_and_move_nothing(node):
         assert rmw.parse_attachment(replies[0].ok.attachment.to_bytes())[0] == 1
         assert b"bad_request" in replies[0].ok.payload.to_bytes()
         assert list(s.get(data_key, payload=b"\x00\x01\x00\x00", timeout=2.0)) == []     # no attachment
+        wrong_hash = rmw.data_keyexpr(0, token.name, token.dds_type, "RIHS01_" + "0" * 64)
+        assert list(s.get(wrong_hash, payload=b"\x00\x01\x00\x00", attachment=att, timeout=2.0)) == []
     assert d.client.command("status")["state"]["mode"] == "idle"
     assert np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) < 1e-3
 
