@@ -21,6 +21,7 @@ pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test`
 from tecdard.robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
 from tests.franka_sim import ServerProcess, free_franka_host  # noqa: E402
 
+REFLEX_APPROACH_M = 0.08        # the reflex test's approach: still moving when the reflex is injected
 Q_SIM = [0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785]     # franky-sim's initial posture: TCP at (0.554, 0, 0.521)
 FK_TOL_M = 1e-4                 # our FK of the measured joints against franky-sim's pose at rest
 CONNECT_TIMEOUT_S = 3.0
@@ -298,7 +299,9 @@ def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_it
     # as a motion starts): the force stop is set out of the way of this test's free motion
     d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{"control.max_force_n": 100.0}))
     try:
-        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.03})
+        # long enough (4 s at 20 mm/s) that the reflex lands mid-motion on a loaded machine too: a 3 cm
+        # approach can end before the injection reaches franky-sim (one full run saw no reflex in 10 s)
+        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": REFLEX_APPROACH_M})
         assert reply["ok"] is True, reply
         assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
         control.write_text("reflex")
