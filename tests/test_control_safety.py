@@ -238,3 +238,19 @@ def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
     assert "imu_stale" not in ct.faults
     ct._check_sensors(0.22, np.zeros(3), 0.22)                       # a second late tick judges it: a protective stop
     assert "imu_stale" in ct.faults and [s["cause"] for s in stops(ct)] == ["imu_stale"]
+
+
+def test_a_thread_named_in_the_os_shows_its_name_in_proc():
+    """Issue 37: the daemon's threads carry their names into /proc (top -H, ps -L), truncated to 15 characters."""
+    import threading
+    from tecdard.runtime.realtime import name_os_thread
+    seen = {}
+
+    def body():
+        seen["ok"] = name_os_thread("imu-acquisition-long-name")
+        seen["comm"] = open(f"/proc/self/task/{threading.get_native_id()}/comm").read().strip()
+    th = threading.Thread(target=body)
+    th.start()
+    th.join()
+    assert seen == {"ok": True, "comm": "imu-acquisition"}
+    assert open(f"/proc/self/task/{threading.get_native_id()}/comm").read().strip() != "imu-acquisition"

@@ -30,6 +30,7 @@ from tecdard.runtime.live_view import LiveView, VizParams
 from tecdard.runtime.main_loop import MainLoop, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
 from tecdard.runtime.network import ZenohSettings, renice_zenoh_threads
+from tecdard.runtime.realtime import name_os_thread
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.workers import EstimatorThread, acquisition_loop, proprio_loop
@@ -45,6 +46,14 @@ GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
 MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
 MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
+
+
+def _named(name: str, body):
+    """A thread body that first names its OS thread (top -H and /proc show which thread is busy)."""
+    def run():
+        name_os_thread(name)
+        body()
+    return run
 
 
 class Daemon:
@@ -205,7 +214,7 @@ class Daemon:
                  *([("viz", lambda: self.view.run(self.stop_event))] if self.view is not None else []),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:
-            th = threading.Thread(target=body, name=name, daemon=True)
+            th = threading.Thread(target=_named(name, body), name=name, daemon=True)
             th.start()
             self._threads.append(th)
 
