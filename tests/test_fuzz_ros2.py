@@ -70,10 +70,12 @@ def serve(node, verb: str, srv_type: str, query: RosQuery, read_only=None):
     return sink
 
 
-def check_reply(node, srv_type: str, query: RosQuery, sink) -> None:
+def check_reply(node, srv_type: str, query: RosQuery, sink) -> int:
     """At most one reply, a response of the service's type with the request's sequence number and GID,
-    and a refusal with a known code and one short line; or the command handed on, within limits."""
-    assert len(query.replies) + len(sink.submitted) <= 1
+    and a refusal with a known code and one short line; or the command handed on, within limits.
+    Returns how many outcomes there were (0 or 1)."""
+    outcomes = len(query.replies) + len(sink.submitted)
+    assert outcomes <= 1
     if query.replies:
         payload, att = query.replies[0]
         seq, _t, gid = rmw.parse_attachment(att)
@@ -88,6 +90,7 @@ def check_reply(node, srv_type: str, query: RosQuery, sink) -> None:
                 assert not isinstance(x, float) or math.isfinite(x)
         if "speed" in msg.fields:
             assert LIMITS.min_speed <= msg.fields["speed"] <= LIMITS.max_speed
+    return outcomes
 
 
 floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -105,7 +108,7 @@ def test_any_rotate_request_is_refused_with_a_code_or_handed_on_within_limits(no
     raw = node.ts.encode(req, "tecdar_msgs/srv/Rotate_Request")
     q = RosQuery(raw, rmw.attachment(seq, 0, GID))
     sink = serve(node, "rotate", "tecdar_msgs/srv/Rotate", q)
-    check_reply(node, "tecdar_msgs/srv/Rotate", q, sink)
+    assert check_reply(node, "tecdar_msgs/srv/Rotate", q, sink) == 1      # a request with its attachment: answered
     if q.replies:
         assert rmw.parse_attachment(q.replies[0][1])[0] == seq
 
@@ -119,7 +122,7 @@ def test_any_map_request_is_refused_with_a_code_or_handed_on_within_limits(node,
                                                       origin=np.array(origin, float), size=np.array(size, float),
                                                       depth=depth, speed=speed)
     q = RosQuery(node.ts.encode(req, "tecdar_msgs/srv/Map_Request"), rmw.attachment(1, 0, GID))
-    check_reply(node, "tecdar_msgs/srv/Map", q, serve(node, "map", "tecdar_msgs/srv/Map", q))
+    assert check_reply(node, "tecdar_msgs/srv/Map", q, serve(node, "map", "tecdar_msgs/srv/Map", q)) == 1
 
 
 @fuzz_settings(EXAMPLES)
@@ -127,11 +130,12 @@ def test_any_map_request_is_refused_with_a_code_or_handed_on_within_limits(node,
 def test_random_truncated_bytes_and_attachments_never_raise(node, raw, cut, att):
     valid = node.ts.encode(node.ts.cls("tecdar_msgs/srv/Probe_Request")(
         direction=np.array([0.0, 0.0, 1.0]), distance=0.005, speed=0.01), "tecdar_msgs/srv/Probe_Request")
+    bad_attachment = att is not None and len(att) != rmw.ATTACHMENT_BYTES
     for payload in (raw, valid[:cut], b"\x00\x01\x00\x00" + raw):
-        q = RosQuery(payload, att if att is not None and len(att) != rmw.ATTACHMENT_BYTES
-                     else rmw.attachment(1, 0, GID))
+        q = RosQuery(payload, att if bad_attachment else rmw.attachment(1, 0, GID))
         sink = serve(node, "probe", "tecdar_msgs/srv/Probe", q)
-        check_reply(node, "tecdar_msgs/srv/Probe", q, sink)
+        # no attachment a client would send: no reply; with one, exactly one answer or hand-over
+        assert check_reply(node, "tecdar_msgs/srv/Probe", q, sink) == (0 if bad_attachment else 1)
 
 
 def test_a_huge_sequence_is_refused_unread_and_a_bad_attachment_unanswered(node):

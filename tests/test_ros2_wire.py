@@ -51,8 +51,9 @@ def rclpy_class(ros_type: str):
     return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
 
 
-def same(ours, theirs, path="msg"):
-    """Field by field: a rosbags message against an rclpy one (NaN equals NaN)."""
+def same(ours, theirs, path="msg") -> bool:
+    """Field by field: a rosbags message against an rclpy one (NaN equals NaN); True once every field
+    compared equal (an AssertionError names the first that did not)."""
     if hasattr(ours, "__dataclass_fields__"):
         for name in ours.__dataclass_fields__:
             if name != "__msgtype__":
@@ -76,6 +77,7 @@ def same(ours, theirs, path="msg"):
         assert ours == theirs[0], (path, ours, theirs)
     else:
         assert ours == theirs, (path, ours, theirs)
+    return True
 
 
 def published(ts):
@@ -99,7 +101,7 @@ def test_rclpy_reads_every_stock_message_we_publish_as_we_meant_it(ts):
     for ros_type, msg in published(ts):
         ours = ts.encode(msg, ros_type)
         theirs = serialization.deserialize_message(ours, rclpy_class(ros_type))
-        same(msg, theirs, ros_type)
+        assert same(msg, theirs, ros_type)
 
 
 def test_we_read_rclpys_own_bytes_of_every_stock_type(ts):
@@ -107,7 +109,7 @@ def test_we_read_rclpys_own_bytes_of_every_stock_type(ts):
     for ros_type, msg in published(ts):
         theirs = serialization.deserialize_message(ts.encode(msg, ros_type), rclpy_class(ros_type))
         back = ts.decode(serialization.serialize_message(theirs), ros_type)
-        same(back, theirs, ros_type)
+        assert same(back, theirs, ros_type)
 
 
 def test_the_trigger_service_reply_and_a_joint_state_both_ways(ts):
@@ -120,7 +122,7 @@ def test_the_trigger_service_reply_and_a_joint_state_both_ways(ts):
     js = JointState(name=["a", "", "panda_joint7"], position=[0.1, math.nan, -3.0], velocity=[], effort=[1.0, 2.0, 3.0])
     js.header.frame_id = LONG_FRAME
     back = ts.decode(serialization.serialize_message(js), "sensor_msgs/msg/JointState")
-    same(back, js, "JointState")
+    assert same(back, js, "JointState")
 
 
 def test_the_tf_message_reads_back_and_is_a_sequence_of_rclpys_transforms(ts):
@@ -132,7 +134,7 @@ def test_the_tf_message_reads_back_and_is_a_sequence_of_rclpys_transforms(ts):
     assert int.from_bytes(raw[4:8], "little") == 1
     one = serialization.deserialize_message(ts.encode(msg.transforms[0], "geometry_msgs/msg/TransformStamped"),
                                             TransformStamped)
-    same(ts.decode(raw, "tf2_msgs/msg/TFMessage").transforms[0], one, "transform")
+    assert same(ts.decode(raw, "tf2_msgs/msg/TFMessage").transforms[0], one, "transform")
     assert one.child_frame_id == "sim/contact" and not one.child_frame_id.startswith("/")
 
 
