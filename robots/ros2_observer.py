@@ -46,7 +46,7 @@ class Ros2Observer(RobotBackend):
         section = robot.section("ros2")
         self.stale_s = section.getfloat("stale_s", STALE_S, above=0.0, maxval=5.0)
         self.first_state_s = section.getfloat("first_state_s", FIRST_STATE_S, minval=0.0, maxval=60.0)
-        self.model_label = "robot.urdf" if ctx.cfg.section("robot").has("urdf") else "robot.model"
+        self.model_label = "robot.urdf" if robot.has("urdf") else "robot.model"
         self.model = ctx.model
         self.names = list(ctx.model.joint_names)
         self.index = {n: i for i, n in enumerate(self.names)}

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import threading
 import time
 from dataclasses import dataclass
 
@@ -25,6 +24,7 @@ import zenoh
 
 from tecdard import verbs as task_verbs
 from tecdard.ros2 import messages as M
+from tecdard.runtime.messages import Inbox
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
 
@@ -128,7 +128,7 @@ class Ros2Node:
         self.params, self.robot, self.intake = params, robot, intake
         self.ts = types or TypeSupport(params.distro)
         self.ts.add_service(TRIGGER_SRV, TRIGGER)
-        self._inbox = _Inbox(TAP_PASSES)
+        self._inbox = Inbox(TAP_PASSES)
         self._declared: list = []
         self._pubs: dict[str, tuple] = {}         # topic -> (zenoh publisher, gid, [seq], type)
         self._services: list[_Service] = []
@@ -407,27 +407,6 @@ class Ros2Node:
 
 def _bytes(z) -> bytes | None:
     return None if z is None else z.to_bytes()
-
-
-class _Inbox:
-    """Estimator passes for the publish pass: bounded, never blocking the estimator (drops counted)."""
-
-    def __init__(self, capacity: int):
-        self._items: list = []
-        self._lock = threading.Lock()
-        self.capacity, self.dropped = capacity, 0
-
-    def put(self, item) -> None:
-        with self._lock:
-            if len(self._items) >= self.capacity:
-                self.dropped += 1
-                return
-            self._items.append(item)
-
-    def drain(self) -> list:
-        with self._lock:
-            items, self._items = self._items, []
-        return items
 
 
 class _BlockAverage:

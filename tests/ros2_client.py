@@ -29,6 +29,7 @@ import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms\n"     # tf2_msgs/msg/TFMessage.msg as tf2_msgs ships it
 
 
 def definitions_dir() -> str:
@@ -41,7 +42,7 @@ def definitions_dir() -> str:
     (out / "tecdar_msgs").symlink_to(ROOT / "ros2" / "tecdar_msgs")
     tf = out / "tf2_msgs" / "msg"          # no ros-tf2-msgs wheel: its one message, as tf2_msgs ships it
     tf.mkdir(parents=True)
-    (tf / "TFMessage.msg").write_text("geometry_msgs/TransformStamped[] transforms\n")
+    (tf / "TFMessage.msg").write_text(TFMESSAGE_MSG)
     return str(out)
 
 

@@ -18,11 +18,11 @@ from tecdard.ros2 import messages as M
 from tecdard.ros2 import rmw
 from tecdard.ros2.node import TOPICS, TRIGGER, TRIGGER_SRV, _BlockAverage
 from tecdard.ros2.typesupport import HASH_NOT_SUPPORTED, MSGS_DIR, TypeSupport, dds_type_name
+from tests.ros2_client import TFMESSAGE_MSG
 
 serialization = pytest.importorskip("rclpy.serialization", reason="ros-rclpy is installed by `make test`")
 SHARE = pathlib.Path(sys.prefix) / "share"
 LONG_FRAME = "frame_" + "x" * 5000
-TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms\n"     # tf2_msgs/msg/TFMessage.msg as tf2_msgs ships it
 STOCK = [t for t, _ in TOPICS.values() if not t.startswith(("tecdar_msgs", "tf2_msgs"))]
 
 
