@@ -16,7 +16,7 @@ import numpy as np
 from tecdard.control import estimators
 from tecdard.control.conditioning import GyroConditioner
 from tecdard.control.estimators.base import UNOBSERVED_STD_M, Snapshot
-from tecdard.control.estimators.kernels.report import plane_rotation, rate_moments, rotation_axes
+from tecdard.control.estimators.kernels.api import plane_rotation, rate_moments, rotation_axes
 from tecdard.control.geometry import Plane
 from tecdard.control.measurements import (FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements,
                                           ProprioTrack, RigNoise)

@@ -16,11 +16,10 @@ import numpy as np
 
 from tecdard.control.estimators.base import (CONSISTENCY_TAU_S, UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec,
                                              Snapshot)
+from tecdard.control.estimators.kernels.api import K_MIN, ekf_advance, ekf_segments, eta_weight, report_state
 from tecdard.control.estimators.kernels.records import (RUN_PARAMS, STATUS, EkfState, Frame, Outputs, Window,
                                                         contiguous, record)
 from tecdard.control.estimators.kernels.records import Samples as Run
-from tecdard.control.estimators.kernels.report import K_MIN, eta_weight, report_state
-from tecdard.control.estimators.kernels.run import ekf_advance, ekf_segments
 from tecdard.control.estimators.positions import (MIN_RESIDUAL_SAMPLES, NO_EVIDENCE, POSITION_RESIDUAL_LIMIT,
                                                    PositionEvidence, position_var)
 from tecdard.control.geometry import Plane

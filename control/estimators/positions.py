@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tecdard.control.estimators.kernels.evidence import (position_increment, position_reset, position_residual,
-                                                          position_sums)
+from tecdard.control.estimators.kernels.api import (position_increment, position_reset, position_residual,
+                                                    position_sums)
 from tecdard.control.estimators.kernels.records import EVIDENCE_STATUS, Evidence, record
 
 MIN_RESIDUAL_SAMPLES = 8       # position samples before the rigid-body residual test can speak

@@ -31,8 +31,7 @@ import numpy as np
 
 from tecdard.control.estimators.base import CONSISTENCY_TAU_S, UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec
 from tecdard.control.estimators.ekf import CONSISTENCY_WINDOW_S, ContactKfParams, ContactKfSettings
-from tecdard.control.estimators.kernels.model import GATE_HPH_RATIO
-from tecdard.control.estimators.kernels.report import ETA_PRIOR_LIMIT, K_MIN, eta_weight
+from tecdard.control.estimators.kernels.api import ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN, eta_weight
 from tecdard.control.estimators.positions import MIN_RESIDUAL_SAMPLES, POSITION_RESIDUAL_LIMIT, PositionEvidence
 from tecdard.control.geometry import Plane, skew
 from tecdard.control.measurements import Samples

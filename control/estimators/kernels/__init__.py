@@ -15,10 +15,10 @@ NUMBA_DISABLE_JIT=1 runs them as plain Python, for debugging.
 """
 from __future__ import annotations
 
-from numba import njit
-
 # IEEE division (inf, nan) as in numpy, not Python's ZeroDivisionError; the GIL released meanwhile.
 JIT = dict(nogil=True, error_model="numpy")
+BUILDING = False        # set by `build` before it imports the kernel modules
+EXPORTS: list = []      # (module, name, signature, function) of every kernel with a signature, when BUILDING
 
 
 def jit(signature=None):
@@ -29,6 +29,12 @@ def jit(signature=None):
     Without a signature (a helper only compiled functions call) it is compiled with its first
     caller, which has one and is compiled at import."""
     def wrap(fn):
+        from numba import njit
+        if BUILDING:                 # compiled ahead of time: for `build` to export, never cached
+            if signature is None:
+                return njit(**JIT)(fn)
+            EXPORTS.append((fn.__module__.rsplit(".", 1)[-1], fn.__name__, signature, fn))
+            return njit(signature, **JIT)(fn)
         args = () if signature is None else (signature,)
         try:
             return njit(*args, cache=True, **JIT)(fn)

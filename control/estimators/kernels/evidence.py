@@ -9,9 +9,9 @@ import numpy as np
 from numba import types
 
 from tecdard.control.estimators.kernels import jit
+from tecdard.control.estimators.kernels.constants import ETA_PRIOR_LIMIT, K_MIN
 from tecdard.control.estimators.kernels.linalg import collapsed_update, pinv_quadratic
-from tecdard.control.estimators.kernels.records import EVIDENCE_T, PARAMS_T
-from tecdard.control.estimators.kernels.report import ETA_PRIOR_LIMIT, K_MIN
+from tecdard.control.estimators.kernels.nbtypes import EVIDENCE_T, PARAMS_T
 
 
 @jit(types.Tuple((types.int64, types.float64))(EVIDENCE_T, types.float64[:], types.float64[:, :], types.float64[:, :],

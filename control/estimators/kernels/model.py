@@ -19,11 +19,9 @@ import numpy as np
 from numba import types
 
 from tecdard.control.estimators.kernels import jit
+from tecdard.control.estimators.kernels.constants import GATE_HPH_RATIO, K_MIN
 from tecdard.control.estimators.kernels.linalg import collapsed_update
-from tecdard.control.estimators.kernels.records import FRAME_T, PARAMS_T, SAMPLES_T
-from tecdard.control.estimators.kernels.report import K_MIN
-
-GATE_HPH_RATIO = 0.1           # NIS gating starts once H P H^T is this small against R
+from tecdard.control.estimators.kernels.nbtypes import FRAME_T, PARAMS_T, SAMPLES_T
 
 
 @jit(types.Tuple((types.float64[:, :], types.float64[:], types.boolean, types.float64[:], types.int64))(

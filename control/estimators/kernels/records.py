@@ -1,4 +1,4 @@
-"""The `ekf` run's named records: its state and parameters as numba sees them.
+"""The `ekf` run's named records: its state and parameters (numpy only; `nbtypes` gives numba's view of them).
 
 Scalars that change together live in numpy structured arrays of one element (numba reads and
 writes their fields by name: `status[0].steps`); arrays that belong together live in named tuples
@@ -9,7 +9,6 @@ from __future__ import annotations
 from collections import namedtuple
 
 import numpy as np
-from numba import from_dtype, types
 
 STATUS = np.dtype([
     ("steps", np.int64),           # IMU samples taken this episode
@@ -60,15 +59,6 @@ Frame = namedtuple("Frame", "E nrm origin")      # the filter's coordinates: bas
 EkfState = namedtuple("EkfState", "x P status r_last win ev")
 Outputs = namedtuple("Outputs", "x P r s")      # per reported segment: x, P, r_last, (steps, nis, consistency)
 
-_V, _M = types.float64[::1], types.float64[:, ::1]
-STATUS_T = from_dtype(STATUS)[::1]
-PARAMS_T = from_dtype(RUN_PARAMS)[::1]
-WINDOW_T = types.NamedTuple((_V, _M, _M, _V), Window)
-EVIDENCE_T = types.NamedTuple((from_dtype(EVIDENCE_STATUS)[::1], _V, _V, _V, _M, _M, _V, _V, _M, _V), Evidence)
-SAMPLES_T = types.NamedTuple((_V, _M, _M, _M, _M, _M, _M, _M, _V, _V, types.boolean[::1]), Samples)
-FRAME_T = types.NamedTuple((_M, _V, _V), Frame)
-STATE_T = types.NamedTuple((_V, _M, STATUS_T, _V, WINDOW_T, EVIDENCE_T), EkfState)
-OUTPUTS_T = types.NamedTuple((_M, types.float64[:, :, ::1], _M, _M), Outputs)
 
 
 def record(dtype: np.dtype, **values) -> np.ndarray:

@@ -7,11 +7,9 @@ import math
 import numpy as np
 
 from tecdard.control.estimators.kernels import jit
+from tecdard.control.estimators.kernels.constants import ETA_BLEND_SIGMA, ETA_PRIOR_LIMIT, K_MIN
 from tecdard.control.estimators.kernels.linalg import lift, matmul, sym_eig
 
-ETA_BLEND_SIGMA = 1.0          # the free-eta estimate is blended in over this many more sigma of evidence
-ETA_PRIOR_LIMIT = 4.0          # an eta ratio further than this many prior sigmas from 1 is a model failure
-K_MIN = 0.2                    # floor of the eta ratio k when dividing by it (its prior is 1 +- 25 % at most)
 
 
 @jit("Tuple((float64, float64))(float64, float64, float64, float64)")

@@ -9,11 +9,11 @@ import numpy as np
 from numba import types
 
 from tecdard.control.estimators.kernels import jit
+from tecdard.control.estimators.kernels.constants import K_MIN
 from tecdard.control.estimators.kernels.evidence import position_account, position_reset
 from tecdard.control.estimators.kernels.linalg import window_add, window_nis
 from tecdard.control.estimators.kernels.model import block_update
-from tecdard.control.estimators.kernels.records import FRAME_T, OUTPUTS_T, PARAMS_T, SAMPLES_T, STATE_T
-from tecdard.control.estimators.kernels.report import K_MIN
+from tecdard.control.estimators.kernels.nbtypes import FRAME_T, OUTPUTS_T, PARAMS_T, SAMPLES_T, STATE_T
 
 
 @jit(types.float64[::1](STATE_T, types.float64[::1], types.float64[:, :], types.float64[:, :], types.float64[:],
