@@ -89,6 +89,46 @@ class EtaSchedule:
         return mean, rel_std + s * math.sqrt(1.0 - 2.0 / math.pi)
 
 
+HISTORY_SLACK = 4              # ProprioTrack's backing arrays hold this many windows of states
+# ProprioTrack's fields and their initial values (a scalar, a row shape, or the identity). The
+# history is a window of `size` states over backing arrays of HISTORY_SLACK * size: each field is
+# a view of its backing array, moved one state on when the window is full, and the window is
+# copied back to the start only once per (HISTORY_SLACK - 1) * size states (shifting 18 arrays on
+# every state was a third of the estimator's time at rest).
+HISTORY_FIELDS = {
+    "t": np.inf,
+    "p": (3,), "v": (3,),
+    "tv": 0.0,                     # time the velocity belongs to
+    "pv": (3,),                    # the TCP's position then
+    "hv": 0.0,                     # half the span around tv that the velocity describes, s
+    "var_v": 0.0,
+    "a": 0.0,                      # |acceleration| estimate, m/s^2
+    "acc": (3,),                   # the TCP's acceleration, world, m/s^2 (a fit over ACCEL_WINDOW_S)
+    "acc_ok": False,               # acc[k] has been fitted
+    # per state, what it says of the arm's own motion for the onset trigger (explained): the specific
+    # force and the gripper's rate in the IMU frame, how far they may trail, |acceleration|
+    "expl": (9,),
+    "expl_ok": False,
+    "alpha": 0.0,                  # |angular acceleration| estimate of the TCP, rad/s^2
+    "tw": 0.0,                     # time the TCP rate belongs to
+    "R": "eye",
+    "w": (3,),
+    "wdot": (3,),                  # angular acceleration of a reported TCP rate, rad/s^2 (0: derived)
+    "force": np.nan,
+}
+
+
+def _backing(n: int, fill) -> np.ndarray:
+    """A backing array of n rows for a field: a scalar fill (float or bool), a row shape, or "eye" (3x3)."""
+    if fill == "eye":
+        return np.tile(np.eye(3), (n, 1, 1))
+    if isinstance(fill, tuple):
+        return np.zeros((n, *fill))
+    if isinstance(fill, bool):
+        return np.full(n, fill, dtype=bool)
+    return np.full(n, fill)
+
+
 class ProprioTrack:
     """Recent TCP states for causal lookup: an IMU sample at time t sees only states stamped at or before t.
 
@@ -103,27 +143,10 @@ class ProprioTrack:
         self.size = size
         self.sigma_p = sigma_p
         self.sigma_v = sigma_v
-        self.t = np.full(size, np.inf)
-        self.p = np.zeros((size, 3))
-        self.v = np.zeros((size, 3))
-        self.tv = np.zeros(size)           # time the velocity belongs to
-        self.pv = np.zeros((size, 3))      # the TCP's position then
-        self.hv = np.zeros(size)           # half the span around tv that the velocity describes, s
-        self.var_v = np.zeros(size)
-        self.a = np.zeros(size)            # |acceleration| estimate, m/s^2
-        self.acc = np.zeros((size, 3))     # the TCP's acceleration, world, m/s^2 (a fit over ACCEL_WINDOW_S)
-        self.acc_ok = np.zeros(size, dtype=bool)   # acc[k] has been fitted
-        # per state, what it says of the arm's own motion for the onset trigger (explained): the specific
-        # force and the gripper's rate in the IMU frame, how far they may trail, |acceleration|
+        self._backing = {name: _backing(HISTORY_SLACK * size, fill) for name, fill in HISTORY_FIELDS.items()}
+        self._start = 0
+        self._view()
         self.imu_mount = np.eye(3)         # R_tcp_imu
-        self.expl = np.zeros((size, 9))
-        self.expl_ok = np.zeros(size, dtype=bool)
-        self.alpha = np.zeros(size)        # |angular acceleration| estimate of the TCP, rad/s^2
-        self.tw = np.zeros(size)           # time the TCP rate belongs to
-        self.R = np.tile(np.eye(3), (size, 1, 1))
-        self.w = np.zeros((size, 3))
-        self.wdot = np.zeros((size, 3))    # angular acceleration of a reported TCP rate, rad/s^2 (0: derived)
-        self.force = np.full(size, np.nan)
         self.n = 0
         self._rate = np.nan
         self._rate_n = 0
@@ -164,9 +187,7 @@ class ProprioTrack:
         a = math.dist(v, self.v[n - 1]) / max(tv - self.tv[n - 1], 1e-6) if n else 0.0
         alpha = math.dist(w, self.w[n - 1]) / max(tw - self.tw[n - 1], 1e-6) if n else 0.0
         if n == self.size:
-            for arr in (self.t, self.p, self.v, self.tv, self.pv, self.hv, self.var_v, self.a, self.acc, self.acc_ok,
-                        self.expl, self.expl_ok, self.alpha, self.tw, self.R, self.w, self.wdot, self.force):
-                arr[:-1] = arr[1:]
+            self._slide()
             n -= 1
         self.acc_ok[n] = self.expl_ok[n] = False       # fitted when first asked for (explained)
         self.t[n], self.p[n], self.v[n], self.tv[n], self.var_v[n] = t, p, v, tv, var_v
@@ -175,6 +196,22 @@ class ProprioTrack:
         self.wdot[n] = wdot
         self.n = n + 1
         self.added += 1
+
+    def _view(self) -> None:
+        for name, arr in self._backing.items():
+            setattr(self, name, arr[self._start:self._start + self.size])
+
+    def _slide(self) -> None:
+        """Drop the oldest state: the window moves on by one; at the end of the backing arrays, the
+        newest size - 1 states go back to their start."""
+        if self._start + self.size < len(self._backing["t"]):
+            self._start += 1
+        else:
+            keep = self.size - 1
+            for arr in self._backing.values():
+                arr[:keep] = arr[self._start + 1:self._start + self.size]
+            self._start = 0
+        self._view()
 
     def _fit_accel(self, k: int) -> np.ndarray:
         """The TCP's acceleration as of state k: the slope of the least-squares line through the

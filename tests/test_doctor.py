@@ -63,6 +63,29 @@ def test_governor(tmp_path):
     assert doctor.check_governor(str(tmp_path / "nothing*")).status == "warn"
 
 
+def test_busy_cores_and_isolated_cores(tmp_path):
+    """Issue 37: a core busy at rest, or none isolated, is a warning naming the cores and the fix."""
+    c = doctor.check_busy_cores({"cpu0": 12.0, "cpu1": 97.0})
+    assert c.status == "warn" and "1 of 2 cores over 50 % busy (cpu0 12 %, cpu1 97 %)" in c.detail
+    assert "isolcpus" in c.fix
+    assert doctor.check_busy_cores({"cpu0": 12.0, "cpu1": 20.0}).status == "pass"
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  10 0 10 100 0 0 0 0 0 0\ncpu0 5 0 5 50 0 0 0 0 0 0\ncpu1 5 0 5 50 0 0 0 0 0 0\n")
+    busy = doctor.cpu_busy_pct(str(stat), 0.0)
+    assert busy == {"cpu0": 0.0, "cpu1": 0.0}                # nothing changed between the two reads
+    real = doctor.cpu_busy_pct(sample_s=0.05)                 # this host's own
+    assert real and all(name.startswith("cpu") and 0.0 <= pct <= 100.0 for name, pct in real.items())
+    iso, cmdline = tmp_path / "isolated", tmp_path / "cmdline"
+    iso.write_text("\n")
+    cmdline.write_text("BOOT_IMAGE=/vmlinuz root=/dev/sda1 quiet\n")
+    c = doctor.check_isolated_cores(str(iso), str(cmdline))
+    assert c.status == "warn" and "no core is isolated" in c.detail and "CPUAffinity=1" in c.fix
+    iso.write_text("1\n")
+    cmdline.write_text("quiet isolcpus=1 nohz_full=1\n")
+    c = doctor.check_isolated_cores(str(iso), str(cmdline))
+    assert c.status == "pass" and "isolated CPUs 1; nohz_full 1" in c.detail
+
+
 def test_rtprio_is_tried_on_a_thread_of_its_own():
     before = os.sched_getscheduler(0)
     c = doctor.check_rtprio(10)

@@ -122,6 +122,44 @@ def test_eta_prior_is_centred_between_calibrations_and_one_sided_outside():
     assert eta.prior(10.0, 0.05, 0.0) == (1.0, 0.05)
 
 
+def test_proprio_history_slides_as_a_shifted_window_would():
+    """Issue 37: the history's window moves over backing arrays instead of shifting 18 arrays per state;
+    every field, lookup and explanation equals the shifting window's, through several wrap-arounds,
+    with reported and with derived rates."""
+    from tecdard.control.measurements import HISTORY_FIELDS
+
+    class Shifting(ProprioTrack):              # the history as it was: every array shifted by one
+        def _slide(self):
+            for name in HISTORY_FIELDS:
+                arr = getattr(self, name)
+                arr[:-1] = arr[1:]
+
+    rng = np.random.default_rng(4)
+    for derived in (False, True):
+        a, b = ProprioTrack(size=16), Shifting(size=16)
+        for i in range(300):
+            t = 0.002 * i + 1e-4 * rng.random()
+            p = rng.normal(size=3) * 0.01
+            R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            v, w = (None, None) if derived else (rng.normal(size=3), rng.normal(size=3))
+            for track in (a, b):
+                track.add(t, p, v, R, w, float(i))
+            if i % 7 == 0:
+                ts = np.array([t - 0.02, t - 0.005, t])
+                for x, y in zip(a.lookup(ts), b.lookup(ts)):
+                    np.testing.assert_array_equal(x, y)
+                np.testing.assert_array_equal(a.explained(ts), b.explained(ts))
+        assert a.n == b.n == 16 and a.added == 300
+        for name in HISTORY_FIELDS:
+            # acc and expl are read only where acc_ok and expl_ok say they were made for their state
+            made = getattr(a, name + "_ok", np.ones(16, bool))
+            np.testing.assert_array_equal(getattr(a, name)[made], getattr(b, name)[made], err_msg=name)
+        np.testing.assert_array_equal(a.acc_ok, b.acc_ok)
+        np.testing.assert_array_equal(a.expl_ok, b.expl_ok)
+        assert a.acc_ok.any() and a.expl_ok.any()
+        assert a.sigma_p_effective() == b.sigma_p_effective() and a.rate_hz() == b.rate_hz()
+
+
 def test_proprio_lookup_is_causal():
     track = ProprioTrack()
     track.add(0.0, np.zeros(3), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))

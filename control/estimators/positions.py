@@ -108,7 +108,6 @@ class PositionEvidence:
 
     def increment(self) -> tuple[np.ndarray, np.ndarray]:
         """(dLambda, dxi): the growth of the marginal information on (m, k) since the last call."""
-        ev = self.ev
         return position_increment(self.ev, self.n, self.noise_var)
 
     def residual_ratio(self, k: float = 1.0) -> float:

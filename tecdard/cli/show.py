@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 M_TO_MM = 1e3
+THREAD_ROWS = 12               # `status` shows the busiest threads only
 # result fields in metres, by name, and how each is labelled
 LENGTHS_M = {"radius": "lever arm", "lever_arm": "lever arm", "travel": "travel", "distance": "distance"}
 
@@ -93,6 +94,14 @@ def status_lines(state: dict) -> list[str]:
         late = ctl.get("late_ms_p99")
         rows.append(("control", f"{ctl.get('ticks', '-')} ticks, {ctl.get('overruns', '-')} overruns"
                      + (f", lateness p99 {late:.2f} ms" if _finite(late) else "")))
+    threads = state.get("threads")
+    if isinstance(threads, dict) and threads:
+        rows.append(("threads", "CPU of one core, last 5 s; the longest wait to run once due"))
+        for name, row in list(threads.items())[:THREAD_ROWS]:
+            if isinstance(row, dict) and _finite(row.get("cpu_pct")):
+                wake = row.get("wake_ms_max")
+                rows.append((f"  {name}", f"{row['cpu_pct']:.1f} %" + (f", waited up to {wake:.2f} ms"
+                                                                        if _finite(wake) else "")))
     return _rows(rows)
 
 

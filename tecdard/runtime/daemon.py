@@ -33,13 +33,16 @@ from tecdard.runtime.network import ZenohSettings, renice_zenoh_threads
 from tecdard.runtime.realtime import name_os_thread
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
+from tecdard.runtime.threads import ThreadUsage, WakeStats
 from tecdard.runtime.workers import EstimatorThread, acquisition_loop, proprio_loop
 
 log = logging.getLogger("tecdar")
 
 OUTBOX_SIZE = 4096
 THREAD_JOIN_S = 0.5
-MAIN_POLL_S = 0.005            # the main thread looks at the query ring and the replies at least this often
+MAIN_POLL_S = 0.005            # the main thread looks at the query ring and the replies at least this often,
+MAIN_IDLE_POLL_S = 0.02        # or, at rest (no task, no query for MAIN_BUSY_S), this often: the control tick's
+MAIN_BUSY_S = 2.0              # state wakes it then anyway, and a first query waits at most 20 ms more
 SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop, a map and a recording to be written
 RECORDER_JOIN_S = 1.0          # then the recorder's thread this long more (the unit's TimeoutStopSec: 5 s)
 GIL_SWITCH_INTERVAL_S = 0.001
@@ -164,9 +167,11 @@ class Daemon:
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
                                      imu_saturated_since=lambda: self.estimator.saturated_since)
+        self.ring.wake = WakeStats()
+        self.threads = ThreadUsage({"control": self.control.stats.wake, "estimator": self.ring.wake})
         self.keys = Keys(self.robot_name)
         self.intake = QueryIntake(self.keys, self.limits, self.control,
-                                  lambda: status_json(self.control, self.intake), self.zenoh.intake,
+                                  lambda: status_json(self.control, self.intake, self.threads), self.zenoh.intake,
                                   record=self.recorder.request,
                                   read_only=None if self.backend.commands_arm else self.backend.read_only_reason)
         if self.ros2 is not None:
@@ -296,6 +301,7 @@ class Daemon:
         shutdown_by = None
         while not self.stop_event.is_set():
             now = time.monotonic()
+            self.threads.sample(now)
             main.serve_commands(now)
             if self.shutdown_requested.is_set():
                 if shutdown_by is None:
@@ -312,4 +318,5 @@ class Daemon:
                         log.warning("shutting down while a recording is still being written (%.1f s grace; "
                                     "%.1f s more are given to it)", SHUTDOWN_GRACE_S, RECORDER_JOIN_S)
                     break
-            main.publish_telemetry(MAIN_POLL_S)
+            at_rest = now - main.active_at > MAIN_BUSY_S and self.control.quiescent()
+            main.publish_telemetry(MAIN_IDLE_POLL_S if at_rest else MAIN_POLL_S)

@@ -14,14 +14,20 @@ log = logging.getLogger("tecdar")
 TELEMETRY_PER_PASS = 64        # state, contact and event messages published per pass, then queries again
 
 
-def status_json(control, intake=None) -> str | None:
+def status_json(control, intake=None, threads=None) -> str | None:
     """`status`: the control thread's newest state (at most a tick old), not the newest published
     one, which can wait behind other telemetry while replies go first; with the command intake's
-    counts (`intake`: queries taken, stops, refusals, rate-limited and dropped queries)."""
+    counts (`intake`: queries taken, stops, refusals, rate-limited and dropped queries) and each OS
+    thread's CPU share and wake-up wait (`threads`: runtime.threads.ThreadUsage)."""
     state = control.latest_state.get()
     if state is None:
         return None
-    return dumps(state if intake is None else {**state, "intake": dict(intake.counters)})
+    extra = {}
+    if intake is not None:
+        extra["intake"] = dict(intake.counters)
+    if threads is not None:
+        extra["threads"] = threads.snapshot()
+    return dumps({**state, **extra} if extra else state)
 
 
 class MainLoop:
@@ -40,16 +46,19 @@ class MainLoop:
         self.annotate = annotate
         self.on_event = on_event
         self.ros2 = ros2
+        self.active_at = -float("inf")     # when a query was last taken or a reply delivered (monotonic s)
 
     def serve_commands(self, now: float) -> None:
         while True:
             try:
                 self.intake.deliver(self.control.replies.get_nowait())
+                self.active_at = now
             except queue.Empty:
                 break
-        self.intake.poll(now)
-        if self.ros2 is not None:
-            self.ros2.poll(now)
+        if self.intake.poll(now):
+            self.active_at = now
+        if self.ros2 is not None and self.ros2.poll(now):
+            self.active_at = now
 
     def publish_telemetry(self, wait_s: float) -> int:
         """Publish up to TELEMETRY_PER_PASS queued messages, waiting up to wait_s for the first."""

@@ -8,10 +8,12 @@ the daemon logs one line and runs SCHED_OTHER. `tecdard doctor` reports the same
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
 from tecdard.host import set_fifo
+from tecdard.runtime.threads import WakeStats
 
 log = logging.getLogger("tecdar")
 
@@ -57,8 +59,10 @@ class TickStats:
         self._work = np.zeros(TICK_STATS_WINDOW)
         self._late = np.zeros(TICK_STATS_WINDOW)
         self.summary = {}
+        self.wake = WakeStats()       # the largest lateness of the last seconds, for `status`'s threads
 
-    def add(self, work_s: float, late_s: float) -> None:
+    def add(self, work_s: float, late_s: float, now: float | None = None) -> None:
+        self.wake.note(late_s, time.monotonic() if now is None else now)
         i = self.ticks % TICK_STATS_WINDOW
         self._work[i] = work_s
         self._late[i] = late_s

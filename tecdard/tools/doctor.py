@@ -59,6 +59,70 @@ def check_governor(cpu_glob: str = "/sys/devices/system/cpu/cpu[0-9]*/cpufreq/sc
                  f"of {len(found)} CPUs: waking from a low clock adds latency to each tick", fix)
 
 
+BUSY_CORE_PCT = 50.0          # a core busier than this at rest leaves the tick waiting behind its work
+LOAD_SAMPLE_S = 0.5           # s, how long the doctor watches the cores
+
+
+def cpu_busy_pct(stat_path: str = "/proc/stat", sample_s: float = LOAD_SAMPLE_S) -> dict[str, float]:
+    """Each CPU's busy share over `sample_s` (everything but idle and iowait), in %."""
+    import time
+
+    def read():
+        out = {}
+        for line in pathlib.Path(stat_path).read_text().splitlines():
+            name, *fields = line.split()
+            if name.startswith("cpu") and name != "cpu" and len(fields) >= 5:
+                ticks = [int(x) for x in fields[:8]]
+                out[name] = (sum(ticks), ticks[3] + ticks[4])
+        return out
+    before = read()
+    time.sleep(sample_s)
+    after = read()
+    busy = {}
+    for name, (total, idle) in after.items():
+        t0, i0 = before.get(name, (total, idle))
+        busy[name] = 100.0 * (1.0 - (idle - i0) / (total - t0)) if total > t0 else 0.0
+    return busy
+
+
+def check_busy_cores(busy: dict[str, float] | None = None) -> Check:
+    """A core already busy (another process at rest, the daemon's own included when it runs) makes the
+    control tick wait for the OS as well as for the GIL: its lateness goes over the 1 ms budget."""
+    try:
+        busy = cpu_busy_pct() if busy is None else busy
+    except (OSError, ValueError) as exc:
+        return Check("busy cores", "warn", f"cannot read /proc/stat: {exc}")
+    loaded = {name: pct for name, pct in busy.items() if pct > BUSY_CORE_PCT}
+    shown = ", ".join(f"{name} {pct:.0f} %" for name, pct in sorted(busy.items()))
+    if not loaded:
+        return Check("busy cores", "pass", f"no core over {BUSY_CORE_PCT:.0f} % busy ({shown})")
+    return Check("busy cores", "warn", f"{len(loaded)} of {len(busy)} cores over {BUSY_CORE_PCT:.0f} % busy ({shown}): "
+                 "the control tick waits behind that work, and its lateness can exceed its budget",
+                 "find the process (`top -1`) and move it, or give the daemon a core of its own (isolcpus=, and "
+                 "CPUAffinity= in the unit)")
+
+
+def check_isolated_cores(isolated_path: str = "/sys/devices/system/cpu/isolated",
+                         cmdline_path: str = "/proc/cmdline") -> Check:
+    """isolcpus= (or nohz_full=) keeps the scheduler's other work off the cores the daemon is pinned to."""
+    try:
+        isolated = pathlib.Path(isolated_path).read_text().strip()
+    except OSError:
+        isolated = ""
+    try:
+        args = pathlib.Path(cmdline_path).read_text().split()
+        nohz = [a.split("=", 1)[1] for a in args if a.startswith("nohz_full=")]
+    except OSError:
+        nohz = []
+    if isolated or nohz:
+        return Check("isolated cores", "pass", f"isolated CPUs {isolated or '-'}; nohz_full {','.join(nohz) or '-'}: "
+                     "pin the daemon there (CPUAffinity= in the unit)")
+    return Check("isolated cores", "warn", "no core is isolated (isolcpus=, nohz_full=): the control tick shares its "
+                 "cores with every other process",
+                 "on a dedicated rig PC: isolcpus=1 nohz_full=1 on the kernel command line and CPUAffinity=1 in the "
+                 "unit; with SCHED_FIFO this bounds the tick's lateness")
+
+
 # -- the fingertip board ---------------------------------------------------------
 def check_udev_rule(dirs=UDEV_RULE_DIRS, rule: pathlib.Path = UDEV_RULE) -> Check:
     fix = (f"sudo install -m 644 {rule} /etc/udev/rules.d/ && sudo udevadm control --reload && "
@@ -173,7 +237,7 @@ def run_checks(config_path: str) -> list[Check]:
     daemon, failed = load_daemon(config_path)
     checks = [failed or Check("config", "pass", f"{config_path} is valid (the checks of `tecdard run`)")]
     checks += [check_rt_kernel(), check_rtprio(daemon.control_params.rt_priority if daemon else None),
-               check_governor()]
+               check_governor(), check_isolated_cores(), check_busy_cores()]
     checks += daemon.imu.checks() if daemon else [Check("fingertip board", "skip", "the config is invalid")]
     checks.append(check_udev_rule())
     if daemon is not None:

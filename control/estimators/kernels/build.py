@@ -26,8 +26,8 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODULE = "_compiled"
 DIGEST_FILE = os.path.join(HERE, MODULE + ".digest")
-SOURCES = ("__init__.py", "constants.py", "linalg.py", "records.py", "nbtypes.py", "report.py", "model.py", "evidence.py",
-           "run.py")
+SOURCES = ("__init__.py", "constants.py", "linalg.py", "records.py", "nbtypes.py", "report.py", "model.py",
+           "evidence.py", "run.py")
 KERNEL_MODULES = ("linalg", "report", "model", "evidence", "run")
 # what the estimators call, per kernel module: the exported functions (their callees are compiled into them)
 PUBLIC = {

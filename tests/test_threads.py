@@ -1,0 +1,110 @@
+"""Issue 37: each OS thread's CPU share and wake-up wait, as `status` reports them."""
+import threading
+import time
+
+import numpy as np
+
+from tecdard.drivers.ring import SampleRing
+from tecdard.runtime import threads
+from tecdard.runtime.realtime import name_os_thread
+from tecdard.cli.show import status_lines
+
+
+def test_wake_stats_keep_the_largest_wait_of_the_last_seconds():
+    w = threads.WakeStats()
+    assert w.max_ms(100.0) is None
+    w.note(0.0004, 100.1)
+    w.note(0.0021, 100.5)
+    w.note(0.0009, 101.2)
+    assert w.max_ms(101.3) == 2.1
+    assert w.max_ms(100.5 + threads.WAKE_WINDOW_S + 1.0) == 0.9      # the second with 2.1 ms has left the window
+    assert w.max_ms(200.0) is None
+
+
+def test_thread_usage_measures_a_busy_named_thread(tmp_path):
+    """A thread that spins for a second shows as itself, near a whole core; a sleeping one near zero."""
+    stop = threading.Event()
+
+    def spin():
+        name_os_thread("spinner")
+        x = 0
+        while not stop.is_set():
+            x += 1
+
+    def sleeper():
+        name_os_thread("sleeper")
+        stop.wait()
+
+    workers = [threading.Thread(target=spin), threading.Thread(target=sleeper)]
+    for t in workers:
+        t.start()
+    wake = threads.WakeStats()
+    wake.note(0.003, time.monotonic())
+    usage = threads.ThreadUsage({"spinner": wake})
+    try:
+        t0 = time.monotonic()
+        usage.sample(t0)
+        usage.sample(t0 + 0.1)                    # within SAMPLE_EVERY_S: not read again
+        assert usage.snapshot() == {}
+        time.sleep(1.2)
+        usage.sample(time.monotonic())
+        snap = usage.snapshot()
+    finally:
+        stop.set()
+        for t in workers:
+            t.join()
+    assert snap["spinner"]["cpu_pct"] > 30.0 and snap["spinner"]["wake_ms_max"] == 3.0
+    assert snap["sleeper"]["cpu_pct"] < 5.0 and "wake_ms_max" not in snap["sleeper"]
+    assert list(snap)[0] == "spinner"             # the busiest first
+    lines = status_lines({"mode": "idle", "threads": snap})
+    assert any(line.split()[:4] == ["spinner", f"{snap['spinner']['cpu_pct']:.1f}", "%,", "waited"]
+               for line in lines), lines
+
+
+def test_a_missing_proc_is_no_threads(tmp_path):
+    assert threads.read_threads_cpu_s(str(tmp_path / "none")) == {}
+
+
+def test_the_ring_wakes_its_consumer_once_the_batch_is_there_and_times_the_wait():
+    """The estimator waits for a batch: pushes short of it do not wake it; the push that completes it does,
+    and the wait from that push to the consumer running is noted."""
+    ring = SampleRing(1024)
+    ring.wake = threads.WakeStats()
+    got = []
+    waiting = threading.Event()
+
+    def consume():
+        waiting.set()
+        got.append(ring.pop(100, 5.0, 40))
+
+    t = threading.Thread(target=consume)
+    t.start()
+    waiting.wait()
+    time.sleep(0.05)
+    for i in range(5):                            # 8-sample packets, as the board sends them
+        ring.push(np.arange(8) + 8.0 * i, np.zeros((8, 3)), np.zeros((8, 3)))
+        time.sleep(0.01)
+        assert not got if i < 4 else True
+    t.join(5.0)
+    assert len(got) == 1 and len(got[0]) == 40 and got[0][-1, 0] == 39.0
+    wait_ms = ring.wake.max_ms(time.monotonic())
+    assert wait_ms is not None and 0.0 <= wait_ms < 5000.0
+
+
+def test_a_running_daemons_status_names_its_threads(shared_daemon):
+    """`status` of a live daemon: each named thread's share of a core, the wake-up waits of the control
+    tick and the estimator, and the CLI's table of them."""
+    import subprocess
+    import sys
+    from tests.conftest import ROOT
+    time.sleep(threads.SAMPLE_EVERY_S * 2.5)
+    st = shared_daemon.client.command("status")["state"]
+    rows = st["threads"]
+    assert {"control", "estimator", "imu-acquisition", "proprioception", "recorder"} <= set(rows), rows
+    assert all(0.0 <= row["cpu_pct"] <= 200.0 for row in rows.values())
+    for name in ("control", "estimator"):
+        assert isinstance(rows[name]["wake_ms_max"], float) and rows[name]["wake_ms_max"] >= 0.0, rows[name]
+    cli = subprocess.run([sys.executable, "-m", "tecdard", "status", "--connect", shared_daemon.endpoint,
+                          "--robot", "sim"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert cli.returncode == 0, cli.stderr
+    assert "threads" in cli.stdout and "control" in cli.stdout and "waited up to" in cli.stdout, cli.stdout
