@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from tecdard.host import name_os_thread
 from tecdard.robots.backends import BackendError
 from tecdard.robots.state_check import StateCheck
 
@@ -168,7 +169,10 @@ class LinkBackend(RobotBackend):
         self._supervisor: threading.Thread | None = None
 
     def _supervise_in_background(self, name: str) -> None:
-        self._supervisor = threading.Thread(target=self._supervise, name=name, daemon=True)
+        def run():
+            name_os_thread(name)
+            self._supervise()
+        self._supervisor = threading.Thread(target=run, name=name, daemon=True)
         self._supervisor.start()
 
     def _supervise(self) -> None:

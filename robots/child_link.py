@@ -17,6 +17,7 @@ import multiprocessing
 import threading
 import time
 
+from tecdard.host import name_os_thread
 from tecdard.robots.backend import JointState
 from tecdard.robots.backends import BackendError
 
@@ -183,6 +184,7 @@ class ChildLink:
         return msg[1:]
 
     def _read(self) -> None:
+        name_os_thread(self.reader_name)       # top -H and `status` tell the link's reader apart
         while True:
             try:
                 msg = self._state_rx.recv()

@@ -79,3 +79,19 @@ def can_set_fifo(priority: int) -> str | None:
     t.start()
     t.join(5.0)
     return out[0] if out else "the probe thread did not finish"
+
+
+OS_THREAD_NAME_CHARS = 15      # Linux keeps 15 characters of a thread's name (TASK_COMM_LEN 16)
+PR_SET_NAME = 15
+
+
+def name_os_thread(name: str) -> bool:
+    """Give the calling thread its name in the OS too (prctl PR_SET_NAME), so that `top -H`, `ps -L` and
+    /proc/<pid>/task/*/comm show which thread uses the CPU; Python's own names stay inside Python.
+    Best effort: False where the OS does not take it."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_NAME, name[:OS_THREAD_NAME_CHARS].encode("ascii", "replace"), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False

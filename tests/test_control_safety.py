@@ -243,7 +243,7 @@ def test_a_late_tick_judges_imu_staleness_on_the_next_tick_once(model):
 def test_a_thread_named_in_the_os_shows_its_name_in_proc():
     """Issue 37: the daemon's threads carry their names into /proc (top -H, ps -L), truncated to 15 characters."""
     import threading
-    from tecdard.runtime.realtime import name_os_thread
+    from tecdard.host import name_os_thread
     seen = {}
 
     def body():

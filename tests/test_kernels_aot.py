@@ -66,3 +66,40 @@ def test_localize_gives_the_jits_answer_to_the_last_digit(tmp_path, kind, seed):
         outs.append((res.stdout, csv.read_text()))
     assert outs[0][0] == outs[1][0] and json.loads(outs[0][0])["method"] == "ekf"
     assert outs[0][1] == outs[1][1] and outs[0][1].count("\n") > 100
+
+
+MDWE = ("import ctypes, os, sys; assert ctypes.CDLL(None).prctl(65, 1, 0, 0, 0) == 0, 'no PR_SET_MDWE'; "
+        "os.execv(sys.executable, [sys.executable, '-m', 'tecdard', 'run', '--config', sys.argv[1]])")
+
+
+def test_the_daemon_runs_where_memory_may_not_be_written_and_executed(tmp_path):
+    """The unit's MemoryDenyWriteExecute, as the kernel's PR_SET_MDWE (what systemd sets on Linux 6.3+,
+    inherited across exec): a daemon on the built kernels opens the cutter; one that would need
+    numba's JIT there refuses to start in one line (exit 2) instead of failing mid-task."""
+    import types
+    from tecdard.cli.client import Client
+    from tests.conftest import daemon_config, dump_yaml, free_port, rotate_on_the_cutter
+    cfg = daemon_config()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg["zenoh"]["listen"] = [endpoint]
+    cfg.setdefault("record", {})["dir"] = str(tmp_path / "recordings")
+    config = tmp_path / "tecdard.yaml"
+    config.write_text(dump_yaml(cfg))
+    jit = subprocess.run([sys.executable, "-c", MDWE, str(config)], capture_output=True, text=True, timeout=120,
+                         cwd=ROOT, env={**os.environ, "TECDAR_KERNELS": "jit"})
+    lines = jit.stderr.strip().splitlines()
+    assert jit.returncode == 2 and len(lines) == 1, jit.stderr
+    assert "not built ahead of time (TECDAR_KERNELS=jit)" in lines[0] and "MemoryDenyWriteExecute" in lines[0]
+    log = open(tmp_path / "daemon.log", "w")
+    proc = subprocess.Popen([sys.executable, "-c", MDWE, str(config)], stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    try:
+        client = Client(endpoint, robot=cfg["robot"]["name"])
+        client.wait_alive(60.0, running=lambda: proc.poll() is None)
+        d = types.SimpleNamespace(client=client, log=lambda: (tmp_path / "daemon.log").read_text())
+        assert rotate_on_the_cutter(d, 15.0) < 0.005
+        maps = open(f"/proc/{proc.pid}/maps").read().splitlines()
+        assert not [m for m in maps if m.split()[1].startswith("rwx")]
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        log.close()

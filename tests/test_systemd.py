@@ -55,6 +55,7 @@ def test_unit_file_declares_notify_watchdog_and_hardening():
     assert svc["MemoryMax"] == "1G" and svc["MemoryHigh"] == "768M"
     # numba finds no writable cache in a read-only install: it must be given one
     assert svc["CacheDirectory"] == "tecdar" and "NUMBA_CACHE_DIR=/var/cache/tecdar" in svc["Environment"]
+    assert svc["MemoryDenyWriteExecute"] == "yes"      # issue 37: the kernels are built ahead of time
 
 
 UNIT = ROOT / "systemd" / "tecdard.service"

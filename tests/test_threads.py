@@ -6,7 +6,7 @@ import numpy as np
 
 from tecdard.drivers.ring import SampleRing
 from tecdard.runtime import threads
-from tecdard.runtime.realtime import name_os_thread
+from tecdard.host import name_os_thread
 from tecdard.cli.show import status_lines
 
 

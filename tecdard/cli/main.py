@@ -102,7 +102,14 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = join_negative_values(sys.argv[1:] if argv is None else list(argv))
-    args = parser(argv).parse_args(argv)
+    try:
+        top = parser(argv)             # imports the tools, and with them the estimator's kernels
+    except ImportError as exc:
+        if type(exc).__name__ != "KernelsUnavailable":
+            raise
+        print(f"tecdard: {exc}", file=sys.stderr)
+        return 2
+    args = top.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     return args.func(args)

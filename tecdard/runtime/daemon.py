@@ -21,6 +21,7 @@ from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.drivers.imu_source import IMU_SOURCES
 from tecdard.drivers.ring import SampleRing
+from tecdard.host import name_os_thread
 from tecdard.robots import backends
 from tecdard.robots.model import READY_Q, ArmModel, UnknownRobotError
 from tecdard.ros2.node import Ros2Params
@@ -30,7 +31,6 @@ from tecdard.runtime.live_view import LiveView, VizParams
 from tecdard.runtime.main_loop import MainLoop, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
 from tecdard.runtime.network import ZenohSettings, renice_zenoh_threads
-from tecdard.runtime.realtime import name_os_thread
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats

@@ -19,23 +19,8 @@ log = logging.getLogger("tecdar")
 
 MAX_RT_PRIORITY = 98          # 99 is the kernel's own watchdog threads' level: never above them
 TICK_STATS_WINDOW = 1000      # ticks kept for percentiles
+TICK_STATS_RECENT = 250       # ticks of the recent window (5 s at 50 Hz)
 TICK_STATS_EVERY = 25         # recompute percentiles every this many ticks
-
-
-OS_THREAD_NAME_CHARS = 15      # Linux keeps 15 characters of a thread's name (TASK_COMM_LEN 16)
-PR_SET_NAME = 15
-
-
-def name_os_thread(name: str) -> bool:
-    """Give the calling thread its name in the OS too (prctl PR_SET_NAME), so that `top -H`, `ps -L` and
-    /proc/<pid>/task/*/comm show which thread uses the CPU; Python's own names stay inside Python.
-    Best effort: False where the OS does not take it."""
-    try:
-        import ctypes
-        libc = ctypes.CDLL(None, use_errno=True)
-        return libc.prctl(PR_SET_NAME, name[:OS_THREAD_NAME_CHARS].encode("ascii", "replace"), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
 
 
 def apply_rt_priority(priority: int | None, what: str = "control thread") -> bool:
@@ -76,7 +61,14 @@ class TickStats:
                 "work_ms_max": round(float(w.max()), 3),
                 "late_ms_p50": round(float(np.median(lt)), 3), "late_ms_p99": round(float(np.percentile(lt, 99)), 3),
                 "late_ms_max": round(float(lt.max()), 3),
+                # the last TICK_STATS_RECENT ticks alone (5 s at 50 Hz): a window's figure, not 20 s's
+                "late_ms_p99_recent": round(float(np.percentile(self._recent(self._late), 99)) * 1e3, 3),
             }
+
+    def _recent(self, arr: np.ndarray) -> np.ndarray:
+        n = min(self.ticks, TICK_STATS_RECENT)
+        idx = (self.ticks - 1 - np.arange(n)) % TICK_STATS_WINDOW
+        return arr[idx]
 
     def snapshot(self) -> dict:
         out = dict(self.summary)

@@ -22,6 +22,10 @@ __all__ = ["ETA_BLEND_SIGMA", "ETA_PRIOR_LIMIT", "GATE_HPH_RATIO", "K_MIN", "KIN
            "position_reset", "position_residual", "position_sums", "rate_moments", "report_state", "rotation_axes"]
 
 
+class KernelsUnavailable(ImportError):
+    """The kernels can be neither loaded from the build nor compiled here (one line)."""
+
+
 def _load():
     """(functions by name, "aot" | "jit", why the JIT where it is)."""
     mode = os.environ.get(MODE_ENV, "auto")
@@ -31,7 +35,12 @@ def _load():
         return {name: getattr(ext, build.export_name(module, name))
                 for module, names in build.PUBLIC.items() for name in names}, "aot", None
     if mode == "aot":
-        raise ImportError(f"{MODE_ENV}=aot, but the ahead-of-time kernels are {why}")
+        raise KernelsUnavailable(f"{MODE_ENV}=aot, but the ahead-of-time kernels are {why}")
+    if build.write_execute_denied():
+        raise KernelsUnavailable(
+            f"the estimator's kernels are not built ahead of time ({why}) and this process may not create "
+            "executable memory (MemoryDenyWriteExecute), which numba's JIT needs: run `sudo tecdard warm` in the "
+            "install, or drop MemoryDenyWriteExecute from the unit")
     out = {}
     for module, names in build.PUBLIC.items():
         mod = importlib.import_module(f"{__package__}.{module}")

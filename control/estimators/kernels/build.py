@@ -61,6 +61,20 @@ def aot_problem() -> str | None:
     return None
 
 
+PR_GET_MDWE = 66               # prctl: the process's memory-deny-write-execute flags (Linux 6.3+)
+
+
+def write_execute_denied() -> bool:
+    """Whether this process may not create executable memory (PR_SET_MDWE: systemd's
+    MemoryDenyWriteExecute on kernels that have it), which numba's JIT needs. False where the
+    kernel cannot tell."""
+    try:
+        import ctypes
+        return ctypes.CDLL(None, use_errno=True).prctl(PR_GET_MDWE, 0, 0, 0, 0) > 0
+    except (OSError, AttributeError):
+        return False
+
+
 def export_name(module: str, name: str) -> str:
     return f"{module}__{name}"
 
