@@ -97,7 +97,8 @@ def run(path: str, minutes: float, load: bool) -> dict:
                    "cpu_pct": 100.0 * (cpu_s(pid) - cpu0) / span, "rss0": rss0, "rss1": rss_mb(pid),
                    "rss_max": max(w[2] for w in windows), "late": [w[0] for w in windows if w[0] is not None],
                    "overruns": windows[-1][1] - ctl0.get("overruns", 0),
-                   "threads": sorted(((n, 100.0 * (th1[n] - th0.get(n, 0.0)) / span) for n in th1), key=lambda x: -x[1]),
+                   "threads": sorted(((n, 100.0 * (th1[n] - th0.get(n, 0.0)) / span) for n in th1),
+                                     key=lambda x: -x[1]),
                    "status_threads": d.client.command("status")["state"].get("threads", {})}
     return out
 

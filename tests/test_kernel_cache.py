@@ -87,3 +87,21 @@ def test_warm_builds_them_ahead_of_time(monkeypatch, capsys, no_build):
     monkeypatch.setattr(kernel_cache, "warm_jit", lambda: pytest.fail("the JIT is not needed"))
     assert kernel_cache.main(None) == 0 and built == [1]
     assert capsys.readouterr().out.startswith("compiled the estimator's kernels ahead of time in ")
+
+
+def test_warm_builds_without_compiling_the_kernels_with_the_jit_first():
+    """`tecdard warm` as the install runs it: the command line does not import the estimator (whose
+    kernels, not yet built, would be compiled by numba's JIT before the build: 40 s more)."""
+    import subprocess
+    import sys
+    from tests.conftest import ROOT
+    code = ("import sys; from tecdard.control.estimators.kernels import build; "
+            "build.aot_problem = lambda: 'not built'; from tecdard.tools import kernel_cache; "
+            "kernel_cache.build_aot = lambda: None; from tecdard.cli.main import main; rc = main(['warm']); "
+            "print(rc, 'tecdard.control.estimators.kernels.run' in sys.modules, "
+            "'tecdard.control.pipeline' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert lines[0].startswith("compiled the estimator's kernels ahead of time in ")
+    assert lines[-1] == "0 False False"

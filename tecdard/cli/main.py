@@ -100,8 +100,20 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return top
 
 
+def warm_parser() -> argparse.ArgumentParser:
+    """`tecdard warm` alone: the whole parser imports the tools and, through them, the estimator's
+    kernels, which (before they are built ahead of time) would compile them with numba's JIT first."""
+    from tecdard.tools import kernel_cache
+    top = argparse.ArgumentParser(prog="tecdard")
+    kernel_cache.add_parser(top.add_subparsers(dest="command", required=True))
+    return top
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = join_negative_values(sys.argv[1:] if argv is None else list(argv))
+    if argv[:1] == ["warm"]:
+        args = warm_parser().parse_args(argv)
+        return args.func(args)
     try:
         top = parser(argv)             # imports the tools, and with them the estimator's kernels
     except ImportError as exc:
