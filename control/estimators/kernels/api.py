@@ -1,7 +1,7 @@
 """The kernels as the estimators call them: the ahead-of-time build where it is current, else numba's JIT.
 
-`build` compiles every kernel into the extension `_compiled` (`tecdard warm`, `make install`). It is
-loaded when its digest (`_compiled.digest`) is still that of the kernels' sources: then numba, LLVM
+`build` compiles the kernels the estimators call, with all they call, into the extension `_compiled`
+(`tecdard warm`, `make install`). It is loaded when its digest (`_compiled.digest`) is still that of the kernels' sources: then numba, LLVM
 and the JIT's cache are never imported or read, and nothing is compiled at start. Otherwise (a
 kernel edited since, an install that could not build it, or TECDAR_KERNELS=jit) the same
 sources are compiled by numba's JIT at import, or loaded from its cache. Both are the same
