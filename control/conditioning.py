@@ -6,6 +6,30 @@ import math
 import numpy as np
 
 
+def mean0(x: np.ndarray) -> np.ndarray:
+    """x.mean(axis=0) to the last digit (numpy's mean is this sum and this division), without the
+    wrapper's own cost: the idle pass takes a handful of these 100 times a second."""
+    return np.add.reduce(x, axis=0) / len(x)
+
+
+def moving_mean(hist: np.ndarray, x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """The causal mean over the last w samples of each row of x (n, 3), continuing from hist (the
+    last w - 1 rows before it, fewer at the start): (the means (n, 3), the rows to continue with).
+
+    Cumulative sums over the history and the batch; once the history is full every window holds w
+    samples and is a slice (the general case indexes each window's start)."""
+    n_hist, n = len(hist), len(x)
+    ext = np.concatenate([hist, x])
+    c = np.concatenate([np.zeros((1, 3)), ext]).cumsum(axis=0)
+    if n_hist >= w - 1:
+        out = (c[n_hist + 1:n_hist + n + 1] - c[n_hist + 1 - w:n_hist + n + 1 - w]) / float(w)
+    else:
+        idx = np.arange(n_hist + 1, n_hist + n + 1)
+        lo = np.maximum(idx - w, 0)
+        out = (c[idx] - c[lo]) / (idx - lo)[:, None]
+    return out, (ext[-(w - 1):].copy() if w > 1 else ext[:0].copy())
+
+
 class GyroConditioner:
     """Turns raw IMU-frame gyro batches into the grasped object's angular velocity in the world.
 
@@ -35,7 +59,7 @@ class GyroConditioner:
             return
         dt = float(t[-1] - t[0]) + 1e-4
         if not self._bias_ready:
-            self.bias = gyro.mean(axis=0)
+            self.bias = mean0(gyro)
             self._bias_ready = True
             self._bias_s = dt
             return
@@ -43,7 +67,7 @@ class GyroConditioner:
         # the first estimate is not one batch's noise.
         alpha = max(dt / (self._bias_s + dt), 1.0 - math.exp(-dt / self.bias_tau_s))
         self._bias_s += dt
-        self.bias = self.bias + alpha * (gyro.mean(axis=0) - self.bias)
+        self.bias = self.bias + alpha * (mean0(gyro) - self.bias)
 
     def bias_state(self) -> np.ndarray:
         """(4,): the bias (rad/s, IMU frame) and the rest time averaged into it (s; 0: none yet), the
@@ -67,16 +91,9 @@ class GyroConditioner:
     def lowpass(self, gyro: np.ndarray) -> np.ndarray:
         """Bias-free, causally filtered gyro (IMU frame), moving average over lpf_window samples."""
         x = gyro - self.bias
-        w = self.lpf_window
-        if w == 1:
+        if self.lpf_window == 1:
             return x
-        ext = np.vstack([self._hist, x])
-        c = np.cumsum(np.vstack([np.zeros((1, 3)), ext]), axis=0)
-        n_hist = len(self._hist)
-        idx = np.arange(n_hist + 1, n_hist + len(x) + 1)
-        lo = np.maximum(idx - w, 0)
-        out = (c[idx] - c[lo]) / (idx - lo)[:, None]
-        self._hist = ext[-(w - 1):].copy()
+        out, self._hist = moving_mean(self._hist, x, self.lpf_window)
         return out
 
     def object_rate_world(self, w_imu: np.ndarray, R_world_tcp: np.ndarray, w_tcp_world: np.ndarray,

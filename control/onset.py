@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from tecdard.control.conditioning import mean0, moving_mean
+
 MODES = ("any", "all")
 BACKDATE_MAX_S = 0.3          # a twist onset is dated back at most this far
 TWIST_HOLD_S = 0.2            # a twist fires once it has held one way this long (OnsetDetector._held)
@@ -221,15 +223,8 @@ class OnsetDetector:
 
     def _twist(self, gyro: np.ndarray) -> np.ndarray:
         """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
-        w = self.twist_window
-        ext = np.vstack([self._twist_hist, gyro])
-        c = np.cumsum(np.vstack([np.zeros((1, 3)), ext]), axis=0)
-        n_hist = len(self._twist_hist)
-        idx = np.arange(n_hist + 1, n_hist + len(gyro) + 1)
-        lo = np.maximum(idx - w, 0)
-        out = (c[idx] - c[lo]) / (idx - lo)[:, None] - self.rest_gyro
-        self._twist_hist = ext[-(w - 1):].copy() if w > 1 else np.zeros((0, 3))
-        return out
+        out, self._twist_hist = moving_mean(self._twist_hist, gyro, self.twist_window)
+        return out - self.rest_gyro
 
     def _conditions(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None, allow_a=0.0,
                     allow_w=0.0, twist=None) -> tuple[dict, dict]:
@@ -324,8 +319,8 @@ class OnsetDetector:
             allow_a = explained[2] + self.swing_accel * swing
             allow_w = explained[3]
         if self.rest_accel is None:
-            self.rest_accel = accel.mean(axis=0)
-            self.rest_gyro = gyro.mean(axis=0) if gyro is not None else np.zeros(3)
+            self.rest_accel = mean0(accel)
+            self.rest_gyro = mean0(gyro) if gyro is not None else np.zeros(3)
         self._quiet, twist = np.zeros(0, dtype=int), None
         if self.twist_threshold is not None and gyro is not None:
             tw = self._twist(gyro)
@@ -367,9 +362,9 @@ class OnsetDetector:
             # a cumulative mean until tau of data has been seen, then exponential forgetting: the
             # first levels are not one batch's (an arm starting as the recording starts)
             alpha = max((dt + 1e-4) / (self._seen_s + dt + 1e-4), 1.0 - math.exp(-(dt + 1e-4) / tau))
-            self.rest_accel = self.rest_accel + alpha * (accel.mean(axis=0) - self.rest_accel)
+            self.rest_accel = self.rest_accel + alpha * (mean0(accel) - self.rest_accel)
             if gyro is not None:
-                self.rest_gyro = self.rest_gyro + alpha * (gyro.mean(axis=0) - self.rest_gyro)
+                self.rest_gyro = self.rest_gyro + alpha * (mean0(gyro) - self.rest_gyro)
             if twist is not None and not self.settling:
                 ms = float(np.mean(twist[1] ** 2))
                 self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)

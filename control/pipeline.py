@@ -18,9 +18,9 @@ from tecdard.control.conditioning import GyroConditioner
 from tecdard.control.estimators.base import UNOBSERVED_STD_M, Snapshot
 from tecdard.control.estimators.kernels.api import plane_rotation, rate_moments, rotation_axes
 from tecdard.control.geometry import Plane
-from tecdard.control.measurements import (FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements,
-                                          ProprioTrack, RigNoise)
+from tecdard.control.measurements import FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements, RigNoise
 from tecdard.control.onset import BACKDATE_MAX_S, OnsetDetector
+from tecdard.control.proprio import ProprioTrack
 from tecdard.drivers.lsm6dsr import Scaling
 
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma (x the root NIS ratio above 1) is below this
@@ -286,8 +286,11 @@ class ContactPipeline:
         else:
             self.saturated_since = None
         idx = np.arange(len(t))
-        last = np.maximum.accumulate(np.where(gyro_clipped, idx, -(1 << 40)))
-        since = np.where(last >= 0, idx - last, self._since_gyro_sat + idx + 1)
+        if not gyro_clipped.any():         # the usual batch: counting on from the last clipped sample
+            since = self._since_gyro_sat + idx + 1
+        else:
+            last = np.maximum.accumulate(np.where(gyro_clipped, idx, -(1 << 40)))
+            since = np.where(last >= 0, idx - last, self._since_gyro_sat + idx + 1)
         self._since_gyro_sat = int(since[-1])
         return clipped, since < self.cond.lpf_window
 
@@ -392,8 +395,8 @@ class ContactPipeline:
         if len(t) == 0:
             return
         if self.proprio.n:
-            _, _, _, w_tcp, *_, ok = self.proprio.lookup(t[-1:])
-            if ok[0] and float(w_tcp[0] @ w_tcp[0]) > TCP_TURNING_RAD_S ** 2:
+            w_tcp = self.proprio.rate_held(float(t[-1]))
+            if w_tcp is not None and float(w_tcp @ w_tcp) > TCP_TURNING_RAD_S ** 2:
                 return
         self.cond.track_bias(t, gyro)
 

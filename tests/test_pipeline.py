@@ -8,7 +8,8 @@ from tecdard.control.geometry import (Plane, matrix_to_quat, matrix_to_rotvec, q
                                       rotvec_to_matrix, signed_angle, unit)
 from tecdard.control.onset import OnsetDetector
 from tecdard.control.estimators.kernels.report import eta_weight
-from tecdard.control.measurements import EtaSchedule, ProprioTrack
+from tecdard.control.measurements import EtaSchedule
+from tecdard.control.proprio import ProprioTrack
 from tecdard.control.pipeline import DEFAULT_SATURATION, ContactPipeline, PipelineParams
 
 ODR_HZ = 6667.0
@@ -126,7 +127,7 @@ def test_proprio_history_slides_as_a_shifted_window_would():
     """Issue 37: the history's window moves over backing arrays instead of shifting 18 arrays per state;
     every field, lookup and explanation equals the shifting window's, through several wrap-arounds,
     with reported and with derived rates."""
-    from tecdard.control.measurements import HISTORY_FIELDS
+    from tecdard.control.proprio import HISTORY_FIELDS
 
     class Shifting(ProprioTrack):              # the history as it was: every array shifted by one
         def _slide(self):
@@ -174,7 +175,7 @@ def test_proprio_lookup_is_causal():
 def test_a_reported_tcp_rate_is_extrapolated_with_its_last_change_for_a_while_only():
     """Between samples a turning gripper's reported rate ramps on (its last change); if proprioception
     stalls, the ramp stops after WDOT_MAX_AGE_S instead of growing without bound."""
-    from tecdard.control.measurements import WDOT_MAX_AGE_S
+    from tecdard.control.proprio import WDOT_MAX_AGE_S
     track = ProprioTrack()
     track.add(0.00, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.10]))
     track.add(0.01, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.12]))      # 2 rad/s^2
@@ -454,7 +455,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
 def test_the_tcp_position_noise_is_measured_and_the_config_is_its_floor():
     """A rig's TCP can be ten times noisier than the configured encoder grade (the paper's 0.5 mm):
     the noise is measured from the positions' second differences, through a steady motion."""
-    from tecdard.control.measurements import ProprioTrack
+    from tecdard.control.proprio import ProprioTrack
     rng = np.random.default_rng(3)
     for true_sigma, expected in ((5e-4, 5e-4), (1e-5, 5e-5)):      # noisier than configured; quieter: the floor
         track = ProprioTrack(sigma_p=5e-5)
@@ -489,7 +490,7 @@ def test_rate_history_means_a_span_and_counts_what_came_before_the_episode():
 def test_the_tcp_rate_is_interpolated_where_it_belongs_and_extrapolated_past_the_newest():
     """Rates derived from orientations belong to the middle of their interval: between those times the
     rate is interpolated; past the newest, extrapolated with the last change (at most WDOT_MAX_AGE_S)."""
-    from tecdard.control.measurements import WDOT_MAX_AGE_S
+    from tecdard.control.proprio import WDOT_MAX_AGE_S
     track = ProprioTrack()
     axis = np.array([0.0, 0.0, 1.0])
     for k in range(6):                          # the rate ramps at 1 rad/s^2, sampled every 10 ms
