@@ -514,3 +514,40 @@ def test_a_start_from_rest_at_65_hz_is_not_read_as_a_short_lever():
         kf = pipe.estimator
         assert abs(kf.x[-1] - 1.0) < np.sqrt(kf.P[-1, -1]), (tool_rate, kf.x[-1])
         assert in_plane_error(est.p, center, axis) < 1e-3
+
+
+def test_the_idle_passes_shortcuts_equal_what_they_stand_for():
+    """Issue 37: the idle pass's cheaper forms give the general ones' numbers to the last digit: the
+    moving mean as slices once its history is full (against the per-window form, from an empty
+    history on, batch after batch), numpy's mean without its wrapper, and the one-time rate lookup
+    (ProprioTrack.rate_held) against lookup's."""
+    from tecdard.control.conditioning import mean0, moving_mean
+
+    rng = np.random.default_rng(11)
+    for w in (1, 2, 7, 33):
+        hist, ref_hist = np.zeros((0, 3)), np.zeros((0, 3))
+        for n in (1, 3, 40, 67, 5):
+            x = rng.normal(size=(n, 3))
+            out, hist = moving_mean(hist, x, w)
+            ext = np.concatenate([ref_hist, x])
+            c = np.cumsum(np.concatenate([np.zeros((1, 3)), ext]), axis=0)
+            idx = np.arange(len(ref_hist) + 1, len(ext) + 1)
+            lo = np.maximum(idx - w, 0)
+            np.testing.assert_array_equal(out, (c[idx] - c[lo]) / (idx - lo)[:, None])
+            ref_hist = ext[-(w - 1):] if w > 1 else ext[:0]
+            np.testing.assert_array_equal(hist, ref_hist)
+        batch = rng.normal(size=(67, 7))
+        np.testing.assert_array_equal(mean0(batch[:, 1:4]), batch[:, 1:4].mean(axis=0))
+
+    track = ProprioTrack(size=16)
+    assert track.rate_held(0.0) is None
+    for i in range(40):
+        w = rng.normal(size=3) if i % 2 else None
+        track.add(0.002 * i, rng.normal(size=3), None, np.linalg.qr(rng.normal(size=(3, 3)))[0], w)
+        for t in (0.002 * i - 0.003, 0.002 * i, 0.002 * i + 0.001, 0.002 * i + 0.2):
+            held = track.rate_held(t)
+            *_, ok = track.lookup(np.array([t]))
+            if ok[0]:
+                np.testing.assert_array_equal(held, track.lookup(np.array([t]))[3][0])
+            else:
+                assert held is None
