@@ -5,6 +5,7 @@ import collections
 import grp
 import os
 import pwd
+import select
 import time
 from dataclasses import dataclass
 
@@ -113,6 +114,8 @@ class SerialImuSource(ImuSource):
         self.clock_steps = 0                     # the board's clock stepped back (re-anchored)
         self._retry_s = RETRY_MIN_S
         self.port_path: str | None = None
+        self._steps_key: tuple | None = None
+        self._steps = np.zeros(0)
 
     # -- port -----------------------------------------------------------------
     def _resolve(self) -> str:
@@ -181,17 +184,36 @@ class SerialImuSource(ImuSource):
                 time.sleep(min(timeout, max(0.0, self._retry_at - self.clock())) or 0.001)
                 return None
         try:
-            self.ser.timeout = timeout
-            data = self.ser.read(1)
-            waiting = self.ser.in_waiting
-            if waiting:
-                data += self.ser.read(min(waiting, READ_CHUNK_BYTES))
+            data = self._read_available(timeout)
         except (serial.SerialException, OSError) as exc:
             self.mark_lost(str(exc).split("(")[0].strip() or type(exc).__name__)
             return None
         if not data:
             return None
         return self.decode(data, self.clock())
+
+    def _read_available(self, timeout: float) -> bytes:
+        """Whatever has arrived, after waiting up to `timeout` for the first byte: one select and one
+        read on the port's descriptor (a board's packet every 1.2 ms wakes this 840 times a second;
+        pyserial's read(1), in_waiting and read(n) were three system calls and a tcsetattr for its
+        timeout each time). A port without a descriptor is read through pyserial."""
+        try:
+            fd = self.ser.fileno()
+        except (AttributeError, NotImplementedError, serial.SerialException):
+            fd = None
+        if fd is None:
+            if self.ser.timeout != timeout:
+                self.ser.timeout = timeout
+            data = self.ser.read(1)
+            waiting = self.ser.in_waiting
+            return data + self.ser.read(min(waiting, READ_CHUNK_BYTES)) if waiting else data
+        ready, _, _ = select.select([fd], [], [], timeout)
+        if not ready:
+            return b""
+        data = os.read(fd, READ_CHUNK_BYTES)
+        if not data:             # readable, yet nothing: the device went away (pyserial says the same)
+            raise serial.SerialException("device reports readiness to read but returned no data")
+        return data
 
     def decode(self, data: bytes, host_s: float):
         """Bytes that arrived at host time host_s -> (t, gyro, accel) or None (no samples in them)."""
@@ -233,8 +255,9 @@ class SerialImuSource(ImuSource):
                 raws.append(pkt.raw)
         if not raws:
             return None
-        t = self._increasing(np.concatenate(ts))
-        gyro, accel = self.scaling.to_si(np.vstack(raws))
+        # one packet a read is the usual case (a board's packet every 1.2 ms)
+        t = self._increasing(ts[0] if len(ts) == 1 else np.concatenate(ts))
+        gyro, accel = self.scaling.to_si(raws[0] if len(raws) == 1 else np.concatenate(raws))
         self.latest = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
         return t, gyro, accel
 
@@ -283,7 +306,9 @@ class SerialImuSource(ImuSource):
                                     "message": f"the IMU board's clock stepped back {step_ms:.1f} ms (a glitch or "
                                                "a restart of the board); its times are re-anchored to their arrival"})
             self.sync.reset()
-        mcu = t0 + np.arange(n) / self.odr_hz
+        if self._steps_key != (n, self.odr_hz):       # the sample offsets within a packet, s (made once)
+            self._steps_key, self._steps = (n, self.odr_hz), np.arange(n) / self.odr_hz
+        mcu = t0 + self._steps
         self._last_mcu = float(mcu[-1])
         self.sync.add(mcu[-1], host_s)
         return self.sync.to_host(mcu)
@@ -293,6 +318,9 @@ class SerialImuSource(ImuSource):
         lower envelope is learned, and re-anchors on a clock step): a time at or before the last
         one handed on is moved to just after it."""
         prev = -np.inf if self._last_t is None else self._last_t
+        if t[0] > prev and (len(t) == 1 or bool((t[1:] > t[:-1]).all())):
+            self._last_t = float(t[-1])            # the usual packet: already increasing
+            return t
         floor = np.maximum.accumulate(np.concatenate([[prev], t]))[:-1]
         bad = t <= floor
         if bad.any():                              # rare: at a re-anchor's seam

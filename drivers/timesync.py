@@ -104,7 +104,9 @@ class ClockSync:
     def _correction(self, mcu_s):
         if self._corr0 == 0.0:
             return 0.0
-        left = np.clip(abs(self._corr0) - REFIT_SLEW_RATE * (np.asarray(mcu_s) - self._corr_m0), 0.0, abs(self._corr0))
+        # np.clip's bounds without its wrapper (a packet's times are mapped 840 times a second)
+        left = np.minimum(np.maximum(abs(self._corr0) - REFIT_SLEW_RATE * (np.asarray(mcu_s) - self._corr_m0), 0.0),
+                          abs(self._corr0))
         return np.copysign(left, self._corr0)
 
     def _refit(self) -> None:
