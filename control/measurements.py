@@ -107,7 +107,7 @@ class RateHistory:
         i1 = np.searchsorted(self.t, t1, side="right")
         got = np.maximum(i1 - i0, 0)
         missing = np.clip(np.round((np.minimum(t1, self.t0) - t0) / dt_sample), 0, None)
-        total = self.cw[np.maximum(i1, i0)] - self.cw[i0] + missing[:, None] * before
+        total = self.cw.take(np.maximum(i1, i0), axis=0) - self.cw.take(i0, axis=0) + missing[:, None] * before
         count = got + missing
         empty = count == 0
         if empty.any():          # a span in a gap (clipped samples left out): the nearest rate, else the one before

@@ -206,7 +206,7 @@ class ProprioTrack:
             for k in range(int(j[0]), int(j[-1]) + 1):
                 if not self.expl_ok[k]:
                     self._explain(k)
-        return self.expl[j]
+        return self.expl.take(j, axis=0)
 
     def _explain(self, k: int) -> None:
         before = max(int(np.searchsorted(self.tv[:k + 1], self.tv[k] - ACCEL_WINDOW_S, side="right")) - 1, 0)
@@ -261,18 +261,19 @@ class ProprioTrack:
         j = np.searchsorted(t_j[:self.n], ts, side="right") - 1
         ok = j >= 0
         j = np.maximum(j, 0)
-        t_j, v_j, tw_j = t_j[j], f["v"][j], f["tw"][j]
+        # take(): a row gather at a third of fancy indexing's cost on (n, 3) and (n, 3, 3) fields
+        t_j, v_j, tw_j = t_j[j], f["v"].take(j, axis=0), f["tw"][j]
         age = ts - t_j
-        p = f["p"][j] + v_j * age[:, None]
+        p = f["p"].take(j, axis=0) + v_j * age[:, None]
         var_v = f["var_v"][j] + (f["a"][j] * (ts - f["tv"][j])) ** 2
         var_w = (f["alpha"][j] * (ts - tw_j)) ** 2
         # a reported TCP rate is extrapolated with its last change (a turning gripper's rate ramps;
         # held for up to a proprioception period it would enter the object rate times (eta - 1)), but
         # not without bound: when proprioception stalls, the rate is held after WDOT_MAX_AGE_S
-        w = f["w"][j] + f["wdot"][j] * np.minimum(ts - tw_j, WDOT_MAX_AGE_S)[:, None]
+        w = f["w"].take(j, axis=0) + f["wdot"].take(j, axis=0) * np.minimum(ts - tw_j, WDOT_MAX_AGE_S)[:, None]
         if with_stamp:
-            return p, v_j, f["R"][j], w, var_v, var_w, f["force"][j], ok, t_j
-        return p, v_j, f["R"][j], w, var_v, var_w, f["force"][j], ok
+            return p, v_j, f["R"].take(j, axis=0), w, var_v, var_w, f["force"][j], ok, t_j
+        return p, v_j, f["R"].take(j, axis=0), w, var_v, var_w, f["force"][j], ok
 
     def rate_held(self, t: float) -> np.ndarray | None:
         """lookup's TCP rate (world, rad/s) at one time t, or None before the first state: the same
@@ -305,7 +306,7 @@ class ProprioTrack:
         velocity the interval between its two positions, a reported one the half periods either
         side of its stamp; its noise variance, (m/s)^2, without staleness)."""
         j = np.maximum(np.searchsorted(self.t[:self.n], ts, side="right") - 1, 0)
-        return self.pv[j], self.tv[j], self.hv[j], self.var_v[j]
+        return self.pv.take(j, axis=0), self.tv[j], self.hv[j], self.var_v[j]
 
 
 # the fields ProprioTrack.add writes, in the order it writes them (acc and expl are fitted later)
