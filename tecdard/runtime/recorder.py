@@ -54,6 +54,7 @@ from tecdard.safejson import json_ready
 
 log = logging.getLogger("tecdar.record")
 
+POLL_S = 0.05                # the recorder takes what its inbox holds this often
 QUEUE_STEPS = 4096           # estimator passes waiting for the recorder (about 20 s at 200 passes/s)
 MAX_CAPTURE_S = 120.0        # a capture is closed (and written) after this long, whatever is open
 LABEL_RE = re.compile(r"[^A-Za-z0-9_.-]+")
@@ -211,15 +212,19 @@ class Recorder:
     # -- the recorder's thread ------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
-            item = self._inbox.get(0.1)
-            if item is None:
+            items = self._inbox.drain()
+            if not items:
                 self._check_age()
+                # what comes meanwhile waits in the inbox (20 s of passes): woken by every pass, this
+                # thread was 100-200 wake-ups a second at rest for nothing that is due
+                stop.wait(POLL_S)
                 continue
-            try:
-                self._take(item)
-            except Exception:                    # a bug here costs a recording, never the daemon
-                log.exception("recorder: a %s was lost", item[0])
-                self._capture = None
+            for item in items:
+                try:
+                    self._take(item)
+                except Exception:                    # a bug here costs a recording, never the daemon
+                    log.exception("recorder: a %s was lost", item[0])
+                    self._capture = None
         if self._capture is not None:            # the daemon stops: what was captured is kept
             try:
                 self._write(self._capture, "daemon stopping", compress=False)
