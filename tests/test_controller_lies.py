@@ -237,3 +237,24 @@ def test_no_non_finite_number_is_ever_published():
         states += [rest[0]] if kind == "state" else []
     assert states and all(strict(dumps(s)) for s in states)
     assert states[-1]["faults"] and states[-1]["mode"] != "idle"
+
+
+def test_a_state_whose_sums_overflow_is_judged_reading_by_reading():
+    """Issue 37: each check is first made whole (one sum says whether every value is finite); values
+    that are finite but whose sum overflows are then looked at one by one, so that the verdict and
+    its message are those of the reading itself: a rate over its limit, a TCP out of reach."""
+    from tecdard.robots.backend import JointState
+    model = ArmModel("panda")
+    check = StateCheck(model, "arm")
+    q = np.array(READY_Q["panda"])
+    huge = np.full(7, 1e308)
+    assert "rate" in check.problem(JointState(0.0, q, huge)) and "over" in check.problem(JointState(0.0, q, huge))
+    pose = np.eye(4)
+    pose[:3, 3] = 1e308
+    assert "from the base" in check.problem(JointState(0.0, q, np.zeros(7), tcp_pose=pose))
+    pose[:3, 3] = [0.3, 0.0, 0.5]
+    assert check.problem(JointState(0.0, q, np.zeros(7), tcp_pose=pose, tcp_force=np.full(3, 1e308))) is None
+    pose[0, 0] = np.nan
+    assert "rotation" in check.problem(JointState(0.0, q, np.zeros(7), tcp_pose=pose))
+    pose[0, 0], pose[1, 3] = 1.0, np.inf
+    assert "TCP position reads" in check.problem(JointState(0.0, q, np.zeros(7), tcp_pose=pose))
