@@ -83,6 +83,10 @@ class StateCheck:
 
     def problem(self, js) -> str | None:
         """What is wrong with a state (one line naming the reading), or None."""
+        with np.errstate(over="ignore", invalid="ignore"):     # a hostile reading is refused, not warned of
+            return self._problem(js)
+
+    def _problem(self, js) -> str | None:
         q, qd = np.asarray(js.q, float), np.asarray(js.qd, float)
         n = len(self.names)
         if q.shape != (n,) or qd.shape != (n,):
@@ -127,8 +131,7 @@ class StateCheck:
 def _finite(a: np.ndarray) -> bool:
     """Every element finite, in one sum: a sum of finite values is finite unless it overflows, and
     then the caller looks element by element (never a false pass)."""
-    with np.errstate(over="ignore", invalid="ignore"):      # a hostile reading is refused, not warned of
-        return math.isfinite(float(np.add.reduce(a, axis=None)))
+    return math.isfinite(float(np.add.reduce(a, axis=None)))
 
 
 EYE3 = np.eye(3)
@@ -156,8 +159,7 @@ def _tcp_problem(js) -> str | None:
             return "TCP rotation reads no rotation (non-finite or not orthonormal)"
     if np.abs(R.T @ R - EYE3).max() > ROTATION_TOL:
         return "TCP rotation reads no rotation (non-finite or not orthonormal)"
-    with np.errstate(over="ignore"):
-        reach = float(np.linalg.norm(p))
+    reach = float(np.linalg.norm(p))
     if reach > MAX_REACH_M:
         return f"TCP pose {reach:.2f} m from the base (no arm reaches beyond {MAX_REACH_M:g} m)"
     return None
