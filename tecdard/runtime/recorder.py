@@ -156,6 +156,7 @@ class Recorder:
         self.emit = emit
         self.meta = meta
         self._inbox = Inbox(QUEUE_STEPS)
+        self._taking = False           # the recorder's thread is taking what it drained (idle)
         self.write_failures = 0
         self._pre: collections.deque = collections.deque()
         self._pre_events: collections.deque = collections.deque(maxlen=PRE_EVENTS)
@@ -202,7 +203,7 @@ class Recorder:
     @property
     def idle(self) -> bool:
         """Nothing waiting to be taken and no capture open (the daemon may stop without losing one)."""
-        return self._capture is None and self._inbox.empty()
+        return not self._taking and self._capture is None and self._inbox.empty()
 
     @property
     def dropped_passes(self) -> int:
@@ -212,9 +213,11 @@ class Recorder:
     # -- the recorder's thread ------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
+            self._taking = True              # before the drain: what it takes (or writes) is not idle until done
             items = self._inbox.drain()
             if not items:
                 self._check_age()
+                self._taking = False
                 # what comes meanwhile waits in the inbox (20 s of passes): woken by every pass, this
                 # thread was 100-200 wake-ups a second at rest for nothing that is due
                 stop.wait(POLL_S)
@@ -225,6 +228,7 @@ class Recorder:
                 except Exception:                    # a bug here costs a recording, never the daemon
                     log.exception("recorder: a %s was lost", item[0])
                     self._capture = None
+            self._taking = False
         if self._capture is not None:            # the daemon stops: what was captured is kept
             try:
                 self._write(self._capture, "daemon stopping", compress=False)
