@@ -95,14 +95,17 @@ def status_lines(state: dict) -> list[str]:
         rows.append(("control", f"{ctl.get('ticks', '-')} ticks, {ctl.get('overruns', '-')} overruns"
                      + (f", lateness p99 {late:.2f} ms" if _finite(late) else "")))
     threads = state.get("threads")
+    per_thread: list[tuple[str, str]] = []
     if isinstance(threads, dict) and threads:
         rows.append(("threads", "CPU of one core, last 5 s; the longest wait to run once due"))
         for name, row in list(threads.items())[:THREAD_ROWS]:
             if isinstance(row, dict) and _finite(row.get("cpu_pct")):
                 wake = row.get("wake_ms_max")
-                rows.append((f"  {name}", f"{row['cpu_pct']:.1f} %" + (f", waited up to {wake:.2f} ms"
-                                                                        if _finite(wake) else "")))
-    return _rows(rows)
+                per_thread.append((str(name), f"{row['cpu_pct']:.1f} %" + (f", waited up to {wake:.2f} ms"
+                                                                            if _finite(wake) else "")))
+    # the threads' names are a table of their own under their row: a long one (imu-acquisition)
+    # does not widen the state's
+    return _rows(rows) + ["  " + line for line in _rows(per_thread)]
 
 
 def progress_text(state: dict | None, start_p: list | None) -> str | None:
