@@ -228,6 +228,7 @@ def rotate_on_the_cutter(d, angle_deg: float = 20.0) -> float:
     assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
     sim = ev["result"]["sim"]
     assert abs(sim["angle_deg"] - angle_deg) < 2.0
-    assert all(e["kind"] != "fault" for e in d.client.event_log)
+    faults = [e for e in d.client.event_log if e["kind"] == "fault"]
+    assert not faults, f"{faults}\n{d.log()[-2000:]}"
     return distance_to_axis(np.array(ev["result"]["hinge"]["p"]), np.array(sim["hinge_point"]),
                             np.array(sim["hinge_axis"]))
