@@ -45,7 +45,7 @@ MAIN_IDLE_POLL_S = 0.02        # or, at rest (no task, no query for MAIN_BUSY_S)
 MAIN_BUSY_S = 2.0              # state wakes it then anyway, and a first query waits at most 20 ms more
 SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop, a map and a recording to be written
 RECORDER_JOIN_S = 1.0          # then the recorder's thread this long more (the unit's TimeoutStopSec: 5 s)
-GIL_SWITCH_INTERVAL_S = 0.00025
+GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
 MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
 MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
@@ -243,10 +243,11 @@ class Daemon:
             self.control.runner.planner.release()
 
     def run(self) -> int:
-        # The acquisition and link threads block on I/O, the control tick on its deadline, and each
-        # needs the GIL back at once; with the estimator computing, each hand-over waits up to a
-        # switch interval (5 ms by default). 0.25 ms keeps the tick's lateness and the IMU's chunks
-        # from queueing behind the estimator's numpy (docs/architecture.md).
+        # The acquisition and sim-link threads block on I/O and need the GIL back at once when
+        # data come; with the estimator computing, each hand-over waits up to a switch interval
+        # (5 ms by default). 1 ms keeps IMU chunks from queueing behind the estimator. (0.25 ms
+        # cut the UR path's tick lateness a little, but starved the simulated firmware board's
+        # stream at start: imu_stale in 2 of 3 runs of tests/test_firmware.py's rotate.)
         sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         signal.signal(signal.SIGINT, self.request_stop)
         signal.signal(signal.SIGTERM, self.request_stop)
