@@ -27,6 +27,20 @@ def test_verbs_against_a_daemon(shared_daemon):
     assert tecdard("stop", "--connect", ep).returncode == 0
 
 
+def test_a_client_leaves_no_thread_that_would_keep_the_process_from_exiting(shared_daemon):
+    """A test run once printed its summary and never exited (CI's 90 minutes ran out): three of
+    zenoh-python's callback threads, which are not daemon threads, outlived their client's session.
+    The client's subscribers run on Zenoh's own threads: it starts no Python thread at all."""
+    import threading
+    from tecdard.cli.client import Client
+    before = set(threading.enumerate())
+    with Client(shared_daemon.endpoint) as cli:
+        assert cli.command("status")["state"]["mode"] == "idle"
+        assert cli.states.get(timeout=5.0)["seq"] > 0            # its subscribers receive
+        started = [t.name for t in set(threading.enumerate()) - before if not t.daemon]
+    assert started == []
+
+
 def test_no_daemon_is_exit_3(tmp_path):
     from tecdard.tools.demo import free_port
     res = tecdard("status", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "2")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import threading
 import time
@@ -9,6 +10,8 @@ import time
 import zenoh
 
 from tecdard.api.session import DAEMON_NAME, Keys, TlsFiles, client_config, dumps
+
+log = logging.getLogger("tecdar.client")
 
 WAIT_REPORT_S = 10.0           # wait_alive says what it waits for this often
 # Until the daemon listens, a liveliness query returns at once (no route): without a pause a wait
@@ -60,9 +63,9 @@ class Client:
                     return False                  # nothing there yet: the daemon may be starting
                 raise ClientError(f"cannot open a session to {self.endpoint}: {str(exc).splitlines()[0]}") from None
             self._subs = [
-                session.declare_subscriber(self.keys.events, self._on_event),
-                session.declare_subscriber(self.keys.state, lambda s: _put_latest(self.states, s)),
-                session.declare_subscriber(self.keys.contact, lambda s: _put_latest(self.contacts, s)),
+                session.declare_subscriber(self.keys.events, _direct(self._on_event)),
+                session.declare_subscriber(self.keys.state, _direct(lambda s: _put_latest(self.states, s))),
+                session.declare_subscriber(self.keys.contact, _direct(lambda s: _put_latest(self.contacts, s))),
             ]
             self.session = session
             return True
@@ -156,6 +159,20 @@ class Client:
                 continue
             if ev.get("kind") in kinds and (task is None or ev.get("task") in (None, task)):
                 return ev
+
+
+def _direct(fn) -> zenoh.handlers.Callback:
+    """`fn` run on Zenoh's own thread as the sample arrives. A plain callable would get a Python thread
+    of its own (zenoh-python's `indirect` default), which is not a daemon thread: one whose session
+    did not end it kept a test run's interpreter from exiting after its last test (CI, 2026-12-04).
+    Each of these only parses and enqueues, never calls back into Zenoh, so it may run there."""
+    def guarded(sample) -> None:
+        try:
+            fn(sample)
+        except Exception as exc:           # a payload that is not our JSON: dropped, never Zenoh's thread
+            log.debug("a message on %s was dropped: %s", sample.key_expr, exc)
+
+    return zenoh.handlers.Callback(guarded, indirect=False)
 
 
 def _put_latest(q: queue.Queue, sample) -> None:

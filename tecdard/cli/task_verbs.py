@@ -61,7 +61,8 @@ FIELD_TYPES = {"number": _finite, "direction": _vec, "numbers": _vec, "choice": 
                "int_choice": int}
 ENV_CONNECT, ENV_ROBOT = "TECDAR_CONNECT", "TECDAR_ROBOT"
 HELP_STATUS_S = 0.5           # --help asks a running daemon for its limits this long at most
-CANCEL_WAIT_S = 10.0          # after a cancel, how long to wait for the task to end (the arm braked)
+CANCEL_WAIT_S = 10.0          # after a cancel, how long to wait for the task to end and the arm to brake
+BRAKE_POLL_S = 0.05           # how often `status` is asked whether the arm has braked
 EXIT_INTERRUPTED = 130
 
 
@@ -250,12 +251,30 @@ def _cancel(cli: Client, args, task: str | None, why: str) -> str:
         if code == "no_task":
             return f"{why}; task {task} had already ended"
         return f"{why}; cancel of task {task} refused ({code}): `tecdard stop` stops the arm"
+    deadline = time.monotonic() + CANCEL_WAIT_S
     try:
         cli.wait_event(("task_done", "task_failed"), task, timeout=CANCEL_WAIT_S)
     except ClientError:
         return (f"{why}; task {task} cancelled, but its end was not seen within {CANCEL_WAIT_S:g} s: "
                 "`tecdard status`, and `tecdard stop` stops the arm")
+    if not _braked(cli, deadline):
+        return (f"{why}; task {task} cancelled, but the arm was still braking after {CANCEL_WAIT_S:g} s: "
+                "`tecdard status`, and `tecdard stop` stops the arm")
     return f"{why}; task {task} cancelled and the arm stopped"
+
+
+def _braked(cli: Client, deadline: float) -> bool:
+    """Whether the daemon's mode left `busy` (a task that has ended is `busy` while the arm brakes)
+    before `deadline` (monotonic s)."""
+    while True:
+        try:
+            if cli.command("status", timeout=2.0)["state"]["mode"] != "busy":
+                return True
+        except (ClientError, KeyError, TypeError):
+            pass
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(BRAKE_POLL_S)
 
 
 def _send(cli: Client, args, payload: dict):
