@@ -47,6 +47,33 @@ class _BareNames(importlib.abc.MetaPathFinder):
 sys.meta_path.insert(0, _BareNames())
 
 
+LEFT_THREADS_JOIN_S = 5.0     # after the last test, how long threads that are not daemon threads may take to end
+_exit_status = [0]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _exit_status[0] = int(exitstatus)
+
+
+def pytest_unconfigure(config):
+    """A thread that is not a daemon thread and outlives the run keeps the interpreter from exiting:
+    CI once sat 70 minutes after the summary (a Zenoh callback thread). Such a run says which threads,
+    in one line, and exits with a failure instead of hanging."""
+    import threading
+    import time
+    deadline = time.monotonic() + LEFT_THREADS_JOIN_S
+    left = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
+    for t in left:
+        t.join(max(deadline - time.monotonic(), 0.0))
+    left = [t.name for t in left if t.is_alive()]
+    if left:
+        sys.stdout.flush()
+        sys.stderr.write(f"tests: threads that are not daemon threads outlived the run, which would never "
+                         f"exit: {', '.join(left)}\n")
+        sys.stderr.flush()
+        os._exit(_exit_status[0] or 1)
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in SLOW_FILES:
