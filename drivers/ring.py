@@ -30,6 +30,10 @@ class SampleRing:
         # packet is 8 samples; the estimator waits for one or two output periods of them): at 6.7 kHz
         # that is some 70 wake-ups a second instead of hundreds.
         self._want = 1
+        # The batch the consumer asked for last, kept between its pops: how many samples the producer
+        # may let gather before it delivers (`shortfall`). `hurry` is set when the consumer wants less.
+        self._want_next = 1
+        self.hurry = threading.Event()
         self._due_t = 0.0             # when the push that satisfied the waiting consumer notified it
         self.wake = None              # optional: .note(late_s, now) gets each wait from then to running again
 
@@ -68,6 +72,7 @@ class SampleRing:
         """Up to max_n oldest unread samples as an (n, 7) copy, once at least min_n are there or
         after `timeout` s with what there is (empty without data)."""
         with self._cond:
+            self._want_next = max(min_n, 1)
             if self._head - self._tail < min_n:
                 self._want = max(min_n, 1)
                 woken = self._cond.wait_for(lambda: self._head - self._tail >= self._want, timeout)
@@ -86,6 +91,24 @@ class SampleRing:
                 out = np.vstack([self._buf[start:], self._buf[:end - self.capacity]])
             self._tail += n
             return out
+
+    def shortfall(self) -> int:
+        """Samples still to come before the consumer's batch (as it last asked) is complete: until then
+        a producer that delivers them later delays nothing."""
+        return max(self._want_next - (self._head - self._tail), 0)
+
+    def lower_want(self, n: int) -> None:
+        """The consumer now wants batches of n samples or fewer: a wait for more ends once n are there,
+        and a producer waiting on `hurry` delivers at once."""
+        n = max(int(n), 1)
+        with self._cond:
+            self._want_next = min(self._want_next, n)
+            if self._want > n:
+                self._want = n
+                if self._head - self._tail >= n:
+                    self._due_t = time.monotonic()
+                    self._cond.notify()
+        self.hurry.set()
 
     def __len__(self) -> int:
         return self._head - self._tail

@@ -99,7 +99,9 @@ class ControlThread:
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue, directive: LatestValue,
                  outbox: Outbox, q_home: np.ndarray, robot_name: str, notifier=None, services: dict | None = None,
-                 imu_saturated_since=None):
+                 imu_saturated_since=None, on_rest=None):
+        """`on_rest(resting)`: told whenever the daemon goes idle (True: no task runs, the arm held) or a
+        task starts (False); the estimator thread batches more at rest (EstimatorThread.set_resting)."""
         self.params = params
         self.limits = params.safety_limits()
         self.model = model.clone()           # this thread's own pinocchio Data
@@ -120,6 +122,8 @@ class ControlThread:
         self.sensors = safety.SensorWatch(self.limits, time.monotonic())
         self.faults = self.sensors.faults    # code -> message, while it holds
         self._seq = 0
+        self._on_rest = on_rest
+        self._resting: bool | None = None
         self._late_s = 0.0                 # how late the current tick started, s
         self.first_tick = threading.Event()
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
@@ -216,6 +220,10 @@ class ControlThread:
                                                                self.params.max_speed, self.q_home))
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
+        resting = runner.mode is Mode.IDLE
+        if resting is not self._resting and self._on_rest is not None:
+            self._on_rest(resting)
+        self._resting = resting
         self._publish_state(now, p, R, twist[:3], est, js.t)
         for service in self.services.values():
             for ev in service.announcements():

@@ -166,7 +166,9 @@ class Daemon:
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
-                                     imu_saturated_since=lambda: self.estimator.saturated_since)
+                                     imu_saturated_since=lambda: self.estimator.saturated_since,
+                                     # an arm that others drive (read_only) is watched for touches all the time
+                                     on_rest=self.estimator.set_resting if self.backend.commands_arm else None)
         self.ring.wake = WakeStats()
         self.threads = ThreadUsage({"control": self.control.stats.wake, "estimator": self.ring.wake})
         self.keys = Keys(self.robot_name)

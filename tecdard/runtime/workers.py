@@ -18,21 +18,42 @@ log = logging.getLogger("tecdar.estimator")
 
 POP_MAX_SAMPLES = 4096
 POP_TIMEOUT_S = 0.02
+# A batch's wait ends this much after its samples are due at the source's rate (they come late only
+# when the source stalls): a rest batch (20 ms) must not time out just short of complete.
+POP_TIMEOUT_MARGIN = 1.5
 # Between contact episodes the estimator thread waits for this many output periods of samples (10 ms):
 # the onset trigger's cost is per batch (some sixty numpy calls, 0.1-0.3 ms), and an onset found
 # 5 ms later is still within the control tick (20 ms); its time stamp is the sample's.
 IDLE_BATCH_FACTOR = 2
+# While no task runs (the arm holds still and nothing waits on the trigger), twice that again (20 ms):
+# half the passes at rest. A task's start cuts the wait short (EstimatorThread.set_resting), so the
+# trigger of a task is as quick as before; an uncommanded touch at rest is dated by its own sample
+# either way, and found up to 10 ms later.
+REST_BATCH_FACTOR = 4
+# The acquisition thread need not wake for every packet (a board's comes every 1.2 ms): until the
+# estimator's batch is nearly complete nothing waits for the samples, and the port or the pipe holds
+# them. It naps until NAP_MARGIN_S before the batch can be complete (at most NAP_MAX_S), then reads
+# as they come, so the batch is handed over as soon as before. The kernel's tty buffer holds some
+# 0.7 s of a board's stream; the clock sync's lower envelope takes the packets read as they came.
+NAP_MARGIN_S = 0.0025
+NAP_MIN_S = 0.001
+NAP_MAX_S = 0.01
 
 
 def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox) -> None:
     """Transport only: move timestamped SI samples from the source into the ring, and hand the
-    source's events (port lost, port back) to the outbox."""
+    source's events (port lost, port back) to the outbox. Between the consumer's batches it naps
+    (NAP_MARGIN_S)."""
     while not stop.is_set():
         chunk = source.read(timeout=0.05)
         if chunk is not None:
             ring.push(*chunk)
         for ev in source.drain_events():
             outbox.put("event", {"t": time.monotonic(), **ev})
+        ring.hurry.clear()
+        nap = ring.shortfall() / source.odr_hz - NAP_MARGIN_S
+        if nap >= NAP_MIN_S:
+            ring.hurry.wait(min(nap, NAP_MAX_S))
 
 
 PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
@@ -97,8 +118,18 @@ class EstimatorThread:
         self.proprio = DropOldestRing(PROPRIO_RING)
         self.directive = LatestValue(EstimatorDirective())
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
+        self.resting = threading.Event()  # set while no task runs: longer batches (REST_BATCH_FACTOR)
         if source is not None:
             self._follow_odr(source.odr_hz)
+
+    def set_resting(self, resting: bool) -> None:
+        """The control thread: no task runs (True), or one has started (False). A start ends a rest
+        batch's wait at the task's batch, so the task's trigger waits no longer than it would have."""
+        if resting:
+            self.resting.set()
+        else:
+            self.resting.clear()
+            self.ring.lower_want(IDLE_BATCH_FACTOR * self.min_batch)
 
     def _follow_odr(self, odr_hz: float) -> None:
         if odr_hz == self._odr_seen:
@@ -127,9 +158,12 @@ class EstimatorThread:
                 applied = directive
             if self.source is not None:
                 self._follow_odr(self.source.odr_hz)
-            # between episodes only the trigger runs, and it costs per batch: twice the samples then
-            want = self.min_batch if pipe.tracking else IDLE_BATCH_FACTOR * self.min_batch
-            batch = self.ring.pop(POP_MAX_SAMPLES, POP_TIMEOUT_S, want)
+            # between episodes only the trigger runs, and it costs per batch: twice the samples then,
+            # four times while no task runs
+            want = self.min_batch if pipe.tracking else \
+                (REST_BATCH_FACTOR if self.resting.is_set() else IDLE_BATCH_FACTOR) * self.min_batch
+            wait_s = max(POP_TIMEOUT_S, POP_TIMEOUT_MARGIN * want / self._odr_seen) if self._odr_seen else POP_TIMEOUT_S
+            batch = self.ring.pop(POP_MAX_SAMPLES, wait_s, want)
             if self.source is not None:
                 limits = self.source.saturation
                 if limits != sat_limits:
