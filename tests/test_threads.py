@@ -108,3 +108,71 @@ def test_a_running_daemons_status_names_its_threads(shared_daemon):
                           "--robot", "sim"], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert cli.returncode == 0, cli.stderr
     assert "threads" in cli.stdout and "control" in cli.stdout and "waited up to" in cli.stdout, cli.stdout
+
+
+def test_the_ring_tells_the_producer_how_far_the_consumers_batch_is_and_a_smaller_want_wakes_both():
+    ring = SampleRing(1024)
+    assert ring.shortfall() == 1                                  # nobody has asked yet: any sample is wanted
+    assert len(ring.pop(100, 0.0, 40)) == 0                       # asked for 40, none there
+    ring.push(np.arange(8.0), np.zeros((8, 3)), np.zeros((8, 3)))
+    assert ring.shortfall() == 32
+    got = []
+    t = threading.Thread(target=lambda: got.append(ring.pop(100, 5.0, 40)))
+    t.start()
+    time.sleep(0.05)
+    assert not got                                                # 8 of 40: still waiting
+    ring.hurry.clear()
+    ring.lower_want(8)                                            # a task started: smaller batches
+    t.join(5.0)
+    assert len(got) == 1 and len(got[0]) == 8 and ring.hurry.is_set()
+    assert ring.shortfall() == 8
+
+
+class PacedSource:
+    """8-sample packets at 6667 Hz into a port buffer; `read` returns all that has arrived (as the
+    serial driver does), waiting for the next packet when none has. Counts its reads."""
+    odr_hz = 6667.0
+
+    def __init__(self, packets: int):
+        self.t0 = time.monotonic()
+        self.packets, self.sent, self.reads = packets, 0, 0
+
+    def read(self, timeout: float = 0.05):
+        due = min(int((time.monotonic() - self.t0) * self.odr_hz / 8), self.packets)
+        if due == self.sent:
+            if self.sent == self.packets:
+                time.sleep(timeout)
+                return None
+            time.sleep(max(self.t0 + (self.sent + 1) * 8 / self.odr_hz - time.monotonic(), 0.0))
+            due = self.sent + 1
+        n = 8 * (due - self.sent)
+        t = (np.arange(n) + 8 * self.sent) / self.odr_hz
+        self.sent = due
+        self.reads += 1
+        return t, np.zeros((n, 3)), np.zeros((n, 3))
+
+    def drain_events(self):
+        return []
+
+
+def test_the_acquisition_thread_reads_a_batch_in_a_few_wake_ups_and_loses_nothing():
+    """Issue 37: the reader naps until the consumer's batch is nearly complete instead of waking for
+    every packet (840 a second from a board); every sample still reaches the consumer, in order."""
+    from tecdard.runtime.messages import Outbox
+    from tecdard.runtime.workers import acquisition_loop
+    ring, stop = SampleRing(65536), threading.Event()
+    src = PacedSource(packets=200)                                # 0.24 s of a board's stream
+    th = threading.Thread(target=acquisition_loop, args=(src, ring, stop, Outbox(16)))
+    th.start()
+    got = []
+    try:
+        while sum(map(len, got)) < 1600:
+            batch = ring.pop(4096, 1.0, 134)                      # the estimator's batch at rest (20 ms)
+            assert len(batch), "the consumer starved"
+            got.append(batch)
+    finally:
+        stop.set()
+        th.join(5.0)
+    t = np.concatenate(got)[:, 0]
+    assert np.array_equal(t, np.arange(1600) / 6667.0)
+    assert src.reads < 200 / 2, src.reads                         # 58 here, for 200 packets
