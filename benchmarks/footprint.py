@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.ur import cpu_s  # noqa: E402
 from tecdard.runtime.threads import read_threads_cpu_s  # noqa: E402
+from tecdard.tools.demo import free_port  # noqa: E402
 from tests.conftest import DaemonProcess, daemon_config  # noqa: E402
 
 WINDOW_S = 5.0
@@ -107,22 +108,60 @@ def run(path: str, minutes: float, load: bool) -> dict:
     return out
 
 
+@contextlib.contextmanager
+def ready_listener(tmp: str, timeout_s: float = 60.0):
+    """(NOTIFY_SOCKET's path, {"t": monotonic s of READY=1 once it came}, the listening thread)."""
+    sock_path = os.path.join(tmp, "notify")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(sock_path)
+    ready = {}
+
+    def listen():
+        sock.settimeout(timeout_s)
+        with contextlib.suppress(OSError):
+            while "t" not in ready:
+                if b"READY=1" in sock.recv(4096):
+                    ready["t"] = time.monotonic()
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    try:
+        yield sock_path, ready, listener
+    finally:
+        sock.close()
+
+
+def wheel_first_start() -> float:
+    """s from `tecdard run` to READY=1, the first start after `pip install` of a wheel built from this
+    checkout (setup.py compiles the kernels into it), in a fresh venv whose dependencies are this one's."""
+    from tests.conftest import dump_yaml
+    from tests.test_install import checkout_copy, fresh_venv, pip
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = pathlib.Path(tmp)
+        dist, src = tmp / "dist", checkout_copy(tmp / "src")
+        subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "-w", str(dist), str(src)],
+                       check=True, capture_output=True)
+        py = fresh_venv(tmp / "venv")
+        pip(py, "--no-deps", str(next(dist.glob("tecdar-*.whl"))))
+        cfg = daemon_config()
+        cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+        cfg.setdefault("record", {})["dir"] = str(tmp / "recordings")
+        (tmp / "tecdard.yaml").write_text(dump_yaml(cfg))
+        with ready_listener(str(tmp), 300.0) as (sock_path, ready, listener):
+            t0 = time.monotonic()
+            proc = subprocess.Popen([str(py), "-m", "tecdard", "run", "--config", str(tmp / "tecdard.yaml")],
+                                    cwd=tmp, env={**os.environ, "NOTIFY_SOCKET": sock_path},
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            try:
+                listener.join(300.0)
+            finally:
+                proc.terminate()
+                proc.wait(30)
+        return ready.get("t", float("nan")) - t0
+
+
 def warm_start() -> tuple[float, float]:
     """(s to READY=1 on NOTIFY_SOCKET, s to the first answered status) of a warm start."""
-    with tempfile.TemporaryDirectory() as tmp:
-        sock_path = os.path.join(tmp, "notify")
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        sock.bind(sock_path)
-        ready = {}
-
-        def listen():
-            sock.settimeout(60.0)
-            with contextlib.suppress(OSError):
-                while "t" not in ready:
-                    if b"READY=1" in sock.recv(4096):
-                        ready["t"] = time.monotonic()
-        listener = threading.Thread(target=listen, daemon=True)
-        listener.start()
+    with tempfile.TemporaryDirectory() as tmp, ready_listener(tmp) as (sock_path, ready, listener):
         t0 = time.monotonic()
         d = DaemonProcess(pathlib.Path(tmp), daemon_config(), env={"NOTIFY_SOCKET": sock_path})
         try:
@@ -131,7 +170,6 @@ def warm_start() -> tuple[float, float]:
             listener.join(30.0)
         finally:
             d.close()
-            sock.close()
     return ready.get("t", float("nan")) - t0, t_status
 
 
@@ -212,10 +250,12 @@ def main() -> None:
         ready_s, status_s = warm_start()
         t1, t11, speed = localize_speed()
         build_s = aot_build_s()
+        wheel_s = wheel_first_start()
         lines += ["| start-up and replay | value |", "|---|---|",
                   f"| warm start to READY=1 (sd_notify) | {ready_s:.2f} s |",
                   f"| warm start to the first answered `status` | {status_s:.2f} s |",
                   f"| the kernels' ahead-of-time build (`tecdard warm`'s compile) | {build_s:.0f} s |",
+                  f"| the first start after installing a wheel, to READY=1 | {wheel_s:.2f} s |",
                   f"| `tecdard localize`, 1 s / 11 s recording | {t1:.2f} / {t11:.2f} s |",
                   f"| localize, marginal | {speed:.0f}x real time |", ""]
     OUT.write_text("\n".join(lines))

@@ -17,6 +17,12 @@ import pytest
 from tests.conftest import ROOT
 
 INSTALL_TIMEOUT_S = 600.0
+KERNELS = "tecdard/control/estimators/kernels"
+KERNELS_PROBE = """
+import sys
+from tecdard.control.estimators.kernels import api
+print(api.KIND, "numba" in sys.modules, api.__file__)
+"""
 # Imported in each venv: one module of every folder we install, none that compiles the kernels.
 OURS = ("tecdard.cli.main", "tecdard.api.commands", "tecdard.runtime.messages", "tecdard.recording.format",
         "tecdard.tools.localize", "tecdard.verbs", "tecdard.drivers.serial_imu", "tecdard.control.geometry",
@@ -104,8 +110,17 @@ def test_tecdar_installs_beside_python_control(tmp_path, how):
         assert roots == {"tecdard", wheel.name.split("-")[0] + "-" + wheel.name.split("-")[1] + ".dist-info"}, roots
         missing = sorted(set(installed_sources()) - names)
         assert not missing, f"modules the wheel leaves out (pyproject's packages): {missing}"
+        # setup.py compiled the estimator's kernels into it: a platform wheel
+        assert any(n.startswith(f"{KERNELS}/_compiled.") and n.endswith(".so") for n in names), sorted(names)
+        assert f"{KERNELS}/_compiled.digest" in names and "-cp311-" in wheel.name, wheel.name
         pip(py, "--no-deps", str(wheel))
     files = check(py, tmp_path)
+    if how == "wheel":
+        # the first start after installing the wheel loads the kernels and compiles nothing (no numba)
+        res = subprocess.run([str(py), "-c", KERNELS_PROBE], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        kind, numba_imported, where = res.stdout.split()
+        assert (kind, numba_imported) == ("aot", "False") and pathlib.Path(where).is_relative_to(tmp_path / "venv")
     for name, path in files.items():
         where = pathlib.Path(path)
         if how == "editable":

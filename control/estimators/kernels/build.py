@@ -62,6 +62,7 @@ def aot_problem() -> str | None:
     return None
 
 
+CPU_ENV = "TECDAR_KERNELS_CPU"   # the CPU the build targets: "host" (default), "generic", or an LLVM CPU name
 PR_GET_MDWE = 66               # prctl: the process's memory-deny-write-execute flags (Linux 6.3+)
 
 
@@ -144,7 +145,9 @@ def build(out_dir: str = HERE) -> float:
     # for this machine's CPU, as the JIT compiles (pycc's default is a generic x86-64, some 15 % slower
     # on the long loops): the build is made where it runs, by the install; without fast-math neither
     # contracts or reorders arithmetic, so the answers are the JIT's to the last digit
-    cc.target_cpu = "host"
+    # (TECDAR_KERNELS_CPU=generic: any CPU of this architecture, for a wheel that other machines install)
+    cpu = os.environ.get(CPU_ENV, "host")
+    cc.target_cpu = "" if cpu == "generic" else cpu
     with tempfile.TemporaryDirectory() as tmp:
         cc.output_dir = tmp
         for module, name, signature, fn in kernels.EXPORTS:
