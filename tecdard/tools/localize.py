@@ -28,7 +28,7 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     end; every estimate still uses only samples (and proprioception) stamped at or before it.
     """
     pipeline.params.output_period_s = max(1.0 / rate_hz, pipeline.params.output_period_s)
-    rows: list[np.ndarray] = []
+    t, p, std = [], [], []
     last: ContactEstimate | None = None
     onset_t = None
     for batch in fed_chunks(rec, pipeline, chunk_s):
@@ -42,8 +42,11 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
             last = est
             if on_estimate is not None:
                 on_estimate(est)
-            rows.append(np.concatenate([[est.t], est.p, est.std]))
-    return (np.array(rows) if rows else np.zeros((0, 7))), onset_t, last
+            t.append(est.t)
+            p.append(est.p)
+            std.append(est.std)
+    # the rows stacked once (one concatenate per estimate was a tenth of a replay's time)
+    return (np.column_stack([t, p, std]) if t else np.zeros((0, 7))), onset_t, last
 
 
 def fed_chunks(rec: Recording, pipeline: ContactPipeline, chunk_s: float):
