@@ -194,6 +194,64 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
     assert ct.outbox.qsize() >= FLOOD_STATES - TELEMETRY_PER_PASS     # the flood is still there
 
 
+def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(model):
+    """Issue 37: at rest the estimator thread waits for longer batches; a task's start is said at once,
+    an observed arm's estimator never rests, and a start cuts a rest batch's wait short."""
+    import threading
+    import time
+    import types
+    from tecdard.drivers.ring import SampleRing
+    from tecdard.runtime.workers import IDLE_BATCH_FACTOR, REST_BATCH_FACTOR, EstimatorThread
+
+    class Told:
+        saturated_since = None
+
+        def __init__(self):
+            self.said = []
+
+        def set_resting(self, resting):
+            self.said.append(resting)
+
+    keys = Keys("sim")
+    ct = control_thread(model)
+    ct.estimator = told = Told()
+    intake = QueryIntake(keys, C.Limits(), ct, lambda: status_json(ct))
+    main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
+    tick(ct, ct.robot, 1)
+    tick(ct, ct.robot, 2)
+    assert told.said == [True]                                    # idle: said once, not every tick
+    rotate = FakeQuery(keys.cmd("rotate"), {"angle_deg": 10.0})
+    intake.handle(rotate, keys.cmd("rotate"), rotate.payload, 0.04)
+    tick(ct, ct.robot, 3)
+    main.serve_commands(0.06)
+    assert rotate.replies[0]["ok"] is True and told.said == [True, False]     # the tick that started it
+    ct.runner.cancel(None)
+    for k in range(4, 60):
+        tick(ct, ct.robot, k)
+        if ct.runner.mode is Mode.IDLE:
+            break
+    assert told.said == [True, False, True]                       # at rest again once the arm has braked
+
+    # the estimator thread's side: a rest batch's wait ends at a task's batch when the task starts
+    ring = SampleRing(4096)
+    pipe = types.SimpleNamespace(params=types.SimpleNamespace(output_period_s=0.005))    # what the thread reads
+    est = EstimatorThread(pipe, ring, LatestValue(), Outbox(4), min_batch=33)
+    est.set_resting(True)
+    assert est.resting.is_set()
+    got = []
+    waiting = threading.Thread(target=lambda: got.append(ring.pop(4096, 5.0, REST_BATCH_FACTOR * 33)))
+    waiting.start()
+    ring.push(np.arange(70.0), np.zeros((70, 3)), np.zeros((70, 3)))   # a task's batch (66) is there, a rest one not
+    time.sleep(0.05)
+    assert not got
+    est.set_resting(False)
+    waiting.join(5.0)
+    assert len(got) == 1 and len(got[0]) == 70 and IDLE_BATCH_FACTOR * 33 <= 70 and not est.resting.is_set()
+    observer = EstimatorThread(pipe, SampleRing(64), LatestValue(), Outbox(4), min_batch=33, rests=False)
+    observer.set_resting(True)
+    assert not observer.resting.is_set()
+
+
 # -- a task verb is one file ----------------------------------------------------------------
 
 WIGGLE = '''

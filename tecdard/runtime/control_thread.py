@@ -99,16 +99,18 @@ class ControlThread:
 
     def __init__(self, params: ControlParams, model, robot, ring, contact: LatestValue, directive: LatestValue,
                  outbox: Outbox, q_home: np.ndarray, robot_name: str, notifier=None, services: dict | None = None,
-                 imu_saturated_since=None, on_rest=None):
-        """`on_rest(resting)`: told whenever the daemon goes idle (True: no task runs, the arm held) or a
-        task starts (False); the estimator thread batches more at rest (EstimatorThread.set_resting)."""
+                 estimator=None):
+        """`estimator`: the estimator thread's side of the tick (runtime.workers.EstimatorThread), or None:
+        its `saturated_since` (a latest value: the IMU stream has been clipped since then) is read each
+        tick, and `set_resting(resting)` is told whenever the daemon goes idle (True: no task runs, the
+        arm held) or a task starts (False)."""
         self.params = params
         self.limits = params.safety_limits()
         self.model = model.clone()           # this thread's own pinocchio Data
         self.robot, self.ring, self.contact, self.outbox = robot, ring, contact, outbox
         self.q_home, self.robot_name, self.notifier = q_home, robot_name, notifier
         self.services = dict(services or {})
-        self.imu_saturated_since = imu_saturated_since or (lambda: None)   # latest value of the estimator thread
+        self.estimator = estimator
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
@@ -122,7 +124,6 @@ class ControlThread:
         self.sensors = safety.SensorWatch(self.limits, time.monotonic())
         self.faults = self.sensors.faults    # code -> message, while it holds
         self._seq = 0
-        self._on_rest = on_rest
         self._resting: bool | None = None
         self._late_s = 0.0                 # how late the current tick started, s
         self.first_tick = threading.Event()
@@ -221,8 +222,8 @@ class ControlThread:
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
         resting = runner.mode is Mode.IDLE
-        if resting is not self._resting and self._on_rest is not None:
-            self._on_rest(resting)
+        if resting is not self._resting and self.estimator is not None:
+            self.estimator.set_resting(resting)
         self._resting = resting
         self._publish_state(now, p, R, twist[:3], est, js.t)
         for service in self.services.values():
@@ -239,7 +240,8 @@ class ControlThread:
         TCP, `state_t`: when the newest robot state was measured."""
         robot = self.robot
         changes = [(c, None) for c in self.sensors.update(now, self.ring.total, self.ring.last_t, self._late_s,
-                                                           self.imu_saturated_since())]
+                                                           None if self.estimator is None else
+                                                           self.estimator.saturated_since)]
         # the robot's own controller has stopped the arm where it is: the plan stops there too
         changes += [(c, p) for c in self.sensors.update_state_age(now, state_t, robot.state_age_s, self._late_s)]
         changes += [(c, p) for c in self.sensors.update_robot({**robot.faults(), **robot.state_faults()})]

@@ -161,14 +161,13 @@ class Daemon:
             if self.viz_params.enabled else None
         self.ros2 = self._ros2_node(backend_name)
         taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
+        # an arm that others drive (read_only) is watched for touches all the time: never at rest
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
-                                         taps=taps)
+                                         taps=taps, rests=self.backend.commands_arm)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
-                                     imu_saturated_since=lambda: self.estimator.saturated_since,
-                                     # an arm that others drive (read_only) is watched for touches all the time
-                                     on_rest=self.estimator.set_resting if self.backend.commands_arm else None)
+                                     estimator=self.estimator)
         self.ring.wake = WakeStats()
         self.threads = ThreadUsage({"control": self.control.stats.wake, "estimator": self.ring.wake})
         self.keys = Keys(self.robot_name)

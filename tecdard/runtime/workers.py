@@ -96,7 +96,7 @@ class EstimatorThread:
     latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: Outbox,
-                 source: ImuSource | None = None, min_batch: int = 1, taps: tuple = ()):
+                 source: ImuSource | None = None, min_batch: int = 1, taps: tuple = (), rests: bool = True):
         """`source` is read for its clipping points (gyro rad/s, accel m/s^2), which change with the
         full scales a board reports, and its data rate, which a board reports in its status packets
         (the onset detector's band window and `min_batch`, one output period of samples, follow it);
@@ -119,13 +119,14 @@ class EstimatorThread:
         self.directive = LatestValue(EstimatorDirective())
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
         self.resting = threading.Event()  # set while no task runs: longer batches (REST_BATCH_FACTOR)
+        self.rests = rests                # False: never at rest (an observed arm, whose touches are the point)
         if source is not None:
             self._follow_odr(source.odr_hz)
 
     def set_resting(self, resting: bool) -> None:
         """The control thread: no task runs (True), or one has started (False). A start ends a rest
         batch's wait at the task's batch, so the task's trigger waits no longer than it would have."""
-        if resting:
+        if resting and self.rests:
             self.resting.set()
         else:
             self.resting.clear()
