@@ -53,17 +53,19 @@ def rss_mb(pid: int) -> float:
 
 
 @contextlib.contextmanager
-def rig(path: str, tmp: pathlib.Path):
-    """(daemon) on the simulated robot, or on the UR backend with a board on a pty."""
+def rig(path: str, tmp: pathlib.Path, rt_priority: int | None = None):
+    """(daemon) on the simulated robot, or on the UR backend with a board on a pty; with rt_priority,
+    its control thread under SCHED_FIFO (control.rt_priority)."""
+    extra = {} if rt_priority is None else {"control.rt_priority": rt_priority}
     if path == "sim":
-        d = DaemonProcess(tmp, daemon_config())
+        d = DaemonProcess(tmp, daemon_config(**extra))
         try:
             yield d
         finally:
             d.close()
     else:
         from tests.test_ur_rotate import cutter_rig
-        with cutter_rig(tmp, 1) as (_, d):
+        with cutter_rig(tmp, 1, **extra) as (_, d):
             yield d
 
 
@@ -79,8 +81,8 @@ def core_load(on: bool):
             proc.wait()
 
 
-def run(path: str, minutes: float, load: bool) -> dict:
-    with tempfile.TemporaryDirectory() as tmp, rig(path, pathlib.Path(tmp)) as d:
+def run(path: str, minutes: float, load: bool, rt_priority: int | None = None) -> dict:
+    with tempfile.TemporaryDirectory() as tmp, rig(path, pathlib.Path(tmp), rt_priority) as d:
         reply = d.client.command("rotate", {"angle_deg": 20})
         done = d.client.wait_event(("task_done", "task_failed"), reply["task"], 120.0)
         time.sleep(2.0)
@@ -237,13 +239,15 @@ def main() -> None:
     ap.add_argument("--paths", default="sim,ur", help="sim, ur or both (comma-separated)")
     ap.add_argument("--load", choices=("both", "off", "on"), default="both")
     ap.add_argument("--startup", action="store_true", help="also time start-up, the kernel build and localize")
+    ap.add_argument("--rt", type=int, default=None, metavar="PRIORITY",
+                    help="control.rt_priority for the runs (SCHED_FIFO; needs the privilege)")
     args = ap.parse_args()
     loads = {"both": (False, True), "off": (False,), "on": (True,)}[args.load]
-    runs = [run(path, args.minutes, load) for path in args.paths.split(",") for load in loads]
+    runs = [run(path, args.minutes, load, args.rt) for path in args.paths.split(",") for load in loads]
     lines = [f"# Footprint runs ({time.strftime('%Y-%m-%d %H:%M')}, {platform.machine()}, {os.cpu_count()} cores, "
              f"Python {platform.python_version()})", "",
              f"`python -m benchmarks.footprint --minutes {args.minutes:g} --paths {args.paths} --load {args.load}"
-             f"{' --startup' if args.startup else ''}`: after one rotate, {args.minutes:g} min at rest per run. "
+             f"{' --startup' if args.startup else ''}{f' --rt {args.rt}' if args.rt else ''}`: after one rotate, {args.minutes:g} min at rest per run. "
              "The machine is shared; nothing here is a test.", "", *run_table(runs), "",
              "CPU per OS thread at rest, % of one core:", "", *thread_table(runs), ""]
     if args.startup:
