@@ -103,9 +103,12 @@ class GyroConditioner:
         R_world_tcp is (n, 3, 3) or (3, 3); w_tcp_world (n, 3) or (3,) is the gripper's own rate; eta
         a number or (n, 1), the transmission at each sample's grip force (measurements.EtaSchedule).
         """
+        return w_tcp_world + eta * (self.imu_rate_world(w_imu, R_world_tcp) - w_tcp_world)
+
+    def imu_rate_world(self, w_imu: np.ndarray, R_world_tcp: np.ndarray) -> np.ndarray:
+        """The fingertip's own angular velocity in the world (n, 3) from filtered IMU-frame gyro (n, 3):
+        object_rate_world before the gripper's rate and eta enter it. R_world_tcp (n, 3, 3) or (3, 3)."""
         w_tcp_imu = w_imu @ self.R_tcp_imu.T
         if R_world_tcp.ndim == 2:
-            w_world = w_tcp_imu @ R_world_tcp.T
-        else:
-            w_world = (R_world_tcp @ w_tcp_imu[:, :, None])[:, :, 0]
-        return w_tcp_world + eta * (w_world - w_tcp_world)
+            return w_tcp_imu @ R_world_tcp.T
+        return (R_world_tcp @ w_tcp_imu[:, :, None])[:, :, 0]

@@ -213,11 +213,14 @@ class Measurements:
         force = np.where(np.isnan(force), self.grip_force_n, force)
         self.grip_force_now = float(force[-1])
         eta = self.eta(force)
-        w_obj = self.cond.object_rate_world(w_f, R, w_tcp, eta[:, None])
+        # the fingertip's rate in the world once: the object's is made from it, and the rate history
+        # keeps it as it is (object_rate_world with no gripper rate and eta 1, row by row the same)
+        w_imu_world = self.cond.imu_rate_world(w_f, R)
+        w_obj = w_tcp + eta[:, None] * (w_imu_world - w_tcp)
         p_pos, w_pos, w_tcp_pos, fresh = self._positions(ts - delay, w_obj, w_tcp, found, (p, stamp))
         var_w = (eta - 1.0) ** 2 * var_wt
         ok = found & ok
-        self.rates.add((ts - delay)[ok], self.cond.object_rate_world(w_f[ok], R[ok], np.zeros(3), 1.0))
+        self.rates.add((ts - delay)[ok], w_imu_world[ok])
         p_v, w_v, w_tcp_v, var_v, n_avg = self._paired(ts - delay, eta, dt_sample)
         # While the gripper itself turns the estimator needs its rate: eta's error scales only the
         # object's rotation relative to the gripper. Otherwise every rotation is the object's.

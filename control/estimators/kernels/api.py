@@ -17,9 +17,10 @@ from tecdard.control.estimators.kernels import build
 from tecdard.control.estimators.kernels.constants import ETA_BLEND_SIGMA, ETA_PRIOR_LIMIT, GATE_HPH_RATIO, K_MIN
 
 MODE_ENV = "TECDAR_KERNELS"       # "jit": numba's JIT whatever is built; "aot": the build or an error
-__all__ = ["ETA_BLEND_SIGMA", "ETA_PRIOR_LIMIT", "GATE_HPH_RATIO", "K_MIN", "KIND", "WHY", "block_update",
+__all__ = ["ETA_BLEND_SIGMA", "ETA_PRIOR_LIMIT", "GATE_HPH_RATIO", "K_MIN", "KIND", "WHY", "block_update", "output_ends",
            "ekf_advance", "ekf_segments", "eta_evidence", "eta_weight", "plane_rotation", "position_increment",
-           "position_reset", "position_residual", "position_sums", "rate_moments", "report_state", "rotation_axes"]
+           "position_reset", "position_residual", "position_sums", "rate_moments", "report_state", "rotation_axes",
+           "segment_moments"]
 
 
 class KernelsUnavailable(ImportError):
@@ -62,3 +63,5 @@ position_reset = _FUNCTIONS["position_reset"]
 position_residual = _FUNCTIONS["position_residual"]
 position_sums = _FUNCTIONS["position_sums"]
 block_update = _FUNCTIONS["block_update"]
+output_ends = _FUNCTIONS["output_ends"]
+segment_moments = _FUNCTIONS["segment_moments"]

@@ -160,3 +160,41 @@ def rate_moments(w, dt, wwT, w_sum):
     wwT[2, 0] = wwT[0, 2]
     wwT[2, 1] = wwT[1, 2]
     return angle
+
+
+@jit("Tuple((int64, int64))(float64[:], float64, float64, int64[:])")
+def output_ends(ts, t_out, period, ends):
+    """The segments of a run of samples stamped ts that end at each output time (ContactPipeline._advance):
+    an output is due at the first sample at or after t_out + period, t_out is then that sample's time.
+    Writes each segment's end (exclusive row index) into ends; returns (segments, outputs due): every
+    segment is due but perhaps the last, which ends at len(ts)."""
+    n = ts.shape[0]
+    m = 0
+    n_due = 0
+    k0 = 0
+    while k0 < n:
+        due = np.searchsorted(ts, t_out + period)
+        k1 = n if due >= n else max(due + 1, k0 + 1)
+        ends[m] = k1
+        m += 1
+        if due < n:
+            t_out = ts[k1 - 1]
+            n_due += 1
+        k0 = k1
+    return m, n_due
+
+
+@jit("void(float64[:, :], float64[:], int64[:], float64[:, :], float64[:], float64[:], float64[:, :, :], "
+     "float64[:, :])")
+def segment_moments(w, dt, ends, wwT, w_sum, angles, wwT_after, w_sum_after):
+    """rate_moments over each segment in turn (ends: exclusive row indices): wwT and w_sum accumulate in
+    place as segment by segment; each segment's angle, and the moments after it, are written out."""
+    k0 = 0
+    for j in range(ends.shape[0]):
+        k1 = ends[j]
+        angles[j] = rate_moments(w[k0:k1], dt[k0:k1], wwT, w_sum)
+        for a in range(3):
+            w_sum_after[j, a] = w_sum[a]
+            for b in range(3):
+                wwT_after[j, a, b] = wwT[a, b]
+        k0 = k1
