@@ -137,10 +137,11 @@ def sim_config(**overrides) -> dict:
 
 class DaemonProcess:
     def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp",
-                 router: str | None = None, endpoint: str | None = None):
+                 router: str | None = None, endpoint: str | None = None, node_name: str | None = None):
         """`router`: the daemon runs as a Zenoh client of the router at that endpoint, listening on
         nothing, and the test's client reaches it through the router. `endpoint`: where it listens
-        (default: `protocol` on a free loopback port)."""
+        (default: `protocol` on a free loopback port). `node_name`: with TLS, the certificate name the
+        test's client expects of the node it connects to (default the daemon's, DAEMON_NAME)."""
         cfg = copy.deepcopy(cfg)
         if router is None:
             self.endpoint = endpoint or f"{protocol}/127.0.0.1:{free_port()}"
@@ -158,7 +159,8 @@ class DaemonProcess:
         self.proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(self.config_path)],
                                      stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
                                      env=None if env is None else {**os.environ, **env})
-        self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls)
+        self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls,
+                             **({} if node_name is None else {"daemon_name": node_name}))
         try:
             self.client.wait_alive(DAEMON_START_TIMEOUT_S, running=lambda: self.proc.poll() is None)
         except Exception as exc:
@@ -213,11 +215,11 @@ def make_daemon(tmp_path):
     started = []
 
     def factory(env: dict | None = None, client_tls=None, protocol="tcp", router=None, endpoint=None,
-                **overrides) -> DaemonProcess:
+                node_name=None, **overrides) -> DaemonProcess:
         sub = tmp_path / f"d{len(started)}"
         sub.mkdir()
-        d = DaemonProcess(sub, daemon_config(**overrides), env,
-                          client_tls=client_tls, protocol=protocol, router=router, endpoint=endpoint)
+        d = DaemonProcess(sub, daemon_config(**overrides), env, client_tls=client_tls, protocol=protocol,
+                          router=router, endpoint=endpoint, node_name=node_name)
         started.append(d)
         return d
 

@@ -63,9 +63,9 @@ class Client:
                     return False                  # nothing there yet: the daemon may be starting
                 raise ClientError(f"cannot open a session to {self.endpoint}: {str(exc).splitlines()[0]}") from None
             self._subs = [
-                session.declare_subscriber(self.keys.events, _direct(self._on_event)),
-                session.declare_subscriber(self.keys.state, _direct(lambda s: _put_latest(self.states, s))),
-                session.declare_subscriber(self.keys.contact, _direct(lambda s: _put_latest(self.contacts, s))),
+                session.declare_subscriber(self.keys.events, direct_callback(self._on_event)),
+                session.declare_subscriber(self.keys.state, direct_callback(lambda s: _put_latest(self.states, s))),
+                session.declare_subscriber(self.keys.contact, direct_callback(lambda s: _put_latest(self.contacts, s))),
             ]
             self.session = session
             return True
@@ -161,7 +161,7 @@ class Client:
                 return ev
 
 
-def _direct(fn) -> zenoh.handlers.Callback:
+def direct_callback(fn) -> zenoh.handlers.Callback:
     """`fn` run on Zenoh's own thread as the sample arrives. A plain callable would get a Python thread
     of its own (zenoh-python's `indirect` default), which is not a daemon thread: one whose session
     did not end it kept a test run's interpreter from exiting after its last test (CI, 2026-12-04).

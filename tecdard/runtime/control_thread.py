@@ -34,6 +34,7 @@ log = logging.getLogger("tecdar.control")
 WORKSPACE_MAX_M = 5.0         # no arm reaches further from its base: a workspace corner beyond is a typo
 COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
 STALL_LOG_S = 0.1             # a tick that starts this late is logged (the whole daemon was held up)
+IMU_RATE_WINDOW_S = 1.0       # state.imu.rate_hz: the samples the ring took over this long
 
 
 @dataclass
@@ -121,9 +122,12 @@ class ControlThread:
         directive.set(self.runner.directive)
         self.stats = TickStats()
         self.latest_state = LatestValue()    # the newest state message, for `status`
+        self.network_fault = LatestValue()   # set by the main thread: why no router reaches the daemon, or None
         self.sensors = safety.SensorWatch(self.limits, time.monotonic())
         self.faults = self.sensors.faults    # code -> message, while it holds
         self._seq = 0
+        self._imu_mark = (time.monotonic(), 0)      # (when, ring.total) at the start of the rate's window
+        self._imu_rate_hz: float | None = None
         self._resting: bool | None = None
         self._late_s = 0.0                 # how late the current tick started, s
         self.first_tick = threading.Event()
@@ -244,7 +248,12 @@ class ControlThread:
                                                            self.estimator.saturated_since)]
         # the robot's own controller has stopped the arm where it is: the plan stops there too
         changes += [(c, p) for c in self.sensors.update_state_age(now, state_t, robot.state_age_s, self._late_s)]
-        changes += [(c, p) for c in self.sensors.update_robot({**robot.faults(), **robot.state_faults()})]
+        backend = {**robot.faults(), **robot.state_faults()}
+        # the daemon cut from its Zenoh router (network.RouterLink): no command, `stop` included, can
+        # reach it, so the task stops as on a lost robot link, braking on its plan (the arm still obeys)
+        net = self.network_fault.get()
+        current = backend if net is None or "robot_link" in backend else {**backend, "robot_link": net}
+        changes += [(c, p if c[1] in backend else None) for c in self.sensors.update_robot(current)]
         for (kind, code, message), halted_at in changes:
             if kind == "fault":
                 self._event("fault", code=code, message=message)
@@ -324,6 +333,11 @@ class ControlThread:
     def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
         self._seq += 1
         task = self.runner.task
+        t_mark, n_mark = self._imu_mark
+        if now - t_mark >= IMU_RATE_WINDOW_S:
+            total = self.ring.total
+            self._imu_rate_hz = round((total - n_mark) / (now - t_mark), 1)
+            self._imu_mark = (now, total)
         state = {
             "t": now, "seq": self._seq, "mode": self.runner.mode.published(bool(self.faults)),
             "tcp": {"p": p.tolist(), "q": matrix_to_quat(R).tolist(), "v": v.tolist()},
@@ -334,6 +348,7 @@ class ControlThread:
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
                         "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
+            "imu": {"rate_hz": self._imu_rate_hz},     # samples a second the daemon took (None in the first second)
         }
         self.latest_state.set(state)
         self.outbox.put("state", state)

@@ -30,7 +30,7 @@ from tecdard.runtime.intake import QueryIntake
 from tecdard.runtime.live_view import LiveView, VizParams
 from tecdard.runtime.main_loop import MainLoop, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
-from tecdard.runtime.network import ZenohSettings, renice_zenoh_threads
+from tecdard.runtime.network import RouterLink, ZenohSettings, renice_zenoh_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats
@@ -272,7 +272,7 @@ class Daemon:
                 token = session.liveliness().declare_token(self.keys.alive)
                 self.notifier.notify("READY=1")
                 log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self.zenoh.where())
-                self._serve(*pubs)
+                self._serve(pubs, RouterLink(session, self.zenoh.connect) if self.zenoh.mode == "client" else None)
             finally:
                 # also when a start fails (a backend that cannot connect): what did start is stopped
                 self.intake.undeclare()
@@ -297,14 +297,21 @@ class Daemon:
                             "detected until it has", IMU_WARM_TIMEOUT_S)
                 return
 
-    def _serve(self, pub_state, pub_contact, pub_events) -> None:
-        """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal."""
-        main = MainLoop(self.intake, self.control, self.outbox, pub_state, pub_contact, pub_events,
+    def _serve(self, pubs, router_link=None) -> None:
+        """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal.
+        `router_link` (network.RouterLink, a client-mode daemon's): a lost router is the control
+        thread's robot_link fault while it lasts."""
+        main = MainLoop(self.intake, self.control, self.outbox, *pubs,
                         annotate=self.backend.annotate, on_event=self._note_event, ros2=self.ros2)
         shutdown_by = None
+        cut = None
         while not self.stop_event.is_set():
             now = time.monotonic()
             self.threads.sample(now)
+            if router_link is not None and router_link.problem(now) != cut:
+                cut = router_link.problem(now)
+                (log.warning if cut else log.info)("%s", cut or "the Zenoh router connects the daemon again")
+                self.control.network_fault.set(cut)
             main.serve_commands(now)
             if self.shutdown_requested.is_set():
                 if shutdown_by is None:

@@ -12,6 +12,7 @@ from tecdard.runtime.intake import IntakeParams
 from tecdard.safejson import show
 
 MAX_ENDPOINT_CHARS = 256
+ROUTER_CHECK_S = 0.25          # a client-mode daemon looks this often whether a router still connects it
 ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
 
 
@@ -115,3 +116,24 @@ def renice_zenoh_threads() -> None:
                 os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
         except (OSError, ValueError):
             pass
+
+
+class RouterLink:
+    """A client-mode daemon's link to its routers (zenoh.connect), looked at every ROUTER_CHECK_S on the
+    main thread: `problem(now)` is why no router connects the daemon (then no command reaches it,
+    `stop` included), or None. The session reconnects by itself (connect/retry); the control thread
+    turns the problem into a robot_link fault while it holds."""
+
+    def __init__(self, session, endpoints: list[str]):
+        self.session, self.endpoints = session, endpoints
+        self._next = 0.0
+        self._problem: str | None = None
+
+    def problem(self, now: float) -> str | None:
+        if now >= self._next:
+            self._next = now + ROUTER_CHECK_S
+            connected = bool(self.session.info.routers_zid())
+            self._problem = None if connected else (
+                f"the Zenoh router ({', '.join(self.endpoints)}) cannot be reached: no command, stop "
+                "included, can reach the daemon until it is back")
+        return self._problem

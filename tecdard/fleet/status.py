@@ -1,0 +1,177 @@
+"""`tecdard fleet status` and `fleet watch`: one table of every robot that answers through the router,
+from what each daemon publishes (its `state` and `contact` messages and its liveliness token), so that
+an operator who may command no robot still sees the fleet."""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+from tecdard.api.session import DAEMON_NAME, TlsFiles, client_config
+
+STATE_FRESH_S = 1.0            # a robot whose last state is older than this is `silent` (states come at 50 Hz)
+GATHER_S = 1.5                 # fleet status: how long it listens for the robots' states at most
+LINK_FAULTS = ("robot_link", "robot_stale", "imu_disconnected", "imu_stale")
+COLUMNS = ("robot", "mode", "task", "faults", "last contact (mm)", "IMU (Hz)", "overruns", "link")
+
+
+@dataclass
+class RobotSeen:
+    """What one robot's daemon last published, as this client received it (monotonic s)."""
+    state: dict | None = None
+    state_at: float = float("-inf")
+    contact: dict | None = None
+    alive: bool = False
+    faults_seen: set = field(default_factory=set)
+
+
+class FleetView:
+    """A Zenoh client of the router (client mode, no gossip; with TLS it takes what the node sends only
+    if its certificate is named `router_name`) that keeps each robot's newest state and contact."""
+
+    def __init__(self, endpoint: str, tls: TlsFiles | None = None, router_name: str = DAEMON_NAME,
+                 robots: str = "*"):
+        import zenoh
+        from tecdard.cli.client import direct_callback
+        self.robots: dict[str, RobotSeen] = {}
+        self._lock = threading.Lock()
+        self.pattern = robots
+        self.session = zenoh.open(client_config(endpoint, "*", tls, router_name, connect_timeout_s=2.0))
+        self._subs = [self.session.declare_subscriber(f"tecdar/{robots}/state", direct_callback(self._on_state)),
+                      self.session.declare_subscriber(f"tecdar/{robots}/contact", direct_callback(self._on_contact))]
+
+    def _seen(self, sample) -> RobotSeen:
+        robot = str(sample.key_expr).split("/")[1]
+        with self._lock:
+            return self.robots.setdefault(robot, RobotSeen())
+
+    def _on_state(self, sample) -> None:
+        state = json.loads(sample.payload.to_string())
+        if isinstance(state, dict):
+            seen = self._seen(sample)
+            seen.state, seen.state_at = state, time.monotonic()
+
+    def _on_contact(self, sample) -> None:
+        contact = json.loads(sample.payload.to_string())
+        if isinstance(contact, dict):
+            self._seen(sample).contact = contact
+
+    def refresh_alive(self, timeout_s: float = 0.5) -> None:
+        """Which robots hold their liveliness token now."""
+        alive = set()
+        for reply in self.session.liveliness().get(f"tecdar/{self.pattern}/alive", timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 3:
+                    alive.add(parts[1])
+        with self._lock:
+            for name in alive:
+                self.robots.setdefault(name, RobotSeen())
+            for name, seen in self.robots.items():
+                seen.alive = name in alive
+
+    def gather(self, window_s: float = GATHER_S) -> None:
+        """Listen until every robot alive has sent a state, or window_s."""
+        deadline = time.monotonic() + window_s
+        self.refresh_alive(min(0.5, window_s))
+        while time.monotonic() < deadline:
+            with self._lock:
+                waiting = [s for s in self.robots.values() if s.alive and s.state is None]
+            if not waiting:
+                break
+            time.sleep(0.05)
+
+    def rows(self) -> list[dict]:
+        """One row per robot seen, by name: SI and the table's own units side by side."""
+        now = time.monotonic()
+        with self._lock:
+            items = sorted(self.robots.items())
+        return [row(name, seen, now) for name, seen in items]
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        self.session.close()
+
+
+def row(name: str, seen: RobotSeen, now: float) -> dict:
+    """A robot's row: mode, task, fault codes, the newest contact estimate (m), the IMU rate (Hz), the
+    control tick's overruns and the link: ok, silent (alive, no state for STATE_FRESH_S), gone (no
+    token), or the fault that says the robot or the board cannot be reached."""
+    s = seen.state or {}
+    faults = [f.get("code") for f in s.get("faults") or [] if isinstance(f, dict)]
+    contact = s.get("contact") or seen.contact
+    task = s.get("task") if isinstance(s.get("task"), dict) else None
+    age = now - seen.state_at
+    link_fault = next((c for c in faults if c in LINK_FAULTS), None)
+    if not seen.alive:
+        link = "gone"
+    elif seen.state is None or age > STATE_FRESH_S:
+        link = "silent"
+    else:
+        link = link_fault or "ok"
+    return {"robot": name, "mode": s.get("mode"), "task": task, "faults": faults,
+            "contact_p": (contact or {}).get("p") if isinstance(contact, dict) else None,
+            "imu_rate_hz": (s.get("imu") or {}).get("rate_hz"),
+            "overruns": (s.get("control") or {}).get("overruns"), "link": link,
+            "state_age_s": None if seen.state is None else round(age, 3)}
+
+
+def table(rows: list[dict]) -> str:
+    """The rows as a text table, the contact in mm."""
+    def cells(r):
+        task = r["task"]
+        p = r["contact_p"]
+        return (r["robot"], r["mode"] or "-", f"{task['kind']} {task['phase']}" if task else "-",
+                ",".join(r["faults"]) or "-",
+                "-" if not p else "(" + ", ".join(f"{1e3 * float(x):.1f}" for x in p) + ")",
+                "-" if r["imu_rate_hz"] is None else f"{r['imu_rate_hz']:.0f}",
+                "-" if r["overruns"] is None else str(r["overruns"]), r["link"])
+    lines = [COLUMNS] + [cells(r) for r in rows]
+    widths = [max(len(str(line[i])) for line in lines) for i in range(len(COLUMNS))]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(line, widths)).rstrip() for line in lines)
+
+
+def run_status(args, watch: bool) -> int:
+    from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED, one_line
+    from tecdard.api.session import endpoint_problem
+    problem = endpoint_problem(args.connect)
+    if problem:
+        print(f"tecdard fleet: --connect {args.connect}: {problem}", file=sys.stderr)
+        return EXIT_REFUSED
+    given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
+    if given and len(given) != 3:
+        print("tecdard fleet: --tls-ca, --tls-cert and --tls-key go together", file=sys.stderr)
+        return EXIT_REFUSED
+    tls = TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None
+    try:
+        view = FleetView(args.connect, tls, args.tls_daemon_name, args.robot)
+    except Exception as exc:              # zenoh.ZError: nothing there, a certificate refused
+        print(f"tecdard fleet: cannot reach the router at {args.connect}: {one_line(exc)}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    try:
+        if not watch:
+            view.gather(args.wait)
+            rows = view.rows()
+            if args.json:
+                print(json.dumps(rows))
+            else:
+                print(table(rows) if rows else f"no robot answers at {args.connect}")
+            return EXIT_DONE if rows else EXIT_NO_DAEMON
+        tty = sys.stdout.isatty()
+        while True:
+            view.refresh_alive(0.5)
+            rows = view.rows()
+            if args.json:
+                print(json.dumps({"t": time.time(), "robots": rows}), flush=True)
+            else:
+                text = table(rows) if rows else f"no robot answers at {args.connect}"
+                print(("\033[H\033[J" if tty else "") + time.strftime("%H:%M:%S ") + args.connect + "\n" + text + "\n",
+                      flush=True)
+            time.sleep(args.period)
+    except KeyboardInterrupt:
+        return EXIT_DONE
+    finally:
+        view.close()
