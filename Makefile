@@ -18,7 +18,7 @@ $(PY):
 
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) $(KERNELS)
@@ -33,7 +33,7 @@ $(WARM_JIT): $(STAMP) $(KERNELS)
 # simulator extras (`make run` and `make test` install those into the same .venv when asked)
 install: $(PY)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[ur,franka,viz,ros2]'
+	$(PY) -m pip install --quiet -e '.[ur,franka,viz,ros2,fleet]'
 	$(PY) -m tecdard warm
 
 run: $(WARM)
@@ -57,7 +57,7 @@ firmware:
 	@if $(CROSS_TOOLS); then $(MAKE) -s -C firmware cross; else $(NO_CROSS); fi
 
 bench: $(WARM_JIT)
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test]'
+	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim

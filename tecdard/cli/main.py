@@ -81,7 +81,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
     from tecdard.tools import (calibrate, demo, doctor, export, fake_board, imu, kernel_cache, localize, plot,
                                sim_record)
-    from tecdard.fleet import commands as fleet_commands, router
+    from tecdard.fleet import commands as fleet_commands, episode_commands, router
     argv = argv or []
     limits, note = None, ""
     if ("-h" in argv or "--help" in argv) and argv and argv[0] in verb_options():
@@ -96,7 +96,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     for tool in (localize, plot, export, calibrate, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
-    for tool in (doctor, kernel_cache, demo, fleet_commands, router):
+    for tool in (doctor, kernel_cache, demo, fleet_commands, router, episode_commands):
         tool.add_parser(sub)
     return top
 

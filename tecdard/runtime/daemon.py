@@ -30,6 +30,7 @@ from tecdard.runtime.intake import QueryIntake
 from tecdard.runtime.live_view import LiveView, VizParams
 from tecdard.runtime.main_loop import MainLoop, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
+from tecdard.fleet.episodes import StoreParams
 from tecdard.runtime.network import RouterLink, ZenohSettings, renice_zenoh_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
@@ -89,6 +90,7 @@ class Daemon:
         self.ros2_params = Ros2Params.from_config(cfg.section("ros2"), self.robot_name)
         self.record_params = RecordParams.from_config(cfg.section("record"))
         self.viz_params = VizParams.from_config(cfg.section("viz").section("foxglove"))
+        self.store_params = StoreParams.from_config(cfg.section("store"))
         cfg.check_unused()
         self._build_threads(cfg, backend_name, mount, ring_capacity)
         try:
@@ -156,7 +158,10 @@ class Daemon:
             "plane_normal": self.pipeline.params.plane_normal,
             # a grip force the backend does not measure is the configured one: recorded, and said so
             "grip_force": self.pipeline.params.grip_force_n, "grip_force_assumed": True,
+            # the transmission eta calibrated for that grip force (estimator.eta_table): the index's eta
+            "eta": float(self.pipeline.measure.eta(np.array([self.pipeline.params.grip_force_n]))[0]),
             "fingertip_lag_s_assumed": self.pipeline.params.fingertip_lag_s})
+        self.uploader = self._uploader(cfg)
         self.view = LiveView(self.viz_params, quat_to_matrix(np.array(mount)), self.outbox.event) \
             if self.viz_params.enabled else None
         self.ros2 = self._ros2_node(backend_name)
@@ -194,6 +199,8 @@ class Daemon:
     def _note_event(self, event: dict) -> None:
         """Every published event, for the recorder and the live view (main thread; never blocks)."""
         self.recorder.note_event(event)
+        if self.uploader is not None and event.get("kind") == "recording_written":
+            self.uploader.submit(event["path"])
         if self.view is not None:
             self.view.note_event(event)
 
@@ -204,6 +211,18 @@ class Daemon:
         if self.shutdown_requested.is_set():
             self.stop_event.set()
         self.shutdown_requested.set()
+
+    def _uploader(self, cfg):
+        """The `store` section: an uploader thread when it names a store and uploads (docs/fleet.md)."""
+        params = self.store_params
+        if not params.url or not params.upload:
+            return None
+        from tecdard.runtime.recorder import OWN_NAME
+        from tecdard.runtime.uploader import Uploader
+        uploader = Uploader(params, self.record_params.dir, self.robot_name, self.outbox.event,
+                            config=getattr(cfg, "source", None), own_name=OWN_NAME)
+        self.recorder.may_delete = uploader.may_delete
+        return uploader
 
     def _start_threads(self) -> None:
         self.backend.start()
@@ -217,6 +236,7 @@ class Daemon:
                                                          self.stop_event)),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("recorder", lambda: self.recorder.run(self.stop_event)),
+                 *([("uploader", lambda: self.uploader.run(self.stop_event))] if self.uploader is not None else []),
                  *([("viz", lambda: self.view.run(self.stop_event))] if self.view is not None else []),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:

@@ -48,6 +48,7 @@ from tecdard.control.geometry import matrix_to_quat
 from tecdard.api import commands as C
 from tecdard.runtime.intake import TokenBucket
 from tecdard.runtime.messages import Inbox
+from tecdard.fleet.episodes import UPLOADED_SUFFIX
 from tecdard.files import FILE_MODE, PARTIAL_PREFIX, OutputError, ensure_writable_dir, state_dir
 from tecdard.recording.format import Recording, save_recording
 from tecdard.safejson import json_ready
@@ -158,6 +159,7 @@ class Recorder:
         self._inbox = Inbox(QUEUE_STEPS)
         self._taking = False           # the recorder's thread is taking what it drained (idle)
         self.write_failures = 0
+        self.may_delete = None         # set before run(): may_delete(path) False keeps that recording (an upload due)
         self._pre: collections.deque = collections.deque()
         self._pre_events: collections.deque = collections.deque(maxlen=PRE_EVENTS)
         self._capture: Capture | None = None
@@ -398,6 +400,8 @@ class Recorder:
         own = sorted(((f, f.stat()) for f in directory.iterdir() if OWN_NAME.match(f.name) and f != keep),
                      key=lambda fs: fs[1].st_mtime)
         used = sum(st.st_size for _, st in own)
+        # with an episode store, only what the store has may go (runtime.uploader.Uploader.may_delete)
+        own = [(f, st) for f, st in own if self.may_delete is None or self.may_delete(f)]
         replaced = keep.stat().st_size if keep.exists() else 0
         vfs = os.statvfs(directory)
         free = vfs.f_bavail * vfs.f_frsize + replaced
@@ -414,6 +418,7 @@ class Recorder:
             except OSError as exc:
                 log.warning("recording %s not deleted: %s", f.name, exc.strerror or exc)
                 continue
+            f.with_name(f.name + UPLOADED_SUFFIX).unlink(missing_ok=True)
             used -= st.st_size
             free += st.st_size
             log.info("recording %s deleted, the oldest: %s", f.name,

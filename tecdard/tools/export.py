@@ -126,22 +126,38 @@ def add_parser(sub) -> None:
 def main(args) -> int:
     """`tecdard export`: exit 0, or 2 with one line."""
     from tecdard.files import OutputError, check_output, replacing
-    from tecdard.recording.format import RecordingError, load_truth
-    from tecdard.tools.args import BadInput, estimates, recording_and_pipeline, refused, show_path_error
+    from tecdard.recording.format import RecordingError
+    from tecdard.tools.args import BadInput, refused, show_path_error
 
-    found, events = [], []
     try:
         check_output(args.mcap, "--mcap", [args.recording])       # never over the input, and before the replay
-        rec, live, pipeline = recording_and_pipeline(args)
-        estimates(args, rec, live, pipeline, on_estimate=found.append, on_event=events.append)
-        if live is not None:
-            events = live.events          # the pipeline's and the daemon's, as they happened live
-        truth = load_truth(args.recording)
         with replacing(args.mcap, "--mcap") as tmp:     # a failed write leaves what was there
-            n = write_mcap(str(tmp), rec, found, events, truth, None if live is None else live.q)
+            n, found, events = _export(args, tmp)
     except (BadInput, ExportError, RecordingError) as exc:
         return refused("export", str(exc))
     except OutputError as exc:
         return refused("export", show_path_error(exc))
     print(f"{args.mcap}: {n} messages ({len(found)} estimates, {len(events)} events)")
     return 0
+
+
+def _export(args, out) -> tuple[int, list, list]:
+    """Replay args.recording and write the MCAP to `out`: (messages, estimates, events)."""
+    from tecdard.recording.format import load_truth
+    from tecdard.tools.args import estimates, recording_and_pipeline
+    found, events = [], []
+    rec, live, pipeline = recording_and_pipeline(args)
+    estimates(args, rec, live, pipeline, on_estimate=found.append, on_event=events.append)
+    if live is not None:
+        events = live.events          # the pipeline's and the daemon's, as they happened live
+    n = write_mcap(str(out), rec, found, events, load_truth(args.recording), None if live is None else live.q)
+    return n, found, events
+
+
+def mcap_of(recording, out, config: str | None = None) -> int:
+    """A recording as `tecdard export` writes it (the episode store's MCAP), the estimator tuned by
+    `config` (the daemon's own, so that the replay is the live answer): the messages written; BadInput,
+    ExportError or RecordingError (one line) otherwise."""
+    import argparse
+    args = argparse.Namespace(recording=str(recording), mcap=str(out), method=None, config=config, ignore_live=False)
+    return _export(args, out)[0]
