@@ -32,12 +32,14 @@ class Index:
         self.store = store
         self.cache_dir = cache_dir
         self.skipped: list[tuple[str, str]] = []
+        self.listed: dict[str, set[str]] = {}      # table -> the store's keys its view was made from
 
     def files(self, table: str) -> list[pathlib.Path]:
         """The table's Parquet files as local paths (an S3 store's fetched into the cache, each once:
         index files are never rewritten, only added and, compacted, removed)."""
         prefix = f"{INDEX}/{table}/"
         objects = [m for m in self.store.list(prefix) if str(m["path"]).endswith(".parquet")]
+        self.listed[table] = {str(m["path"]) for m in objects}
         root = self.store.local_root
         if root is not None:
             return [root / str(m["path"]) for m in objects]
@@ -118,48 +120,67 @@ def _sql_list(names: list[str]) -> str:
     return "[" + ", ".join(_sql_str(n) for n in names) + "]"
 
 
+VANISHED_RETRIES = 5            # an index file compacted away between the listing and the read: listed again
+
+
 def query(index: Index, sql: str) -> tuple[list[str], list[tuple]]:
     """(column names, rows) of `sql` over the views; QueryError (one line) when DuckDB refuses it."""
-    con = index.connect()
-    try:
-        cur = con.execute(sql)
-        if cur.description is None:
-            return [], []
-        return [d[0] for d in cur.description], cur.fetchall()
-    except Exception as exc:
-        if type(exc).__module__.split(".")[0] != "duckdb" and not isinstance(exc, (ValueError, TypeError)):
-            raise
-        raise QueryError(one_line(exc)) from None
-    finally:
-        con.close()
+    import duckdb
+    for attempt in range(VANISHED_RETRIES):
+        con = index.connect()
+        try:
+            cur = con.execute(sql)
+            if cur.description is None:
+                return [], []
+            return [d[0] for d in cur.description], cur.fetchall()
+        except duckdb.IOException as exc:   # a file gone since the listing (a compaction): list again
+            if attempt == VANISHED_RETRIES - 1:
+                raise QueryError(one_line(exc)) from None
+        except duckdb.Error as exc:          # SQL it refuses (a parser, binder or conversion error)
+            raise QueryError(one_line(exc)) from None
+        finally:
+            con.close()
+    raise AssertionError("unreachable")
 
 
 def compact(store: EpisodeStore, cache_dir: pathlib.Path | None = None) -> dict[str, int]:
     """Merge each table's files into one new part (written once), then delete the files it read. A file
     written meanwhile is not among them and stays; two compactions at once leave duplicates that the views
-    count once. Returns the files merged per table."""
+    count once, and one whose files the other removed first lists again. Returns the files merged per table."""
+    import duckdb
+    for attempt in range(VANISHED_RETRIES):
+        try:
+            return _compact(store, cache_dir)
+        except duckdb.IOException:
+            if attempt == VANISHED_RETRIES - 1:
+                raise StoreError("the index changed under every compaction attempt; try again") from None
+    raise AssertionError("unreachable")
+
+
+def _compact(store: EpisodeStore, cache_dir: pathlib.Path | None) -> dict[str, int]:
     index = Index(store, cache_dir)
     merged = {}
     con = index.connect()
     try:
+        bad = {pathlib.Path(f).name for f, _ in index.skipped}
         for table, (columns, _key) in TABLES.items():
             prefix = f"{INDEX}/{table}/"
-            read = [m for m in store.list(prefix) if str(m["path"]).endswith(".parquet")]
+            # exactly the files the view was made from: one written since is not merged, so it stays
+            read = sorted(index.listed.get(table, ()))
             if len(read) < 2:
                 merged[table] = 0
                 continue
-            bad = {pathlib.Path(f).name for f, _ in index.skipped}
-            keep = [m for m in read if pathlib.Path(str(m["path"])).name not in bad]
+            keep = [key for key in read if pathlib.Path(key).name not in bad]
             with tempfile.TemporaryDirectory(prefix="tecdar-compact-") as tmp:
                 out = pathlib.Path(tmp) / "part.parquet"
                 con.execute(f"COPY (SELECT * FROM {table}) TO {_sql_str(str(out))} (FORMAT parquet)")
                 stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
                 store.put_once(f"{prefix}part-{stamp}-{uuid.uuid4().hex[:8]}.parquet", out.read_bytes())
-            for m in keep:
+            for key in keep:
                 try:
-                    store.delete(str(m["path"]))
+                    store.delete(key)
                 except StoreError as exc:
-                    log.warning("index file %s not deleted after compaction: %s", m["path"], exc)
+                    log.warning("index file %s not deleted after compaction: %s", key, exc)
             merged[table] = len(keep)
     finally:
         con.close()

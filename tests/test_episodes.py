@@ -1,0 +1,286 @@
+"""Every contact episode in one store: uploads to a local-file store and to S3 (moto's server on loopback, standing
+in for MinIO or AWS), at most one copy whatever is retried, the store going away and coming back, two writers at
+once, the Parquet index under DuckDB, a corrupt or hostile index file, and the recorder deleting only what the
+store has."""
+import concurrent.futures
+import json
+import pathlib
+import shutil
+import threading
+import time
+import uuid
+
+import pytest
+
+from tecdard.fleet.episodes import (EpisodeStore, StoreError, StoreParams, index_key, is_uploaded, read_episode,
+                                    upload)
+from tecdard.fleet.index import Index, compact, query
+from tecdard.runtime.uploader import Uploader
+from tecdard.tools.demo import free_port
+from tests.conftest import tecdard
+from tests.test_localize import scenario_file
+
+ROBOT = "arm-a"
+EPISODES = 3
+ERROR_M = 0.003                # a simulated edge's contact found within 3 mm of its truth
+UPLOAD_WAIT_S = 60.0
+S3_KEYS = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_REGION": "us-east-1"}
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """EPISODES short simulated edge contacts, named as the daemon names its recordings."""
+    folder = tmp_path_factory.mktemp("recordings")
+    for k in range(EPISODES):
+        scenario_file(folder / f"20261204-12000{k}-task{k}.npz", kind="edge-arc", seed=10 + k, duration_s=0.6)
+    return folder
+
+
+def fresh_copy(src: pathlib.Path, dst: pathlib.Path) -> pathlib.Path:
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in src.glob("*.npz"):
+        shutil.copy(f, dst / f.name)
+    return dst
+
+
+def objects(store: EpisodeStore, prefix: str = "") -> list[str]:
+    return sorted(str(m["path"]) for m in store.list(prefix))
+
+
+@pytest.fixture
+def s3(monkeypatch):
+    """moto's S3 server on a free loopback port with a bucket of its own (moto keeps every server's
+    buckets in one process-wide backend); (StoreParams, S3Server)."""
+    import boto3
+    for key, value in S3_KEYS.items():
+        monkeypatch.setenv(key, value)
+    server = S3Server(free_port())
+    bucket = f"tecdar-{uuid.uuid4().hex[:12]}"
+    boto3.client("s3", endpoint_url=server.endpoint, region_name="us-east-1").create_bucket(Bucket=bucket)
+    yield StoreParams(url=f"s3://{bucket}/lab", endpoint=server.endpoint, region="us-east-1", allow_http=True), server
+    server.stop()
+
+
+class S3Server:
+    """moto's server mode on 127.0.0.1:port, stopped and started again on the same port as a store's outage."""
+
+    def __init__(self, port: int):
+        self.port, self.endpoint = port, f"http://127.0.0.1:{port}"
+        self.server = None
+        self.start()
+
+    def start(self) -> None:
+        from moto.server import ThreadedMotoServer
+        self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=self.port, verbose=False)
+        self.server.start()
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+
+def test_an_episode_goes_up_once_and_its_rows_answer_sql(tmp_path, recordings):
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
+    first = sorted(rec.glob("*.npz"))[0]
+    ep = upload(store, first, robot=ROBOT, mcap=True)
+    assert is_uploaded(first)
+    assert ep.key(".npz") == f"{ROBOT}/{ep.day}/{first.stem}.npz"
+    assert objects(store, ROBOT) == sorted([ep.key(".npz"), ep.key(".mcap")])
+    assert (tmp_path / "store" / ep.key(".npz")).read_bytes() == first.read_bytes()
+    # again, as after a crash before the local mark: nothing new, nothing doubled
+    before = objects(store)
+    upload(store, first, robot=ROBOT)
+    assert objects(store) == before
+    cols, rows = query(Index(store), "SELECT id, robot, contacts, duration_s FROM episodes")
+    assert rows == [(ep.id, ROBOT, 1, pytest.approx(1.1, abs=0.01))]
+    _, contacts = query(Index(store), "SELECT n, error_m, sigma_m, x_m FROM contacts")
+    assert len(contacts) == 1 and contacts[0][1] < ERROR_M, contacts
+
+
+def test_a_store_that_has_another_file_of_that_name_is_never_overwritten(tmp_path, recordings):
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
+    path = sorted(rec.glob("*.npz"))[0]
+    ep = read_episode(path, ROBOT)
+    store.put_once(ep.key(".npz"), b"someone else's")
+    with pytest.raises(StoreError, match="not these"):
+        upload(store, path, robot=ROBOT, mcap=False)
+    assert store.get(ep.key(".npz")) == b"someone else's" and not is_uploaded(path)
+
+
+def test_sync_query_fetch_through_the_command_line_on_s3(tmp_path, recordings, s3, monkeypatch):
+    params, _server = s3
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    opts = ["--store", params.url, "--endpoint", params.endpoint, "--region", "us-east-1", "--allow-http"]
+    res = tecdard("episodes", "sync", "--dir", rec, "--robot", ROBOT, *opts)
+    assert res.returncode == 0, res.stderr
+    assert f"{EPISODES} uploaded, 0 failed" in res.stderr
+    res = tecdard("episodes", "query", "SELECT count(*) AS n, sum(contacts) AS c FROM episodes", "--json", *opts)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout) == [{"n": EPISODES, "c": EPISODES}]
+    # again: everything was there, nothing doubled
+    res = tecdard("episodes", "sync", "--dir", rec, "--robot", ROBOT, "--again", *opts)
+    assert res.returncode == 0 and f"{EPISODES} uploaded" in res.stderr, res.stderr
+    store = EpisodeStore(params)
+    assert len(objects(store, ROBOT)) == 2 * EPISODES                   # .npz and .mcap each
+    assert len(objects(store, "index/episodes/")) == EPISODES
+    res = tecdard("episodes", "query", "SELECT id FROM episodes ORDER BY id", "--csv", *opts)
+    first_id = res.stdout.splitlines()[1]
+    out = tmp_path / "back"
+    res = tecdard("episodes", "fetch", first_id, "-o", out, "--mcap", *opts)
+    assert res.returncode == 0, res.stderr
+    name = first_id.split("/")[1]
+    assert (out / f"{name}.npz").read_bytes() == (rec / f"{name}.npz").read_bytes()
+    assert (out / f"{name}.mcap").stat().st_size > 0
+    res = tecdard("localize", out / f"{name}.npz", "--json")
+    assert res.returncode == 0, res.stderr
+    # fetched twice: refused, nothing overwritten
+    res = tecdard("episodes", "fetch", first_id, "-o", out, *opts)
+    assert res.returncode == 2 and "not overwritten" in res.stderr
+
+
+def test_the_store_going_away_mid_upload_loses_nothing_and_doubles_nothing(tmp_path, recordings, s3):
+    params, server = s3
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    events: list[tuple[str, dict]] = []
+    uploader = Uploader(StoreParams(**{**params.__dict__, "mcap": False, "retry_max_s": 2.0}), str(rec), ROBOT,
+                        lambda kind, **f: events.append((kind, f)))
+    # one episode half up before the outage: its recording there, its index rows not
+    store = EpisodeStore(params)
+    half = sorted(rec.glob("*.npz"))[0]
+    ep = read_episode(half, ROBOT)
+    store.put_once(ep.key(".npz"), half.read_bytes())
+    server.stop()
+    stop = threading.Event()
+    th = threading.Thread(target=uploader.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        _wait_for(lambda: any(k == "upload_failed" for k, _ in events), 30.0, lambda: events)
+        assert not any(is_uploaded(f) for f in rec.glob("*.npz"))            # nothing marked while away
+        server.start()
+        _wait_for(lambda: all(is_uploaded(f) for f in rec.glob("*.npz")), UPLOAD_WAIT_S, lambda: events[-3:])
+    finally:
+        stop.set()
+        th.join(5.0)
+        if server.server is None:
+            server.start()
+    assert [f for k, f in events if k == "upload_failed" and f.get("retry")]     # it backed off and retried
+    assert sum(k == "episode_uploaded" for k, _ in events) == EPISODES
+    assert len(objects(store, ROBOT)) == EPISODES
+    _, rows = query(Index(store), "SELECT count(*), count(DISTINCT id) FROM episodes")
+    assert rows == [(EPISODES, EPISODES)]
+    _, rows = query(Index(store), "SELECT count(*) FROM contacts")
+    assert rows == [(EPISODES,)]
+
+
+def test_two_writers_and_a_compaction_at_once_lose_no_row(tmp_path, recordings):
+    url = f"file://{tmp_path}/store"
+    folders = []
+    for writer in range(2):
+        folder = tmp_path / f"w{writer}"
+        for k in range(4):
+            src = sorted(recordings.glob("*.npz"))[k % EPISODES]
+            folder.mkdir(exist_ok=True)
+            shutil.copy(src, folder / f"20261204-13{writer}0{k}0-task{k}.npz")
+        folders.append(folder)
+
+    def write(folder, robot):
+        store = EpisodeStore(StoreParams(url=url))
+        for f in sorted(folder.glob("*.npz")):
+            upload(store, f, robot=robot, mcap=False)
+            compact(store)
+
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        list(pool.map(write, folders, ["arm-a", "arm-b"]))
+    store = EpisodeStore(StoreParams(url=url))
+    _, rows = query(Index(store), "SELECT robot, count(*) FROM episodes GROUP BY robot ORDER BY robot")
+    assert rows == [("arm-a", 4), ("arm-b", 4)]
+    _, rows = query(Index(store), "SELECT count(*) FROM contacts")
+    assert rows == [(8,)]
+    compact(store)
+    assert len(objects(store, "index/episodes/")) == 1
+    _, rows = query(Index(store), "SELECT count(*), count(DISTINCT id) FROM episodes")
+    assert rows == [(8, 8)]
+
+
+def test_a_corrupt_or_hostile_index_file_is_one_line_and_the_rest_answers(tmp_path, recordings):
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    url = f"file://{tmp_path}/store"
+    store = EpisodeStore(StoreParams(url=url))
+    for f in rec.glob("*.npz"):
+        upload(store, f, robot=ROBOT, mcap=False)
+    good = tmp_path / "store" / "index" / "episodes" / ROBOT
+    (good / "garbage.parquet").write_bytes(b"PAR1" + bytes(range(256)) * 40)
+    import duckdb
+    duckdb.sql(f"COPY (SELECT 'x' AS id, 42 AS robot) TO '{good / 'other-shape.parquet'}' (FORMAT parquet)")
+    duckdb.sql(f"COPY (SELECT 1 AS surprise) TO '{good / 'foreign.parquet'}' (FORMAT parquet)")
+    res = tecdard("episodes", "query", "SELECT count(*) AS n FROM episodes", "--json", "--store", url)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout) == [{"n": EPISODES}]
+    said = res.stderr.strip().splitlines()
+    assert len(said) == 3 and all("left out" in line for line in said), said
+    assert "Traceback" not in res.stderr
+    # SQL DuckDB refuses, and a store that is not there: one line each
+    for args, fragment in ((["SELECT nope FROM episodes", "--store", url], "nope"),
+                           (["SELECT 1", "--store", "ftp://x"], "expected file:///"),
+                           (["SELECT 1"], "no store")):
+        res = tecdard("episodes", "query", *args)
+        assert res.returncode == 2 and fragment in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def test_the_recorder_deletes_only_what_the_store_has(tmp_path):
+    from tecdard.runtime.recorder import Recorder, RecordParams
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    old = []
+    for k in range(3):
+        f = folder / f"20261204-10000{k}-t{k}.npz"
+        f.write_bytes(b"x" * 400_000)
+        old.append(f)
+        time.sleep(0.01)
+    (folder / (old[1].name + ".uploaded")).write_text("{}")
+    recorder = Recorder(RecordParams(dir=str(folder), max_mb=1.0, keep_free_mb=0.0), lambda *a, **k: None, {})
+    recorder.may_delete = Uploader.may_delete
+    recorder._make_room(folder, 400_000, keep=folder / "20261204-110000-new.npz")
+    assert old[0].exists() and old[2].exists()              # not in the store: kept
+    assert not old[1].exists() and not (folder / (old[1].name + ".uploaded")).exists()
+
+
+def test_a_bad_store_config_is_one_line(tmp_path):
+    from tests.conftest import daemon_config
+    from tecdard.config import dump_yaml
+    for store, fragment in (({"url": "http://x"}, "store.url"), ({"url": "file://relative"}, "absolute"),
+                            ({"url": "s3://"}, "no bucket"), ({"urll": "x"}, "store.urll: unknown option")):
+        cfg = tmp_path / "d.yaml"
+        cfg.write_text(dump_yaml(daemon_config(store=store)))
+        res = tecdard("run", "--config", cfg, timeout=60)
+        assert res.returncode == 2 and fragment in res.stderr, res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_a_daemons_recording_reaches_the_store_with_its_task_and_contact(make_daemon, tmp_path):
+    from tests.conftest import rotate_on_the_cutter
+    store_dir = tmp_path / "store"
+    d = make_daemon(**{"store": {"url": f"file://{store_dir}"}, "record.enabled": True})
+    rotate_on_the_cutter(d)
+    ev = d.client.wait_event(("episode_uploaded",), None, UPLOAD_WAIT_S)
+    assert ev["store"] == f"file://{store_dir}"
+    store = EpisodeStore(StoreParams(url=f"file://{store_dir}"))
+    _, rows = query(Index(store), "SELECT robot, task, verb, result, backend, eta, contacts FROM episodes")
+    assert len(rows) >= 1
+    robot, task, verb, result, backend, eta, contacts = rows[0]
+    assert (robot, verb, result, backend) == ("sim", "rotate", "done", "sim") and eta > 0 and contacts >= 1, rows
+    _, rows = query(Index(store), "SELECT error_m, sigma_m, converged_after_s FROM contacts ORDER BY n LIMIT 1")
+    assert rows[0][0] is not None and rows[0][0] < ERROR_M, rows
+    assert index_key("episodes", read_episode(next(store_dir.glob("sim/*/*.npz")), "sim")).startswith("index/")
+
+
+def _wait_for(cond, timeout_s: float, why) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, why()
+        time.sleep(0.1)
+
+
