@@ -266,8 +266,10 @@ def _contacts(events: list, ests: np.ndarray, truth: dict, wall_offset_s: float)
     standard deviation along the directions observed: an edge's or hinge's own axis is not), when the
     one-sigma first fell under CONVERGED_SIGMA_M, and the error against a truth (the simulator's hinge
     in the task's result, or a simulated recording's contact point)."""
-    onsets = [ev for ev in events if isinstance(ev, dict) and ev.get("kind") == "contact_onset"
-              and isinstance(ev.get("t"), (int, float))]
+    # a daemon recording holds an onset both as its estimator passed it and as the daemon published it
+    onsets = list({float(ev["t"]): ev for ev in events if isinstance(ev, dict) and ev.get("kind") == "contact_onset"
+                   and isinstance(ev.get("t"), (int, float))}.values())
+    onsets.sort(key=lambda ev: float(ev["t"]))
     truth_line = _truth_line(events, truth)
     rows = []
     for n, ev in enumerate(onsets):
