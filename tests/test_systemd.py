@@ -63,13 +63,14 @@ MAX_EXPOSURE = 2.0            # issue 17: `systemd-analyze security` was 3.6
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="needs systemd-analyze")
-def test_the_unit_is_hardened_and_verifies():
-    res = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager", str(UNIT)],
+@pytest.mark.parametrize("unit", [UNIT, ROOT / "systemd" / "tecdar-router.service"], ids=lambda u: u.name)
+def test_the_unit_is_hardened_and_verifies(unit):
+    res = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager", str(unit)],
                          capture_output=True, text=True, timeout=60)
-    m = re.search(r"Overall exposure level for tecdard\.service: ([0-9.]+)", res.stdout)
+    m = re.search(rf"Overall exposure level for {re.escape(unit.name)}: ([0-9.]+)", res.stdout)
     assert m, res.stdout[-2000:] + res.stderr
     assert float(m.group(1)) <= MAX_EXPOSURE, res.stdout
-    res = subprocess.run(["systemd-analyze", "verify", str(UNIT)], capture_output=True, text=True, timeout=60)
+    res = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
     problems = [ln for ln in (res.stdout + res.stderr).splitlines()
                 if ln.strip() and "/opt/tecdar/.venv/bin/tecdard" not in ln]
     assert not problems, problems
