@@ -3,8 +3,10 @@ router mode) enforcing it on mutual TLS, `tecdard fleet status`, and daemons on 
 through two routers, cut off from theirs and back."""
 import json
 import pathlib
+import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -303,3 +305,60 @@ def _wait_for(cond, timeout_s: float, why) -> None:
     while not cond():
         assert time.monotonic() < deadline, why()
         time.sleep(0.1)
+
+
+def test_fleet_status_and_watch_show_every_robot_that_answers(mesh, pki):
+    """A robot (played by a session with its certificate) publishing its state and holding its token:
+    `fleet status` and `fleet watch` through the other router show it, and `gone` once its token goes."""
+    r1, r2 = mesh
+    ca, ids, *_ = pki
+    state = {"t": 1.0, "seq": 1, "mode": "busy", "task": {"id": "t1", "kind": "rotate", "phase": "arc",
+                                                         "progress": 0.5},
+             "faults": [{"code": "robot_stale", "message": "late"}], "control": {"overruns": 3},
+             "imu": {"rate_hz": 6667.0}, "contact": {"p": [0.5, 0.0, 0.2], "std": [0.001, 0.5, 0.001]}}
+    tls_args = ["--tls-ca", ca.path, "--tls-cert", ids["dashboard"].cert, "--tls-key", ids["dashboard"].key,
+                "--tls-daemon-name", "router-2", "--connect", r2.endpoint]
+    stop = threading.Event()
+    with client_session(r1.endpoint, tls(ca, ids["arm-b"])) as robot:
+        token = robot.liveliness().declare_token("tecdar/arm-b/alive")
+        pub = robot.declare_publisher("tecdar/arm-b/state")
+
+        def publish():
+            while not stop.wait(0.02):
+                pub.put(json.dumps(state))
+        th = threading.Thread(target=publish, daemon=True)
+        th.start()
+        try:
+            time.sleep(MESH_SETTLE_S)
+            res = tecdard("fleet", "status", *tls_args, "--json", timeout=60)
+            assert res.returncode == 0, res.stderr
+            rows = json.loads(res.stdout)
+            assert [r["robot"] for r in rows] == ["arm-b"]
+            row = rows[0]
+            assert (row["mode"], row["faults"], row["overruns"], row["imu_rate_hz"]) == ("busy", ["robot_stale"], 3,
+                                                                                         6667.0)
+            assert row["link"] == "robot_stale" and row["contact_p"] == [0.5, 0.0, 0.2]
+            res = tecdard("fleet", "status", *tls_args, timeout=60)
+            lines = res.stdout.splitlines()
+            assert lines[0].split()[:2] == ["robot", "mode"] and "(500.0, 0.0, 200.0)" in lines[1], res.stdout
+            assert "rotate arc" in lines[1] and "6667" in lines[1]
+            watch = subprocess.Popen([sys.executable, "-m", "tecdard", "fleet", "watch", *map(str, tls_args), "--json",
+                                      "--period", "0.3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     cwd=ROOT)
+            time.sleep(3.0)
+            token.undeclare()
+            time.sleep(2.0)
+            watch.send_signal(signal.SIGINT)
+            out, err = watch.communicate(timeout=20)
+            assert watch.returncode == 0, err
+            frames = [json.loads(line) for line in out.splitlines()]
+            links = [f["robots"][0]["link"] for f in frames if f["robots"]]
+            assert len(frames) >= 5 and links[0] == "robot_stale" and links[-1] == "gone", links
+        finally:
+            stop.set()
+            th.join(2.0)
+    res = tecdard("fleet", "status", *tls_args, "--wait", "0.5", timeout=60)
+    assert res.returncode == 3 and "no robot answers" in res.stdout
+    # a roster certificate cannot make the router let an outsider see; without one, no session at all
+    res = tecdard("fleet", "status", "--connect", r2.endpoint, timeout=60)
+    assert res.returncode == 3 and "cannot reach the router" in res.stderr and "Traceback" not in res.stderr

@@ -161,6 +161,7 @@ def run_status(args, watch: bool) -> int:
                 print(table(rows) if rows else f"no robot answers at {args.connect}")
             return EXIT_DONE if rows else EXIT_NO_DAEMON
         tty = sys.stdout.isatty()
+        view.gather(GATHER_S)            # the first table with every robot's state, as `status` shows it
         while True:
             view.refresh_alive(0.5)
             rows = view.rows()
