@@ -362,3 +362,19 @@ def test_fleet_status_and_watch_show_every_robot_that_answers(mesh, pki):
     # a roster certificate cannot make the router let an outsider see; without one, no session at all
     res = tecdard("fleet", "status", "--connect", r2.endpoint, timeout=60)
     assert res.returncode == 3 and "cannot reach the router" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_daemon_whose_certificate_names_another_robot_is_told(pki):
+    from tecdard.config import Config
+    from tecdard.runtime.network import ZenohSettings
+    ca, ids, *_ = pki
+
+    def settings(cn: str, mode: str = "client") -> ZenohSettings:
+        zen = {"tls": {"ca": str(ca.path), "cert": str(ids[cn].cert), "key": str(ids[cn].key)}}
+        zen.update({"mode": "client", "connect": ["tls/127.0.0.1:7448"]} if mode == "client" else
+                   {"listen": ["tls/127.0.0.1:7448"]})
+        return ZenohSettings.from_config(Config({"zenoh": zen}).section("zenoh"))
+    assert settings("arm-a").fleet_problem("arm-a") is None
+    problem = settings("arm-b").fleet_problem("arm-a")
+    assert "named 'arm-b', not robot.name 'arm-a'" in problem
+    assert settings("arm-b", mode="peer").fleet_problem("arm-a") is None      # alone, its clients name it

@@ -292,6 +292,8 @@ class Daemon:
                 token = session.liveliness().declare_token(self.keys.alive)
                 self.notifier.notify("READY=1")
                 log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self.zenoh.where())
+                if self.zenoh.fleet_problem(self.robot_name):
+                    log.warning("%s", self.zenoh.fleet_problem(self.robot_name))
                 self._serve(pubs, RouterLink(session, self.zenoh.connect) if self.zenoh.mode == "client" else None)
             finally:
                 # also when a start fails (a backend that cannot connect): what did start is stopped

@@ -51,6 +51,17 @@ class ZenohSettings:
         tls, commanders = _security(section, listen + connect)
         return cls(mode, list(listen), connect, multicast, tls, commanders, IntakeParams.from_config(section))
 
+    def fleet_problem(self, robot: str) -> str | None:
+        """Why a fleet's routers would refuse this daemon (docs/fleet.md): a client of a router on TLS whose
+        certificate does not name its robot may publish and answer on none of its keys. None otherwise."""
+        if self.mode != "client" or self.tls is None:
+            return None
+        name = cert_common_name(self.tls.cert)
+        if name == robot:
+            return None
+        return (f"zenoh.tls.cert is named {name!r}, not robot.name {robot!r}: a fleet's routers (tecdard fleet acl) "
+                "let a daemon publish and answer only under its certificate's robot")
+
     def session_config(self, keys: Keys, ros2: dict | None = None):
         """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint); `ros2`: the
         ROS 2 node's key expressions, let through its access control."""
@@ -63,9 +74,10 @@ class ZenohSettings:
         if self.connect:
             parts.append(f"connecting to {', '.join(self.connect)}")
         if self.tls is not None:
-            # what clients must expect (tecdard.api.session.client_access_control)
+            # what clients must expect (tecdard.api.session.client_access_control); through a router
+            # they expect the router's name instead
             name = cert_common_name(self.tls.cert)
-            parts.append(f"TLS as {name!r}" + ("" if name == DAEMON_NAME else
+            parts.append(f"TLS as {name!r}" + ("" if name == DAEMON_NAME or self.mode == "client" else
                                                  f" (clients expect {DAEMON_NAME!r} unless told --tls-daemon-name)"))
         return f"Zenoh {self.mode}, " + " and ".join(parts)
 
