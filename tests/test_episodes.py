@@ -260,6 +260,7 @@ def test_a_bad_store_config_is_one_line(tmp_path):
         assert len(res.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_daemons_recording_reaches_the_store_with_its_task_and_contact(make_daemon, tmp_path):
     from tests.conftest import rotate_on_the_cutter
     store_dir = tmp_path / "store"

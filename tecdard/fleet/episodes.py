@@ -384,7 +384,11 @@ def _mcap_bytes(path: pathlib.Path, config: str | None) -> bytes | None:
     from tecdard.tools.export import mcap_of
     with tempfile.TemporaryDirectory(prefix="tecdar-mcap-") as tmp:
         out = pathlib.Path(tmp) / (path.stem + ".mcap")
-        mcap_of(path, out, config)
+        try:
+            mcap_of(path, out, config)
+        except Exception as exc:         # the MCAP is a convenience: its failure never holds the recording back
+            log.warning("%s: no MCAP (%s)", path.name, one_line(exc))
+            return None
         return out.read_bytes()
 
 

@@ -84,6 +84,10 @@ class Uploader:
                 retry_s = min(2.0 * retry_s, self.params.retry_max_s)
                 if isinstance(exc, ValueError):        # a malformed recording (RecordingError): never uploadable
                     self.pending.pop(0)
+            except Exception:                          # a bug of ours: said, and the thread goes on
+                self.pending.pop(0)
+                self.failures += 1
+                log.exception("recording %s not uploaded", path.name)
             else:
                 self.pending.pop(0)
                 retry_s, next_try = RETRY_FIRST_S, 0.0
