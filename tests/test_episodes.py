@@ -110,6 +110,7 @@ def test_a_store_that_has_another_file_of_that_name_is_never_overwritten(tmp_pat
     assert store.get(ep.key(".npz")) == b"someone else's" and not is_uploaded(path)
 
 
+@pytest.mark.slow
 def test_sync_query_fetch_through_the_command_line_on_s3(tmp_path, recordings, s3, monkeypatch):
     params, _server = s3
     rec = fresh_copy(recordings, tmp_path / "rec")
@@ -141,6 +142,7 @@ def test_sync_query_fetch_through_the_command_line_on_s3(tmp_path, recordings, s
     assert res.returncode == 2 and "not overwritten" in res.stderr
 
 
+@pytest.mark.slow
 def test_the_store_going_away_mid_upload_loses_nothing_and_doubles_nothing(tmp_path, recordings, s3):
     params, server = s3
     rec = fresh_copy(recordings, tmp_path / "rec")
