@@ -165,7 +165,8 @@ def test_a_bad_router_config_is_one_line(tmp_path, pki):
         ({"zenoh": {"listen": ["tcp/127.0.0.1:1"], "commanders": ["x"]}}, "commanders"),
         ({"zenoh": {"listen": ["tls/127.0.0.1:1"]}}, "zenoh.tls"),
         ({"zenoh": {"listen": ["tcp/127.0.0.1:1"]}, "access_control": {}}, "give one: roster"),
-        ({"zenoh": {"listen": ["tcp/127.0.0.1:1"]}, "access_control": {"file": str(bad_acl)}}, "line 1 column 51: expected"),
+        ({"zenoh": {"listen": ["tcp/127.0.0.1:1"]}, "access_control": {"file": str(bad_acl)}},
+         "line 1 column 51: expected"),
         ({"zenoh": {"listen": ["tcp/127.0.0.1:1"]}, "acl": {}}, "acl: unknown option"),
     ]
     for cfg, fragment in cases:

@@ -179,7 +179,8 @@ def _store_options(p) -> None:
 
 
 def add_parser(sub) -> None:
-    eps = sub.add_parser("episodes", help="the fleet's contact episodes in one store: sync, query (SQL), fetch, compact",
+    eps = sub.add_parser("episodes",
+                         help="the fleet's contact episodes in one store: sync, query (SQL), fetch, compact",
                          description="Recordings in object storage (file:// or s3://) with a Parquet index queried "
                                      "by DuckDB (docs/fleet.md).")
     verbs = eps.add_subparsers(dest="episodes_cmd", required=True)
@@ -193,7 +194,8 @@ def add_parser(sub) -> None:
     p = verbs.add_parser("query", help="SQL (DuckDB) over the index: views `episodes` and `contacts`",
                          description="Views: episodes (one row per episode: id, robot, episode, start_time, day, task, "
                                      "verb, reason, backend, model, estimator, config_digest, eta, grip_force_n, "
-                                     "duration_s (s), result, contacts, npz_key, mcap_key, bytes, uploaded_at, version) "
+                                     "duration_s (s), result, contacts, npz_key, mcap_key, bytes, uploaded_at, "
+                                     "version) "
                                      "and contacts (one per contact: id, robot, episode, n, onset_t (s), onset_time, "
                                      "detect_latency_s, x_m, y_m, z_m (world, m), sigma_m (one-sigma, m), std_x_m, "
                                      "std_y_m, std_z_m, converged_after_s (s), error_m (m, against a truth)).",

@@ -95,7 +95,8 @@ class Index:
 
 def _problem(con, name: str, columns: tuple) -> str | None:
     try:
-        got = {row[0]: row[1] for row in con.execute(f"DESCRIBE SELECT * FROM read_parquet({_sql_str(name)})").fetchall()}
+        described = con.execute(f"DESCRIBE SELECT * FROM read_parquet({_sql_str(name)})").fetchall()
+        got = {row[0]: row[1] for row in described}
     except Exception as exc:
         return f"not Parquet ({one_line(exc)[:160]})"
     missing = [n for n, _ in columns if n not in got]
