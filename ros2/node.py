@@ -69,7 +69,8 @@ class Ros2Params:
     @classmethod
     def from_config(cls, section, robot: str) -> "Ros2Params":
         d = cls()
-        namespace = section.getstr("namespace", "", max_len=200) or f"/{robot}"
+        # by default the robot's name, made a ROS 2 name: a fleet's `ur5e-left` is /ur5e_left
+        namespace = section.getstr("namespace", "", max_len=200) or "/" + _ros_chunk(robot)
         if namespace != "/" and (not namespace.startswith("/") or not _ros_name(namespace.strip("/"), allow_slash=True)):
             raise section.error("namespace", f"{namespace!r} is no ROS 2 namespace (/name or /a/b: letters, "
                                              "digits and '_')")
@@ -89,6 +90,13 @@ class Ros2Params:
                    namespace=namespace.rstrip("/") or "/", node_name=node_name, joint_states=joint_states,
                    imu_rate_hz=section.getfloat("imu_rate_hz", d.imu_rate_hz, minval=0.0, maxval=10000.0),
                    **frames)
+
+
+def _ros_chunk(name: str) -> str:
+    """`name` as one ROS 2 name chunk: '-' (and any other character ROS 2 refuses) as '_', and a leading
+    digit behind an 'r_'."""
+    chunk = "".join(c if c.isascii() and (c.isalnum() or c == "_") else "_" for c in name) or "tecdar"
+    return f"r_{chunk}" if chunk[0].isdigit() else chunk
 
 
 def _ros_name(name: str, allow_slash: bool = False) -> bool:

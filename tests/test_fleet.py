@@ -296,8 +296,8 @@ def test_three_arms_rotate_at_once_through_two_routers_and_survive_a_router_rest
         assert '"code":"robot_link"' in text and '"cause":"robot_link"' in text, text[-3000:]
         _wait_for(lambda: _faults(ops["arm-c"]) == [], 15.0, lambda: (faults, log_c.log()[-2000:]))
         assert ops["arm-c"].command("status")["state"]["task"] is None
-        # nothing was published under a wrong name: each daemon's state came only on its own key
-        again = ops["arm-c"].command("rotate", {"angle_deg": 10.0})
+        # commanded again through the mesh: the arm, stopped mid-arc on the cutter's handle, goes home
+        again = ops["arm-c"].command("home")
         assert again["ok"], again
         ev = ops["arm-c"].wait_event(("task_done", "task_failed"), again["task"], 120.0)
         assert ev["kind"] == "task_done", ev
@@ -400,3 +400,11 @@ def test_a_daemon_whose_certificate_names_another_robot_is_told(pki):
     problem = settings("arm-b").fleet_problem("arm-a")
     assert "named 'arm-b', not robot.name 'arm-a'" in problem
     assert settings("arm-b", mode="peer").fleet_problem("arm-a") is None      # alone, its clients name it
+
+
+def test_a_fleet_robot_name_makes_a_ros2_namespace():
+    """Roster names take '-' (ur5e-left); ROS 2 names do not: the default namespace says it with '_'."""
+    from tecdard.config import Config
+    from tecdard.ros2.node import Ros2Params
+    for robot, namespace in (("ur5e-left", "/ur5e_left"), ("arm_2", "/arm_2"), ("3-arm", "/r_3_arm")):
+        assert Ros2Params.from_config(Config({}).section("ros2"), robot).namespace == namespace
