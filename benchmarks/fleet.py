@@ -143,34 +143,41 @@ def daemon_latency(folder: pathlib.Path, ca, ids, r1: str, r2: str) -> dict[str,
     return got
 
 
-def upload_figures(folder: pathlib.Path, n: int) -> dict:
-    """A sim daemon finds `n` recordings of a rotate in its record dir at start and uploads them (with their
-    MCAP) to a file:// store: throughput, and its CPU while uploading against at rest afterwards."""
+def upload_figures(folder: pathlib.Path, n: int, src: pathlib.Path, mcap: bool) -> dict:
+    """A sim daemon finds `n` copies of the recording `src` in its record dir at start and uploads them
+    (with their MCAP, or not) to a file:// store: throughput, and its CPU while uploading against at rest
+    afterwards."""
     from tests.conftest import daemon_config
     from tecdard.fleet.episodes import EpisodeStore, StoreParams
-    src = _one_daemon_recording(folder)
-    rec_dir = folder / "rec-up"
+    tag = "mcap" if mcap else "plain"
+    rec_dir = folder / f"rec-up-{tag}"
     rec_dir.mkdir()
     for k in range(n):
         shutil.copy(src, rec_dir / f"20261204-10{k:04d}-rotate-{k:08x}.npz")
     total_mb = sum(f.stat().st_size for f in rec_dir.glob("*.npz")) / 1e6
-    store_dir = folder / "store-up"
-    cfg = daemon_config(**{"store": {"url": f"file://{store_dir}"}, "record.dir": str(rec_dir)})
-    path = folder / "up.yaml"
+    store_dir = folder / f"store-up-{tag}"
+    cfg = daemon_config(**{"store": {"url": f"file://{store_dir}", "mcap": mcap}, "record.dir": str(rec_dir)})
+    path = folder / f"up-{tag}.yaml"
     path.write_text(dump_yaml(cfg))
     endpoint = cfg["zenoh"]["listen"][0]
-    log = open(folder / "up.log", "w")
+    log = open(folder / f"up-{tag}.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(path)], stdout=log,
                             stderr=subprocess.STDOUT, cwd=ROOT)
     try:
         with Client(endpoint, robot="sim") as cli:
             cli.wait_alive(120.0)
             t0, c0 = time.monotonic(), proc_cpu_s(proc.pid)
+            overruns0 = cli.command("status")["state"]["control"]["overruns"]
+            late = []
             while len(list(rec_dir.glob("*.uploaded"))) < n:
                 if time.monotonic() - t0 > 600:
                     raise RuntimeError("uploads did not finish in 10 minutes")
-                time.sleep(0.2)
+                control = cli.command("status")["state"]["control"]
+                late.append(control.get("late_ms_p99_recent") or 0.0)
+                time.sleep(0.5)
             t1, c1 = time.monotonic(), proc_cpu_s(proc.pid)
+            worker_s = sum(proc_cpu_s(pid) for pid in _children(proc.pid) if _comm(pid) == "tecdar-upload")
+            overruns = cli.command("status")["state"]["control"]["overruns"] - overruns0
             time.sleep(20.0)
             t2, c2 = time.monotonic(), proc_cpu_s(proc.pid)
             threads = cli.command("status")["state"].get("threads") or {}
@@ -181,7 +188,22 @@ def upload_figures(folder: pathlib.Path, n: int) -> dict:
     assert len(list(store_dir.glob("sim/*/*.npz"))) == n
     return {"n": n, "mb": total_mb, "stored_mb": stored_mb, "s": t1 - t0, "cpu_up": 100 * (c1 - c0) / (t1 - t0),
             "cpu_rest": 100 * (c2 - c1) / (t2 - t1), "store": EpisodeStore(StoreParams(url=f"file://{store_dir}")),
-            "rec_s": _duration_s(src), "threads": threads}
+            "rec_s": _duration_s(src), "threads": threads, "late_max_ms": max(late, default=0.0),
+            "overruns": overruns, "worker_pct": 100 * worker_s / (t1 - t0), "worker_s": worker_s}
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in pathlib.Path(f"/proc/{pid}/task").iterdir():
+        out += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+def _comm(pid: int) -> str:
+    try:
+        return pathlib.Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return ""
 
 
 def _duration_s(path) -> float:
@@ -253,7 +275,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--episodes", type=int, default=10000, help="synthetic episodes in the index (default 10000)")
     ap.add_argument("--uploads", type=int, default=12, help="recordings the daemon uploads (default 12)")
+    ap.add_argument("--parts", default="mesh,upload,query", help="which figures (comma-separated)")
     args = ap.parse_args()
+    parts = set(args.parts.split(","))
     from tecdard.fleet.episodes import EpisodeStore, StoreParams
     from tecdard.fleet.index import compact
     lines = ["# The fleet's figures (issue 38)", "",
@@ -262,54 +286,71 @@ def main() -> None:
              "Reproduce: `.venv/bin/python -m benchmarks.fleet`.", ""]
     with tempfile.TemporaryDirectory(prefix="tecdar-fleet-bench-") as tmp:
         folder = pathlib.Path(tmp)
-        ca, ids = pki(folder)
-        roster = folder / "roster.yaml"
-        roster.write_text(dump_yaml(ROSTER))
-        p1, r1 = start_router(folder, "router-1", ca, ids["router-1"], roster)
-        p2, r2 = start_router(folder, "router-2", ca, ids["router-2"], roster, connect=[r1])
-        try:
-            synth = mesh_latency(folder, ca, ids, r1, r2)
-            live = daemon_latency(folder, ca, ids, r1, r2)
-        finally:
-            for p in (p2, p1):
-                p.terminate()
-                p.wait(10)
-        lines += ["## Mesh latency of `contact` (mutual TLS, the roster's ACL, two `tecdard router`s)", "",
-                  f"Synthetic: {PROBES} messages of {CONTACT_BYTES} bytes at {PROBE_RATE_HZ:.0f} Hz from robot "
-                  "arm-a's certificate on router-1, received by an operator on router-1 (one router away) and on "
-                  "router-2 (two routers away), by the host's clock. Daemon: a simulated arm's contact estimates "
-                  "during a 20 deg rotate, from the estimate's own time (its IMU sample) to the client.", "",
-                  "| path | messages | p50 / p90 / p99 / max, ms |", "|---|---|---|"]
-        for name in ("one router", "two routers"):
-            lines.append(f"| synthetic, {name} | {len(synth[name])} | {stats_ms(synth[name])} |")
-        for name in ("one router", "two routers"):
-            lines.append(f"| daemon's contact, {name} | {len(live[name])} | {stats_ms(live[name])} |")
-        up = upload_figures(folder, args.uploads)
-        lines += ["", "## Upload", "",
-                  f"A simulated daemon finds {up['n']} recordings of a 20 deg rotate ({up['rec_s']:.1f} s each, "
-                  f"{up['mb']:.1f} MB in all) in its record.dir at start and uploads them with their MCAP and index "
-                  f"rows to a file:// store ({up['stored_mb']:.1f} MB stored).", "",
-                  "| figure | value |", "|---|---|",
-                  f"| time to upload all | {up['s']:.1f} s |",
-                  f"| throughput (recordings) | {up['mb'] / up['s']:.2f} MB/s, {up['n'] / up['s']:.2f} episodes/s |",
-                  f"| daemon CPU while uploading | {up['cpu_up']:.1f} % of a core |",
-                  f"| daemon CPU at rest after | {up['cpu_rest']:.1f} % of a core |",
-                  f"| added while uploading | {up['cpu_up'] - up['cpu_rest']:.1f} % of a core |", ""]
-        store = EpisodeStore(StoreParams(url=f"file://{folder}/synthetic"))
-        t_write = synthetic_index(store, args.episodes)
-        loose = time_queries(store)
-        t0 = time.monotonic()
-        compact(store)
-        t_compact = time.monotonic() - t0
-        packed = time_queries(store)
-        lines += ["## Query time over the index", "",
-                  f"{args.episodes} synthetic episodes over 8 robots, one contact each, written as the uploader "
-                  f"writes them (one file per episode and table: {t_write:.0f} s), then compacted "
-                  f"(`tecdard episodes compact`, {t_compact:.1f} s). Best of 3, in process (DuckDB).", "",
-                  f"| query | {args.episodes} files per table, s | compacted, s |", "|---|---|---|"]
-        for name in QUERIES:
-            lines.append(f"| {name} | {loose[name]:.2f} | {packed[name]:.3f} |")
-    OUT.write_text("\n".join(lines) + "\n")
+        if "mesh" in parts:
+            ca, ids = pki(folder)
+            roster = folder / "roster.yaml"
+            roster.write_text(dump_yaml(ROSTER))
+            p1, r1 = start_router(folder, "router-1", ca, ids["router-1"], roster)
+            p2, r2 = start_router(folder, "router-2", ca, ids["router-2"], roster, connect=[r1])
+            try:
+                synth = mesh_latency(folder, ca, ids, r1, r2)
+                live = daemon_latency(folder, ca, ids, r1, r2)
+            finally:
+                for p in (p2, p1):
+                    p.terminate()
+                    p.wait(10)
+            lines += ["## Mesh latency of `contact` (mutual TLS, the roster's ACL, two `tecdard router`s)", "",
+                      f"Synthetic: {PROBES} messages of {CONTACT_BYTES} bytes at {PROBE_RATE_HZ:.0f} Hz from robot "
+                      "arm-a's certificate on router-1, received by an operator on router-1 (one router away) and on "
+                      "router-2 (two routers away), by the host's clock. Daemon: a simulated arm's contact estimates "
+                      "during a 20 deg rotate, from the estimate's own time (its IMU sample) to the client.", "",
+                      "| path | messages | p50 / p90 / p99 / max, ms |", "|---|---|---|"]
+            for name in ("one router", "two routers"):
+                lines.append(f"| synthetic, {name} | {len(synth[name])} | {stats_ms(synth[name])} |")
+            for name in ("one router", "two routers"):
+                lines.append(f"| daemon's contact, {name} | {len(live[name])} | {stats_ms(live[name])} |")
+        if "upload" in parts:
+            src = _one_daemon_recording(folder)
+            ups = [upload_figures(folder, args.uploads, src, mcap) for mcap in (True, False)]
+            up = ups[0]
+            lines += ["", "## Upload", "",
+                      f"A simulated daemon finds {up['n']} copies of its recording of a 20 deg rotate "
+                      f"({up['rec_s']:.1f} s, {up['mb'] / up['n']:.2f} MB each) in its record.dir at start and uploads "
+                      "them with their index rows to a file:// store, with `store.mcap` (each recording replayed and "
+                      "written as MCAP beside it) and without. CPU: the daemon process (its children apart: the "
+                      "simulator, the upload process), from its start of uploading to the last, against 20 s at rest "
+                      "after; the upload process's own below.", "",
+                      "| figure | with MCAP | without |", "|---|---|---|",
+                      "| stored | " + " | ".join(f"{u['stored_mb']:.1f} MB" for u in ups) + " |",
+                      "| time to upload all | " + " | ".join(f"{u['s']:.1f} s" for u in ups) + " |",
+                      "| throughput | " + " | ".join(f"{u['mb'] / u['s']:.2f} MB/s of recordings, {u['n'] / u['s']:.2f} "
+                                                      "episodes/s" for u in ups) + " |",
+                      "| daemon CPU while uploading | " + " | ".join(f"{u['cpu_up']:.1f} % of a core" for u in ups) + " |",
+                      "| daemon CPU at rest after | " + " | ".join(f"{u['cpu_rest']:.1f} %" for u in ups) + " |",
+                      "| added while uploading | " + " | ".join(f"{u['cpu_up'] - u['cpu_rest']:.1f} % of a core"
+                                                             for u in ups) + " |",
+                      "| the upload process (tecdar-upload, nice +10), CPU | " + " | ".join(
+                          f"{u['worker_s']:.1f} s, {u['worker_pct']:.0f} % of a core while uploading" for u in ups)
+                      + " |",
+                      "| the tick's lateness p99 over 5 s, the largest seen while uploading; overruns | " +
+                      " | ".join(f"{u['late_max_ms']:.2f} ms; {u['overruns']}" for u in ups) + " |", ""]
+        if "query" in parts:
+            store = EpisodeStore(StoreParams(url=f"file://{folder}/synthetic"))
+            t_write = synthetic_index(store, args.episodes)
+            loose = time_queries(store)
+            t0 = time.monotonic()
+            compact(store)
+            t_compact = time.monotonic() - t0
+            packed = time_queries(store)
+            lines += ["## Query time over the index", "",
+                      f"{args.episodes} synthetic episodes over 8 robots, one contact each, written as the uploader "
+                      f"writes them (one file per episode and table: {t_write:.0f} s), then compacted "
+                      f"(`tecdard episodes compact`, {t_compact:.1f} s). Best of 3, in process (DuckDB).", "",
+                      f"| query | {args.episodes} files per table, s | compacted, s |", "|---|---|---|"]
+            for name in QUERIES:
+                lines.append(f"| {name} | {loose[name]:.2f} | {packed[name]:.3f} |")
+    if parts >= {"mesh", "upload", "query"}:
+        OUT.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -220,7 +220,8 @@ class Daemon:
         from tecdard.runtime.recorder import OWN_NAME
         from tecdard.runtime.uploader import Uploader
         uploader = Uploader(params, self.record_params.dir, self.robot_name, self.outbox.event,
-                            config=getattr(cfg, "source", None), own_name=OWN_NAME)
+                            config=getattr(cfg, "source", None), own_name=OWN_NAME,
+                            at_rest=lambda: self.control.quiescent())
         self.recorder.may_delete = uploader.may_delete
         return uploader
 
