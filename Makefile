@@ -76,6 +76,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.firmware
 	$(PY) -m benchmarks.ros2
 	$(PY) -m benchmarks.figure
+	$(PY) -m benchmarks.fleet
 
 clean:
 	rm -rf $(VENV) build *.egg-info firmware/build
