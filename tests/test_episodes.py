@@ -287,3 +287,20 @@ def _wait_for(cond, timeout_s: float, why) -> None:
         time.sleep(0.1)
 
 
+
+
+def test_the_ten_example_queries_of_the_docs_run(tmp_path, recordings):
+    import re
+    from tests.conftest import ROOT
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
+    for f in rec.glob("*.npz"):
+        upload(store, f, robot=ROBOT, mcap=False)
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    block = text[text.index("## Ten example queries"):]
+    block = block[block.index("```sql") + len("```sql"):]
+    block = block[:block.index("```")]
+    queries = [q.strip() for q in re.split(r"^-- .*$", block, flags=re.M) if q.strip()]
+    assert len(queries) == 10
+    answers = [query(Index(store), q) for q in queries]
+    assert answers[0][1] == [(ROBOT, EPISODES, EPISODES)]
