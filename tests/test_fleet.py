@@ -366,7 +366,8 @@ def test_fleet_status_and_watch_show_every_robot_that_answers(mesh, pki):
             assert "rotate arc" in lines[1] and "6667" in lines[1]
             watch = subprocess.Popen([sys.executable, "-m", "tecdard", "fleet", "watch", *map(str, tls_args), "--json",
                                       "--period", "0.3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     cwd=ROOT)
+                                     cwd=ROOT,   # Ctrl-C as at a terminal: a background run has SIGINT ignored
+                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
             time.sleep(3.0)
             token.undeclare()
             time.sleep(2.0)
