@@ -30,7 +30,8 @@ CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim", "ros2")
 # Whole-daemon runs and the real clients against their fakes: `make check` leaves them out.
 SLOW_FILES = {"test_daemon.py", "test_daemon_franka.py", "test_daemon_ur.py", "test_daemon_hostile.py",
               "test_daemon_tls.py", "test_daemon_api.py", "test_recorder.py", "test_serial_imu.py", "test_ur_link.py",
-              "test_ur_rotate.py", "test_client_cli.py", "test_install.py", "test_systemd.py"}
+              "test_ur_rotate.py", "test_client_cli.py", "test_install.py", "test_systemd.py",
+              "test_firmware.py"}   # the board's builds and QEMU runs: `make firmware` and the full suite
 
 
 class _BareNames(importlib.abc.MetaPathFinder):
