@@ -176,3 +176,37 @@ def test_the_acquisition_thread_reads_a_batch_in_a_few_wake_ups_and_loses_nothin
     t = np.concatenate(got)[:, 0]
     assert np.array_equal(t, np.arange(1600) / 6667.0)
     assert src.reads < 200 / 2, src.reads                         # 58 here, for 200 packets
+
+
+def test_with_rt_priority_the_threads_the_tick_waits_on_run_less_nice():
+    """raise_gil_threads: the GIL's other holders at nice -10 where the host allows it, else one reason."""
+    import os
+    import threading
+    from tecdard.host import name_os_thread
+    from tecdard.runtime.realtime import raise_gil_threads
+    ready, done = threading.Event(), threading.Event()
+    tid = []
+
+    def body():
+        name_os_thread("estimator")
+        tid.append(threading.get_native_id())
+        ready.set()
+        done.wait(10.0)
+    th = threading.Thread(target=body, daemon=True)
+    th.start()
+    ready.wait(5.0)
+    main = threading.main_thread().native_id
+    before = os.getpriority(os.PRIO_PROCESS, main)
+    try:
+        problem = raise_gil_threads(nice=-3)
+        if problem is None:
+            assert os.getpriority(os.PRIO_PROCESS, tid[0]) == -3 and os.getpriority(os.PRIO_PROCESS, main) == -3
+        else:
+            assert "refused" in problem and "LimitNICE" in problem
+    finally:
+        done.set()
+        th.join(5.0)
+        try:
+            os.setpriority(os.PRIO_PROCESS, main, before)
+        except PermissionError:
+            pass

@@ -32,6 +32,7 @@ from tecdard.runtime.main_loop import MainLoop, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
 from tecdard.fleet.episodes import StoreParams
 from tecdard.runtime.network import RouterLink, ZenohSettings, renice_zenoh_threads
+from tecdard.runtime.realtime import GIL_THREAD_NICE, raise_gil_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats
@@ -289,6 +290,11 @@ class Daemon:
             try:
                 self._start_threads()
                 renice_zenoh_threads()
+                if self.control_params.rt_priority is not None:
+                    problem = raise_gil_threads()
+                    (log.warning if problem else log.info)(
+                        "the threads the control tick waits on for the GIL %s", f"stay at nice 0: {problem}"
+                        if problem else f"run at nice {GIL_THREAD_NICE}")
                 self._wait_ready()
                 token = session.liveliness().declare_token(self.keys.alive)
                 self.notifier.notify("READY=1")

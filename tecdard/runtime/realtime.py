@@ -8,6 +8,7 @@ the daemon logs one line and runs SCHED_OTHER. `tecdard doctor` reports the same
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import numpy as np
@@ -33,6 +34,36 @@ def apply_rt_priority(priority: int | None, what: str = "control thread") -> boo
         return True
     log.warning("control.rt_priority %d: %s; the %s runs SCHED_OTHER", priority, problem, what)
     return False
+
+
+# The threads the control tick waits on for the GIL: with control.rt_priority they run this much less
+# nice than the rest of the host, so that a busy core does not preempt one while it holds the GIL (the
+# tick, under SCHED_FIFO, then waits for it all the same). The main thread (telemetry, queries) too.
+GIL_THREADS = ("estimator", "imu-acquisition", "proprioception", "ur-link", "franka-link", "sim-link")
+GIL_THREAD_NICE = -10
+
+
+def raise_gil_threads(nice: int = GIL_THREAD_NICE, task_dir: str = "/proc/self/task") -> str | None:
+    """With control.rt_priority: GIL_THREADS and the main thread at `nice` (Linux: a thread's nice value
+    is its own). None when done, else why not (no CAP_SYS_NICE, nor an RLIMIT_NICE that allows it:
+    the unit's LimitNICE=)."""
+    import pathlib
+    import threading
+    tids = {threading.main_thread().native_id}
+    for task in pathlib.Path(task_dir).glob("*"):
+        try:
+            if (task / "comm").read_text().strip() in GIL_THREADS:
+                tids.add(int(task.name))
+        except (OSError, ValueError):
+            pass
+    for tid in sorted(tids):
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+        except PermissionError:
+            return f"nice {nice} refused (needs CAP_SYS_NICE or LimitNICE={nice})"
+        except OSError:
+            pass                       # a thread that has ended since
+    return None
 
 
 class TickStats:
