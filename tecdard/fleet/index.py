@@ -11,7 +11,6 @@ import uuid
 
 from tecdard.fleet.episodes import (CONTACT_COLUMNS, CONTACTS_TABLE, EPISODE_COLUMNS, EPISODES_TABLE, INDEX,
                                     MAX_INDEX_FILE_BYTES, EpisodeStore, StoreError, one_line)
-from tecdard.safejson import show
 
 log = logging.getLogger("tecdar.episodes")
 
@@ -205,4 +204,4 @@ def table_text(columns: list[str], rows: list[tuple]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Index", "QueryError", "compact", "query", "show", "table_text"]
+__all__ = ["Index", "QueryError", "compact", "query", "table_text"]
