@@ -299,8 +299,9 @@ class Daemon:
                 token = session.liveliness().declare_token(self.keys.alive)
                 self.notifier.notify("READY=1")
                 log.info("tecdard ready: robot %s (%s), %s", self.robot_name, self.model.name, self.zenoh.where())
-                if self.zenoh.fleet_problem(self.robot_name):
-                    log.warning("%s", self.zenoh.fleet_problem(self.robot_name))
+                fleet_problem = self.zenoh.fleet_problem(self.robot_name)
+                if fleet_problem:
+                    log.warning("%s", fleet_problem)
                 self._serve(pubs, RouterLink(session, self.zenoh.connect) if self.zenoh.mode == "client" else None)
             finally:
                 # also when a start fails (a backend that cannot connect): what did start is stopped
@@ -337,8 +338,9 @@ class Daemon:
         while not self.stop_event.is_set():
             now = time.monotonic()
             self.threads.sample(now)
-            if router_link is not None and router_link.problem(now) != cut:
-                cut = router_link.problem(now)
+            problem = router_link.problem(now) if router_link is not None else None
+            if problem != cut:
+                cut = problem
                 (log.warning if cut else log.info)("%s", cut or "the Zenoh router connects the daemon again")
                 self.control.network_fault.set(cut)
             main.serve_commands(now)

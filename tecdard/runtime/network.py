@@ -3,7 +3,6 @@ at start-up; and its session's network threads kept below the daemon's own."""
 from __future__ import annotations
 
 import os
-import pathlib
 from dataclasses import dataclass
 
 from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DAEMON_NAME, DEFAULT_ENDPOINT, Keys, TlsFiles,
@@ -120,13 +119,11 @@ def renice_zenoh_threads() -> None:
     CPU priority than the daemon's own threads. Under contention (a flood of queries decoded on
     them, a loaded host) the control loop, the IMU path and the estimator are served first; a
     process may always lower its own threads' priority. Best effort: Linux only, failures ignored."""
-    for task in pathlib.Path("/proc/self/task").glob("*"):
+    from tecdard.runtime.realtime import threads_named
+    for tid in threads_named(lambda name: name.split("-")[0] in ("rx", "tx", "net", "acc", "app")):
         try:
-            name = (task / "comm").read_text().strip()
-            if name.split("-")[0] in ("rx", "tx", "net", "acc", "app"):
-                nice = os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE
-                os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
-        except (OSError, ValueError):
+            os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, 0) + ZENOH_THREAD_NICE)
+        except OSError:
             pass
 
 

@@ -43,19 +43,25 @@ GIL_THREADS = ("estimator", "imu-acquisition", "proprioception", "ur-link", "fra
 GIL_THREAD_NICE = -10
 
 
+def threads_named(pick, task_dir: str = "/proc/self/task") -> list[int]:
+    """The native ids of this process's threads whose OS name (comm) `pick(name)` takes."""
+    import pathlib
+    tids = []
+    for task in pathlib.Path(task_dir).glob("*"):
+        try:
+            if pick((task / "comm").read_text().strip()):
+                tids.append(int(task.name))
+        except (OSError, ValueError):
+            pass                       # a thread that has ended since
+    return tids
+
+
 def raise_gil_threads(nice: int = GIL_THREAD_NICE, task_dir: str = "/proc/self/task") -> str | None:
     """With control.rt_priority: GIL_THREADS and the main thread at `nice` (Linux: a thread's nice value
     is its own). None when done, else why not (no CAP_SYS_NICE, nor an RLIMIT_NICE that allows it:
     the unit's LimitNICE=)."""
-    import pathlib
     import threading
-    tids = {threading.main_thread().native_id}
-    for task in pathlib.Path(task_dir).glob("*"):
-        try:
-            if (task / "comm").read_text().strip() in GIL_THREADS:
-                tids.add(int(task.name))
-        except (OSError, ValueError):
-            pass
+    tids = {threading.main_thread().native_id, *threads_named(GIL_THREADS.__contains__, task_dir)}
     for tid in sorted(tids):
         try:
             os.setpriority(os.PRIO_PROCESS, tid, nice)
