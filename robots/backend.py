@@ -81,6 +81,10 @@ class RobotBackend:
         """Bring the arm to rest and keep it there."""
         raise NotImplementedError
 
+    def set_resting(self, resting: bool) -> None:
+        """The control thread: no task runs (True), or one has started (False). A backend may then
+        report fewer states while it rests (robots.child_link.REST_STATE_PERIOD_S)."""
+
     def state_faults(self) -> dict[str, str]:
         """`robot_state` while the state check holds a fault (a state refused, naming its reading)."""
         check = self.state_check
@@ -167,6 +171,7 @@ class LinkBackend(RobotBackend):
         link.gate = self.state_check
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
+        self._resting = False
 
     def _supervise_in_background(self, name: str) -> None:
         def run():
@@ -208,6 +213,7 @@ class LinkBackend(RobotBackend):
         except BackendError as exc:
             self.log.warning("reconnecting to %s (attempt %d): %s", self.settings.host, attempt, exc)
             return attempt
+        fresh.set_resting(self._resting)      # a fresh child sends every state until told
         self.link.stop()
         self.link = fresh
         self.log.info("reconnected to %s", self.settings.host)
@@ -248,3 +254,7 @@ class LinkBackend(RobotBackend):
             self.link.hold()
         except BackendError:
             pass
+
+    def set_resting(self, resting: bool) -> None:
+        self._resting = resting
+        self.link.set_resting(resting)

@@ -22,6 +22,12 @@ from tecdard.robots.backend import JointState
 from tecdard.robots.backends import BackendError
 
 CHILD_STOP_S = 2.0      # a link's child process is waited for this long, then terminated
+# While the daemon rests (no task runs, the arm holds still) a real arm's child sends one state in this
+# long instead of every one (a UR's 500 Hz, a Franka's state_rate_hz): each state wakes the link's
+# reader and the proprioception thread and passes the state check, and at rest those wake-ups were a
+# good share of the daemon's idle CPU. The newest state is then at most this much older than it would
+# be, well inside robot.max_state_age_s (50 ms); a task's start restores the full rate at once.
+REST_STATE_PERIOD_S = 0.01
 
 
 def kill_child(proc) -> None:
@@ -204,6 +210,11 @@ class ChildLink:
         self._send(("close",), quiet=True)
         end_child(self._proc, (self._cmd, self._state_rx, *self._extra_rx))
         self._proc = None
+
+    def set_resting(self, resting: bool) -> None:
+        """The daemon rests (True: the child may send one state per REST_STATE_PERIOD_S) or a task
+        has started (False: every state). A child that does not pace its states ignores it."""
+        self._send(("rest", REST_STATE_PERIOD_S if resting else 0.0), quiet=True)
 
     def _send(self, msg: tuple, quiet: bool = False) -> None:
         try:

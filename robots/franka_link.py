@@ -223,6 +223,7 @@ class _FrankaChild:
         self.last_t = None
         self.last_new = time.monotonic()
         self.state_period = 1.0 / settings.state_rate_hz
+        self.period = self.state_period      # between the states sent: longer while the daemon rests
 
     def _gripper(self):
         if not self.settings.gripper:
@@ -311,6 +312,8 @@ class _FrankaChild:
                 self._call("hold", lambda: robot.move(franky.JointVelocityStopMotion(), asynchronous=True))
         elif msg[0] == "recover":
             self._recover()
+        elif msg[0] == "rest":                 # child_link.REST_STATE_PERIOD_S while the daemon rests, else 0
+            self.period = max(self.state_period, float(msg[1]))
         elif msg[0] == "close":
             return False
         return True
@@ -341,14 +344,14 @@ class _FrankaChild:
                 return None
             return STATE_POLL_S
         self.last_t, self.last_new = t, now
-        if t - self.sent_t < self.state_period - 2.5e-4:
+        if t - self.sent_t < self.period - 2.5e-4:
             return 0.0       # between the states the daemon takes (faults and force are read at its rate)
         self.sent_t = t
         self._send_state(st, t, now)
         # nothing to read until a robot period before the next state the daemon takes: wait for a
         # command meanwhile (it is carried out at once) rather than poll franky every STATE_POLL_S
         # (waiting up to the next state itself would miss it)
-        return max(self.state_period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0)
+        return max(self.period - ROBOT_PERIOD_S - (time.monotonic() - now), 0.0)
 
     def _send_state(self, st, t: float, now: float) -> None:
         errors = repr(st.current_errors).strip()

@@ -21,6 +21,7 @@ a matrix.
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 from dataclasses import dataclass
@@ -149,6 +150,7 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
     lost = False
     refusing = False
     refused_since = None
+    rest_period_s, sent_t = 0.0, -math.inf    # while the daemon rests, one state per rest_period_s (its clock)
 
     def outcome(ok: bool, what: str) -> None:
         """A refusal is the link's fault only when the controller's state does not explain it (a
@@ -179,6 +181,8 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                     outcome(ctl.speedStop(STOP_DECEL_RAD_S2), "speedStop")
                 elif msg[0] == "reupload":
                     restart_script(ctl, settings)
+                elif msg[0] == "rest":
+                    rest_period_s = float(msg[1])
                 elif msg[0] == "close":
                     return
             if not rx.isConnected():
@@ -193,6 +197,10 @@ def child_main(settings: UrLinkSettings, cmd_rx, state_tx) -> None:
                 return
             if t != last_t:
                 last_t, last_new = t, now
+            # every new state, or while the daemon rests one per rest_period_s (a clock that went back
+            # starts afresh)
+            if t != sent_t and not 0.0 <= t - sent_t < rest_period_s - CONTROLLER_CYCLE_S / 2:
+                sent_t = t
                 state_tx.send(("state", UrState(
                     t, time.monotonic(), tuple(rx.getActualQ()), tuple(rx.getActualQd()), tuple(rx.getActualTCPPose()),
                     tuple(rx.getActualTCPSpeed()), tuple(rx.getActualTCPForce()), rx.getRobotMode(),

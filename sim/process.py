@@ -49,6 +49,7 @@ log = logging.getLogger("tecdar.sim")
 START_TIMEOUT_S = 60.0       # a cold child imports numpy and Pinocchio and loads the URDF
 MAX_BEHIND_S = 0.1            # a child this far behind its schedule resumes from now
 PIPE_CAPACITY_BYTES = 1 << 20  # asked of the kernel for each child -> daemon pipe (about 2 s of IMU)
+MAX_CHUNKS_PER_READ = 64      # the IMU chunks (10 ms each) one read of the pipe takes at most
 MESSAGE_HEADER_BYTES = 16     # multiprocessing's length prefix, with room to spare
 F_SETPIPE_SZ, F_GETPIPE_SZ = 1031, 1032     # fcntl(2), Linux
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -301,11 +302,17 @@ class PipeImuSource(ImuSource):
         return Scaling(self.link.spec.imu.gyro_fs_dps, self.link.spec.imu.accel_fs_g).saturation
 
     def read(self, timeout: float = 0.05):
-        """Next chunk (t (n,), gyro (n,3), accel (n,3)) or None after `timeout` seconds."""
+        """Every chunk waiting, as one (t (n,), gyro (n,3), accel (n,3)), or None after `timeout`
+        seconds. All of them: the reader naps between the estimator's batches (up to 20 ms at rest)
+        while the child sends a chunk per 10 ms slice, and one chunk a read fell behind until the
+        pipe was full and the child dropped samples."""
         conn = self.link.imu_rx
         try:
             if conn is not None and conn.poll(timeout):
-                return conn.recv()
+                chunks = [conn.recv()]
+                while len(chunks) < MAX_CHUNKS_PER_READ and conn.poll(0.0):
+                    chunks.append(conn.recv())
+                return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
         except (EOFError, OSError):
             pass
         if conn is None or self.link.exited.is_set():

@@ -195,8 +195,9 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
 
 
 def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(model):
-    """Issue 37: at rest the estimator thread waits for longer batches; a task's start is said at once,
-    an observed arm's estimator never rests, and a start cuts a rest batch's wait short."""
+    """Issue 37: at rest the estimator thread waits for longer batches and the arm's link sends fewer
+    states; a task's start is said at once to both, an observed arm's estimator never rests, and a
+    start cuts a rest batch's wait short."""
     import threading
     import time
     import types
@@ -215,6 +216,8 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
     keys = Keys("sim")
     ct = control_thread(model)
     ct.estimator = told = Told()
+    robot_told = []
+    ct.robot.set_resting = robot_told.append                      # the arm's link paces its states at rest
     intake = QueryIntake(keys, C.Limits(), ct, lambda: status_json(ct))
     main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
     tick(ct, ct.robot, 1)
@@ -231,6 +234,7 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
         if ct.runner.mode is Mode.IDLE:
             break
     assert told.said == [True, False, True]                       # at rest again once the arm has braked
+    assert robot_told == told.said
 
     # the estimator thread's side: a rest batch's wait ends at a task's batch when the task starts
     ring = SampleRing(4096)

@@ -48,3 +48,23 @@ def test_the_child_streams_state_and_imu_follows_commands_and_stops():
     assert sim.exited.wait(2.0)
     with pytest.raises(SimProcessError):
         sim.wait_state(seqs[-1], 0.2)
+
+
+def test_one_read_of_the_imu_pipe_takes_every_chunk_waiting():
+    """Issue 37: the acquisition thread naps up to 20 ms at rest while the child sends a chunk per
+    10 ms slice; a read that took one chunk fell behind until the child dropped half the samples."""
+    import multiprocessing
+    import types
+    from tecdard.sim.process import PipeImuSource
+    rx, tx = multiprocessing.Pipe(duplex=False)
+    link = types.SimpleNamespace(imu_rx=rx, exited=types.SimpleNamespace(is_set=lambda: False))
+    source = PipeImuSource(link)
+    t = np.arange(201) * 1.5e-4
+    for part in np.array_split(np.arange(len(t)), 3):          # three slices' chunks wait in the pipe
+        tx.send((t[part], np.ones((len(part), 3)), np.zeros((len(part), 3))))
+    got_t, gyro, accel = source.read(0.1)
+    np.testing.assert_array_equal(got_t, t)
+    assert gyro.shape == accel.shape == (len(t), 3)
+    assert source.read(0.01) is None
+    rx.close()
+    tx.close()

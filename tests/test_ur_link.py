@@ -69,6 +69,42 @@ def test_a_stalled_daemon_is_stopped_by_the_controllers_watchdog(fake, link):
     assert wait_for(lambda: not link.ur_state.program_running)
 
 
+class Admitted:
+    """A state check that takes every state and keeps the controller's time of each (what the
+    daemon's reader received)."""
+    fault = None
+
+    def __init__(self, link):
+        self.link, self.times = link, []
+
+    def admit(self, js) -> bool:
+        self.times.append(self.link.ur_state.controller_t)
+        return True
+
+
+def test_while_the_daemon_rests_the_child_sends_one_state_per_rest_period(fake, link):
+    """Issue 37: at rest the reader gets a state every 10 ms of the controller's clock, not every
+    cycle (2 ms); a task's start gives every state again at once, and a protective stop still shows."""
+    from tecdard.robots.child_link import REST_STATE_PERIOD_S
+    from tecdard.robots.ur_link import CONTROLLER_CYCLE_S
+    link.wait_state(-1, 2.0)
+    link.gate = seen = Admitted(link)
+    link.set_resting(True)
+    time.sleep(0.2)
+    seen.times.clear()
+    time.sleep(1.0)
+    rest = np.diff(seen.times)
+    assert len(rest) > 20 and rest.min() >= REST_STATE_PERIOD_S - CONTROLLER_CYCLE_S / 2 - 1e-9
+    fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+    assert wait_for(lambda: link.ur_state.protective_stopped)
+    link.set_resting(False)
+    time.sleep(0.1)
+    seen.times.clear()
+    time.sleep(1.0)
+    busy = np.diff(seen.times)
+    assert len(busy) > len(rest) and busy.min() <= 2 * CONTROLLER_CYCLE_S + 1e-9
+
+
 def test_a_controller_that_does_not_answer_is_an_error_within_the_deadline():
     host = free_loopback_host()
     listeners = [socket.create_server((host, port)) for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)]

@@ -226,8 +226,10 @@ class ControlThread:
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
         resting = runner.mode is Mode.IDLE
-        if resting is not self._resting and self.estimator is not None:
-            self.estimator.set_resting(resting)
+        if resting is not self._resting:
+            if self.estimator is not None:
+                self.estimator.set_resting(resting)
+            self.robot.set_resting(resting)
         self._resting = resting
         self._publish_state(now, p, R, twist[:3], est, js.t)
         for service in self.services.values():

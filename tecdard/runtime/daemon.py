@@ -36,7 +36,8 @@ from tecdard.runtime.realtime import GIL_THREAD_NICE, raise_gil_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats
-from tecdard.runtime.workers import EstimatorThread, acquisition_loop, proprio_loop
+from tecdard.runtime.workers import (REST_BATCH_FACTOR, VIEWED_REST_BATCH_FACTOR, EstimatorThread, acquisition_loop,
+                                     proprio_loop)
 
 log = logging.getLogger("tecdar")
 
@@ -169,7 +170,8 @@ class Daemon:
         taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
         # an arm that others drive (read_only) is watched for touches all the time: never at rest
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
-                                         taps=taps, rests=self.backend.commands_arm)
+                                         taps=taps, rests=self.backend.commands_arm,
+                                         rest_factor=REST_BATCH_FACTOR if self.view is None else VIEWED_REST_BATCH_FACTOR)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,

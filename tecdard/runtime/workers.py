@@ -25,19 +25,24 @@ POP_TIMEOUT_MARGIN = 1.5
 # the onset trigger's cost is per batch (some sixty numpy calls, 0.1-0.3 ms), and an onset found
 # 5 ms later is still within the control tick (20 ms); its time stamp is the sample's.
 IDLE_BATCH_FACTOR = 2
-# While no task runs (the arm holds still and nothing waits on the trigger), twice that again (20 ms):
-# half the passes at rest. A task's start cuts the wait short (EstimatorThread.set_resting), so the
-# trigger of a task is as quick as before; an uncommanded touch at rest is dated by its own sample
-# either way, and found up to 10 ms later.
-REST_BATCH_FACTOR = 4
+# While no task runs (the arm holds still and nothing waits on the trigger), 100 ms batches: a tenth
+# of the passes (a pass's fixed cost, and the wake-ups of this thread and the reader, were the daemon's
+# largest share of a core at rest). A task's start cuts the wait short (EstimatorThread.set_resting),
+# so the trigger of a task is as quick as before; an uncommanded touch at rest is dated by its own
+# sample either way, and found up to 95 ms later. A live view shows the stream to a person: with one,
+# the rest batch is VIEWED_REST_BATCH_FACTOR (20 ms), not a 10 Hz jerk.
+REST_BATCH_FACTOR = 20
+VIEWED_REST_BATCH_FACTOR = 4
 # The acquisition thread need not wake for every packet (a board's comes every 1.2 ms): until the
 # estimator's batch is nearly complete nothing waits for the samples, and the port or the pipe holds
 # them. It naps until NAP_MARGIN_S before the batch can be complete (at most NAP_MAX_S), then reads
 # as they come, so the batch is handed over as soon as before. The kernel's tty buffer holds some
 # 0.7 s of a board's stream; the clock sync's lower envelope takes the packets read as they came.
+# NAP_MAX_S keeps the ring's newest sample well inside the stale-IMU limit (safety.imu_stale_s, 50 ms)
+# while the estimator rests.
 NAP_MARGIN_S = 0.0025
 NAP_MIN_S = 0.001
-NAP_MAX_S = 0.01
+NAP_MAX_S = 0.02
 
 
 def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox) -> None:
@@ -96,7 +101,8 @@ class EstimatorThread:
     latest-value slot and the outbox."""
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: Outbox,
-                 source: ImuSource | None = None, min_batch: int = 1, taps: tuple = (), rests: bool = True):
+                 source: ImuSource | None = None, min_batch: int = 1, taps: tuple = (), rests: bool = True,
+                 rest_factor: int = REST_BATCH_FACTOR):
         """`source` is read for its clipping points (gyro rad/s, accel m/s^2), which change with the
         full scales a board reports, and its data rate, which a board reports in its status packets
         (the onset detector's band window and `min_batch`, one output period of samples, follow it);
@@ -120,6 +126,7 @@ class EstimatorThread:
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
         self.resting = threading.Event()  # set while no task runs: longer batches (REST_BATCH_FACTOR)
         self.rests = rests                # False: never at rest (an observed arm, whose touches are the point)
+        self.rest_factor = rest_factor    # a rest batch, in output periods
         if source is not None:
             self._follow_odr(source.odr_hz)
 
@@ -160,9 +167,9 @@ class EstimatorThread:
             if self.source is not None:
                 self._follow_odr(self.source.odr_hz)
             # between episodes only the trigger runs, and it costs per batch: twice the samples then,
-            # four times while no task runs
+            # rest_factor times while no task runs
             want = self.min_batch if pipe.tracking else \
-                (REST_BATCH_FACTOR if self.resting.is_set() else IDLE_BATCH_FACTOR) * self.min_batch
+                (self.rest_factor if self.resting.is_set() else IDLE_BATCH_FACTOR) * self.min_batch
             wait_s = max(POP_TIMEOUT_S, POP_TIMEOUT_MARGIN * want / self._odr_seen) if self._odr_seen else POP_TIMEOUT_S
             batch = self.ring.pop(POP_MAX_SAMPLES, wait_s, want)
             if self.source is not None:
