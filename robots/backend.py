@@ -85,6 +85,12 @@ class RobotBackend:
         """The control thread: no task runs (True), or one has started (False). A backend may then
         report fewer states while it rests (robots.child_link.REST_STATE_PERIOD_S)."""
 
+    def feed_states(self, feed) -> bool:
+        """Have `feed(js)` called for every state the backend admits, on the backend's own thread
+        that receives them; False when it has no such thread (the daemon then reads the states on
+        a thread of its own, through wait_state)."""
+        return False
+
     def state_faults(self) -> dict[str, str]:
         """`robot_state` while the state check holds a fault (a state refused, naming its reading)."""
         check = self.state_check
@@ -172,6 +178,7 @@ class LinkBackend(RobotBackend):
         self._stop = threading.Event()
         self._supervisor: threading.Thread | None = None
         self._resting = False
+        self._feed = None                  # feed_states: every admitted state, on the link's reader
 
     def _supervise_in_background(self, name: str) -> None:
         def run():
@@ -208,6 +215,7 @@ class LinkBackend(RobotBackend):
         fresh = type(self.link)(self.settings)
         self.state_check.reset()              # a new link: no previous state to measure a jump from
         fresh.gate = self.state_check
+        fresh.on_state = self._feed
         try:
             fresh.start()
         except BackendError as exc:
@@ -258,3 +266,7 @@ class LinkBackend(RobotBackend):
     def set_resting(self, resting: bool) -> None:
         self._resting = resting
         self.link.set_resting(resting)
+
+    def feed_states(self, feed) -> bool:
+        self._feed = self.link.on_state = feed
+        return True

@@ -106,6 +106,7 @@ class ChildLink:
         self.exited = self._states.closed
         self.fault: str | None = None               # the link's own fault (lost), or None
         self.gate = None                            # robots.state_check.StateCheck: what a state must pass
+        self.on_state = None                        # called with every state that passes, on the reader
         self.notes: list[str] = []                  # what the child said before it was ready
 
     @staticmethod
@@ -226,10 +227,12 @@ class ChildLink:
 
     # -- receive -------------------------------------------------------------------------------
     def _publish(self, js: JointState) -> None:
-        """A state the child read, for the daemon's threads once it passes the gate; a state that
-        fails is dropped (the gate holds the fault naming it)."""
+        """A state the child read, for the daemon's threads (and `on_state`) once it passes the gate;
+        a state that fails is dropped (the gate holds the fault naming it)."""
         if self.gate is None or self.gate.admit(js):
             self._states.publish(js)
+            if self.on_state is not None:
+                self.on_state(js)             # the backend's feed_states (the estimator's proprioception)
 
     def read_state(self) -> JointState:
         return self._states.read()

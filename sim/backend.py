@@ -128,6 +128,10 @@ class SimBackend(RobotBackend):
     def wait_state(self, seq: int, timeout: float) -> JointState:
         return self.process.wait_state(seq, timeout)
 
+    def feed_states(self, feed) -> bool:
+        self.process.on_state = feed
+        return True
+
     def command_joint_velocity(self, qd: np.ndarray) -> None:
         self.process.command_joint_velocity(qd)
 

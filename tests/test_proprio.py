@@ -1,4 +1,5 @@
-"""The proprioception thread: every joint state the robot reports reaches the estimator, as TCP pose and twist."""
+"""Proprioception: every joint state the robot reports reaches the estimator, as TCP pose and twist,
+on the link's own reader (feed_states) or on a thread of its own (proprio_loop)."""
 import threading
 
 import numpy as np
@@ -6,7 +7,7 @@ import numpy as np
 from tecdard.robots.backend import JointState
 from tecdard.robots.model import ArmModel
 from tecdard.runtime.messages import DropOldestRing
-from tecdard.runtime.workers import PROPRIO_RING, proprio_loop
+from tecdard.runtime.workers import PROPRIO_RING, ProprioFeed, proprio_loop
 
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 JOIN_S = 2.0
@@ -41,7 +42,7 @@ def states(n, twist=None):
 
 def run(arm, ring):
     stop = threading.Event()
-    th = threading.Thread(target=proprio_loop, args=(arm, ArmModel("panda"), ring, stop), daemon=True)
+    th = threading.Thread(target=proprio_loop, args=(arm, ProprioFeed(ArmModel("panda"), ring), stop), daemon=True)
     th.start()
     assert arm.done.wait(JOIN_S * 5)
     stop.set()
@@ -94,3 +95,21 @@ def test_a_reported_tcp_pose_and_grip_force_are_what_reaches_the_estimator():
     for _, p, _, R, _, _, _ in got:
         np.testing.assert_array_equal(p, pose[:3, 3])
         np.testing.assert_array_equal(R, np.eye(3))
+
+
+def test_a_link_hands_every_state_it_admits_to_the_feed_on_its_own_reader():
+    """Issue 37: a link backend's reader feeds the estimator itself (no proprioception thread to
+    wake per state); a state its check refuses never reaches the feed; a repeated seq is taken once."""
+    import types
+    from tecdard.robots.child_link import ChildLink
+    ring = DropOldestRing(PROPRIO_RING)
+    feed = ProprioFeed(ArmModel("panda"), ring)
+    link = ChildLink(types.SimpleNamespace(), 1.0)
+    link.gate = types.SimpleNamespace(admit=lambda js: js.seq != 3, fault=None)
+    link.on_state = feed
+    reported = states(5)
+    for js in reported + [reported[-1]]:
+        link._publish(js)
+    got = ring.drain()
+    assert [m[0] for m in got] == [0.0, 0.01, 0.03, 0.04]
+    assert link.read_state() is reported[-1]

@@ -100,7 +100,9 @@ def test_a_running_daemons_status_names_its_threads(shared_daemon):
     time.sleep(threads.SAMPLE_EVERY_S * 2.5)
     st = shared_daemon.client.command("status")["state"]
     rows = st["threads"]
-    assert {"control", "estimator", "imu-acquisition", "proprioception", "recorder"} <= set(rows), rows
+    # (the simulator's link reader feeds proprioception itself: no thread of its own)
+    assert {"control", "estimator", "imu-acquisition", "sim-link", "recorder"} <= set(rows), rows
+    assert "proprioception" not in rows
     assert all(0.0 <= row["cpu_pct"] <= 200.0 for row in rows.values())
     for name in ("control", "estimator"):
         assert isinstance(rows[name]["wake_ms_max"], float) and rows[name]["wake_ms_max"] >= 0.0, rows[name]

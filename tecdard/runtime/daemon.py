@@ -36,8 +36,8 @@ from tecdard.runtime.realtime import GIL_THREAD_NICE, raise_gil_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats
-from tecdard.runtime.workers import (REST_BATCH_FACTOR, VIEWED_REST_BATCH_FACTOR, EstimatorThread, acquisition_loop,
-                                     proprio_loop)
+from tecdard.runtime.workers import (REST_BATCH_FACTOR, VIEWED_REST_BATCH_FACTOR, EstimatorThread, ProprioFeed,
+                                     acquisition_loop, proprio_loop)
 
 log = logging.getLogger("tecdar")
 
@@ -234,10 +234,12 @@ class Daemon:
         problem = self.imu.start()
         if problem is not None:
             log.warning("%s", problem)
-        proprio_model = self.model.clone()      # the proprioception thread's own pinocchio Data
+        # the robot's states to the estimator: on the link's own reader where the backend has one (a
+        # thread fewer to wake for every state), else on a proprioception thread
+        feed = ProprioFeed(self.model.clone(), self.estimator.proprio)
+        own_reader = self.backend.feed_states(feed)
         specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
-                 ("proprioception", lambda: proprio_loop(self.robot, proprio_model, self.estimator.proprio,
-                                                         self.stop_event)),
+                 *([] if own_reader else [("proprioception", lambda: proprio_loop(self.robot, feed, self.stop_event))]),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("recorder", lambda: self.recorder.run(self.stop_event)),
                  *([("uploader", lambda: self.uploader.run(self.stop_event))] if self.uploader is not None else []),

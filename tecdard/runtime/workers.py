@@ -65,34 +65,52 @@ PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event a
 PROPRIO_RING = 1024          # proprioception samples waiting for the estimator (about 2 s at 500 Hz)
 
 
-def proprio_loop(robot, model, ring: DropOldestRing, stop: threading.Event) -> None:
-    """Transport: every new proprioception sample to the estimator's ring as the robot reports it,
-    at the robot's rate (not the 20 ms control tick's), as TCP pose and twist. `model` is this
-    thread's own ArmModel (its own pinocchio Data). A full ring overwrites the oldest sample
-    (counted and logged): the estimator only ever needs the newest ones."""
-    seq, logged = -1, 0
+class ProprioFeed:
+    """Transport: a robot state to the estimator's ring as TCP pose and twist, at the robot's rate
+    (not the 20 ms control tick's). Called for every state a backend admits on the backend's own
+    reader thread (RobotBackend.feed_states: a link's reader, which woke for the state anyway), or by
+    proprio_loop for a backend without one. `model` is the feed's own ArmModel (its own pinocchio
+    Data); a lock keeps two readers apart (an old link's and a fresh one's, for a moment at a
+    reconnect). A full ring overwrites the oldest sample (counted and logged): the estimator only
+    ever needs the newest ones."""
+
+    def __init__(self, model, ring: DropOldestRing):
+        self.model, self.ring = model, ring
+        self.seq = -1                     # the newest state's seq taken
+        self._logged = 0
+        self._lock = threading.Lock()
+
+    def __call__(self, js) -> None:
+        with self._lock:
+            if js.seq == self.seq:
+                return
+            self.seq = js.seq
+            try:
+                oMtcp, twist = self.model.measured(js)
+            except Exception:             # a malformed state: skipped, never the end of the reader
+                log.exception("proprioception: joint state %d skipped", js.seq)
+                return
+            grip = np.nan if js.grip_force is None else float(js.grip_force)
+            # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
+            ring = self.ring
+            ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(),
+                       grip, np.array(js.q, dtype=float)))
+            if ring.overwritten != self._logged and (self._logged == 0 or ring.overwritten - self._logged >= 1000):
+                self._logged = ring.overwritten
+                log.warning("the estimator fell behind: %d proprioception samples overwritten", self._logged)
+
+
+def proprio_loop(robot, feed: ProprioFeed, stop: threading.Event) -> None:
+    """The proprioception thread, for a backend whose states no reader of its own hands on: the
+    newest state to `feed` each time it changes."""
     while not stop.is_set():
         try:
-            js = robot.wait_state(seq, PROPRIO_WAIT_S)
+            js = robot.wait_state(feed.seq, PROPRIO_WAIT_S)
         except Exception as exc:          # the backend has gone: the control thread's faults say so
             log.debug("proprioception: %s", exc)
             stop.wait(PROPRIO_WAIT_S)
             continue
-        if js.seq == seq:
-            continue
-        seq = js.seq
-        try:
-            oMtcp, twist = model.measured(js)
-        except Exception:                 # a malformed state: skipped, never the end of the thread
-            log.exception("proprioception: joint state %d skipped", js.seq)
-            continue
-        grip = np.nan if js.grip_force is None else float(js.grip_force)
-        # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
-        ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(), grip,
-                   np.array(js.q, dtype=float)))
-        if ring.overwritten != logged and (logged == 0 or ring.overwritten - logged >= 1000):
-            logged = ring.overwritten
-            log.warning("the estimator fell behind: %d proprioception samples overwritten", logged)
+        feed(js)
 
 
 class EstimatorThread:
