@@ -54,6 +54,7 @@ class ClockSync:
         self._last_mcu = None
         self._corr0 = 0.0    # a refit's jump at _corr_m0, taken out at REFIT_SLEW_RATE from there
         self._corr_m0 = 0.0
+        self._corr_done_s = 0.0
 
     def reset(self) -> None:
         self._bins.clear()
@@ -100,9 +101,15 @@ class ClockSync:
             # (each bin's refit moved samples by milliseconds when arrivals were noisy)
             self._corr0 = before - (self.a + self.b * self._last_mcu)
             self._corr_m0 = self._last_mcu
+            self._corr_done_s = abs(self._corr0) / REFIT_SLEW_RATE    # MCU time after which none is left
 
     def _correction(self, mcu_s):
         if self._corr0 == 0.0:
+            return 0.0
+        m = np.asarray(mcu_s)
+        if (m.flat[0] if m.ndim else m) - self._corr_m0 >= self._corr_done_s:
+            # slewed out (a packet's times increase: its first is its earliest): the same +-0 the sum
+            # below gives, without its five numpy calls for every packet until the next refit
             return 0.0
         # np.clip's bounds without its wrapper (a packet's times are mapped 840 times a second)
         left = np.minimum(np.maximum(abs(self._corr0) - REFIT_SLEW_RATE * (np.asarray(mcu_s) - self._corr_m0), 0.0),
