@@ -65,7 +65,8 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     onsets = [e["t"] for e in live.events if e["kind"] == "contact_onset"]
     assert onset_t == onsets[0]
     rec = load_recording(written["path"])
-    assert onsets[0] - rec.imu_t[0] == pytest.approx(1.0, abs=0.05)        # record.pre_onset_s
+    # record.pre_onset_s, in whole estimator passes: the first may be a rest batch (100 ms) long
+    assert 1.0 - 0.05 <= onsets[0] - rec.imu_t[0] <= 1.0 + 0.1 + 0.05
     assert rec.tcp_vel is not None and rec.meta["robot"] == "sim" and rec.meta["task"] == written["task"]
     assert rec.meta["config_digest"] and rec.meta["backend"] == "sim"
     assert {e["kind"] for e in live.events} >= {"contact_onset", "task_started", "task_done"}
