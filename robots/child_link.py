@@ -24,8 +24,8 @@ from tecdard.robots.backends import BackendError
 CHILD_STOP_S = 2.0      # a link's child process is waited for this long, then terminated
 # While the daemon rests (no task runs, the arm holds still) a real arm's child sends one state in this
 # long instead of every one (a UR's 500 Hz, a Franka's state_rate_hz): each state wakes the link's
-# reader and the proprioception thread and passes the state check, and at rest those wake-ups were a
-# good share of the daemon's idle CPU. The newest state is then at most this much older than it would
+# reader, passes the state check and goes through the arm's FK for the estimator, and at rest those
+# wake-ups were a good share of the daemon's idle CPU. The newest state is then at most this much older than it would
 # be, well inside robot.max_state_age_s (50 ms); a task's start restores the full rate at once.
 REST_STATE_PERIOD_S = 0.01
 

@@ -122,13 +122,13 @@ def user_urdf(path: str, tcp_link: str | None) -> tuple[pin.Model, str, str]:
     return model, tcp_link, file.name
 
 
-
 def f64(a) -> np.ndarray:
     """`a` as float64 with numpy's own float64 dtype object (a view, no copy). An array unpickled
     from a link's pipe (the simulator's, a Franka's states) carries a dtype object of its own, and
     every such array that crosses into Pinocchio (eigenpy 3.13) leaked about 130 bytes: the
     simulator path's RSS grew 4.4 MB in 10 minutes at rest (issue 37)."""
     return np.asarray(a, dtype=np.float64)
+
 
 class ArmModel:
     """A fixed-base arm: Pinocchio model (gripper fingers locked), TCP frame = flange * tool offset.
