@@ -169,9 +169,10 @@ class Daemon:
         self.ros2 = self._ros2_node(backend_name)
         taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
         # an arm that others drive (read_only) is watched for touches all the time: never at rest
+        # at rest, 100 ms batches; 20 ms while a live view shows the stream to a person
+        rest_factor = REST_BATCH_FACTOR if self.view is None else VIEWED_REST_BATCH_FACTOR
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
-                                         taps=taps, rests=self.backend.commands_arm,
-                                         rest_factor=REST_BATCH_FACTOR if self.view is None else VIEWED_REST_BATCH_FACTOR)
+                                         taps=taps, rests=self.backend.commands_arm, rest_factor=rest_factor)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
