@@ -112,7 +112,7 @@ class ClockSync:
             # below gives, without its five numpy calls for every packet until the next refit
             return 0.0
         # np.clip's bounds without its wrapper (a packet's times are mapped 840 times a second)
-        left = np.minimum(np.maximum(abs(self._corr0) - REFIT_SLEW_RATE * (np.asarray(mcu_s) - self._corr_m0), 0.0),
+        left = np.minimum(np.maximum(abs(self._corr0) - REFIT_SLEW_RATE * (m - self._corr_m0), 0.0),
                           abs(self._corr0))
         return np.copysign(left, self._corr0)
 

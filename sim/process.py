@@ -116,14 +116,19 @@ class PipeSender:
         return True
 
 
+def _joined(chunks: list):
+    """IMU chunks (t, gyro, accel) as one, or None for none."""
+    if not chunks:
+        return None
+    return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
+
+
 def _drain_imu(imu: SimImu):
     """Every IMU chunk synthesised since the last call, as one (t, gyro, accel), or None."""
     chunks = []
     while (chunk := imu.read(0.0)) is not None:
         chunks.append(chunk)
-    if not chunks:
-        return None
-    return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
+    return _joined(chunks)
 
 
 def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
@@ -312,7 +317,7 @@ class PipeImuSource(ImuSource):
                 chunks = [conn.recv()]
                 while len(chunks) < MAX_CHUNKS_PER_READ and conn.poll(0.0):
                     chunks.append(conn.recv())
-                return chunks[0] if len(chunks) == 1 else tuple(np.concatenate(parts) for parts in zip(*chunks))
+                return _joined(chunks)
         except (EOFError, OSError):
             pass
         if conn is None or self.link.exited.is_set():

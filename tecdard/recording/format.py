@@ -8,6 +8,7 @@ member is then one RecordingError naming the key, in bounded time and memory.
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import pathlib
@@ -348,7 +349,6 @@ def write_npz(path, arrays: dict, compress: bool = True) -> None:
     IMU's samples (float noise) deflate to about 95 % of their size, and inflating them was a tenth
     of `tecdard localize`'s time. Whether a member pays is judged on its first RATIO_SAMPLE_BYTES.
     np.load and every zip reader read both kinds of member."""
-    import io
     if isinstance(path, (str, pathlib.PurePath)) and not str(path).endswith(".npz"):
         path = f"{path}.npz"
     with zipfile.ZipFile(path, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
