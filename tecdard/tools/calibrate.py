@@ -66,6 +66,7 @@ class NotAtRest(CalibrationError):
 
 REST_SPEED_M_S = 0.001        # the TCP is at rest below this (the gyro bias window before the onset)
 REST_RATE_RAD_S = 0.005       # and the gripper turns slower than this
+RATE_HALF_SPAN = 2            # the gripper's rate from its orientations: a slope over this many samples either side
 
 
 def check_rest(name: str, rec, onset_t: float) -> None:
@@ -88,20 +89,43 @@ def check_rest(name: str, rec, onset_t: float) -> None:
                         f"{np.degrees(rate):.2f} deg/s): no gyro bias to take; left out (start probes from rest)")
 
 
-def gripper_rates(rec) -> np.ndarray:
-    """The gripper's own rate (world, rad/s) at each proprioception sample, from its orientations."""
+def gripper_rates(rec, live=None) -> np.ndarray:
+    """The gripper's own rate (world, rad/s) at each proprioception sample. From a daemon's recording
+    (its live log, `live`), the rate the estimator took live: the arm's twist from its joint rates.
+    Otherwise from the orientations: the least-squares slope of the rotation's track over
+    RATE_HALF_SPAN samples either side. A one-interval difference of two noisy orientations (a
+    Franka's or the simulator's encoders, 5e-5 rad at 65 Hz: about 5 mrad/s) swamped the gripper's
+    own turn in a probe (about 1 mrad/s) and spread the fitted lag from probe to probe by 1.3 ms
+    (0.8 ms with the arm's own rates, 0.95 ms with the slope)."""
+    if live is not None:
+        return np.asarray(live.tcp_w, dtype=float)
     R_world_tcp = quat_to_matrix(rec.tcp_quat)
+    t = rec.tcp_t - rec.tcp_t[0]
     dR = np.einsum("kji,kjl->kil", R_world_tcp[:-1], R_world_tcp[1:])      # R_k^T R_{k+1}
     ang = np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
     ax = np.stack([dR[:, 2, 1] - dR[:, 1, 2], dR[:, 0, 2] - dR[:, 2, 0], dR[:, 1, 0] - dR[:, 0, 1]], axis=1)
     scale = np.where(ang > 1e-9, ang / np.maximum(2.0 * np.sin(ang), 1e-12), 0.5)
-    w_body = ax * scale[:, None] / np.diff(rec.tcp_t)[:, None]
-    w_tcp_k = np.einsum("kij,kj->ki", R_world_tcp[:-1], w_body)
-    return np.vstack([w_tcp_k, w_tcp_k[-1:]])
+    step_world = np.einsum("kij,kj->ki", R_world_tcp[:-1], ax * scale[:, None])     # each interval's turn
+    track = np.vstack([np.zeros((1, 3)), np.cumsum(step_world, axis=0)])          # (M, 3) rad
+    # each sample's window [lo, hi) and its sums, from running sums
+    n_all = len(t)
+    k = np.arange(n_all)
+    lo, hi = np.maximum(k - RATE_HALF_SPAN, 0), np.minimum(k + RATE_HALF_SPAN + 1, n_all)
+
+    def window_sum(x):
+        c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
+        return c[hi] - c[lo]
+    n = (hi - lo).astype(float)
+    s_t, s_tt = window_sum(t), window_sum(t * t)
+    s_x, s_tx = window_sum(track), window_sum(t[:, None] * track)
+    den = n * s_tt - s_t * s_t
+    return (n[:, None] * s_tx - s_t[:, None] * s_x) / np.where(den > 0, den, np.inf)[:, None]
 
 
-def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = None) -> tuple[float, float, int]:
-    """(eta, its standard error, windows used) from one recording whose onset is at onset_t."""
+def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = None,
+           live=None) -> tuple[float, float, int]:
+    """(eta, its standard error, windows used) from one recording whose onset is at onset_t (`live`:
+    its live log, for the gripper's rates: gripper_rates)."""
     t = rec.imu_t
     pre = (t < onset_t - ONSET_GUARD_S) & (t >= onset_t - ONSET_GUARD_S - BIAS_WINDOW_S)
     if np.count_nonzero(pre) < 10:
@@ -116,7 +140,7 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
         v_tcp = rec.tcp_vel
     else:
         v_tcp = np.gradient(rec.tcp_pos, rec.tcp_t, axis=0)
-    w_tcp_k = gripper_rates(rec)
+    w_tcp_k = gripper_rates(rec, live)
     after = t >= onset_t
     w_seen = np.einsum("kij,kj->ki", R_world_tcp[j], (rec.gyro - bias) @ R_tcp_imu.T)
     edges = np.arange(onset_t, t[-1], WINDOW_S)
@@ -159,7 +183,7 @@ def eta_of(name: str, rec, onset_t: float, contact=None, radius: float | None = 
     return eta, se, len(a_all)
 
 
-def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def lag_residuals(rec, onset_t: float, contact: np.ndarray, live=None) -> tuple[np.ndarray, np.ndarray, int]:
     """(lags on the grid (k,), the residual sum of squares at each, the residuals' count) of one
     recording with a known contact: the object's relative rate across the lever arm at each
     proprioception sample in the probe's first LAG_SPAN_S against the gyro's LAG later."""
@@ -179,7 +203,7 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
     r = rec.tcp_pos[sel] - contact
     n2 = np.einsum("ij,ij->i", r, r)
     u = r / np.sqrt(n2)[:, None]
-    w_tcp = gripper_rates(rec)[sel]
+    w_tcp = gripper_rates(rec, live)[sel]
     a = np.cross(r, v_tcp[sel] - np.cross(w_tcp, r)) / n2[:, None]   # the object's rate relative to the gripper, across r
     dt_imu = float(np.median(np.diff(t)))
     half = max(int(round(0.5 / (dt_imu * max(len(rec.tcp_t) / (rec.tcp_t[-1] - rec.tcp_t[0]), 1.0)))), 1)
@@ -199,22 +223,33 @@ def lag_residuals(rec, onset_t: float, contact: np.ndarray) -> tuple[np.ndarray,
 
 
 def lag_uncertainty(curves: list[np.ndarray], lags: np.ndarray, samples: int) -> float | None:
-    """The lag's one-sigma from the summed residual's curvature about its minimum (a least-squares
-    parabola over LAG_SE_SPAN_S either side): the lag at which the residual has grown by one
-    sample's variance. None where the curve has no minimum there. The lag shows only where the rates
-    change, the probe's first tenth of a second, which proprioception samples a few times: with
-    three probes this is a millisecond or more, and it is printed so that a fit of 0 ms is not read
-    as a measurement of none."""
+    """The lag's one-sigma: the larger of two. The summed residual's curvature about its minimum (a
+    least-squares parabola over LAG_SE_SPAN_S either side): the lag at which the residual has grown
+    by one sample's variance. And, with two probes or more, the scatter of each probe's own best lag
+    (their standard deviation over the square root of their number): the residuals of one probe's
+    start are not independent (the arm's motion and the gripper's rates are smooth), and the
+    curvature alone once said 0.3 ms for three probes whose means spread by 0.5 ms. None where
+    neither can be had. The lag shows only where the rates change, the probe's first tenth of a
+    second, which proprioception samples a few times; it is printed so that a fit of 0 ms is not
+    read as a measurement of none."""
     total = np.sum(np.vstack(curves), axis=0)
     k = int(np.argmin(total))
     near = np.abs(lags - lags[k]) <= LAG_SE_SPAN_S
     x, y = lags[near], total[near]
-    if len(x) < 5 or not np.all(np.isfinite(y)) or samples <= 3:
-        return None
-    c2, _, _ = np.polyfit(x - lags[k], y, 2)
-    if c2 <= 0:
-        return None
-    return float(np.sqrt(total[k] / (samples - 2) / c2))
+    sigmas = []
+    if len(x) >= 5 and np.all(np.isfinite(y)) and samples > 3:
+        c2, _, _ = np.polyfit(x - lags[k], y, 2)
+        if c2 > 0:
+            sigmas.append(float(np.sqrt(total[k] / (samples - 2) / c2)))
+    own = []
+    for curve in curves:
+        try:
+            own.append(best_lag([curve], lags))
+        except LagAtBound:
+            continue
+    if len(own) >= 2:
+        sigmas.append(float(np.std(own, ddof=1) / np.sqrt(len(own))))
+    return max(sigmas) if sigmas else None
 
 
 class LagAtBound(CalibrationError):
@@ -411,14 +446,14 @@ def main(args) -> int:
             if contact is not None:
                 check_lever(name, rec, onset_t, contact)
             try:
-                eta, se, n = eta_of(name, rec, onset_t, contact, args.radius)
+                eta, se, n = eta_of(name, rec, onset_t, contact, args.radius, live)
             except NotAtRest as exc:
                 print(str(exc))
                 continue
             check_fit(name, eta, se)
             names.append((force, name, eta, se))
             if contact is not None:
-                lags, rss, count = lag_residuals(rec, onset_t, contact)
+                lags, rss, count = lag_residuals(rec, onset_t, contact, live)
                 curves[name] = rss
                 counts[name] = count
             assumed = " (assumed: the daemon's estimator.grip_force_n)" if rec.meta.get("grip_force_assumed") else ""
