@@ -271,6 +271,32 @@ def test_report_state_matches_numpy(planar, z, k_mean):
     np.testing.assert_allclose(stat, E.T @ stat_ref @ E + along.reshape(3, 3), rtol=1e-9, atol=1e-18)
 
 
+@pytest.mark.parametrize("planar", [False, True])
+def test_report_states_are_report_state_row_by_row_to_the_last_bit(planar):
+    """The one-call report of a run's outputs (ekf's advance) is report_state of each, bit for bit:
+    scheduled, blended and free rows, and consistency ratios under 1 (taken as 1)."""
+    rng = np.random.default_rng(11)
+    d, m = (2 if planar else 3), 6
+    origin = np.array([0.3, -0.2, 0.5])
+    E = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) if planar else np.eye(3)
+    along = (0.25 * np.outer([0.0, 1.0, 0.0], [0.0, 1.0, 0.0])).ravel() if planar else np.zeros(9)
+    k_prior_var = 0.0625
+    xs, Ps = np.empty((m, d + 1)), np.empty((m, d + 1, d + 1))
+    for j, z in enumerate((0.0, 1.0, 3.4, 5.0, 3.6, 0.5)):
+        P = random_cov(rng, d + 1, 1e-5)
+        info = 1.0 / P[d, d] - 1.0 / k_prior_var
+        xs[j] = np.append(rng.normal(0, 0.1, d), P[d, d] * ((1.0 + z / np.sqrt(info)) * info + 1.0 / k_prior_var))
+        Ps[j] = P
+    rs, ss = rng.normal(0, 0.1, (m, d)), np.column_stack([np.arange(m), np.ones(m), [0.4, 1.0, 1.7, 2.5, 0.9, 3.0]])
+    p, rep, stat = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3))
+    report.report_states(xs, Ps, rs, ss, d, 0.0025, 1.0, k_prior_var, 3.0, E, origin, along, p, rep, stat)
+    for j in range(m):
+        one = report.report_state(xs[j], Ps[j], d, max(ss[j, 2], 1.0), rs[j], 0.0025, 1.0, k_prior_var, 3.0, E,
+                                  origin, along)
+        for got, want in zip((p[j], rep[j], stat[j]), one):
+            assert np.array_equal(got, want), (j, got, want)
+
+
 def test_eta_weight_ignores_an_implausible_eta():
     """Evidence for an eta ratio more than ETA_PRIOR_LIMIT prior sigmas from its mean is the pivot failing."""
     k_prior_var, pkk = 0.0025, 1e-5

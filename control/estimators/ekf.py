@@ -16,7 +16,8 @@ import numpy as np
 
 from tecdard.control.estimators.base import (CONSISTENCY_TAU_S, UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec,
                                              Snapshot)
-from tecdard.control.estimators.kernels.api import K_MIN, ekf_advance, ekf_segments, eta_weight, report_state
+from tecdard.control.estimators.kernels.api import (K_MIN, ekf_advance, ekf_segments, eta_weight, report_state,
+                                                   report_states)
 from tecdard.control.estimators.kernels.records import (RUN_PARAMS, STATUS, EkfState, Frame, Outputs, Window,
                                                         contiguous, record)
 from tecdard.control.estimators.kernels.records import Samples as Run
@@ -274,8 +275,10 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         self._gated = ekf_segments(self._state(), self._gated, run, self._frame, self._run_params(), use_fresh,
                                    self.positions is not None, self.params.slip_radial_sigma ** 2,
                                    np.asarray(ends, dtype=np.int64), out)
-        return [Snapshot(*self.report(out.x[j], out.P[j], out.s[j, 2], out.r[j]), int(out.s[j, 0]),
-                         float(out.s[j, 1]), float(out.s[j, 2])) for j in range(n_reports)]
+        p, rep, stat = np.empty((n_reports, 3)), np.empty((n_reports, 3, 3)), np.empty((n_reports, 3, 3))
+        report_states(out.x, out.P, out.r, out.s, d, *self._report_params(), p, rep, stat)
+        return [Snapshot(p[j], rep[j], stat[j], int(out.s[j, 0]), float(out.s[j, 1]), float(out.s[j, 2]))
+                for j in range(n_reports)]
 
     def _state(self) -> EkfState:
         """What the compiled run updates in place (kernels.records.EkfState)."""
@@ -310,9 +313,13 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         (kernels.report.report_state)."""
         if x is None:
             x, P, consistency, r_last = self.x, self.P, self.consistency, self._r_last
-        return report_state(x, P, self.d, max(consistency, 1.0), r_last,
-                            (self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
-                            self.params.eta_test_sigma, self._E, self.origin, self._along_var)
+        return report_state(x, P, self.d, max(consistency, 1.0), r_last, *self._report_params())
+
+    def _report_params(self) -> tuple:
+        """report_state's arguments after the state's own: (eta's relative variance, k's prior mean and
+        variance, the blend's test sigma, the plane's basis, its origin, the variance along its normal)."""
+        return ((self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
+                self.params.eta_test_sigma, self._E, self.origin, self._along_var)
 
 
 ESTIMATORS = (EstimatorSpec("ekf", "our filter on the differential constraint (eta as a state, positions as "

@@ -19,8 +19,8 @@ from tecdard.control.estimators.kernels.constants import ETA_BLEND_SIGMA, ETA_PR
 MODE_ENV = "TECDAR_KERNELS"       # "jit": numba's JIT whatever is built; "aot": the build or an error
 __all__ = ["ETA_BLEND_SIGMA", "ETA_PRIOR_LIMIT", "GATE_HPH_RATIO", "K_MIN", "KIND", "WHY", "block_update", "output_ends",
            "ekf_advance", "ekf_segments", "eta_evidence", "eta_weight", "plane_rotation", "position_increment",
-           "position_reset", "position_residual", "position_sums", "rate_moments", "report_state", "rotation_axes",
-           "segment_moments"]
+           "position_reset", "position_residual", "position_sums", "rate_moments", "report_state", "report_states",
+           "rotation_axes", "segment_moments"]
 
 
 class KernelsUnavailable(ImportError):
@@ -55,6 +55,7 @@ ekf_segments = _FUNCTIONS["ekf_segments"]
 eta_evidence = _FUNCTIONS["eta_evidence"]
 eta_weight = _FUNCTIONS["eta_weight"]
 report_state = _FUNCTIONS["report_state"]
+report_states = _FUNCTIONS["report_states"]
 plane_rotation = _FUNCTIONS["plane_rotation"]
 rate_moments = _FUNCTIONS["rate_moments"]
 rotation_axes = _FUNCTIONS["rotation_axes"]

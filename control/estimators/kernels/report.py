@@ -91,6 +91,23 @@ def report_state(x, P, d, scale, r_last, eta_var, k_mean, k_prior_var, test_sigm
     return p, lift(rep, E, nnT_var), lift(stat, E, nnT_var)
 
 
+@jit("void(float64[:, :], float64[:, :, :], float64[:, :], float64[:, :], int64, float64, float64, float64, float64, "
+     "float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :, :], float64[:, :, :])")
+def report_states(xs, Ps, rs, ss, d, eta_var, k_mean, k_prior_var, test_sigma, E, origin, nnT_var, p_out, rep_out,
+                  stat_out):
+    """report_state for each of a run's outputs (xs, Ps, rs: the state, covariance and lever arm of
+    each; ss[:, 2] the consistency ratio, scaled as at least 1), into p_out (m, 3), rep_out and
+    stat_out (m, 3, 3): one call for the some 200 outputs a second of recording makes."""
+    for j in range(xs.shape[0]):
+        p, rep, stat = report_state(xs[j], Ps[j], d, max(ss[j, 2], 1.0), rs[j], eta_var, k_mean, k_prior_var,
+                                    test_sigma, E, origin, nnT_var)
+        for a in range(3):
+            p_out[j, a] = p[a]
+            for b in range(3):
+                rep_out[j, a, b] = rep[a, b]
+                stat_out[j, a, b] = stat[a, b]
+
+
 @jit("Tuple((float64[:], int64, float64[:, :], float64))(float64[:, :], float64[:], int64, float64, float64[:, :], "
      "float64[:, :], float64, float64, float64)")
 def rotation_axes(wwT, w_sum, n_w, var_w, cov, stat, min_rate2, second_ratio, unobserved_var):
