@@ -97,6 +97,15 @@ def show(value, limit: int = SHOW_CHARS) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
+def first_line(exc: BaseException, limit: int = 300) -> str:
+    """An exception's message as one line for a person: its first non-blank line (its type's name
+    when it has none), without a Rust library's source location (Zenoh's and obstore's errors end
+    `at /root/.cargo/...`), cut to `limit` characters."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text.split(" at /root/.cargo")[0].split(" at /home/")[0][:limit]
+
+
 def show_name(name: str, limit: int = SHOW_CHARS) -> str:
     """A field name or verb as it can be echoed: escaped (no control characters, ASCII), cut to `limit`."""
     text = json.dumps(str(name), ensure_ascii=True)[1:-1]

@@ -42,14 +42,14 @@ def _cmd_run(args) -> int:
 
 def listen_error(exc: Exception, listen: list[str]) -> str:
     """Zenoh's refusal to listen as one line: a taken port names what to do."""
-    from tecdard.cli.task_verbs import one_line
+    from tecdard.safejson import first_line
     text = str(exc)
     if "Address already in use" in text:
         taken = next((ep for ep in listen if ep in text), listen[0] if listen else "?")
         port = taken.rpartition(":")[2]
         return (f"{taken}: port {port} is taken: another tecdard? `tecdard status --connect {taken}` "
                 "(or set zenoh.listen / --listen to a free port)")
-    return f"Zenoh: {one_line(exc)}"
+    return f"Zenoh: {first_line(exc)}"
 
 
 _NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)")

@@ -15,6 +15,7 @@ from tecdard.api.commands import task_verbs
 from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem
 from tecdard.cli import show
 from tecdard.cli.client import Client, ClientError
+from tecdard.safejson import first_line
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
 
@@ -302,7 +303,7 @@ def run_verb(args) -> int:
     try:
         cli = Client(args.connect, robot=args.robot, tls=tls, daemon_name=args.tls_daemon_name)
     except Exception as exc:                      # zenoh refuses a file or a setting
-        _say(args.verb, f"cannot open a session to {args.connect}: {one_line(exc)}")
+        _say(args.verb, f"cannot open a session to {args.connect}: {first_line(exc)}")
         return EXIT_NO_DAEMON
     task = None
     sent = None
@@ -387,9 +388,3 @@ def _follow(cli: Client, args, task: str, progress: Progress) -> dict | None:
             if not args.json:
                 progress.update(state)
     return None
-
-
-def one_line(exc: BaseException) -> str:
-    """An exception's first line, without a Rust source location."""
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return text.split(" at /root/.cargo")[0].split(" at /home/")[0][:300]

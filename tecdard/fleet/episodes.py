@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tecdard.safejson import show
+from tecdard.safejson import first_line, show
 
 log = logging.getLogger("tecdar.episodes")
 
@@ -113,7 +113,7 @@ class EpisodeStore:
                 self.store = from_url(self.url, config=config or None,
                                       client_options={"allow_http": True} if params.allow_http else None)
         except (OSError, ValueError, Exception) as exc:
-            raise StoreError(f"store {show(self.url)}: {one_line(exc)}") from None
+            raise StoreError(f"store {show(self.url)}: {first_line(exc)}") from None
 
     @property
     def local_root(self) -> pathlib.Path | None:
@@ -131,7 +131,7 @@ class EpisodeStore:
         except AlreadyExistsError:
             pass
         except Exception as exc:
-            raise StoreError(f"{key}: {one_line(exc)}") from None
+            raise StoreError(f"{key}: {first_line(exc)}") from None
         size = self.size(key)
         if size != len(data):
             raise Conflict(f"{key}: already in the store with {size} bytes, not these {len(data)}: left as it is")
@@ -145,7 +145,7 @@ class EpisodeStore:
         except (NotFoundError, FileNotFoundError):       # obstore raises the latter for a missing object
             return None
         except Exception as exc:
-            raise StoreError(f"{key}: {one_line(exc)}") from None
+            raise StoreError(f"{key}: {first_line(exc)}") from None
 
     def get(self, key: str) -> bytes:
         import obstore
@@ -155,7 +155,7 @@ class EpisodeStore:
         except (NotFoundError, FileNotFoundError):
             raise StoreError(f"{key}: not in the store") from None
         except Exception as exc:
-            raise StoreError(f"{key}: {one_line(exc)}") from None
+            raise StoreError(f"{key}: {first_line(exc)}") from None
 
     def list(self, prefix: str) -> list[dict]:
         """Every object under `prefix`: {path, size, last_modified}."""
@@ -163,19 +163,14 @@ class EpisodeStore:
         try:
             return [m for batch in obstore.list(self.store, prefix=prefix) for m in batch]
         except Exception as exc:
-            raise StoreError(f"{prefix}: {one_line(exc)}") from None
+            raise StoreError(f"{prefix}: {first_line(exc)}") from None
 
     def delete(self, key: str) -> None:
         import obstore
         try:
             obstore.delete(self.store, key)
         except Exception as exc:
-            raise StoreError(f"{key}: {one_line(exc)}") from None
-
-
-def one_line(exc: BaseException) -> str:
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    return (lines[0] if lines else type(exc).__name__)[:300]
+            raise StoreError(f"{key}: {first_line(exc)}") from None
 
 
 # -- an episode's rows ---------------------------------------------------------------------------------
@@ -387,7 +382,7 @@ def _mcap_bytes(path: pathlib.Path, config: str | None) -> bytes | None:
         try:
             mcap_of(path, out, config)
         except Exception as exc:         # the MCAP is a convenience: its failure never holds the recording back
-            log.warning("%s: no MCAP (%s)", path.name, one_line(exc))
+            log.warning("%s: no MCAP (%s)", path.name, first_line(exc))
             return None
         return out.read_bytes()
 

@@ -10,7 +10,8 @@ import tempfile
 import uuid
 
 from tecdard.fleet.episodes import (CONTACT_COLUMNS, CONTACTS_TABLE, EPISODE_COLUMNS, EPISODES_TABLE, INDEX,
-                                    MAX_INDEX_FILE_BYTES, EpisodeStore, StoreError, one_line)
+                                    MAX_INDEX_FILE_BYTES, EpisodeStore, StoreError)
+from tecdard.safejson import first_line
 
 log = logging.getLogger("tecdar.episodes")
 
@@ -97,14 +98,14 @@ def _problem(con, name: str, columns: tuple) -> str | None:
         described = con.execute(f"DESCRIBE SELECT * FROM read_parquet({_sql_str(name)})").fetchall()
         got = {row[0]: row[1] for row in described}
     except Exception as exc:
-        return f"not Parquet ({one_line(exc)[:160]})"
+        return f"not Parquet ({first_line(exc, 160)})"
     missing = [n for n, _ in columns if n not in got]
     if missing:
         return f"no column {missing[0]!r}: not an index file of ours"
     try:
         con.execute(f"SELECT {_casts(columns, 'count')} FROM read_parquet({_sql_str(name)})").fetchall()
     except Exception as exc:
-        return f"a column of another type ({one_line(exc)[:160]})"
+        return f"a column of another type ({first_line(exc, 160)})"
     return None
 
 
@@ -135,9 +136,9 @@ def query(index: Index, sql: str) -> tuple[list[str], list[tuple]]:
             return [d[0] for d in cur.description], cur.fetchall()
         except duckdb.IOException as exc:   # a file gone since the listing (a compaction): list again
             if attempt == VANISHED_RETRIES - 1:
-                raise QueryError(one_line(exc)) from None
+                raise QueryError(first_line(exc)) from None
         except duckdb.Error as exc:          # SQL it refuses (a parser, binder or conversion error)
-            raise QueryError(one_line(exc)) from None
+            raise QueryError(first_line(exc)) from None
         finally:
             con.close()
     raise AssertionError("unreachable")

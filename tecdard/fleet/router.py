@@ -9,7 +9,7 @@ import sys
 import threading
 
 from tecdard.config import Config, ConfigError
-from tecdard.safejson import show
+from tecdard.safejson import first_line, show
 
 log = logging.getLogger("tecdar")
 
@@ -88,7 +88,7 @@ def _first_line(exc: BaseException) -> str:
         where = lines[0].removeprefix("-->").strip().split(":")
         said = next((line.lstrip("= ") for line in lines if line.startswith("=")), "not JSON5")
         return f"line {where[0]} column {where[-1]}: {said}"[:200]
-    return (lines[0] if lines else type(exc).__name__)[:200]
+    return first_line(exc, 200)
 
 
 def run(config_path: str) -> int:

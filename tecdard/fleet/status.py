@@ -135,7 +135,8 @@ def table(rows: list[dict]) -> str:
 
 
 def run_status(args, watch: bool) -> int:
-    from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED, one_line
+    from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED
+    from tecdard.safejson import first_line
     from tecdard.api.session import endpoint_problem
     problem = endpoint_problem(args.connect)
     if problem:
@@ -149,7 +150,7 @@ def run_status(args, watch: bool) -> int:
     try:
         view = FleetView(args.connect, tls, args.tls_daemon_name, args.robot)
     except Exception as exc:              # zenoh.ZError: nothing there, a certificate refused
-        print(f"tecdard fleet: cannot reach the router at {args.connect}: {one_line(exc)}", file=sys.stderr)
+        print(f"tecdard fleet: cannot reach the router at {args.connect}: {first_line(exc)}", file=sys.stderr)
         return EXIT_NO_DAEMON
     try:
         if not watch:

@@ -24,6 +24,16 @@ def show_path_error(exc) -> str:
     return f"{exc.what}: {show(exc.reason, 300)[1:-1]}" if isinstance(exc.reason, str) else str(exc)
 
 
+def add_replay_options(p) -> None:
+    """What every tool that replays a recording takes (recording_and_pipeline reads them): the
+    recording, the estimator, the config that tunes the pipeline, and --ignore-live."""
+    p.add_argument("recording", help="REC.npz")
+    p.add_argument("--method", help="estimator (default: the config's, else ekf); an unknown name lists them all")
+    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
+    p.add_argument("--ignore-live", action="store_true",
+                   help="a daemon recording: replay it as any recording, not as its live estimator was fed")
+
+
 def recording_and_pipeline(args):
     """The recording named by args.recording, its live_* log (None for any other, or with
     --ignore-live) and a contact pipeline from args.config's `estimator` section; BadInput otherwise."""

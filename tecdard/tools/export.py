@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from tecdard.control.geometry import quat_to_matrix
+from tecdard.safejson import first_line
 
 IMU_BATCH_S = 0.01             # the IMU in messages of this much
 
@@ -65,7 +66,7 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
     try:
         writer = foxglove.open_mcap(out, allow_overwrite=True, context=ctx)
     except Exception as exc:
-        raise ExportError(f"--mcap: cannot write {out} ({_first_line(exc)})") from None
+        raise ExportError(f"--mcap: cannot write {out} ({first_line(exc, 200)})") from None
     offset = wall_clock_offset(rec.meta)
     if offset is not None:          # a daemon's recording: its monotonic stamps moved to wall-clock time
         ch = Channels(ctx, origin_s=0.0, epoch_s=offset)
@@ -104,22 +105,15 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
         try:
             writer.close()
         except Exception as exc:            # foxglove's FoxgloveError (a RuntimeError): a write failed
-            raise ExportError(f"--mcap: writing failed ({_first_line(exc)})") from None
+            raise ExportError(f"--mcap: writing failed ({first_line(exc, 200)})") from None
     return len(items)
 
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0][:200] if text else type(exc).__name__
-
-
 def add_parser(sub) -> None:
+    from tecdard.tools.args import add_replay_options
     p = sub.add_parser("export", help="write a recording and its replayed estimate as MCAP for Foxglove")
-    p.add_argument("recording", help="REC.npz")
+    add_replay_options(p)
     p.add_argument("--mcap", required=True, help="OUT.mcap (replaced if it exists)")
-    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
-    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
-    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
     p.set_defaults(func=main)
 
 

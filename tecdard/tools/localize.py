@@ -166,16 +166,13 @@ MAX_RATE_HZ = 100_000.0      # --rate: more rows per second than any IMU deliver
 
 
 def add_parser(sub) -> None:
+    from tecdard.tools.args import add_replay_options
     p = sub.add_parser("localize", help="estimate the contact in a recording (tecdar-recording/1)")
-    p.add_argument("recording", help="REC.npz")
+    add_replay_options(p)
     p.add_argument("--out", help="write estimates as CSV: t,px,py,pz,sx,sy,sz")
-    p.add_argument("--method", help="estimator (default: the config's, else ekf); an unknown name lists them all")
     p.add_argument("--rate", type=float, default=1000.0, help="at most this many rows per second (default 1000)")
     p.add_argument("--json", action="store_true", help="print the summary as a JSON object")
-    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
     p.add_argument("--no-plane", action="store_true", help="ignore plane_normal: use the 3D estimator")
-    p.add_argument("--ignore-live", action="store_true",
-                   help="a daemon recording: replay it as any recording, not as its live estimator was fed")
     p.set_defaults(func=main)
 
 

@@ -146,12 +146,10 @@ def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, o
 
 
 def add_parser(sub) -> None:
+    from tecdard.tools.args import add_replay_options
     p = sub.add_parser("plot", help="draw a recording: IMU and onset, the estimate with its 3-sigma band, its error")
-    p.add_argument("recording", help="REC.npz")
+    add_replay_options(p)
     p.add_argument("-o", "--out", required=True, help="image to write (png, pdf, svg)")
-    p.add_argument("--method", help="estimator (default: the config's, else ekf)")
-    p.add_argument("--config", help="YAML whose `estimator` section tunes the pipeline")
-    p.add_argument("--ignore-live", action="store_true", help="a daemon recording: replay it as any recording")
     p.set_defaults(func=main)
 
 
