@@ -163,12 +163,8 @@ def add_parsers(sub, limits=None, limits_note: str = "") -> None:
                        help="seconds to wait for the daemon to be ready (its liveliness token; "
                             "default: --timeout, at most 10)")
         p.add_argument("--json", action="store_true", help="print replies and events as JSON lines (SI units)")
-        p.add_argument("--tls-ca", help="with a tls/ endpoint: the CA that signed the daemon's certificate")
-        p.add_argument("--tls-cert", help="with a tls/ endpoint: this client's certificate (its CN may be a commander)")
-        p.add_argument("--tls-key", help="with a tls/ endpoint: this client's private key")
-        p.add_argument("--tls-daemon-name", default=DAEMON_NAME, metavar="CN",
-                       help="with a tls/ endpoint: the common name of the daemon's certificate (or of the router's, "
-                            "through one); nothing else is answered or listened to (default %(default)s)")
+        add_tls_options(p, "the daemon's (or of the router's, through one)", "client's certificate (its CN may be a "
+                        "commander)")
         if is_task:
             p.add_argument("--no-follow", action="store_true",
                            help="return once the task is accepted (it runs on; `tecdard cancel` ends it)")
@@ -295,11 +291,10 @@ def run_verb(args) -> int:
     if problem:
         _say(args.verb, f"--connect {args.connect}: {problem}")
         return EXIT_REFUSED
-    given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
-    if given and len(given) != 3:
-        _say(args.verb, "--tls-ca, --tls-cert and --tls-key go together")
+    tls, problem = tls_files(args)
+    if problem:
+        _say(args.verb, problem)
         return EXIT_REFUSED
-    tls = TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None
     try:
         cli = Client(args.connect, robot=args.robot, tls=tls, daemon_name=args.tls_daemon_name)
     except Exception as exc:                      # zenoh refuses a file or a setting
@@ -388,3 +383,22 @@ def _follow(cli: Client, args, task: str, progress: Progress) -> dict | None:
             if not args.json:
                 progress.update(state)
     return None
+
+
+def add_tls_options(p, peer: str, mine: str) -> None:
+    """--tls-ca, --tls-cert, --tls-key and --tls-daemon-name (tls_files reads them): `peer` names whose
+    certificate the CA signed and the name checks, `mine` this end's certificate."""
+    p.add_argument("--tls-ca", help=f"with a tls/ endpoint: the CA that signed {peer} certificate")
+    p.add_argument("--tls-cert", help=f"with a tls/ endpoint: this {mine}")
+    p.add_argument("--tls-key", help="with a tls/ endpoint: the private key of --tls-cert")
+    p.add_argument("--tls-daemon-name", default=DAEMON_NAME, metavar="CN",
+                   help=f"with a tls/ endpoint: the common name of {peer} certificate; nothing else is answered "
+                        "or listened to (default %(default)s)")
+
+
+def tls_files(args) -> tuple[TlsFiles | None, str | None]:
+    """(the TLS files of add_tls_options' options or None for none, what is wrong with them or None)."""
+    given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
+    if given and len(given) != 3:
+        return None, "--tls-ca, --tls-cert and --tls-key go together"
+    return (TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None), None

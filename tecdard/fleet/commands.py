@@ -6,8 +6,6 @@ import argparse
 import os
 import sys
 
-from tecdard.api.session import DAEMON_NAME
-
 EXIT_OK, EXIT_BAD_INPUT = 0, 2
 
 
@@ -41,7 +39,7 @@ def _finite_positive(text: str) -> float:
 
 
 def add_parser(sub) -> None:
-    from tecdard.cli.task_verbs import default_connect
+    from tecdard.cli.task_verbs import add_tls_options, default_connect
     from tecdard.fleet.status import GATHER_S, run_status
     fleet = sub.add_parser("fleet", help="many arms: the routers' ACL from a roster, and every robot's status",
                            description="A fleet of daemons behind Zenoh routers (docs/fleet.md).")
@@ -61,11 +59,7 @@ def add_parser(sub) -> None:
         p.add_argument("--connect", default=default_connect(), help="the router's endpoint (default %(default)s)")
         p.add_argument("--robot", default="*", help="robots to show: a name or a Zenoh chunk pattern (default *)")
         p.add_argument("--json", action="store_true", help="the rows as JSON (SI units: contact_p in m)")
-        p.add_argument("--tls-ca", help="with a tls/ endpoint: the fleet's CA")
-        p.add_argument("--tls-cert", help="with a tls/ endpoint: this operator's certificate")
-        p.add_argument("--tls-key", help="with a tls/ endpoint: this operator's private key")
-        p.add_argument("--tls-daemon-name", default=DAEMON_NAME, metavar="CN",
-                       help="with a tls/ endpoint: the router's certificate's common name (default %(default)s)")
+        add_tls_options(p, "the router's", "operator's certificate")
         if watch:
             p.add_argument("--period", type=_finite_positive, default=1.0, help="seconds between tables (default 1)")
         else:

@@ -135,18 +135,17 @@ def table(rows: list[dict]) -> str:
 
 
 def run_status(args, watch: bool) -> int:
-    from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED
+    from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED, tls_files
     from tecdard.safejson import first_line
     from tecdard.api.session import endpoint_problem
     problem = endpoint_problem(args.connect)
     if problem:
         print(f"tecdard fleet: --connect {args.connect}: {problem}", file=sys.stderr)
         return EXIT_REFUSED
-    given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
-    if given and len(given) != 3:
-        print("tecdard fleet: --tls-ca, --tls-cert and --tls-key go together", file=sys.stderr)
+    tls, problem = tls_files(args)
+    if problem:
+        print(f"tecdard fleet: {problem}", file=sys.stderr)
         return EXIT_REFUSED
-    tls = TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None
     try:
         view = FleetView(args.connect, tls, args.tls_daemon_name, args.robot)
     except Exception as exc:              # zenoh.ZError: nothing there, a certificate refused
