@@ -289,7 +289,7 @@ def test_report_states_are_report_state_row_by_row_to_the_last_bit(planar):
         Ps[j] = P
     rs, ss = rng.normal(0, 0.1, (m, d)), np.column_stack([np.arange(m), np.ones(m), [0.4, 1.0, 1.7, 2.5, 0.9, 3.0]])
     p, rep, stat = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3, 3))
-    report.report_states(xs, Ps, rs, ss, d, 0.0025, 1.0, k_prior_var, 3.0, E, origin, along, p, rep, stat)
+    report.report_states(xs, Ps, rs, ss, d, np.array([0.0025, 1.0, k_prior_var, 3.0]), E, origin, along, p, rep, stat)
     for j in range(m):
         one = report.report_state(xs[j], Ps[j], d, max(ss[j, 2], 1.0), rs[j], 0.0025, 1.0, k_prior_var, 3.0, E,
                                   origin, along)

@@ -276,7 +276,9 @@ class ContactKF(ContactKfSettings, ContactEstimator):
                                    self.positions is not None, self.params.slip_radial_sigma ** 2,
                                    np.asarray(ends, dtype=np.int64), out)
         p, rep, stat = np.empty((n_reports, 3)), np.empty((n_reports, 3, 3)), np.empty((n_reports, 3, 3))
-        report_states(out.x, out.P, out.r, out.s, d, *self._report_params(), p, rep, stat)
+        eta_var, k_mean, k_prior_var, test_sigma, E, origin, along = self._report_params()
+        report_states(out.x, out.P, out.r, out.s, d, np.array([eta_var, k_mean, k_prior_var, test_sigma]), E, origin,
+                      along, p, rep, stat)
         return [Snapshot(p[j], rep[j], stat[j], int(out.s[j, 0]), float(out.s[j, 1]), float(out.s[j, 2]))
                 for j in range(n_reports)]
 

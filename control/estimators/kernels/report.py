@@ -91,16 +91,16 @@ def report_state(x, P, d, scale, r_last, eta_var, k_mean, k_prior_var, test_sigm
     return p, lift(rep, E, nnT_var), lift(stat, E, nnT_var)
 
 
-@jit("void(float64[:, :], float64[:, :, :], float64[:, :], float64[:, :], int64, float64, float64, float64, float64, "
-     "float64[:, :], float64[:], float64[:], float64[:, :], float64[:, :, :], float64[:, :, :])")
-def report_states(xs, Ps, rs, ss, d, eta_var, k_mean, k_prior_var, test_sigma, E, origin, nnT_var, p_out, rep_out,
-                  stat_out):
+@jit("void(float64[:, :], float64[:, :, :], float64[:, :], float64[:, :], int64, float64[:], float64[:, :], "
+     "float64[:], float64[:], float64[:, :], float64[:, :, :], float64[:, :, :])")
+def report_states(xs, Ps, rs, ss, d, eta, E, origin, nnT_var, p_out, rep_out, stat_out):
     """report_state for each of a run's outputs (xs, Ps, rs: the state, covariance and lever arm of
-    each; ss[:, 2] the consistency ratio, scaled as at least 1), into p_out (m, 3), rep_out and
-    stat_out (m, 3, 3): one call for the some 200 outputs a second of recording makes."""
+    each; ss[:, 2] the consistency ratio, scaled as at least 1; eta: report_state's (eta_var, k_mean,
+    k_prior_var, test_sigma)), into p_out (m, 3), rep_out and stat_out (m, 3, 3): one call for the
+    some 200 outputs a second of recording makes."""
     for j in range(xs.shape[0]):
-        p, rep, stat = report_state(xs[j], Ps[j], d, max(ss[j, 2], 1.0), rs[j], eta_var, k_mean, k_prior_var,
-                                    test_sigma, E, origin, nnT_var)
+        p, rep, stat = report_state(xs[j], Ps[j], d, max(ss[j, 2], 1.0), rs[j], eta[0], eta[1], eta[2], eta[3], E,
+                                    origin, nnT_var)
         for a in range(3):
             p_out[j, a] = p[a]
             for b in range(3):
