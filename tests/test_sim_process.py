@@ -68,3 +68,28 @@ def test_one_read_of_the_imu_pipe_takes_every_chunk_waiting():
     assert source.read(0.01) is None
     rx.close()
     tx.close()
+
+
+def test_the_childs_wakes_sit_half_a_step_off_the_physics_grid_so_every_slice_is_ten_steps():
+    """The child integrates whole 1 ms steps up to each wake. Woken half a step after the grid
+    (on_grid), sleep's lateness of up to 0.45 ms leaves every 10 ms slice at 10 steps; woken on a
+    step's edge (the phase a start once set by chance) the same lateness made 9- and 11-step
+    slices, 60- and 73-sample IMU chunks, which the estimator took two at a time."""
+    from tecdard.sim.process import on_grid
+    from tecdard.sim.robot import PHYSICS_RATE_HZ, PHYSICS_WAKE_S
+    dt = 1.0 / PHYSICS_RATE_HZ
+    rng = np.random.default_rng(5)
+    lateness = rng.uniform(0.0, 0.45 * dt, 2000)
+
+    def steps(first_wake: float) -> set[int]:
+        t_physics, counts = 1000.0, set()
+        for k, late in enumerate(lateness):
+            now = first_wake + (k + 1) * PHYSICS_WAKE_S + late
+            n = int((now - t_physics) / dt)
+            t_physics += n * dt
+            counts.add(n)
+        return counts
+
+    assert on_grid(1000.0) == 1000.0 + 0.5 * dt
+    assert steps(on_grid(1000.0)) == {10}
+    assert steps(1000.0 + 0.999 * dt) > {10}           # on a step's edge: 9 and 11 as well
