@@ -276,9 +276,7 @@ class ContactKF(ContactKfSettings, ContactEstimator):
                                    self.positions is not None, self.params.slip_radial_sigma ** 2,
                                    np.asarray(ends, dtype=np.int64), out)
         p, rep, stat = np.empty((n_reports, 3)), np.empty((n_reports, 3, 3)), np.empty((n_reports, 3, 3))
-        eta_var, k_mean, k_prior_var, test_sigma, E, origin, along = self._report_params()
-        report_states(out.x, out.P, out.r, out.s, d, np.array([eta_var, k_mean, k_prior_var, test_sigma]), E, origin,
-                      along, p, rep, stat)
+        report_states(out.x, out.P, out.r, out.s, d, *self._report_params(), p, rep, stat)
         return [Snapshot(p[j], rep[j], stat[j], int(out.s[j, 0]), float(out.s[j, 1]), float(out.s[j, 2]))
                 for j in range(n_reports)]
 
@@ -315,13 +313,16 @@ class ContactKF(ContactKfSettings, ContactEstimator):
         (kernels.report.report_state)."""
         if x is None:
             x, P, consistency, r_last = self.x, self.P, self.consistency, self._r_last
-        return report_state(x, P, self.d, max(consistency, 1.0), r_last, *self._report_params())
+        eta, E, origin, along = self._report_params()
+        return report_state(x, P, self.d, max(consistency, 1.0), r_last, *eta, E, origin, along)
 
     def _report_params(self) -> tuple:
-        """report_state's arguments after the state's own: (eta's relative variance, k's prior mean and
-        variance, the blend's test sigma, the plane's basis, its origin, the variance along its normal)."""
-        return ((self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
-                self.params.eta_test_sigma, self._E, self.origin, self._along_var)
+        """What the report takes besides the state, as report_states takes it: (eta's figures: its
+        relative variance, k's prior mean and variance, the blend's test sigma; the plane's basis, its
+        origin, the variance along its normal)."""
+        eta = np.array([(self.eta_rel_std / self.k_prior_mean) ** 2, self.k_prior_mean, self.k_prior_var,
+                        self.params.eta_test_sigma])
+        return eta, self._E, self.origin, self._along_var
 
 
 ESTIMATORS = (EstimatorSpec("ekf", "our filter on the differential constraint (eta as a state, positions as "

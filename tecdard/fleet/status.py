@@ -135,9 +135,9 @@ def table(rows: list[dict]) -> str:
 
 
 def run_status(args, watch: bool) -> int:
+    from tecdard.api.session import endpoint_problem
     from tecdard.cli.task_verbs import EXIT_DONE, EXIT_NO_DAEMON, EXIT_REFUSED, tls_files
     from tecdard.safejson import first_line
-    from tecdard.api.session import endpoint_problem
     problem = endpoint_problem(args.connect)
     if problem:
         print(f"tecdard fleet: --connect {args.connect}: {problem}", file=sys.stderr)

@@ -33,8 +33,8 @@ KERNEL_MODULES = ("linalg", "report", "model", "evidence", "run")
 # what the estimators call, per kernel module: the exported functions (their callees are compiled into them)
 PUBLIC = {
     "run": ("ekf_advance", "ekf_segments"),
-    "report": ("eta_evidence", "eta_weight", "report_state", "report_states", "plane_rotation", "rate_moments", "rotation_axes",
-               "output_ends", "segment_moments"),
+    "report": ("eta_evidence", "eta_weight", "report_state", "report_states", "plane_rotation", "rate_moments",
+               "rotation_axes", "output_ends", "segment_moments"),
     "evidence": ("position_increment", "position_reset", "position_residual", "position_sums"),
     "model": ("block_update",),
 }
