@@ -16,7 +16,7 @@ import yaml
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.cli.client import Client  # noqa: E402
+from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 

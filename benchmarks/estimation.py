@@ -28,7 +28,7 @@ from tecdard.control import estimators  # noqa: E402
 
 METHODS = tuple(m for m in estimators.names() if m != "ekf-reference")   # the reference is ekf, slower
 from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
-from tecdard.tools import localize as L  # noqa: E402
+from tecdard.recording import replay as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402

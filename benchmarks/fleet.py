@@ -24,7 +24,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tecdard.api.session import TlsFiles, session_config  # noqa: E402
-from tecdard.cli.client import Client  # noqa: E402
+from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import free_port  # noqa: E402
 from benchmarks.__main__ import proc_cpu_s  # noqa: E402
@@ -44,7 +44,7 @@ QUERIES = {
 
 
 def pki(folder: pathlib.Path):
-    from tests.certs import ScratchCA
+    from tests.fakes.certs import ScratchCA
     ca = ScratchCA(folder)
     return ca, {cn: ca.issue(cn) for cn in ("arm-a", "arm-b", "router-1", "router-2", "alice")}
 

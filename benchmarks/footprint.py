@@ -9,7 +9,7 @@ M minutes at rest, read every WINDOW_S:
 - the daemon process's CPU, its children apart (the simulator, the UR link), and per OS thread;
 - its RSS.
 Paths: `sim`, the simulated robot (configs/sim.yaml); `ur`, the shape of a real rig: the UR backend
-through ur-rtde against the fake controller (tests/fake_ur.py) whose arm is our simulator, and the
+through ur-rtde against the fake controller (tests/fakes/fake_ur.py) whose arm is our simulator, and the
 fingertip board on a pseudo-terminal. `--load on` runs a busy loop of its own at nice 0 beside it
 (one core loaded). `--startup`: a warm start to READY (sd_notify) and to the first `status`, the
 ahead-of-time kernel build, and `tecdard localize` through the CLI on a 1 s and an 11 s recording

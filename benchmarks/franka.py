@@ -2,7 +2,7 @@
 
     python -m benchmarks.franka
 
-franky-sim (tests/franka_sim.py: one FR3 and its hand over MuJoCo, on an absolute 1 kHz schedule)
+franky-sim (tests/fakes/franka_sim.py: one FR3 and its hand over MuJoCo, on an absolute 1 kHz schedule)
 in a child process, the real franky client in the link's child (robots/franka_link.py), as the
 daemon runs them. Measured:
 - the state rate: every robot state, and the daemon's default share (robot.franka.state_rate_hz);
@@ -27,7 +27,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings  # noqa: E402
-from tests.franka_sim import ServerProcess  # noqa: E402
+from tests.fakes.franka_sim import ServerProcess  # noqa: E402
 
 RATE_S = 5.0
 LATENCY_RUNS = 20
@@ -47,7 +47,7 @@ HINGE_FRICTION_NM = 0.3
 
 
 def rotate_runs(n: int = ROTATE_RUNS) -> list[dict]:
-    """The daemon's `rotate` 30 deg on franky-sim's cutter (tests/franka_sim.py --cutter), as a
+    """The daemon's `rotate` 30 deg on franky-sim's cutter (tests/fakes/franka_sim.py --cutter), as a
     rig would run it: the daemon on robot.backend franka, the fingertip board on the scene's pty.
     Each run's outcome, hinge error (m), handle angle (deg) and base displacement (m) from the
     scene's truth, and how far franky-sim fell behind its schedule (s)."""

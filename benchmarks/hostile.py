@@ -19,7 +19,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.cli.client import Client  # noqa: E402
+from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import distance_to_axis, free_port, start_daemon, stop_daemon  # noqa: E402
 from tests.conftest import sim_config  # noqa: E402
@@ -87,7 +87,7 @@ def one_run(flood: bool) -> dict:
             child = int(subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "spawn_main"], capture_output=True,
                                        text=True).stdout.split()[0])
             if flood:
-                flooder = subprocess.Popen(["nice", "-n", str(FLOOD_NICE), sys.executable, "-m", "tests.flood",
+                flooder = subprocess.Popen(["nice", "-n", str(FLOOD_NICE), sys.executable, "-m", "tests.fakes.flood",
                                             endpoint, "600"], cwd=ROOT, stdout=subprocess.PIPE, text=True,
                                            env={**os.environ, "PYTHONPATH": str(ROOT)})
                 time.sleep(1.0)
@@ -125,7 +125,7 @@ def main(argv=None) -> int:
             print(f"run {k + 1} {'flood' if flood else 'quiet'}: {r}", flush=True)
     lines = ["# The daemon under a query flood", "",
              "`python -m benchmarks.hostile` (issue 16). A daemon on `configs/sim.yaml`; the flood is",
-             "`tests/flood.py` at nice 19: bursts of 3000 `status` queries (junk and oversized payloads",
+             "`tests/fakes/flood.py` at nice 19: bursts of 3000 `status` queries (junk and oversized payloads",
              "among them) and four 10 MB payloads, every 0.25 s, never waiting for a reply. CPU in % of one",
              f"core over {WINDOW_S:g} s before the rotate; stop: the reply time of five stops sent at rest.", "",
              "| run | queries sent | daemon main | daemon Python threads | Zenoh threads | sim child | rotate | hinge error | stop reply, median (max) | faults |",

@@ -18,7 +18,7 @@ sys.path.insert(0, str(ROOT))
 
 from tecdard.control.mapping import kernel_depth, raster_xy  # noqa: E402
 from tecdard.sim.world import CONTAINER_M, mapping_scene  # noqa: E402
-from tecdard.cli.client import Client  # noqa: E402
+from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import free_port, start_daemon, stop_daemon  # noqa: E402
 

@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from tecdard.control.geometry import quat_to_matrix  # noqa: E402
 from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
-from tecdard.tools import localize as L  # noqa: E402
+from tecdard.recording import replay as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402

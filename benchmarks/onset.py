@@ -4,7 +4,7 @@
 
 Replayed as `tecdard localize` replays (causal, the robot's states at their own rate), each
 episode released 0.3 s after its detection so that every onset of a recording counts
-(tecdard.tools.localize.replay_onsets):
+(tecdard.recording.replay.replay_onsets):
 
 - free air: sim/scenarios.py's `free_air` (Ruckig moves at 0.5 m/s^2 and 5 m/s^3 per axis, the
   tool turning at up to 0.5 rad/s; a rigid fingertip) and MuJoCo's `carry` (a 0.3 kg block held
@@ -39,7 +39,7 @@ from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402
 from tecdard.sim import mujoco_source as M  # noqa: E402
 from tecdard.sim.scenarios import FreeAirMoves, Scenario, free_air, generate  # noqa: E402
-from tecdard.tools import localize as L  # noqa: E402
+from tecdard.recording import replay as L  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "onset.md"
 IMPACT_WITHIN_S = 0.005       # an onset this close to the true contact is on time

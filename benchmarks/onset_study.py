@@ -23,7 +23,7 @@ import benchmarks.onset as B  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402
 from tecdard.sim import mujoco_source as M  # noqa: E402
 from tecdard.sim.scenarios import Scenario, generate  # noqa: E402
-from tecdard.tools import localize as L  # noqa: E402
+from tecdard.recording import replay as L  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "onset_study.md"
 CASES = [("sim arc 4 cm", lambda s: generate(Scenario(kind="edge-arc", radius=0.04, seed=s, duration_s=0.5))),

@@ -12,7 +12,7 @@
 - Contact latency: zenoh-ros2-sdk subscribed to `contact` during the rotate, through the router on
   loopback: its arrival (system clock) minus the message's stamp, the time of the estimate's last IMU
   sample.
-- The observer backend (`robot.backend: ros2`): tests/ros2_arm.py moves the simulator's Panda along a
+- The observer backend (`robot.backend: ros2`): tests/fakes/ros2_arm.py moves the simulator's Panda along a
   20 degree arc about the cutter's hinge and publishes its joint states at 200 Hz; the daemon's last
   contact before the arc's end, its distance to the true hinge axis, over RUNS runs.
 The machine is shared: the figures vary from run to run; nothing here is asserted.
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.ur import cpu_s  # noqa: E402
 from tecdard.ros2 import messages as M  # noqa: E402
-from tecdard.ros2.node import TOPICS  # noqa: E402
+from tecdard.runtime.ros2_node import TOPICS  # noqa: E402
 from tecdard.ros2.typesupport import TypeSupport  # noqa: E402
 from tests.conftest import DaemonProcess, daemon_config  # noqa: E402
 from tecdard.tools.demo import distance_to_axis  # noqa: E402
@@ -96,7 +96,7 @@ def run(seconds: float, with_ros2: bool, subscribed: bool = True) -> dict:
                     for topic, typ in (("/sim/imu", "sensor_msgs/msg/Imu"),
                                        ("/sim/tcp_pose", "geometry_msgs/msg/PoseStamped")):
                         subs.append(subprocess.Popen(
-                            [sys.executable, "-m", "tests.ros2_client", str(port), "subscribe",
+                            [sys.executable, "-m", "tests.fakes.ros2_client", str(port), "subscribe",
                              json.dumps({"topic": topic, "type": typ, "count": 10**9, "timeout": 3 * seconds + 120})],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True))
                     for s in subs:
@@ -193,7 +193,7 @@ def main() -> None:
               (f"| {np.percentile(lat, 50):.1f} ms | {np.percentile(lat, 90):.1f} ms | {np.percentile(lat, 99):.1f} ms "
                f"| {lat.max():.1f} ms |") if len(lat) else "| - | - | - | - |", "",
               f"## The observer backend's hinge error ({RUNS} runs)", "",
-              "tests/ros2_arm.py moves the simulator's Panda along a 20 deg arc about the cutter's hinge at 10 mm/s "
+              "tests/fakes/ros2_arm.py moves the simulator's Panda along a 20 deg arc about the cutter's hinge at 10 mm/s "
               "and publishes its joint states at 200 Hz through zenoh-ros2-sdk; the daemon on `robot.backend: ros2` "
               "reads them and its board on a pty. The last contact published before the arc's end, from the true "
               "hinge axis:", "",

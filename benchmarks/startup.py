@@ -25,7 +25,7 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tecdard.cli.client import Client  # noqa: E402
+from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
 from tecdard.tools.demo import free_port, stop_daemon  # noqa: E402
 from tests.conftest import sim_config  # noqa: E402

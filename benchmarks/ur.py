@@ -3,7 +3,7 @@
     python -m benchmarks.ur [--seconds S] [--rotates N]
 
 Everything runs through the real ur-rtde client (in robots.ur_link's child process) against
-tests/fake_ur.py on a free 127.0.0.x address:
+tests/fakes/fake_ur.py on a free 127.0.0.x address:
 - state rate: new controller states the link hands out per second (an e-Series controller: 500 Hz);
 - command latency: from `command_joint_velocity` in the daemon's process to the fake's control
   script seeing the new speedJ target in its registers (each command a distinct target), and to the
@@ -31,7 +31,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tecdard.robots.ur_link import UrLink, UrLinkSettings  # noqa: E402
-from tests.fake_ur import FakeController, free_loopback_host, wait_for  # noqa: E402
+from tests.fakes.fake_ur import FakeController, free_loopback_host, wait_for  # noqa: E402
 
 TICK_S = 0.02
 SLOW_ACCEL_RAD_S2 = 1.0        # ur-rtde's usual speedJ acceleration, for comparison with our default
@@ -122,7 +122,7 @@ def main() -> None:
         f"{os.cpu_count()} cores, Python {platform.python_version()})",
         "",
         "`python -m benchmarks.ur`: the real ur-rtde client (PyPI ur-rtde, in robots/ur_link.py's child "
-        "process) against tests/fake_ur.py, a UR5e controller (PolyScope 5, 500 Hz) on loopback. "
+        "process) against tests/fakes/fake_ur.py, a UR5e controller (PolyScope 5, 500 Hz) on loopback. "
         "The machine is shared; nothing here is a test.",
         "",
         f"## Link ({s['seconds']:.0f} s of speedJ at the 20 ms control tick)",

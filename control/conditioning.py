@@ -71,7 +71,7 @@ class GyroConditioner:
 
     def bias_state(self) -> np.ndarray:
         """(4,): the bias (rad/s, IMU frame) and the rest time averaged into it (s; 0: none yet), the
-        state a replay starts from (tecdard.tools.localize.replay_live)."""
+        state a replay starts from (tecdard.recording.replay.replay_live)."""
         return np.append(self.bias, self._bias_s if self._bias_ready else 0.0)
 
     def set_bias_state(self, state) -> None:

@@ -262,9 +262,9 @@ class MapTask(Task):
     def _dragging(self, inp: TickInput) -> bool:
         """In free air (travel, turn) a TCP force above abort_force_n means the tool is caught on
         something or drags what it holds: the map fails (the points so far are written)."""
-        if inp.force is None:
+        if inp.contact_force is None:
             return False
-        f = float(np.linalg.norm(inp.force))
+        f = float(np.linalg.norm(inp.contact_force))
         if f <= self.m.abort_force_n:
             return False
         self._fail(f"{self.status.phase}: {f:.1f} N on the TCP in free air (limit {self.m.abort_force_n:g} N, "
@@ -273,10 +273,10 @@ class MapTask(Task):
 
     def _aborted(self, inp: TickInput) -> bool:
         """A TCP force above abort_force_n abandons the point (its max force is kept either way)."""
-        if inp.force is None:
+        if inp.contact_force is None:
             return False
         pt = self._point
-        f = float(np.linalg.norm(inp.force))
+        f = float(np.linalg.norm(inp.contact_force))
         pt.max_force_n = max(pt.max_force_n, f)
         if f <= self.m.abort_force_n:
             return False

@@ -46,15 +46,15 @@ class EtaSchedule:
         table = sorted((float(f), float(e)) for f, e in table)
         if not table or any(e <= 0 for _, e in table):
             raise ValueError("eta_table: expected [[force_N, eta], ...] with eta > 0")
-        self.force = np.array([f for f, _ in table])
+        self.grip_force_n = np.array([f for f, _ in table])
         self.eta = np.array([e for _, e in table])
 
     def __call__(self, force_n) -> np.ndarray:
-        return np.interp(force_n, self.force, self.eta)
+        return np.interp(force_n, self.grip_force_n, self.eta)
 
     def distance_n(self, force_n: float) -> float:
         """How far (N) a grip force lies from the nearest calibrated force."""
-        return float(np.min(np.abs(self.force - force_n)))
+        return float(np.min(np.abs(self.grip_force_n - force_n)))
 
     def prior(self, force_n: float, rel_std: float, rel_std_per_n: float) -> tuple[float, float]:
         """(mean, one-sigma) of k = eta_true / eta_scheduled at a grip force, from eta's relative
@@ -68,7 +68,7 @@ class EtaSchedule:
         force the mean stays halfway above the bound eta >= 1. Between calibrated forces (interpolated)
         the error has no known sign: mean 1, one-sigma rel_std + s."""
         s = rel_std_per_n * self.distance_n(force_n)
-        side = 1.0 if force_n < self.force[0] else -1.0 if force_n > self.force[-1] else 0.0
+        side = 1.0 if force_n < self.grip_force_n[0] else -1.0 if force_n > self.grip_force_n[-1] else 0.0
         if side == 0.0 or s == 0.0:
             return 1.0, rel_std + s
         mean = 1.0 + side * s * math.sqrt(2.0 / math.pi)
@@ -147,7 +147,7 @@ class Samples:
     p_v: np.ndarray | None = None
     n_avg: np.ndarray | None = None
     eta: np.ndarray | None = None    # (n,) the scheduled eta at each sample's grip force
-    force: np.ndarray | None = None  # (n,) N, the grip force (measured, else the configured one)
+    grip_force_n: np.ndarray | None = None  # (n,) N, the grip force (measured, else the configured one)
     R: np.ndarray | None = None      # (n, 3, 3) the TCP's orientation, world <- TCP
     accel: np.ndarray | None = None  # (n, 3) m/s^2, the IMU's specific force, IMU frame
     turning: bool = False            # the gripper turns in this run (w_tcp and its kin are its rate)
@@ -209,10 +209,11 @@ class Measurements:
         # The causal low-pass delays the gyro by its group delay; take proprioception at the same
         # (earlier) instant so that w and v describe the same moment. Still causal.
         delay = self.cond.group_delay_samples * dt_sample
-        p, v, R, w_tcp, var_v, var_wt, force, found, stamp = self.proprio.lookup(ts - delay, with_stamp=True)
-        force = np.where(np.isnan(force), self.grip_force_n, force)
-        self.grip_force_now = float(force[-1])
-        eta = self.eta(force)
+        at = self.proprio.lookup(ts - delay)
+        p, v, R, w_tcp, var_v, var_wt, found, stamp = at.p, at.v, at.R, at.w, at.var_v, at.var_w, at.ok, at.stamp
+        grip_force_n = np.where(np.isnan(at.grip_force_n), self.grip_force_n, at.grip_force_n)
+        self.grip_force_now = float(grip_force_n[-1])
+        eta = self.eta(grip_force_n)
         # the fingertip's rate in the world once: the object's is made from it, and the rate history
         # keeps it as it is (object_rate_world with no gripper rate and eta 1, row by row the same)
         w_imu_world = self.cond.imu_rate_world(w_f, R)
@@ -229,7 +230,7 @@ class Measurements:
             w_tcp, w_tcp_pos, w_tcp_v = np.zeros_like(w_tcp), np.zeros_like(w_tcp_pos), np.zeros_like(w_tcp_v)
         rows = Samples(t=ts, dt=ts, w=w_obj, p=p, v=v, var_v=var_v, var_w=var_w, w_tcp=w_tcp, fresh=fresh,
                        w_pos=w_pos, p_pos=p_pos, w_tcp_pos=w_tcp_pos, w_v=w_v, w_tcp_v=w_tcp_v, p_v=p_v, n_avg=n_avg,
-                       eta=eta, force=force, R=R, accel=accel, turning=turning)
+                       eta=eta, grip_force_n=grip_force_n, R=R, accel=accel, turning=turning)
         if not ok.all():
             rows = rows[ok]
         prev = t_prev if t_prev is not None else np.nan
@@ -247,7 +248,8 @@ class Measurements:
         lag = self.lag_s
         p, stamp = now
         if lag > 0:
-            p, _, _, w_tcp_pos, _, _, _, found, stamp = self.proprio.lookup(ts - lag, with_stamp=True)
+            at = self.proprio.lookup(ts - lag)
+            p, w_tcp_pos, found, stamp = at.p, at.w, at.ok, at.stamp
             w_pos = w_obj - w_tcp + w_tcp_pos
         else:
             w_tcp_pos, w_pos = w_tcp, w_obj

@@ -20,7 +20,7 @@ from tecdard.control.estimators.kernels.api import output_ends, plane_rotation, 
 from tecdard.control.geometry import Plane
 from tecdard.control.measurements import FINGERTIP_LAG_S, TCP_TURNING_RAD_S, EtaSchedule, Measurements, RigNoise
 from tecdard.control.onset import BACKDATE_MAX_S, OnsetDetector
-from tecdard.control.proprio import ProprioTrack
+from tecdard.control.proprio import ProprioSample, ProprioTrack
 from tecdard.drivers.lsm6dsr import Scaling
 
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma (x the root NIS ratio above 1) is below this
@@ -172,8 +172,12 @@ class ContactPipeline:
         self._g_sat, self._a_sat = float(gyro_rad_s), float(accel_m_s2)
 
     def add_proprio(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
-                    force: float = np.nan) -> None:
-        self.proprio.add(t, p, v, R, w, force)
+                    grip_force_n: float = np.nan) -> None:
+        self.proprio.add(t, p, v, R, w, grip_force_n)
+
+    def add_sample(self, s: ProprioSample) -> None:
+        """One robot state as the daemon's threads hand it over (control.proprio.ProprioSample)."""
+        self.proprio.add(s.t, s.p_world, s.v_world, s.R_world_tcp, s.w_world, s.grip_force_n)
 
     @property
     def warm(self) -> bool:
@@ -351,7 +355,8 @@ class ContactPipeline:
         else:
             self._track_bias(t[:start], gyro[:start])
         t_on = float(pre[0][0]) if pre is not None else float(t[start])
-        p, v, _, _, var_v0, _, force_on, ok = self.proprio.lookup(np.array([t_on]))
+        at = self.proprio.lookup(np.array([t_on]))
+        p, v, var_v0, ok = at.p, at.v, at.var_v, at.ok
         if not ok[0]:
             self.detector.rearm()        # no proprioception yet: cannot start
             self._keep_idle(t, self.cond.lowpass(gyro), ~tainted, accel)
@@ -360,7 +365,7 @@ class ContactPipeline:
         trigger = "commanded" if commanded else self.detector.fired_by
         self._pre.clear()
         self.cond.freeze_bias(True)
-        self._set_eta_uncertainty(float(force_on[0]))    # eta's prior for the episode
+        self._set_eta_uncertainty(float(at.grip_force_n[0]))    # eta's prior for the episode
         self.estimator.set_position_noise(self.proprio.sigma_p_effective())
         self.estimator.start(p[0], v[0])
         self.tracking = True

@@ -8,6 +8,7 @@ noisy the positions are.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -54,8 +55,36 @@ HISTORY_FIELDS = {
     "R": "eye",
     "w": (3,),
     "wdot": (3,),                  # angular acceleration of a reported TCP rate, rad/s^2 (0: derived)
-    "force": np.nan,
+    "grip_force_n": np.nan,        # the gripper's grasp force, N (nan: not measured)
 }
+
+
+@dataclass(frozen=True, slots=True)
+class ProprioSample:
+    """One robot state as the estimator takes it: made on the robot's reader thread (the daemon's
+    ProprioFeed), handed to the estimator thread through its ring, fed to the pipeline, and kept for
+    the recording. Declared once: what crosses from the arm to the estimator and into a file."""
+    t: float                          # monotonic time of the measurement, s
+    p_world: np.ndarray               # the TCP's position, world, m (3,)
+    v_world: np.ndarray | None        # the TCP's velocity, world, m/s (None: derived from the positions)
+    R_world_tcp: np.ndarray           # the TCP's orientation, world <- TCP (3, 3)
+    w_world: np.ndarray | None        # the TCP's own angular rate, world, rad/s (None: derived)
+    grip_force_n: float = np.nan      # the gripper's grasp force, N (nan: not measured)
+    q: np.ndarray | None = None       # the joints, rad (for the recording: the export draws the arm)
+
+
+@dataclass(frozen=True, slots=True)
+class TcpAt:
+    """ProprioTrack.lookup's answer for times ts (n,): each row from the newest state at or before its time."""
+    p: np.ndarray                     # (n, 3) TCP position, world, m, extrapolated with v
+    v: np.ndarray                     # (n, 3) TCP velocity, world, m/s
+    R: np.ndarray                     # (n, 3, 3) TCP orientation, world <- TCP
+    w: np.ndarray                     # (n, 3) the TCP's own rate, world, rad/s
+    var_v: np.ndarray                 # (n,) the velocity's variance with its staleness, (m/s)^2
+    var_w: np.ndarray                 # (n,) the staleness variance of w, (rad/s)^2
+    grip_force_n: np.ndarray          # (n,) N (nan: not measured)
+    ok: np.ndarray                    # (n,) False before the first state
+    stamp: np.ndarray                 # (n,) the stamp of the state each row used, s
 
 
 def _backing(n: int, fill) -> np.ndarray:
@@ -98,7 +127,7 @@ class ProprioTrack:
         self.added = 0                # samples added so far (the history itself is a window)
 
     def add(self, t: float, p: np.ndarray, v: np.ndarray | None, R: np.ndarray, w: np.ndarray | None,
-            force: float = np.nan) -> None:
+            grip_force_n: float = np.nan) -> None:
         """One proprioception sample; v and w (the TCP's rate, world) may be None: derived then.
         In plain floats: the arithmetic is numpy's to the last digit (the same IEEE operations, one
         element at a time), without numpy's per-call cost on 3-vectors."""
@@ -145,7 +174,7 @@ class ProprioTrack:
             self._slide()
             n -= 1
         i = self._start + n
-        for arr, value in zip(self._arrays, (t, p, v, tv, var_v, pv, hv, a, alpha, tw, R_list, w, wdot, force,
+        for arr, value in zip(self._arrays, (t, p, v, tv, var_v, pv, hv, a, alpha, tw, R_list, w, wdot, grip_force_n,
                                              False, False)):
             arr[i] = value                               # acc and expl: fitted when first asked for (explained)
         self._last = (t, p, v, tv, w, tw, R_list)
@@ -250,12 +279,8 @@ class ProprioTrack:
             self._rate_n = self.n
         return self._rate
 
-    def lookup(self, ts: np.ndarray, with_stamp: bool = False):
-        """(p, v, R, w, var_v, var_w, force, ok) at times ts, extrapolated from the newest state at or before each.
-
-        var_w is the staleness variance of the TCP's own rate w, (rad/s)^2. With `with_stamp`
-        the stamp of the state each time used is appended.
-        """
+    def lookup(self, ts: np.ndarray) -> "TcpAt":
+        """The TCP at times ts (n,), extrapolated from the newest state at or before each (TcpAt)."""
         f = self._window()
         t_j = f["t"]
         j = np.searchsorted(t_j[:self.n], ts, side="right") - 1
@@ -271,9 +296,7 @@ class ProprioTrack:
         # held for up to a proprioception period it would enter the object rate times (eta - 1)), but
         # not without bound: when proprioception stalls, the rate is held after WDOT_MAX_AGE_S
         w = f["w"].take(j, axis=0) + f["wdot"].take(j, axis=0) * np.minimum(ts - tw_j, WDOT_MAX_AGE_S)[:, None]
-        if with_stamp:
-            return p, v_j, f["R"].take(j, axis=0), w, var_v, var_w, f["force"][j], ok, t_j
-        return p, v_j, f["R"].take(j, axis=0), w, var_v, var_w, f["force"][j], ok
+        return TcpAt(p, v_j, f["R"].take(j, axis=0), w, var_v, var_w, f["grip_force_n"][j], ok, t_j)
 
     def rate_held(self, t: float) -> np.ndarray | None:
         """lookup's TCP rate (world, rad/s) at one time t, or None before the first state: the same
@@ -318,7 +341,7 @@ class ProprioTrack:
 
 
 # the fields ProprioTrack.add writes, in the order it writes them (acc and expl are fitted later)
-_WRITTEN = ("t", "p", "v", "tv", "var_v", "pv", "hv", "a", "alpha", "tw", "R", "w", "wdot", "force",
+_WRITTEN = ("t", "p", "v", "tv", "var_v", "pv", "hv", "a", "alpha", "tw", "R", "w", "wdot", "grip_force_n",
             "acc_ok", "expl_ok")
 
 

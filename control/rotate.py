@@ -81,8 +81,8 @@ class TwoPhaseTask(Task):
         self._enter(self.Phase.PROBE, inp.t)
 
     def _tick(self, inp: TickInput) -> None:
-        if self._f0 is None and inp.force is not None:
-            self._f0 = np.asarray(inp.force, dtype=float).copy()
+        if self._f0 is None and inp.contact_force is not None:
+            self._f0 = np.asarray(inp.contact_force, dtype=float).copy()
 
     def _step_probe(self, inp: TickInput) -> Motion | None:
         s = float(np.dot(inp.p - self.p_start, self.direction))
@@ -175,7 +175,7 @@ class TwoPhaseTask(Task):
         the arc's radius moves with that force, so an estimate whose radius or centre is a little
         off does not drag the object's base. The estimator distrusts the velocity along the lever
         arm on the arc, so the correction does not feed back into the estimate."""
-        if inp.force is None or self._f0 is None:
+        if inp.contact_force is None or self._f0 is None:
             return self._radial
         dt = 0.0 if self._t_radial is None else inp.t - self._t_radial
         self._t_radial = inp.t
@@ -183,7 +183,7 @@ class TwoPhaseTask(Task):
         r = r - float(r @ a) * a
         n = float(np.linalg.norm(r))
         if n > 1e-6 and dt > 0:
-            f_r = float((np.asarray(inp.force, dtype=float) - self._f0) @ (r / n))
+            f_r = float((np.asarray(inp.contact_force, dtype=float) - self._f0) @ (r / n))
             self._radial = min(max(self._radial + ARC_ADMITTANCE_M_NS * f_r * dt, -ARC_RADIAL_MAX_M),
                                ARC_RADIAL_MAX_M)
         return self._radial

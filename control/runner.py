@@ -96,26 +96,27 @@ class TaskRunner:
         self._direct(armed=True)
 
     # -- each tick ------------------------------------------------------------------------
-    def check(self, force, est) -> None:
-        """The running task's safety: force, the estimate's checks and the task's own reactions."""
+    def check(self, contact_force, est) -> None:
+        """The running task's safety: the contact force (world, N), the estimate's checks and the task's
+        own reactions."""
         if self.mode is not Mode.BUSY:
             return
         if est is not None and (est.onset_t is None or est.onset_t < self.task_t0):
             est = None                                     # an earlier episode's
-        cause = safety.check_task(safety.SafetyInput(force, est, self._last_est), self.limits, self.task.reactions)
+        cause = safety.check_task(safety.SafetyInput(contact_force, est, self._last_est), self.limits, self.task.reactions)
         if cause is not None:
             self.protective_stop(cause)
         elif est is not None:
             self._last_est = est
 
-    def step(self, now: float, p: np.ndarray, R: np.ndarray, est, force, q: np.ndarray | None = None,
+    def step(self, now: float, p: np.ndarray, R: np.ndarray, est, contact_force, q: np.ndarray | None = None,
              q_t: float | None = None, v: np.ndarray | None = None) -> np.ndarray | None:
         """The commanded TCP position one tick ahead, or None: the arm is to be held (idle). A
         joint-space task leaves its joint velocities in `qd_cmd` instead (the plan then follows the
         measured TCP: `v` its velocity, so that a stop brakes from there)."""
         self.qd_cmd = None
         if self.mode is Mode.BUSY:
-            p_cmd = self._step_task(now, p, R, est, force, q, q_t, v)
+            p_cmd = self._step_task(now, p, R, est, contact_force, q, q_t, v)
         elif self.mode.braking:
             p_cmd = self._brake_step()
         else:
@@ -127,7 +128,7 @@ class TaskRunner:
             return None
         return p_cmd
 
-    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, force, q=None, q_t=None,
+    def _step_task(self, now: float, p: np.ndarray, R: np.ndarray, est, contact_force, q=None, q_t=None,
                    v=None) -> np.ndarray:
         task = self.task
         if est is not None and est.onset_t is not None and est.onset_t >= self.task_t0:
@@ -139,7 +140,8 @@ class TaskRunner:
         if task.trigger_phase is not None:
             self._direct(armed=self._trigger_armed(now, task))
         episode = task.episode
-        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, force, q, q_t))
+        motion = task.step(TickInput(now, p, R, view, self.planner.at_rest, self.planner.position, contact_force, q,
+                                     q_t))
         if task.episode != episode:
             # the task starts a fresh contact episode: older onsets no longer count
             self.task_t0 = now

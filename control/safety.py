@@ -46,7 +46,7 @@ class StopCause:
 @dataclass(frozen=True)
 class SafetyInput:
     """What a tick knows when it checks a running task."""
-    force: np.ndarray | None          # force of the world on the TCP, world, N (None: not measured)
+    contact_force: np.ndarray | None  # force of the world on the TCP, world, N (None: not measured)
     est: object | None                # the newest ContactEstimate of this task's episode (None: none yet)
     prev_est: object | None           # the one the previous tick saw
 
@@ -154,8 +154,8 @@ class SensorWatch:
 
 def check_task(inp: SafetyInput, limits: SafetyLimits, reactions: tuple = ()) -> StopCause | None:
     """Force, then the estimator's checks (rotation, divergence, contact jumps), then the task's own."""
-    if inp.force is not None:
-        f = float(np.linalg.norm(inp.force))
+    if inp.contact_force is not None:
+        f = float(np.linalg.norm(inp.contact_force))
         if f > limits.max_force_n:
             return StopCause("force", f"TCP force {f:.1f} N over the limit {limits.max_force_n:.1f} N", {"force_n": f})
     cause = _check_estimate(inp.est, inp.prev_est, limits) if inp.est is not None else None

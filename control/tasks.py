@@ -42,7 +42,7 @@ class TickInput:
     contact: ContactView
     planner_at_rest: bool
     p_plan: np.ndarray | None = None   # where the planner has the TCP now (None: use p)
-    force: np.ndarray | None = None    # force of the world on the TCP, world, N (None: not measured)
+    contact_force: np.ndarray | None = None    # force of the world on the TCP, world, N (None: not measured)
     q: np.ndarray | None = None        # measured joint positions, rad (joint-space tasks: home)
     q_t: float | None = None           # when `q` was measured, s, monotonic
 

@@ -11,9 +11,6 @@ import numpy as np
 
 from tecdard.drivers.lsm6dsr import Scaling
 
-# imu.source: the simulator's samples, its Python board on a pty, the firmware's host board on a pty, a real board
-IMU_SOURCES = ("sim", "sim-wire", "sim-firmware", "serial")
-
 
 class ImuSource:
     """What the daemon asks of an IMU source. `read` and `odr_hz` are its own; the rest default to a

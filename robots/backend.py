@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import pinocchio as pin
@@ -30,6 +31,14 @@ class JointState:
                                           # schedule); None: estimator.grip_force_n, the configured constant
 
 
+@dataclass(frozen=True)
+class TopicState:
+    """A robot whose state arrives on a front door's topic instead of a link of its own (an arm that ROS 2
+    drives): the door subscribes and hands each message over, `take(msg | None, problem | None)`."""
+    door: str                      # the front door that subscribes: "ros2" (the ROS 2 node's ros2.joint_states)
+    take: Callable
+
+
 def joint_rates(qd, nq: int) -> np.ndarray:
     """A joint velocity command as an array, or ValueError naming what is wrong with it."""
     qd = np.asarray(qd, dtype=float)
@@ -44,13 +53,21 @@ class RobotBackend:
     cannot), `close` (deactivate, disconnect). Then `read_state`/`wait_state` (the control and
     proprioception threads) and `command_joint_velocity`/`hold` (the control thread).
 
-    The optional behaviours are declared here with their defaults: `faults` (the robot's own, held
-    while they last), `annotate` (additions to the daemon's events), `imu_source` (which source reads
-    the fingertip), `checks` (for `tecdard doctor`)."""
+    What a backend can do it declares, on its class (the daemon reads them before building it) or its
+    instance; callers ask these, never the backend's name. The optional behaviours are declared here
+    with their defaults: `faults` (the robot's own, held while they last), `annotate` (additions to the
+    daemon's events), `imu_source` (the source that reads the fingertip), `checks` (for `tecdard doctor`)."""
 
     name = "robot"                      # robot.backend
+    # -- capabilities ------------------------------------------------------------------
     commands_arm = True                 # False: the daemon only observes the arm (task verbs are refused)
     read_only_reason = ""               # with commands_arm False: the refusal's message
+    sends_home = True                   # q_home is where `home` sends the arm (required, inside the workspace);
+                                        # False: only the state assumed before the first one is read
+    imu_sources: tuple[str, ...] = ("serial",)   # the imu.source values it reads the fingertip through,
+                                                 # the first the default
+    topic_state: TopicState | None = None        # the state comes from a front door's topic (ROS 2's joint states)
+    world_control = None                # a simulated world's hooks for a task (`home --reset-world`); None: a real one
     # How old the newest state may be before it is a fault (`robot_stale`, a protective stop) and the
     # servo holds: `robot.max_state_age_s`, this by default (a backend's own default is its own).
     STATE_AGE_S = 0.05
@@ -119,18 +136,10 @@ class RobotBackend:
         return event
 
     def imu_source(self, kind: str, section):
-        """The fingertip's IMU source for `imu.source: kind` (`section`: the config's `imu`). A real arm
-        has the board on serial; the simulator's backend also has its own (sim, sim-wire)."""
+        """The fingertip's IMU source for `imu.source: kind`, one of imu_sources (`section`: the config's
+        `imu`). A real arm has the board on serial; the simulator's backend also has its own."""
         from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
-        if kind != "serial":
-            raise section.error("source", f"with robot.backend {self.name} the fingertip board is read over "
-                                          "serial; set imu.source: serial")
         return SerialImuSource(SerialParams.from_config(section.section("serial")))
-
-    def ros2_joint_states(self):
-        """The handler of the ROS 2 node's `ros2.joint_states` messages (msg, problem) for a backend that
-        reads the arm from ROS 2; None: the node does not subscribe."""
-        return None
 
     def checks(self) -> list:
         """Whether this host can reach the robot (tecdard.host.Check each), for `tecdard doctor`."""

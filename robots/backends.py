@@ -1,5 +1,7 @@
-"""The robot backends, by the name `robot.backend` gives: each a module with `build(BackendContext)` that
-returns a robots.backend.RobotBackend. Adding a backend is its module and one line in BACKENDS.
+"""The robot backends, by the name `robot.backend` gives: each a robots.backend.RobotBackend class, built
+from a BackendContext. Adding a backend is its module and one line in BACKENDS; what it can do (sends
+the arm home, only observes it, takes its state from a topic, which IMU sources it reads) it declares
+on its class, and the daemon asks that, never its name.
 
 A module is imported only when the config names it, so the daemon never loads a backend it does
 not run (the simulator among them).
@@ -11,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BACKENDS = {                           # robot.backend -> the module whose build() makes it
-    "sim": "tecdard.sim.backend",
-    "ur": "tecdard.robots.ur",
-    "franka": "tecdard.robots.franka",
-    "ros2": "tecdard.robots.ros2_observer",
+BACKENDS = {                           # robot.backend -> "module:class" of its RobotBackend
+    "sim": "tecdard.sim.backend:SimBackend",
+    "ur": "tecdard.robots.ur:UrBackend",
+    "franka": "tecdard.robots.franka:FrankaBackend",
+    "ros2": "tecdard.robots.ros2_observer:Ros2Observer",
 }
 
 
@@ -43,8 +45,14 @@ def names() -> tuple[str, ...]:
     return tuple(BACKENDS)
 
 
+def declared(name: str) -> type:
+    """The class of the backend `name` (robots.backend.RobotBackend): what it can do, before it is built."""
+    module, _, cls = BACKENDS[name].partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
 def build(name: str, ctx: BackendContext):
     """The backend `name` (a robots.backend.RobotBackend), built from the config (ConfigError on a bad option)."""
-    backend = importlib.import_module(BACKENDS[name]).build(ctx)
+    backend = declared(name)(ctx)
     backend.name = name
     return backend

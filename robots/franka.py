@@ -209,7 +209,3 @@ def check_franka_robot(host: str, timeout_s: float = CHECK_TIMEOUT_S) -> list[Ch
                       "install the franky-control release built for the robot's system version, or update the "
                       "robot")]
     return [Check(f"Franka robot {host}", "pass", f"robot server version {version}, as this franky speaks")]
-
-
-def build(ctx: BackendContext) -> FrankaBackend:
-    return FrankaBackend(ctx)

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from tecdard.robots.backend import JointState, RobotBackend
+from tecdard.robots.backend import JointState, RobotBackend, TopicState
 from tecdard.robots.backends import ModelMismatch
 from tecdard.robots.state_check import FAULT_HOLD_S
 
@@ -40,6 +40,7 @@ class Ros2Observer(RobotBackend):
     commands_arm = False
     read_only_reason = ("robot.backend ros2 observes an arm that ROS 2 drives: tasks are refused; command the arm "
                         "through its own driver")
+    sends_home = False                  # an observed arm is never sent home
 
     def __init__(self, ctx):
         robot = ctx.cfg.section("robot")
@@ -61,6 +62,7 @@ class Ros2Observer(RobotBackend):
         self.commands_dropped = 0
         self.extra_names: set[str] = set()
         self.names_seen: list[str] | None = None     # the names of the first message that named none or not all
+        self.topic_state = TopicState("ros2", self.on_joint_state)
 
     # -- lifecycle: the node owns the subscription ------------------------------------------------
     def start(self) -> None:
@@ -86,9 +88,6 @@ class Ros2Observer(RobotBackend):
     def close(self) -> None:
         with self._cond:
             self._cond.notify_all()
-
-    def ros2_joint_states(self):
-        return self.on_joint_state
 
     # -- read -------------------------------------------------------------------------------------
     def read_state(self) -> JointState:
@@ -192,7 +191,3 @@ class Ros2Observer(RobotBackend):
             if self._fault is None:
                 log.warning("%s", problem)
             self._fault, self._fault_t = problem, time.monotonic()
-
-
-def build(ctx) -> Ros2Observer:
-    return Ros2Observer(ctx)

@@ -203,7 +203,3 @@ def check_ur_controller(host: str, model: str) -> list[Check]:
             out.append(Check("UR remote control", "fail", "the controller is in local control",
                              "switch the pendant to remote control (e-Series: the icon at its top right)"))
     return out
-
-
-def build(ctx: BackendContext) -> UrBackend:
-    return UrBackend(ctx)

@@ -1,6 +1,6 @@
 """The ur-rtde clients in a process of their own: the daemon's link to a Universal Robots controller.
 
-Why a process of their own (both seen against tests/fake_ur.py):
+Why a process of their own (both seen against tests/fakes/fake_ur.py):
 - ur-rtde's pybind11 binding holds the GIL while it blocks. A connect waits for the controller's
   handshake, and every Python thread of the caller waits with it: the control loop, the IMU path.
 - When the controller drops the connection, ur-rtde's background threads can end with an uncaught

@@ -47,6 +47,7 @@ class SimBackend(RobotBackend):
     # states over once a physics slice (10 ms), in a process that shares the host with the daemon
     # (on a loaded 2-core machine it was seen 50-60 ms behind): twice a real arm's budget.
     STATE_AGE_S = 0.1
+    imu_sources = ("sim", "sim-wire", "sim-firmware", "serial")
 
     def __init__(self, ctx: BackendContext):
         sim = ctx.cfg.section("sim")
@@ -189,7 +190,3 @@ def with_truth(event: dict, truth) -> dict:
     if event["kind"] == "task_done":
         return {**event, "result": {**result, "sim": sim}}
     return {**event, "sim": sim}
-
-
-def build(ctx: BackendContext) -> SimBackend:
-    return SimBackend(ctx)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tecdard.cli.client import Client
+from tecdard.api.client import Client
 from tecdard.tools.demo import distance_to_axis, free_port
 from tecdard.config import dump_yaml
 
@@ -27,11 +27,6 @@ DAEMON_START_TIMEOUT_S = 60.0
 # The folders that install under tecdard (pyproject's package-dir). From the checkout they are also
 # importable by their bare names, and a test that did so would pass here and fail on a wheel.
 CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim", "ros2")
-# Whole-daemon runs and the real clients against their fakes: `make check` leaves them out.
-SLOW_FILES = {"test_daemon.py", "test_daemon_franka.py", "test_daemon_ur.py", "test_daemon_hostile.py",
-              "test_daemon_tls.py", "test_daemon_api.py", "test_recorder.py", "test_serial_imu.py", "test_ur_link.py",
-              "test_ur_rotate.py", "test_client_cli.py", "test_install.py", "test_systemd.py",
-              "test_firmware.py"}   # the board's builds and QEMU runs: `make firmware` and the full suite
 
 
 class _BareNames(importlib.abc.MetaPathFinder):
@@ -73,12 +68,6 @@ def pytest_unconfigure(config):
                          f"exit: {', '.join(left)}\n")
         sys.stderr.flush()
         os._exit(_exit_status[0] or 1)
-
-
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        if item.path.name in SLOW_FILES:
-            item.add_marker(pytest.mark.slow)
 
 
 # The whole-daemon tests run the simulated arm (1 kHz physics and the IMU at 6.7 kHz, a process of

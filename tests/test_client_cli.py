@@ -5,6 +5,9 @@ import pytest
 
 from tests.conftest import tecdard
 
+# the slow tier (`make check` leaves it out): the command line against a running daemon
+pytestmark = pytest.mark.slow
+
 
 def test_verbs_against_a_daemon(shared_daemon):
     ep = shared_daemon.endpoint
@@ -32,7 +35,7 @@ def test_a_client_leaves_no_thread_that_would_keep_the_process_from_exiting(shar
     zenoh-python's callback threads, which are not daemon threads, outlived their client's session.
     The client's subscribers run on Zenoh's own threads: it starts no Python thread at all."""
     import threading
-    from tecdard.cli.client import Client
+    from tecdard.api.client import Client
     before = set(threading.enumerate())
     with Client(shared_daemon.endpoint) as cli:
         assert cli.command("status")["state"]["mode"] == "idle"

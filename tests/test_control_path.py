@@ -14,7 +14,7 @@ from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.api import commands as C
 from tecdard import verbs
 from tecdard.runtime.control_thread import ControlParams, ControlThread
-from tecdard.runtime.main_loop import TELEMETRY_PER_PASS, MainLoop, status_json
+from tecdard.runtime.main_loop import TELEMETRY_PER_PASS, MainLoop, ZenohDoor, status_json
 from tecdard.runtime.intake import QueryIntake
 from tecdard.control.pipeline import EstimatorDirective
 from tecdard.runtime.messages import DropOldestRing, LatestValue, Outbox, StartTask, Stop
@@ -153,7 +153,7 @@ def test_no_command_is_lost_or_reordered_and_stop_is_answered_within_one_tick_un
     keys = Keys("sim")
     ct = control_thread(model)
     intake = QueryIntake(keys, C.Limits(), ct, lambda: status_json(ct))
-    main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
+    main = MainLoop(intake, ct, ct.outbox, (ZenohDoor(intake, Publisher(), Publisher(), Publisher()),))
     rotate = FakeQuery(keys.cmd("rotate"), {"angle_deg": 10.0})
     intake.handle(rotate, keys.cmd("rotate"), rotate.payload, 0.0)
     tick(ct, ct.robot, 1)
@@ -219,7 +219,7 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
     robot_told = []
     ct.robot.set_resting = robot_told.append                      # the arm's link paces its states at rest
     intake = QueryIntake(keys, C.Limits(), ct, lambda: status_json(ct))
-    main = MainLoop(intake, ct, ct.outbox, Publisher(), Publisher(), Publisher())
+    main = MainLoop(intake, ct, ct.outbox, (ZenohDoor(intake, Publisher(), Publisher(), Publisher()),))
     tick(ct, ct.robot, 1)
     tick(ct, ct.robot, 2)
     assert told.said == [True]                                    # idle: said once, not every tick
@@ -282,7 +282,7 @@ WIGGLE = '''
             self.max_force_n = max_force_n
 
         def _pushed(self, inp):
-            if inp.force is not None and np.linalg.norm(inp.force) > self.max_force_n:
+            if inp.contact_force is not None and np.linalg.norm(inp.contact_force) > self.max_force_n:
                 return StopCause("wiggle_force", "pushed while wiggling")
             return None
 

@@ -116,7 +116,7 @@ def test_a_point_contact_result_ends_the_task_with_the_sim_truth():
 
 def test_a_failing_annotation_never_costs_the_task_its_end_event():
     """The simulator's truth is added on the main thread; a failure there publishes the event as it is."""
-    from tecdard.runtime.main_loop import MainLoop
+    from tecdard.runtime.main_loop import MainLoop, ZenohDoor
 
     class Pub:
         def __init__(self):
@@ -131,7 +131,7 @@ def test_a_failing_annotation_never_costs_the_task_its_end_event():
     outbox = Outbox(16)
     outbox.put("event", {"t": 1.0, "kind": "task_failed", "task": "approach-1", "error": "no contact"})
     events = Pub()
-    main = MainLoop(None, None, outbox, Pub(), Pub(), events, annotate=broken)
+    main = MainLoop(None, None, outbox, (ZenohDoor(None, Pub(), Pub(), events),), annotate=broken)
     assert main.publish_telemetry(0.0) == 1
     assert '"kind":"task_failed"' in events.texts[0] and '"sim"' not in events.texts[0]
 

@@ -9,6 +9,9 @@ import pytest
 from tecdard.tools.demo import distance_to_axis
 from tests.conftest import sim_config, tcp_now
 
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
+
 HINGE_TOL_M = 0.010          # issue 2: hinge estimate within 10 mm of the true axis
 ANGLE_TOL_DEG = 2.0
 ARC_BASE_MAX_M = 0.002       # following the estimated arc leaves the base (nearly) still

@@ -8,6 +8,9 @@ import pytest
 
 from tests.conftest import STILL_M, tcp_now
 
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
+
 
 def test_status_state_and_events_follow_the_spec(shared_daemon):
     cli = shared_daemon.client

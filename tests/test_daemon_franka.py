@@ -1,5 +1,5 @@
 """The whole daemon on `robot.backend: franka`: the real franky client (libfranka 0.21.2) against
-franky-sim's MuJoCo FR3 (tests/franka_sim.py), the fingertip board on a pseudo-terminal. Start,
+franky-sim's MuJoCo FR3 (tests/fakes/franka_sim.py), the fingertip board on a pseudo-terminal. Start,
 state, the command watchdog, a simulator that dies and comes back, and robots that cannot work: a
 version mismatch, nothing listening, a server that never answers."""
 import subprocess
@@ -13,13 +13,16 @@ from tecdard.robots.model import ArmModel
 from tecdard.config import dump_yaml
 from tecdard.tools.demo import distance_to_axis
 from tests.conftest import ROOT, DaemonProcess, daemon_config
-from tests.fake_ur import wait_for
+from tests.fakes.fake_ur import wait_for
+
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
 
 franky = pytest.importorskip("franky", reason="franky-control is installed by `make test` (extra `franka`)")
 pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
 
 from tecdard.robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
-from tests.franka_sim import ServerProcess, free_franka_host  # noqa: E402
+from tests.fakes.franka_sim import ServerProcess, free_franka_host  # noqa: E402
 
 REFLEX_APPROACH_M = 0.08        # the reflex test's approach: still moving when the reflex is injected
 Q_SIM = [0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785]     # franky-sim's initial posture: TCP at (0.554, 0, 0.521)
@@ -31,7 +34,7 @@ EXIT_WITHIN_S = 30.0
 # The franky-sim cutter rig's fingertip, calibrated as a rig's is (docs/recordings.md): four of the
 # daemon's own recordings of a 15 mm `probe` from rest against the hinge, and `tecdard
 # calibrate-eta --contact <the hinge>`. The scene's fingertip springs give eta 2 and a 3 ms lag;
-# the grasp's own give (the soft weld, tests/franka_sim.py GRASP_SOLREF) adds to the lag. franky-sim's
+# the grasp's own give (the soft weld, tests/fakes/franka_sim.py GRASP_SOLREF) adds to the lag. franky-sim's
 # hand holds the handle by that weld, not its fingers, so its gripper never reports a grasp: the
 # grip force is the config's (estimator.grip_force_n), franky's default grasp force.
 FRANKY_SIM_GRIP_N = 20.0
@@ -228,7 +231,7 @@ def test_a_franka_config_is_checked_before_any_connection(tmp_path, board):
 
 
 def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the_wire(tmp_path):
-    """The MuJoCo scene of issue 22 (tests/franka_sim.py --cutter): the FR3's hand holds the paper
+    """The MuJoCo scene of issue 22 (tests/fakes/franka_sim.py --cutter): the FR3's hand holds the paper
     cutter's handle through a compliant fingertip whose IMU streams tecdar-imu/1 on a pty. Driven
     through the real franky client on an arc about the true hinge with the hand held level, the
     handle turns, the fingertip's gyro (parsed from the wire) reads 1/eta of the handle's rate, and
@@ -240,7 +243,7 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
 
     from tecdard.drivers.imu_wire import SamplesPacket, WireParser
     from tecdard.drivers.lsm6dsr import Scaling
-    from tests.franka_sim import ETA
+    from tests.fakes.franka_sim import ETA
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
     srv = ServerProcess("--cutter", "--pty", pty, "--truth", truth_path, "--hinge-friction", "0.3")
     link = link_to(srv.host)
@@ -345,7 +348,7 @@ SIM_ATTEMPTS = 3
 
 def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
     """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty;
-    `sim_args` for tests/franka_sim.py, `config` over the daemon's): one rotate with `fields`.
+    `sim_args` for tests/fakes/franka_sim.py, `config` over the daemon's): one rotate with `fields`.
     Returns its task_done or task_failed event, the scene's truth after it, the events and the
     daemon's log."""
     import json

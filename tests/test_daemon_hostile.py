@@ -7,9 +7,13 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from tests.conftest import ROOT, STILL_M, tcp_now
 from tests.test_daemon import TASK_TIMEOUT_S, assert_arc_opened_the_cutter
+
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
 
 # Braking from 20 mm/s at 0.5 m/s^2 takes about 0.1 s, and a stop is taken at the next 20 ms tick;
 # this much more allows a loaded shared machine. The red team's stop took 8.7 s under load.
@@ -73,7 +77,7 @@ def latest_state(cli) -> dict:
 
 
 def flood(endpoint: str, seconds: float) -> subprocess.Popen:
-    return subprocess.Popen(["nice", "-n", str(FLOOD_NICE), sys.executable, "-m", "tests.flood", endpoint,
+    return subprocess.Popen(["nice", "-n", str(FLOOD_NICE), sys.executable, "-m", "tests.fakes.flood", endpoint,
                              str(seconds)], cwd=ROOT, stdout=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
 
@@ -207,7 +211,7 @@ def test_a_record_flood_neither_starves_other_verbs_nor_fills_the_disk(make_daem
     rate and count limit."""
     import threading
 
-    from tecdard.cli.client import Client
+    from tecdard.api.client import Client
     d = make_daemon()
     stop = threading.Event()
     sent = [0]

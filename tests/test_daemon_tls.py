@@ -7,10 +7,13 @@ import sys
 
 import pytest
 
-from tecdard.cli.client import Client, ClientError
+from tecdard.api.client import Client, ClientError
 from tecdard.api.session import TlsFiles
-from tests.certs import ScratchCA
+from tests.fakes.certs import ScratchCA
 from tests.conftest import ROOT
+
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
 
 REFUSED_WITHIN_S = 2.0        # a denied query reaches no queryable; the client gives up after this
 

@@ -10,7 +10,10 @@ import pytest
 from tecdard.robots.model import READY_Q, ArmModel
 from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
-from tests.fake_ur import FakeController, free_loopback_host, wait_for
+from tests.fakes.fake_ur import FakeController, free_loopback_host, wait_for
+
+# the slow tier (`make check` leaves it out): whole-daemon runs
+pytestmark = pytest.mark.slow
 
 pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
 dashboard_client = pytest.importorskip("dashboard_client")

@@ -170,7 +170,7 @@ def ur5e_config(tmp_path, host: str) -> str:
 
 def test_the_shipped_ur5e_config_is_valid_and_its_controller_is_checked(tmp_path):
     pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
-    from tests.fake_ur import FakeController, free_loopback_host
+    from tests.fakes.fake_ur import FakeController, free_loopback_host
     fake = FakeController(free_loopback_host(), arm="UR5e")
     try:
         out = io.StringIO()
@@ -191,7 +191,7 @@ def test_the_shipped_ur5e_config_is_valid_and_its_controller_is_checked(tmp_path
 ])
 def test_a_ur_controller_that_cannot_serve_this_config_fails(tmp_path, arm, remote, expect):
     pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
-    from tests.fake_ur import FakeController, free_loopback_host
+    from tests.fakes.fake_ur import FakeController, free_loopback_host
     fake = FakeController(free_loopback_host(), arm=arm, remote_control=remote)
     try:
         checks = check_ur_controller(fake.host, "ur5e")
@@ -203,7 +203,7 @@ def test_a_ur_controller_that_cannot_serve_this_config_fails(tmp_path, arm, remo
 
 
 def test_no_ur_controller_at_the_host_fails_naming_the_ports():
-    from tests.fake_ur import free_loopback_host
+    from tests.fakes.fake_ur import free_loopback_host
     (check,) = check_ur_controller(free_loopback_host(), "ur5e")
     assert check.status == "fail" and "dashboard 29999" in check.detail and "RTDE 30004" in check.detail
 
@@ -224,7 +224,7 @@ def test_the_shipped_fr3_config_is_valid_and_its_robot_and_realtime_are_checked(
     """Issue 22: doctor tells a Franka user whether the host is fit for realtime enforcement, and
     whether the robot's server speaks this franky's version (franky-sim here)."""
     pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
-    from tests.franka_sim import ServerProcess
+    from tests.fakes.franka_sim import ServerProcess
     srv = ServerProcess()
     try:
         out = io.StringIO()
@@ -256,7 +256,7 @@ def test_franka_realtime_checks_read_the_host():
 
 def test_a_franka_robot_of_another_version_or_none_fails(tmp_path):
     pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
-    from tests.franka_sim import ServerProcess, free_franka_host
+    from tests.fakes.franka_sim import ServerProcess, free_franka_host
     srv = ServerProcess("--reply-version", "9")
     try:
         (check,) = check_franka_robot(srv.host)
@@ -274,7 +274,7 @@ def test_run_checks_on_each_shipped_config_checks_its_board(tmp_path, name):
     """`doctor` read an attribute that had been renamed and skipped the board on exactly the rig
     configs: run_checks itself, on each shipped config, checks the board the config names."""
     import yaml
-    from tests.fake_ur import free_loopback_host
+    from tests.fakes.fake_ur import free_loopback_host
     cfg = yaml.safe_load((ROOT / "configs" / name).read_text())
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     if "ur" in cfg["robot"]:
@@ -300,7 +300,7 @@ def test_run_checks_on_each_shipped_config_checks_its_board(tmp_path, name):
 def test_a_listener_that_is_not_a_ur_dashboard_fails(tmp_path):
     """The UR check passed on any TCP listener: it now reads the dashboard's greeting."""
     from tecdard.robots.ur import check_ur_controller
-    from tests.fake_ur import free_loopback_host
+    from tests.fakes.fake_ur import free_loopback_host
     host = free_loopback_host()
     servers = [socket.create_server((host, port)) for port in (29999, 30003, 30004)]
     try:

@@ -247,7 +247,7 @@ def _replay_end(kind, grip_force, seed, estimate_eta, **estimator):
     from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.control.pipeline import ContactPipeline
-    from tecdard.tools.localize import replay
+    from tecdard.recording.replay import replay
     from tecdard.recording.format import Recording
     from tecdard.control.geometry import quat_to_matrix
 

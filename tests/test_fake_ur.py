@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from tests.fake_ur import FakeController, UrKinematics, free_loopback_host, wait_for
+from tests.fakes.fake_ur import FakeController, UrKinematics, free_loopback_host, wait_for
 
 rtde_receive = pytest.importorskip("rtde_receive", reason="ur-rtde is installed by `make test` (extra `ur`)")
 rtde_io = pytest.importorskip("rtde_io")

@@ -21,6 +21,9 @@ from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
 from tecdard.sim.board import PtyDevice
 from tests.conftest import ROOT, rotate_on_the_cutter
 
+# the slow tier (`make check` leaves it out): the board's builds and QEMU runs (`make firmware` and the full suite)
+pytestmark = pytest.mark.slow
+
 FIRMWARE = ROOT / "firmware"
 BUILD = FIRMWARE / "build"
 VECTORS = FIRMWARE / "vectors"

@@ -13,13 +13,13 @@ import pytest
 import zenoh
 
 from tecdard.api.session import TlsFiles, session_config
-from tecdard.cli.client import Client, ClientError
+from tecdard.api.client import Client, ClientError
 from tecdard.config import ConfigError, dump_yaml
 from tecdard.fleet.acl import acl_document, router_access_control
 from tecdard.fleet.roster import Roster
-from tecdard.fleet.router import read_acl_file
+from tecdard.runtime.router import read_acl_file
 from tecdard.tools.demo import free_port
-from tests.certs import ScratchCA
+from tests.fakes.certs import ScratchCA
 from tests.conftest import ROOT, tecdard
 
 ROBOTS = ("arm-a", "arm-b", "arm-c")
@@ -406,6 +406,6 @@ def test_a_daemon_whose_certificate_names_another_robot_is_told(pki):
 def test_a_fleet_robot_name_makes_a_ros2_namespace():
     """Roster names take '-' (ur5e-left); ROS 2 names do not: the default namespace says it with '_'."""
     from tecdard.config import Config
-    from tecdard.ros2.node import Ros2Params
+    from tecdard.runtime.ros2_node import Ros2Params
     for robot, namespace in (("ur5e-left", "/ur5e_left"), ("arm_2", "/arm_2"), ("3-arm", "/r_3_arm")):
         assert Ros2Params.from_config(Config({}).section("ros2"), robot).namespace == namespace

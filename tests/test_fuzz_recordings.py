@@ -234,7 +234,7 @@ def outcome(path) -> str:
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.config import Config
     from tecdard.control.pipeline import ContactPipeline
-    from tecdard.tools.localize import replay
+    from tecdard.recording.replay import replay
     try:
         rec = load_recording(path)
     except RecordingError as exc:

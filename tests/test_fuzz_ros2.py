@@ -18,7 +18,7 @@ from tecdard.runtime.messages import StartTask
 
 pytest.importorskip("rosbags", reason="rosbags is installed by `make test` (extra ros2)")
 from tecdard.ros2 import rmw  # noqa: E402
-from tecdard.ros2.node import Ros2Node, Ros2Params, _Service  # noqa: E402
+from tecdard.runtime.ros2_node import Ros2Node, Ros2Params, _Service  # noqa: E402
 from tests.test_fuzz_commands import CODES, LIMITS, Sink  # noqa: E402
 
 CODES = CODES | {C.READ_ONLY}

@@ -15,9 +15,9 @@ import pytest
 import zenoh
 
 from tecdard.api.session import Keys, TlsFiles, session_config
-from tecdard.cli.client import Client, ClientError
+from tecdard.api.client import Client, ClientError
 from tecdard.tools.demo import free_port
-from tests.certs import ScratchCA
+from tests.fakes.certs import ScratchCA
 
 FORGED = '{"t": 0.0, "kind": "task_done", "task": "forged", "result": {}}'
 NO_ANSWER_S = 1.5

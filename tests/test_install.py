@@ -16,6 +16,9 @@ import pytest
 
 from tests.conftest import ROOT
 
+# the slow tier (`make check` leaves it out): fresh venvs, a wheel built
+pytestmark = pytest.mark.slow
+
 INSTALL_TIMEOUT_S = 600.0
 KERNELS = "tecdard/control/estimators/kernels"
 KERNELS_PROBE = """

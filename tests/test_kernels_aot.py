@@ -77,7 +77,7 @@ def test_the_daemon_runs_where_memory_may_not_be_written_and_executed(tmp_path):
     inherited across exec): a daemon on the built kernels opens the cutter; one that would need
     numba's JIT there refuses to start in one line (exit 2) instead of failing mid-task."""
     import types
-    from tecdard.cli.client import Client
+    from tecdard.api.client import Client
     from tests.conftest import daemon_config, dump_yaml, free_port, rotate_on_the_cutter
     cfg = daemon_config()
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -1,5 +1,6 @@
-"""The house's shape (issue 31), kept: one import root, the runtime apart from the tools, config errors
-raised from the section a module was given, and functions and signatures of a readable size."""
+"""The house's shape (issues 31 and 47), kept: one import root, libraries below the command line and no
+import circles (lazy imports included), config errors raised from the section a module was given, and
+functions and signatures of a readable size."""
 import ast
 import pathlib
 import re
@@ -41,9 +42,116 @@ def test_every_import_is_under_the_one_root():
     assert not found, found
 
 
-def test_the_runtime_never_imports_a_tool_or_the_command_line():
-    found = [(str(p.relative_to(ROOT)), m) for p in sources("tecdard/runtime") for m in imported_modules(p)
-             if m.startswith(("tecdard.tools", "tecdard.cli"))]
+INSTALLED_AS = {"tecdard": "tecdard", **{folder: f"tecdard.{folder}" for folder in BELOW_TECDARD}}
+COMMAND_LINE = ("tecdard.cli", "tecdard.tools", "tecdard.__main__")     # argument parsing over the libraries
+
+
+def module_files() -> dict[str, pathlib.Path]:
+    """Every production module by its installed name (tecdard.control.geometry: control/geometry.py)."""
+    out = {}
+    for folder, package in INSTALLED_AS.items():
+        for path in sources(folder):
+            parts = path.relative_to(ROOT / folder).with_suffix("").parts
+            parts = parts[:-1] if parts[-1] == "__init__" else parts
+            out[".".join((package, *parts))] = path
+    return out
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> the modules of ours it imports, anywhere in it (a function's lazy import counts as much
+    as one at the top: it is the same dependency, only later)."""
+    files = module_files()
+
+    def ours(name: str) -> str | None:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for name, path in files.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                    base = f"{up}.{base}" if base else up
+                for alias in node.names:
+                    deps.add(ours(f"{base}.{alias.name}") or ours(base))
+            elif isinstance(node, ast.Import):
+                deps.update(ours(alias.name) for alias in node.names)
+        graph[name] = {d for d in deps if d is not None and d != name}
+    return graph
+
+
+def folder_of(module: str) -> str:
+    """tecdard.runtime.daemon -> tecdard.runtime; a module at the root (tecdard.config) is its own."""
+    return ".".join(module.split(".")[:2])
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one node (Tarjan's, iterative)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.get(root, ()))))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is None:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        x = stack.pop()
+                        on.discard(x)
+                        comp.append(x)
+                        if x == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+            elif w not in index:
+                index[w] = low[w] = counter[0]
+                counter[0] += 1
+                stack.append(w)
+                on.add(w)
+                work.append((w, iter(sorted(graph.get(w, ())))))
+            elif w in on:
+                low[v] = min(low[v], index[w])
+    return out
+
+
+def test_no_import_circles_between_modules_or_folders_lazy_imports_included():
+    """A circle hidden behind a function's import is a circle all the same: a change on either side
+    reaches the other, and neither can be read, tested or installed alone."""
+    graph = import_graph()
+    folders: dict[str, set[str]] = {}
+    for module, deps in graph.items():
+        folders.setdefault(folder_of(module), set()).update(folder_of(d) for d in deps if folder_of(d) != folder_of(module))
+    assert not circles(graph), circles(graph)
+    assert not circles(folders), circles(folders)
+
+
+def test_libraries_never_import_the_command_line():
+    """cli/ and tools/ parse arguments and call libraries; nothing below them imports them, so a change
+    to `tecdard localize` cannot change what the daemon or the fleet's index computes."""
+    found = [f"{m} -> {d}" for m, deps in import_graph().items() if not m.startswith(COMMAND_LINE)
+             for d in deps if d.startswith(COMMAND_LINE)]
+    assert not found, found
+
+
+def test_the_fleet_never_imports_the_runtime():
+    """fleet/ is data (the store, the index, the roster, the ACL): the daemon uses it, never the other way."""
+    found = [f"{m} -> {d}" for m, deps in import_graph().items() if m.startswith("tecdard.fleet")
+             for d in deps if d.startswith(("tecdard.runtime", "tecdard.cli", "tecdard.tools"))]
     assert not found, found
 
 
@@ -139,3 +247,68 @@ def test_the_shipped_foxglove_layout_names_only_what_tecdar_writes():
     def leaves(node):
         return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
     assert set(leaves(layout["layout"])) == set(layout["configById"])
+
+
+def test_the_recording_members_are_declared_once_and_the_docs_follow_the_table():
+    """Issue 47: a member is a row of recording/members.py; the Recording and LiveLog records, the reader's
+    own checks and docs/recordings.md's tables all follow it (adding a field: the row, its producer, a test)."""
+    import dataclasses
+
+    from tecdard.recording import format as F, members as M
+    assert {f.name for f in dataclasses.fields(F.Recording)} == {m.attr for m in M.CORE if m.key != "format"}
+    assert {f.name for f in dataclasses.fields(F.LiveLog)} == {m.attr for m in M.LIVE}
+    assert set(F.CHECKS) <= {m.key for m in M.CORE}
+    by_key, header = {}, None
+    for line in (ROOT / "docs" / "recordings.md").read_text().splitlines():
+        header = (header or line) if line.startswith("|") else None
+        if header == "| key | shape | required | meaning |" and line.startswith("| `"):
+            by_key.setdefault(line.split("`")[1], []).append(line)
+    assert set(by_key) == set(M.MEMBERS), set(M.MEMBERS) ^ set(by_key)
+    wrong = [f"{key}: {lines} != {M.MEMBERS[key].row()}" for key, lines in by_key.items()
+             if any(line != M.MEMBERS[key].row() for line in lines)]
+    assert not wrong, wrong
+
+
+def test_the_writer_takes_only_declared_members(tmp_path):
+    import numpy as np
+
+    from tecdard.recording.format import Recording, save_recording
+    n = 4
+    rec = Recording(np.arange(n) * 1e-3, np.zeros((n, 3)), np.zeros((n, 3)), np.arange(n) * 1e-3, np.zeros((n, 3)),
+                    np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)), np.array([0.0, 0.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="live_typo: no live member"):
+        save_recording(tmp_path / "x.npz", rec, extra={"live_typo": np.zeros(3)})
+
+
+QUEUES = ("push", "put", "put_nowait", "offer")
+
+
+def _imu_chunk(node: ast.Tuple) -> bool:
+    return [getattr(e, "id", None) for e in node.elts][1:] == ["gyro", "accel"]
+
+
+def test_what_crosses_a_thread_is_a_named_record_not_a_long_tuple():
+    """Proprioception crossed as a 7-slot tuple packed in one file and unpacked in another; a hand-off
+    now carries a record (control.proprio.ProprioSample, runtime.messages, the recorder's) or a pair.
+    An IMU chunk is ImuSource.read's (t, gyro, accel), the one triple every source declares."""
+    found = []
+    for path in sources("tecdard/runtime", "robots", "drivers", "sim"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in QUEUES
+                    and any(isinstance(a, ast.Tuple) and len(a.elts) > 2 and not _imu_chunk(a) for a in node.args)):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not found, found
+
+
+def test_tests_are_tests_and_fakes_live_apart():
+    """Issue 47: the peers the tests run against (a UR controller, franky-sim, ROS 2 arms and clients, a
+    router, a flooder, a CA) live in tests/fakes/, and the tier is a marker beside each slow test, not a list
+    kept elsewhere."""
+    stray = [p.name for p in (ROOT / "tests").glob("*.py") if not p.name.startswith("test_") and p.name != "conftest.py"]
+    assert not stray, stray
+    fakes_with_tests = [p.name for p in (ROOT / "tests" / "fakes").glob("*.py")
+                        if any(isinstance(n, ast.FunctionDef) and n.name.startswith("test_")
+                               for n in ast.parse(p.read_text()).body)]
+    assert not fakes_with_tests, fakes_with_tests
+    conftest = (ROOT / "tests" / "conftest.py").read_text()
+    assert "add_marker" not in conftest and "SLOW_FILES" not in conftest

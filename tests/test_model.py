@@ -85,7 +85,7 @@ def test_ur_models_are_the_controllers_kinematics_in_its_base_frame(name, dh_nam
     """Our UR models (CB URDFs, e-Series from robots/ur_dh.py) against UR's DH parameters, computed
     independently (the fake controller's): a UR arm's world is its controller's base frame, so the
     TCP is the one the controller reports."""
-    from tests.fake_ur import UrKinematics
+    from tests.fakes.fake_ur import UrKinematics
     arm = ArmModel(name)
     pin.framesForwardKinematics(arm.model, arm.data, pin.neutral(arm.model))
     np.testing.assert_allclose(arm.data.oMf[arm.model.getFrameId("base")].homogeneous, np.eye(4), atol=1e-12)

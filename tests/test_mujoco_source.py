@@ -9,7 +9,7 @@ pytest.importorskip("mujoco", reason="the `bench` extra, which `make test` insta
 
 from tecdard.control.geometry import quat_to_matrix  # noqa: E402
 from tecdard.sim.mujoco_source import MujocoScenario, generate  # noqa: E402
-from tecdard.tools import localize as L  # noqa: E402
+from tecdard.recording import replay as L  # noqa: E402
 from tecdard.config import Config  # noqa: E402
 from tecdard.control.pipeline import ContactPipeline  # noqa: E402
 from tecdard.recording.format import Recording  # noqa: E402

@@ -11,7 +11,7 @@ from tecdard.control.onset import OnsetDetector
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.recording.format import Recording
 from tecdard.sim.scenarios import FreeAirMoves, Scenario, free_air, generate
-from tecdard.tools.localize import replay_onsets
+from tecdard.recording.replay import replay_onsets
 
 IMPACT_LATENCY_S = 0.005        # the bound for a real impact
 

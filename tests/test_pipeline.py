@@ -147,8 +147,9 @@ def test_proprio_history_slides_as_a_shifted_window_would():
                 track.add(t, p, v, R, w, float(i))
             if i % 7 == 0:
                 ts = np.array([t - 0.02, t - 0.005, t])
-                for x, y in zip(a.lookup(ts), b.lookup(ts)):
-                    np.testing.assert_array_equal(x, y)
+                x, y = a.lookup(ts), b.lookup(ts)
+                for name in x.__slots__:
+                    np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=name)
                 np.testing.assert_array_equal(a.explained(ts), b.explained(ts))
         assert a.n == b.n == 16 and a.added == 300
         for name in HISTORY_FIELDS:
@@ -166,7 +167,8 @@ def test_proprio_lookup_is_causal():
     track.add(0.0, np.zeros(3), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))
     track.add(0.1, np.array([0.01, 0, 0]), np.array([0.1, 0, 0]), np.eye(3), np.zeros(3))
     track.add(0.2, np.array([0.5, 0, 0]), np.array([5.0, 0, 0]), np.eye(3), np.zeros(3))   # a jump later on
-    p, v, *_, ok = track.lookup(np.array([-0.01, 0.05, 0.15, 0.199]))
+    at = track.lookup(np.array([-0.01, 0.05, 0.15, 0.199]))
+    p, ok = at.p, at.ok
     assert list(ok) == [False, True, True, True]
     assert p[1][0] == pytest.approx(0.005) and p[2][0] == pytest.approx(0.015)
     assert p[3][0] == pytest.approx(0.01 + 0.1 * 0.099)      # never sees the sample at 0.2
@@ -179,7 +181,7 @@ def test_a_reported_tcp_rate_is_extrapolated_with_its_last_change_for_a_while_on
     track = ProprioTrack()
     track.add(0.00, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.10]))
     track.add(0.01, np.zeros(3), np.zeros(3), np.eye(3), np.array([0.0, 0.0, 0.12]))      # 2 rad/s^2
-    w = track.lookup(np.array([0.015, 0.01 + WDOT_MAX_AGE_S, 1.0]))[3]
+    w = track.lookup(np.array([0.015, 0.01 + WDOT_MAX_AGE_S, 1.0])).w
     assert w[:, 2] == pytest.approx([0.13, 0.12 + 2.0 * WDOT_MAX_AGE_S, 0.12 + 2.0 * WDOT_MAX_AGE_S])
 
 
@@ -187,7 +189,8 @@ def test_derived_velocity_when_the_robot_reports_none():
     track = ProprioTrack(sigma_p=1e-4)
     for k in range(5):
         track.add(k * 0.01, np.array([0.02 * k * 0.01, 0, 0]), None, np.eye(3), np.zeros(3))
-    _, v, _, _, var_v, _, _, ok = track.lookup(np.array([0.045]))
+    at = track.lookup(np.array([0.045]))
+    v, var_v = at.v, at.var_v
     assert v[0][0] == pytest.approx(0.02)
     assert var_v[0] == pytest.approx(2 * 1e-4 ** 2 / 0.01 ** 2)
 
@@ -326,7 +329,7 @@ def _replay_estimates(fields, method, plane=True, arc_following=False, chunk_s=0
     largest weight of the free-eta estimate in its reports."""
     from tecdard.config import Config
     from tecdard.control.pipeline import ContactPipeline
-    from tecdard.tools.localize import replay
+    from tecdard.recording.replay import replay
     from tecdard.recording.format import Recording
     rec = Recording.from_fields(fields)
     pipe = ContactPipeline.from_config(
@@ -424,7 +427,7 @@ def test_samples_clipped_at_full_scale_are_left_out_and_counted():
     from tecdard.sim.scenarios import Scenario, generate
     from tecdard.config import Config
     from tecdard.control.pipeline import ContactPipeline
-    from tecdard.tools.localize import replay
+    from tecdard.recording.replay import replay
     from tecdard.recording.format import Recording
 
     fields, truth = generate(Scenario(kind="edge-arc", seed=4, duration_s=0.8))
@@ -546,8 +549,8 @@ def test_the_idle_passes_shortcuts_equal_what_they_stand_for():
         track.add(0.002 * i, rng.normal(size=3), None, np.linalg.qr(rng.normal(size=(3, 3)))[0], w)
         for t in (0.002 * i - 0.003, 0.002 * i, 0.002 * i + 0.001, 0.002 * i + 0.2):
             held = track.rate_held(t)
-            *_, ok = track.lookup(np.array([t]))
-            if ok[0]:
-                np.testing.assert_array_equal(held, track.lookup(np.array([t]))[3][0])
+            at = track.lookup(np.array([t]))
+            if at.ok[0]:
+                np.testing.assert_array_equal(held, at.w[0])
             else:
                 assert held is None

@@ -55,14 +55,14 @@ def test_every_state_arrives_once_in_order_as_tcp_pose_and_twist():
     reported = states(20)
     got = run(ScriptedArm(reported, failures=2), DropOldestRing(PROPRIO_RING))   # a failing link is waited out
     model = ArmModel("panda")
-    assert [m[0] for m in got] == [js.t for js in reported]
-    for (t, p, v, R, w, grip, q), js in zip(got, reported):
-        assert np.isnan(grip)                               # not measured: the configured constant applies
+    assert [m.t for m in got] == [js.t for js in reported]
+    for s, js in zip(got, reported):
+        assert np.isnan(s.grip_force_n)                     # not measured: the configured constant applies
         oMtcp, twist = model.fk_twist(js.q, js.qd)
-        np.testing.assert_allclose(p, oMtcp.translation, atol=1e-12)
-        np.testing.assert_allclose(R, oMtcp.rotation, atol=1e-12)
-        np.testing.assert_allclose(np.r_[v, w], twist, atol=1e-12)
-        np.testing.assert_array_equal(q, js.q)                # the joints ride along for the recorder
+        np.testing.assert_allclose(s.p_world, oMtcp.translation, atol=1e-12)
+        np.testing.assert_allclose(s.R_world_tcp, oMtcp.rotation, atol=1e-12)
+        np.testing.assert_allclose(np.r_[s.v_world, s.w_world], twist, atol=1e-12)
+        np.testing.assert_array_equal(s.q, js.q)              # the joints ride along for the recorder
 
 
 def test_a_reported_tcp_twist_is_used_and_a_full_ring_overwrites_the_oldest_without_blocking():
@@ -70,16 +70,16 @@ def test_a_reported_tcp_twist_is_used_and_a_full_ring_overwrites_the_oldest_with
     ring = DropOldestRing(4)
     got = run(ScriptedArm(states(10, twist)), ring)
     assert len(got) == 4 and ring.overwritten == 6          # the newest kept; the loop went on
-    assert [m[0] for m in got] == [0.06, 0.07, 0.08, 0.09]
-    for _, _, v, _, w, _, _ in got:
-        np.testing.assert_array_equal(np.r_[v, w], twist)
+    assert [m.t for m in got] == [0.06, 0.07, 0.08, 0.09]
+    for m in got:
+        np.testing.assert_array_equal(np.r_[m.v_world, m.w_world], twist)
 
 
 def test_a_malformed_state_is_skipped_and_the_rest_still_arrive():
     reported = states(5)
     reported[2] = JointState(t=0.02, q=np.zeros(3), qd=np.zeros(3), seq=3)     # wrong shape: FK raises
     got = run(ScriptedArm(reported), DropOldestRing(PROPRIO_RING))
-    assert [m[0] for m in got] == [0.0, 0.01, 0.03, 0.04]
+    assert [m.t for m in got] == [0.0, 0.01, 0.03, 0.04]
 
 
 def test_a_reported_tcp_pose_and_grip_force_are_what_reaches_the_estimator():
@@ -91,10 +91,10 @@ def test_a_reported_tcp_pose_and_grip_force_are_what_reaches_the_estimator():
     for k, js in enumerate(reported):
         js.tcp_pose, js.grip_force = pose, 20.0 + k
     got = run(ScriptedArm(reported), DropOldestRing(PROPRIO_RING))
-    assert [m[5] for m in got] == [20.0, 21.0, 22.0]
-    for _, p, _, R, _, _, _ in got:
-        np.testing.assert_array_equal(p, pose[:3, 3])
-        np.testing.assert_array_equal(R, np.eye(3))
+    assert [m.grip_force_n for m in got] == [20.0, 21.0, 22.0]
+    for m in got:
+        np.testing.assert_array_equal(m.p_world, pose[:3, 3])
+        np.testing.assert_array_equal(m.R_world_tcp, np.eye(3))
 
 
 def test_a_link_hands_every_state_it_admits_to_the_feed_on_its_own_reader():
@@ -111,5 +111,5 @@ def test_a_link_hands_every_state_it_admits_to_the_feed_on_its_own_reader():
     for js in reported + [reported[-1]]:
         link._publish(js)
     got = ring.drain()
-    assert [m[0] for m in got] == [0.0, 0.01, 0.03, 0.04]
+    assert [m.t for m in got] == [0.0, 0.01, 0.03, 0.04]
     assert link.read_state() is reported[-1]

@@ -14,12 +14,15 @@ import pytest
 
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactEstimate, EstimatorDirective
-from tecdard.tools import localize as L
+from tecdard.recording import replay as L
 from tecdard.runtime import recorder as R
 from tecdard.config import Config
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.recording.format import load_live, load_recording
 from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
+
+# the slow tier (`make check` leaves it out): whole-daemon runs that record
+pytestmark = pytest.mark.slow
 
 TASK_TIMEOUT_S = 90.0
 WRITTEN_WITHIN_S = 10.0

@@ -42,7 +42,7 @@ TRIGGER_DEFS = {"request_definition": "# no fields", "response_definition": "boo
 def start_router():
     """A Zenoh router on a free loopback port (eclipse-zenoh in router mode, as rmw_zenohd is): (port, process)."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "tests.zenoh_router", str(port)], cwd=ROOT, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "tests.fakes.zenoh_router", str(port)], cwd=ROOT, stdout=subprocess.PIPE,
                             text=True)
     assert proc.stdout.readline().strip() == "router ready"
     return port, proc
@@ -69,7 +69,7 @@ def node(tmp_path_factory):
 
 
 def sdk(port: int, action: str, args: dict | None = None, timeout: float = SDK_TIMEOUT_S) -> dict:
-    res = subprocess.run([sys.executable, "-m", "tests.ros2_client", str(port), action, json.dumps(args or {})],
+    res = subprocess.run([sys.executable, "-m", "tests.fakes.ros2_client", str(port), action, json.dumps(args or {})],
                          cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     lines = [x for x in res.stdout.splitlines() if x.startswith("{")]
     assert lines, res.stdout + res.stderr
@@ -81,7 +81,7 @@ class Subscription:
     `result()`: the messages it took, by topic."""
 
     def __init__(self, port: int, topics: list, timeout: float):
-        self.proc = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(port), "subscribe",
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.fakes.ros2_client", str(port), "subscribe",
                                       json.dumps({"topics": topics, "timeout": timeout})],
                                      cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = self.proc.stdout.readline()
@@ -258,13 +258,13 @@ def joint_states(q, n: int, names=PANDA) -> dict:
 
 
 class RosArm:
-    """tests.ros2_arm: the simulator's Panda on the paper cutter, moved by the harness and published as
+    """tests.fakes.ros2_arm: the simulator's Panda on the paper cutter, moved by the harness and published as
     JointState at 200 Hz by zenoh-ros2-sdk, its fingertip board on a pty."""
 
     def __init__(self, tmp_path, port: int):
         cfg = tmp_path / "arm.yaml"
         cfg.write_text(dump_yaml(daemon_config(**{"imu.source": "sim-wire"})))
-        self.proc = subprocess.Popen([sys.executable, "-m", "tests.ros2_arm", str(port), str(cfg)], cwd=ROOT,
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.fakes.ros2_arm", str(port), str(cfg)], cwd=ROOT,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.info = json.loads(self.proc.stdout.readline())
 
@@ -358,7 +358,7 @@ def test_the_observer_localises_the_hinge_of_an_arm_that_ros2_drives_and_bad_str
 def test_a_stream_without_a_joint_of_the_model_is_one_line_and_exit_2(tmp_path, router, board):
     ur = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
           "wrist_3_joint", "x_joint"]
-    publisher = subprocess.Popen([sys.executable, "-m", "tests.ros2_client", str(router), "publish",
+    publisher = subprocess.Popen([sys.executable, "-m", "tests.fakes.ros2_client", str(router), "publish",
                                   json.dumps({"topic": "/joint_states", "type": "sensor_msgs/msg/JointState",
                                               **joint_states(np.zeros(7), 2000, ur), "period_s": 0.01})],
                                  cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -16,9 +16,9 @@ from tecdard import verbs as task_verbs
 from tecdard.api import commands as C
 from tecdard.ros2 import messages as M
 from tecdard.ros2 import rmw
-from tecdard.ros2.node import TOPICS, TRIGGER, TRIGGER_SRV, _BlockAverage
+from tecdard.runtime.ros2_node import TOPICS, TRIGGER, TRIGGER_SRV, _BlockAverage
 from tecdard.ros2.typesupport import HASH_NOT_SUPPORTED, MSGS_DIR, TypeSupport, dds_type_name
-from tests.ros2_client import TFMESSAGE_MSG
+from tests.fakes.ros2_client import TFMESSAGE_MSG
 
 serialization = pytest.importorskip("rclpy.serialization", reason="ros-rclpy is installed by `make test`")
 SHARE = pathlib.Path(sys.prefix) / "share"

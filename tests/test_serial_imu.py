@@ -15,6 +15,9 @@ from tecdard.drivers.lsm6dsr import Scaling
 from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
 from tests.conftest import ROOT, rotate_on_the_cutter, sim_config
 
+# the slow tier (`make check` leaves it out): whole-daemon runs on a pty board
+pytestmark = pytest.mark.slow
+
 PRODUCT_IMU_STALE_S = sim_config()["control"]["imu_stale_s"]     # 50 ms, issue 6
 
 READ_DEADLINE_S = 10.0

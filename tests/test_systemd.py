@@ -12,6 +12,9 @@ import pytest
 
 from tests.conftest import ROOT
 
+# the slow tier (`make check` leaves it out): the unit's daemon under a service manager's conditions
+pytestmark = pytest.mark.slow
+
 WATCHDOG_USEC = 400_000
 
 
@@ -136,7 +139,7 @@ def test_the_daemon_makes_no_system_call_the_unit_refuses(tmp_path):
                    check=True, timeout=60)
     assert "chroot(" in probe.read_text()
     from tests.conftest import daemon_config
-    from tecdard.cli.client import Client
+    from tecdard.api.client import Client
     from tecdard.config import dump_yaml
     from tecdard.tools.demo import free_port
     endpoint = f"tcp/127.0.0.1:{free_port()}"

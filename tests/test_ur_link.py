@@ -5,7 +5,10 @@ import time
 import numpy as np
 import pytest
 
-from tests.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController, free_loopback_host, wait_for
+from tests.fakes.fake_ur import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT, FakeController, free_loopback_host, wait_for
+
+# the slow tier (`make check` leaves it out): the real ur-rtde client against the fake controller
+pytestmark = pytest.mark.slow
 
 pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
 

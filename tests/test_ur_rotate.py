@@ -17,8 +17,11 @@ from tecdard.sim.robot import SimRobotParams
 from tecdard.sim.world import HingeParams
 from tecdard.tools.demo import distance_to_axis
 from tests.conftest import DaemonProcess
-from tests.fake_ur import FakeController, SimArmSpec, free_loopback_host
+from tests.fakes.fake_ur import FakeController, SimArmSpec, free_loopback_host
 from tests.test_daemon_ur import ur_config
+
+# the slow tier (`make check` leaves it out): the real ur-rtde client against the fake controller
+pytestmark = pytest.mark.slow
 
 pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
 
@@ -84,7 +87,7 @@ def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
 def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(tmp_path):
     import time
     import dashboard_client
-    from tests.fake_ur import wait_for
+    from tests.fakes.fake_ur import wait_for
     with cutter_rig(tmp_path, seed=2) as (fake, d):
         reply = d.client.command("rotate", {"angle_deg": 30.0})
         assert reply["ok"] is True, reply

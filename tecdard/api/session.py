@@ -100,7 +100,7 @@ def access_control(keys: "Keys", commanders: list[str] | None = None, ros2: dict
     """The daemon's Zenoh access control, on every session it opens (default deny):
     - anyone it lets in may subscribe to anything and ask for liveliness (it then gets what the
       daemon publishes: `state`, `contact`, `events` and the `alive` token);
-    - with `ros2` (tecdard.ros2.node.acl_keys: the ROS 2 node's key expressions) also the node's
+    - with `ros2` (tecdard.runtime.ros2_node.acl_keys: the ROS 2 node's key expressions) also the node's
       topics, tokens and services, its services commanded as the `cmd/**` keys are, and the
       publications of the topic it subscribes to (joint states);
     - the daemon publishes, holds its token and answers only on its own keys;

@@ -36,20 +36,9 @@ def _cmd_run(args) -> int:
     except Exception as exc:        # zenoh.ZError: cannot listen (address in use, no such interface)
         if type(exc).__module__.split(".")[0] != "zenoh":
             raise
+        from tecdard.runtime.network import listen_error
         print(f"tecdard: {listen_error(exc, daemon.zenoh.listen)}", file=sys.stderr)
         return 1
-
-
-def listen_error(exc: Exception, listen: list[str]) -> str:
-    """Zenoh's refusal to listen as one line: a taken port names what to do."""
-    from tecdard.safejson import first_line
-    text = str(exc)
-    if "Address already in use" in text:
-        taken = next((ep for ep in listen if ep in text), listen[0] if listen else "?")
-        port = taken.rpartition(":")[2]
-        return (f"{taken}: port {port} is taken: another tecdard? `tecdard status --connect {taken}` "
-                "(or set zenoh.listen / --listen to a free port)")
-    return f"Zenoh: {first_line(exc)}"
 
 
 _NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)")
@@ -81,7 +70,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
     from tecdard.tools import (calibrate, demo, doctor, export, fake_board, imu, kernel_cache, localize, plot,
                                sim_record)
-    from tecdard.fleet import commands as fleet_commands, episode_commands, router
+    from tecdard.cli import episodes, fleet, router
     argv = argv or []
     limits, note = None, ""
     if ("-h" in argv or "--help" in argv) and argv and argv[0] in verb_options():
@@ -96,7 +85,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     for tool in (localize, plot, export, calibrate, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
-    for tool in (doctor, kernel_cache, demo, fleet_commands, router, episode_commands):
+    for tool in (doctor, kernel_cache, demo, fleet, router, episodes):
         tool.add_parser(sub)
     return top
 

@@ -14,7 +14,7 @@ from tecdard import verbs
 from tecdard.api.commands import task_verbs
 from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem
 from tecdard.cli import show
-from tecdard.cli.client import Client, ClientError
+from tecdard.api.client import Client, ClientError
 from tecdard.safejson import first_line
 
 EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3

@@ -225,17 +225,14 @@ def read_episode(path: pathlib.Path, robot: str | None = None) -> Episode:
 
 def _replayed(path: pathlib.Path) -> tuple[list, np.ndarray]:
     """(events, estimates (k, 7): t, p, std) of a replay of a recording with no live log."""
-    import argparse
-    from tecdard.tools.args import BadInput, recording_and_pipeline
-    from tecdard.tools.localize import replay
     from tecdard.recording.format import RecordingError
+    from tecdard.recording.replay import ReplayError, open_replay, replay
     events: list = []
     try:
-        rec, _, pipeline = recording_and_pipeline(argparse.Namespace(recording=str(path), method=None, config=None,
-                                                                     ignore_live=True))
-    except BadInput as exc:
+        r = open_replay(path, ignore_live=True)
+    except ReplayError as exc:
         raise RecordingError(str(exc)) from None
-    rows, _, _ = replay(rec, pipeline, on_event=events.append)
+    rows, _, _ = replay(r.rec, r.pipeline, on_event=events.append)
     return events, rows
 
 
@@ -376,11 +373,11 @@ def _mcap_bytes(path: pathlib.Path, config: str | None) -> bytes | None:
         import foxglove  # noqa: F401
     except ImportError:
         return None
-    from tecdard.tools.export import mcap_of
+    from tecdard.recording.mcap import export_mcap
     with tempfile.TemporaryDirectory(prefix="tecdar-mcap-") as tmp:
         out = pathlib.Path(tmp) / (path.stem + ".mcap")
         try:
-            mcap_of(path, out, config)
+            export_mcap(path, out, config)
         except Exception as exc:         # the MCAP is a convenience: its failure never holds the recording back
             log.warning("%s: no MCAP (%s)", path.name, first_line(exc))
             return None

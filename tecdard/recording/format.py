@@ -5,6 +5,9 @@ itself, reads each member's .npy header, and checks the declared dtype, shape an
 the zip directory and against limits (MAX_*), all before it allocates or decompresses anything.
 A zip bomb, a header declaring terabytes, a bad CRC, broken deflate, a pickle or a truncated
 member is then one RecordingError naming the key, in bounded time and memory.
+
+Which members there are, their shapes and whether they are required is recording/members.py's table;
+this module reads, checks and writes what it declares.
 """
 from __future__ import annotations
 
@@ -18,13 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tecdard.recording.members import CORE, MAX_IMU_SAMPLES, MEMBERS, TRUTH_PREFIX, Member
 from tecdard.safejson import JsonLimitError, loads, show
 
 FORMAT = "tecdar-recording/1"
 QUAT_NORM_TOL = 1e-3
 UNIT_TOL = 1e-3
-MAX_IMU_SAMPLES = 12_000_000     # 30 min at 6.7 kHz
-MAX_TCP_SAMPLES = 4_000_000      # an hour at 1 kHz
 MAX_DURATION_S = 3600.0          # from the first to the last sample of either stream
 MAX_ABS_TIME_S = 1e10            # timestamps beyond this are no clock a rig keeps (300 years)
 MAX_STRING_BYTES = 1 << 20       # `format` and `meta`
@@ -66,10 +68,8 @@ class Recording:
     @classmethod
     def from_fields(cls, fields: dict) -> "Recording":
         """From a dict of the format's keys (e.g. sim.scenarios.generate); absent optionals are None."""
-        return cls(**{k: fields[k] for k in ("imu_t", "gyro", "accel", "tcp_t", "tcp_pos", "tcp_quat",
-                                             "imu_in_tcp_quat")},
-                   grip_force=fields.get("grip_force"), plane_normal=fields.get("plane_normal"),
-                   tcp_vel=fields.get("tcp_vel"), meta=fields.get("meta") or {})
+        return cls(**{m.attr: fields[m.key] if m.required else fields.get(m.key) for m in CORE if m.key != "format"}
+                   | {"meta": fields.get("meta") or {}})
 
     @property
     def imu_rate_hz(self) -> float:
@@ -244,41 +244,71 @@ def load_recording(path: str | pathlib.Path) -> Recording:
 
 
 def _read(get: _Npz) -> Recording:
-    fmt = _string(get, "format", True)
+    values: dict = {}
+    for m in CORE:
+        value = _member(get, m, values)
+        check = CHECKS.get(m.key)
+        values[m.attr] = check(value) if check is not None and value is not None else value
+    del values["format"]
+    values["meta"] = values["meta"] or {}
+    return Recording(**values)
+
+
+def _member(get: _Npz, m: Member, values: dict):
+    """One declared member as read, or None where an optional one is absent; the rows of a series are
+    checked against its clock's (from the header, before the data are read)."""
+    if m.kind != "array":
+        return _string(get, m.key, m.required)
+    rows_of = m.rows_of
+    if rows_of is not None and not _rows(get, m.key, len(values[rows_of]), rows_of, m.required):
+        return None
+    shape = tuple(s if isinstance(s, int) else None for s in m.shape)
+    return _array(get, m.key, shape, required=m.required, rows_max=m.rows_max)
+
+
+def _format(fmt: str) -> str:
     if fmt != FORMAT:
         raise RecordingError(f"format: expected {FORMAT!r}, got {show(fmt)}")
-    imu_t = _array(get, "imu_t", (None,), rows_max=MAX_IMU_SAMPLES)
+    return fmt
+
+
+def _imu_t(imu_t: np.ndarray) -> np.ndarray:
     _increasing(imu_t, "imu_t")
     rate = float(1.0 / np.median(np.diff(imu_t)))
     if not IMU_RATE_RANGE_HZ[0] <= rate <= IMU_RATE_RANGE_HZ[1]:
         raise RecordingError(f"imu_t: a median sample rate of {rate:.6g} Hz, expected "
                              f"{IMU_RATE_RANGE_HZ[0]:g}-{IMU_RATE_RANGE_HZ[1]:g} Hz")
-    n = len(imu_t)
-    gyro = _array(get, "gyro", (None, 3)) if _rows(get, "gyro", n, "imu_t") else None
-    accel = _array(get, "accel", (None, 3)) if _rows(get, "accel", n, "imu_t") else None
-    tcp_t = _array(get, "tcp_t", (None,), rows_max=MAX_TCP_SAMPLES)
+    return imu_t
+
+
+def _tcp_t(tcp_t: np.ndarray) -> np.ndarray:
     _increasing(tcp_t, "tcp_t")
-    m = len(tcp_t)
-    tcp_pos = _array(get, "tcp_pos", (None, 3)) if _rows(get, "tcp_pos", m, "tcp_t") else None
-    tcp_quat = _array(get, "tcp_quat", (None, 4)) if _rows(get, "tcp_quat", m, "tcp_t") else None
-    tcp_quat = _unit_quats(tcp_quat, "tcp_quat")
-    mount = _unit_quats(_array(get, "imu_in_tcp_quat", (4,)), "imu_in_tcp_quat")
-    grip = _array(get, "grip_force", (None,), required=False) if _rows(get, "grip_force", m, "tcp_t", False) else None
-    tcp_vel = _array(get, "tcp_vel", (None, 3), required=False) if _rows(get, "tcp_vel", m, "tcp_t", False) else None
-    normal = _array(get, "plane_normal", (3,), required=False)
-    if normal is not None and abs(np.linalg.norm(normal) - 1.0) > UNIT_TOL:
+    return tcp_t
+
+
+def _plane_normal(normal: np.ndarray) -> np.ndarray:
+    if abs(np.linalg.norm(normal) - 1.0) > UNIT_TOL:
         raise RecordingError(f"plane_normal: expected a unit vector, |n| = {np.linalg.norm(normal):.6f}")
-    meta_s = _string(get, "meta", False)
-    meta = {}
-    if meta_s is not None:
-        try:
-            meta = loads(meta_s, max_depth=MAX_META_DEPTH)
-        except JsonLimitError as exc:
-            raise RecordingError(f"meta: not valid JSON: {exc}") from None
-        if not isinstance(meta, dict):
-            raise RecordingError(f"meta: expected a JSON object, got {type(meta).__name__}")
-    return Recording(imu_t, gyro, accel, tcp_t, tcp_pos, tcp_quat, mount, grip,
-                     None if normal is None else normal / np.linalg.norm(normal), tcp_vel, meta)
+    return normal / np.linalg.norm(normal)
+
+
+def _meta(text: str) -> dict:
+    try:
+        meta = loads(text, max_depth=MAX_META_DEPTH)
+    except JsonLimitError as exc:
+        raise RecordingError(f"meta: not valid JSON: {exc}") from None
+    if not isinstance(meta, dict):
+        raise RecordingError(f"meta: expected a JSON object, got {type(meta).__name__}")
+    return meta
+
+
+# each declared member's own checks beyond its shape, rows and finite values (tests hold the keys to
+# the table's)
+CHECKS = {
+    "format": _format, "imu_t": _imu_t, "tcp_t": _tcp_t,
+    "tcp_quat": lambda q: _unit_quats(q, "tcp_quat"), "imu_in_tcp_quat": lambda q: _unit_quats(q, "imu_in_tcp_quat"),
+    "plane_normal": _plane_normal, "meta": _meta,
+}
 
 
 def _rows(data: _Npz, key: str, n: int, of: str, required: bool = True) -> bool:
@@ -302,7 +332,7 @@ def load_truth(path: str | pathlib.Path) -> dict:
     data = _Npz(pathlib.Path(path))
     try:
         out, total = {}, 0
-        for key in [k for k in data.infos if k.startswith("truth_")][:MAX_TRUTH_KEYS]:
+        for key in [k for k in data.infos if k.startswith(TRUTH_PREFIX)][:MAX_TRUTH_KEYS]:
             dtype, shape, _, nbytes, _ = data.header(key)
             total += nbytes
             if nbytes > MAX_TRUTH_BYTES or total > MAX_TRUTH_TOTAL_BYTES:
@@ -310,7 +340,7 @@ def load_truth(path: str | pathlib.Path) -> dict:
                                      f"(and {MAX_TRUTH_TOTAL_BYTES} for them all)")
             if dtype.kind not in "fiuUb":
                 raise RecordingError(f"{key}: dtype {show(str(dtype))}; expected numbers or a string")
-            out[key[len("truth_"):]] = data.read(key)
+            out[key[len(TRUTH_PREFIX):]] = data.read(key)
         return out
     finally:
         data.close()
@@ -318,23 +348,23 @@ def load_truth(path: str | pathlib.Path) -> dict:
 
 def save_recording(path, rec: Recording, truth: dict | None = None, extra: dict | None = None,
                    compress: bool = True) -> None:
-    """Write `rec` to a path or an open binary file; `truth` as truth_* keys, `extra` as they are
-    (a daemon recording's live_* keys). `compress` False: a plain zip, written at disk speed."""
-    arrays = {
-        "format": np.array(FORMAT), "imu_t": rec.imu_t, "gyro": rec.gyro, "accel": rec.accel,
-        "tcp_t": rec.tcp_t, "tcp_pos": rec.tcp_pos, "tcp_quat": rec.tcp_quat,
-        "imu_in_tcp_quat": rec.imu_in_tcp_quat,
-    }
-    if rec.grip_force is not None:
-        arrays["grip_force"] = rec.grip_force
-    if rec.plane_normal is not None:
-        arrays["plane_normal"] = rec.plane_normal
-    if rec.tcp_vel is not None:
-        arrays["tcp_vel"] = rec.tcp_vel
-    if rec.meta:
-        arrays["meta"] = np.array(json.dumps(rec.meta))
+    """Write `rec` to a path or an open binary file; `truth` as truth_* keys, `extra` as they are (a
+    daemon recording's live_* keys: each a member of recording/members.py's table, ValueError otherwise).
+    `compress` False: a plain zip, written at disk speed."""
+    arrays = {}
+    for m in CORE:
+        if m.key == "format":
+            arrays["format"] = np.array(FORMAT)
+        elif m.key == "meta":
+            if rec.meta:
+                arrays["meta"] = np.array(json.dumps(rec.meta))
+        elif getattr(rec, m.attr) is not None:
+            arrays[m.key] = getattr(rec, m.attr)
     for k, v in (truth or {}).items():
-        arrays[f"truth_{k}"] = np.asarray(v)
+        arrays[f"{TRUTH_PREFIX}{k}"] = np.asarray(v)
+    undeclared = [k for k in (extra or {}) if k not in MEMBERS or MEMBERS[k] in CORE]
+    if undeclared:
+        raise ValueError(f"{undeclared[0]}: no live member of tecdar-recording/1 (recording/members.py)")
     arrays.update(extra or {})
     write_npz(path, arrays, compress)
 
@@ -385,10 +415,17 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
         if "live_pass_end" not in data:
             return None
         n_imu, n_tcp = len(rec.imu_t), len(rec.tcp_t)
-        ends = _array(data, "live_pass_end", (None,), rows_max=MAX_IMU_SAMPLES)
+
+        def array(key: str, n: int | None = None):
+            """A declared live member, its proprioception rows n_tcp and its joints n."""
+            m = MEMBERS[key]
+            shape = tuple(s if isinstance(s, int) else n_tcp if s == "M" else n if s == "n" else None for s in m.shape)
+            return _array(data, key, shape, rows_max=m.rows_max)
+
+        ends = array("live_pass_end")
         if len(ends) == 0 or np.any(np.diff(ends) < 0) or ends[0] < 0 or ends[-1] != n_imu:
             raise RecordingError(f"live_pass_end: expected non-decreasing row counts ending at {n_imu}")
-        passes = _array(data, "live_tcp_pass", (n_tcp,))
+        passes = array("live_tcp_pass")
         if np.any(np.diff(passes) < 0) or (n_tcp and (passes[0] < 0 or passes[-1] >= len(ends))):
             raise RecordingError(f"live_tcp_pass: expected non-decreasing pass numbers below {len(ends)}")
         changes = _json_list(data, "live_changes")
@@ -400,13 +437,12 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
             declared = data.header("live_q")[1]
             if len(declared) != 2 or not 1 <= declared[1] <= MAX_JOINTS:     # refused before it is read
                 raise RecordingError(f"live_q: expected shape ({n_tcp}, 1..{MAX_JOINTS}), got {declared}")
-            q = _array(data, "live_q", (n_tcp, declared[1]))
+            q = array("live_q", declared[1])
             if np.any(np.abs(q) > MAX_JOINT_RAD):
                 raise RecordingError(f"live_q: expected ({n_tcp}, 1..{MAX_JOINTS}) joint angles within "
                                      f"{MAX_JOINT_RAD:g} rad")
-        return LiveLog(ends.astype(np.int64), passes.astype(np.int64), _array(data, "live_tcp_w", (n_tcp, 3)),
-                       changes, _array(data, "live_bias0", (4,)), _array(data, "live_est", (None, 7)),
-                       _events(data, rec), q)
+        return LiveLog(ends.astype(np.int64), passes.astype(np.int64), array("live_tcp_w"), changes,
+                       array("live_bias0"), array("live_est"), _events(data, rec), q)
     finally:
         data.close()
 

@@ -311,7 +311,7 @@ class ControlThread:
                                 self.params.workspace_min, self.params.workspace_max, self.services.get(verb),
                                 q=np.array(js.q, dtype=float), q_home=np.array(self.q_home, dtype=float),
                                 fk=lambda q: self.model.fk(q).translation.copy(),
-                                world=getattr(self.robot, "world_control", None))
+                                world=self.robot.world_control)
         try:
             task = spec.build(f, ctx)
         except verbs.BuildRefused as exc:

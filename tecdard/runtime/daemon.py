@@ -19,16 +19,16 @@ from tecdard.api.session import JSON, Keys
 from tecdard.config import Config, ConfigError
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactPipeline
-from tecdard.drivers.imu_source import IMU_SOURCES
 from tecdard.drivers.ring import SampleRing
 from tecdard.host import name_os_thread
+from tecdard.safejson import show
 from tecdard.robots import backends
 from tecdard.robots.model import READY_Q, ArmModel, UnknownRobotError
-from tecdard.ros2.node import Ros2Params
+from tecdard.runtime.ros2_node import Ros2Params
 from tecdard.runtime.control_thread import ControlParams, ControlThread
 from tecdard.runtime.intake import QueryIntake
 from tecdard.runtime.live_view import LiveView, VizParams
-from tecdard.runtime.main_loop import MainLoop, status_json
+from tecdard.runtime.main_loop import MainLoop, ZenohDoor, status_json
 from tecdard.runtime.messages import LatestValue, Outbox, Stop
 from tecdard.fleet.episodes import StoreParams
 from tecdard.runtime.network import RouterLink, ZenohSettings, renice_zenoh_threads
@@ -70,11 +70,13 @@ class Daemon:
 
     def __init__(self, cfg: Config, listen: list[str] | None = None):
         robot = cfg.section("robot")
-        backend_name = self._read_robot(robot)
+        backend_name = robot.getstr("backend", "sim", choices=backends.names())
+        declared = backends.declared(backend_name)      # what it can do, before it is built
+        self._read_robot(robot, declared.sends_home)
         self.zenoh = ZenohSettings.from_config(cfg.section("zenoh"), listen)
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
-        if backend_name != "ros2":            # an observed arm is never sent home
+        if declared.sends_home:
             self._check_home(robot)
         self.services = verbs.services(cfg)
         imu = cfg.section("imu")
@@ -83,7 +85,7 @@ class Daemon:
         self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home, mount,
                                                                             self.control_params.tick_s))
         self.robot = self.backend
-        self.imu = self.backend.imu_source(imu.getstr("source", "sim", choices=IMU_SOURCES), imu)
+        self.imu = self._imu_source(imu, backend_name)
         # The onset detector is tuned to the data rate of the source in use; a board's changes as its
         # status packets report its own, which the estimator then follows.
         self.pipeline = ContactPipeline.from_config(cfg.section("estimator"), quat_to_matrix(np.array(mount)),
@@ -97,20 +99,34 @@ class Daemon:
         self._build_threads(cfg, backend_name, mount, ring_capacity)
         try:
             self.zenoh_config = self.zenoh.session_config(self.keys, None if self.ros2 is None else
-                                                          self.ros2.acl_keys(backend_name == "ros2"))
+                                                          self.ros2.acl_keys(self._ros2_state() is not None))
         except Exception as exc:            # zenoh.ZError: Zenoh refuses an endpoint
             raise ConfigError(f"zenoh.listen/connect: Zenoh refuses the endpoints "
                               f"({str(exc).splitlines()[0][:200]})") from None
         self._threads: list[threading.Thread] = []
 
-    def _read_robot(self, robot) -> str:
-        """The `robot` section's own options: name, arm model and tool, home posture; the backend's name."""
+    def _imu_source(self, imu, backend_name: str):
+        """The fingertip's source for `imu.source`, one the backend reads (its first by default)."""
+        sources = self.backend.imu_sources
+        kind = imu.getstr("source", sources[0], max_len=64)
+        if kind not in sources:
+            raise imu.error("source", f"with robot.backend {backend_name} the fingertip is read through "
+                                      f"{' or '.join(sources)}; got {show(kind)}")
+        return self.backend.imu_source(kind, imu)
+
+    def _ros2_state(self):
+        """The backend's state as the ROS 2 node's topic hands it over (robots.backend.TopicState), or None."""
+        topic = self.backend.topic_state
+        return topic if topic is not None and topic.door == "ros2" else None
+
+    def _read_robot(self, robot, sends_home: bool) -> None:
+        """The `robot` section's own options: name, arm model and tool, home posture (`sends_home`: the
+        backend sends the arm there, so it must be given)."""
         self.robot_name = robot.getstr("name", "sim", max_len=MAX_ROBOT_NAME_CHARS)
         if not self.robot_name or not self.robot_name.replace("_", "").replace("-", "").isalnum() \
                 or not self.robot_name.isascii():
             raise robot.error("name", f"{self.robot_name!r} must be ASCII letters, digits, '-' or '_'")
         model_name = robot.getstr("model", "panda", max_len=64)
-        backend_name = robot.getstr("backend", "sim", choices=backends.names())
         urdf = robot.getstr("urdf", "", max_len=4096) or None
         tcp_link = robot.getstr("tcp_link", "", max_len=200) or None
         if tcp_link is not None and urdf is None:
@@ -128,14 +144,13 @@ class Daemon:
         # an observed arm is never sent home: its q_home is only the state before the first joint state
         ready = READY_Q.get(model_name, (self.model.q_min + self.model.q_max) / 2) if urdf is None \
             else (self.model.q_min + self.model.q_max) / 2
-        self.q_home = np.array(robot.getfloats("q_home", *([list(ready)] if backend_name == "ros2" else []),
+        self.q_home = np.array(robot.getfloats("q_home", *([] if sends_home else [list(ready)]),
                                                n=self.model.nq))
         outside = np.flatnonzero((self.q_home < self.model.q_min) | (self.q_home > self.model.q_max))
         if outside.size:
             j = int(outside[0])
             raise robot.error("q_home", f"joint {j + 1} at {self.q_home[j]:.3f} rad is outside its limits "
                                         f"[{self.model.q_min[j]:.3f}, {self.model.q_max[j]:.3f}]")
-        return backend_name
 
     def _check_home(self, robot) -> None:
         p_home = self.model.fk(self.q_home).translation
@@ -166,7 +181,7 @@ class Daemon:
         self.uploader = self._uploader(cfg)
         self.view = LiveView(self.viz_params, quat_to_matrix(np.array(mount)), self.outbox.event) \
             if self.viz_params.enabled else None
-        self.ros2 = self._ros2_node(backend_name)
+        self.ros2 = self._ros2_node()
         taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
         # an arm that others drive (read_only) is watched for touches all the time: never at rest
         # at rest, 100 ms batches; 20 ms while a live view shows the stream to a person
@@ -187,13 +202,14 @@ class Daemon:
         if self.ros2 is not None:
             self.ros2.intake = self.intake
 
-    def _ros2_node(self, backend_name: str):
+    def _ros2_node(self):
         """The ROS 2 node (ros2.enabled, or an arm that ROS 2 drives, whose joint states it reads)."""
-        if not (self.ros2_params.enabled or backend_name == "ros2"):
+        if not (self.ros2_params.enabled or self._ros2_state() is not None):
             return None
         if not self.ros2_params.enabled:
-            log.info("robot.backend ros2: the ROS 2 node joins whatever ros2.enabled says (it reads the joint states)")
-        from tecdard.ros2.node import Ros2Node
+            log.info("robot.backend %s: the ROS 2 node joins whatever ros2.enabled says (it reads the joint states)",
+                     self.backend.name)
+        from tecdard.runtime.ros2_node import Ros2Node
         try:
             return Ros2Node(self.ros2_params, self.robot_name, None)
         except ImportError as exc:
@@ -284,7 +300,8 @@ class Daemon:
                          for key in (self.keys.state, self.keys.contact, self.keys.events))
             self.intake.declare(session)
             if self.ros2 is not None:
-                self.ros2.declare(session, self.backend.ros2_joint_states())
+                state = self._ros2_state()
+                self.ros2.declare(session, None if state is None else state.take)
             # Everything built so far lives as long as the daemon. A full garbage collection walks
             # every tracked object with the GIL held: with the estimator's compiled loops (numba,
             # llvmlite) loaded that is ~116 000 objects and a 57 ms stall of every thread, several
@@ -336,8 +353,9 @@ class Daemon:
         """The main thread's loop (MainLoop's passes) until the daemon stops; an orderly stop on a signal.
         `router_link` (network.RouterLink, a client-mode daemon's): a lost router is the control
         thread's robot_link fault while it lasts."""
-        main = MainLoop(self.intake, self.control, self.outbox, *pubs,
-                        annotate=self.backend.annotate, on_event=self._note_event, ros2=self.ros2)
+        doors = (ZenohDoor(self.intake, *pubs),) + ((self.ros2,) if self.ros2 is not None else ())
+        main = MainLoop(self.intake, self.control, self.outbox, doors, annotate=self.backend.annotate,
+                        on_event=self._note_event)
         shutdown_by = None
         cut = None
         while not self.stop_event.is_set():

@@ -131,8 +131,8 @@ class LiveView:
                 ch.imu_batch(b[:, 0], b[:, 1:4], b[:, 4:7])
             if ch.tf.has_sinks():
                 for p in passes:
-                    for t, pos, _v, R, *_ in p.proprio:
-                        ch.tcp(t, pos, R, self.R_tcp_imu)
+                    for sample in p.proprio:
+                        ch.tcp(sample.t, sample.p_world, sample.R_world_tcp, self.R_tcp_imu)
             est = next((p.estimate for p in reversed(passes) if p.estimate is not None), None)
             if est is not None and ch.contact_ch.has_sinks():
                 ch.contact(est.t, est.p, est.cov, est.axis)

@@ -30,22 +30,51 @@ def status_json(control, intake=None, threads=None) -> str | None:
     return dumps({**state, **extra} if extra else state)
 
 
-class MainLoop:
-    """One pass of the main thread: the control thread's replies first, then the queued queries
-    (bounded per ring), then at most TELEMETRY_PER_PASS telemetry messages. However much telemetry
-    waits, a command's reply waits at most one pass behind it."""
+class FrontDoor:
+    """A way in for commands and out for telemetry, which the main loop serves alike with the others: the
+    Zenoh API's keys (ZenohDoor), the ROS 2 node (runtime.ros2_node.Ros2Node). Every method runs on the
+    main thread; replies go back through the command intake that every door hands its requests to."""
 
-    def __init__(self, intake: QueryIntake, control, outbox: Outbox, pub_state, pub_contact, pub_events,
-                 annotate=None, on_event=None, ros2=None):
-        """`annotate(event) -> event`: the backend's additions to events (the simulator's truth on
-        a task's end), applied here on the main thread, never on the control tick. `on_event(event)`
-        sees every event published (the recorder's). `ros2`: the ROS 2 node (tecdard.ros2.node), which
-        takes its service requests with the queries and encodes its messages in the same pass."""
-        self.intake, self.control, self.outbox = intake, control, outbox
+    def poll(self, now: float) -> bool:
+        """Take the requests that wait (into the intake); True if there were any."""
+        return False
+
+    def on_telemetry(self, kind: str, body: dict, text: str) -> None:
+        """One state, contact or event message (`text`: its JSON), in the order published."""
+
+    def publish_pending(self, now: float) -> None:
+        """The end of a pass: send what this door batches."""
+
+
+class ZenohDoor(FrontDoor):
+    """The Zenoh API (docs/zenoh-api.md): the queries on its command keys, its state, contact and events."""
+
+    def __init__(self, intake: QueryIntake | None, pub_state, pub_contact, pub_events):
+        self.intake = intake
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
+
+    def poll(self, now: float) -> bool:
+        return self.intake.poll(now)
+
+    def on_telemetry(self, kind: str, body: dict, text: str) -> None:
+        self.pub[kind].put(text)          # the threads put only these three kinds
+
+
+class MainLoop:
+    """One pass of the main thread: the control thread's replies first, then the queued requests of
+    every front door (bounded per ring), then at most TELEMETRY_PER_PASS telemetry messages to each.
+    However much telemetry waits, a command's reply waits at most one pass behind it."""
+
+    def __init__(self, intake: QueryIntake | None, control, outbox: Outbox, doors: tuple[FrontDoor, ...],
+                 annotate=None, on_event=None):
+        """`intake`: where every door's requests go and the replies come back. `annotate(event) -> event`:
+        the backend's additions to events (the simulator's truth on a task's end), applied here on the
+        main thread, never on the control tick. `on_event(event)` sees every event published (the
+        recorder's)."""
+        self.intake, self.control, self.outbox = intake, control, outbox
+        self.doors = doors
         self.annotate = annotate
         self.on_event = on_event
-        self.ros2 = ros2
         self.active_at = -float("inf")     # when a query was last taken or a reply delivered (monotonic s)
 
     def serve_commands(self, now: float) -> None:
@@ -55,18 +84,16 @@ class MainLoop:
                 self.active_at = now
             except queue.Empty:
                 break
-        if self.intake.poll(now):
-            self.active_at = now
-        if self.ros2 is not None and self.ros2.poll(now):
-            self.active_at = now
+        for door in self.doors:
+            if door.poll(now):
+                self.active_at = now
 
     def publish_telemetry(self, wait_s: float) -> int:
         """Publish up to TELEMETRY_PER_PASS queued messages, waiting up to wait_s for the first."""
         try:
             msg = self.outbox.get(timeout=wait_s) if wait_s > 0 else self.outbox.get_nowait()
         except queue.Empty:
-            if self.ros2 is not None:
-                self.ros2.publish_pending(time.monotonic())
+            self._end_pass()
             return 0
         for n in range(1, TELEMETRY_PER_PASS + 1):
             kind, body = msg[0], msg[1]
@@ -77,18 +104,21 @@ class MainLoop:
                 log.info("event %s", text)
                 if self.on_event is not None:
                     self.on_event(body)
-            self.pub[kind].put(text)          # the threads put only these three kinds
-            if self.ros2 is not None:
-                self.ros2.on_telemetry(kind, body, text)
+            for door in self.doors:
+                door.on_telemetry(kind, body, text)
             if n == TELEMETRY_PER_PASS:
                 break
             try:
                 msg = self.outbox.get_nowait()
             except queue.Empty:
                 break
-        if self.ros2 is not None:
-            self.ros2.publish_pending(time.monotonic())
+        self._end_pass()
         return n
+
+    def _end_pass(self) -> None:
+        now = time.monotonic()
+        for door in self.doors:
+            door.publish_pending(now)
 
     def _annotated(self, event: dict) -> dict:
         try:

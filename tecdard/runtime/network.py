@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DAEMON_NAME, DEFAULT_ENDPOINT, Keys, TlsFiles,
                                  access_control, cert_common_name, endpoint_problem, session_config)
 from tecdard.runtime.intake import IntakeParams
-from tecdard.safejson import show
+from tecdard.safejson import first_line, show
 
 MAX_ENDPOINT_CHARS = 256
 ROUTER_CHECK_S = 0.25          # a client-mode daemon looks this often whether a router still connects it
@@ -146,3 +146,14 @@ class RouterLink:
                 f"the Zenoh router ({', '.join(self.endpoints)}) cannot be reached: no command, stop "
                 "included, can reach the daemon until it is back")
         return self._problem
+
+
+def listen_error(exc: Exception, listen: list[str]) -> str:
+    """Zenoh's refusal to listen as one line: a taken port names what to do."""
+    text = str(exc)
+    if "Address already in use" in text:
+        taken = next((ep for ep in listen if ep in text), listen[0] if listen else "?")
+        port = taken.rpartition(":")[2]
+        return (f"{taken}: port {port} is taken: another tecdard? `tecdard status --connect {taken}` "
+                "(or set zenoh.listen / --listen to a free port)")
+    return f"Zenoh: {first_line(exc)}"

@@ -114,10 +114,24 @@ class RecordParams:
         return params
 
 
+@dataclass(frozen=True)
+class CaptureCommand:
+    """A capture on demand, from the main thread to the recorder's: start (arg: its label), stop (the
+    label) or close (why: the daemon is stopping)."""
+    what: str
+    arg: str
+
+
+@dataclass(frozen=True)
+class NotedEvent:
+    """A published event, from the main thread to the recorder's (a capture keeps its task's)."""
+    event: dict
+
+
 @dataclass
 class Pass:
     """One pass of the estimator thread, as it fed its pipeline."""
-    proprio: list                 # (t, p, v, R, w, grip) tuples added before the batch
+    proprio: list                 # the control.proprio.ProprioSample records added before the batch
     directive: object             # the EstimatorDirective in force for the batch
     odr_hz: float | None
     saturation: tuple | None      # (gyro rad/s, accel m/s^2) clipping points in force
@@ -170,11 +184,11 @@ class Recorder:
     # -- hand-over (other threads) -------------------------------------------------
     def feed(self, p: Pass) -> None:
         """On the estimator thread: never blocks; an overflow is dropped and counted."""
-        self._inbox.put(("pass", p))
+        self._inbox.put(p)
 
     def note_event(self, event: dict) -> None:
         """On the main thread: a daemon event (task starts and ends close captures)."""
-        self._inbox.put(("event", event))
+        self._inbox.put(NotedEvent(event))
 
     def request(self, action: str, label: str) -> dict:
         """On the main thread: a `record` command's reply. The main thread owns whether a capture on
@@ -189,18 +203,18 @@ class Recorder:
                                                      f"in a row, then {p.max_on_demand_per_min:g} a minute "
                                                      "(record.max_on_demand_per_min); try again later")
             self._manual = clean_label(label)
-            self._inbox.put(("command", "start", self._manual))
+            self._inbox.put(CaptureCommand("start", self._manual))
             return {"ok": True, "recording": True, "label": self._manual, "dir": self.params.dir}
         if self._manual is None:
             raise C.CommandError(C.NOT_RECORDING, "record: no capture on demand is running")
         label, self._manual = self._manual, None
-        self._inbox.put(("command", "stop", label))
+        self._inbox.put(CaptureCommand("stop", label))
         return {"ok": True, "recording": False, "label": label}
 
     def close_capture(self, why: str) -> None:
         """Any thread: close the open capture and write it now, uncompressed (the daemon is stopping:
         the write must end well within the unit's stop timeout)."""
-        self._inbox.put(("command", "close", why))
+        self._inbox.put(CaptureCommand("close", why))
 
     @property
     def idle(self) -> bool:
@@ -228,7 +242,7 @@ class Recorder:
                 try:
                     self._take(item)
                 except Exception:                    # a bug here costs a recording, never the daemon
-                    log.exception("recorder: a %s was lost", item[0])
+                    log.exception("recorder: a %s was lost", type(item).__name__)
                     self._capture = None
             self._taking = False
         if self._capture is not None:            # the daemon stops: what was captured is kept
@@ -238,13 +252,12 @@ class Recorder:
                 log.exception("recorder: the capture open at shutdown was lost")
 
     def _take(self, item) -> None:
-        kind = item[0]
-        if kind == "pass":
-            self._on_pass(item[1])
-        elif kind == "event":
-            self._on_event(item[1])
-        elif kind == "command":
-            self._on_command(item[1], item[2])
+        if isinstance(item, Pass):
+            self._on_pass(item)
+        elif isinstance(item, NotedEvent):
+            self._on_event(item.event)
+        else:
+            self._on_command(item.what, item.arg)
         self._check_age()
 
     def _on_pass(self, p: Pass) -> None:
@@ -460,18 +473,18 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     rows = [(k, s) for k, p in enumerate(passes) for s in p.proprio]
     if len(imu) < 2 or len(rows) < 2:
         raise EmptyCapture(f"{len(imu)} IMU and {len(rows)} proprioception samples")
-    tcp_t = np.array([s[0] for _, s in rows])
+    tcp_t = np.array([s.t for _, s in rows])
     keep = np.concatenate([[True], np.diff(tcp_t) > 0])       # the format wants strictly increasing times
     rows = [r for r, k in zip(rows, keep) if k]
     tcp_t = tcp_t[keep]
-    R = np.array([s[3] for _, s in rows])
-    vel = [s[2] for _, s in rows]
-    w = [s[4] for _, s in rows]
-    grip = np.array([s[5] for _, s in rows], dtype=float)
+    R = np.array([s.R_world_tcp for _, s in rows])
+    vel = [s.v_world for _, s in rows]
+    w = [s.w_world for _, s in rows]
+    grip = np.array([s.grip_force_n for _, s in rows], dtype=float)
     first = passes[0]
     rec = Recording(
         imu_t=imu[:, 0].copy(), gyro=imu[:, 1:4].copy(), accel=imu[:, 4:7].copy(), tcp_t=tcp_t,
-        tcp_pos=np.array([s[1] for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
+        tcp_pos=np.array([s.p_world for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
         imu_in_tcp_quat=np.asarray(meta["imu_in_tcp_quat"], float),
         grip_force=grip if len(grip) and np.all(np.isfinite(grip)) else None,
         plane_normal=None if meta.get("plane_normal") is None else np.asarray(meta["plane_normal"], float),
@@ -502,7 +515,7 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
         "live_events": np.array(json.dumps(json_ready(events))),
     }
-    q = [s[6] for _, s in rows if len(s) > 6]
+    q = [s.q for _, s in rows if s.q is not None]
     if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
         extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
     return rec, extra

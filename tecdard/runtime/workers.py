@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from tecdard.control.pipeline import ContactPipeline, EstimatorDirective
+from tecdard.control.proprio import ProprioSample
 from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.ring import SampleRing
 from tecdard.runtime.messages import DropOldestRing, LatestValue, Outbox
@@ -93,8 +94,8 @@ class ProprioFeed:
             grip = np.nan if js.grip_force is None else float(js.grip_force)
             # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
             ring = self.ring
-            ring.push((js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(), twist[3:].copy(),
-                       grip, np.array(js.q, dtype=float)))
+            ring.push(ProprioSample(js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
+                                    twist[3:].copy(), grip, np.array(js.q, dtype=float)))
             if ring.overwritten != self._logged and (self._logged == 0 or ring.overwritten - self._logged >= 1000):
                 self._logged = ring.overwritten
                 log.warning("the estimator fell behind: %d proprioception samples overwritten", self._logged)
@@ -177,7 +178,7 @@ class EstimatorThread:
         while not stop.is_set():
             proprio = self.proprio.drain()
             for sample in proprio:
-                pipe.add_proprio(*sample[:6])
+                pipe.add_sample(sample)
             directive = self.directive.get()
             if directive is not applied:
                 pipe.follow(directive, applied)

@@ -2,10 +2,8 @@
 with the pipeline that replays it, from the tool's arguments."""
 from __future__ import annotations
 
-import logging
 import sys
 
-from tecdard.config import Config, ConfigError
 from tecdard.safejson import show
 
 
@@ -34,46 +32,33 @@ def add_replay_options(p) -> None:
                    help="a daemon recording: replay it as any recording, not as its live estimator was fed")
 
 
-def recording_and_pipeline(args):
-    """The recording named by args.recording, its live_* log (None for any other, or with
-    --ignore-live) and a contact pipeline from args.config's `estimator` section; BadInput otherwise."""
+def checked_method(args) -> str | None:
+    """args.method, if it names an estimator (None: the config's); BadInput listing them otherwise."""
     from tecdard.control import estimators
-    from tecdard.control.geometry import quat_to_matrix
-    from tecdard.control.pipeline import ContactPipeline
-    from tecdard.recording.format import RecordingError, load_live, load_recording
-
     method = getattr(args, "method", None)
     if method is not None and method not in estimators.names():
         raise BadInput(f"--method: unknown estimator {show(method)} (known: {', '.join(estimators.names())})")
+    return method
+
+
+def recording_and_pipeline(args):
+    """The recording named by args.recording, its live_* log (None for any other, or with
+    --ignore-live) and a contact pipeline from args.config's `estimator` section; BadInput otherwise."""
+    from tecdard.recording.replay import ReplayError, open_replay
+
+    method = checked_method(args)
     try:
-        rec = load_recording(args.recording)
-        live = None if getattr(args, "ignore_live", False) else load_live(args.recording, rec)
-    except RecordingError as exc:
+        r = open_replay(args.recording, args.config, method, getattr(args, "ignore_live", False),
+                        getattr(args, "no_plane", False))
+    except ReplayError as exc:
         raise BadInput(str(exc)) from None
-    no_plane = getattr(args, "no_plane", False)
-    try:
-        cfg = Config.load(args.config) if args.config else Config({})
-        section = cfg.section("estimator")
-        pipeline = ContactPipeline.from_config(section, quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz,
-                                  method=method, plane_normal=None if no_plane else rec.plane_normal)
-        if no_plane:
-            pipeline.params.plane_normal = None
-        unused = section.unused_keys()
-        if unused:
-            raise ConfigError(f"{unused[0]}: unknown option")
-    except ConfigError as exc:
-        raise BadInput(f"config error: {exc}") from None
-    return rec, live, pipeline
+    return r.rec, r.live, r.pipeline
 
 
 def estimates(args, rec, live, pipeline, rate_hz: float = 1000.0, on_estimate=None, on_event=None):
     """(rows, onset_t, last) of the replay: as fed live for a daemon recording, else causally in chunks."""
-    from tecdard.tools import localize as L
+    from tecdard.recording.replay import Replay, ReplayError, run_replay
     try:
-        if live is not None:
-            return L.replay_live(rec, live, pipeline, on_estimate)
-        return L.replay(rec, pipeline, rate_hz, on_estimate=on_estimate, on_event=on_event)
-    except Exception as exc:        # a recording the checks let through but the estimator cannot take
-        logging.getLogger("tecdar").debug("replay failed", exc_info=True)
-        raise BadInput(f"{show(args.recording, 200)}: could not be replayed ({type(exc).__name__}: "
-                        f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); please report it with the file") from None
+        return run_replay(Replay(rec, live, pipeline, str(args.recording)), rate_hz, on_estimate, on_event)
+    except ReplayError as exc:
+        raise BadInput(str(exc)) from None

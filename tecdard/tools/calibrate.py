@@ -276,7 +276,7 @@ def best_lag(curves: list[np.ndarray], lags: np.ndarray) -> float:
 @dataclass(frozen=True)
 class Pooled:
     """The recordings at one grip force, pooled."""
-    force: float               # N
+    grip_force_n: float        # N
     eta: float                 # the inverse-variance mean
     sigma: float               # its one-sigma (widened to the spread where the recordings disagree more)
     n: int                     # recordings
@@ -382,7 +382,7 @@ def grip_force_of(name: str, rec) -> float:
 
 
 def table_yaml(pooled: list[Pooled]) -> str:
-    return "estimator.eta_table: [" + ", ".join(f"[{p.force:g}, {p.eta:.3f}]" for p in pooled) + "]"
+    return "estimator.eta_table: [" + ", ".join(f"[{p.grip_force_n:g}, {p.eta:.3f}]" for p in pooled) + "]"
 
 
 def add_parser(sub) -> None:
@@ -473,12 +473,12 @@ def main(args) -> int:
     print("grip force N | eta | one-sigma | recordings | chi-square / dof | spread")
     for p in pooled:
         agree = f"{p.chi2:.1f} / {p.dof}" if p.dof else "-"
-        print(f"{p.force:12g} | {p.eta:.3f} | {p.sigma:.3f} | {p.n} | {agree} | {p.spread:.3f}")
+        print(f"{p.grip_force_n:12g} | {p.eta:.3f} | {p.sigma:.3f} | {p.n} | {agree} | {p.spread:.3f}")
     apart = [p for p in pooled if not p.consistent]
     if apart:
         p = apart[0]
-        each = ", ".join(f"{e:.3f} +- {se:.3f} in {n}" for f, n, e, se in names if f == p.force)
-        return bad(f"grip {p.force:g} N: the recordings disagree beyond their errors ({each}; chi-square "
+        each = ", ".join(f"{e:.3f} +- {se:.3f} in {n}" for f, n, e, se in names if f == p.grip_force_n)
+        return bad(f"grip {p.grip_force_n:g} N: the recordings disagree beyond their errors ({each}; chi-square "
                    f"{p.chi2:.1f} for {p.dof} degrees of freedom, over {chi2_quantile(p.dof, CONSISTENCY_Z):.1f}): "
                    "no table; probe again, or calibrate them apart")
     print(table_yaml(pooled))

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from tecdard.cli.client import Client, ClientError
+from tecdard.api.client import Client, ClientError
 
 
 # A start waits while the daemon process runs, up to: (a loaded 2-core machine compiles in 50-90 s)

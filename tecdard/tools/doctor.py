@@ -155,7 +155,7 @@ def _daemon_alive_at(endpoint: str, robot: str, tls) -> bool:
     """A daemon answers at the endpoint: with TLS, one holding a certificate of the same name as this one's."""
     try:
         from tecdard.api.session import DAEMON_NAME, cert_common_name
-        from tecdard.cli.client import Client
+        from tecdard.api.client import Client
         name = (cert_common_name(tls.cert) or DAEMON_NAME) if tls is not None else DAEMON_NAME
         with Client(endpoint, robot=robot, tls=tls, open_timeout_s=CONNECT_TIMEOUT_S, daemon_name=name) as cli:
             return cli.alive(CONNECT_TIMEOUT_S)

@@ -1,5 +1,5 @@
 """A Zenoh router on loopback, as a ROS 2 host runs `rmw_zenohd`: eclipse-zenoh's own router mode, in a
-process of its own, for the ROS 2 tests.   python -m tests.zenoh_router PORT"""
+process of its own, for the ROS 2 tests.   python -m tests.fakes.zenoh_router PORT"""
 import sys
 import threading
 

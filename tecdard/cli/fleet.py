@@ -40,7 +40,7 @@ def _finite_positive(text: str) -> float:
 
 def add_parser(sub) -> None:
     from tecdard.cli.task_verbs import add_tls_options, default_connect
-    from tecdard.fleet.status import GATHER_S, run_status
+    from tecdard.cli.fleet_status import GATHER_S, run_status
     fleet = sub.add_parser("fleet", help="many arms: the routers' ACL from a roster, and every robot's status",
                            description="A fleet of daemons behind Zenoh routers (docs/fleet.md).")
     verbs = fleet.add_subparsers(dest="fleet_cmd", required=True)

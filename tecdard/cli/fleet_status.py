@@ -34,7 +34,7 @@ class FleetView:
     def __init__(self, endpoint: str, tls: TlsFiles | None = None, router_name: str = DAEMON_NAME,
                  robots: str = "*"):
         import zenoh
-        from tecdard.cli.client import direct_callback
+        from tecdard.api.client import direct_callback
         self.robots: dict[str, RobotSeen] = {}
         self._lock = threading.Lock()
         self.pattern = robots

@@ -1,6 +1,6 @@
 """A hostile local client for the whole-daemon tests: floods a daemon's cmd/ keys with queries.
 
-    python -m tests.flood ENDPOINT SECONDS [ROBOT]
+    python -m tests.fakes.flood ENDPOINT SECONDS [ROBOT]
 
 Sends what the red team sent: first 40 payloads of 10 MB to `status` (which the daemon's transport
 drops unread), then, round after round until SECONDS have passed (at least one round), a burst of BURST concurrent

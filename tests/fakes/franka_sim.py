@@ -1,6 +1,6 @@
 """franky-sim for the Franka backend's tests: libfranka's own protocol over MuJoCo physics, on loopback.
 
-`python -m tests.franka_sim --host 127.0.0.x` runs franky-sim's server (PyPI franky-sim, the
+`python -m tests.fakes.franka_sim --host 127.0.0.x` runs franky-sim's server (PyPI franky-sim, the
 `franka-sim` extra) with one FR3 and its hand, on that address (the robot's port 1337 and the
 hand's 1338 are fixed, so each server gets an address of its own), and prints `READY <host>` once
 it listens. The simulation steps on an absolute 1 kHz schedule (franky-sim's own loop sleeps a
@@ -419,9 +419,9 @@ class ServerProcess:
 
     def __init__(self, *extra: str, host: str | None = None, ready_s: float = 60.0):
         self.host = host or free_franka_host()
-        self.proc = subprocess.Popen([sys.executable, "-m", "tests.franka_sim", "--host", self.host, *extra],
+        self.proc = subprocess.Popen([sys.executable, "-m", "tests.fakes.franka_sim", "--host", self.host, *extra],
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+                                     cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
         self.output: list[str] = []
         ready = threading.Event()
 

@@ -24,9 +24,10 @@ import zenoh
 
 from tecdard import verbs as task_verbs
 from tecdard.ros2 import messages as M
-from tecdard.runtime.messages import Inbox
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
+from tecdard.runtime.main_loop import FrontDoor
+from tecdard.runtime.messages import Inbox
 
 log = logging.getLogger("tecdar.ros2")
 
@@ -128,7 +129,7 @@ class _Service:
     ring: object = None
 
 
-class Ros2Node:
+class Ros2Node(FrontDoor):
     """Owned by the main thread, but for `feed` (the estimator thread) and the stop and joint-state
     callbacks (Zenoh's threads), which only hand over."""
 

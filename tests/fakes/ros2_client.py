@@ -6,7 +6,7 @@ definitions (`<venv>/share/<package>/msg|srv`) and at the project's tecdar_msgs,
 in a temporary folder, so nothing reaches the network. Multicast scouting is off and it listens on
 loopback only (ZENOH_CONFIG_OVERRIDE, which the SDK reads).
 
-    python -m tests.ros2_client ROUTER_PORT ACTION [ARGS as JSON]
+    python -m tests.fakes.ros2_client ROUTER_PORT ACTION [ARGS as JSON]
 
 Actions print one JSON line each:
 - `discover` {"timeout"}: the tokens, topics and services the SDK's discovery sees (asked again until
@@ -28,7 +28,7 @@ import sys
 import tempfile
 import time
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms\n"     # tf2_msgs/msg/TFMessage.msg as tf2_msgs ships it
 
 

@@ -1,4 +1,4 @@
-"""`tecdard router --config router.yaml`: a Zenoh router of eclipse-zenoh's own (router mode, not a relay of
+"""The fleet's Zenoh router (`tecdard router --config router.yaml`, tecdard.cli.router): a Zenoh router of eclipse-zenoh's own (router mode, not a relay of
 ours) for hosts without zenohd: its endpoints, mutual TLS and access control from the config, the ACL made
 from the fleet's roster (fleet.acl) or read from a file as `tecdard fleet acl` writes it."""
 from __future__ import annotations
@@ -91,17 +91,12 @@ def _first_line(exc: BaseException) -> str:
     return first_line(exc, 200)
 
 
-def run(config_path: str) -> int:
-    """Run the router until SIGTERM or Ctrl-C; READY=1 to systemd once it listens."""
+def serve(settings: RouterSettings, conf) -> int:
+    """Run the router on its session config `conf` (settings.session_config()) until SIGTERM or Ctrl-C;
+    READY=1 to systemd once it listens."""
     import zenoh
-    from tecdard.cli.main import listen_error
+    from tecdard.runtime.network import listen_error
     from tecdard.runtime.sdnotify import Notifier
-    try:
-        settings = RouterSettings(Config.load(config_path))
-        conf = settings.session_config()
-    except ConfigError as exc:
-        print(f"tecdard router: config error: {exc}", file=sys.stderr)
-        return 2
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -121,12 +116,3 @@ def run(config_path: str) -> int:
             pass
         notifier.notify("STOPPING=1")
     return 0
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("router", help="run a Zenoh router (eclipse-zenoh's router mode) for a fleet's daemons and "
-                                      "clients, where there is no zenohd",
-                       description="A Zenoh router: zenoh.listen/connect/tls as the daemon's, access_control from "
-                                   "the fleet's roster (roster: FILE) or an ACL document (file: FILE). docs/fleet.md")
-    p.add_argument("--config", required=True, help="the router's YAML config (configs/router.yaml)")
-    p.set_defaults(func=lambda args: run(args.config))

@@ -2,7 +2,7 @@
 cutter, moved by this harness (as ros2_control would move it) and published as sensor_msgs/JointState by
 zenoh-ros2-sdk, with its fingertip board streaming on a pty.
 
-    python -m tests.ros2_arm ROUTER_PORT CONFIG_YAML   [then lines on stdin]
+    python -m tests.fakes.ros2_arm ROUTER_PORT CONFIG_YAML   [then lines on stdin]
 
 Prints {"pty": path, "joints": [...]} once the arm streams. Then, line by line on stdin:
 - `arc DEG SPEED`: the TCP follows an arc of DEG degrees about the cutter's true hinge at SPEED m/s (the
@@ -38,7 +38,7 @@ def main() -> None:
     from tecdard.config import Config
     from tecdard.robots import backends
     from tecdard.robots.model import ArmModel
-    from tests.ros2_client import definitions_dir, joint_state
+    from tests.fakes.ros2_client import definitions_dir, joint_state
 
     sdk.get_registry(definitions_dir())
     cfg = Config.load(config)
