@@ -11,7 +11,7 @@ KERNELS := $(wildcard control/estimators/kernels/*.py)
 WARM := $(VENV)/.warm
 WARM_JIT := $(VENV)/.warm-jit
 
-.PHONY: install run test check bench firmware clean
+.PHONY: install run test check lint bench firmware clean
 
 $(PY):
 	$(PY_BOOT) -m venv $(VENV)
@@ -44,13 +44,18 @@ run: $(WARM)
 CROSS_TOOLS = command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null
 NO_CROSS = echo "make: no arm-none-eabi-gcc or qemu-system-arm here: the firmware's board image is neither built nor run in QEMU (apt install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)"
 
-test: $(WARM_JIT)
+test: $(WARM_JIT) lint
 	@$(CROSS_TOOLS) || $(NO_CROSS)
 	$(PY) -m pytest -q
 
-# the quick tier: pure logic and transports, without the whole-daemon runs (under 2 minutes)
-check: $(WARM_JIT)
+# the quick tier: the type checker, then pure logic and transports, without the whole-daemon runs
+check: $(WARM_JIT) lint
 	$(PY) -m pytest -q -m "not slow"
+
+# the type checker (mypy, pyproject's [tool.mypy]): every tecdard.* import resolves through the folders
+# linked under tecdard/ (tecdard/control -> control/, ...), as the wheel installs them
+lint: $(STAMP)
+	$(PY) -m mypy
 
 firmware:
 	$(MAKE) -s -C firmware host

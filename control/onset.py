@@ -3,10 +3,12 @@ and the fingertip's twist relative to the gripper; each on what the arm's own mo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from tecdard.control.conditioning import mean0, moving_mean
+from tecdard.options import option, read_options
 
 MODES = ("any", "all")
 BACKDATE_MAX_S = 0.3          # a twist onset is dated back at most this far
@@ -62,6 +64,36 @@ class SlidingBandEnergy:
         self._index += len(ext) - keep
         self._hist = ext[len(ext) - keep:].copy()
         return energy
+
+
+@dataclass(frozen=True)
+class OnsetOptions:
+    """The `estimator.onset` section: what fires the trigger. The onset is judged on what the arm's own motion
+    does not explain (docs/estimation.md); a condition set to none is off."""
+    accel_threshold: float | None = option(0.4, "m/s^2 beyond the arm's own acceleration and gravity (the paper: "
+                                                "0.4 from rest); none: off", unit="m/s^2", kind="optfloat",
+                                           above=0.0)
+    accel_axis: tuple | None = option(None, "judge the acceleration along this IMU axis only; none: its magnitude",
+                                      kind="optunitvec3")
+    gyro_threshold: float | None = option(None, "the fingertip's rate (the paper's, for mapping); none: off",
+                                          unit="rad/s", kind="optfloat", above=0.0)
+    band_threshold: float | None = option(None, "RMS acceleration in band_hz (the paper's, for heavy objects such "
+                                                "as a book); none: off", unit="m/s^2", kind="optfloat", above=0.0)
+    band_hz: tuple = option((40.0, 200.0), "the band of band_threshold: [lo, hi], hi under half the IMU's rate",
+                            unit="Hz", minval=1.0)
+    mode: str = option("any", "any condition fires, or all of them within coincidence_s", choices=MODES)
+    coincidence_s: float = option(0.02, "with mode all: the window the conditions must meet in", unit="s",
+                                  above=0.0, maxval=1.0)
+    rest_tau_s: float = option(0.5, "the rest levels' time constant", unit="s", above=0.0)
+    warmup_s: float = option(0.1, "IMU data at rest before the trigger is armed (the daemon's READY waits for it)",
+                             unit="s", minval=0.0)
+    twist_threshold: float | None = option(TWIST_THRESHOLD_RAD_S, "the fingertip turning relative to the gripper "
+                                                                  "(a contact that exists); none: off", unit="rad/s",
+                                           kind="optfloat", above=0.0)
+    settle_s: float = option(0.25, "after an episode or a task: still this long before the trigger arms", unit="s",
+                             minval=0.0, maxval=10.0)
+    swing_accel: float = option(SWING_ACCEL, "allowed per m/s^2 of the arm's acceleration (a held object's swing)",
+                                unit="(m/s^2)/(m/s^2)", minval=0.0, maxval=10.0)
 
 
 class OnsetDetector:
@@ -157,34 +189,19 @@ class OnsetDetector:
 
     @classmethod
     def from_config(cls, section, odr_hz: float = 6667.0) -> "OnsetDetector":
-        def opt(key, default):
-            return section.getoptfloat(key, default, above=0.0)
-
-        band = section.getfloats("band_hz", [40.0, 200.0], n=2, minval=1.0)
-        if not band[0] < band[1] < odr_hz / 2:
+        o = read_options(OnsetOptions, section)
+        if not o.band_hz[0] < o.band_hz[1] < odr_hz / 2:
             raise section.error("band_hz", f"expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz (half the IMU's "
-                                           f"rate), got {band}")
-        axis = section.getvec3("accel_axis", None, unit=True) if section.has("accel_axis") else None
-        swing_accel = section.getfloat("swing_accel", SWING_ACCEL, minval=0.0, maxval=10.0)
+                                           f"rate), got {list(o.band_hz)}")
         try:
-            det = cls(
-                accel_threshold=opt("accel_threshold", 0.4),
-                accel_axis=axis,
-                gyro_threshold=opt("gyro_threshold", None),
-                band_threshold=opt("band_threshold", None),
-                band_hz=tuple(band),
-                mode=section.getstr("mode", "any", choices=MODES),
-                coincidence_s=section.getfloat("coincidence_s", 0.02, above=0.0, maxval=1.0),
-                rest_tau_s=section.getfloat("rest_tau_s", 0.5, above=0.0),
-                warmup_s=section.getfloat("warmup_s", 0.1, minval=0.0),
-                odr_hz=odr_hz,
-                twist_threshold=opt("twist_threshold", TWIST_THRESHOLD_RAD_S),
-                settle_s=section.getfloat("settle_s", 0.25, minval=0.0, maxval=10.0),
-            )
+            det = cls(accel_threshold=o.accel_threshold, accel_axis=o.accel_axis, gyro_threshold=o.gyro_threshold,
+                      band_threshold=o.band_threshold, band_hz=tuple(o.band_hz), mode=o.mode,
+                      coincidence_s=o.coincidence_s, rest_tau_s=o.rest_tau_s, warmup_s=o.warmup_s, odr_hz=odr_hz,
+                      twist_threshold=o.twist_threshold, settle_s=o.settle_s)
         except ValueError as exc:         # "accel_threshold: must be > 0": the key, then the problem
             key, _, problem = str(exc).partition(": ")
             raise section.error(key, problem) from None
-        det.swing_accel = swing_accel
+        det.swing_accel = o.swing_accel
         return det
 
     def rearm(self, settle: bool = False) -> None:

@@ -22,6 +22,8 @@ from tecdard.control.measurements import FINGERTIP_LAG_S, TCP_TURNING_RAD_S, Eta
 from tecdard.control.onset import BACKDATE_MAX_S, OnsetDetector
 from tecdard.control.proprio import ProprioSample, ProprioTrack
 from tecdard.drivers.lsm6dsr import Scaling
+from tecdard.options import option, read_options
+from tecdard.safejson import show
 
 CONVERGED_STD_M = 0.005       # converged when the in-plane one-sigma (x the root NIS ratio above 1) is below this
 MIN_AXIS_RATE_RAD_S = 1e-3
@@ -79,14 +81,26 @@ class EstimatorDirective:
 @dataclass
 class PipelineParams:
     """The `estimator` section's own options, and every estimator's (`options`: section -> options)."""
-    method: str = estimators.DEFAULT
-    plane_normal: np.ndarray | None = None     # world; None: 3D
-    output_period_s: float = 0.005             # estimates are emitted at most this often
-    eta_table: list = field(default_factory=lambda: [(30.0, 2.0)])
-    grip_force_n: float = 30.0                 # used when no grip force is measured
-    eta_rel_std_per_n: float = 0.02            # eta's relative uncertainty grows this much per N off calibration
-    arc_radial_sigma: float = 0.005            # m/s, distrust of the velocity along the lever arm while arc following
-    fingertip_lag_s: float = FINGERTIP_LAG_S   # s, the fingertip twist's lag behind the object (Measurements)
+    method: str = option(estimators.DEFAULT, "the estimator (one of `tecdard localize --method`'s: ekf, paper-ekf, "
+                                             "svd-geo, gd-geo, svd-diff, gd-diff)", max_len=64)
+    plane_normal: np.ndarray | None = option(None, "world: when set, the interaction is planar about it and the "
+                                                   "planar estimator is used", kind="optunitvec3")
+    output_period_s: float = option(0.005, "contact estimates are emitted at most this often", unit="s", above=0.0,
+                                    maxval=1.0)
+    eta_table: list = option([(30.0, 2.0)], "[[grip force N, eta], ...]: the fingertip's transmission, calibrated "
+                                            "(`tecdard calibrate-eta`; the paper's 2.0 at 30 N)", kind="custom",
+                             shown="[[30, 2]]")
+    grip_force_n: float = option(30.0, "the grip force when none is measured", unit="N", minval=0.0,
+                                 maxval=MAX_GRIP_FORCE_N)
+    eta_rel_std_per_n: float = option(0.02, "eta's relative uncertainty grows this much per N off its calibration",
+                                      unit="1/N", minval=0.0, maxval=1.0)
+    arc_radial_sigma: float = option(0.005, "distrust of the velocity along the lever arm while following an arc",
+                                     unit="m/s", minval=0.0, maxval=1.0)
+    fingertip_lag_s: float = option(FINGERTIP_LAG_S, "the fingertip twist's viscoelastic lag behind the object (a "
+                                                     "rig's own, like eta)", unit="s", minval=0.0, maxval=0.05)
+    bias_tau_s: float = option(0.5, "the gyro bias's tracking time constant at rest", unit="s", above=0.0)
+    gyro_lpf_window: int = option(33, "samples of the gyro's causal moving average (about 5 ms at 6.7 kHz)",
+                                  minval=1, maxval=2000)
     noise: RigNoise = field(default_factory=RigNoise)
     options: dict = field(default_factory=dict)
 
@@ -136,26 +150,17 @@ class ContactPipeline:
                     plane_normal=None) -> "ContactPipeline":
         """Every option of `estimator` is read here, and each estimator's own section by its module
         (estimators.read_options); `method`/`plane_normal` override the config's."""
-        cfg_method = section.getstr("method", estimators.DEFAULT, choices=estimators.names())
-        cfg_plane = section.getvec3("plane_normal", None, unit=True) if section.has("plane_normal") else None
-        conditioner = GyroConditioner(R_tcp_imu, bias_tau_s=section.getfloat("bias_tau_s", 0.5, above=0.0),
-                                      lpf_window=section.getint("gyro_lpf_window", 33, minval=1, maxval=2000))
-        normal = plane_normal if plane_normal is not None else cfg_plane
         options = estimators.read_options(section)
-        params = PipelineParams(
-            method=method or cfg_method,
-            plane_normal=np.array(normal) if normal is not None else None,
-            output_period_s=section.getfloat("output_period_s", 0.005, above=0.0, maxval=1.0),
-            eta_table=_eta_table(section),
-            grip_force_n=section.getfloat("grip_force_n", 30.0, minval=0.0, maxval=MAX_GRIP_FORCE_N),
-            eta_rel_std_per_n=section.getfloat("eta_rel_std_per_n", 0.02, minval=0.0, maxval=1.0),
-            arc_radial_sigma=section.getfloat("arc_radial_sigma", 0.005, minval=0.0, maxval=1.0),
-            fingertip_lag_s=section.getfloat("fingertip_lag_s", FINGERTIP_LAG_S, minval=0.0, maxval=0.05),
-            # the rig's noise is stated once, in `ekf`'s section: the proprioception track and the
-            # rotation axis take it whichever estimator runs
-            noise=RigNoise.of(estimators.options_of("ekf", options)),
-            options=options,
-        )
+        params = read_options(PipelineParams, section, eta_table=_eta_table(section),
+                              # the rig's noise is stated once, in `ekf`'s section: the proprioception track
+                              # and the rotation axis take it whichever estimator runs
+                              noise=RigNoise.of(estimators.options_of("ekf", options)), options=options)
+        if params.method not in estimators.names():
+            raise section.error("method", f"expected one of {', '.join(estimators.names())}; got {show(params.method)}")
+        params.method = method or params.method
+        normal = plane_normal if plane_normal is not None else params.plane_normal
+        params.plane_normal = np.array(normal) if normal is not None else None
+        conditioner = GyroConditioner(R_tcp_imu, bias_tau_s=params.bias_tau_s, lpf_window=params.gyro_lpf_window)
         detector = OnsetDetector.from_config(section.section("onset"), odr_hz)
         return cls(detector, conditioner, params)
 

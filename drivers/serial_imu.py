@@ -19,6 +19,7 @@ from tecdard.drivers.imu_wire import (FLAG_SELF_TEST_FAILED, FLAG_SENSOR_ABSENT,
 from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
 from tecdard.drivers.timesync import ClockSync, Unwrapper
 from tecdard.host import Check
+from tecdard.options import option, read_options
 
 READ_CHUNK_BYTES = 1 << 16
 RETRY_MIN_S = 0.05
@@ -34,34 +35,35 @@ class PortError(OSError):
 
 @dataclass
 class SerialParams:
-    port: str | None = None           # device path, e.g. /dev/ttyACM0 or /dev/serial/by-id/...
-    vid: int | None = None            # or find it by USB vendor/product id (and serial number)
+    """The `imu.serial` section: the fingertip board on a serial port (docs/imu-serial.md)."""
+    port: str | None = option(None, "the board's device: the udev rule's link (/dev/tecdar-imu), /dev/ttyACM0 or "
+                                    "/dev/serial/by-id/...; or give vid_pid", kind="optstr")
+    vid: int | None = None            # from vid_pid
     pid: int | None = None
-    serial_number: str | None = None
-    baud: int = 2_000_000             # USB-CDC ignores it; kept for UART bridges
-    link: str = "usb-cdc"             # "uart": a UART at `baud` behind a USB-serial bridge (its wire time known)
-    odr_hz: int = DEFAULT_ODR_HZ      # used until the first status packet
-    gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS
-    accel_fs_g: int = DEFAULT_ACCEL_FS_G
+    serial_number: str | None = option(None, "with vid_pid: the board's USB serial number, where several match",
+                                       kind="optstr")
+    baud: int = option(2_000_000, "the UART's rate behind a USB-serial bridge (USB-CDC ignores it)", unit="baud",
+                       minval=1200)
+    link: str = option("usb-cdc", "usb-cdc, or uart: a UART at `baud` behind a USB-serial bridge (its wire time "
+                                  "known)", choices=LINKS)
+    odr_hz: int = option(DEFAULT_ODR_HZ, "the data rate assumed until the board's first status packet", unit="Hz",
+                         minval=1, maxval=65535)
+    gyro_fs_dps: int = option(DEFAULT_GYRO_FS_DPS, "the gyro's full scale assumed until the first status packet",
+                              unit="dps")
+    accel_fs_g: int = option(DEFAULT_ACCEL_FS_G, "the accelerometer's full scale assumed until the first status "
+                                                 "packet", unit="g")
+    vid_pid: str | None = option(None, "instead of port: the board's USB vendor and product id, hex VID:PID such as "
+                                       "0483:5740", kind="optstr")
 
     @classmethod
     def from_config(cls, section) -> "SerialParams":
-        d = cls()
-        vid_pid = section.getstr("vid_pid", "") or None
-        vid = pid = None
-        if vid_pid:
+        p = read_options(cls, section)
+        if p.vid_pid:
             try:
-                vid_s, pid_s = vid_pid.split(":")
-                vid, pid = int(vid_s, 16), int(pid_s, 16)
+                vid_s, pid_s = p.vid_pid.split(":")
+                p.vid, p.pid = int(vid_s, 16), int(pid_s, 16)
             except ValueError:
-                raise section.error("vid_pid", f"expected hex VID:PID such as 0483:5740, got {vid_pid!r}") from None
-        p = cls(port=section.getstr("port", "") or None, vid=vid, pid=pid,
-                serial_number=section.getstr("serial_number", "") or None,
-                baud=section.getint("baud", d.baud, minval=1200),
-                link=section.getstr("link", d.link, choices=LINKS),
-                odr_hz=section.getint("odr_hz", d.odr_hz, minval=1, maxval=65535),
-                gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
-                accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g))
+                raise section.error("vid_pid", f"expected hex VID:PID such as 0483:5740, got {p.vid_pid!r}") from None
         if p.port is None and p.vid is None:
             raise section.error("port", "give a port path or vid_pid")
         try:

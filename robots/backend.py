@@ -6,14 +6,15 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import pinocchio as pin
 
 from tecdard.host import name_os_thread
+from tecdard.options import read_options
 from tecdard.robots.backends import BackendError
-from tecdard.robots.state_check import StateCheck
+from tecdard.robots.state_check import StateCheck, StateOptions
 
 
 @dataclass
@@ -67,7 +68,6 @@ class RobotBackend:
     imu_sources: tuple[str, ...] = ("serial",)   # the imu.source values it reads the fingertip through,
                                                  # the first the default
     topic_state: TopicState | None = None        # the state comes from a front door's topic (ROS 2's joint states)
-    world_control = None                # a simulated world's hooks for a task (`home --reset-world`); None: a real one
     # How old the newest state may be before it is a fault (`robot_stale`, a protective stop) and the
     # servo holds: `robot.max_state_age_s`, this by default (a backend's own default is its own).
     STATE_AGE_S = 0.05
@@ -122,11 +122,17 @@ class RobotBackend:
     def _check_states(self, ctx, source: str) -> None:
         """The state check and the age budget, from the `robot` section (`source` names who reports
         the states in the fault's message)."""
-        robot = ctx.cfg.section("robot")
-        self.state_check = StateCheck.from_config(robot, ctx.model, source)
-        self.state_age_s = robot.getfloat("max_state_age_s", self.STATE_AGE_S, above=0.0, maxval=1.0)
+        opts = read_options(StateOptions, ctx.cfg.section("robot"), {"max_state_age_s": self.STATE_AGE_S})
+        self.state_check = StateCheck(ctx.model, source, opts.joint_limit_margin_rad)
+        self.state_age_s = opts.max_state_age_s
 
     # -- optional, with defaults ---------------------------------------------------------
+    @property
+    def world_control(self):
+        """A simulated world's hooks for a task (`home --reset-world`: sim.backend.WorldControl); None for
+        a real arm's world."""
+        return None
+
     def faults(self) -> dict[str, str]:
         """The robot's own faults that hold now, code -> message (raised and cleared as the daemon's)."""
         return {}
@@ -170,7 +176,7 @@ class LinkBackend(RobotBackend):
     `self._stop` set on close). A link that is down answers with its last state and takes no
     command: its fault has stopped the task already. The fingertip board is read over serial."""
 
-    link: object                       # robots.child_link.ChildLink
+    link: Any                          # robots.child_link.ChildLink (its subclass: the arm's)
     settings: object
     model: object                      # robots.model.ArmModel
     log: object                        # the backend's logger

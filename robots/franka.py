@@ -45,6 +45,7 @@ import time
 import numpy as np
 
 from tecdard.host import Check, can_set_fifo, check_rt_kernel
+from tecdard.options import read_options
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
 from tecdard.robots.franka_link import (LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, FrankaLink, FrankaLinkSettings,
@@ -69,15 +70,9 @@ class FrankaBackend(LinkBackend):
 
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "franka", FRANKA_MODELS, "Franka", "the robot's FCI address")
-        self.settings = FrankaLinkSettings(
-            host=section.getstr("host", max_len=253),
-            realtime=section.getstr("realtime", "enforce", choices=("enforce", "ignore")),
-            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
-            watchdog_s=section.getfloat("watchdog_s", 3.0 * ctx.tick_s, minval=2.0 * ctx.tick_s, maxval=0.5),
-            relative_dynamics_factor=section.getfloat("relative_dynamics_factor", 0.5, minval=0.05, maxval=1.0),
-            gripper=section.getbool("gripper", True),
-            grasp_force_n=section.getfloat("grasp_force_n", 20.0, above=0.0, maxval=140.0),
-            state_rate_hz=section.getfloat("state_rate_hz", 500.0, minval=100.0, maxval=1000.0))
+        self.settings = read_options(FrankaLinkSettings, section, {"watchdog_s": 3.0 * ctx.tick_s})
+        if self.settings.watchdog_s < 2.0 * ctx.tick_s:
+            raise section.error("watchdog_s", f"{self.settings.watchdog_s} is below the minimum {2.0 * ctx.tick_s}")
         self._attach(ctx, FrankaLink(self.settings), f"Franka robot {self.settings.host}")
 
     # -- lifecycle ----------------------------------------------------------------

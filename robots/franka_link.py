@@ -36,6 +36,7 @@ from multiprocessing.connection import wait
 import numpy as np
 
 from tecdard.drivers.timesync import SlewClock
+from tecdard.options import option
 from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
 from tecdard.robots.child_link import ChildLink
@@ -66,15 +67,22 @@ class FrankaLinkError(BackendError):
 
 @dataclass(frozen=True)
 class FrankaLinkSettings:
-    host: str
-    realtime: str = "enforce"             # franky's RealtimeConfig: enforce (a real arm) | ignore (simulation)
-    connect_timeout_s: float = 10.0       # a robot that does not answer within this is an error
-    watchdog_s: float = 0.06              # a velocity motion's hold after its target: the arm stops this
-                                          # long after the daemon's last command
-    relative_dynamics_factor: float = 0.5 # franky's scaling of the arm's velocity, acceleration and jerk limits
-    gripper: bool = True                  # read the hand's state (franky.Gripper)
-    grasp_force_n: float = 20.0           # the grasp's commanded force: the grip force while the hand holds
-    state_rate_hz: float = 500.0          # robot states handed to the daemon per second (the robot's are 1 kHz)
+    """The `robot.franka` section (docs/franka.md): the robot's FCI and how it is driven."""
+    host: str = option("", "the robot's FCI address", required=True, max_len=253)
+    realtime: str = option("enforce", "franky's RealtimeConfig: enforce (a real arm), ignore (simulation)",
+                           choices=("enforce", "ignore"))
+    connect_timeout_s: float = option(10.0, "a robot that does not answer within this is an error", unit="s",
+                                      above=0.0, maxval=120.0)
+    watchdog_s: float = option(0.06, "a velocity motion's hold after its target: the arm stops this long after the "
+                                     "daemon's last command (default 3 control ticks, at least 2)", unit="s",
+                               minval=0.004, maxval=0.5)
+    relative_dynamics_factor: float = option(0.5, "franky's scaling of the arm's velocity, acceleration and jerk "
+                                                  "limits", minval=0.05, maxval=1.0)
+    gripper: bool = option(True, "read the hand's state (franky.Gripper)")
+    grasp_force_n: float = option(20.0, "the grasp's commanded force: the grip force while the hand holds",
+                                  unit="N", above=0.0, maxval=140.0)
+    state_rate_hz: float = option(500.0, "robot states handed to the daemon per second (the robot's are 1 kHz)",
+                                  unit="Hz", minval=100.0, maxval=1000.0)
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,11 @@ import logging
 import math
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
+from tecdard.options import option, read_options
 from tecdard.robots.backend import JointState, RobotBackend, TopicState
 from tecdard.robots.backends import ModelMismatch
 from tecdard.robots.state_check import FAULT_HOLD_S
@@ -36,6 +38,15 @@ MAX_FUTURE_S = 0.05              # a stamp further ahead of the system clock is 
 FAULT = "robot_joint_states"
 
 
+@dataclass(frozen=True)
+class ObserverOptions:
+    """The `robot.ros2` section (robot.backend ros2): how the joint states that ROS 2 publishes are judged."""
+    stale_s: float = option(STALE_S, "a joint-state stream silent for longer is robot_stale", unit="s", above=0.0,
+                            maxval=5.0)
+    first_state_s: float = option(FIRST_STATE_S, "at start, joint states this long decide whether the model fits",
+                                  unit="s", minval=0.0, maxval=60.0)
+
+
 class Ros2Observer(RobotBackend):
     commands_arm = False
     read_only_reason = ("robot.backend ros2 observes an arm that ROS 2 drives: tasks are refused; command the arm "
@@ -45,8 +56,8 @@ class Ros2Observer(RobotBackend):
     def __init__(self, ctx):
         robot = ctx.cfg.section("robot")
         section = robot.section("ros2")
-        self.stale_s = section.getfloat("stale_s", STALE_S, above=0.0, maxval=5.0)
-        self.first_state_s = section.getfloat("first_state_s", FIRST_STATE_S, minval=0.0, maxval=60.0)
+        opts = read_options(ObserverOptions, section)
+        self.stale_s, self.first_state_s = opts.stale_s, opts.first_state_s
         self.model_label = "robot.urdf" if robot.has("urdf") else "robot.model"
         self.model = ctx.model
         self.names = list(ctx.model.joint_names)

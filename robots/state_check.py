@@ -23,8 +23,11 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
+
+from tecdard.options import option
 
 DEFAULT_LIMIT_MARGIN_RAD = 0.05   # a joint read this far past its range: refused (about 3 degrees)
 JUMP_SPEED_FACTOR = 1.5           # a joint may move up to this x its speed limit between two states
@@ -33,6 +36,18 @@ MIN_STATE_DT_S = 0.001            # two states are at least this far apart for t
 FAULT_HOLD_S = 0.5                # the fault holds until states have passed for this long
 MAX_REACH_M = 5.0                 # no arm's TCP is further from its base
 ROTATION_TOL = 1e-3               # |R^T R - I| of a reported TCP rotation
+
+
+@dataclass(frozen=True)
+class StateOptions:
+    """The `robot` section's options for the states every backend checks: how far past its range a joint
+    may read, and how old the newest state may be."""
+    max_state_age_s: float = option(0.05, "the newest robot state older than this is robot_stale (a protective "
+                                          "stop) and the servo holds; a backend's own default (the simulator's: "
+                                          "0.1 s)", unit="s", above=0.0, maxval=1.0)
+    joint_limit_margin_rad: float = option(DEFAULT_LIMIT_MARGIN_RAD, "a joint read further past its range is "
+                                                                     "refused (robot_state)", unit="rad",
+                                           minval=0.0, maxval=0.5)
 
 
 class StateCheck:
@@ -54,12 +69,6 @@ class StateCheck:
         self.seen_t = -math.inf               # when the newest state received was measured, refused or not
         self._prev = None                     # the last accepted JointState
         self._bad_t = -math.inf               # when the last state was refused (our clock)
-
-    @classmethod
-    def from_config(cls, robot_section, model, source: str) -> "StateCheck":
-        """From `robot.joint_limit_margin_rad` (default DEFAULT_LIMIT_MARGIN_RAD)."""
-        margin = robot_section.getfloat("joint_limit_margin_rad", DEFAULT_LIMIT_MARGIN_RAD, minval=0.0, maxval=0.5)
-        return cls(model, source, margin)
 
     def reset(self) -> None:
         self._prev = None

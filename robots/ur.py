@@ -26,6 +26,7 @@ import logging
 import socket
 
 from tecdard.host import Check
+from tecdard.options import read_options
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
 from tecdard.robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings, controller_identity
@@ -45,13 +46,7 @@ class UrBackend(LinkBackend):
 
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "ur", UR_MODELS, "UR", "the controller's address")
-        self.settings = UrLinkSettings(
-            host=section.getstr("host", max_len=253),
-            frequency_hz=section.getfloat("frequency_hz", -1.0, minval=-1.0, maxval=500.0),
-            accel_rad_s2=section.getfloat("accel_rad_s2", 4.0, above=0.0, maxval=40.0),
-            command_time_s=ctx.tick_s,
-            connect_timeout_s=section.getfloat("connect_timeout_s", 10.0, above=0.0, maxval=120.0),
-            watchdog_hz=section.getfloat("watchdog_hz", 10.0, minval=2.0, maxval=500.0))
+        self.settings = read_options(UrLinkSettings, section, command_time_s=ctx.tick_s)
         if self.settings.watchdog_hz > 0.5 / ctx.tick_s:
             raise section.error("watchdog_hz", f"{self.settings.watchdog_hz:g} Hz would stop the arm between two control "
                                                f"ticks ({ctx.tick_s * 1e3:g} ms); at most {0.5 / ctx.tick_s:g} Hz")

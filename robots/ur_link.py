@@ -32,6 +32,7 @@ import numpy as np
 import pinocchio as pin
 
 from tecdard.drivers.timesync import SlewClock
+from tecdard.options import option
 from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
 from tecdard.robots.child_link import ChildLink
@@ -60,12 +61,16 @@ class UrLinkError(BackendError):
 
 @dataclass(frozen=True)
 class UrLinkSettings:
-    host: str
-    frequency_hz: float = -1.0            # -1: the controller's own rate (500 Hz e-Series, 125 Hz CB3)
-    accel_rad_s2: float = 4.0             # speedJ's acceleration bound, rad/s^2
+    """The `robot.ur` section (docs/ur.md): the controller and how it is driven."""
+    host: str = option("", "the controller's address", required=True, max_len=253)
+    frequency_hz: float = option(-1.0, "RTDE's rate; -1: the controller's own (500 Hz e-Series, 125 Hz CB3)",
+                                 unit="Hz", minval=-1.0, maxval=500.0)
+    accel_rad_s2: float = option(4.0, "speedJ's acceleration bound", unit="rad/s^2", above=0.0, maxval=40.0)
     command_time_s: float = 0.02          # speedJ's time: the control tick (the controller stops after it)
-    connect_timeout_s: float = 10.0       # a controller that does not answer within this is an error
-    watchdog_hz: float = 10.0             # the controller stops the program when the daemon writes less often
+    connect_timeout_s: float = option(10.0, "a controller that does not answer within this is an error", unit="s",
+                                      above=0.0, maxval=120.0)
+    watchdog_hz: float = option(10.0, "the controller stops the program when the daemon writes less often (at most "
+                                      "half the control tick's rate)", unit="Hz", minval=2.0, maxval=500.0)
 
 
 @dataclass(frozen=True)

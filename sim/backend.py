@@ -13,13 +13,16 @@ import pathlib
 import secrets
 import shutil
 import tempfile
+from dataclasses import dataclass
 
 import numpy as np
 
 from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
 from tecdard.host import Check
+from tecdard.options import option, read_options
 from tecdard.robots.backend import JointState, RobotBackend
 from tecdard.robots.backends import BackendContext
+from tecdard.shipped import host_board
 from tecdard.sim.board import BoardParams
 from tecdard.sim.imu import SimImuParams
 from tecdard.sim.process import SimProcess, SimSpec
@@ -27,8 +30,15 @@ from tecdard.sim.robot import SimRobotParams
 from tecdard.sim.world import HingeParams, PivotParams
 
 PTY_DIR_PREFIX = "tecdar-imu-"  # sim-wire: <tmp>/tecdar-imu-<pid>-<random>/ttyIMU
-# sim-firmware: the firmware's host board, as `make firmware` builds it in a checkout
-HOST_BOARD = pathlib.Path(__file__).resolve().parents[1] / "firmware" / "build" / "host-board"
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """The `sim` section's own options (its arm, IMU and world are sim.robot's, sim.imu's and sim.hinge's or
+    sim.pivot's)."""
+    seed: int = option(0, "the simulation's random seed (noise, biases)", minval=0)
+    host_board: str = option("", "sim-firmware: the firmware's host board executable; \"\": the one shipped (a "
+                                 "wheel's), or a checkout's `make firmware` build", max_len=4096)
 
 
 def remove_stale_pty_dirs() -> None:
@@ -51,6 +61,7 @@ class SimBackend(RobotBackend):
 
     def __init__(self, ctx: BackendContext):
         sim = ctx.cfg.section("sim")
+        own = read_options(SimOptions, sim)
         sim_imu = sim.section("imu")
         self.imu_params = SimImuParams.from_config(sim_imu, default_mount=ctx.imu_mount)
         robot_params = SimRobotParams.from_config(sim.section("robot"), ctx.q_home)
@@ -60,10 +71,10 @@ class SimBackend(RobotBackend):
             raise sim.error("pivot", "give one world, sim.hinge or sim.pivot, not both")
         model = ctx.model
         self.spec = SimSpec(arm=model.name, tool_offset=list(model.tool_offset), tool_quat=list(model.tool_quat),
-                            robot=robot_params, imu=self.imu_params, seed=sim.getint("seed", 0, minval=0),
+                            robot=robot_params, imu=self.imu_params, seed=own.seed,
                             hinge=hinge, pivot=pivot, imu_out="pipe")
         self.pty_dir: str | None = None
-        self.host_board = sim.getstr("host_board", str(HOST_BOARD))
+        self.host_board = own.host_board or str(host_board())
         factory = self.spec.world_factory()
         if factory is not None:
             # the world is built once here, at the home pose, so a bad one never half-starts the daemon

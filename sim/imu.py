@@ -9,6 +9,7 @@ import numpy as np
 
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.drivers.lsm6dsr import Scaling
+from tecdard.options import option, read_options
 
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -9.81])
 DEG = np.pi / 180.0
@@ -20,47 +21,38 @@ RING_REF_MASS_KG = 0.1
 
 @dataclass
 class SimImuParams:
-    odr_hz: float = 6667.0
-    grip_force_n: float = 30.0
-    eta: float | None = None                 # fixed eta; None: from the grip force on ETA_TRUE_TABLE
-    lag_tau_s: float = 0.003                 # viscoelastic lag of the relative rotation, s
-    gyro_noise_density: float = 5e-3 * DEG   # rad/s/sqrt(Hz)  (LSM6DSR: 5 mdps/sqrt(Hz))
-    accel_noise_density: float = 60e-6 * 9.81  # m/s^2/sqrt(Hz) (LSM6DSR: 60 ug/sqrt(Hz))
-    gyro_bias_max: float = 0.02              # rad/s, per-axis initial bias drawn uniformly in +-
-    accel_bias_max: float = 0.05             # m/s^2
-    gyro_bias_walk: float = 1e-4             # rad/s/sqrt(s), slow bias drift (random walk)
-    gyro_fs_dps: int = 4000
-    accel_fs_g: int = 16
-    ring_per_m_s: float = 100.0              # impact ring amplitude per TCP speed, (m/s^2)/(m/s), 0.1 kg object
-    ring_hz: float = 120.0                   # for a 0.1 kg object; scales with 1/sqrt(mass)
-    ring_tau_s: float = 0.015
-    object_mass_kg: float = 0.1
-    timestamp_jitter_s: float = 2e-6
-    imu_in_tcp_quat: tuple = (0.0, 0.0, 0.0, 1.0)  # (x, y, z, w), TCP <- IMU
+    """The `sim.imu` section: the simulated fingertip and its LSM6DSR."""
+    odr_hz: float = option(6667.0, "the IMU's data rate", unit="Hz", minval=100.0, maxval=20000.0)
+    grip_force_n: float = option(30.0, "the grasp force: the true eta follows it (2.0 at 30 N)", unit="N",
+                                 minval=0.0)
+    eta: float | None = option(None, "a fixed true eta; none: from the grip force", kind="optfloat", above=0.0)
+    lag_tau_s: float = option(0.003, "the fingertip's viscoelastic lag of the relative rotation", unit="s",
+                              minval=0.0, maxval=0.1)
+    gyro_noise_density: float = option(5e-3 * DEG, "gyro noise density (LSM6DSR: 5 mdps/sqrt(Hz))",
+                                       unit="rad/s/sqrt(Hz)", minval=0.0)
+    accel_noise_density: float = option(60e-6 * 9.81, "accelerometer noise density (LSM6DSR: 60 ug/sqrt(Hz))",
+                                        unit="m/s^2/sqrt(Hz)", minval=0.0)
+    gyro_bias_max: float = option(0.02, "per-axis initial gyro bias, drawn uniformly within +-", unit="rad/s",
+                                  minval=0.0)
+    accel_bias_max: float = option(0.05, "per-axis initial accelerometer bias, within +-", unit="m/s^2",
+                                   minval=0.0)
+    gyro_bias_walk: float = option(1e-4, "the gyro bias's random walk", unit="rad/s/sqrt(s)", minval=0.0)
+    gyro_fs_dps: int = option(4000, "the gyro's full scale (int16 quantisation)", unit="dps")
+    accel_fs_g: int = option(16, "the accelerometer's full scale (int16 quantisation)", unit="g")
+    ring_per_m_s: float = option(100.0, "impact ring amplitude per TCP speed, for a 0.1 kg object",
+                                 unit="(m/s^2)/(m/s)", minval=0.0)
+    ring_hz: float = option(120.0, "the impact ring's frequency for a 0.1 kg object (scales with 1/sqrt(mass))",
+                            unit="Hz", above=0.0)
+    ring_tau_s: float = option(0.015, "the impact ring's decay time", unit="s", above=0.0)
+    object_mass_kg: float = option(0.1, "the held object's mass", unit="kg", above=0.0)
+    timestamp_jitter_s: float = option(2e-6, "the samples' timestamp jitter", unit="s", minval=0.0)
+    imu_in_tcp_quat: tuple = option((0.0, 0.0, 0.0, 1.0), "the simulated IMU's true mount, (x, y, z, w), TCP <- "
+                                                          "IMU (default: imu.imu_in_tcp_quat)", kind="quat")
 
     @classmethod
     def from_config(cls, section, default_mount=None) -> "SimImuParams":
-        d = cls()
-        mount = list(default_mount) if default_mount is not None else list(d.imu_in_tcp_quat)
-        p = cls(
-            odr_hz=section.getfloat("odr_hz", d.odr_hz, minval=100.0, maxval=20000.0),
-            grip_force_n=section.getfloat("grip_force_n", d.grip_force_n, minval=0.0),
-            eta=section.getoptfloat("eta", None, above=0.0),
-            lag_tau_s=section.getfloat("lag_tau_s", d.lag_tau_s, minval=0.0, maxval=0.1),
-            gyro_noise_density=section.getfloat("gyro_noise_density", d.gyro_noise_density, minval=0.0),
-            accel_noise_density=section.getfloat("accel_noise_density", d.accel_noise_density, minval=0.0),
-            gyro_bias_max=section.getfloat("gyro_bias_max", d.gyro_bias_max, minval=0.0),
-            accel_bias_max=section.getfloat("accel_bias_max", d.accel_bias_max, minval=0.0),
-            gyro_bias_walk=section.getfloat("gyro_bias_walk", d.gyro_bias_walk, minval=0.0),
-            gyro_fs_dps=section.getint("gyro_fs_dps", d.gyro_fs_dps),
-            accel_fs_g=section.getint("accel_fs_g", d.accel_fs_g),
-            ring_per_m_s=section.getfloat("ring_per_m_s", d.ring_per_m_s, minval=0.0),
-            ring_hz=section.getfloat("ring_hz", d.ring_hz, above=0.0),
-            ring_tau_s=section.getfloat("ring_tau_s", d.ring_tau_s, above=0.0),
-            object_mass_kg=section.getfloat("object_mass_kg", d.object_mass_kg, above=0.0),
-            timestamp_jitter_s=section.getfloat("timestamp_jitter_s", d.timestamp_jitter_s, minval=0.0),
-            imu_in_tcp_quat=tuple(section.getquat("imu_in_tcp_quat", mount)),
-        )
+        defaults = {} if default_mount is None else {"imu_in_tcp_quat": tuple(default_mount)}
+        p = read_options(cls, section, defaults)
         try:
             Scaling(p.gyro_fs_dps, p.accel_fs_g)
         except ValueError as exc:

@@ -110,7 +110,8 @@ NOMINAL_GRIP_N = 30.0                      # meta.grip_force: the fingertip's et
 SETTLE_S = 0.3                             # simulated before the recording starts: the grasp takes the handle's weight
 
 
-def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray, start: np.ndarray) -> str:
+def _mjcf(sc: MujocoScenario, p_tcp: np.ndarray, R_tcp: np.ndarray, axis: np.ndarray,
+          start: np.ndarray) -> tuple[str, float, str | None]:
     """The world: the gripper (mocap) and its two-stage fingertip, the cutter's handle on its hinge
     (or the pen, or the block). p_tcp: the TCP at the onset; the gripper and the block start
     `start` from there (`ongoing`)."""

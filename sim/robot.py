@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tecdard.options import option, read_options
 from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.model import ArmModel
 from tecdard.sim.world import SimTruth
@@ -29,25 +30,22 @@ STATE_BACKLOG = 256        # proprioception samples kept for `drain_states` betw
 
 @dataclass
 class SimRobotParams:
-    q_home: np.ndarray
-    proprio_rate_hz: float = 65.0
-    command_latency_s: float = 0.002
-    tracking_tau_s: float = 0.01
-    encoder_noise_rad: float = 5e-5
-    tcp_speed_noise: float = 2e-4      # m/s, noise of the reported TCP velocity
-    command_timeout_s: float = 0.1     # no command for this long: the arm stops on its own (0: never)
+    """The `sim.robot` section: the simulated arm's controller."""
+    q_home: np.ndarray                 # rad, robot.q_home (given)
+    proprio_rate_hz: float = option(65.0, "the controller's state rate (the paper's robot's)", unit="Hz",
+                                    minval=10.0, maxval=PHYSICS_RATE_HZ)
+    command_latency_s: float = option(0.002, "a joint command takes effect this late", unit="s", minval=0.0,
+                                      maxval=0.1)
+    tracking_tau_s: float = option(0.01, "the joints follow their commanded rates with this time constant",
+                                   unit="s", minval=0.0, maxval=0.5)
+    encoder_noise_rad: float = option(5e-5, "the joint encoders' noise", unit="rad", minval=0.0)
+    tcp_speed_noise: float = option(2e-4, "noise of the reported TCP velocity", unit="m/s", minval=0.0)
+    command_timeout_s: float = option(0.1, "no joint command for this long: the arm stops by itself (0: never)",
+                                      unit="s", minval=0.0, maxval=10.0)
 
     @classmethod
     def from_config(cls, section, q_home: np.ndarray) -> "SimRobotParams":
-        return cls(
-            q_home=np.array(q_home, dtype=float),
-            proprio_rate_hz=section.getfloat("proprio_rate_hz", 65.0, minval=10.0, maxval=PHYSICS_RATE_HZ),
-            command_latency_s=section.getfloat("command_latency_s", 0.002, minval=0.0, maxval=0.1),
-            tracking_tau_s=section.getfloat("tracking_tau_s", 0.01, minval=0.0, maxval=0.5),
-            encoder_noise_rad=section.getfloat("encoder_noise_rad", 5e-5, minval=0.0),
-            tcp_speed_noise=section.getfloat("tcp_speed_noise", 2e-4, minval=0.0),
-            command_timeout_s=section.getfloat("command_timeout_s", 0.1, minval=0.0, maxval=10.0),
-        )
+        return read_options(cls, section, q_home=np.array(q_home, dtype=float))
 
 
 class SimRobot:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tecdard.control.geometry import cross3, relative_rotvec, signed_angle, unit
+from tecdard.options import option, read_options
 
 GRAVITY_M_S2 = 9.81
 BASE_SLIDE_ITERATIONS = 4
@@ -46,27 +47,29 @@ class SimTruth:
 
 @dataclass
 class HingeParams:
-    hinge_point: np.ndarray          # a point of the hinge axis, world, m (base at rest)
-    hinge_axis: np.ndarray           # unit, world
-    base_mass_kg: float = 2.5
-    friction_mu: float = 0.3
-    grasp_stiffness_n_m: float = 3000.0
-    table_normal: np.ndarray = None  # unit, world (default +z)
-    breakaway_m_s2: float = 2.0      # fingertip ring when the handle breaks away from rest
-    twist_stick_deg: float | None = None   # the fingertips twist this far, then slip (None: never)
+    """The `sim.hinge` section: the paper cutter, truth the controller never reads."""
+    hinge_point: np.ndarray = option(None, "a point of the hinge axis, world (the base at rest)", unit="m",
+                                     kind="vec3", key="point", required=True)
+    hinge_axis: np.ndarray = option(None, "the hinge's axis, world", kind="unitvec3", key="axis", required=True)
+    base_mass_kg: float = option(2.5, "the cutter's base", unit="kg", above=0.0)
+    friction_mu: float = option(0.3, "the base's friction on the table: it slides when the horizontal pull "
+                                     "exceeds mu m g", above=0.0)
+    grasp_stiffness_n_m: float = option(3000.0, "the grasp spring between the TCP and the handle", unit="N/m",
+                                        above=0.0)
+    table_normal: np.ndarray = option((0.0, 0.0, 1.0), "the table's normal, world", kind="unitvec3")
+    breakaway_m_s2: float = option(2.0, "the fingertip's ring when the handle breaks away from rest",
+                                   unit="m/s^2", minval=0.0)
+    twist_stick_deg: float | None = option(None, "the fingertips twist this far relative to the gripper, then slip; "
+                                                 "none: never", unit="deg", kind="optfloat", above=0.0, maxval=180.0)
+
+    def __post_init__(self):
+        self.hinge_point = np.asarray(self.hinge_point, dtype=float)
+        self.hinge_axis = np.asarray(self.hinge_axis, dtype=float)
+        self.table_normal = np.asarray((0.0, 0.0, 1.0) if self.table_normal is None else self.table_normal, float)
 
     @classmethod
     def from_config(cls, section) -> "HingeParams":
-        return cls(
-            hinge_point=np.array(section.getvec3("point")),
-            hinge_axis=np.array(section.getvec3("axis", unit=True)),
-            base_mass_kg=section.getfloat("base_mass_kg", 2.5, above=0.0),
-            friction_mu=section.getfloat("friction_mu", 0.3, above=0.0),
-            grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
-            table_normal=np.array(section.getvec3("table_normal", [0.0, 0.0, 1.0], unit=True)),
-            breakaway_m_s2=section.getfloat("breakaway_m_s2", 2.0, minval=0.0),
-            twist_stick_deg=section.getoptfloat("twist_stick_deg", None, above=0.0, maxval=180.0),
-        )
+        return read_options(cls, section)
 
 
 class HingeWorld:
@@ -265,12 +268,19 @@ def _boxes(section) -> list:
 
 @dataclass
 class PivotParams:
-    tip_in_tcp: np.ndarray               # the tool tip in the TCP frame, m (a held block's far edge, a pen tip)
-    surface: "TableEdge | HeightField"   # anything with surface_z(x, y)
-    grasp_stiffness_n_m: float = 3000.0  # along the tool: pushing compresses the grasp
-    slide_force_n: float = 6.0           # the tool slides in the grasp beyond this axial force
-    lift_off_m: float = 0.003            # the tip leaves the surface when pulled this far back (grasp preload)
-    breakaway_m_s2: float = 1.0          # fingertip ring when a resting tool starts to turn
+    """The `sim.pivot` section: a held block or pen meets a surface, then pivots about where it touched.
+    The surface (`surface`: table, scene or boxes, with its own keys) is built in from_config."""
+    tip_in_tcp: np.ndarray = option((0.0, 0.0, 0.12), "the tool's far end (a block's edge, a pen's tip), TCP "
+                                                      "frame", unit="m", kind="vec3")
+    surface: "TableEdge | HeightField | None" = None   # anything with surface_z(x, y)
+    grasp_stiffness_n_m: float = option(3000.0, "along the tool: pushing compresses the grasp", unit="N/m",
+                                        above=0.0)
+    slide_force_n: float = option(6.0, "the tool slides in the grasp beyond this axial force", unit="N",
+                                  above=0.0)
+    lift_off_m: float = option(0.003, "the tip leaves the surface when pulled this far back (the grasp's preload)",
+                               unit="m", above=0.0)
+    breakaway_m_s2: float = option(1.0, "the fingertip's ring when a resting tool starts to turn", unit="m/s^2",
+                                   minval=0.0)
 
     @classmethod
     def from_config(cls, section) -> "PivotParams":
@@ -283,12 +293,9 @@ class PivotParams:
                                     seed=section.getint("scene_seed", 0, minval=0))
         else:
             surface = TableEdge(section.getfloat("table_height", 0.30), section.getfloat("edge_x", 10.0))
-        return cls(tip_in_tcp=np.array(section.getvec3("tip_in_tcp", [0.0, 0.0, 0.12])),
-                   surface=surface,
-                   grasp_stiffness_n_m=section.getfloat("grasp_stiffness_n_m", 3000.0, above=0.0),
-                   slide_force_n=section.getfloat("slide_force_n", 6.0, above=0.0),
-                   lift_off_m=section.getfloat("lift_off_m", 0.003, above=0.0),
-                   breakaway_m_s2=section.getfloat("breakaway_m_s2", 1.0, minval=0.0))
+        params = read_options(cls, section, surface=surface)
+        params.tip_in_tcp = np.array(params.tip_in_tcp)
+        return params
 
 
 class PivotWorld:

@@ -5,6 +5,7 @@ Each case is a fresh venv. Its dependencies come from this suite's own venv thro
 (pip counts them as installed), so the only downloads are python-control itself and the build
 backend, both cached by pip after the first run.
 """
+import os
 import pathlib
 import shutil
 import site
@@ -124,9 +125,47 @@ def test_tecdar_installs_beside_python_control(tmp_path, how):
         assert res.returncode == 0, res.stderr[-2000:]
         kind, numba_imported, where = res.stdout.split()
         assert (kind, numba_imported) == ("aot", "False") and pathlib.Path(where).is_relative_to(tmp_path / "venv")
+    if how == "wheel":
+        the_shipped_data_is_found_in_the_installed_wheel(py, tmp_path)
     for name, path in files.items():
         where = pathlib.Path(path)
         if how == "editable":
             assert where.is_relative_to(ROOT), (name, path)          # the checkout's own folders
         else:
             assert where.is_relative_to(tmp_path / "venv"), (name, path)
+
+
+SHIPPED_PROBE = """
+from tecdard import shipped
+print(shipped.config("sim.yaml")); print(shipped.systemd("99-tecdar-imu.rules")); print(shipped.host_board())
+"""
+DEMO_TIMEOUT_S = 300.0
+
+
+def the_shipped_data_is_found_in_the_installed_wheel(py: pathlib.Path, tmp_path: pathlib.Path) -> None:
+    """Issue 47: the configs, the udev rule and the host board come from the installed package (no path
+    walked up from a source file): `tecdard doctor --config` on the installed sim config (on a free port:
+    a user's daemon may hold 7507) passes, and `tecdard demo` on it rotates the cutter, from outside the
+    checkout."""
+    import yaml
+
+    from tecdard.tools.demo import free_port
+    venv = tmp_path / "venv"
+    res = subprocess.run([str(py), "-c", SHIPPED_PROBE], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    config, rule, board = (pathlib.Path(line) for line in res.stdout.split())
+    for path in (config, rule, board):
+        assert path.is_file() and path.is_relative_to(venv), path
+    assert os.access(board, os.X_OK), board
+    cfg = yaml.safe_load(config.read_text())
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    mine = tmp_path / "sim.yaml"
+    mine.write_text(yaml.safe_dump(cfg))
+    doctor = subprocess.run([str(venv / "bin" / "tecdard"), "doctor", "--config", str(mine)], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=300)
+    assert doctor.returncode == 0, doctor.stdout + doctor.stderr
+    assert "PASS  config:" in doctor.stdout and str(rule) in doctor.stdout, doctor.stdout
+    demo = subprocess.run([str(venv / "bin" / "tecdard"), "demo", "--config", str(config)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=DEMO_TIMEOUT_S)
+    assert demo.returncode == 0, demo.stdout[-3000:] + demo.stderr[-2000:]
+    assert "hinge error" in demo.stdout and "angle reached" in demo.stdout, demo.stdout

@@ -14,6 +14,7 @@ import pytest
 
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactEstimate, EstimatorDirective
+from tecdard.control.proprio import ProprioSample
 from tecdard.recording import replay as L
 from tecdard.runtime import recorder as R
 from tecdard.config import Config
@@ -139,7 +140,7 @@ def test_a_record_dir_that_cannot_be_written_is_a_config_error(tmp_path):
 def a_pass(t0: float, n: int = 67, episode: int = 1, onset: bool = False, est: bool = False) -> R.Pass:
     t = t0 + np.arange(n) / 6667.0
     batch = np.column_stack([t, np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1))])
-    proprio = [(t[-1], np.array([0.3, 0.0, 0.5]), np.zeros(3), np.eye(3), np.zeros(3), np.nan)]
+    proprio = [ProprioSample(t[-1], np.array([0.3, 0.0, 0.5]), np.zeros(3), np.eye(3), np.zeros(3), np.nan)]
     events = [{"kind": "contact_onset", "t": float(t[0]), "p_tcp": [0.3, 0.0, 0.5], "commanded": False}] if onset else []
     e = ContactEstimate(t=float(t[-1]), onset_t=t0, p=np.zeros(3), std=np.ones(3), cov=np.eye(3), axis=None,
                         converged=False, nis=0.0, steps=n) if est else None

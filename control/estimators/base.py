@@ -41,7 +41,7 @@ class ContactEstimator:
         """A run of samples, in time order: use what the estimator needs of the record."""
         raise NotImplementedError
 
-    def report(self):
+    def report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p_c world m, its 3 x 3 covariance m^2, the estimator's own in-plane statistic)."""
         raise NotImplementedError
 

@@ -21,6 +21,7 @@ import numpy as np
 from tecdard.control.estimators.base import UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec
 from tecdard.control.geometry import Plane, cross_rows, rotvec_to_matrix
 from tecdard.control.measurements import Samples
+from tecdard.options import option, read_options
 
 RANK_RTOL = 1e-6
 
@@ -28,14 +29,13 @@ RANK_RTOL = 1e-6
 @dataclass
 class BaselineParams:
     """The `estimator.baseline` section, which the four share."""
-    window_s: float = 0.03       # differential methods: sliding window
-    gd_iterations: int = 10      # gradient steps per update
+    window_s: float = option(0.03, "the differential methods' sliding window", unit="s", above=0.0)
+    gd_iterations: int = option(10, "gradient steps per update (gd-geo, gd-diff)", minval=1, maxval=1000)
     min_dof: int = 6             # residual degrees of freedom before a std is reported
 
     @classmethod
     def from_config(cls, section) -> "BaselineParams":
-        return cls(window_s=section.getfloat("window_s", 0.03, above=0.0),
-                   gd_iterations=section.getint("gd_iterations", 10, minval=1, maxval=1000))
+        return read_options(cls, section)
 
 
 class _LeastSquares(ContactEstimator):

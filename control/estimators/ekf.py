@@ -25,6 +25,7 @@ from tecdard.control.estimators.positions import (MIN_RESIDUAL_SAMPLES, NO_EVIDE
                                                    PositionEvidence, position_var)
 from tecdard.control.geometry import Plane
 from tecdard.control.measurements import Samples
+from tecdard.options import option, read_options
 
 CONSISTENCY_WINDOW_S = 0.01  # the NIS ratio's window: at least the longest block (64 samples at 6.7 kHz)
 _IDENTITY = np.eye(3)
@@ -40,39 +41,31 @@ def _or(a, b):
 
 @dataclass
 class ContactKfParams:
-    """Noise model of our filter, SI units; variances per sample unless stated."""
-    sigma_w: float = 0.01          # rad/s, per-sample object-rate noise (raw gyro noise x eta)
-    sigma_p: float = 5e-5          # m, TCP position noise (encoder grade)
-    sigma_v: float = 1e-3          # m/s, reported TCP velocity noise
-    q_c: float = 1e-8              # m^2/s, contact random walk
-    p0_c: float = UNOBSERVED_STD_M ** 2
-    gate_nis: float = 16.3         # chi^2 (3 dof) at 0.999; 0 disables gating
-    eta_rel_std: float = 0.05      # relative uncertainty of eta at its calibration (prior of the eta state)
-    max_block: int = 64            # samples per collapsed update
-    use_positions: bool = True     # TCP positions as evidence too (rigid-body displacement), see PositionEvidence
-    estimate_eta: bool = True      # carry eta's error as a state, see ContactKF
-    eta_test_sigma: float = 3.0    # the data must reject the calibrated eta by this many sigma to be used
-    slip_radial_sigma: float = 0.005   # m/s, distrust of the velocity along the lever arm once positions show a slip
-    arc_position_sigma: float = 0.001  # m, the TCP positions' noise while following an arc (0: no evidence then)
+    """The `estimator.ekf` section: our filter's noise model, SI units; variances per sample unless stated.
+    The rig's noise is stated once, here: the proprioception track and the rotation axis take it whichever
+    estimator runs."""
+    sigma_w: float = option(0.01, "per-sample object-rate noise (raw gyro noise x eta)", unit="rad/s", above=0.0)
+    sigma_p: float = option(5e-5, "TCP position noise (encoder grade)", unit="m", minval=0.0)
+    sigma_v: float = option(1e-3, "reported TCP velocity noise", unit="m/s", above=0.0)
+    q_c: float = option(1e-8, "the contact's random walk", unit="m^2/s", minval=0.0)
+    p0_c: float = option(UNOBSERVED_STD_M ** 2, "the contact's prior variance", unit="m^2", above=0.0)
+    gate_nis: float = option(16.3, "innovation gate, chi^2 (3 dof) at 0.999; 0 disables gating", minval=0.0)
+    eta_rel_std: float = option(0.05, "eta's relative uncertainty at its calibration (+ estimator.eta_rel_std_per_n "
+                                      "per N off it)", minval=0.0, maxval=1.0)
+    max_block: int = option(64, "samples per collapsed update", minval=1, maxval=4096)
+    use_positions: bool = option(True, "TCP displacements as evidence too (rigid-body displacement)")
+    estimate_eta: bool = option(True, "eta's error as a state: the path's curvature corrects a wrong eta once the "
+                                      "object has turned several degrees with the gripper still")
+    eta_test_sigma: float = option(3.0, "the data must reject the scheduled eta by this many sigma to be used",
+                                   minval=0.0)
+    slip_radial_sigma: float = option(0.005, "distrust of the velocity along the lever arm once positions show a "
+                                             "slip", unit="m/s", minval=0.0, maxval=1.0)
+    arc_position_sigma: float = option(0.001, "the TCP positions' noise while following an arc (0: no evidence "
+                                              "then)", unit="m", minval=0.0, maxval=0.1)
 
     @classmethod
     def from_config(cls, section) -> "ContactKfParams":
-        d = cls()
-        return cls(
-            sigma_w=section.getfloat("sigma_w", d.sigma_w, above=0.0),
-            sigma_p=section.getfloat("sigma_p", d.sigma_p, minval=0.0),
-            sigma_v=section.getfloat("sigma_v", d.sigma_v, above=0.0),
-            q_c=section.getfloat("q_c", d.q_c, minval=0.0),
-            p0_c=section.getfloat("p0_c", d.p0_c, above=0.0),
-            gate_nis=section.getfloat("gate_nis", d.gate_nis, minval=0.0),
-            eta_rel_std=section.getfloat("eta_rel_std", d.eta_rel_std, minval=0.0, maxval=1.0),
-            max_block=section.getint("max_block", d.max_block, minval=1, maxval=4096),
-            use_positions=section.getbool("use_positions", d.use_positions),
-            estimate_eta=section.getbool("estimate_eta", d.estimate_eta),
-            eta_test_sigma=section.getfloat("eta_test_sigma", d.eta_test_sigma, minval=0.0),
-            slip_radial_sigma=section.getfloat("slip_radial_sigma", d.slip_radial_sigma, minval=0.0, maxval=1.0),
-            arc_position_sigma=section.getfloat("arc_position_sigma", d.arc_position_sigma, minval=0.0, maxval=0.1),
-        )
+        return read_options(cls, section)
 
 
 class ContactKfSettings:

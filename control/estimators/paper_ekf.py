@@ -8,29 +8,24 @@ import numpy as np
 from tecdard.control.estimators.base import CONSISTENCY_TAU_S, UNOBSERVED_STD_M, ContactEstimator, EstimatorSpec
 from tecdard.control.geometry import Plane, rotvec_to_matrix, skew
 from tecdard.control.measurements import Samples
+from tecdard.options import option, read_options
 
 
 @dataclass
 class PaperEkfParams:
-    """The paper's published tuning (Sec. III-C), per filter step; P[0] is not published (ours)."""
-    q_p: float = 1e-4      # alpha_p
-    q_v: float = 1e-3      # alpha_q
-    q_c: float = 1e-12     # alpha_c
-    m_p: float = 1e-5      # beta_p
-    m_v: float = 1e-5      # beta_v
-    p0_c: float = UNOBSERVED_STD_M ** 2
+    """The `estimator.paper_ekf` section: the paper's published tuning (Sec. III-C), per filter step; P[0] is
+    not published (ours)."""
+    q_p: float = option(1e-4, "the paper's alpha_p: process noise of the TCP position", minval=0.0)
+    q_v: float = option(1e-3, "the paper's alpha_q: process noise of the TCP velocity", minval=0.0)
+    q_c: float = option(1e-12, "the paper's alpha_c: process noise of the contact", minval=0.0)
+    m_p: float = option(1e-5, "the paper's beta_p: position measurement noise", above=0.0)
+    m_v: float = option(1e-5, "the paper's beta_v: velocity measurement noise", above=0.0)
+    p0_c: float = option(UNOBSERVED_STD_M ** 2, "the contact's prior variance (ours: the paper gives none)",
+                         unit="m^2", above=0.0)
 
     @classmethod
     def from_config(cls, section) -> "PaperEkfParams":
-        d = cls()
-        return cls(
-            q_p=section.getfloat("q_p", d.q_p, minval=0.0),
-            q_v=section.getfloat("q_v", d.q_v, minval=0.0),
-            q_c=section.getfloat("q_c", d.q_c, minval=0.0),
-            m_p=section.getfloat("m_p", d.m_p, above=0.0),
-            m_v=section.getfloat("m_v", d.m_v, above=0.0),
-            p0_c=section.getfloat("p0_c", d.p0_c, above=0.0),
-        )
+        return read_options(cls, section)
 
 
 class PaperEKF(ContactEstimator):

@@ -1,11 +1,11 @@
 /* The host board: the firmware's core, built natively against the LSM6DSR register model, streaming
  * tecdar-imu/1 to a pseudo-terminal (or a file) as a board streams to its USB-serial bridge. The MCU clock,
  * the chip's oscillator and the UART are modelled; the signal comes from a generator, a file, or stdin in
- * real time (the simulator's fingertip). This is how the tests put the real firmware code in the loop. */
+ * real time (the simulator's fingertip). This is how the tests put the real firmware code in the loop.
+ * Its options are options.c's, its signal sources signals.c's. */
 #define _GNU_SOURCE
 #include <errno.h>
 #include <fcntl.h>
-#include <getopt.h>
 #include <math.h>
 #include <poll.h>
 #include <signal.h>
@@ -17,53 +17,9 @@
 #include <time.h>
 #include <unistd.h>
 
-#include "../core/tfw_app.h"
-#include "../model/lsm6dsr_model.h"
+#include "host_board.h"
 
-#define TIMING_QUEUE 4096
-#define STDIN_RECORD_BYTES 12
 #define WANDER_PERIOD_S 300.0
-
-typedef struct {
-    const char *pty_link, *out_path, *signal_path, *gen, *counters_path, *timing_path;
-    double seconds, mcu_ppm, mcu_wander_ppm, chip_ppm, stall_every_s, stall_ms, linger_s, wait_open_s;
-    long uart_baud, poll_us, timing_every;
-    uint32_t t0_us;
-    int realtime, absent, st_fail, freq_fine;
-    int whoami;
-    int signal_gfs, signal_afs;
-    tfw_app_config cfg;
-} options;
-
-typedef struct {
-    int64_t end_offset;              /* the stream offset of the packet's last byte */
-    uint16_t seq;
-    uint8_t n;
-    uint32_t t0_us, first_in_us;
-    uint64_t first_sample;           /* its first sample's index in the stream */
-} pending_packet;
-
-typedef struct {
-    options o;
-    lsm_model chip;
-    tfw_app app;
-    int out_fd;
-    FILE *signal_file, *timing;
-    int64_t t_ns;                    /* true time since start */
-    int64_t start_mono_ns;
-    int64_t bytes_out;
-    double uart_credit;
-    uint64_t rng;
-    pending_packet q[TIMING_QUEUE];
-    unsigned q_head, q_len;
-    uint64_t stdin_records;
-    int stdin_eof;
-    uint8_t stdin_buf[STDIN_RECORD_BYTES * 256];
-    size_t stdin_fill;
-    int64_t max_latency_us;
-    double latency_sum_us;
-    uint64_t latency_n;
-} board;
 
 static volatile sig_atomic_t stop_requested;
 
@@ -86,88 +42,6 @@ static uint32_t mcu_us(const board *b, int64_t t_ns) {
     return b->o.t0_us + (uint32_t)(int64_t)floor(us);
 }
 
-static double noise(board *b) {
-    b->rng = b->rng * 6364136223846793005ULL + 1442695040888963407ULL;
-    return ((double)(b->rng >> 11) / 9007199254740992.0) - 0.5;
-}
-
-static void generator(void *ctx, int64_t t_ns, double g[3], double a[3]) {
-    board *b = ctx;
-    double t = (double)t_ns * 1e-9;
-    if (b->o.gen && strcmp(b->o.gen, "sine") == 0) {
-        g[0] = 100.0 * sin(2 * M_PI * 5.0 * t);
-        g[1] = 50.0 * cos(2 * M_PI * 3.0 * t);
-        g[2] = 10.0 * sin(2 * M_PI * 1.0 * t);
-        a[0] = 0.5 * sin(2 * M_PI * 7.0 * t);
-        a[1] = 0.25 * cos(2 * M_PI * 2.0 * t);
-        a[2] = 1.0 + 0.1 * sin(2 * M_PI * 11.0 * t);
-    } else {                         /* rest: gravity along +z and the noise of a chip at rest */
-        for (int k = 0; k < 3; k++) {
-            g[k] = 0.2 * noise(b);
-            a[k] = 0.004 * noise(b);
-        }
-        a[2] += 1.0;
-    }
-}
-
-static void raw_to_physical(const options *o, const uint8_t *p, double g[3], double a[3]) {
-    static const struct { int fs; double s; } GS[] = {{125, 4.375}, {250, 8.75}, {500, 17.5}, {1000, 35},
-                                                    {2000, 70}, {4000, 140}};
-    static const struct { int fs; double s; } AS[] = {{2, 0.061}, {4, 0.122}, {8, 0.244}, {16, 0.488}};
-    double gs = 140, as = 0.488;
-    for (size_t i = 0; i < 6; i++) {
-        if (GS[i].fs == o->signal_gfs) {
-            gs = GS[i].s;
-        }
-    }
-    for (size_t i = 0; i < 4; i++) {
-        if (AS[i].fs == o->signal_afs) {
-            as = AS[i].s;
-        }
-    }
-    for (int k = 0; k < 3; k++) {
-        g[k] = (int16_t)(p[2 * k] | (p[2 * k + 1] << 8)) * gs * 1e-3;
-        a[k] = (int16_t)(p[6 + 2 * k] | (p[7 + 2 * k] << 8)) * as * 1e-3;
-    }
-}
-
-static void from_file(void *ctx, int64_t t_ns, double g[3], double a[3]) {
-    board *b = ctx;
-    uint8_t rec[STDIN_RECORD_BYTES];
-    (void)t_ns;
-    if (fread(rec, 1, sizeof rec, b->signal_file) != sizeof rec) {
-        rewind(b->signal_file);      /* a signal file loops */
-        if (fread(rec, 1, sizeof rec, b->signal_file) != sizeof rec) {
-            memset(rec, 0, sizeof rec);
-        }
-    }
-    raw_to_physical(&b->o, rec, g, a);
-}
-
-/* push mode: every whole record on stdin is one sample of the chip, now */
-static void pump_stdin(board *b) {
-    for (;;) {
-        ssize_t r = read(STDIN_FILENO, b->stdin_buf + b->stdin_fill, sizeof b->stdin_buf - b->stdin_fill);
-        if (r == 0) {
-            b->stdin_eof = 1;
-            return;
-        }
-        if (r < 0) {
-            return;                  /* EAGAIN: nothing more now */
-        }
-        b->stdin_fill += (size_t)r;
-        size_t whole = b->stdin_fill / STDIN_RECORD_BYTES * STDIN_RECORD_BYTES;
-        for (size_t off = 0; off < whole; off += STDIN_RECORD_BYTES) {
-            double g[3], a[3];
-            raw_to_physical(&b->o, b->stdin_buf + off, g, a);
-            lsm_model_emit(&b->chip, g, a);
-            b->stdin_records++;
-        }
-        memmove(b->stdin_buf, b->stdin_buf + whole, b->stdin_fill - whole);
-        b->stdin_fill -= whole;
-    }
-}
-
 static int bus_transfer(void *ctx, const uint8_t *tx, uint8_t *rx, size_t n) {
     return lsm_model_transfer(&((board *)ctx)->chip, tx, rx, n);
 }
@@ -182,7 +56,7 @@ static void bus_delay(void *ctx, uint32_t us) {
         clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
     }
     if (b->o.signal_path && strcmp(b->o.signal_path, "-") == 0) {
-        pump_stdin(b);               /* push mode: the signal keeps coming while the firmware waits */
+        host_pump_stdin(b);               /* push mode: the signal keeps coming while the firmware waits */
     } else {
         lsm_model_advance(&b->chip, b->t_ns);
     }
@@ -281,101 +155,6 @@ static int wait_reader(int fd, double seconds) {
     return 0;
 }
 
-static void usage(FILE *f) {
-    fprintf(f,
-            "usage: host-board (--pty LINK | --out PATH|-) [options]\n"
-            "  --pty LINK          create a pseudo-terminal and link LINK to it\n"
-            "  --out PATH|-        write the stream to a file or stdout (no real time unless --realtime)\n"
-            "  --signal PATH|-     raw int16 gx gy gz ax ay az records (12 bytes, little-endian) at --signal-fs;\n"
-            "                      '-': from stdin, each record one chip sample as it arrives\n"
-            "  --signal-fs DPS,G   full scales of the signal's records (default 4000,16)\n"
-            "  --gen rest|sine     a generated signal (default rest)\n"
-            "  --seconds S         how long to stream, s (default: until stopped or stdin ends)\n"
-            "  --realtime          pace to the wall clock (always with --pty)\n"
-            "  --poll-us US        the firmware's poll period, us (default 250)\n"
-            "  --odr HZ --gyro-fs DPS --accel-fs G --batch N --deadline-us US --no-self-test\n"
-            "  --mcu-ppm PPM --mcu-wander-ppm PPM --chip-ppm PPM --freq-fine N --t0-us US\n"
-            "  --uart-baud BAUD    the UART's rate, 10 bits a byte (default 2000000)\n"
-            "  --stall-every S --stall-ms MS   the firmware stops polling MS ms every S s (forces FIFO overruns)\n"
-            "  --whoami 0xNN --absent --self-test-fail   a wrong part, no part, a failing self-test\n"
-            "  --counters PATH     the firmware's counters as JSON when it stops\n"
-            "  --timing PATH       a line per samples packet: its first sample's index, n, t0_us, and the true\n"
-            "                      time (ns) its last byte left the UART; --timing-every K: every Kth packet\n"
-            "  --wait-open S       with --pty: wait up to S s for a reader before starting\n"
-            "  --linger S          with --pty: keep the port open S s after the stream ends\n");
-}
-
-static int parse(int argc, char **argv, options *o) {
-    static const struct option opts[] = {
-        {"pty", 1, 0, 'p'}, {"out", 1, 0, 'o'}, {"signal", 1, 0, 's'}, {"signal-fs", 1, 0, 'F'},
-        {"gen", 1, 0, 'g'}, {"seconds", 1, 0, 'S'}, {"realtime", 0, 0, 'r'}, {"poll-us", 1, 0, 'P'},
-        {"odr", 1, 0, 'O'}, {"gyro-fs", 1, 0, 'G'}, {"accel-fs", 1, 0, 'A'}, {"batch", 1, 0, 'b'},
-        {"deadline-us", 1, 0, 'd'}, {"no-self-test", 0, 0, 'N'}, {"mcu-ppm", 1, 0, 'm'},
-        {"mcu-wander-ppm", 1, 0, 'w'}, {"chip-ppm", 1, 0, 'c'}, {"freq-fine", 1, 0, 'f'}, {"t0-us", 1, 0, 't'},
-        {"uart-baud", 1, 0, 'u'}, {"stall-every", 1, 0, 'E'}, {"stall-ms", 1, 0, 'M'}, {"whoami", 1, 0, 'W'},
-        {"absent", 0, 0, 'a'}, {"self-test-fail", 0, 0, 'x'}, {"counters", 1, 0, 'C'}, {"timing", 1, 0, 'T'}, {"timing-every", 1, 0, 'K'},
-        {"wait-open", 1, 0, 'L'}, {"linger", 1, 0, 'l'}, {"help", 0, 0, 'h'}, {0, 0, 0, 0}};
-    int c;
-    memset(o, 0, sizeof *o);
-    o->cfg = tfw_app_default_config();
-    o->uart_baud = 2000000;
-    o->poll_us = 250;
-    o->timing_every = 1;
-    o->whoami = 0x6B;
-    o->signal_gfs = 4000;
-    o->signal_afs = 16;
-    while ((c = getopt_long(argc, argv, "", opts, NULL)) != -1) {
-        switch (c) {
-        case 'p': o->pty_link = optarg; o->realtime = 1; break;
-        case 'o': o->out_path = optarg; break;
-        case 's': o->signal_path = optarg; break;
-        case 'F':
-            if (sscanf(optarg, "%d,%d", &o->signal_gfs, &o->signal_afs) != 2) {
-                fprintf(stderr, "host-board: --signal-fs: expected DPS,G such as 4000,16, got %s\n", optarg);
-                return -1;
-            }
-            break;
-        case 'g': o->gen = optarg; break;
-        case 'S': o->seconds = atof(optarg); break;
-        case 'r': o->realtime = 1; break;
-        case 'P': o->poll_us = atol(optarg); break;
-        case 'O': o->cfg.sensor.odr_hz = (uint16_t)atoi(optarg); break;
-        case 'G': o->cfg.sensor.gyro_fs_dps = (uint16_t)atoi(optarg); break;
-        case 'A': o->cfg.sensor.accel_fs_g = (uint8_t)atoi(optarg); break;
-        case 'b': o->cfg.samples_per_packet = (uint8_t)atoi(optarg); break;
-        case 'd': o->cfg.flush_deadline_us = (uint32_t)atol(optarg); break;
-        case 'N': o->cfg.self_test = 0; break;
-        case 'm': o->mcu_ppm = atof(optarg); break;
-        case 'w': o->mcu_wander_ppm = atof(optarg); break;
-        case 'c': o->chip_ppm = atof(optarg); break;
-        case 'f': o->freq_fine = atoi(optarg); break;
-        case 't': o->t0_us = (uint32_t)strtoul(optarg, NULL, 0); break;
-        case 'u': o->uart_baud = atol(optarg); break;
-        case 'E': o->stall_every_s = atof(optarg); break;
-        case 'M': o->stall_ms = atof(optarg); break;
-        case 'W': o->whoami = (int)strtol(optarg, NULL, 0); break;
-        case 'a': o->absent = 1; break;
-        case 'x': o->st_fail = 1; break;
-        case 'C': o->counters_path = optarg; break;
-        case 'T': o->timing_path = optarg; break;
-        case 'K': o->timing_every = atol(optarg) > 0 ? atol(optarg) : 1; break;
-        case 'L': o->wait_open_s = atof(optarg); break;
-        case 'l': o->linger_s = atof(optarg); break;
-        case 'h': usage(stdout); exit(0);
-        default: usage(stderr); return -1;
-        }
-    }
-    if (!o->pty_link == !o->out_path) {
-        fprintf(stderr, "host-board: give exactly one of --pty LINK and --out PATH\n");
-        return -1;
-    }
-    if (o->cfg.samples_per_packet < 1 || o->cfg.samples_per_packet > 64 || o->poll_us < 10 || o->uart_baud < 1200) {
-        fprintf(stderr, "host-board: --batch is 1..64, --poll-us at least 10, --uart-baud at least 1200\n");
-        return -1;
-    }
-    return 0;
-}
-
 static void write_counters(const board *b) {
     if (!b->o.counters_path) {
         return;
@@ -410,7 +189,7 @@ static void write_counters(const board *b) {
 
 int main(int argc, char **argv) {
     static board b;                  /* static: the model's FIFO and the app are a few tens of kB */
-    if (parse(argc, argv, &b.o)) {
+    if (host_options_parse(argc, argv, &b.o)) {
         return 2;
     }
     signal(SIGINT, on_signal);
@@ -437,10 +216,10 @@ int main(int argc, char **argv) {
             fprintf(stderr, "host-board: cannot read --signal %s: %s\n", b.o.signal_path, strerror(errno));
             return 2;
         }
-        b.chip.signal = from_file;
+        b.chip.signal = host_signal_from_file;
         b.chip.signal_ctx = &b;
     } else {
-        b.chip.signal = generator;
+        b.chip.signal = host_signal_generator;
         b.chip.signal_ctx = &b;
     }
     if (b.o.pty_link) {
@@ -489,7 +268,7 @@ int main(int argc, char **argv) {
             clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
         }
         if (push) {
-            pump_stdin(&b);
+            host_pump_stdin(&b);
         } else {
             lsm_model_advance(&b.chip, b.t_ns);
         }

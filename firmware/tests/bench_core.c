@@ -7,8 +7,8 @@
 #include <string.h>
 #include <time.h>
 
-#include "../core/tfw_app.h"
-#include "../model/lsm6dsr_model.h"
+#include "tfw_app.h"
+#include "lsm6dsr_model.h"
 
 #if defined(__x86_64__) || defined(__i386__)
 #include <x86intrin.h>

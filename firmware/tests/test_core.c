@@ -7,8 +7,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "../core/tfw_app.h"
-#include "../model/lsm6dsr_model.h"
+#include "tfw_app.h"
+#include "lsm6dsr_model.h"
 #include "unit.h"
 
 static const char *vector_dir;

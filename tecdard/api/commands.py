@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 from tecdard import verbs as task_verbs_registry
+from tecdard.options import option, read_options
 from tecdard.safejson import JsonLimitError, finite, is_number, loads, show, show_name
 from tecdard.verbs import REQUIRED, Field, TaskVerb
 
@@ -66,25 +67,36 @@ class CommandError(Exception):
 @dataclass
 class Limits:
     """Configured bounds that commands are checked against (SI)."""
-    max_speed: float = 0.05            # m/s
-    min_speed: float = 0.001           # m/s
-    max_rotation_deg: float = 90.0
-    max_probe_distance: float = 0.02   # m
-    default_speed: float = 0.02        # m/s
-    default_probe_distance: float = 0.005
-    default_direction: tuple = (0.0, 0.0, 1.0)
-    max_approach_distance: float = 0.2     # m
-    default_stop_angle_deg: float = 5.0
-    default_point_radius: float = 0.01     # m, circular probing
-    max_point_radius: float = 0.03         # m
-    max_point_turns: float = 5.0
-    default_map_size: tuple = (0.1, 0.1)   # m, x and y extent of a map region
-    max_map_size: float = 1.0              # m, per side
-    default_map_depth: float = 0.1         # m, deepest descent below the start height
-    max_map_depth: float = 0.4             # m
-    max_map_points: int = 400              # rows x cols
-    default_home_joint_speed_deg_s: float = 10.0   # home: the fastest joint's speed
-    max_home_joint_speed_deg_s: float = 20.0
+    max_speed: float = option(0.05, "the TCP's speed limit of every task", unit="m/s", above=0.0, maxval=0.5)
+    min_speed: float = option(0.001, "the slowest speed a task may ask (at most max_speed)", unit="m/s", above=0.0,
+                              maxval=0.5)
+    max_rotation_deg: float = option(90.0, "the largest rotation a task may ask", unit="deg", above=0.0,
+                                     maxval=180.0)
+    max_probe_distance: float = option(0.02, "the longest probe a task may ask", unit="m", above=0.0, maxval=0.1)
+    default_speed: float = option(0.02, "a task's speed when it gives none (at most max_speed)", unit="m/s",
+                                  above=0.0, maxval=0.5)
+    default_probe_distance: float = option(0.005, "a task's probe when it gives none (the paper's 5 mm of "
+                                                  "tangential probing)", unit="m", above=0.0)
+    default_direction: tuple = option((0.0, 0.0, 1.0), "a task's probe direction when it gives none, world",
+                                      kind="unitvec3")
+    max_approach_distance: float = option(0.2, "an approach never travels further", unit="m", above=0.0, maxval=1.0)
+    default_stop_angle_deg: float = option(5.0, "an approach finishes once the object has turned this much",
+                                           unit="deg", above=0.0, maxval=90.0)
+    default_point_radius: float = option(0.01, "point: the TCP's circle radius (the tool's tilt is radius / "
+                                               "length)", unit="m", above=0.0, maxval=0.1)
+    max_point_radius: float = option(0.03, "point: the largest circle radius", unit="m", above=0.0, maxval=0.1)
+    max_point_turns: float = option(5.0, "point: the most turns of the circle", minval=0.25, maxval=20.0)
+    default_map_size: tuple = option((0.1, 0.1), "map: the region's x and y extent (centred below the TCP)",
+                                     unit="m", minval=0.005, maxval=2.0)
+    max_map_size: float = option(1.0, "map: the largest extent, per side", unit="m", above=0.0, maxval=2.0)
+    default_map_depth: float = option(0.1, "map: a probe descends at most this far below the start height",
+                                      unit="m", above=0.0, maxval=1.0)
+    max_map_depth: float = option(0.4, "map: the deepest descent a map may ask", unit="m", above=0.0, maxval=1.0)
+    max_map_points: int = option(400, "map: the most grid points (rows x cols)", minval=1, maxval=10000)
+    default_home_joint_speed_deg_s: float = option(10.0, "home: the fastest joint's speed (the TCP stays under "
+                                                         "max_speed)", unit="deg/s", minval=1.0, maxval=90.0)
+    max_home_joint_speed_deg_s: float = option(20.0, "home: the fastest joint speed a task may ask", unit="deg/s",
+                                               minval=1.0, maxval=90.0)
 
     @property
     def default_map_speed(self) -> float:
@@ -111,36 +123,11 @@ class Limits:
 
     @classmethod
     def _read(cls, section) -> "Limits":
-        d = cls()
-        max_speed = section.getfloat("max_speed", d.max_speed, above=0.0, maxval=0.5)
-        return cls(
-            max_speed=max_speed,
-            min_speed=section.getfloat("min_speed", d.min_speed, above=0.0, maxval=max_speed),
-            max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=180.0),
-            max_probe_distance=section.getfloat("max_probe_distance", d.max_probe_distance, above=0.0, maxval=0.1),
-            default_speed=section.getfloat("default_speed", d.default_speed, above=0.0, maxval=max_speed),
-            default_probe_distance=section.getfloat("default_probe_distance", d.default_probe_distance, above=0.0),
-            default_direction=tuple(section.getvec3("default_direction", list(d.default_direction), unit=True)),
-            max_approach_distance=section.getfloat("max_approach_distance", d.max_approach_distance, above=0.0,
-                                                   maxval=1.0),
-            default_stop_angle_deg=section.getfloat("default_stop_angle_deg", d.default_stop_angle_deg, above=0.0,
-                                                    maxval=90.0),
-            default_point_radius=section.getfloat("default_point_radius", d.default_point_radius, above=0.0,
-                                                  maxval=0.1),
-            max_point_radius=section.getfloat("max_point_radius", d.max_point_radius, above=0.0, maxval=0.1),
-            max_point_turns=section.getfloat("max_point_turns", d.max_point_turns, minval=0.25, maxval=20.0),
-            default_map_size=tuple(section.getfloats("default_map_size", list(d.default_map_size), n=2,
-                                                     minval=0.005, maxval=2.0)),
-            max_map_size=section.getfloat("max_map_size", d.max_map_size, above=0.0, maxval=2.0),
-            default_map_depth=section.getfloat("default_map_depth", d.default_map_depth, above=0.0, maxval=1.0),
-            max_map_depth=section.getfloat("max_map_depth", d.max_map_depth, above=0.0, maxval=1.0),
-            max_map_points=section.getint("max_map_points", d.max_map_points, minval=1, maxval=10000),
-            default_home_joint_speed_deg_s=section.getfloat("default_home_joint_speed_deg_s",
-                                                            d.default_home_joint_speed_deg_s, minval=1.0,
-                                                            maxval=90.0),
-            max_home_joint_speed_deg_s=section.getfloat("max_home_joint_speed_deg_s", d.max_home_joint_speed_deg_s,
-                                                        minval=1.0, maxval=90.0),
-        )
+        limits = read_options(cls, section)
+        for key in ("min_speed", "default_speed"):        # bounded by max_speed as read
+            if getattr(limits, key) > limits.max_speed:
+                raise section.error(key, f"{getattr(limits, key)} is above the maximum {limits.max_speed}")
+        return limits
 
 
 # The limits key that holds each field's default.

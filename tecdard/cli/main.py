@@ -70,7 +70,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
     from tecdard.tools import (calibrate, demo, doctor, export, fake_board, imu, kernel_cache, localize, plot,
                                sim_record)
-    from tecdard.cli import episodes, fleet, router
+    from tecdard.cli import episodes, fleet, options, router
     argv = argv or []
     limits, note = None, ""
     if ("-h" in argv or "--help" in argv) and argv and argv[0] in verb_options():
@@ -78,16 +78,25 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     top = OneLineParser(prog="tecdard", description="Transient extrinsic contact detection and ranging daemon")
     top.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = top.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("run", help="run the daemon")
-    p.add_argument("--config", required=True, help="YAML configuration file")
+    wants_help = "-h" in argv or "--help" in argv
+    p = sub.add_parser("run", help="run the daemon", formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog=run_epilog() if wants_help and argv[:1] == ["run"] else None)
+    p.add_argument("--config", required=True, help="YAML configuration file (its options: `tecdard options`, "
+                                                   "and below with --help)")
     p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7507)")
     p.set_defaults(func=_cmd_run)
     for tool in (localize, plot, export, calibrate, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
-    for tool in (doctor, kernel_cache, demo, fleet, router, episodes):
+    for tool in (doctor, kernel_cache, demo, options, fleet, router, episodes):
         tool.add_parser(sub)
     return top
+
+
+def run_epilog() -> str:
+    """`tecdard run --help`'s end: every config option with its default, unit and limits."""
+    from tecdard.cli.options import text
+    return "config options (section.key = default unit (limits): what it does):\n" + text()
 
 
 def warm_parser() -> argparse.ArgumentParser:

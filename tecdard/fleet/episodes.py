@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tecdard.options import option, read_options
 from tecdard.safejson import first_line, show
 
 log = logging.getLogger("tecdar.episodes")
@@ -61,26 +62,24 @@ class StoreParams:
     service's endpoint (MinIO, Ceph; "" AWS), its region, plain HTTP (a lab's MinIO without TLS), whether
     the daemon uploads (its uploader thread) and adds an MCAP beside each recording. Credentials come
     from the environment (AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY: the unit's EnvironmentFile=)."""
-    url: str = ""
-    endpoint: str = ""
-    region: str = ""
-    allow_http: bool = False
-    upload: bool = True
-    mcap: bool = True
-    retry_max_s: float = 60.0
+    url: str = option("", "where episodes go: file:///srv/tecdar/episodes or s3://bucket/prefix; \"\": none",
+                      max_len=1024)
+    endpoint: str = option("", "an S3-compatible service's URL (MinIO, Ceph); \"\": AWS", max_len=1024)
+    region: str = option("", "the S3 region", max_len=64)
+    allow_http: bool = option(False, "plain HTTP to the endpoint (a lab's MinIO without TLS)")
+    upload: bool = option(True, "the daemon uploads each recording written (with a url); `tecdard episodes sync` "
+                                "uploads by hand")
+    mcap: bool = option(True, "an MCAP beside each recording (tecdard export's)")
+    retry_max_s: float = option(60.0, "back-off while the store is away, from 1 s doubling to this", unit="s",
+                                minval=1.0, maxval=3600.0)
 
     @classmethod
     def from_config(cls, section) -> "StoreParams":
-        d = cls()
-        url = section.getstr("url", d.url, max_len=1024)
-        problem = url_problem(url) if url else None
+        params = read_options(cls, section)
+        problem = url_problem(params.url) if params.url else None
         if problem:
             raise section.error("url", problem)
-        return cls(url=url, endpoint=section.getstr("endpoint", d.endpoint, max_len=1024),
-                   region=section.getstr("region", d.region, max_len=64),
-                   allow_http=section.getbool("allow_http", d.allow_http), upload=section.getbool("upload", d.upload),
-                   mcap=section.getbool("mcap", d.mcap),
-                   retry_max_s=section.getfloat("retry_max_s", d.retry_max_s, minval=1.0, maxval=3600.0))
+        return params
 
 
 def url_problem(url: str) -> str | None:

@@ -27,6 +27,7 @@ from tecdard.api import commands as C
 from tecdard import verbs
 from tecdard.runtime.messages import Cancel, LatestValue, Outbox, Reply, StartTask, Stop
 from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
+from tecdard.options import option, read_options
 from tecdard.safejson import show_name
 
 log = logging.getLogger("tecdar.control")
@@ -39,42 +40,34 @@ IMU_RATE_WINDOW_S = 1.0       # state.imu.rate_hz: the samples the ring took ove
 
 @dataclass
 class ControlParams:
-    tick_s: float = 0.02
-    max_speed: float = 0.05
-    max_accel: float = 0.5
-    max_jerk: float = 5.0
-    workspace_min: tuple = (-1.0, -1.0, 0.0)
-    workspace_max: tuple = (1.0, 1.0, 1.5)
-    imu_stale_s: float = 0.05
-    max_tracking_error_m: float = 0.01
-    max_force_n: float = 15.0          # protective stop above this force on the TCP
-    max_rotation_deg: float = 95.0     # protective stop when the object has turned more than this
-    max_nis_ratio: float = 10.0        # protective stop when the estimator's smoothed NIS ratio exceeds this
-    max_contact_jump_m: float = 0.02   # protective stop when a converged estimate moves this far in one tick
-    rt_priority: int | None = None     # SCHED_FIFO priority of the control thread, where the host allows it
+    """The `control` section: the control loop, its motion limits, and the protective stops."""
+    tick_s: float = option(0.02, "the control loop's period", unit="s", minval=0.002, maxval=0.1)
+    max_speed: float = 0.05            # limits.max_speed (m/s), given
+    max_accel: float = option(0.5, "the TCP's acceleration limit (Ruckig)", unit="m/s^2", above=0.0, maxval=10.0)
+    max_jerk: float = option(5.0, "the TCP's jerk limit (Ruckig)", unit="m/s^3", above=0.0, maxval=500.0)
+    workspace_min: tuple = option((-1.0, -1.0, 0.0), "the workspace box's lower corner, world", unit="m",
+                                  minval=-WORKSPACE_MAX_M, maxval=WORKSPACE_MAX_M)
+    workspace_max: tuple = option((1.0, 1.0, 1.5), "the workspace box's upper corner, world", unit="m",
+                                  minval=-WORKSPACE_MAX_M, maxval=WORKSPACE_MAX_M)
+    imu_stale_s: float = option(0.05, "protective stop when no IMU sample came for this long", unit="s", above=0.0,
+                                maxval=1.0)
+    max_tracking_error_m: float = option(0.01, "protective stop when the TCP lags its plan by more", unit="m",
+                                         above=0.0, maxval=0.1)
+    max_force_n: float = option(15.0, "protective stop above this contact force on the TCP", unit="N", above=0.0,
+                                maxval=200.0)
+    max_rotation_deg: float = option(95.0, "protective stop when the held object has turned more than this",
+                                     unit="deg", above=0.0, maxval=360.0)
+    max_nis_ratio: float = option(10.0, "protective stop when the estimator's innovations exceed their expected "
+                                        "size this much (smoothed NIS ratio)", above=1.0)
+    max_contact_jump_m: float = option(0.02, "protective stop when a converged contact estimate moves this far in "
+                                             "one tick", unit="m", above=0.0, maxval=1.0)
+    rt_priority: int | None = option(None, "SCHED_FIFO priority of the control thread where the host allows it "
+                                           "(`tecdard doctor`); none: the default scheduler", kind="optint",
+                                     minval=1, maxval=MAX_RT_PRIORITY)
 
     @classmethod
     def from_config(cls, section, max_speed: float) -> "ControlParams":
-        d = cls()
-        p = cls(
-            tick_s=section.getfloat("tick_s", d.tick_s, minval=0.002, maxval=0.1),
-            max_speed=max_speed,
-            max_accel=section.getfloat("max_accel", d.max_accel, above=0.0, maxval=10.0),
-            max_jerk=section.getfloat("max_jerk", d.max_jerk, above=0.0, maxval=500.0),
-            workspace_min=tuple(section.getfloats("workspace_min", list(d.workspace_min), n=3, minval=-WORKSPACE_MAX_M,
-                                                  maxval=WORKSPACE_MAX_M)),
-            workspace_max=tuple(section.getfloats("workspace_max", list(d.workspace_max), n=3, minval=-WORKSPACE_MAX_M,
-                                                  maxval=WORKSPACE_MAX_M)),
-            imu_stale_s=section.getfloat("imu_stale_s", d.imu_stale_s, above=0.0, maxval=1.0),
-            max_tracking_error_m=section.getfloat("max_tracking_error_m", d.max_tracking_error_m, above=0.0,
-                                                  maxval=0.1),
-            max_force_n=section.getfloat("max_force_n", d.max_force_n, above=0.0, maxval=200.0),
-            max_rotation_deg=section.getfloat("max_rotation_deg", d.max_rotation_deg, above=0.0, maxval=360.0),
-            max_nis_ratio=section.getfloat("max_nis_ratio", d.max_nis_ratio, above=1.0),
-            max_contact_jump_m=section.getfloat("max_contact_jump_m", d.max_contact_jump_m, above=0.0, maxval=1.0),
-            rt_priority=(section.getint("rt_priority", 0, minval=1, maxval=MAX_RT_PRIORITY)
-                         if section.has("rt_priority") else None),
-        )
+        p = read_options(cls, section, max_speed=max_speed)
         if any(lo >= hi for lo, hi in zip(p.workspace_min, p.workspace_max)):
             raise section.error("workspace_min", "must be below workspace_max on every axis")
         return p

@@ -21,6 +21,7 @@ from tecdard.control.geometry import quat_to_matrix
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.drivers.ring import SampleRing
 from tecdard.host import name_os_thread
+from tecdard.options import read_options
 from tecdard.safejson import show
 from tecdard.robots import backends
 from tecdard.robots.model import READY_Q, ArmModel, UnknownRobotError
@@ -34,6 +35,7 @@ from tecdard.fleet.episodes import StoreParams
 from tecdard.runtime.network import RouterLink, ZenohSettings, renice_zenoh_threads
 from tecdard.runtime.realtime import GIL_THREAD_NICE, raise_gil_threads
 from tecdard.runtime.recorder import Recorder, RecordParams, config_digest
+from tecdard.runtime.rig_options import MAX_TOOL_OFFSET_M, ImuOptions, RobotOptions
 from tecdard.runtime.sdnotify import Notifier
 from tecdard.runtime.threads import ThreadUsage, WakeStats
 from tecdard.runtime.workers import (REST_BATCH_FACTOR, VIEWED_REST_BATCH_FACTOR, EstimatorThread, ProprioFeed,
@@ -50,8 +52,6 @@ SHUTDOWN_GRACE_S = 3.0         # on SIGTERM: this long for the arm to stop, a ma
 RECORDER_JOIN_S = 1.0          # then the recorder's thread this long more (the unit's TimeoutStopSec: 5 s)
 GIL_SWITCH_INTERVAL_S = 0.001
 IMU_WARM_TIMEOUT_S = 5.0       # READY waits at most this long for the onset detector's warm-up
-MAX_ROBOT_NAME_CHARS = 64      # the name is a chunk of every key expression
-MAX_TOOL_OFFSET_M = 0.5        # flange -> TCP; anything longer is a typo (mm for m), not a tool
 
 
 def _named(name: str, body):
@@ -70,9 +70,10 @@ class Daemon:
 
     def __init__(self, cfg: Config, listen: list[str] | None = None):
         robot = cfg.section("robot")
-        backend_name = robot.getstr("backend", "sim", choices=backends.names())
+        own = read_options(RobotOptions, robot, q_home=None)
+        backend_name = own.backend
         declared = backends.declared(backend_name)      # what it can do, before it is built
-        self._read_robot(robot, declared.sends_home)
+        self._read_robot(robot, own, declared.sends_home)
         self.zenoh = ZenohSettings.from_config(cfg.section("zenoh"), listen)
         self.limits = C.Limits.from_config(cfg.section("limits"))
         self.control_params = ControlParams.from_config(cfg.section("control"), self.limits.max_speed)
@@ -80,8 +81,8 @@ class Daemon:
             self._check_home(robot)
         self.services = verbs.services(cfg)
         imu = cfg.section("imu")
-        ring_capacity = imu.getint("ring_capacity", 65536, minval=1024, maxval=1 << 22)
-        mount = imu.getquat("imu_in_tcp_quat", [0.0, 0.0, 0.0, 1.0])
+        imu_own = read_options(ImuOptions, imu, source="")
+        ring_capacity, mount = imu_own.ring_capacity, list(imu_own.imu_in_tcp_quat)
         self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home, mount,
                                                                             self.control_params.tick_s))
         self.robot = self.backend
@@ -119,23 +120,21 @@ class Daemon:
         topic = self.backend.topic_state
         return topic if topic is not None and topic.door == "ros2" else None
 
-    def _read_robot(self, robot, sends_home: bool) -> None:
-        """The `robot` section's own options: name, arm model and tool, home posture (`sends_home`: the
-        backend sends the arm there, so it must be given)."""
-        self.robot_name = robot.getstr("name", "sim", max_len=MAX_ROBOT_NAME_CHARS)
+    def _read_robot(self, robot, own: RobotOptions, sends_home: bool) -> None:
+        """The `robot` section's own options (`own`, as read): name, arm model and tool, home posture
+        (`sends_home`: the backend sends the arm there, so it must be given)."""
+        self.robot_name = own.name
         if not self.robot_name or not self.robot_name.replace("_", "").replace("-", "").isalnum() \
                 or not self.robot_name.isascii():
             raise robot.error("name", f"{self.robot_name!r} must be ASCII letters, digits, '-' or '_'")
-        model_name = robot.getstr("model", "panda", max_len=64)
-        urdf = robot.getstr("urdf", "", max_len=4096) or None
-        tcp_link = robot.getstr("tcp_link", "", max_len=200) or None
+        model_name, urdf, tcp_link = own.model, own.urdf, own.tcp_link
         if tcp_link is not None and urdf is None:
             raise robot.error("tcp_link", "only with robot.urdf (an arm of robot.model has its own flange)")
-        tool_offset = robot.getvec3("tool_offset", [0.0, 0.0, 0.0])
+        tool_offset = list(own.tool_offset)
         if np.linalg.norm(tool_offset) > MAX_TOOL_OFFSET_M:
             raise robot.error("tool_offset", f"{np.linalg.norm(tool_offset):.3g} m from the flange, at most "
                                              f"{MAX_TOOL_OFFSET_M} m")
-        tool_quat = robot.getquat("tool_quat", [0.0, 0.0, 0.0, 1.0])
+        tool_quat = list(own.tool_quat)
         try:
             self.model = ArmModel(model_name if urdf is None else f"urdf:{pathlib.Path(urdf).name}", tool_offset,
                                   tool_quat, urdf=urdf, tcp_link=tcp_link)

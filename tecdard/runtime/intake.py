@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import zenoh
 
 from tecdard.api import commands as C
+from tecdard.options import option, read_options
 from tecdard.runtime.messages import Cancel, Reply, StartTask, Stop
 from tecdard.safejson import show_name
 from tecdard.api.session import JSON, Keys, dumps
@@ -50,17 +51,18 @@ LOG_REFUSALS_PER_S = 5         # refusals logged one by one per second; the rest
 @dataclass
 class IntakeParams:
     """Queries parsed per second, sustained and in a burst, per class (a large payload counts more)."""
-    max_task_rate_hz: float = 20.0
-    max_status_rate_hz: float = 100.0
-    max_other_rate_hz: float = 20.0
-    max_record_rate_hz: float = 10.0
+    max_task_rate_hz: float = option(20.0, "task commands parsed per second (+1 per KiB of payload); more get "
+                                           "rate_limited", unit="Hz", minval=1.0, maxval=10000.0)
+    max_status_rate_hz: float = option(100.0, "status queries parsed per second", unit="Hz", minval=1.0,
+                                       maxval=10000.0)
+    max_other_rate_hz: float = option(20.0, "other keys under cmd/ (unknown verbs) parsed per second", unit="Hz",
+                                      minval=1.0, maxval=10000.0)
+    max_record_rate_hz: float = option(10.0, "record queries parsed per second (each may write a file)", unit="Hz",
+                                       minval=1.0, maxval=10000.0)
 
     @classmethod
     def from_config(cls, section) -> "IntakeParams":
-        d = cls()
-        return cls(**{name: section.getfloat(name, getattr(d, name), minval=1.0, maxval=10000.0)
-                      for name in ("max_task_rate_hz", "max_status_rate_hz", "max_other_rate_hz",
-                                   "max_record_rate_hz")})
+        return read_options(cls, section)
 
     def rate(self, klass: str) -> float:
         return {"task": self.max_task_rate_hz, "status": self.max_status_rate_hz,

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tecdard.options import option, read_options
 from tecdard.runtime.messages import Inbox
 from tecdard.runtime.view_gate import ViewerGate, backlog_messages
 
@@ -32,21 +33,19 @@ QUEUE_ITEMS = 2048            # passes and events waiting (10 s of passes)
 
 @dataclass(frozen=True)
 class VizParams:
-    enabled: bool = False
-    host: str = "127.0.0.1"      # loopback: another machine reaches it through an SSH tunnel, or set the host
-    port: int = 8765             # Foxglove's usual
-    max_viewers: int = 4         # more are turned away (503)
-    viewer_buffer_mb: float = 2.0    # what may wait for one viewer; a slow one loses its oldest frames
+    """The `viz.foxglove` section: the live view, a Foxglove WebSocket server."""
+    enabled: bool = option(False, "serve the live view")
+    host: str = option("127.0.0.1", "the address it listens on: loopback (another machine: an SSH tunnel, or this "
+                                    "host's address)", max_len=253)
+    port: int = option(8765, "its TCP port (Foxglove's usual)", minval=1, maxval=65535)
+    max_viewers: int = option(4, "viewers at once; more are turned away (503)", minval=1, maxval=64)
+    viewer_buffer_mb: float = option(2.0, "what may wait for one viewer; a slow one loses its oldest frames",
+                                     unit="MB", minval=0.25, maxval=64.0)
 
     @classmethod
     def from_config(cls, section) -> "VizParams":
         from tecdard.config import ConfigError
-        d = cls()
-        params = cls(enabled=section.getbool("enabled", d.enabled), host=section.getstr("host", d.host, max_len=253),
-                     port=section.getint("port", d.port, minval=1, maxval=65535),
-                     max_viewers=section.getint("max_viewers", d.max_viewers, minval=1, maxval=64),
-                     viewer_buffer_mb=section.getfloat("viewer_buffer_mb", d.viewer_buffer_mb, minval=0.25,
-                                                       maxval=64.0))
+        params = read_options(cls, section)
         if params.enabled:
             try:
                 import foxglove  # noqa: F401

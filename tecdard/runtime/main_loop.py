@@ -35,9 +35,9 @@ class FrontDoor:
     Zenoh API's keys (ZenohDoor), the ROS 2 node (runtime.ros2_node.Ros2Node). Every method runs on the
     main thread; replies go back through the command intake that every door hands its requests to."""
 
-    def poll(self, now: float) -> bool:
-        """Take the requests that wait (into the intake); True if there were any."""
-        return False
+    def poll(self, now: float) -> int:
+        """Take the requests that wait (into the intake): how many."""
+        return 0
 
     def on_telemetry(self, kind: str, body: dict, text: str) -> None:
         """One state, contact or event message (`text`: its JSON), in the order published."""
@@ -53,7 +53,7 @@ class ZenohDoor(FrontDoor):
         self.intake = intake
         self.pub = {"state": pub_state, "contact": pub_contact, "event": pub_events}
 
-    def poll(self, now: float) -> bool:
+    def poll(self, now: float) -> int:
         return self.intake.poll(now)
 
     def on_telemetry(self, kind: str, body: dict, text: str) -> None:

@@ -7,12 +7,43 @@ from dataclasses import dataclass
 
 from tecdard.api.session import (DAEMON_MAX_MESSAGE_BYTES, DAEMON_NAME, DEFAULT_ENDPOINT, Keys, TlsFiles,
                                  access_control, cert_common_name, endpoint_problem, session_config)
+from tecdard.options import option, read_options
 from tecdard.runtime.intake import IntakeParams
 from tecdard.safejson import first_line, show
 
 MAX_ENDPOINT_CHARS = 256
 ROUTER_CHECK_S = 0.25          # a client-mode daemon looks this often whether a router still connects it
 ZENOH_THREAD_NICE = 5          # Zenoh's network threads run this much nicer than the daemon's own
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """The `zenoh` section's own options (its rates are IntakeParams', its security SecurityOptions')."""
+    mode: str = option("peer", "peer: listens for clients itself (and may connect to a router too); client: "
+                               "reaches everything through the routers in connect", choices=("peer", "client"))
+    listen: list = option([DEFAULT_ENDPOINT], "endpoints it listens on (not 7447: zenohd's and rmw_zenohd's router "
+                                              "port); `--listen` overrides", kind="custom",
+                          shown=f'["{DEFAULT_ENDPOINT}"] (peer), [] (client)')
+    connect: list = option([], "routers it connects to, e.g. [\"tcp/127.0.0.1:7447\"] (the host's rmw_zenohd)",
+                           kind="strs", max_len=MAX_ENDPOINT_CHARS, max_items=16)
+    multicast_scouting: bool = option(False, "scout for peers by multicast (off: it reaches only the endpoints "
+                                             "named)")
+
+
+@dataclass(frozen=True)
+class SecurityOptions:
+    """Who may command: the `zenoh` section's (a router's too), beside zenoh.tls (TlsOptions)."""
+    commanders: list = option([], "certificate common names that may send commands (with zenoh.tls); others only "
+                                  "watch; left out: every authenticated peer", kind="strs", max_len=256,
+                              max_items=64)
+
+
+@dataclass(frozen=True)
+class TlsOptions:
+    """The `zenoh.tls` section: mutual TLS (docs/zenoh-api.md); with it every endpoint must be tls/."""
+    ca: str = option("", "every peer's certificate must be signed by this CA (PEM)", required=True, max_len=4096)
+    cert: str = option("", "this side's certificate (PEM)", required=True, max_len=4096)
+    key: str = option("", "its private key (PEM)", required=True, max_len=4096)
 
 
 @dataclass(frozen=True)
@@ -30,12 +61,11 @@ class ZenohSettings:
     @classmethod
     def from_config(cls, section, listen: list[str] | None = None) -> "ZenohSettings":
         """The `zenoh` section; `listen` (the command line's --listen) overrides zenoh.listen."""
-        mode = section.getstr("mode", "peer", choices=("peer", "client"))
+        o = read_options(ZenohOptions, section, listen=[])
+        mode, connect, multicast = o.mode, o.connect, o.multicast_scouting
         configured = section.getstrlist("listen", [DEFAULT_ENDPOINT] if mode == "peer" else [],
                                         max_len=MAX_ENDPOINT_CHARS, max_items=16)
         listen = listen if listen is not None else configured
-        connect = section.getstrlist("connect", [], max_len=MAX_ENDPOINT_CHARS, max_items=16)
-        multicast = section.getbool("multicast_scouting", False)
         if mode == "client" and listen:
             raise section.error("listen", "a Zenoh client listens on nothing; leave it out with mode: client")
         if mode == "client" and not connect:
@@ -88,9 +118,10 @@ def _security(section, endpoints: list[str]) -> tuple[TlsFiles | None, list[str]
     tls = None
     if section.has("tls"):
         sec = section.section("tls")
+        tls_options = read_options(TlsOptions, sec)
         files = {}
         for key in ("ca", "cert", "key"):
-            path = sec.getstr(key)
+            path = getattr(tls_options, key)
             try:
                 with open(path, "rb") as fh:
                     if b"-----BEGIN" not in fh.read(64 * 1024):
@@ -105,7 +136,7 @@ def _security(section, endpoints: list[str]) -> tuple[TlsFiles | None, list[str]
                                                   "endpoint must be, or unauthenticated peers get in beside it")
     elif any(ep.startswith("tls/") for ep in endpoints):
         raise section.error("tls", "a tls/ endpoint needs zenoh.tls (ca, cert, key)")
-    commanders = section.getstrlist("commanders", [], max_len=256, max_items=64)
+    commanders = read_options(SecurityOptions, section).commanders
     if commanders and tls is None:
         raise section.error("commanders", "needs zenoh.tls (the names are certificates' common names)")
     if section.has("commanders") and not commanders:

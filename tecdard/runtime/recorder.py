@@ -46,6 +46,7 @@ import numpy as np
 
 from tecdard.control.geometry import matrix_to_quat
 from tecdard.api import commands as C
+from tecdard.options import option, read_options
 from tecdard.runtime.intake import TokenBucket
 from tecdard.runtime.messages import Inbox
 from tecdard.fleet.episodes import UPLOADED_SUFFIX
@@ -82,31 +83,28 @@ def default_dir() -> str:
 @dataclass(frozen=True)
 class RecordParams:
     """The `record` config section."""
-    enabled: bool = False                 # every contact episode is written
-    dir: str = field(default_factory=default_dir)
-    pre_onset_s: float = 1.0              # the buffer kept before an onset (or a `record start`)
-    max_mb: float = 2000.0                # the recordings directory's budget: the oldest go first
-    keep_free_mb: float | None = None     # free space kept on the filesystem; None: journald's default
-    max_on_demand_per_min: float = 2.0    # captures on demand started per minute, after a burst of ...
-    max_on_demand_burst: int = 10         # ... this many
-    checkpoint_s: float = CHECKPOINT_S    # an open capture is written this often
-    max_idle_capture_s: float = 10.0      # a capture with no task (an onset at rest) is closed after this
+    enabled: bool = option(False, "every contact episode as a tecdar-recording/1 file (`record` captures on "
+                                  "demand either way)")
+    dir: str = option(default_dir, "where the recordings go", shown="$STATE_DIRECTORY/recordings under systemd, "
+                                                                    "else ~/.local/state/tecdar/recordings")
+    pre_onset_s: float = option(1.0, "the buffer kept before an onset (or a `record start`)", unit="s", minval=0.0,
+                                maxval=10.0)
+    max_mb: float = option(2000.0, "the daemon's own recordings' budget: its oldest go first (each logged)",
+                           unit="MB", above=0.0, maxval=1e7)
+    keep_free_mb: float | None = option(None, "free space always left on the filesystem; none: 15 % of it, at most "
+                                              "4 GiB", unit="MB", kind="optfloat", minval=0.0, maxval=1e7)
+    max_on_demand_per_min: float = option(2.0, "captures on demand started per minute, after a burst of "
+                                               "max_on_demand_burst (rate_limited beyond)", above=0.0, maxval=600.0)
+    max_on_demand_burst: int = option(10, "captures on demand in a row before the per-minute rate holds",
+                                      minval=1, maxval=1000)
+    checkpoint_s: float = option(CHECKPOINT_S, "an open capture is written this often (what a SIGKILL can cost)",
+                                 unit="s", minval=1.0, maxval=MAX_CAPTURE_S)
+    max_idle_capture_s: float = option(10.0, "a capture with no task running (an onset at rest) is closed after "
+                                             "this", unit="s", minval=0.5, maxval=MAX_CAPTURE_S)
 
     @classmethod
     def from_config(cls, section) -> "RecordParams":
-        d = cls()
-        params = cls(enabled=section.getbool("enabled", False),
-                     dir=section.getstr("dir", default_dir()),
-                     pre_onset_s=section.getfloat("pre_onset_s", d.pre_onset_s, minval=0.0, maxval=10.0),
-                     max_mb=section.getfloat("max_mb", d.max_mb, above=0.0, maxval=1e7),
-                     keep_free_mb=section.getoptfloat("keep_free_mb", None, minval=0.0, maxval=1e7),
-                     max_on_demand_per_min=section.getfloat("max_on_demand_per_min", d.max_on_demand_per_min,
-                                                            above=0.0, maxval=600.0),
-                     max_on_demand_burst=section.getint("max_on_demand_burst", d.max_on_demand_burst, minval=1,
-                                                        maxval=1000),
-                     checkpoint_s=section.getfloat("checkpoint_s", d.checkpoint_s, minval=1.0, maxval=MAX_CAPTURE_S),
-                     max_idle_capture_s=section.getfloat("max_idle_capture_s", d.max_idle_capture_s, minval=0.5,
-                                                         maxval=MAX_CAPTURE_S))
+        params = read_options(cls, section)
         try:
             ensure_writable_dir(params.dir, "dir")
         except OutputError as exc:

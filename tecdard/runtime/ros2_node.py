@@ -13,6 +13,7 @@ callback, as the Zenoh `stop` is.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -23,6 +24,7 @@ import numpy as np
 import zenoh
 
 from tecdard import verbs as task_verbs
+from tecdard.options import option, read_options
 from tecdard.ros2 import messages as M
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
@@ -55,42 +57,37 @@ CONTROL_LATE_WARN_MS = 5.0              # diagnostics: a control tick this late 
 
 @dataclass(frozen=True)
 class Ros2Params:
-    """The `ros2` section."""
-    enabled: bool = False
-    distro: str = "kilted"
-    domain_id: int = 0
-    namespace: str = ""
-    node_name: str = "tecdard"
-    base_frame: str = "base_link"
-    tcp_frame: str = "tcp"
-    imu_frame: str = "fingertip_imu"
-    imu_rate_hz: float = 1000.0
-    joint_states: str = "/joint_states"
+    """The `ros2` section: the daemon as a ROS 2 node over rmw_zenoh (docs/ros2.md)."""
+    enabled: bool = option(False, "the node declares its topics and services")
+    distro: str = option("kilted", "the ROS 2 distribution (the type hash in every key)", choices=DISTROS)
+    domain_id: int = option(0, "ROS_DOMAIN_ID", minval=0, maxval=232)
+    namespace: str = option("", "the node's namespace; \"\": /ROBOT_NAME (robot.name, a '-' in it as '_')", max_len=200)
+    node_name: str = option("tecdard", "the node's name", max_len=100)
+    base_frame: str = option("base_link", "frame_id of every position in the robot's base frame", max_len=200)
+    tcp_frame: str = option("tcp", "the TCP's tf2 frame", max_len=200)
+    imu_frame: str = option("fingertip_imu", "the fingertip IMU's tf2 frame", max_len=200)
+    imu_rate_hz: float = option(1000.0, "the fingertip IMU republished, block-averaged; 0: not published",
+                                unit="Hz", minval=0.0, maxval=10000.0)
+    joint_states: str = option("/joint_states", "the topic robot.backend ros2 reads the arm's joint states from",
+                               max_len=200)
 
     @classmethod
     def from_config(cls, section, robot: str) -> "Ros2Params":
-        d = cls()
+        p = read_options(cls, section)
         # by default the robot's name, made a ROS 2 name: a fleet's `ur5e-left` is /ur5e_left
-        namespace = section.getstr("namespace", "", max_len=200) or "/" + _ros_chunk(robot)
+        namespace = p.namespace or "/" + _ros_chunk(robot)
         if namespace != "/" and (not namespace.startswith("/") or not _ros_name(namespace.strip("/"), allow_slash=True)):
             raise section.error("namespace", f"{namespace!r} is no ROS 2 namespace (/name or /a/b: letters, "
                                              "digits and '_')")
-        node_name = section.getstr("node_name", d.node_name, max_len=100)
-        if not _ros_name(node_name):
-            raise section.error("node_name", f"{node_name!r} is no ROS 2 node name (letters, digits and '_')")
-        joint_states = section.getstr("joint_states", d.joint_states, max_len=200)
-        if not _ros_name(joint_states.lstrip("/"), allow_slash=True):
-            raise section.error("joint_states", f"{joint_states!r} is no ROS 2 topic name")
-        frames = {k: section.getstr(k, getattr(d, k), max_len=200) for k in ("base_frame", "tcp_frame", "imu_frame")}
-        for key, frame in frames.items():
+        if not _ros_name(p.node_name):
+            raise section.error("node_name", f"{p.node_name!r} is no ROS 2 node name (letters, digits and '_')")
+        if not _ros_name(p.joint_states.lstrip("/"), allow_slash=True):
+            raise section.error("joint_states", f"{p.joint_states!r} is no ROS 2 topic name")
+        for key in ("base_frame", "tcp_frame", "imu_frame"):
+            frame = getattr(p, key)
             if not frame or frame.startswith("/"):
                 raise section.error(key, f"{frame!r}: a tf2 frame id is not empty and has no leading '/'")
-        return cls(enabled=section.getbool("enabled", d.enabled),
-                   distro=section.getstr("distro", d.distro, choices=DISTROS),
-                   domain_id=section.getint("domain_id", d.domain_id, minval=0, maxval=232),
-                   namespace=namespace.rstrip("/") or "/", node_name=node_name, joint_states=joint_states,
-                   imu_rate_hz=section.getfloat("imu_rate_hz", d.imu_rate_hz, minval=0.0, maxval=10000.0),
-                   **frames)
+        return dataclasses.replace(p, namespace=namespace.rstrip("/") or "/")
 
 
 def _ros_chunk(name: str) -> str:

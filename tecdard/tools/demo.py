@@ -112,6 +112,8 @@ def run_demo(config: str, angle_deg: float) -> int:
 
 def add_parser(sub) -> None:
     p = sub.add_parser("demo", help="start the daemon on the simulated robot and rotate the paper cutter")
-    p.add_argument("--config", default="configs/sim.yaml")
+    from tecdard import shipped
+    p.add_argument("--config", default=str(shipped.config("sim.yaml")),
+                   help="the daemon's config (default: the shipped sim.yaml, %(default)s)")
     p.add_argument("--angle", type=float, default=30.0, help="rotation, degrees")
     p.set_defaults(func=lambda args: run_demo(args.config, args.angle))

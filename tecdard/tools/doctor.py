@@ -17,10 +17,10 @@ import glob
 import pathlib
 import socket
 
+from tecdard import shipped
 from tecdard.host import Check, can_set_fifo, check_rt_kernel, rtprio_limit
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-UDEV_RULE = ROOT / "systemd" / "99-tecdar-imu.rules"
+UDEV_RULE = shipped.systemd("99-tecdar-imu.rules")
 UDEV_RULE_DIRS = ("/etc/udev/rules.d", "/run/udev/rules.d", "/usr/lib/udev/rules.d", "/lib/udev/rules.d")
 DEFAULT_RT_PRIORITY = 80      # what the doctor tries when the config names none
 CONNECT_TIMEOUT_S = 1.0
@@ -219,7 +219,7 @@ def load_daemon(config_path: str):
     from tecdard.config import Config, ConfigError
     if not pathlib.Path(config_path).is_file():
         return None, Check("config", "fail", f"{config_path}: no such file",
-                           f"start from a shipped one: `sudo install -D -m 644 {ROOT / 'configs' / 'ur5e.yaml'} "
+                           f"start from a shipped one: `sudo install -D -m 644 {shipped.config('ur5e.yaml')} "
                            f"{config_path}` (or fr3.yaml, sim.yaml), edit it, or name yours with --config")
     try:
         cfg = Config.load(config_path)
@@ -228,7 +228,7 @@ def load_daemon(config_path: str):
     except ConfigError as exc:
         text = str(exc)
         return None, Check("config", "fail", text if text.startswith(str(config_path)) else f"{config_path}: {text}",
-                           "correct the option named (configs/sim.yaml documents every option)")
+                           "correct the option named (`tecdard options` lists every one, with its limits)")
 
 
 def run_checks(config_path: str) -> list[Check]:

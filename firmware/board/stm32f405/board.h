@@ -5,6 +5,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "tfw_app.h"
+
 #ifndef HSE_HZ
 #define HSE_HZ 8000000u                  /* the board's crystal; 8 MHz on most F405/F407 boards */
 #endif
@@ -23,5 +25,10 @@ void board_uart_init(uint32_t apb2_hz, uint32_t baud);
 size_t board_uart_write_some(const uint8_t *data, size_t n);
 void board_spi_init(void);
 int board_spi_transfer(void *ctx, const uint8_t *tx, uint8_t *rx, size_t n);
+
+/* loop.c: start the firmware on the sensor bus `transfer` (bus_ctx its context) and run it for ever:
+ * feed the UART, and poll the FIFO every 100 us, after `before_poll` (NULL: nothing) */
+typedef int (*tfw_transfer_fn)(void *ctx, const uint8_t *tx, uint8_t *rx, size_t n);
+void board_run(tfw_app *app, tfw_transfer_fn transfer, void *bus_ctx, void (*before_poll)(void));
 
 #endif

@@ -9,12 +9,13 @@ import logging
 import pathlib
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from tecdard.control.mapping import MapRecord, kernel_depth, raster_xy
 from tecdard.files import OutputError, atomic_dir, ensure_writable_dir, state_dir
+from tecdard.options import option, read_options
 from tecdard.verbs import VerbService
 
 log = logging.getLogger("tecdar.map")
@@ -37,37 +38,35 @@ def default_output_dir() -> str:
 @dataclass
 class MapSettings:
     """The `map` config section: how a run probes and how its map is fused and written."""
-    output_dir: str = field(default_factory=default_output_dir)
-    resolution_m: float = 0.005          # raster cell of depth.npy
-    kernel_k: int = 4                    # the paper's k
-    kernel_sigma_m: float = 0.022        # the paper's sigma = 2.2 (unit not given; cm fits its 7-9 cm grid)
-    abort_force_n: float = 5.0           # the paper's 5 N
-    max_point_std_m: float = 0.005
-    probe_distance_m: float = 0.005      # the paper's at most 5 mm of tangential probing
-    tool_tip_tcp: tuple = (0.0, 0.0, 0.1)
-    turn_deg: float = 90.0               # the second pass turns the tool this much about world z
-    release_distance_m: float = 0.008    # each lift first pulls the tool out along its axis this far
+    output_dir: str = option(default_output_dir, "where each map's directory is written (made and checked at "
+                                                 "start)", shown="$STATE_DIRECTORY/maps under systemd, else "
+                                                                 "~/.local/state/tecdar/maps")
+    resolution_m: float = option(0.005, "the raster cell of depth.npy", unit="m", minval=0.001, maxval=0.1)
+    kernel_k: int = option(4, "the paper's k nearest probes fused per cell", minval=1, maxval=64)
+    kernel_sigma_m: float = option(0.022, "the paper's sigma = 2.2 (no unit given; cm fits its 7-9 cm grid)",
+                                   unit="m", above=0.0, maxval=1.0)
+    abort_force_n: float = option(5.0, "the paper's 5 N: a point is abandoned above this TCP force", unit="N",
+                                  above=0.0, maxval=100.0)
+    max_point_std_m: float = option(0.005, "a probe is valid when the in-plane one-sigma is below this", unit="m",
+                                    above=0.0, maxval=0.1)
+    probe_distance_m: float = option(0.005, "the tangential probe (the paper's at most 5 mm)", unit="m",
+                                     minval=0.001, maxval=0.02)
+    tool_tip_tcp: tuple = option((0.0, 0.0, 0.1), "the held probe's far end, TCP frame, nominal (refined by each "
+                                                  "probe)", unit="m", kind="vec3")
+    turn_deg: float = option(90.0, "the second pass turns the tool this much about world z (sign: the arm's reach)",
+                             unit="deg", minval=-180.0, maxval=180.0)
+    release_distance_m: float = option(0.008, "each lift first pulls the tool out along its axis this far (beyond "
+                                              "the grasp's preload)", unit="m", minval=0.0, maxval=0.05)
 
     @classmethod
     def from_config(cls, section) -> "MapSettings":
-        d = cls()
-        return cls(
-            output_dir=_checked_dir(section),
-            resolution_m=section.getfloat("resolution_m", d.resolution_m, minval=0.001, maxval=0.1),
-            kernel_k=section.getint("kernel_k", d.kernel_k, minval=1, maxval=64),
-            kernel_sigma_m=section.getfloat("kernel_sigma_m", d.kernel_sigma_m, above=0.0, maxval=1.0),
-            abort_force_n=section.getfloat("abort_force_n", d.abort_force_n, above=0.0, maxval=100.0),
-            max_point_std_m=section.getfloat("max_point_std_m", d.max_point_std_m, above=0.0, maxval=0.1),
-            probe_distance_m=section.getfloat("probe_distance_m", d.probe_distance_m, minval=0.001, maxval=0.02),
-            tool_tip_tcp=tuple(section.getvec3("tool_tip_tcp", list(d.tool_tip_tcp))),
-            turn_deg=section.getfloat("turn_deg", d.turn_deg, minval=-180.0, maxval=180.0),
-            release_distance_m=section.getfloat("release_distance_m", d.release_distance_m, minval=0.0, maxval=0.05),
-        )
+        params = read_options(cls, section)
+        params.output_dir = _checked_dir(section, params.output_dir)
+        return params
 
 
-def _checked_dir(section) -> str:
+def _checked_dir(section, path: str) -> str:
     """map.output_dir, created and proven writable at start-up (not at the end of a map)."""
-    path = section.getstr("output_dir", default_output_dir())
     try:
         ensure_writable_dir(path, "output_dir")
     except OutputError as exc:
