@@ -48,8 +48,8 @@ from tecdard.host import Check, can_set_fifo, check_rt_kernel
 from tecdard.options import read_options
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
-from tecdard.robots.franka_link import (LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, FrankaLink, FrankaLinkSettings,
-                                        server_version)
+from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings
+from tecdard.robots.franka_server import LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, server_version
 
 log = logging.getLogger("tecdar.franka")
 

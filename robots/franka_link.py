@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import logging
 import re
-import socket
-import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -40,15 +38,12 @@ from tecdard.options import option
 from tecdard.robots.backend import JointState, joint_rates
 from tecdard.robots.backends import BackendError
 from tecdard.robots.child_link import ChildLink
+from tecdard.robots.franka_server import (CONNECT_INCOMPATIBLE, LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT,
+                                          server_version)
 
 log = logging.getLogger("tecdar.franka")
 
 NQ = 7
-LIBFRANKA_ROBOT_SERVER_VERSION = 10     # the robot server version franky 2.0 (libfranka 0.21.2) speaks
-ROBOT_PORT = 1337                       # the FCI's robot server (the hand's is 1338)
-CONNECT_COMMAND = 0                     # libfranka's research interface: Command::kConnect
-CONNECT_HEADER_BYTES = 12
-CONNECT_INCOMPATIBLE = 1                # Connect::Status::kIncompatibleLibraryVersion
 LINK_SILENT_S = 0.5                     # no new robot state for this long: the link is lost
 GRIP_HZ = 10.0                          # the hand's state is read this often
 ROBOT_PERIOD_S = 0.001                  # the robot's state rate, 1 kHz
@@ -131,44 +126,6 @@ def connect_problem(host: str, exc: BaseException) -> str:
     if name == "NetworkException":
         return f"robot.franka.host: no Franka robot answered at {host} ({_first_line(exc)})"
     return f"robot.franka.host: {host} refused the link: {_first_line(exc)}"
-
-
-def server_version(host: str, timeout_s: float) -> tuple[int, int]:
-    """(status, version) of the robot server's answer to libfranka's Connect on port 1337, read
-    before franky connects, because libfranka 0.21 checks no version when the server says success:
-    a robot of another system version would be driven with a state layout it does not send.
-
-    The request is libfranka's: a header (uint32 command 0, id, message size) and the library's
-    version and a UDP port (uint16 each). libfranka's reply is packed: status (uint8), version
-    (uint16), 3 bytes. franky-sim 1.0.4 answers 8 bytes (uint16 status, uint16 version, padding),
-    so the reply's length says which layout it has. Raises OSError (nothing listening, or no
-    answer within timeout_s) or ValueError (an answer that is no Connect reply)."""
-    deadline = time.monotonic() + timeout_s
-    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        udp.bind(("", 0))
-        with socket.create_connection((host, ROBOT_PORT), timeout=timeout_s) as sock:
-            sock.sendall(struct.pack("<III", CONNECT_COMMAND, 1, CONNECT_HEADER_BYTES + 4)
-                         + struct.pack("<HH", LIBFRANKA_ROBOT_SERVER_VERSION, udp.getsockname()[1]))
-            data = b""
-            size = None
-            while size is None or len(data) < size:
-                sock.settimeout(max(deadline - time.monotonic(), 1e-3))
-                chunk = sock.recv(256)
-                if not chunk:
-                    raise ValueError(f"the server at {host} closed the connection without a Connect reply")
-                data += chunk
-                if size is None and len(data) >= CONNECT_HEADER_BYTES:
-                    command, _, size = struct.unpack("<III", data[:CONNECT_HEADER_BYTES])
-                    if command != CONNECT_COMMAND or not CONNECT_HEADER_BYTES + 3 <= size <= 64:
-                        raise ValueError(f"the server at {host} gave no Connect reply (command {command}, "
-                                         f"{size} bytes)")
-    finally:
-        udp.close()
-    payload = data[CONNECT_HEADER_BYTES:size]
-    if len(payload) >= 8:
-        return struct.unpack("<HH", payload[:4])
-    return payload[0], struct.unpack("<H", payload[1:3])[0]
 
 
 class _Force:

@@ -21,7 +21,8 @@ pytestmark = pytest.mark.slow
 franky = pytest.importorskip("franky", reason="franky-control is installed by `make test` (extra `franka`)")
 pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
 
-from tecdard.robots.franka_link import LIBFRANKA_ROBOT_SERVER_VERSION, FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
+from tecdard.robots.franka_link import FrankaLink, FrankaLinkError, FrankaLinkSettings  # noqa: E402
+from tecdard.robots.franka_server import LIBFRANKA_ROBOT_SERVER_VERSION  # noqa: E402
 from tests.fakes.franka_sim import ServerProcess, free_franka_host  # noqa: E402
 
 REFLEX_APPROACH_M = 0.08        # the reflex test's approach: still moving when the reflex is injected

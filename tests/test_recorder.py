@@ -20,6 +20,7 @@ from tecdard.runtime import recorder as R
 from tecdard.config import Config
 from tecdard.control.pipeline import ContactPipeline
 from tecdard.recording.format import load_live, load_recording
+from tecdard.runtime.capture import Pass
 from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
 
 # the slow tier (`make check` leaves it out): whole-daemon runs that record
@@ -137,14 +138,14 @@ def test_a_record_dir_that_cannot_be_written_is_a_config_error(tmp_path):
 
 # -- the recorder's thread alone --------------------------------------------------------------
 
-def a_pass(t0: float, n: int = 67, episode: int = 1, onset: bool = False, est: bool = False) -> R.Pass:
+def a_pass(t0: float, n: int = 67, episode: int = 1, onset: bool = False, est: bool = False) -> Pass:
     t = t0 + np.arange(n) / 6667.0
     batch = np.column_stack([t, np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1))])
     proprio = [ProprioSample(t[-1], np.array([0.3, 0.0, 0.5]), np.zeros(3), np.eye(3), np.zeros(3), np.nan)]
     events = [{"kind": "contact_onset", "t": float(t[0]), "p_tcp": [0.3, 0.0, 0.5], "commanded": False}] if onset else []
     e = ContactEstimate(t=float(t[-1]), onset_t=t0, p=np.zeros(3), std=np.ones(3), cov=np.eye(3), axis=None,
                         converged=False, nis=0.0, steps=n) if est else None
-    return R.Pass(proprio, EstimatorDirective(episode=episode), 6667.0, (80.0, 150.0), batch, events, e,
+    return Pass(proprio, EstimatorDirective(episode=episode), 6667.0, (80.0, 150.0), batch, events, e,
                   np.zeros(4))
 
 

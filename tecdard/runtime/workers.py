@@ -13,7 +13,7 @@ from tecdard.control.proprio import ProprioSample
 from tecdard.drivers.imu_source import ImuSource
 from tecdard.drivers.ring import SampleRing
 from tecdard.runtime.messages import DropOldestRing, LatestValue, Outbox
-from tecdard.runtime.recorder import Pass
+from tecdard.runtime.capture import Pass
 
 log = logging.getLogger("tecdar.estimator")
 

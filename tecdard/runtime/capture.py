@@ -1,0 +1,125 @@
+"""A capture: the estimator thread's passes and the daemon's events that the recorder keeps, the records
+that hand them to the recorder's thread, and how a capture becomes a tecdar-recording/1 file with its
+live_* log (docs/recordings.md, "Daemon recordings")."""
+from __future__ import annotations
+
+import json
+import pathlib
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from tecdard.control.geometry import matrix_to_quat
+from tecdard.recording.format import Recording
+from tecdard.safejson import json_ready
+
+
+class EmptyCapture(ValueError):
+    """A capture with too little in it to be a recording."""
+
+
+@dataclass(frozen=True)
+class CaptureCommand:
+    """A capture on demand, from the main thread to the recorder's: start (arg: its label), stop (the
+    label) or close (why: the daemon is stopping)."""
+    what: str
+    arg: str
+
+
+@dataclass(frozen=True)
+class NotedEvent:
+    """A published event, from the main thread to the recorder's (a capture keeps its task's)."""
+    event: dict
+
+
+@dataclass
+class Pass:
+    """One pass of the estimator thread, as it fed its pipeline."""
+    proprio: list                 # the control.proprio.ProprioSample records added before the batch
+    directive: object             # the EstimatorDirective in force for the batch
+    odr_hz: float | None
+    saturation: tuple | None      # (gyro rad/s, accel m/s^2) clipping points in force
+    batch: np.ndarray             # (n, 7) t, gyro, accel
+    events: list                  # the pipeline's events of this pass
+    estimate: object              # ContactEstimate or None
+    bias: np.ndarray              # the conditioner's bias state before the batch (GyroConditioner.bias_state)
+
+    @property
+    def t_end(self) -> float | None:
+        return float(self.batch[-1, 0]) if len(self.batch) else None
+
+
+@dataclass
+class Capture:
+    reason: str                   # "episode" or "manual"
+    label: str
+    task: str | None
+    verb: str | None
+    episode: int
+    passes: list
+    events: list
+    t_open: float = field(default_factory=time.monotonic)
+    manual: bool = False
+    lost_at_open: int = 0         # the recorder's dropped count when it opened (its own losses: the difference)
+    end_by: float | None = None   # its episode has ended: written at its task's end, or at this time
+    path: pathlib.Path | None = None      # where it is written (fixed at its first checkpoint)
+    saved_at: float = field(default_factory=time.monotonic)   # its last checkpoint (or its opening)
+
+
+def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
+    """The capture as a Recording and its `live_*` keys; EmptyCapture when it holds too little."""
+    passes = cap.passes
+    batches = [p.batch for p in passes if len(p.batch)]
+    if not batches:
+        raise EmptyCapture("no IMU samples")
+    imu = np.concatenate(batches)
+    rows = [(k, s) for k, p in enumerate(passes) for s in p.proprio]
+    if len(imu) < 2 or len(rows) < 2:
+        raise EmptyCapture(f"{len(imu)} IMU and {len(rows)} proprioception samples")
+    tcp_t = np.array([s.t for _, s in rows])
+    keep = np.concatenate([[True], np.diff(tcp_t) > 0])       # the format wants strictly increasing times
+    rows = [r for r, k in zip(rows, keep) if k]
+    tcp_t = tcp_t[keep]
+    R = np.array([s.R_world_tcp for _, s in rows])
+    vel = [s.v_world for _, s in rows]
+    w = [s.w_world for _, s in rows]
+    grip = np.array([s.grip_force_n for _, s in rows], dtype=float)
+    first = passes[0]
+    rec = Recording(
+        imu_t=imu[:, 0].copy(), gyro=imu[:, 1:4].copy(), accel=imu[:, 4:7].copy(), tcp_t=tcp_t,
+        tcp_pos=np.array([s.p_world for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
+        imu_in_tcp_quat=np.asarray(meta["imu_in_tcp_quat"], float),
+        grip_force=grip if len(grip) and np.all(np.isfinite(grip)) else None,
+        plane_normal=None if meta.get("plane_normal") is None else np.asarray(meta["plane_normal"], float),
+        tcp_vel=np.array(vel) if all(v is not None for v in vel) else None,
+        meta={k: v for k, v in meta.items() if k not in ("imu_in_tcp_quat", "plane_normal")} |
+        # measured grip forces are the recording's own (the grip_force key); the configured one is assumed
+        {"grip_force_assumed": bool(meta.get("grip_force_assumed")) and not np.all(np.isfinite(grip))} |
+        # the stamps are the monotonic clock's: the wall clock's offset from it lines them up with a lab's data
+        {"clock": {"stamps": "CLOCK_MONOTONIC, s", "wall_minus_monotonic_s": time.time() - time.monotonic()}} |
+        {"task": cap.task, "verb": cap.verb, "label": cap.label, "reason": cap.reason})
+    # each pass's batch end (into imu_t), and the pass at which each proprioception sample arrived
+    ends = np.cumsum([len(p.batch) for p in passes])
+    changes, last = [], (None, None, None)
+    for k, p in enumerate(passes):
+        d = asdict(p.directive)
+        now = (d, p.odr_hz, None if p.saturation is None else list(p.saturation))
+        if now != last:
+            changes.append({"pass": k, "directive": d, "odr_hz": p.odr_hz, "saturation": now[2]})
+            last = now
+    ests = [p.estimate for p in passes if p.estimate is not None]
+    events = [e for p in passes for e in p.events] + cap.events
+    extra = {
+        "live_pass_end": ends.astype(np.int64),
+        "live_tcp_pass": np.array([k for k, _ in rows], dtype=np.int64),
+        "live_tcp_w": np.array([np.zeros(3) if x is None else x for x in w], dtype=float),
+        "live_changes": np.array(json.dumps(json_ready(changes))),
+        "live_bias0": np.asarray(first.bias, float),
+        "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
+        "live_events": np.array(json.dumps(json_ready(events))),
+    }
+    q = [s.q for _, s in rows if s.q is not None]
+    if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
+        extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
+    return rec, extra
