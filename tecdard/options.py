@@ -31,8 +31,8 @@ class Opt:
     above: float | None = None    # the value must be greater than this
     choices: tuple[str, ...] | None = None
     kind: str | None = None       # float, int, bool, str, floats, strs, quat, vec3, unitvec3, optfloat, optint,
-                                  # optstr ("" is none), optunitvec3, custom (its class reads it, and hands it
-                                  # to read_options); None: the default's
+                                  # optstr ("" is none), optunitvec3, custom (its class reads it itself;
+                                  # read_options leaves it); None: the default's
     key: str | None = None        # the config key where it is not the field's name
     max_len: int | None = None    # a string's, or each string's of a list
     max_items: int | None = None  # a list of strings'
@@ -56,10 +56,10 @@ def declared(cls) -> list[tuple[dataclasses.Field, Opt]]:
     return [(f, f.metadata[OPTION]) for f in dataclasses.fields(cls) if OPTION in f.metadata]
 
 
-def kind_of(f: dataclasses.Field, opt: Opt) -> str:
+def kind_of(f: dataclasses.Field, opt: Opt, default: Any) -> str:
+    """The option's kind: its own, else what its default (default_of(f)) says."""
     if opt.kind is not None:
         return opt.kind
-    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()   # type: ignore[misc]
     if isinstance(default, bool):
         return "bool"
     if isinstance(default, int):
@@ -112,8 +112,6 @@ def _get(section, f: dataclasses.Field, opt: Opt, kind: str, default: Any) -> An
         return tuple(value) if isinstance(default, tuple) else value
     if kind == "quat":
         return tuple(section.getquat(key, list(default)))
-    if kind == "custom":
-        raise TypeError(f"{f.name}: an option its class reads itself: give it to read_options")
     raise TypeError(f"{f.name}: unknown option kind {kind!r}")
 
 
@@ -121,13 +119,14 @@ def read_options(cls, section, defaults: dict | None = None, **given):
     """An instance of the dataclass `cls` with every declared option read from `section` (the typed
     getters, with the option's bounds; an error names the key). `defaults`: a field's default where the
     caller knows a better one (a mount from elsewhere in the config); `given`: fields the caller sets,
-    not read. Fields that are no option keep their defaults unless given."""
+    not read. Fields that are no option, and options of kind custom (their class reads them), keep
+    their defaults unless given."""
     values = {}
     for f, opt in declared(cls):
-        if f.name in given:
+        if f.name in given or opt.kind == "custom":
             continue
-        default = (defaults or {}).get(f.name, default_of(f))
-        values[f.name] = _get(section, f, opt, kind_of(f, opt), default)
+        default = (defaults or {}).get(f.name) if f.name in (defaults or {}) else default_of(f)
+        values[f.name] = _get(section, f, opt, kind_of(f, opt, default), default)
     return cls(**values, **given)
 
 

@@ -70,7 +70,7 @@ class Daemon:
 
     def __init__(self, cfg: Config, listen: list[str] | None = None):
         robot = cfg.section("robot")
-        own = read_options(RobotOptions, robot, q_home=None)
+        own = read_options(RobotOptions, robot)
         backend_name = own.backend
         declared = backends.declared(backend_name)      # what it can do, before it is built
         self._read_robot(robot, own, declared.sends_home)
@@ -81,7 +81,7 @@ class Daemon:
             self._check_home(robot)
         self.services = verbs.services(cfg)
         imu = cfg.section("imu")
-        imu_own = read_options(ImuOptions, imu, source="")
+        imu_own = read_options(ImuOptions, imu)
         ring_capacity, mount = imu_own.ring_capacity, list(imu_own.imu_in_tcp_quat)
         self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home, mount,
                                                                             self.control_params.tick_s))

@@ -61,7 +61,7 @@ class ZenohSettings:
     @classmethod
     def from_config(cls, section, listen: list[str] | None = None) -> "ZenohSettings":
         """The `zenoh` section; `listen` (the command line's --listen) overrides zenoh.listen."""
-        o = read_options(ZenohOptions, section, listen=[])
+        o = read_options(ZenohOptions, section)
         mode, connect, multicast = o.mode, o.connect, o.multicast_scouting
         configured = section.getstrlist("listen", [DEFAULT_ENDPOINT] if mode == "peer" else [],
                                         max_len=MAX_ENDPOINT_CHARS, max_items=16)
