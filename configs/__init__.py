@@ -1,1 +1,1 @@
-"""The shipped configs, installed as package data (tecdard.configs): tecdard.shipped.config(name) finds them."""
+"""The shipped configs, installed as package data (tecdard.configs): found by tecdard.shipped.config(name)."""

@@ -45,6 +45,7 @@ class SimTruth:
     base_displacement_m: float
     extra: dict = field(default_factory=dict)
 
+
 @dataclass
 class HingeParams:
     """The `sim.hinge` section: the paper cutter, truth the controller never reads."""

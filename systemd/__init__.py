@@ -1,1 +1,2 @@
-"""The shipped systemd units and udev rule, installed as package data (tecdard.systemd): tecdard.shipped.systemd(name)."""
+"""The shipped systemd units and udev rule, installed as package data (tecdard.systemd): found by
+tecdard.shipped.systemd(name)."""

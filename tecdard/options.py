@@ -178,18 +178,9 @@ def cells(row) -> str:
     return "| `" + key + "` | " + " | ".join(rest) + " |"
 
 
-def markdown(sections) -> str:
-    """One table per section: sections are (path, options class) pairs."""
-    out = []
-    for path, cls in sections:
-        out += [f"### `{path}`", "", "| option | default | unit | limits | what it does |", "|---|---|---|---|---|"]
-        out += [cells(row) for row in rows(path, cls)]
-        out.append("")
-    return "\n".join(out)
-
-
 def text(sections, only: str | None = None) -> str:
-    """The same for a terminal: `key = default unit (limits): help`, a line each; `only` a section path."""
+    """The options of (path, options class) pairs for a terminal: `key = default unit (limits): help`, a
+    line each; `only` a section path (and those under it). docs/options.md's tables: tecdard.cli.options."""
     out = []
     for path, cls in sections:
         if only is not None and path != only and not path.startswith(only + "."):

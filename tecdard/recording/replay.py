@@ -20,6 +20,7 @@ if TYPE_CHECKING:        # the pipeline (and its compiled kernels) loads when a 
 
 DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t", "since_t")
 
+
 def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, chunk_s: float = 0.1,
            on_estimate=None, on_event=None):
     """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate).
@@ -188,5 +189,6 @@ def run_replay(r: Replay, rate_hz: float = 1000.0, on_estimate=None, on_event=No
         return replay(r.rec, r.pipeline, rate_hz, on_estimate=on_estimate, on_event=on_event)
     except Exception as exc:        # a recording the checks let through but the estimator cannot take
         logging.getLogger("tecdar").debug("replay failed", exc_info=True)
-        raise ReplayError(f"{show(r.name, 200)}: could not be replayed ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); please report it with the file") from None
+        first = str(exc).splitlines()[0][:200] if str(exc) else ""
+        raise ReplayError(f"{show(r.name, 200)}: could not be replayed ({type(exc).__name__}: {first}); please "
+                          "report it with the file") from None
