@@ -66,6 +66,28 @@ class SlidingBandEnergy:
         return energy
 
 
+BAND_TOP_OF_NYQUIST = 0.9    # a band's upper edge is lowered to this fraction of half the IMU's rate at most
+BAND_MIN_OCTAVES = 0.5        # ... keeping at least this much band above its lower edge, else the condition is off
+
+
+def band_at_rate(band_hz: tuple, odr_hz: float) -> tuple[SlidingBandEnergy | None, str | None]:
+    """The band-energy condition at an IMU's rate: (its window, or None when it cannot run; what was
+    changed or why it is off, in one line, or None). A band whose upper edge lies at or above half the
+    rate is lowered to BAND_TOP_OF_NYQUIST of it while the band keeps BAND_MIN_OCTAVES above its lower
+    edge (a 200-400 Hz IMU on a tool); below that the condition is off and the others run."""
+    lo, hi = float(band_hz[0]), float(band_hz[1])
+    nyquist = odr_hz / 2.0
+    if hi < nyquist:
+        return SlidingBandEnergy(odr_hz, lo, hi), None
+    top = BAND_TOP_OF_NYQUIST * nyquist
+    if top >= lo * 2.0 ** BAND_MIN_OCTAVES:
+        return SlidingBandEnergy(odr_hz, lo, top), (
+            f"onset band {lo:g}-{hi:g} Hz reaches half the IMU's rate of {odr_hz:.4g} Hz: the band-energy "
+            f"condition runs on {lo:g}-{top:.4g} Hz")
+    return None, (f"onset band {lo:g}-{hi:g} Hz does not fit under half the IMU's rate of {odr_hz:.4g} Hz: the "
+                  "band-energy condition is off, the others run")
+
+
 @dataclass(frozen=True)
 class OnsetOptions:
     """The `estimator.onset` section: what fires the trigger. The onset is judged on what the arm's own motion
@@ -79,7 +101,8 @@ class OnsetOptions:
                                           unit="rad/s", kind="optfloat", above=0.0)
     band_threshold: float | None = option(None, "RMS acceleration in band_hz (the paper's, for heavy objects such "
                                                 "as a book); none: off", unit="m/s^2", kind="optfloat", above=0.0)
-    band_hz: tuple = option((40.0, 200.0), "the band of band_threshold: [lo, hi], hi under half the IMU's rate",
+    band_hz: tuple = option((40.0, 200.0), "the band of band_threshold: [lo, hi] (an IMU too slow for hi: lowered "
+                                           "to 0.9 of half its rate, or off)",
                             unit="Hz", minval=1.0)
     mode: str = option("any", "any condition fires, or all of them within coincidence_s", choices=MODES)
     coincidence_s: float = option(0.02, "with mode all: the window the conditions must meet in", unit="s",
@@ -141,8 +164,13 @@ class OnsetDetector:
         self.twist_threshold = twist_threshold
         self.twist_window = max(1, int(round(TWIST_WINDOW_S * odr_hz)))
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+        if not 0.0 < self.band_hz[0] < self.band_hz[1]:
+            raise ValueError(f"band_hz: expected [lo, hi] with 0 < lo < hi, got [{self.band_hz[0]:g}, "
+                             f"{self.band_hz[1]:g}]")
         self.odr_hz = float(odr_hz)
-        self.band = SlidingBandEnergy(odr_hz, *band_hz) if band_threshold is not None else None
+        self.band, self.rate_notice = None, None
+        if band_threshold is not None:
+            self.band, self.rate_notice = band_at_rate(self.band_hz, self.odr_hz)
         self.mode = mode
         self.coincidence_s = coincidence_s
         self.rest_tau_s = rest_tau_s
@@ -170,29 +198,28 @@ class OnsetDetector:
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
     def set_odr(self, odr_hz: float) -> str | None:
-        """The source's data rate changed (a board's status packet): the band-energy window is
-        retuned to odr/band_hz[0] samples. Returns a problem (the band does not fit under the new
-        Nyquist rate, so the band condition is off until a rate it fits) or None."""
+        """The source's data rate changed (a board's status packet): the twist's window and the
+        band-energy window follow it (band_at_rate). Returns what the band condition cannot do at
+        the new rate, in one line, or None."""
         odr_hz = float(odr_hz)
         if odr_hz == self.odr_hz:
             return None
         self.odr_hz = odr_hz
+        self.twist_window = max(1, int(round(TWIST_WINDOW_S * odr_hz)))
+        self.rate_notice = None
         if self.band_threshold is None:
             return None
-        lo, hi = self.band_hz
-        if not lo < hi < odr_hz / 2:
-            self.band = None
-            return (f"onset band {lo:g}-{hi:g} Hz does not fit under half the IMU's new rate of {odr_hz:g} Hz: "
-                    "the band-energy condition is off")
-        self.band = SlidingBandEnergy(odr_hz, lo, hi)
-        return None
+        self.band, self.rate_notice = band_at_rate(self.band_hz, odr_hz)
+        return self.rate_notice
 
     @classmethod
     def from_config(cls, section, odr_hz: float = 6667.0) -> "OnsetDetector":
         o = read_options(OnsetOptions, section)
-        if not o.band_hz[0] < o.band_hz[1] < odr_hz / 2:
-            raise section.error("band_hz", f"expected [lo, hi] with lo < hi < {odr_hz / 2:g} Hz (half the IMU's "
-                                           f"rate), got {list(o.band_hz)}")
+        if len(o.band_hz) != 2 or not o.band_hz[0] < o.band_hz[1]:
+            # a setting's own consistency; whether it fits under the IMU's rate is the rate's business
+            # (band_at_rate): a recording or a board at any rate is taken, the band condition adapted or off
+            raise section.error("band_hz", "expected [lo, hi] with lo < hi, got ["
+                                + ", ".join(f"{float(x):g}" for x in o.band_hz) + "]")
         try:
             det = cls(accel_threshold=o.accel_threshold, accel_axis=o.accel_axis, gyro_threshold=o.gyro_threshold,
                       band_threshold=o.band_threshold, band_hz=tuple(o.band_hz), mode=o.mode,

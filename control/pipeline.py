@@ -170,6 +170,11 @@ class ContactPipeline:
         follows it. A problem, if any, as one line (OnsetDetector.set_odr)."""
         return self.detector.set_odr(odr_hz)
 
+    @property
+    def rate_notice(self) -> str | None:
+        """What the onset detector cannot do at the IMU's rate, in one line (OnsetDetector.rate_notice)."""
+        return self.detector.rate_notice
+
     def set_saturation(self, gyro_rad_s: float, accel_m_s2: float) -> None:
         """Where the source clips (drivers.lsm6dsr.Scaling.saturation): samples at or beyond it are
         not measurements. A clipped gyro sample, and every filtered sample whose low-pass window

@@ -122,8 +122,10 @@ def test_the_band_window_follows_the_source_rate():
     assert det.band.N == round(ODR_HZ / 40.0)
     assert det.set_odr(ODR_HZ) is None and det.band.N == round(ODR_HZ / 40.0)
     assert det.set_odr(1666.0) is None and det.band.N == round(1666.0 / 40.0)
-    problem = det.set_odr(208.0)
-    assert det.band is None and "208 Hz" in problem and "off" in problem
+    problem = det.set_odr(208.0)          # issue 48: lowered under the rate's Nyquist, not switched off
+    assert det.band is not None and "208 Hz" in problem and "40-93.6 Hz" in problem
+    problem = det.set_odr(104.0)
+    assert det.band is None and "104 Hz" in problem and "off" in problem
     assert det.set_odr(3333.0) is None and det.band.N == round(3333.0 / 40.0)
 
 

@@ -210,7 +210,8 @@ def _numbers(obj: dict, name: str, default, n: int, lo: float, hi: float, unit: 
     """A list of n finite numbers within [lo, hi] (default when absent; None default: may be absent)."""
     if name not in obj:
         if default is not None and not all(lo <= x <= hi for x in default):
-            raise CommandError(OUT_OF_LIMITS, f"{name}: the configured default {list(default)} {unit} is outside "
+            shown = ", ".join(f"{float(x):g}" for x in default)
+            raise CommandError(OUT_OF_LIMITS, f"{name}: the configured default [{shown}] {unit} is outside "
                                               f"the configured limits [{lo:g}, {hi:g}]")
         return None if default is None else [float(x) for x in default]
     v = obj[name]

@@ -216,7 +216,7 @@ def _increasing(t: np.ndarray, key: str) -> None:
     d = np.diff(t)
     if np.any(d <= 0):
         i = int(np.argmax(d <= 0)) + 1
-        raise RecordingError(f"{key}: timestamps must be strictly increasing (row {i}: {t[i]!r} after {t[i - 1]!r})")
+        raise RecordingError(f"{key}: timestamps must be strictly increasing (row {i}: {float(t[i]):.9g} s after {float(t[i - 1]):.9g} s)")
     if t[-1] - t[0] > MAX_DURATION_S:
         raise RecordingError(f"{key}: spans {t[-1] - t[0]:.6g} s, at most {MAX_DURATION_S:g} s")
 

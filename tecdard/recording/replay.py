@@ -172,6 +172,8 @@ def open_replay(path, config: str | None = None, method: str | None = None, igno
                                                method=method, plane_normal=None if no_plane else rec.plane_normal)
         if no_plane:
             pipeline.params.plane_normal = None
+        if pipeline.rate_notice:
+            logging.getLogger("tecdar").warning("%s: %s", show(str(path), 200), pipeline.rate_notice)
         unused = section.unused_keys()
         if unused:
             raise ConfigError(f"{unused[0]}: unknown option")

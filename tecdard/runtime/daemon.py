@@ -91,6 +91,8 @@ class Daemon:
         # status packets report its own, which the estimator then follows.
         self.pipeline = ContactPipeline.from_config(cfg.section("estimator"), quat_to_matrix(np.array(mount)),
                                                     self.imu.odr_hz)
+        if self.pipeline.rate_notice:
+            log.warning("%s", self.pipeline.rate_notice)
         self.method = self.pipeline.method
         self.ros2_params = Ros2Params.from_config(cfg.section("ros2"), self.robot_name)
         self.record_params = RecordParams.from_config(cfg.section("record"))
