@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tecdard.control.band_energy import band_at_rate
 from tecdard.control.conditioning import mean0, moving_mean
 from tecdard.options import option, read_options
 
@@ -26,66 +27,30 @@ TWIST_WINDOW_S = 0.005
 # (TWIST_HOLD_S) tells them apart instead.
 SWING_ACCEL = 0.5
 SWING_TAU_S = 0.1
+# A real arm's tool vibrates (0.045-0.07 rad/s, and up to a m/s^2, that the joint encoders never see) and a
+# tool IMU is noisier than ours: the accelerometer's threshold is at least FLOOR_K times the remainder's
+# RMS over the last FLOOR_TAU_S (its moving noise floor), learned while nothing is pending, armed or not,
+# so that a trigger fired on a vibrating arm settles and re-arms on that arm's level, not an idle board's.
+FLOOR_K = 4.0
+FLOOR_TAU_S = 2.0
+SETTLE_LEVEL = 0.8            # settled: every condition under this fraction of its threshold for settle_s
+# An arm that starts with an acceleration step (a UR's speedL trapezoid, a pendant jog) shows it in the
+# IMU at once and in its states only after their latency and the acceleration fit's span. An
+# accelerometer onset therefore waits for those states (proprio_lag_s + ProprioTrack.fit_span_s): the
+# peak remainder within PEAK_WINDOW_S of the candidate must exceed the threshold plus (1 + swing_accel)
+# times the change the states then show of the arm's own acceleration. An impact's peak is sharper than
+# any change the arm's states can show over the fit; a step the arm took is as large as the change.
+PEAK_WINDOW_S = 0.01
+STALE_WAIT_S = 0.05           # states that stop coming: decided this long after they were due, as they stand
 
 
-class SlidingBandEnergy:
-    """Mean-square of the signal in [lo_hz, hi_hz] over a sliding window, per sample, causally.
-
-    A sliding DFT of N = odr/lo_hz samples (bin spacing lo_hz) keeps the bins
-    lo..hi; by Parseval their power is the band's mean square, summed over
-    the 3 axes (units (m/s^2)^2). Recomputed from the last N-1 samples each
-    batch, so it never accumulates rounding.
-    """
-
-    def __init__(self, odr_hz: float, lo_hz: float = 40.0, hi_hz: float = 200.0):
-        if not 0 < lo_hz < hi_hz < odr_hz / 2:
-            raise ValueError("band_hz: expected 0 < lo < hi < odr/2")
-        self.N = int(round(odr_hz / lo_hz))
-        k_lo = max(1, int(math.ceil(lo_hz * self.N / odr_hz - 1e-9)))
-        k_hi = int(math.floor(hi_hz * self.N / odr_hz + 1e-9))
-        self.k = np.arange(k_lo, k_hi + 1)
-        self._hist = np.zeros((0, 3))
-        self._index = 0          # absolute index of the first history sample
-
-    def process(self, x: np.ndarray) -> np.ndarray:
-        N = self.N
-        ext = np.vstack([self._hist, x])
-        m = self._index + np.arange(len(ext))
-        phase = np.exp(-2j * np.pi * np.outer(m % N, self.k) / N)       # (L, K)
-        # cumulative sums of x * e^{-j phi} per axis and bin, with a leading zero row
-        C = np.zeros((len(ext) + 1, 3, len(self.k)), dtype=complex)
-        C[1:] = np.cumsum(ext[:, :, None] * phase[:, None, :], axis=0)
-        ends = np.arange(len(self._hist) + 1, len(ext) + 1)
-        starts = np.maximum(ends - N, 0)
-        S = C[ends] - C[starts]
-        energy = 2.0 / (N * N) * np.sum(np.abs(S) ** 2, axis=(1, 2))
-        energy[ends - starts < N] = 0.0      # not a full window yet
-        keep = min(N - 1, len(ext))
-        self._index += len(ext) - keep
-        self._hist = ext[len(ext) - keep:].copy()
-        return energy
-
-
-BAND_TOP_OF_NYQUIST = 0.9    # a band's upper edge is lowered to this fraction of half the IMU's rate at most
-BAND_MIN_OCTAVES = 0.5        # ... keeping at least this much band above its lower edge, else the condition is off
-
-
-def band_at_rate(band_hz: tuple, odr_hz: float) -> tuple[SlidingBandEnergy | None, str | None]:
-    """The band-energy condition at an IMU's rate: (its window, or None when it cannot run; what was
-    changed or why it is off, in one line, or None). A band whose upper edge lies at or above half the
-    rate is lowered to BAND_TOP_OF_NYQUIST of it while the band keeps BAND_MIN_OCTAVES above its lower
-    edge (a 200-400 Hz IMU on a tool); below that the condition is off and the others run."""
-    lo, hi = float(band_hz[0]), float(band_hz[1])
-    nyquist = odr_hz / 2.0
-    if hi < nyquist:
-        return SlidingBandEnergy(odr_hz, lo, hi), None
-    top = BAND_TOP_OF_NYQUIST * nyquist
-    if top >= lo * 2.0 ** BAND_MIN_OCTAVES:
-        return SlidingBandEnergy(odr_hz, lo, top), (
-            f"onset band {lo:g}-{hi:g} Hz reaches half the IMU's rate of {odr_hz:.4g} Hz: the band-energy "
-            f"condition runs on {lo:g}-{top:.4g} Hz")
-    return None, (f"onset band {lo:g}-{hi:g} Hz does not fit under half the IMU's rate of {odr_hz:.4g} Hz: the "
-                  "band-energy condition is off, the others run")
+@dataclass
+class Candidate:
+    """An accelerometer onset waiting for the arm's states: its time, the peak remainder within
+    PEAK_WINDOW_S of it (m/s^2), and its threshold with the allowances then (m/s^2)."""
+    t: float
+    peak: float
+    allow: float
 
 
 @dataclass(frozen=True)
@@ -117,6 +82,12 @@ class OnsetOptions:
                              minval=0.0, maxval=10.0)
     swing_accel: float = option(SWING_ACCEL, "allowed per m/s^2 of the arm's acceleration (a held object's swing)",
                                 unit="(m/s^2)/(m/s^2)", minval=0.0, maxval=10.0)
+    proprio_lag_s: float = option(0.01, "how late the arm's states may be stamped: an accelerometer onset waits "
+                                        "this plus the arm's acceleration fit for the states that may explain it "
+                                        "(an acceleration step); 0: fires at once", unit="s", minval=0.0,
+                                  maxval=0.1)
+    floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
+                                     "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
 
 class OnsetDetector:
@@ -194,6 +165,15 @@ class OnsetDetector:
         self._twist_ms = 0.0           # the twist's mean square at rest, (rad/s)^2
         self._candidate = None         # a twist holding: (since, its direction, the quiet time before it)
         self._quiet = np.zeros(0, dtype=int)
+        self.floor_k = 0.0             # the moving noise floor's multiple (from_config: floor_k, FLOOR_K)
+        self._floor_ms = 0.0           # the accelerometer remainder's moving mean square, (m/s^2)^2
+        self._floor_s = 0.0            # how much data the floor has seen, s
+        self.arm = None                # what the arm's states say (ProprioTrack: accel_change, fit_span_s)
+        self.proprio_lag_s = 0.0       # an accelerometer onset waits for the states (from_config: 0.01 s)
+        self._confirm = None           # a candidate waiting for the arm's states (Candidate)
+        self._from_t = None            # the decided candidate's time (_decide -> _fire)
+        self._masked = (0.0, -np.inf)  # the last explained step: (its allowance, m/s^2; when), decaying
+        self.explained_steps = 0       # candidates the arm's states explained (its own acceleration steps)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
@@ -229,6 +209,8 @@ class OnsetDetector:
             key, _, problem = str(exc).partition(": ")
             raise section.error(key, problem) from None
         det.swing_accel = o.swing_accel
+        det.proprio_lag_s = o.proprio_lag_s
+        det.floor_k = o.floor_k
         return det
 
     def rearm(self, settle: bool = False) -> None:
@@ -240,6 +222,7 @@ class OnsetDetector:
         self.onset_from_t = None
         self.fired_by = None
         self._candidate = None
+        self._confirm = None
         if settle and self.settle_s > 0.0:
             self.settling = True
             self._still_since = None
@@ -254,6 +237,7 @@ class OnsetDetector:
         self._twist_quiet_t = -np.inf
         self._twist_ms = 0.0
         self._candidate = None
+        self._confirm = None
 
     def _swing(self, t: np.ndarray, a_arm: np.ndarray) -> np.ndarray:
         """The envelope of the arm's acceleration (n,), m/s^2: its running maximum, decaying with
@@ -276,12 +260,14 @@ class OnsetDetector:
         allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s); twist:
         None, or the batch's twist (_twist, (n, 3)) and its norm (n,)."""
         out, level = {}, {}
+        self._dev_a = None
         if self.accel_threshold is not None:
             dev = accel - self.rest_accel
             if self.accel_axis is not None:
-                level["accel"] = np.abs(dev @ self.accel_axis) / (self.accel_threshold + allow_a)
+                self._dev_a = np.abs(dev @ self.accel_axis)
             else:
-                level["accel"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.accel_threshold + allow_a)
+                self._dev_a = np.sqrt(np.einsum("ij,ij->i", dev, dev))
+            level["accel"] = self._dev_a / (self.accel_threshold_now() + allow_a + self._mask(t))
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
@@ -333,7 +319,7 @@ class OnsetDetector:
     @property
     def pending(self) -> bool:
         """A twist is holding (TWIST_HOLD_S): neither the rest levels nor the gyro's bias may learn from it."""
-        return self._candidate is not None
+        return self._candidate is not None or self._confirm is not None
 
     @property
     def warm(self) -> bool:
@@ -376,8 +362,10 @@ class OnsetDetector:
         if self.settling or not self.armed:
             self._candidate = None        # a twist counts only from when the trigger may fire
         quiet = self._quiet
-        hit = -1
-        if self.settling:
+        hit, by = -1, None
+        if self._confirm is not None and self.armed and not self.settling:
+            hit, by = self._decide(t), "accel"          # nothing else fires while a candidate waits
+        elif self.settling:
             self._settle(t, level)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
             if first > 0:
@@ -389,15 +377,13 @@ class OnsetDetector:
             else:
                 hit = self._coincidence(t, conds)
             if hit >= 0:
-                self.armed = False
-                self.fired_by = next(k for k, v in conds.items() if v[hit])
-                self.onset_from_t = None
-                if self._candidate is not None and self._candidate[0] <= float(t[hit]):
-                    # a twist holding since before (any condition may fire first: a hinge's friction
-                    # breaking away): from where it left its noise, less its mean's group delay
-                    since = self._candidate[2] - 0.5 * (self.twist_window - 1) / self.odr_hz
-                    self.onset_from_t = max(since, float(t[hit]) - BACKDATE_MAX_S)
-                self._candidate = None
+                by = next(k for k, v in conds.items() if v[hit])
+                if self._waits(by):
+                    self._confirm = Candidate(float(t[hit]), 0.0, float(self.accel_threshold_now()
+                                                                        + np.broadcast_to(allow_a, (n,))[hit]))
+                    hit = self._decide(t)
+        if hit >= 0:
+            self._fire(t, hit, by)
         if len(quiet):
             self._twist_quiet_t = float(t[quiet[-1]])
         if hit < 0 and not self.pending:
@@ -413,12 +399,76 @@ class OnsetDetector:
                 ms = float(np.mean(twist[1] ** 2))
                 self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)
             self._seen_s += dt
+        if hit < 0 and not self.pending and self._dev_a is not None:
+            self._learn_floor(t)
         return hit
 
+    def _fire(self, t: np.ndarray, hit: int, by: str) -> None:
+        self.armed = False
+        self.fired_by = by
+        self.onset_from_t = None
+        if self._from_t is not None:
+            # an onset the arm's states had to clear: at the candidate's sample
+            self.onset_from_t, self._from_t = self._from_t, None
+        elif self._candidate is not None and self._candidate[0] <= float(t[hit]):
+            # a twist holding since before (any condition may fire first: a hinge's friction
+            # breaking away): from where it left its noise, less its mean's group delay
+            since = self._candidate[2] - 0.5 * (self.twist_window - 1) / self.odr_hz
+            self.onset_from_t = max(since, float(t[hit]) - BACKDATE_MAX_S)
+        self._candidate = None
+
+    def accel_threshold_now(self) -> float:
+        """The accelerometer's threshold, m/s^2: the configured one, or FLOOR_K times the remainder's
+        moving RMS where the arm's vibration or the sensor's noise is larger."""
+        return max(self.accel_threshold, self.floor_k * math.sqrt(self._floor_ms))
+
+    def _learn_floor(self, t: np.ndarray) -> None:
+        """The accelerometer remainder's moving mean square over FLOOR_TAU_S (a cumulative mean at first)."""
+        dt = float(t[-1] - t[0]) + 1.0 / self.odr_hz
+        ms = float(np.mean(self._dev_a * self._dev_a))
+        alpha = max(dt / (self._floor_s + dt), 1.0 - math.exp(-dt / FLOOR_TAU_S))
+        self._floor_ms += alpha * (ms - self._floor_ms)
+        self._floor_s += dt
+
+    def _mask(self, t: np.ndarray):
+        """What is still allowed of the last step the arm's states explained, decaying with SWING_TAU_S."""
+        amp, since = self._masked
+        if amp == 0.0 or float(t[-1]) < since:
+            return 0.0
+        return amp * np.exp(-np.maximum(t - since, 0.0) / SWING_TAU_S)
+
+    def _waits(self, by: str) -> bool:
+        """Whether an onset by condition `by` waits for the arm's states (an accelerometer onset, with
+        the arm's motion taken off, in mode any)."""
+        return (by == "accel" and self.proprio_lag_s > 0.0 and self.arm is not None
+                and bool(self._explaining) and self.mode == "any")
+
+    def _decide(self, t: np.ndarray) -> int:
+        """The waiting candidate against the arm's states: the index of the sample it is decided at
+        (an onset, dated back to the candidate), or -1 (still waiting, or the arm's own step)."""
+        c = self._confirm
+        if self._dev_a is not None:
+            win = (t >= c.t) & (t <= c.t + PEAK_WINDOW_S)
+            if win.any():
+                c.peak = max(c.peak, float(self._dev_a[win].max()))
+        change, newest = self.arm.accel_change(c.t)
+        due = c.t + self.proprio_lag_s + self.arm.fit_span_s()
+        last = float(t[-1])
+        if (newest < due and last < due + STALE_WAIT_S) or last < c.t + PEAK_WINDOW_S:
+            return -1
+        self._confirm = None
+        explained = (1.0 + self.swing_accel) * change
+        if c.peak > c.allow + explained:
+            self._from_t = c.t
+            return min(int(np.searchsorted(t, max(due, float(t[0])))), len(t) - 1)
+        self.explained_steps += 1
+        self._masked = (explained, last)
+        return -1
+
     def _settle(self, t: np.ndarray, level: dict) -> None:
-        """While settling: the remainder still (every condition under half its threshold) for
-        settle_s ends it."""
-        still = np.logical_and.reduce([x < 0.5 for x in level.values()])
+        """While settling: the remainder still (every condition under SETTLE_LEVEL of its threshold,
+        the accelerometer's with its moving floor) for settle_s ends it."""
+        still = np.logical_and.reduce([x < SETTLE_LEVEL for x in level.values()])
         moving = np.flatnonzero(~still)
         if len(moving):
             self._still_since = float(t[moving[-1]]) if moving[-1] < len(t) - 1 else None

@@ -237,6 +237,29 @@ class ProprioTrack:
                     self._explain(k)
         return self.expl.take(j, axis=0)
 
+    def accel_change(self, t_c: float) -> tuple[float, float]:
+        """How far the arm's own acceleration (the ACCEL_WINDOW_S fit, world) moved after time t_c:
+        (the largest |a_k - a_ref| over the states stamped after t_c, a_ref the fit at the last state
+        at or before it, m/s^2; the newest state's stamp, s). (0, -inf) before any state."""
+        n = self.n
+        if n == 0:
+            return 0.0, -math.inf
+        t = self.t[:n]
+        ref = int(np.searchsorted(t, t_c, side="right")) - 1
+        if ref < 0 or ref >= n - 1:
+            return 0.0, float(t[n - 1])
+        a_ref = self._fitted(ref)
+        change = max(math.sqrt(float(d @ d)) for d in (self._fitted(k) - a_ref for k in range(ref + 1, n)))
+        return change, float(t[n - 1])
+
+    def fit_span_s(self) -> float:
+        """How long after an acceleration change the fit has taken it up: ACCEL_WINDOW_S, or
+        ACCEL_MIN_STATES states at the arm's rate when they span more."""
+        rate = self.rate_hz()
+        if rate != rate:
+            return ACCEL_WINDOW_S
+        return max(ACCEL_WINDOW_S, (ACCEL_MIN_STATES - 1) / rate)
+
     def _explain(self, k: int) -> None:
         before = max(int(np.searchsorted(self.tv[:k + 1], self.tv[k] - ACCEL_WINDOW_S, side="right")) - 1, 0)
         acc = self._fitted(k)

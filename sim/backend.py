@@ -25,6 +25,7 @@ from tecdard.robots.backends import BackendContext
 from tecdard.shipped import host_board
 from tecdard.sim.board import BoardParams
 from tecdard.sim.imu import SimImuParams
+from tecdard.sim.rig import RigParams
 from tecdard.sim.process import SimProcess, SimSpec
 from tecdard.sim.robot import SimRobotParams
 from tecdard.sim.world import HingeParams, PivotParams
@@ -72,7 +73,8 @@ class SimBackend(RobotBackend):
         model = ctx.model
         self.spec = SimSpec(arm=model.name, tool_offset=list(model.tool_offset), tool_quat=list(model.tool_quat),
                             robot=robot_params, imu=self.imu_params, seed=own.seed,
-                            hinge=hinge, pivot=pivot, imu_out="pipe")
+                            hinge=hinge, pivot=pivot, imu_out="pipe",
+                            rig=RigParams.from_config(sim.section("rig")) if sim.has("rig") else None)
         self.pty_dir: str | None = None
         self.host_board = own.host_board or str(host_board())
         factory = self.spec.world_factory()

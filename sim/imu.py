@@ -10,6 +10,7 @@ import numpy as np
 from tecdard.control.geometry import quat_to_matrix
 from tecdard.drivers.lsm6dsr import Scaling
 from tecdard.options import option, read_options
+from tecdard.sim.rig import RigParams, RigSignal
 
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -9.81])
 DEG = np.pi / 180.0
@@ -77,11 +78,17 @@ class FingertipSignal:
     outputs are quantised to the chip's int16 at the configured full scales.
     """
 
-    def __init__(self, params: SimImuParams, seed: int = 0):
+    def __init__(self, params: SimImuParams, seed: int = 0, rig: RigParams | None = None):
         self.params = params
         self.rng = np.random.default_rng(seed)
+        # a real rig's disturbances (sim.rig), when asked for: they replace the bias and noise below, and
+        # the signal is made with the mount and eta they put off their configured values
+        self.rig = RigSignal(rig, params.odr_hz, seed) if rig is not None and rig.scale > 0.0 else None
         self.R_tcp_imu = quat_to_matrix(np.array(params.imu_in_tcp_quat))
         self.eta = params.true_eta()
+        if self.rig is not None:
+            self.R_tcp_imu = self.rig.true_mount(params.imu_in_tcp_quat)
+            self.eta = self.rig.eta(self.eta)
         self.gyro_bias = self.rng.uniform(-params.gyro_bias_max, params.gyro_bias_max, 3)
         self.accel_bias = self.rng.uniform(-params.accel_bias_max, params.accel_bias_max, 3)
         nyquist = params.odr_hz / 2.0
@@ -121,8 +128,9 @@ class FingertipSignal:
         return out
 
     def sample(self, ts: np.ndarray, w_tcp: np.ndarray, w_obj: np.ndarray, a_tcp: np.ndarray,
-               R_world_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(raw int16 (n, 6), gyro rad/s (n, 3), accel m/s^2 (n, 3)) at sample times ts; kinematics per sample."""
+               R_world_tcp: np.ndarray, v_tcp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(raw int16 (n, 6), gyro rad/s (n, 3), accel m/s^2 (n, 3)) at sample times ts; kinematics per sample
+        (v_tcp: the TCP's velocity, for the rig's joint harmonics; None: at rest)."""
         n = len(ts)
         dt = 1.0 / self.params.odr_hz
         R_world_imu = R_world_tcp @ self.R_tcp_imu
@@ -130,7 +138,9 @@ class FingertipSignal:
         drift = np.cumsum(self.rng.normal(0.0, self.params.gyro_bias_walk * math.sqrt(dt), (n, 3)), axis=0)
         bias = self.gyro_bias + drift
         self.gyro_bias = bias[-1]
-        gyro = w_seen @ R_world_imu + bias + self.rng.normal(0.0, self.gyro_sigma, (n, 3))
+        gyro = w_seen @ R_world_imu
+        if self.rig is None:
+            gyro = gyro + bias + self.rng.normal(0.0, self.gyro_sigma, (n, 3))
         f_world = a_tcp - GRAVITY_WORLD_M_S2
         for t0, amp, hz in self._rings:
             s = ts - t0
@@ -138,7 +148,12 @@ class FingertipSignal:
                            * np.sin(2 * np.pi * hz * np.maximum(s, 0)), 0.0)
             f_world = f_world + env[:, None] * amp
         self._rings = [r for r in self._rings if ts[-1] - r[0] < 10 * self.params.ring_tau_s]
-        accel = f_world @ R_world_imu + self.accel_bias + self.rng.normal(0.0, self.accel_sigma, (n, 3))
+        accel = f_world @ R_world_imu
+        if self.rig is not None:
+            v = np.zeros((n, 3)) if v_tcp is None else v_tcp
+            gyro, accel = self.rig.imu(ts, gyro, accel, a_tcp, v, w_tcp, R_world_imu)
+            return self.rig.raw(gyro, accel), gyro, accel
+        accel = accel + self.accel_bias + self.rng.normal(0.0, self.accel_sigma, (n, 3))
         raw = self.scaling.to_raw(gyro, accel)
         g, a = self.scaling.to_si(raw)
         return raw, g, a
@@ -153,9 +168,10 @@ class SimImu:
     (driver, parser, clock sync; with FirmwareWire the firmware too) runs in simulation.
     """
 
-    def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512, wire=None):
+    def __init__(self, params: SimImuParams, seed: int = 0, fifo_chunks: int = 512, wire=None,
+                 rig: RigParams | None = None):
         self.params = params
-        self.signal = FingertipSignal(params, seed)
+        self.signal = FingertipSignal(params, seed, rig)
         self.rng = np.random.default_rng(seed + 7)
         self.period = 1.0 / params.odr_hz
         self._next_t = None
@@ -173,7 +189,7 @@ class SimImu:
         self.signal.impact(t0, direction_world, speed_m_s, amplitude_m_s2)
 
     def feed(self, t: np.ndarray, w_tcp: np.ndarray, w_obj: np.ndarray, a_tcp: np.ndarray,
-             R_world_tcp: np.ndarray) -> None:
+             R_world_tcp: np.ndarray, v_tcp: np.ndarray | None = None) -> None:
         """Kinematic rows (m >= 2, world frame, e.g. 1 kHz) -> IMU samples for times up to t[-1]."""
         if self._next_t is None:
             self._next_t = float(t[0])
@@ -187,14 +203,18 @@ class SimImu:
         ts_c = np.clip(ts, t[0], t[-1])
         j = np.clip(np.searchsorted(t, ts_c, side="right") - 1, 0, len(t) - 2)
         frac = ((ts_c - t[j]) / (t[j + 1] - t[j]))[:, None]
-        kin = np.concatenate((w_tcp, w_obj, a_tcp), axis=1)
+        v_tcp = np.zeros_like(a_tcp) if v_tcp is None else v_tcp
+        kin = np.concatenate((w_tcp, w_obj, a_tcp, v_tcp), axis=1)
         kin = kin[j] + frac * (kin[j + 1] - kin[j])
-        raw, gyro, accel = self.signal.sample(ts, kin[:, 0:3], kin[:, 3:6], kin[:, 6:9], R_world_tcp[-1])
+        raw, gyro, accel = self.signal.sample(ts, kin[:, 0:3], kin[:, 3:6], kin[:, 6:9], R_world_tcp[-1],
+                                              kin[:, 9:12])
         self.samples += n
         if self.wire is not None:
             self.wire.send(raw)                                    # never blocks the physics thread
             return
         stamps = ts + self.rng.normal(0.0, self.params.timestamp_jitter_s, n) if self.params.timestamp_jitter_s else ts
+        if self.signal.rig is not None:
+            stamps = self.signal.rig.stamps(stamps)       # the board's clock against the arm's
         stamps = np.maximum.accumulate(stamps)
         try:
             self._fifo.put_nowait((stamps, gyro, accel))

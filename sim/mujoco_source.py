@@ -70,6 +70,8 @@ class MujocoScenario:
     rest_s: float = 0.5
     move_s: float = 1.5
     yaw_deg: float = 0.0               # the cutter's yaw about world z
+    rig_scale: float = 0.0             # a real rig's disturbances (sim.rig) at this multiple; 0: the chip below
+    rig_only: str = ""                 # ... only this one of them (sim.rig.DISTURBANCES)
     seed: int = 0
 
     circle_radius: float = 0.02        # m, the pen: the TCP's circle about the vertical through the tip
@@ -214,12 +216,15 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     n_rest, n_move = int(sc.rest_s / dt), int(sc.move_s / dt)
     t = np.arange(n_rest + n_move) * dt
     gyro, accel, p_cmd, R_cmd, v_cmd, angle = _simulate(mujoco, model, data, sc, path, t)
-    gyro, accel = _chip(sc, rng, gyro, accel)
+    if sc.rig_scale > 0:
+        gyro, accel, t_imu = _rig(sc, t, gyro, accel, v_cmd, R_cmd)
+    else:
+        gyro, accel, t_imu = (*_chip(sc, rng, gyro, accel), t)
     # proprioception at its own rate
     tcp_t = np.arange(0.3 / sc.tcp_hz, t[-1], 1.0 / sc.tcp_hz)
     idx = np.clip(np.searchsorted(t, tcp_t), 0, len(t) - 1)
     fields = {
-        "imu_t": t, "gyro": gyro, "accel": accel, "tcp_t": t[idx],
+        "imu_t": t_imu, "gyro": gyro, "accel": accel, "tcp_t": t[idx],
         "tcp_pos": p_cmd[idx] + rng.normal(0.0, sc.tcp_noise, (len(idx), 3)),
         "tcp_quat": np.array([matrix_to_quat(R) for R in R_cmd[idx]]),
         "imu_in_tcp_quat": np.array([0.0, 0.0, 0.0, 1.0]),
@@ -352,6 +357,18 @@ def _simulate(mujoco, model, data, sc: MujocoScenario, path: _Path, t: np.ndarra
         else:
             angle[k] = data.qpos[hinge_q]
     return gyro, accel, p_cmd, R_cmd, v_cmd, angle
+
+
+def _rig(sc: MujocoScenario, t, gyro, accel, v_cmd, R_cmd):
+    """A real rig's disturbances (sim.rig) on MuJoCo's clean IMU: the mount's error as the readings
+    turned by it, the arm's vibration from the commanded motion, the sensor, the board's clock."""
+    from tecdard.sim.rig import RigParams, RigSignal
+    rig = RigSignal(RigParams().at(sc.rig_scale, sc.rig_only), sc.imu_hz, sc.seed)
+    R_err = rig.true_mount((0.0, 0.0, 0.0, 1.0))
+    a_world = np.gradient(v_cmd, t, axis=0)
+    R_world_imu = R_cmd @ R_err
+    gyro, accel = rig.imu(t, gyro @ R_err, accel @ R_err, a_world, v_cmd, np.zeros_like(v_cmd), R_world_imu)
+    return gyro, accel, rig.stamps(t)
 
 
 def _chip(sc: MujocoScenario, rng, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -41,6 +41,7 @@ from tecdard.robots.child_link import ChildLink
 from tecdard.robots.model import ArmModel
 from tecdard.sim.board import Board, BoardParams, FirmwareWire, PtyDevice, PyWire
 from tecdard.sim.imu import SimImu, SimImuParams
+from tecdard.sim.rig import RigParams
 from tecdard.sim.robot import PHYSICS_RATE_HZ, PHYSICS_WAKE_S, SimRobot, SimRobotParams
 from tecdard.sim.world import HingeParams, HingeWorld, PivotParams, PivotWorld, SimTruth
 
@@ -74,6 +75,7 @@ class SimSpec:
                                      # Python board, "firmware": from the firmware's host board; "none"
     pty_link: str | None = None      # with "wire" or "firmware": the board's stable device path
     board: BoardParams | None = None
+    rig: RigParams | None = None     # a real rig's disturbances on the IMU (sim.rig; None: none)
     host_board: str | None = None    # with "firmware": the host board's executable
     log_level: int = logging.INFO    # the daemon's, for the child's own log lines
 
@@ -88,7 +90,7 @@ class SimSpec:
         """The simulated arm with its world and IMU, not started. Raises ValueError on a world
         that cannot be built (the daemon builds one in its constructor to check the config)."""
         model = ArmModel(self.arm, np.array(self.tool_offset, float), self.tool_quat)
-        imu = None if self.imu_out == "none" else SimImu(self.imu, seed=self.seed, wire=wire)
+        imu = None if self.imu_out == "none" else SimImu(self.imu, seed=self.seed, wire=wire, rig=self.rig)
         return SimRobot(model, self.robot, self.world_factory(), imu, seed=self.seed, clock=clock)
 
 

@@ -170,6 +170,7 @@ class SimRobot:
         w_tcp = np.empty((n + 1, 3))
         w_obj = np.empty((n + 1, 3))
         a_tcp = np.empty((n + 1, 3))
+        v_tcp = np.empty((n + 1, 3))
         Rs = np.empty((n + 1, 3, 3))
         with self._lock:
             self._pending.extend(self._cmds)
@@ -198,6 +199,7 @@ class SimRobot:
             ts[k] = self.t
             w_tcp[k] = twist[3:]
             a_tcp[k] = (twist[:3] - self._v_prev) / dt if k > 0 else 0.0
+            v_tcp[k] = twist[:3]
             self._v_prev = twist[:3]
             Rs[k] = oMtcp.rotation
             if self.world is not None:
@@ -223,7 +225,7 @@ class SimRobot:
         with self._lock:
             self._truth = self._make_truth()
         if self.imu is not None:
-            self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs)
+            self.imu.feed(ts, w_tcp, w_obj, a_tcp, Rs, v_tcp)
 
     def let_go(self) -> None:
         """The gripper lets go of the object: no world until `rebuild` (`home --reset-world`)."""

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tecdard.control.geometry import matrix_to_quat, quat_to_matrix, rotvec_to_matrix, unit
+from tecdard.sim.rig import RigParams, RigSignal
 
 KINDS = ("edge-arc", "edge-translate", "edge-ongoing", "point-circle", "hinge")
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])
@@ -43,6 +44,9 @@ class Scenario:
     ring_hz: float = 120.0
     ring_tau_s: float = 0.015
     timestamp_jitter_s: float = 2e-6
+    rig_scale: float = 0.0            # a real rig's disturbances (sim.rig) at this multiple; 0: the noise above
+    rig_only: str = ""                # ... only this one of them (sim.rig.DISTURBANCES)
+    tcp_latency_s: float = 0.0        # the states stamped this late (on arrival), at rig_scale 1
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -132,26 +136,37 @@ def generate(sc: Scenario):
         w_tcp = np.zeros((n, 3))
         R_tcp = np.broadcast_to(R0, (n, 3, 3))
     eta = sc.true_eta()
-    R_tcp_imu = quat_to_matrix(np.array(sc.imu_in_tcp_quat, float))
+    rig = RigSignal(RigParams().at(sc.rig_scale, sc.rig_only), sc.imu_hz, sc.seed) if sc.rig_scale > 0 else None
+    R_tcp_imu = quat_to_matrix(np.array(sc.imu_in_tcp_quat, float)) if rig is None else rig.true_mount(
+        sc.imu_in_tcp_quat)
+    eta_signal = eta if rig is None else rig.eta(eta)
     R_world_imu = R_tcp @ R_tcp_imu
-    w_seen = w_tcp + (w_obj - w_tcp) / eta
+    w_seen = w_tcp + (w_obj - w_tcp) / eta_signal
     gyro = np.einsum("nji,nj->ni", R_world_imu, w_seen)
-    gyro += rng.uniform(-sc.gyro_bias, sc.gyro_bias, 3) + rng.normal(0, sc.gyro_noise, (n, 3))
     f_world = acc - GRAVITY_WORLD
     ring = np.where(after, np.exp(-np.maximum(s_time, 0) / sc.ring_tau_s)
                     * np.sin(2 * np.pi * sc.ring_hz * np.maximum(s_time, 0)), 0.0)
     f_world = f_world + (sc.ring_gain * sc.speed) * ring[:, None] * t0_dir
-    accel = np.einsum("nji,nj->ni", R_world_imu, f_world) + rng.normal(0, sc.accel_noise, (n, 3))
+    accel = np.einsum("nji,nj->ni", R_world_imu, f_world)
+    if rig is None:
+        gyro += rng.uniform(-sc.gyro_bias, sc.gyro_bias, 3) + rng.normal(0, sc.gyro_noise, (n, 3))
+        accel += rng.normal(0, sc.accel_noise, (n, 3))
+    else:
+        gyro, accel = rig.imu(t, gyro, accel, acc, v, w_tcp, R_world_imu)
     imu_t = t + rng.normal(0, sc.timestamp_jitter_s, n)
     imu_t = np.maximum.accumulate(imu_t + np.arange(n) * 1e-12)
+    if rig is not None:
+        imu_t = rig.stamps(imu_t)
 
     # Proprioception at its own rate, on the same clock.
     tcp_t = np.arange(0.0, t[-1], 1.0 / sc.tcp_hz) + 0.3 / sc.tcp_hz
     idx = np.clip(np.searchsorted(t, tcp_t), 0, n - 1)
     tcp_pos = p[idx] + rng.normal(0, sc.tcp_noise, (len(idx), 3))
     tcp_quat = np.array([matrix_to_quat(R) for R in R_tcp[idx]])
+    latency = sc.tcp_latency_s * (rig.p.level("latency") if rig is not None else 1.0)
     fields = {
-        "imu_t": imu_t, "gyro": gyro, "accel": accel, "tcp_t": t[idx], "tcp_pos": tcp_pos, "tcp_quat": tcp_quat,
+        "imu_t": imu_t, "gyro": gyro, "accel": accel, "tcp_t": t[idx] + latency, "tcp_pos": tcp_pos,
+        "tcp_quat": tcp_quat,
         "imu_in_tcp_quat": np.array(sc.imu_in_tcp_quat, float) / np.linalg.norm(sc.imu_in_tcp_quat),
         "grip_force": np.full(len(idx), sc.grip_force),
         "tcp_vel": (v[idx] + rng.normal(0, sc.tcp_vel_noise, (len(idx), 3))) if sc.with_tcp_vel else None,

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from tecdard.control.onset import OnsetDetector, SlidingBandEnergy
+from tecdard.control.band_energy import SlidingBandEnergy
+from tecdard.control.onset import OnsetDetector
 
 ODR_HZ = 6667.0
 G = np.array([0.0, 0.0, 9.81])

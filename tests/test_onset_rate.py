@@ -16,7 +16,7 @@ from tecdard.sim.scenarios import Scenario, generate
 
 
 def _recording(tmp_path, imu_hz: float, tcp_hz: float = 125.0, **kw):
-    sc = Scenario(kind="hinge", imu_hz=imu_hz, tcp_hz=tcp_hz, duration_s=1.0, seed=3, **kw)
+    sc = Scenario(kind="edge-arc", imu_hz=imu_hz, tcp_hz=tcp_hz, duration_s=1.0, seed=3, **kw)
     fields, truth = generate(sc)
     path = tmp_path / f"rec_{imu_hz:g}.npz"
     save_recording(path, Recording.from_fields(fields), truth)
@@ -26,13 +26,14 @@ def _recording(tmp_path, imu_hz: float, tcp_hz: float = 125.0, **kw):
 @pytest.mark.parametrize("imu_hz", [200.0, 250.0, 400.0, 1000.0])
 def test_a_recording_at_any_rate_from_200_hz_is_localized(tmp_path, caplog, imu_hz):
     """A tool IMU at a few hundred Hz: the band condition is off by default, so nothing is said of it,
-    the recording replays, and the hinge's onset is found within a few of its samples."""
+    the recording replays, and the arc's onset is found: dated within 30 ms of the truth (a 120 Hz click
+    is beyond a 200 Hz IMU's band; the fingertip's twist then dates it)."""
     path, truth = _recording(tmp_path, imu_hz)
     with caplog.at_level(logging.WARNING, logger="tecdar"):
         r = open_replay(path)
         rows, onset_t, last = run_replay(r)
     assert not [m for m in caplog.messages if "band" in m]
-    assert onset_t is not None and abs(onset_t - float(truth["onset_t"])) <= 4.0 / imu_hz + 0.01
+    assert onset_t is not None and abs(onset_t - float(truth["onset_t"])) <= 0.03
     assert last is not None and np.isfinite(last.p).all()
 
 

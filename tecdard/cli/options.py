@@ -36,6 +36,7 @@ def sections() -> list[tuple[str, type]]:
     from tecdard.runtime.ros2_node import Ros2Params
     from tecdard.sim.backend import SimOptions
     from tecdard.sim.imu import SimImuParams
+    from tecdard.sim.rig import RigParams
     from tecdard.sim.robot import SimRobotParams
     from tecdard.sim.world import HingeParams, PivotParams
     from tecdard.verbs.map.files import MapSettings
@@ -52,7 +53,8 @@ def sections() -> list[tuple[str, type]]:
             ("record", RecordParams), ("store", StoreParams), ("viz.foxglove", VizParams),
             ("imu", ImuOptions), ("imu.serial", SerialParams),
             ("estimator", PipelineParams), ("estimator.onset", OnsetOptions), *each_estimator,
-            ("sim", SimOptions), ("sim.robot", SimRobotParams), ("sim.imu", SimImuParams), ("sim.hinge", HingeParams),
+            ("sim", SimOptions), ("sim.robot", SimRobotParams), ("sim.imu", SimImuParams), ("sim.rig", RigParams),
+            ("sim.hinge", HingeParams),
             ("sim.pivot", PivotParams)]
 
 

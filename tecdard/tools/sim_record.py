@@ -79,6 +79,8 @@ def _scenario_options(p) -> None:
             p.add_argument(opt, type=flag, default=None, metavar="BOOL", help=f"default {default}")
         elif isinstance(default, int) and not isinstance(default, bool):
             p.add_argument(opt, type=int, default=None, help=f"default {default}")
+        elif isinstance(default, str):
+            p.add_argument(opt, default=None, help=f"default {default!r}")
         elif isinstance(default, tuple):
             p.add_argument(opt, type=vec, default=None, metavar="X,Y,Z", help=f"default {','.join(map(str, default))}")
         else:
