@@ -74,6 +74,35 @@ def _ramp_distance(t: np.ndarray, speed: float) -> tuple[np.ndarray, np.ndarray]
     return s, v
 
 
+def _imu(sc: Scenario, rng, t, s_time, t0_dir, acc, v, w_tcp, w_obj, R_tcp):
+    """The fingertip IMU's (gyro, accel, stamps, the rig's signal or None) for the kinematics: the
+    LSM6DSR's noise and bias, or (rig_scale) a real rig's disturbances (sim.rig)."""
+    n, eta, after = len(t), sc.true_eta(), s_time >= 0
+    rig = RigSignal(RigParams().at(sc.rig_scale, sc.rig_only), sc.imu_hz, sc.seed) if sc.rig_scale > 0 else None
+    R_tcp_imu = quat_to_matrix(np.array(sc.imu_in_tcp_quat, float)) if rig is None else rig.true_mount(
+        sc.imu_in_tcp_quat)
+    eta_signal = eta if rig is None else rig.eta(eta)
+    R_world_imu = R_tcp @ R_tcp_imu
+    w_seen = w_tcp + (w_obj - w_tcp) / eta_signal
+    gyro = np.einsum("nji,nj->ni", R_world_imu, w_seen)
+    f_world = acc - GRAVITY_WORLD
+    ring = np.where(after, np.exp(-np.maximum(s_time, 0) / sc.ring_tau_s)
+                    * np.sin(2 * np.pi * sc.ring_hz * np.maximum(s_time, 0)), 0.0)
+    f_world = f_world + (sc.ring_gain * sc.speed) * ring[:, None] * t0_dir
+    accel = np.einsum("nji,nj->ni", R_world_imu, f_world)
+    if rig is None:
+        gyro += rng.uniform(-sc.gyro_bias, sc.gyro_bias, 3) + rng.normal(0, sc.gyro_noise, (n, 3))
+        accel += rng.normal(0, sc.accel_noise, (n, 3))
+    else:
+        gyro, accel = rig.imu(t, gyro, accel, acc, v, w_tcp, R_world_imu)
+    imu_t = t + rng.normal(0, sc.timestamp_jitter_s, n)
+    imu_t = np.maximum.accumulate(imu_t + np.arange(n) * 1e-12)
+    if rig is not None:
+        imu_t = rig.stamps(imu_t)
+
+    return gyro, accel, imu_t, rig
+
+
 def generate(sc: Scenario):
     """Returns (recording fields dict, truth dict) for `tecdard.recording.save_recording`."""
     if sc.kind not in KINDS:
@@ -136,27 +165,7 @@ def generate(sc: Scenario):
         w_tcp = np.zeros((n, 3))
         R_tcp = np.broadcast_to(R0, (n, 3, 3))
     eta = sc.true_eta()
-    rig = RigSignal(RigParams().at(sc.rig_scale, sc.rig_only), sc.imu_hz, sc.seed) if sc.rig_scale > 0 else None
-    R_tcp_imu = quat_to_matrix(np.array(sc.imu_in_tcp_quat, float)) if rig is None else rig.true_mount(
-        sc.imu_in_tcp_quat)
-    eta_signal = eta if rig is None else rig.eta(eta)
-    R_world_imu = R_tcp @ R_tcp_imu
-    w_seen = w_tcp + (w_obj - w_tcp) / eta_signal
-    gyro = np.einsum("nji,nj->ni", R_world_imu, w_seen)
-    f_world = acc - GRAVITY_WORLD
-    ring = np.where(after, np.exp(-np.maximum(s_time, 0) / sc.ring_tau_s)
-                    * np.sin(2 * np.pi * sc.ring_hz * np.maximum(s_time, 0)), 0.0)
-    f_world = f_world + (sc.ring_gain * sc.speed) * ring[:, None] * t0_dir
-    accel = np.einsum("nji,nj->ni", R_world_imu, f_world)
-    if rig is None:
-        gyro += rng.uniform(-sc.gyro_bias, sc.gyro_bias, 3) + rng.normal(0, sc.gyro_noise, (n, 3))
-        accel += rng.normal(0, sc.accel_noise, (n, 3))
-    else:
-        gyro, accel = rig.imu(t, gyro, accel, acc, v, w_tcp, R_world_imu)
-    imu_t = t + rng.normal(0, sc.timestamp_jitter_s, n)
-    imu_t = np.maximum.accumulate(imu_t + np.arange(n) * 1e-12)
-    if rig is not None:
-        imu_t = rig.stamps(imu_t)
+    gyro, accel, imu_t, rig = _imu(sc, rng, t, s_time, t0_dir, acc, v, w_tcp, w_obj, R_tcp)
 
     # Proprioception at its own rate, on the same clock.
     tcp_t = np.arange(0.0, t[-1], 1.0 / sc.tcp_hz) + 0.3 / sc.tcp_hz
