@@ -9,6 +9,8 @@ import numpy as np
 
 from tecdard.control.band_energy import band_at_rate
 from tecdard.control.conditioning import mean0, moving_mean
+from tecdard.control.onset_guard import FLOOR_K, NoiseFloor, StepGuard
+from tecdard.control.proprio import ACCEL_WINDOW_S
 from tecdard.options import option, read_options
 
 MODES = ("any", "all")
@@ -27,30 +29,10 @@ TWIST_WINDOW_S = 0.005
 # (TWIST_HOLD_S) tells them apart instead.
 SWING_ACCEL = 0.5
 SWING_TAU_S = 0.1
-# A real arm's tool vibrates (0.045-0.07 rad/s, and up to a m/s^2, that the joint encoders never see) and a
-# tool IMU is noisier than ours: the accelerometer's threshold is at least FLOOR_K times the remainder's
-# RMS over the last FLOOR_TAU_S (its moving noise floor), learned while nothing is pending, armed or not,
-# so that a trigger fired on a vibrating arm settles and re-arms on that arm's level, not an idle board's.
-FLOOR_K = 4.0
-FLOOR_TAU_S = 2.0
 SETTLE_LEVEL = 0.8            # settled: every condition under this fraction of its threshold for settle_s
-# An arm that starts with an acceleration step (a UR's speedL trapezoid, a pendant jog) shows it in the
-# IMU at once and in its states only after their latency and the acceleration fit's span. An
-# accelerometer onset therefore waits for those states (proprio_lag_s + ProprioTrack.fit_span_s): the
-# peak remainder within PEAK_WINDOW_S of the candidate must exceed the threshold plus (1 + swing_accel)
-# times the change the states then show of the arm's own acceleration. An impact's peak is sharper than
-# any change the arm's states can show over the fit; a step the arm took is as large as the change.
-PEAK_WINDOW_S = 0.01
-STALE_WAIT_S = 0.05           # states that stop coming: decided this long after they were due, as they stand
-
-
-@dataclass
-class Candidate:
-    """An accelerometer onset waiting for the arm's states: its time, the peak remainder within
-    PEAK_WINDOW_S of it (m/s^2), and its threshold with the allowances then (m/s^2)."""
-    t: float
-    peak: float
-    allow: float
+# A grasped hinge turns the fingertip one way as long as the arm moves it; the arm's vibration turns it
+# back and forth at tens of Hz. The hold is judged on the twist's mean over TWIST_HOLD_MEAN_S.
+TWIST_HOLD_MEAN_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -86,6 +68,9 @@ class OnsetOptions:
                                         "this plus the arm's acceleration fit for the states that may explain it "
                                         "(an acceleration step); 0: fires at once", unit="s", minval=0.0,
                                   maxval=0.1)
+    mount_tolerance_deg: float = option(5.0, "how far the configured mount may be off (tecdard calibrate-mount "
+                                             "measures it): the rate and acceleration it misattributes are "
+                                             "allowed for", unit="deg", minval=0.0, maxval=30.0)
     floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
                                      "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
@@ -165,15 +150,11 @@ class OnsetDetector:
         self._twist_ms = 0.0           # the twist's mean square at rest, (rad/s)^2
         self._candidate = None         # a twist holding: (since, its direction, the quiet time before it)
         self._quiet = np.zeros(0, dtype=int)
-        self.floor_k = 0.0             # the moving noise floor's multiple (from_config: floor_k, FLOOR_K)
-        self._floor_ms = 0.0           # the accelerometer remainder's moving mean square, (m/s^2)^2
-        self._floor_s = 0.0            # how much data the floor has seen, s
-        self.arm = None                # what the arm's states say (ProprioTrack: accel_change, fit_span_s)
-        self.proprio_lag_s = 0.0       # an accelerometer onset waits for the states (from_config: 0.01 s)
-        self._confirm = None           # a candidate waiting for the arm's states (Candidate)
-        self._from_t = None            # the decided candidate's time (_decide -> _fire)
-        self._masked = (0.0, -np.inf)  # the last explained step: (its allowance, m/s^2; when), decaying
-        self.explained_steps = 0       # candidates the arm's states explained (its own acceleration steps)
+        self.mount_tolerance = 0.0     # rad the configured mount may be off (from_config: mount_tolerance_deg)
+        self._rest_expl = None         # the explained (force, rate) means the rest levels were learned under
+        self._slow_hist = np.zeros((0, 3))   # the twist's TWIST_HOLD_MEAN_S mean's history
+        self.floor = NoiseFloor()      # the accelerometer remainder's moving floor (from_config: floor_k)
+        self.guard = StepGuard()       # an accelerometer onset waits for the arm's states (from_config, pipeline)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
 
@@ -209,8 +190,9 @@ class OnsetDetector:
             key, _, problem = str(exc).partition(": ")
             raise section.error(key, problem) from None
         det.swing_accel = o.swing_accel
-        det.proprio_lag_s = o.proprio_lag_s
-        det.floor_k = o.floor_k
+        det.guard.lag_s = o.proprio_lag_s
+        det.floor.k = o.floor_k
+        det.mount_tolerance = math.radians(o.mount_tolerance_deg)
         return det
 
     def rearm(self, settle: bool = False) -> None:
@@ -222,7 +204,7 @@ class OnsetDetector:
         self.onset_from_t = None
         self.fired_by = None
         self._candidate = None
-        self._confirm = None
+        self.guard.clear()
         if settle and self.settle_s > 0.0:
             self.settling = True
             self._still_since = None
@@ -232,12 +214,14 @@ class OnsetDetector:
         longer, taken off)."""
         self.rest_accel = None
         self.rest_gyro = None
+        self._rest_expl = None
         self._seen_s = 0.0
         self._twist_hist = np.zeros((0, 3))
+        self._slow_hist = np.zeros((0, 3))
         self._twist_quiet_t = -np.inf
         self._twist_ms = 0.0
         self._candidate = None
-        self._confirm = None
+        self.guard.clear()
 
     def _swing(self, t: np.ndarray, a_arm: np.ndarray) -> np.ndarray:
         """The envelope of the arm's acceleration (n,), m/s^2: its running maximum, decaying with
@@ -249,10 +233,13 @@ class OnsetDetector:
         self._swing_env, self._swing_t = float(env[-1]), float(t[-1])
         return env
 
-    def _twist(self, gyro: np.ndarray) -> np.ndarray:
-        """The gyro remainder's causal mean over twist_window samples, less its rest level (n, 3)."""
+    def _twist(self, gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The gyro remainder's causal means over twist_window samples and over TWIST_HOLD_MEAN_S, less
+        its rest level ((n, 3) each)."""
         out, self._twist_hist = moving_mean(self._twist_hist, gyro, self.twist_window)
-        return out - self.rest_gyro
+        slow_n = max(self.twist_window, int(round(TWIST_HOLD_MEAN_S * self.odr_hz)))
+        slow, self._slow_hist = moving_mean(self._slow_hist, gyro, slow_n)
+        return out - self.rest_gyro, slow - self.rest_gyro
 
     def _conditions(self, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray | None, allow_a=0.0,
                     allow_w=0.0, twist=None) -> tuple[dict, dict]:
@@ -267,7 +254,7 @@ class OnsetDetector:
                 self._dev_a = np.abs(dev @ self.accel_axis)
             else:
                 self._dev_a = np.sqrt(np.einsum("ij,ij->i", dev, dev))
-            level["accel"] = self._dev_a / (self.accel_threshold_now() + allow_a + self._mask(t))
+            level["accel"] = self._dev_a / (self.accel_threshold_now() + allow_a + self.guard.mask(t))
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
@@ -278,14 +265,15 @@ class OnsetDetector:
         for name, x in level.items():
             out[name] = x > 1.0
         if twist is not None:
-            out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * (self.twist_threshold + allow_w))
+            out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * (self.twist_threshold + allow_w), twist[2])
         return out, level
 
-    def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor) -> np.ndarray:
+    def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor, slow: np.ndarray) -> np.ndarray:
         """The twist fires only once it has held one way for TWIST_HOLD_S: over its threshold at the
-        start, then never under `floor` (half of it) along that direction. A grasped hinge the arm
-        turns keeps twisting one way as long as the arm moves; a held object swinging in the grasp
-        turns back within half its period. True at the sample where the hold completes."""
+        start, then its TWIST_HOLD_MEAN_S mean (`slow`) never under `floor` (half of it) along that
+        direction. A grasped hinge the arm turns keeps twisting one way as long as the arm moves; a
+        held object swinging in the grasp turns back within half its period, and the arm's vibration
+        within its mean. True at the sample where the hold completes."""
         n = len(t)
         fired = np.zeros(n, dtype=bool)
         floor = np.broadcast_to(floor, (n,))
@@ -298,7 +286,7 @@ class OnsetDetector:
                 i += int(up[0])
                 self._candidate = (float(t[i]), tw[i] / np.linalg.norm(tw[i]), self._quiet_before(t, i))
             t0, u, _ = self._candidate
-            drop = np.flatnonzero(tw[i:] @ u < floor[i:])
+            drop = np.flatnonzero(slow[i:] @ u < floor[i:])
             held = np.flatnonzero(t[i:] - t0 >= TWIST_HOLD_S)
             k_drop = int(drop[0]) if len(drop) else n
             k_held = int(held[0]) if len(held) else n
@@ -319,7 +307,7 @@ class OnsetDetector:
     @property
     def pending(self) -> bool:
         """A twist is holding (TWIST_HOLD_S): neither the rest levels nor the gyro's bias may learn from it."""
-        return self._candidate is not None or self._confirm is not None
+        return self._candidate is not None or self.guard.waiting
 
     @property
     def warm(self) -> bool:
@@ -346,15 +334,25 @@ class OnsetDetector:
             if gyro is not None:
                 gyro = gyro - explained[1]
             swing = self._swing(t, explained[4])
-            allow_a = explained[2] + self.swing_accel * swing
-            allow_w = explained[3]
+            # the fit trails the arm by its half window, and stamps may be proprio_lag_s late on top;
+            # a mount off by mount_tolerance misattributes that angle of the arm's acceleration and rate
+            lag_gain = 1.0 + 2.0 * self.guard.lag_s / ACCEL_WINDOW_S
+            allow_a = lag_gain * explained[2] + self.swing_accel * swing
+            allow_w = lag_gain * explained[3]
+            if self.mount_tolerance > 0.0 and self._rest_expl is not None:
+                # what the arm's motion and attitude do since the rest levels were learned, times how far
+                # the mount may be off: the part of it a wrong mount puts on the wrong axes
+                df, dw = explained[0] - self._rest_expl[0], explained[1] - self._rest_expl[1]
+                allow_a = allow_a + self.mount_tolerance * np.sqrt(np.einsum("ij,ij->i", df, df))
+                allow_w = allow_w + self.mount_tolerance * np.sqrt(np.einsum("ij,ij->i", dw, dw))
         if self.rest_accel is None:
             self.rest_accel = mean0(accel)
             self.rest_gyro = mean0(gyro) if gyro is not None else np.zeros(3)
+            self._rest_expl = None if not explaining else (mean0(explained[0]), mean0(explained[1]))
         self._quiet, twist = np.zeros(0, dtype=int), None
         if self.twist_threshold is not None and gyro is not None:
-            tw = self._twist(gyro)
-            twist = tw, np.sqrt(np.einsum("ij,ij->i", tw, tw))
+            tw, slow = self._twist(gyro)
+            twist = tw, np.sqrt(np.einsum("ij,ij->i", tw, tw)), slow
             # where the twist is within twice its own noise (its rms at rest), or a twentieth of the threshold
             quiet_level = max(2.0 * math.sqrt(self._twist_ms), 0.05 * self.twist_threshold)
             self._quiet = np.flatnonzero(twist[1] <= quiet_level)
@@ -363,8 +361,8 @@ class OnsetDetector:
             self._candidate = None        # a twist counts only from when the trigger may fire
         quiet = self._quiet
         hit, by = -1, None
-        if self._confirm is not None and self.armed and not self.settling:
-            hit, by = self._decide(t), "accel"          # nothing else fires while a candidate waits
+        if self.guard.waiting and self.armed and not self.settling:
+            hit, by = self.guard.decide(t, self._dev_a, self.swing_accel), "accel"   # nothing else fires meanwhile
         elif self.settling:
             self._settle(t, level)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
@@ -378,10 +376,10 @@ class OnsetDetector:
                 hit = self._coincidence(t, conds)
             if hit >= 0:
                 by = next(k for k, v in conds.items() if v[hit])
-                if self._waits(by):
-                    self._confirm = Candidate(float(t[hit]), 0.0, float(self.accel_threshold_now()
-                                                                        + np.broadcast_to(allow_a, (n,))[hit]))
-                    hit = self._decide(t)
+                if by == "accel" and self.guard.applies(bool(self._explaining), self.mode):
+                    self.guard.start(float(t[hit]), float(self.accel_threshold_now()
+                                                          + np.broadcast_to(allow_a, (n,))[hit]))
+                    hit = self.guard.decide(t, self._dev_a, self.swing_accel)
         if hit >= 0:
             self._fire(t, hit, by)
         if len(quiet):
@@ -395,21 +393,25 @@ class OnsetDetector:
             self.rest_accel = self.rest_accel + alpha * (mean0(accel) - self.rest_accel)
             if gyro is not None:
                 self.rest_gyro = self.rest_gyro + alpha * (mean0(gyro) - self.rest_gyro)
+            if explaining and self._rest_expl is not None:
+                # the explained force and rate the rest levels were learned under, with them
+                f0, w0 = self._rest_expl
+                self._rest_expl = (f0 + alpha * (mean0(explained[0]) - f0), w0 + alpha * (mean0(explained[1]) - w0))
             if twist is not None and not self.settling:
                 ms = float(np.mean(twist[1] ** 2))
                 self._twist_ms = ms if self._twist_ms == 0.0 else self._twist_ms + alpha * (ms - self._twist_ms)
             self._seen_s += dt
         if hit < 0 and not self.pending and self._dev_a is not None:
-            self._learn_floor(t)
+            self.floor.learn(t, self._dev_a, self.odr_hz)
         return hit
 
     def _fire(self, t: np.ndarray, hit: int, by: str) -> None:
         self.armed = False
         self.fired_by = by
         self.onset_from_t = None
-        if self._from_t is not None:
+        if self.guard.decided_t is not None:
             # an onset the arm's states had to clear: at the candidate's sample
-            self.onset_from_t, self._from_t = self._from_t, None
+            self.onset_from_t, self.guard.decided_t = self.guard.decided_t, None
         elif self._candidate is not None and self._candidate[0] <= float(t[hit]):
             # a twist holding since before (any condition may fire first: a hinge's friction
             # breaking away): from where it left its noise, less its mean's group delay
@@ -418,52 +420,9 @@ class OnsetDetector:
         self._candidate = None
 
     def accel_threshold_now(self) -> float:
-        """The accelerometer's threshold, m/s^2: the configured one, or FLOOR_K times the remainder's
-        moving RMS where the arm's vibration or the sensor's noise is larger."""
-        return max(self.accel_threshold, self.floor_k * math.sqrt(self._floor_ms))
-
-    def _learn_floor(self, t: np.ndarray) -> None:
-        """The accelerometer remainder's moving mean square over FLOOR_TAU_S (a cumulative mean at first)."""
-        dt = float(t[-1] - t[0]) + 1.0 / self.odr_hz
-        ms = float(np.mean(self._dev_a * self._dev_a))
-        alpha = max(dt / (self._floor_s + dt), 1.0 - math.exp(-dt / FLOOR_TAU_S))
-        self._floor_ms += alpha * (ms - self._floor_ms)
-        self._floor_s += dt
-
-    def _mask(self, t: np.ndarray):
-        """What is still allowed of the last step the arm's states explained, decaying with SWING_TAU_S."""
-        amp, since = self._masked
-        if amp == 0.0 or float(t[-1]) < since:
-            return 0.0
-        return amp * np.exp(-np.maximum(t - since, 0.0) / SWING_TAU_S)
-
-    def _waits(self, by: str) -> bool:
-        """Whether an onset by condition `by` waits for the arm's states (an accelerometer onset, with
-        the arm's motion taken off, in mode any)."""
-        return (by == "accel" and self.proprio_lag_s > 0.0 and self.arm is not None
-                and bool(self._explaining) and self.mode == "any")
-
-    def _decide(self, t: np.ndarray) -> int:
-        """The waiting candidate against the arm's states: the index of the sample it is decided at
-        (an onset, dated back to the candidate), or -1 (still waiting, or the arm's own step)."""
-        c = self._confirm
-        if self._dev_a is not None:
-            win = (t >= c.t) & (t <= c.t + PEAK_WINDOW_S)
-            if win.any():
-                c.peak = max(c.peak, float(self._dev_a[win].max()))
-        change, newest = self.arm.accel_change(c.t)
-        due = c.t + self.proprio_lag_s + self.arm.fit_span_s()
-        last = float(t[-1])
-        if (newest < due and last < due + STALE_WAIT_S) or last < c.t + PEAK_WINDOW_S:
-            return -1
-        self._confirm = None
-        explained = (1.0 + self.swing_accel) * change
-        if c.peak > c.allow + explained:
-            self._from_t = c.t
-            return min(int(np.searchsorted(t, max(due, float(t[0])))), len(t) - 1)
-        self.explained_steps += 1
-        self._masked = (explained, last)
-        return -1
+        """The accelerometer's threshold, m/s^2: the configured one, or the noise floor's where the
+        arm's vibration or the sensor's noise is larger (NoiseFloor)."""
+        return self.floor.threshold(self.accel_threshold)
 
     def _settle(self, t: np.ndarray, level: dict) -> None:
         """While settling: the remainder still (every condition under SETTLE_LEVEL of its threshold,

@@ -125,7 +125,7 @@ class ContactPipeline:
         self.eta = EtaSchedule(self.params.eta_table)
         self.proprio = proprio or ProprioTrack(sigma_p=self.params.noise.sigma_p, sigma_v=self.params.noise.sigma_v)
         self.proprio.imu_mount = np.asarray(conditioner.R_tcp_imu, dtype=float)
-        self.detector.arm = self.proprio       # an accelerometer onset waits for the arm's states (onset.py)
+        self.detector.guard.arm = self.proprio   # an accelerometer onset waits for the arm's states (onset_guard)
         self.measure = Measurements(conditioner, self.eta, self.proprio, self.params.grip_force_n,
                                     self.params.fingertip_lag_s)
         self.tracking = False
