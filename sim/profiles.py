@@ -118,15 +118,15 @@ def free_motion(profile_name: str, duration_s: float = 60.0, imu_hz: float = 666
     gyro, accel = _in_chunks(signal, imu_t, w_imu, f_imu, a_w, v_w, w_world, R_world_imu)
     # the states: measured on the arm's clock, stamped late and with jitter
     t_meas = np.arange(0.5 / profile.state_hz, t_k[-1], 1.0 / profile.state_hz)
-    k = np.minimum((t_meas / STEP_S).astype(int), len(t_k) - 1)
-    stamps = t_meas + profile.latency_s * rig.level("latency") \
-        + rng.normal(0.0, profile.jitter_s * rig.level("jitter") + 1e-12, len(t_meas))
-    stamps = np.maximum.accumulate(stamps + np.arange(len(stamps)) * 1e-9)
+    at = [np.interp(t_meas, t_k, pos4[:, i]) for i in range(4)]       # the arm where each state was measured
+    vel_at = np.column_stack([np.interp(t_meas, t_k, vel4[:, i]) for i in range(3)])
+    stamps = _stamped(t_meas, profile.latency_s * rig.level("latency"), profile.jitter_s * rig.level("jitter"),
+                      profile.state_hz, rng)
     fields = {
         "imu_t": signal.stamps(imu_t), "gyro": gyro, "accel": accel, "tcp_t": stamps,
-        "tcp_pos": p0 + pos4[k, :3] + rng.normal(0.0, tcp_noise, (len(k), 3)),
-        "tcp_quat": np.array([matrix_to_quat(R) for R in _yaw_down(pos4[k, 3])]),
-        "tcp_vel": vel4[k, :3] + rng.normal(0.0, tcp_vel_noise, (len(k), 3)),
+        "tcp_pos": p0 + np.column_stack(at[:3]) + rng.normal(0.0, tcp_noise, (len(t_meas), 3)),
+        "tcp_quat": np.array([matrix_to_quat(R) for R in _yaw_down(at[3])]),
+        "tcp_vel": vel_at + rng.normal(0.0, tcp_vel_noise, (len(t_meas), 3)),
         "imu_in_tcp_quat": np.array(imu_in_tcp_quat, float) / np.linalg.norm(imu_in_tcp_quat),
         "meta": {"simulated": True, "kind": f"free-motion {profile_name}", "rig_scale": rig.scale,
                  "rig_only": rig.only, "seed": seed},
@@ -151,3 +151,77 @@ def _yaw_down(yaw: np.ndarray) -> np.ndarray:
     R = np.zeros((len(yaw), 3, 3))
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
     return R @ quat_to_matrix(np.array([1.0, 0.0, 0.0, 0.0]))
+
+
+def wrist_calibration(profile_name: str = "ur-e", imu_hz: float = 6667.0, rig: RigParams | None = None,
+                      seed: int = 0, amplitude_deg: float = 10.0, speed_deg_s: float = 5.0,
+                      imu_in_tcp_quat=(0.0, 0.0, 0.0, 1.0), ramp_s: float = 0.05):
+    """(recording fields, truth) of the wrist turned about each TCP axis in turn, +amplitude, -2
+    amplitude, +amplitude at speed_deg_s (ramps of ramp_s), the TCP still: what `tecdard calibrate-mount
+    --live` records. The recording states the configured mount; truth holds the one the signal was
+    made with (`R_tcp_imu`) and the clock offset between the IMU's stamps and the states'."""
+    profile = PROFILES[profile_name]
+    rig = rig or RigParams()
+    rng = np.random.default_rng(seed)
+    w = np.radians(speed_deg_s)
+    seg = np.radians(amplitude_deg) / w                      # s per amplitude
+    rates = []
+    for axis in range(3):
+        for sign, length in ((1, seg), (-1, 2 * seg), (1, seg)):
+            n = int(length / STEP_S)
+            ramp = np.minimum(1.0, np.minimum(np.arange(n), n - np.arange(n)) * STEP_S / ramp_s)
+            r = np.zeros((n, 3))
+            r[:, axis] = sign * w * ramp
+            rates.append(r)
+        rates.append(np.zeros((int(0.3 / STEP_S), 3)))
+    rest = np.zeros((int(0.5 / STEP_S), 3))
+    w_body = np.vstack([rest, *rates, rest])
+    n = len(w_body)
+    t_k = np.arange(n) * STEP_S
+    R0 = quat_to_matrix(np.array([1.0, 0.0, 0.0, 0.0]))
+    R = np.empty((n, 3, 3))
+    R[0] = R0
+    for k in range(1, n):                                     # body rates integrated (exact per step)
+        R[k] = R[k - 1] @ _exp(w_body[k - 1] * STEP_S)
+    imu_t = np.arange(0.0, t_k[-1], 1.0 / imu_hz)
+    j = np.minimum((imu_t / STEP_S).astype(int), n - 1)
+    signal = RigSignal(rig, imu_hz, seed)
+    R_tcp_imu = signal.true_mount(imu_in_tcp_quat)
+    R_world_imu = R[j] @ R_tcp_imu
+    w_world = np.einsum("nij,nj->ni", R[j], w_body[j])
+    zeros = np.zeros((len(j), 3))
+    f_imu = np.einsum("nji,nj->ni", R_world_imu, np.broadcast_to(-GRAVITY_WORLD, (len(j), 3)))
+    w_imu = np.einsum("nji,nj->ni", R_world_imu, w_world)
+    gyro, accel = _in_chunks(signal, imu_t, w_imu, f_imu, zeros, zeros, w_world, R_world_imu)
+    t_meas = np.arange(0.5 / profile.state_hz, t_k[-1], 1.0 / profile.state_hz)
+    k = np.minimum((t_meas / STEP_S).astype(int), n - 1)
+    # the attitude at each measurement: the step's start turned on by its body rate for the remainder
+    R_meas = np.array([R[kk] @ _exp(w_body[kk] * (tm - kk * STEP_S)) for kk, tm in zip(k, t_meas)])
+    latency = profile.latency_s * rig.level("latency")
+    stamps = _stamped(t_meas, latency, profile.jitter_s * rig.level("jitter"), profile.state_hz, rng)
+    imu_stamps = signal.stamps(imu_t)
+    fields = {
+        "imu_t": imu_stamps, "gyro": gyro, "accel": accel, "tcp_t": stamps,
+        "tcp_pos": np.tile([0.5, 0.0, 0.3], (len(k), 1)) + rng.normal(0.0, 5e-5, (len(k), 3)),
+        "tcp_quat": np.array([matrix_to_quat(Rk) for Rk in R_meas]),
+        "tcp_vel": rng.normal(0.0, 1e-3, (len(k), 3)),
+        "imu_in_tcp_quat": np.array(imu_in_tcp_quat, float) / np.linalg.norm(imu_in_tcp_quat),
+        "meta": {"simulated": True, "kind": "wrist-calibration", "rig_scale": rig.scale, "seed": seed},
+    }
+    # the same instant: the IMU stamps it t + clock, the states t + latency
+    clock = float(imu_stamps[len(imu_stamps) // 2] - imu_t[len(imu_t) // 2])
+    truth = {"R_tcp_imu": R_tcp_imu, "offset_s": np.array(clock - latency), "kind": np.array("wrist-calibration"),
+             "onset_t": np.array(np.nan)}
+    return fields, truth
+
+
+def _exp(v: np.ndarray) -> np.ndarray:
+    from tecdard.control.geometry import rotvec_to_matrix
+    return rotvec_to_matrix(v)
+
+
+def _stamped(t_meas: np.ndarray, latency_s: float, jitter_s: float, state_hz: float, rng) -> np.ndarray:
+    """The states' stamps: measured at t_meas, stamped latency_s later with Gaussian jitter, clipped to
+    +-0.4 of a period so that the stamps keep their order (a receiver stamps in arrival order)."""
+    jitter = np.clip(rng.normal(0.0, jitter_s + 1e-12, len(t_meas)), -0.4 / state_hz, 0.4 / state_hz)
+    return t_meas + latency_s + jitter

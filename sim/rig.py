@@ -217,6 +217,7 @@ class RigSignal:
         self.gripper = params.gripper_motor_m_s2 * lv("gripper_motor")
         self.gripper_axis = _unit_rows(rng, 1)[0]
         self.t0 = None                                   # the board's power-on (the warming starts there)
+        self._clock_t0 = None                            # the clocks' sync (the drift starts there)
 
     # -- the grasp
     def true_mount(self, configured_quat) -> np.ndarray:
@@ -236,9 +237,12 @@ class RigSignal:
 
     # -- the clocks
     def stamps(self, t: np.ndarray) -> np.ndarray:
-        """The board's stamps, on the arm's clock, of samples taken at arm-clock times t."""
+        """The board's stamps, on the arm's clock, of samples taken at arm-clock times t: offset, and
+        drifting from the first sample stamped on (the sync at power-on)."""
         lv = self.p.level("clock")
-        return t + self.p.clock_offset_s * lv + self.p.clock_drift_ppm * 1e-6 * lv * t
+        if self._clock_t0 is None:
+            self._clock_t0 = float(t[0])
+        return t + self.p.clock_offset_s * lv + self.p.clock_drift_ppm * 1e-6 * lv * (t - self._clock_t0)
 
     # -- the signal
     def imu(self, t: np.ndarray, w_imu: np.ndarray, f_imu: np.ndarray, a_world: np.ndarray,

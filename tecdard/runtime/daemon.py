@@ -83,6 +83,7 @@ class Daemon:
         imu = cfg.section("imu")
         imu_own = read_options(ImuOptions, imu)
         ring_capacity, mount = imu_own.ring_capacity, list(imu_own.imu_in_tcp_quat)
+        self.imu_time_offset_s = imu_own.time_offset_s
         self.backend = backends.build(backend_name, backends.BackendContext(cfg, self.model, self.q_home, mount,
                                                                             self.control_params.tick_s))
         self.robot = self.backend
@@ -172,7 +173,7 @@ class Daemon:
         self.recorder = Recorder(self.record_params, self.outbox.event, {
             "robot": self.robot_name, "backend": backend_name, "model": self.model.name, "version": __version__,
             "config_digest": config_digest(json.dumps(cfg.data, sort_keys=True, default=str)),
-            "estimator": self.method, "imu_in_tcp_quat": list(mount),
+            "estimator": self.method, "imu_in_tcp_quat": list(mount), "imu_time_offset_s": self.imu_time_offset_s,
             "plane_normal": self.pipeline.params.plane_normal,
             # a grip force the backend does not measure is the configured one: recorded, and said so
             "grip_force": self.pipeline.params.grip_force_n, "grip_force_assumed": True,
@@ -256,7 +257,8 @@ class Daemon:
         # thread fewer to wake for every state), else on a proprioception thread
         feed = ProprioFeed(self.model.clone(), self.estimator.proprio)
         own_reader = self.backend.feed_states(feed)
-        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox)),
+        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox,
+                                                              self.imu_time_offset_s)),
                  *([] if own_reader else [("proprioception", lambda: proprio_loop(self.robot, feed, self.stop_event))]),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("recorder", lambda: self.recorder.run(self.stop_event)),

@@ -40,3 +40,6 @@ class ImuOptions:
                                 minval=1024, maxval=1 << 22)
     imu_in_tcp_quat: tuple = option((0.0, 0.0, 0.0, 1.0), "the IMU's mount, (x, y, z, w), TCP <- IMU, as calibrated",
                                     kind="quat")
+    time_offset_s: float = option(0.0, "the IMU's stamps less the arm's states' for the same instant, as "
+                                       "calibrated (tecdard calibrate-mount): taken off every IMU stamp",
+                                  unit="s", minval=-0.5, maxval=0.5)

@@ -3,11 +3,13 @@ pipeline, and the robot's proprioception -> a ring of its own -> the pipeline.""
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 
 import numpy as np
 
+from tecdard.control.mount_fit import MountMonitor
 from tecdard.control.pipeline import ContactPipeline, EstimatorDirective
 from tecdard.control.proprio import ProprioSample
 from tecdard.drivers.imu_source import ImuSource
@@ -46,13 +48,17 @@ NAP_MIN_S = 0.001
 NAP_MAX_S = 0.02
 
 
-def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox) -> None:
+def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox,
+                     time_offset_s: float = 0.0) -> None:
     """Transport only: move timestamped SI samples from the source into the ring, and hand the
     source's events (port lost, port back) to the outbox. Between the consumer's batches it naps
-    (NAP_MARGIN_S)."""
+    (NAP_MARGIN_S). `time_offset_s` (imu.time_offset_s, calibrated) comes off every stamp: the
+    estimator and the recordings see the IMU on the arm's states' clock."""
     while not stop.is_set():
         chunk = source.read(timeout=0.05)
         if chunk is not None:
+            if time_offset_s:
+                chunk = (chunk[0] - time_offset_s, *chunk[1:])
             ring.push(*chunk)
         for ev in source.drain_events():
             outbox.put("event", {"t": time.monotonic(), **ev})
@@ -146,8 +152,31 @@ class EstimatorThread:
         self.resting = threading.Event()  # set while no task runs: longer batches (REST_BATCH_FACTOR)
         self.rests = rests                # False: never at rest (an observed arm, whose touches are the point)
         self.rest_factor = rest_factor    # a rest batch, in output periods
+        # the configured mount and clock, watched over free motion (issue 48 §5)
+        self.mount = MountMonitor(pipeline.cond.R_tcp_imu)
+        self._mount_checked_t = -math.inf
         if source is not None:
             self._follow_odr(source.odr_hz)
+
+    def _watch_mount(self, batch: np.ndarray, states: list, free: bool) -> None:
+        """The running fit of the gyro against the arm's rate over free motion (no contact episode
+        before or after this batch: control.mount_fit.MountMonitor), checked about once a second;
+        `imu_mount` once if the configured mount or clock is off."""
+        if not free:
+            self.mount.pause()
+            return
+        for s in states:
+            self.mount.add_state(s.t, s.R_world_tcp)
+        if len(batch) == 0:
+            return
+        self.mount.add_imu(batch[:, 0], batch[:, 1:4])
+        t_last = float(batch[-1, 0])
+        if t_last - self._mount_checked_t >= 1.0:
+            self._mount_checked_t = t_last
+            problem = self.mount.check()
+            if problem is not None:
+                log.warning("%s", problem)
+                self.outbox.event("warning", code="imu_mount", message=problem)
 
     def set_resting(self, resting: bool) -> None:
         """The control thread: no task runs (True), or one has started (False). A start ends a rest
@@ -197,7 +226,9 @@ class EstimatorThread:
                     sat_limits = limits
                     pipe.set_saturation(*limits)
             bias = pipe.cond.bias_state() if self.taps else None
+            free = not pipe.tracking
             events, est = pipe.process(batch)
+            self._watch_mount(batch, proprio, free and not pipe.tracking)
             if self.taps and (len(batch) or proprio):
                 done = Pass(proprio, applied, self._odr_seen, sat_limits, batch, events, est, bias)
                 for tap in self.taps:
