@@ -68,8 +68,8 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """Every subcommand: `run`, the client's (cli.task_verbs) and each tool's own (its add_parser).
     With --help in `argv`, the task verbs' limits are a running daemon's where one answers."""
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
-    from tecdard.tools import (calibrate, calibrate_mount, demo, doctor, export, fake_board, imu, kernel_cache,
-                               localize, plot, sim_record)
+    from tecdard.tools import (calibrate, calibrate_mount, demo, doctor, export, fake_board, imu, import_log,
+                               kernel_cache, localize, plot, sim_record)
     from tecdard.cli import episodes, fleet, options, router
     argv = argv or []
     limits, note = None, ""
@@ -85,7 +85,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                                                    "and below with --help)")
     p.add_argument("--listen", help="Zenoh endpoint to listen on, overrides zenoh.listen (e.g. tcp/127.0.0.1:7507)")
     p.set_defaults(func=_cmd_run)
-    for tool in (localize, plot, export, calibrate, calibrate_mount, sim_record, imu, fake_board):
+    for tool in (localize, plot, export, calibrate, calibrate_mount, import_log, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
     for tool in (doctor, kernel_cache, demo, options, fleet, router, episodes):
