@@ -77,6 +77,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.onset
 	$(PY) -m benchmarks.onset_live
 	$(PY) -m benchmarks.onset_study
+	$(PY) -m benchmarks.robustness
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.firmware
 	$(PY) -m benchmarks.ros2

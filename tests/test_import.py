@@ -16,6 +16,8 @@ from tecdard.control.mount_fit import rotation_angle_deg
 from tecdard.recording.format import load_recording
 from tests.conftest import tecdard
 
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("rosbags")
 
 IMU_HZ, JOINT_HZ = 500.0, 100.0

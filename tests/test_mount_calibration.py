@@ -18,6 +18,8 @@ from tecdard.sim.profiles import free_motion, wrist_calibration
 from tecdard.sim.rig import RigParams
 from tests.conftest import tecdard
 
+pytestmark = pytest.mark.slow
+
 
 def _save(tmp_path, name, fields, truth):
     path = tmp_path / name

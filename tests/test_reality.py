@@ -1,0 +1,101 @@
+"""Issue 48 §3: the trigger and the estimator on what a real rig does to the signal (sim/rig.py, sim/profiles.py),
+on shorter runs than benchmarks/robustness.py's 30 minutes. Every disturbance at its nominal level (1x):
+no onset in free motion, acceleration steps with 125 Hz states 8 ms late among them; a trigger that
+re-arms on the vibrating arm; an impact dated within 5 ms and an impact-free rotation within 30 ms;
+the 180 ms error within 1.5x of its clean value and covered by 3 sigma. At 3x: never a confident
+wrong answer."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.robustness import false_onsets, impact, rotation
+from tecdard.control.onset import OnsetDetector
+from tecdard.recording import replay as L
+from tecdard.recording.format import Recording
+from tecdard.sim.profiles import free_motion
+from tecdard.sim.rig import RigParams
+from benchmarks.onset import pipeline
+
+
+@pytest.mark.parametrize("profile", ["ur-cb3", "pendant"])
+def test_no_onset_in_free_motion_at_1x(profile):
+    """UR trapezoids and a pendant jog (steps up to 1.5 m/s^2 and 3 rad/s^2, states at 125 Hz 8 ms late)
+    with the sensor's errors, the arm's vibration, the clocks and a 5 deg mount error."""
+    onsets, minutes, kinds = false_onsets(profile, 1.0, "", 0.5, seed=11)
+    assert minutes > 0.3 and onsets == 0, kinds
+
+
+def test_acceleration_steps_with_late_states_do_not_fire():
+    """The check the issue keeps: a clean board on an arm that starts with acceleration steps and whose
+    states come at 125 Hz, 8 ms late. Before, the trigger fired at the arm's start."""
+    onsets, minutes, kinds = false_onsets("ur-cb3", 1.0, "latency", 0.5, seed=12)
+    assert onsets == 0, kinds
+    fields, _ = free_motion("ur-cb3", 30.0, rig=RigParams().at(1.0, "latency"), seed=12)
+    rec = Recording.from_fields(fields)
+    pipe = pipeline(rec)
+    L.replay_onsets(rec, pipe)
+    assert pipe.detector.guard.explained_steps > 0          # steps were seen, and the arm's states explained them
+
+
+def test_the_trigger_re_arms_on_a_vibrating_arm():
+    """Fired on an impact, released: the rest levels are the vibrating arm's, so it settles within
+    a second while the arm keeps vibrating, and a second impact fires again."""
+    rng = np.random.default_rng(3)
+    odr = 6667.0
+    det = OnsetDetector(accel_threshold=0.4, odr_hz=odr, settle_s=0.25)
+    det.floor.k = 4.0
+
+    def vibrating(t0: float, n: int):
+        t = t0 + np.arange(n) / odr
+        a = np.column_stack([0.5 * np.sin(2 * np.pi * 40.0 * t + k) for k in range(3)]) + rng.normal(0, 0.03, (n, 3))
+        return t, a + [0.0, 0.0, 9.81]
+
+    t0, fired, hits = 0.0, [], []
+    for k in range(60):                        # 6 s of 100 ms batches
+        t, a = vibrating(t0, 667)
+        if k in (20, 45):
+            a[300:330] += [4.0, 0.0, 0.0]      # an impact
+            hits.append(float(t[300]))
+        hit = det.process(t, a)
+        if hit >= 0:
+            fired.append(float(t[hit]))
+            det.rearm(settle=True)
+        t0 = float(t[-1]) + 1.0 / odr
+    assert len(fired) == 2 and np.allclose(fired, hits, atol=0.001), (fired, hits)
+    assert not det.settling and det.armed
+    # the paper's fixed 0.4 m/s^2 against an idle board's rest would never have settled here
+    assert det.accel_threshold_now() > 1.0
+
+
+def test_an_impact_and_a_rotation_are_dated_on_time_at_1x():
+    for seed in (1, 2):
+        imp = impact(1.0, seed=seed)
+        assert abs(imp["dated_ms"]) <= 5.0, imp
+    seeds = range(1, 7)
+    clean = [rotation(0.0, seed=s) for s in seeds]
+    rough = [rotation(1.0, seed=s) for s in seeds]
+    assert all(0.0 <= r["dated_ms"] <= 30.0 for r in rough), [r["dated_ms"] for r in rough]
+    err_clean = float(np.median([r["180"][0] for r in clean]))
+    err = float(np.median([r["180"][0] for r in rough]))
+    covered = sum(r["180"][1] for r in rough)
+    assert err <= 1.5 * err_clean and covered >= 0.9 * len(rough), (err, err_clean, covered)
+
+
+def test_at_3x_fewer_onsets_and_never_a_confident_wrong_answer():
+    """Three times every disturbance: the impact's click is under the vibration's floor, and the
+    rotation is found late; what is reported is covered by its 3 sigma."""
+    rot = rotation(3.0, seed=1)
+    for at in ("180", "end"):
+        err, covered = rot[at]
+        assert err != err or covered, (at, rot)
+    onsets, minutes, kinds = false_onsets("ur-e", 3.0, "", 0.5, seed=13)
+    assert onsets <= 2, kinds
+
+
+@pytest.mark.parametrize("imu_hz", [1000.0, 250.0])
+def test_a_slow_tool_imu_finds_the_contacts(imu_hz):
+    imp = impact(1.0, imu_hz=imu_hz, seed=1)
+    rot = rotation(1.0, imu_hz=imu_hz, seed=1)
+    assert abs(imp["dated_ms"]) <= 5.0 + 1e3 / imu_hz, imp
+    assert 0.0 <= rot["dated_ms"] <= 30.0, rot
