@@ -78,6 +78,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.onset_live
 	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.robustness
+	$(PY) -m benchmarks.robustness --breaking
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.firmware
 	$(PY) -m benchmarks.ros2

@@ -172,12 +172,61 @@ def mujoco_rows(seeds: int) -> list[str]:
     return rows
 
 
+BREAK_LEVELS = (1.5, 2.0, 3.0, 5.0, 10.0)
+BREAK_OUT = ROOT / "benchmarks" / "robustness_breaking.md"
+
+
+def breaking_point(name: str) -> tuple[str, str]:
+    """(the first level at which a 1x target fails, what failed) for disturbance `name`, over
+    BREAK_LEVELS: a false onset in free motion (UR CB3 and pendant, 0.5 min each), an impact not dated
+    within 5 ms, a rotation not dated within 30 ms, a 180 ms error that 3 sigma does not cover."""
+    for level in BREAK_LEVELS:
+        failed = []
+        for profile in ("ur-cb3", "pendant"):
+            k, _, kinds = false_onsets(profile, level, name, 0.5, seed=21)
+            if k:
+                failed.append(f"{k} false onset(s) on {profile} ({', '.join(f'{a} {b}' for a, b in kinds.items())})")
+        imp, rot = impact(level, name, seed=21), rotation(level, name, seed=21)
+        if not abs(imp["dated_ms"]) <= 5.0:
+            failed.append("the impact " + ("missed" if imp["dated_ms"] != imp["dated_ms"]
+                                           else f"dated {imp['dated_ms']:+.1f} ms"))
+        if not 0.0 <= rot["dated_ms"] <= 30.0:
+            failed.append("the rotation " + ("missed" if rot["dated_ms"] != rot["dated_ms"]
+                                             else f"dated {rot['dated_ms']:+.1f} ms"))
+        if rot["180"][0] == rot["180"][0] and not rot["180"][1]:
+            failed.append(f"the 180 ms error {rot['180'][0]:.1f} mm outside 3 sigma")
+        if failed:
+            return f"{level:g}x", "; ".join(failed)
+    return f"beyond {BREAK_LEVELS[-1]:g}x", "nothing failed"
+
+
+def breaking_rows() -> list[str]:
+    rows = []
+    for name in DISTURBANCES:
+        level, what = breaking_point(name)
+        rows.append(f"| {name} | {level} | {what} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed, 0.5 min per profile (make bench's default)")
     ap.add_argument("--minutes", type=float, default=6.0, help="minutes of free motion per profile for the "
                                                               "all-at-1x run (default 6: 30 min over 5 profiles)")
+    ap.add_argument("--breaking", action="store_true", help="only each disturbance's breaking point "
+                                                           "(benchmarks/robustness_breaking.md)")
     args = ap.parse_args()
+    if args.breaking:
+        head = ["# Robustness: each disturbance's breaking point (issue 48)", "",
+                f"`python -m benchmarks.robustness --breaking` on {platform.machine()}, Python "
+                f"{platform.python_version()}. Each disturbance alone, raised over {', '.join(f'{x:g}x' for x in BREAK_LEVELS)}"
+                " of its nominal value until one of the 1x targets fails (seed 21; free motion 0.5 min each on UR CB3 "
+                "and pendant): the first level that fails, and what failed. Simulated rigs only.", "",
+                "| disturbance | breaks at | what fails there |", "|---|---|---|"]
+        BREAK_OUT.write_text("\n".join(head + breaking_rows()) + "\n")
+        print(f"wrote {BREAK_OUT}")
+        return
     seeds, minutes = (1, 0.5) if args.quick else (3, 1.0)
     head = [
         "# Robustness: the trigger and the estimator on a real rig's signal (issue 48)",

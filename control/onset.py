@@ -1,5 +1,6 @@
 """Contact-onset detection on IMU batches: accelerometer threshold, gyro threshold, accelerometer band energy,
-and the fingertip's twist relative to the gripper; each on what the arm's own motion does not explain."""
+and the fingertip's twist relative to the gripper; each on what the arm's own motion does not explain,
+above the arm's own vibration, and (accelerometer) once the arm's states have not explained it."""
 from __future__ import annotations
 
 import math
@@ -98,6 +99,13 @@ class OnsetDetector:
     constant `rest_tau_s`); nothing fires until `warmup_s` of data has been seen. After firing it
     stays disarmed until `rearm()`, and after `rearm(settle=True)` until the remainder has been
     still for `settle_s` (its rest levels follow it meanwhile, `settle_s` / 4).
+
+    On a real rig (control.onset_guard): the accelerometer's threshold is at least the remainder's
+    moving noise floor (`floor`: the arm's vibration), and with the arm's states to ask (`guard.arm`,
+    the pipeline's ProprioTrack) an accelerometer onset waits for them and is kept only if its peak
+    exceeds what they then show of the arm's own acceleration change (`guard`: an acceleration step
+    the arm took), dated back to its first sample. The twist's hold is judged on its
+    TWIST_HOLD_MEAN_S mean. A configured mount off by up to `mount_tolerance` is allowed for.
     """
 
     def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,

@@ -238,7 +238,8 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
 
     # the estimator thread's side: a rest batch's wait ends at a task's batch when the task starts
     ring = SampleRing(4096)
-    pipe = types.SimpleNamespace(params=types.SimpleNamespace(output_period_s=0.005))    # what the thread reads
+    pipe = types.SimpleNamespace(params=types.SimpleNamespace(output_period_s=0.005),    # what the thread reads
+                                 cond=types.SimpleNamespace(R_tcp_imu=np.eye(3)))
     est = EstimatorThread(pipe, ring, LatestValue(), Outbox(4), min_batch=33)
     est.set_resting(True)
     assert est.resting.is_set()
