@@ -50,9 +50,10 @@ def pipeline(rec: Recording, method: str = "ekf", raw: bool = False, **estimator
     pipe = ContactPipeline.from_config(Config({"estimator": estimator}).section("estimator"),
                                        quat_to_matrix(rec.imu_in_tcp_quat), rec.imu_rate_hz, method=method,
                                        plane_normal=rec.plane_normal)
-    if raw:                     # the trigger of before: no motion taken off, no twist
+    if raw:                     # the trigger of before: no motion taken off, no twist, no prediction
         pipe._explained = lambda t: None
         pipe.detector.twist_threshold = None
+        pipe.detector.predictor.horizon_s = 0.0      # judged on the remainder itself
     return pipe
 
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from tecdard.control.band_energy import band_at_rate
 from tecdard.control.conditioning import mean0, moving_mean
-from tecdard.control.onset_guard import FLOOR_K, NoiseFloor, StepGuard
+from tecdard.control.onset_guard import FLOOR_K, PREDICT_HORIZON_S, NoiseFloor, Predictor, StepGuard
 from tecdard.control.proprio import ACCEL_WINDOW_S
 from tecdard.options import option, read_options
 
@@ -72,6 +72,10 @@ class OnsetOptions:
     mount_tolerance_deg: float = option(5.0, "how far the configured mount may be off (tecdard calibrate-mount "
                                              "measures it): the rate and acceleration it misattributes are "
                                              "allowed for", unit="deg", minval=0.0, maxval=30.0)
+    predict_horizon_s: float = option(PREDICT_HORIZON_S, "the accelerometer is judged on what its remainder's own "
+                                                          "past does not predict this far ahead (the arm's "
+                                                          "narrow-band vibration taken off); 0: off", unit="s",
+                                      minval=0.0, maxval=0.01)
     floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
                                      "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
@@ -162,6 +166,10 @@ class OnsetDetector:
         self._rest_expl = None         # the explained (force, rate) means the rest levels were learned under
         self._slow_hist = np.zeros((0, 3))   # the twist's TWIST_HOLD_MEAN_S mean's history
         self.floor = NoiseFloor()      # the accelerometer remainder's moving floor (from_config: floor_k)
+        self.predictor = Predictor(0.0, odr_hz)   # its prediction from its own past (from_config: predict_horizon_s)
+        self._x_a = None               # the batch's accelerometer remainder (the predictor learns it)
+        self._dev_a = self._dev_guard = None   # its magnitude judged (the prediction's error), and the guard's
+        self._thr_a = 0.0              # its threshold per sample (the moving floors)
         self.guard = StepGuard()       # an accelerometer onset waits for the arm's states (from_config, pipeline)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
@@ -175,6 +183,7 @@ class OnsetDetector:
             return None
         self.odr_hz = odr_hz
         self.twist_window = max(1, int(round(TWIST_WINDOW_S * odr_hz)))
+        self.predictor.set_odr(odr_hz)
         self.rate_notice = None
         if self.band_threshold is None:
             return None
@@ -200,6 +209,7 @@ class OnsetDetector:
         det.swing_accel = o.swing_accel
         det.guard.lag_s = o.proprio_lag_s
         det.floor.k = o.floor_k
+        det.predictor = Predictor(o.predict_horizon_s, odr_hz)
         det.mount_tolerance = math.radians(o.mount_tolerance_deg)
         return det
 
@@ -230,6 +240,7 @@ class OnsetDetector:
         self._twist_ms = 0.0
         self._candidate = None
         self.guard.clear()
+        self.predictor.reset()
 
     def _swing(self, t: np.ndarray, a_arm: np.ndarray) -> np.ndarray:
         """The envelope of the arm's acceleration (n,), m/s^2: its running maximum, decaying with
@@ -255,14 +266,21 @@ class OnsetDetector:
         allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s); twist:
         None, or the batch's twist (_twist, (n, 3)) and its norm (n,)."""
         out, level = {}, {}
-        self._dev_a = None
+        self._dev_a = self._dev_guard = self._x_a = None
         if self.accel_threshold is not None:
-            dev = accel - self.rest_accel
-            if self.accel_axis is not None:
-                self._dev_a = np.abs(dev @ self.accel_axis)
-            else:
-                self._dev_a = np.sqrt(np.einsum("ij,ij->i", dev, dev))
-            level["accel"] = self._dev_a / (self.accel_threshold_now() + allow_a + self.guard.mask(t))
+            # what the remainder's own past does not predict (Predictor: the arm's vibration taken off)
+            self._x_a = accel - self.rest_accel
+            dev = self.predictor.error(self._x_a)
+            self._dev_a, self._dev_guard = self._magnitude(dev), None
+            if self.predictor.on:
+                # an acceleration step's prediction overshoots as the past catches up with it: the
+                # guard weighs a candidate's peak on whichever view shows less of it
+                self._dev_guard = np.minimum(self._dev_a, self._magnitude(self._x_a))
+            thr = self.accel_threshold_now()
+            if self.predictor.on:
+                thr = np.maximum(thr, self.floor.recent(self._dev_a, self.odr_hz))
+            self._thr_a = thr
+            level["accel"] = self._dev_a / (thr + allow_a + self.guard.mask(t))
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
@@ -275,6 +293,12 @@ class OnsetDetector:
         if twist is not None:
             out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * (self.twist_threshold + allow_w), twist[2])
         return out, level
+
+    def _magnitude(self, dev: np.ndarray) -> np.ndarray:
+        """|dev| per sample (n,), or its component on accel_axis."""
+        if self.accel_axis is not None:
+            return np.abs(dev @ self.accel_axis)
+        return np.sqrt(np.einsum("ij,ij->i", dev, dev))
 
     def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor, slow: np.ndarray) -> np.ndarray:
         """The twist fires only once it has held one way for TWIST_HOLD_S: over its threshold at the
@@ -370,7 +394,7 @@ class OnsetDetector:
         quiet = self._quiet
         hit, by = -1, None
         if self.guard.waiting and self.armed and not self.settling:
-            hit, by = self.guard.decide(t, self._dev_a, self.swing_accel), "accel"   # nothing else fires meanwhile
+            hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel), "accel"   # nothing else fires meanwhile
         elif self.settling:
             self._settle(t, level)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
@@ -385,9 +409,9 @@ class OnsetDetector:
             if hit >= 0:
                 by = next(k for k, v in conds.items() if v[hit])
                 if by == "accel" and self.guard.applies(bool(self._explaining), self.mode):
-                    self.guard.start(float(t[hit]), float(self.accel_threshold_now()
+                    self.guard.start(float(t[hit]), float(np.broadcast_to(self._thr_a, (n,))[hit]
                                                           + np.broadcast_to(allow_a, (n,))[hit]))
-                    hit = self.guard.decide(t, self._dev_a, self.swing_accel)
+                    hit = self.guard.decide(t, self._peak_dev(), self.swing_accel)
         if hit >= 0:
             self._fire(t, hit, by)
         if len(quiet):
@@ -411,7 +435,18 @@ class OnsetDetector:
             self._seen_s += dt
         if hit < 0 and not self.pending and self._dev_a is not None:
             self.floor.learn(t, self._dev_a, self.odr_hz)
+        if self._x_a is not None:
+            if hit < 0 and not self.pending and self.armed and not self.settling:
+                if self.predictor.learn(self._x_a):     # the arm's own vibration, armed: nothing of a contact
+                    self.floor.restart()
+            else:
+                self.predictor.gap()
         return hit
+
+    def _peak_dev(self):
+        """What the step guard weighs a candidate's peak on: the smaller of the prediction's error and
+        the remainder itself (the error alone without a predictor)."""
+        return self._dev_a if self._dev_guard is None else self._dev_guard
 
     def _fire(self, t: np.ndarray, hit: int, by: str) -> None:
         self.armed = False

@@ -1,6 +1,7 @@
-"""The onset trigger's two defences against a real arm (issue 48): the accelerometer's moving noise floor
-(NoiseFloor), and the wait for the arm's states that may explain an acceleration step (StepGuard).
-control.onset's OnsetDetector holds one of each."""
+"""The onset trigger's three defences against a real arm (issue 48): the accelerometer remainder's
+prediction from its own past, which takes the arm's narrow-band vibration off (Predictor), its moving
+noise floor (NoiseFloor), and the wait for the arm's states that may explain an acceleration step
+(StepGuard). control.onset's OnsetDetector holds one of each."""
 from __future__ import annotations
 
 import math
@@ -15,6 +16,12 @@ import numpy as np
 FLOOR_K = 4.0
 FLOOR_TAU_S = 2.0             # the floor forgets this slowly ...
 FLOOR_RISE_TAU_S = 0.25       # ... and learns a rising vibration (the joints' harmonics as the arm speeds up) this fast
+# ... and, judged on the prediction's error (Predictor), at least FLOOR_K times its RMS over the RECENT_S
+# that end RECENT_GAP_S before each sample: a vibration the predictor has not learned yet (the joints'
+# harmonics at a new speed) grows over tens of ms and raises its own threshold; an impact rises within
+# RECENT_GAP_S, before its own samples count.
+RECENT_S = 0.03
+RECENT_GAP_S = 0.003
 STEP_RING_TAU_S = 0.5         # an explained step's allowance decays this slowly: a lightly damped arm rings on
 # An arm that starts with an acceleration step (a UR's speedL trapezoid, a pendant jog) shows it in the
 # IMU at once and in its states only after their latency and the acceleration fit's span. An
@@ -44,9 +51,29 @@ class NoiseFloor:
         self.k = k
         self.ms = 0.0            # (m/s^2)^2
         self.seen_s = 0.0
+        self._sq = np.zeros(0)   # the recent squares (recent)
+
+    def restart(self) -> None:
+        """What it learned no longer measures the signal it judges (the predictor's first fit)."""
+        self.ms, self.seen_s = 0.0, 0.0
 
     def threshold(self, configured: float) -> float:
         return max(configured, self.k * math.sqrt(self.ms))
+
+    def recent(self, dev: np.ndarray, odr_hz: float) -> np.ndarray:
+        """k times dev's RMS over the RECENT_S ending RECENT_GAP_S before each sample (n,), m/s^2; the
+        history carries over batches (0 where there is none yet)."""
+        w = max(1, int(round(RECENT_S * odr_hz)))
+        gap = max(1, int(round(RECENT_GAP_S * odr_hz)))
+        full = np.concatenate([self._sq, dev * dev])
+        m = len(self._sq)
+        self._sq = full[-(w + gap):]
+        c = np.concatenate([[0.0], np.cumsum(full)])
+        end = np.arange(m, m + len(dev)) - gap + 1        # the window's end (exclusive) in full
+        start = np.maximum(end - w, 0)
+        end = np.maximum(end, start)
+        ms = (c[end] - c[start]) / np.maximum(end - start, 1)
+        return self.k * np.sqrt(np.maximum(ms, 0.0))
 
     def learn(self, t: np.ndarray, dev: np.ndarray, odr_hz: float) -> None:
         dt = float(t[-1] - t[0]) + 1.0 / odr_hz
@@ -113,3 +140,109 @@ class StepGuard:
         self.explained_steps += 1
         self.masked = (explained, last)
         return -1
+
+
+# A real arm's tool vibrates in a few narrow bands (its structural modes, the joints' harmonics, the servo's
+# dither at rest); an impact is broadband and sudden. The accelerometer's condition is judged on what the
+# remainder's own recent past does not predict PREDICT_HORIZON_S ahead (Predictor): the vibration is
+# predicted away, an impact and an acceleration step the arm takes are not. Its taps span PREDICT_SPAN_S
+# (a 40 Hz dither's period and more), fitted by least squares on the last PREDICT_TRAIN_S of armed data.
+PREDICT_HORIZON_S = 0.001
+PREDICT_TAPS = 16
+PREDICT_SPAN_S = 0.008
+PREDICT_TRAIN_S = 1.0
+PREDICT_REFIT_S = 0.25
+PREDICT_FIRST_S = 0.1         # the first fit, as soon as this much is learned (the trigger's warmup)
+PREDICT_RIDGE = 1e-3          # the fit's ridge, relative to its data's mean square: coefficients never blow up
+
+
+class Predictor:
+    """The accelerometer remainder's PREDICT_HORIZON_S-ahead linear prediction from its own past, per
+    axis: `error(x)` is what the prediction missed ((n, 3), the remainder itself until a fit exists).
+    `learn` collects the armed remainder (contiguous runs; `gap` ends one) and refits every
+    PREDICT_REFIT_S; a least-squares fit never makes the error's mean square on its data larger than
+    the remainder's, so white noise gives coefficients near zero and the remainder back. A horizon of
+    0: off, `error` is the remainder."""
+
+    def __init__(self, horizon_s: float = PREDICT_HORIZON_S, odr_hz: float = 6667.0):
+        self.horizon_s = horizon_s
+        self.set_odr(odr_hz)
+
+    @property
+    def on(self) -> bool:
+        return self.horizon_s > 0.0
+
+    def set_odr(self, odr_hz: float) -> None:
+        """Lags in samples at this rate; the fit and the history start afresh."""
+        self.odr_hz = float(odr_hz)
+        k = max(1, int(round(self.horizon_s * odr_hz)))
+        stride = max(1, int(round(PREDICT_SPAN_S * odr_hz / PREDICT_TAPS)))
+        self.lags = k + stride * np.arange(PREDICT_TAPS)
+        self.reset()
+
+    def reset(self) -> None:
+        self.coef = np.zeros((len(self.lags), 3))
+        self.fitted = False
+        self._hist = np.zeros((int(self.lags[-1]), 3))
+        self._runs: list[np.ndarray] = []       # contiguous runs of armed remainder, oldest first
+        self._open = False                      # the newest run continues with the next batch
+        self._new = 0                           # samples learned since the last fit
+
+    def error(self, x: np.ndarray) -> np.ndarray:
+        """The prediction error of the batch x (n, 3); the history carries over batches."""
+        full = np.concatenate([self._hist, x])
+        self._hist = full[-len(self._hist):]
+        if not (self.on and self.fitted):
+            return x
+        m, n = len(full) - len(x), len(x)
+        pred = np.zeros_like(x)
+        for j, lag in enumerate(self.lags):
+            pred += self.coef[j] * full[m - lag:m - lag + n]
+        return x - pred
+
+    def gap(self) -> None:
+        """The remainder stops being the arm's own (an episode, a wait, settling): the run ends."""
+        self._open = False
+
+    def learn(self, x: np.ndarray) -> bool:
+        """Learn the batch x (n, 3); True when it gave the first fit (what was judged before on the
+        remainder itself is then no measure of the error: NoiseFloor.restart)."""
+        if not self.on:
+            return False
+        if self._open and self._runs:
+            self._runs[-1] = np.concatenate([self._runs[-1], x])
+        else:
+            self._runs.append(np.array(x, dtype=float))
+        self._open = True
+        keep = int(PREDICT_TRAIN_S * self.odr_hz)
+        total = sum(len(r) for r in self._runs)
+        while total > keep and len(self._runs) > 1:
+            total -= len(self._runs.pop(0))
+        if total > keep:
+            self._runs[0] = self._runs[0][total - keep:]
+        self._new += len(x)
+        first = not self.fitted
+        if self._new >= (PREDICT_FIRST_S if first else PREDICT_REFIT_S) * self.odr_hz:
+            return self._fit() and first
+        return False
+
+    def _fit(self) -> bool:
+        span = int(self.lags[-1])
+        runs = [r for r in self._runs if len(r) > span + 2 * len(self.lags)]
+        if not runs:
+            return False
+        self._new = 0
+        p = len(self.lags)
+        for axis in range(3):
+            xtx, xty, yy, rows = np.zeros((p, p)), np.zeros(p), 0.0, 0
+            for r in runs:
+                y = r[span:, axis]
+                X = np.stack([r[span - lag:len(r) - lag, axis] for lag in self.lags], axis=1)
+                xtx += X.T @ X
+                xty += X.T @ y
+                yy += float(y @ y)
+                rows += len(y)
+            ridge = PREDICT_RIDGE * (yy / rows) * rows + 1e-12
+            self.coef[:, axis] = np.linalg.solve(xtx + ridge * np.eye(p), xty)
+        self.fitted = True
+        return True
