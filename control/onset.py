@@ -274,8 +274,8 @@ class OnsetDetector:
             self._dev_a, self._dev_guard = self._magnitude(dev), None
             if self.predictor.on:
                 # an acceleration step's prediction overshoots as the past catches up with it: the
-                # guard weighs a candidate's peak on whichever view shows less of it
-                self._dev_guard = np.minimum(self._dev_a, self._magnitude(self._x_a))
+                # guard weighs a candidate's peak in both views, and takes the smaller
+                self._dev_guard = np.stack([self._dev_a, self._magnitude(self._x_a)])
             thr = self.accel_threshold_now()
             if self.predictor.on:
                 thr = np.maximum(thr, self.floor.recent(self._dev_a, self.odr_hz))
@@ -444,8 +444,8 @@ class OnsetDetector:
         return hit
 
     def _peak_dev(self):
-        """What the step guard weighs a candidate's peak on: the smaller of the prediction's error and
-        the remainder itself (the error alone without a predictor)."""
+        """What the step guard weighs a candidate's peak on: the prediction's error and the remainder
+        itself ((2, n): the smaller peak counts), or the error alone without a predictor."""
         return self._dev_a if self._dev_guard is None else self._dev_guard
 
     def _fire(self, t: np.ndarray, hit: int, by: str) -> None:

@@ -40,6 +40,7 @@ class Candidate:
     t: float
     peak: float
     allow: float
+    views: np.ndarray | None = None     # the peak of each view of the remainder (StepGuard.decide)
 
 
 class NoiseFloor:
@@ -120,13 +121,16 @@ class StepGuard:
 
     def decide(self, t: np.ndarray, dev: np.ndarray | None, swing_accel: float) -> int:
         """The waiting candidate against the arm's states, with this batch's accelerometer remainder
-        `dev` (n,): the index of the sample it is decided at (an onset; `decided_t` its time), or -1
-        (still waiting, or the arm's own step)."""
+        `dev` (n,), or several views of it (k, n) whose peaks are each taken and the smallest weighed:
+        the index of the sample it is decided at (an onset; `decided_t` its time), or -1 (still
+        waiting, or the arm's own step)."""
         c = self.candidate
         if dev is not None:
             win = (t >= c.t) & (t <= c.t + PEAK_WINDOW_S)
             if win.any():
-                c.peak = max(c.peak, float(dev[win].max()))
+                views = np.atleast_2d(dev)[:, win].max(axis=1)
+                c.views = views if c.views is None else np.maximum(c.views, views)
+                c.peak = float(c.views.min())
         change, newest = self.arm.accel_change(c.t)
         due = c.t + self.lag_s + self.arm.fit_span_s()
         last = float(t[-1])
