@@ -271,11 +271,12 @@ class OnsetDetector:
             # what the remainder's own past does not predict (Predictor: the arm's vibration taken off)
             self._x_a = accel - self.rest_accel
             dev = self.predictor.error(self._x_a)
-            self._dev_a, self._dev_guard = self._magnitude(dev), None
+            mag = self._magnitude(dev)
+            self._dev_a, self._dev_guard = mag, None
             if self.predictor.on:
                 # an acceleration step's prediction overshoots as the past catches up with it: the
                 # guard weighs a candidate's peak in both views, and takes the smaller
-                self._dev_guard = np.stack([self._dev_a, self._magnitude(self._x_a)])
+                self._dev_guard = np.stack([mag, self._magnitude(self._x_a)])
             thr = self.accel_threshold_now()
             if self.predictor.on:
                 thr = np.maximum(thr, self.floor.recent(self._dev_a, self.odr_hz))
