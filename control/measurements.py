@@ -191,11 +191,6 @@ class Measurements:
         self.v_onset = 0.0                     # m/s, the TCP's speed at the onset beyond its noise
         self.grip_force_now = np.nan           # N, at the newest sample taken (a measurement or not)
         self._stamp_prev = np.nan
-        # (rad/s)^2 per sample, the gripper's rate: the arm's vibration that its encoders never see, as
-        # the trigger measured it before the onset (pipeline), times the samples of the gyro's moving
-        # mean that share one error. Without it the filter takes a tool's 0.05 rad/s vibration for the
-        # chip's white noise (docs/estimation.md).
-        self.vibration_var = 0.0
 
     def begin(self, onset_t: float, v_onset: float, rates_from_t: float) -> None:
         """A contact episode from `onset_t`, the TCP then moving at `v_onset` (m/s beyond its noise:
@@ -224,7 +219,7 @@ class Measurements:
         w_imu_world = self.cond.imu_rate_world(w_f, R)
         w_obj = w_tcp + eta[:, None] * (w_imu_world - w_tcp)
         p_pos, w_pos, w_tcp_pos, fresh = self._positions(ts - delay, w_obj, w_tcp, found, (p, stamp))
-        var_w = (eta - 1.0) ** 2 * var_wt + eta ** 2 * self.vibration_var
+        var_w = (eta - 1.0) ** 2 * var_wt
         ok = found & ok
         self.rates.add((ts - delay)[ok], w_imu_world[ok])
         p_v, w_v, w_tcp_v, var_v, n_avg = self._paired(ts - delay, eta, dt_sample)

@@ -343,12 +343,6 @@ class OnsetDetector:
         return self._candidate is not None or self.guard.waiting
 
     @property
-    def twist_rest_var(self) -> float:
-        """(rad/s)^2 per axis: the twist's (the gyro remainder's TWIST_WINDOW_S mean) variance at rest,
-        the arm's vibration and the chip's noise in it; 0 with the twist off."""
-        return self._twist_ms / 3.0
-
-    @property
     def warm(self) -> bool:
         """Rest levels set from `warmup_s` of data: an onset can fire from the next batch on."""
         return self.rest_accel is not None and self._seen_s >= self.warmup_s

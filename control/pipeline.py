@@ -384,9 +384,6 @@ class ContactPipeline:
         self.onset_p_tcp = p[0].copy()
         # the speed beyond the velocity's own noise (3 sigma): from rest, none
         v_onset = max(float(np.linalg.norm(v[0])) - 3.0 * math.sqrt(max(float(var_v0[0]), 0.0)), 0.0)
-        # the gyro's vibration at rest (the twist's 5 ms mean, per axis) enters each sample's rate noise,
-        # its window's samples sharing one error
-        self.measure.vibration_var = self.detector.twist_rest_var * self.cond.lpf_window
         self.measure.begin(self.onset_t, v_onset, self.onset_t - self.cond.group_delay_samples * self._dt_sample)
         self._t_prev = t_on
         self._wwT[:] = 0.0
