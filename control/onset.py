@@ -272,16 +272,13 @@ class OnsetDetector:
             self._x_a = accel - self.rest_accel
             dev = self.predictor.error(self._x_a)
             mag = self._magnitude(dev)
-            self._dev_a, self._dev_guard = mag, None
+            self._dev_a, self._thr_a = mag, self.accel_threshold_now()
             if self.predictor.on:
                 # an acceleration step's prediction overshoots as the past catches up with it: the
                 # guard weighs a candidate's peak in both views, and takes the smaller
                 self._dev_guard = np.stack([mag, self._magnitude(self._x_a)])
-            thr = self.accel_threshold_now()
-            if self.predictor.on:
-                thr = np.maximum(thr, self.floor.recent(self._dev_a, self.odr_hz))
-            self._thr_a = thr
-            level["accel"] = self._dev_a / (thr + allow_a + self.guard.mask(t))
+                self._thr_a = np.maximum(self._thr_a, self.floor.recent(mag, self.odr_hz))
+            level["accel"] = mag / (self._thr_a + allow_a + self.guard.mask(t))
         if self.gyro_threshold is not None and gyro is not None:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)

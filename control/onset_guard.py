@@ -194,9 +194,11 @@ class Predictor:
 
     def error(self, x: np.ndarray) -> np.ndarray:
         """The prediction error of the batch x (n, 3); the history carries over batches."""
+        if not self.on:
+            return x
         full = np.concatenate([self._hist, x])
         self._hist = full[-len(self._hist):]
-        if not (self.on and self.fitted):
+        if not self.fitted:
             return x
         m, n = len(full) - len(x), len(x)
         pred = np.zeros_like(x)
