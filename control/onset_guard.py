@@ -240,15 +240,14 @@ class Predictor:
         self._new = 0
         p = len(self.lags)
         for axis in range(3):
-            xtx, xty, yy, rows = np.zeros((p, p)), np.zeros(p), 0.0, 0
+            xtx, xty, yy = np.zeros((p, p)), np.zeros(p), 0.0
             for r in runs:
                 y = r[span:, axis]
                 X = np.stack([r[span - lag:len(r) - lag, axis] for lag in self.lags], axis=1)
                 xtx += X.T @ X
                 xty += X.T @ y
                 yy += float(y @ y)
-                rows += len(y)
-            ridge = PREDICT_RIDGE * (yy / rows) * rows + 1e-12
+            ridge = PREDICT_RIDGE * yy + 1e-12      # relative to the data's mean square, per row
             self.coef[:, axis] = np.linalg.solve(xtx + ridge * np.eye(p), xty)
         self.fitted = True
         return True
