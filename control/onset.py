@@ -10,7 +10,7 @@ import numpy as np
 
 from tecdard.control.band_energy import band_at_rate
 from tecdard.control.conditioning import mean0, moving_mean
-from tecdard.control.onset_guard import FLOOR_K, PREDICT_HORIZON_S, NoiseFloor, Predictor, StepGuard
+from tecdard.control.onset_guard import FLOOR_K, PREDICT_HORIZON_S, REVERSAL_S, NoiseFloor, Predictor, StepGuard
 from tecdard.control.proprio import ACCEL_WINDOW_S
 from tecdard.options import option, read_options
 
@@ -76,6 +76,10 @@ class OnsetOptions:
                                                           "past does not predict this far ahead (the arm's "
                                                           "narrow-band vibration taken off); 0: off", unit="s",
                                       minval=0.0, maxval=0.01)
+    reversal_s: float = option(REVERSAL_S, "an accelerometer onset whose remainder swings back beyond its threshold "
+                                           "this soon is decided at once, without waiting for the arm's states (a "
+                                           "step the arm takes keeps its sign); 0: off", unit="s", minval=0.0,
+                               maxval=0.05)
     floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
                                      "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
@@ -208,6 +212,7 @@ class OnsetDetector:
             raise section.error(key, problem) from None
         det.swing_accel = o.swing_accel
         det.guard.lag_s = o.proprio_lag_s
+        det.guard.reversal_s = o.reversal_s
         det.floor.k = o.floor_k
         det.predictor = Predictor(o.predict_horizon_s, odr_hz)
         det.mount_tolerance = math.radians(o.mount_tolerance_deg)
@@ -392,7 +397,7 @@ class OnsetDetector:
         quiet = self._quiet
         hit, by = -1, None
         if self.guard.waiting and self.armed and not self.settling:
-            hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel), "accel"   # nothing else fires meanwhile
+            hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._guard_x()), "accel"   # nothing else fires meanwhile
         elif self.settling:
             self._settle(t, level)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
@@ -408,8 +413,9 @@ class OnsetDetector:
                 by = next(k for k, v in conds.items() if v[hit])
                 if by == "accel" and self.guard.applies(bool(self._explaining), self.mode):
                     self.guard.start(float(t[hit]), float(np.broadcast_to(self._thr_a, (n,))[hit]
-                                                          + np.broadcast_to(allow_a, (n,))[hit]))
-                    hit = self.guard.decide(t, self._peak_dev(), self.swing_accel)
+                                                          + np.broadcast_to(allow_a, (n,))[hit]),
+                                     self.guard.past(self._guard_x(), hit, self.odr_hz))
+                    hit = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._guard_x())
         if hit >= 0:
             self._fire(t, hit, by)
         if len(quiet):
@@ -434,6 +440,7 @@ class OnsetDetector:
         if hit < 0 and not self.pending and self._dev_a is not None:
             self.floor.learn(t, self._dev_a, self.odr_hz)
         if self._x_a is not None:
+            self.guard.observe(self._guard_x(), self.odr_hz)
             if hit < 0 and not self.pending and self.armed and not self.settling:
                 if self.predictor.learn(self._x_a):     # the arm's own vibration, armed: nothing of a contact
                     self.floor.restart()
@@ -445,6 +452,14 @@ class OnsetDetector:
         """What the step guard weighs a candidate's peak on: the prediction's error and the remainder
         itself ((2, n): the smaller peak counts), or the error alone without a predictor."""
         return self._dev_a if self._dev_guard is None else self._dev_guard
+
+    def _guard_x(self):
+        """The accelerometer remainder (n, 3) the step guard watches for a reversal (its component on
+        accel_axis where one is set)."""
+        x = self._x_a
+        if x is None or self.accel_axis is None:
+            return x
+        return (x @ self.accel_axis)[:, None] * self.accel_axis[None, :]
 
     def _fire(self, t: np.ndarray, hit: int, by: str) -> None:
         self.armed = False

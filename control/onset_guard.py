@@ -31,6 +31,16 @@ STEP_RING_TAU_S = 0.5         # an explained step's allowance decays this slowly
 # any change the arm's states can show over the fit; a step the arm took is as large as the change.
 PEAK_WINDOW_S = 0.01
 STALE_WAIT_S = 0.05           # states that stop coming: decided this long after they were due, as they stand
+# ... unless the remainder reverses first: a step the arm takes keeps its sign for as long as the arm
+# accelerates (a trapezoid's ramp lasts v/a, tens to hundreds of ms), and no passive mode of the arm turns
+# it round, while a contact's ring swings back within half its period. A candidate whose remainder, from
+# its level over the REVERSAL_PAST_S before it and along its peak's direction, falls beyond minus its
+# threshold, and beyond REVERSAL_SWING_K times the largest swing from that level over that past (the
+# arm's vibration: a step plus a vibration no larger never reaches it), within REVERSAL_S is an onset at
+# once (estimator.onset.reversal_s; 0: off).
+REVERSAL_S = 0.006
+REVERSAL_PAST_S = 0.025
+REVERSAL_SWING_K = 1.0
 
 
 @dataclass
@@ -41,6 +51,9 @@ class Candidate:
     peak: float
     allow: float
     views: np.ndarray | None = None     # the peak of each view of the remainder (StepGuard.decide)
+    x_peak: np.ndarray | None = None    # the remainder (3,) at its largest since the candidate, m/s^2
+    level: np.ndarray | None = None     # the remainder's mean (3,) over the REVERSAL_PAST_S before it, m/s^2
+    swing: float = 0.0                  # its largest swing from that mean then, m/s^2
 
 
 class NoiseFloor:
@@ -97,6 +110,9 @@ class StepGuard:
         self.decided_t: float | None = None
         self.masked = (0.0, -np.inf)       # the last explained step: (its allowance, m/s^2; when)
         self.explained_steps = 0
+        self.reversal_s = REVERSAL_S       # a candidate that swings back this soon is an onset (estimator.onset.reversal_s)
+        self.reversals = 0                 # candidates decided so
+        self._past = np.zeros((0, 3))      # the remainder's last REVERSAL_PAST_S (observe)
 
     @property
     def waiting(self) -> bool:
@@ -109,8 +125,24 @@ class StepGuard:
     def clear(self) -> None:
         self.candidate = None
 
-    def start(self, t_c: float, allow: float) -> None:
-        self.candidate = Candidate(t_c, 0.0, allow)
+    def start(self, t_c: float, allow: float, past: np.ndarray | None = None) -> None:
+        """A candidate at t_c with its threshold `allow` (m/s^2), and the accelerometer remainder
+        before it (m, 3; `past`), whose level and swing its reversal is judged from."""
+        c = self.candidate = Candidate(t_c, 0.0, allow)
+        if past is not None and len(past):
+            c.level = past.mean(axis=0)
+            d = past - c.level
+            c.swing = float(np.sqrt(np.einsum("ij,ij->i", d, d)).max())
+
+    def past(self, x: np.ndarray, k: int, odr_hz: float) -> np.ndarray:
+        """The remainder over the REVERSAL_PAST_S before sample k of the batch x (n, 3) (observe
+        keeps what came before the batch)."""
+        return np.concatenate([self._past, x[:k]])[-max(1, int(round(REVERSAL_PAST_S * odr_hz))):]
+
+    def observe(self, x: np.ndarray, odr_hz: float) -> None:
+        """The batch's remainder x (n, 3), kept for the next candidate's past."""
+        keep = max(1, int(round(REVERSAL_PAST_S * odr_hz)))
+        self._past = np.concatenate([self._past, x])[-keep:] if len(x) < keep else x[-keep:]
 
     def mask(self, t: np.ndarray):
         """What is still allowed of the last step the arm's states explained, decaying with STEP_RING_TAU_S."""
@@ -119,12 +151,19 @@ class StepGuard:
             return 0.0
         return amp * np.exp(-np.maximum(t - since, 0.0) / STEP_RING_TAU_S)
 
-    def decide(self, t: np.ndarray, dev: np.ndarray | None, swing_accel: float) -> int:
+    def decide(self, t: np.ndarray, dev: np.ndarray | None, swing_accel: float, x: np.ndarray | None = None) -> int:
         """The waiting candidate against the arm's states, with this batch's accelerometer remainder
-        `dev` (n,), or several views of it (k, n) whose peaks are each taken and the smallest weighed:
-        the index of the sample it is decided at (an onset; `decided_t` its time), or -1 (still
-        waiting, or the arm's own step)."""
+        `dev` (n,), or several views of it (k, n) whose peaks are each taken and the smallest weighed,
+        and the remainder itself `x` (n, 3) for its reversal: the index of the sample it is decided at
+        (an onset; `decided_t` its time), or -1 (still waiting, or the arm's own step)."""
         c = self.candidate
+        if x is not None and self.reversal_s > 0.0:
+            at = self._reversal(t, x)
+            if at >= 0:
+                self.candidate = None
+                self.decided_t = c.t
+                self.reversals += 1
+                return at
         if dev is not None:
             win = (t >= c.t) & (t <= c.t + PEAK_WINDOW_S)
             if win.any():
@@ -144,6 +183,28 @@ class StepGuard:
         self.explained_steps += 1
         self.masked = (explained, last)
         return -1
+
+    def _reversal(self, t: np.ndarray, x: np.ndarray) -> int:
+        """The first sample within reversal_s of the candidate where the remainder x (n, 3), from its
+        level before the candidate and along the direction of its largest value since (carried over
+        batches), is below minus the larger of the candidate's threshold and REVERSAL_SWING_K times
+        the swing before it: its index, or -1."""
+        c = self.candidate
+        idx = np.flatnonzero((t >= c.t) & (t <= c.t + self.reversal_s))
+        if len(idx) == 0:
+            return -1
+        xs = x[idx] if c.level is None else x[idx] - c.level
+        if c.x_peak is not None:
+            xs = np.concatenate([c.x_peak[None, :], xs])
+        mag = np.sqrt(np.einsum("ij,ij->i", xs, xs))
+        new_max = mag >= np.maximum.accumulate(mag)
+        peak = np.maximum.accumulate(np.where(new_max, np.arange(len(xs)), 0))   # the running peak's row
+        u = xs[peak] / np.maximum(mag[peak], 1e-12)[:, None]
+        proj = np.einsum("ij,ij->i", xs, u)
+        c.x_peak = xs[peak[-1]].copy()
+        first = 1 if len(xs) > len(idx) else 0
+        hit = np.flatnonzero(proj[first:] < -max(c.allow, REVERSAL_SWING_K * c.swing))
+        return int(idx[hit[0]]) if len(hit) else -1
 
 
 # A real arm's tool vibrates in a few narrow bands (its structural modes, the joints' harmonics, the servo's
