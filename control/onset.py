@@ -76,10 +76,9 @@ class OnsetOptions:
                                                           "past does not predict this far ahead (the arm's "
                                                           "narrow-band vibration taken off); 0: off", unit="s",
                                       minval=0.0, maxval=0.01)
-    reversal_s: float = option(REVERSAL_S, "an accelerometer onset whose remainder swings back beyond its threshold "
-                                           "this soon is decided at once, without waiting for the arm's states (a "
-                                           "step the arm takes keeps its sign); 0: off", unit="s", minval=0.0,
-                               maxval=0.05)
+    reversal_s: float = option(REVERSAL_S, "an accelerometer onset that swings back past its threshold this soon is "
+                                           "decided without the arm's states (a step keeps its sign); 0: off",
+                               unit="s", minval=0.0, maxval=0.05)
     floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
                                      "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
@@ -171,7 +170,7 @@ class OnsetDetector:
         self._slow_hist = np.zeros((0, 3))   # the twist's TWIST_HOLD_MEAN_S mean's history
         self.floor = NoiseFloor()      # the accelerometer remainder's moving floor (from_config: floor_k)
         self.predictor = Predictor(0.0, odr_hz)   # its prediction from its own past (from_config: predict_horizon_s)
-        self._x_a = None               # the batch's accelerometer remainder (the predictor learns it)
+        self._x_a = self._x_g = None   # the batch's accelerometer remainder (the predictor learns it), the guard's
         self._dev_a = self._dev_guard = None   # its magnitude judged (the prediction's error), and the guard's
         self._thr_a = 0.0              # its threshold per sample (the moving floors)
         self.guard = StepGuard()       # an accelerometer onset waits for the arm's states (from_config, pipeline)
@@ -271,10 +270,11 @@ class OnsetDetector:
         allow_a, allow_w: what the explained motion may be off by, per sample (m/s^2, rad/s); twist:
         None, or the batch's twist (_twist, (n, 3)) and its norm (n,)."""
         out, level = {}, {}
-        self._dev_a = self._dev_guard = self._x_a = None
+        self._dev_a = self._dev_guard = self._x_a = self._x_g = None
         if self.accel_threshold is not None:
             # what the remainder's own past does not predict (Predictor: the arm's vibration taken off)
-            self._x_a = accel - self.rest_accel
+            self._x_a = x = accel - self.rest_accel     # and, on accel_axis where set, the guard's (a reversal)
+            self._x_g = x if self.accel_axis is None else (x @ self.accel_axis)[:, None] * self.accel_axis
             dev = self.predictor.error(self._x_a)
             mag = self._magnitude(dev)
             self._dev_a, self._thr_a = mag, self.accel_threshold_now()
@@ -397,7 +397,7 @@ class OnsetDetector:
         quiet = self._quiet
         hit, by = -1, None
         if self.guard.waiting and self.armed and not self.settling:
-            hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._guard_x()), "accel"   # nothing else fires meanwhile
+            hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._x_g), "accel"  # nothing else fires
         elif self.settling:
             self._settle(t, level)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
@@ -414,8 +414,8 @@ class OnsetDetector:
                 if by == "accel" and self.guard.applies(bool(self._explaining), self.mode):
                     self.guard.start(float(t[hit]), float(np.broadcast_to(self._thr_a, (n,))[hit]
                                                           + np.broadcast_to(allow_a, (n,))[hit]),
-                                     self.guard.past(self._guard_x(), hit, self.odr_hz))
-                    hit = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._guard_x())
+                                     self.guard.past(self._x_g, hit, self.odr_hz))
+                    hit = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._x_g)
         if hit >= 0:
             self._fire(t, hit, by)
         if len(quiet):
@@ -440,7 +440,7 @@ class OnsetDetector:
         if hit < 0 and not self.pending and self._dev_a is not None:
             self.floor.learn(t, self._dev_a, self.odr_hz)
         if self._x_a is not None:
-            self.guard.observe(self._guard_x(), self.odr_hz)
+            self.guard.observe(self._x_g, self.odr_hz)
             if hit < 0 and not self.pending and self.armed and not self.settling:
                 if self.predictor.learn(self._x_a):     # the arm's own vibration, armed: nothing of a contact
                     self.floor.restart()
@@ -452,14 +452,6 @@ class OnsetDetector:
         """What the step guard weighs a candidate's peak on: the prediction's error and the remainder
         itself ((2, n): the smaller peak counts), or the error alone without a predictor."""
         return self._dev_a if self._dev_guard is None else self._dev_guard
-
-    def _guard_x(self):
-        """The accelerometer remainder (n, 3) the step guard watches for a reversal (its component on
-        accel_axis where one is set)."""
-        x = self._x_a
-        if x is None or self.accel_axis is None:
-            return x
-        return (x @ self.accel_axis)[:, None] * self.accel_axis[None, :]
 
     def _fire(self, t: np.ndarray, hit: int, by: str) -> None:
         self.armed = False

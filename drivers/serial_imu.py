@@ -44,8 +44,9 @@ class SerialParams:
                                        kind="optstr")
     baud: int = option(2_000_000, "the UART's rate behind a USB-serial bridge (USB-CDC ignores it)", unit="baud",
                        minval=1200)
-    link: str = option("usb-cdc", "usb-cdc, or uart: a UART at `baud` behind a USB-serial bridge (its wire time "
-                                  "known)", choices=LINKS)
+    link: str = option("uart", "uart: a UART at `baud` behind a USB-serial bridge, as the reference board (its "
+                               "wire time known); usb-cdc: a board with its own USB port (none shipped)",
+                       choices=LINKS)
     odr_hz: int = option(DEFAULT_ODR_HZ, "the data rate assumed until the board's first status packet", unit="Hz",
                          minval=1, maxval=65535)
     gyro_fs_dps: int = option(DEFAULT_GYRO_FS_DPS, "the gyro's full scale assumed until the first status packet",
@@ -53,7 +54,7 @@ class SerialParams:
     accel_fs_g: int = option(DEFAULT_ACCEL_FS_G, "the accelerometer's full scale assumed until the first status "
                                                  "packet", unit="g")
     vid_pid: str | None = option(None, "instead of port: the board's USB vendor and product id, hex VID:PID such as "
-                                       "0483:5740", kind="optstr")
+                                       "0403:6014", kind="optstr")
 
     @classmethod
     def from_config(cls, section) -> "SerialParams":
@@ -63,7 +64,7 @@ class SerialParams:
                 vid_s, pid_s = p.vid_pid.split(":")
                 p.vid, p.pid = int(vid_s, 16), int(pid_s, 16)
             except ValueError:
-                raise section.error("vid_pid", f"expected hex VID:PID such as 0483:5740, got {p.vid_pid!r}") from None
+                raise section.error("vid_pid", f"expected hex VID:PID such as 0403:6014, got {p.vid_pid!r}") from None
         if p.port is None and p.vid is None:
             raise section.error("port", "give a port path or vid_pid")
         try:
@@ -349,7 +350,19 @@ class SerialImuSource(ImuSource):
         return out
 
     def checks(self) -> list[Check]:
-        return [check_board(self.params)]
+        """The board at its port; then its bridge (the link, the baud, the FTDI latency timer) and
+        whether what arrives at that baud is frames (drivers/bridge.py)."""
+        from tecdard.drivers.bridge import check_bridge, check_stream
+        board = check_board(self.params)
+        if board.status != "pass":
+            return [board]
+        p = self.params
+        try:
+            path = p.port if p.port is not None else find_port(p.vid, p.pid, p.serial_number)
+        except PortError:                     # unplugged since: the board's check said what it found
+            return [board]
+        return [board, *check_bridge(path, self.params.link, self.params.baud),
+                check_stream(path, self.params.baud)]
 
 
 def _access_problem(path: str) -> tuple[str, str] | None:

@@ -135,7 +135,7 @@ def test_udev_rule(tmp_path):
     (tmp_path / doctor.UDEV_RULE.name).write_text("# someone's edit\n")
     assert doctor.check_udev_rule([str(tmp_path)]).status == "warn"
     rule = (ROOT / "systemd" / "99-tecdar-imu.rules").read_text()
-    assert 'SYMLINK+="tecdar-imu"' in rule and 'GROUP="dialout"' in rule and "0483" in rule
+    assert 'SYMLINK+="tecdar-imu"' in rule and 'GROUP="dialout"' in rule and "0403" in rule
 
 
 def test_endpoints_free_taken_reachable_unreachable():

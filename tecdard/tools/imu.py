@@ -10,7 +10,7 @@ import time
 def add_parser(sub) -> None:
     p = sub.add_parser("imu", help="read the fingertip IMU board: rates, counters, latest sample")
     p.add_argument("--port", help="serial device path (e.g. /dev/ttyACM0)")
-    p.add_argument("--vid-pid", help="find the board by USB VID:PID (hex), e.g. 0483:5740")
+    p.add_argument("--vid-pid", help="find the board by USB VID:PID (hex), e.g. 0403:6014 (an FTDI FT232H bridge)")
     p.add_argument("--serial-number", help="with --vid-pid: the board's USB serial number")
     p.add_argument("--seconds", type=float, default=2.0, help="how long to read (default 2)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -26,7 +26,7 @@ def main(args) -> int:
         try:
             vid, pid = (int(x, 16) for x in args.vid_pid.split(":"))
         except ValueError:
-            print(f"tecdard imu: --vid-pid: expected hex VID:PID such as 0483:5740, got {args.vid_pid!r}",
+            print(f"tecdard imu: --vid-pid: expected hex VID:PID such as 0403:6014, got {args.vid_pid!r}",
                   file=sys.stderr)
             return 2
     if not args.port and vid is None:
