@@ -69,7 +69,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     With --help in `argv`, the task verbs' limits are a running daemon's where one answers."""
     from tecdard.cli.task_verbs import add_parsers, help_limits, verb_options
     from tecdard.tools import (calibrate, calibrate_mount, demo, doctor, export, fake_board, imu, import_log,
-                               kernel_cache, localize, plot, sim_record)
+                               kernel_cache, localize, plot, report, sim_record)
     from tecdard.cli import episodes, fleet, options, router
     argv = argv or []
     limits, note = None, ""
@@ -88,7 +88,7 @@ def parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     for tool in (localize, plot, export, calibrate, calibrate_mount, import_log, sim_record, imu, fake_board):
         tool.add_parser(sub)
     add_parsers(sub, limits, note)
-    for tool in (doctor, kernel_cache, demo, options, fleet, router, episodes):
+    for tool in (doctor, report, kernel_cache, demo, options, fleet, router, episodes):
         tool.add_parser(sub)
     return top
 

@@ -126,7 +126,7 @@ def check_isolated_cores(isolated_path: str = "/sys/devices/system/cpu/isolated"
 # -- the fingertip board ---------------------------------------------------------
 def check_udev_rule(dirs=UDEV_RULE_DIRS, rule: pathlib.Path = UDEV_RULE) -> Check:
     fix = (f"sudo install -m 644 {rule} /etc/udev/rules.d/ && sudo udevadm control --reload && "
-           "sudo udevadm trigger --subsystem-match=tty")
+           "sudo udevadm trigger --subsystem-match=tty --subsystem-match=usb-serial")
     ours = rule.read_text()
     for d in dirs:
         path = pathlib.Path(d) / rule.name
