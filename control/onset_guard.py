@@ -140,9 +140,10 @@ class StepGuard:
         return np.concatenate([self._past, x[:k]])[-max(1, int(round(REVERSAL_PAST_S * odr_hz))):]
 
     def observe(self, x: np.ndarray, odr_hz: float) -> None:
-        """The batch's remainder x (n, 3), kept for the next candidate's past."""
-        keep = max(1, int(round(REVERSAL_PAST_S * odr_hz)))
-        self._past = np.concatenate([self._past, x])[-keep:] if len(x) < keep else x[-keep:]
+        """The batch's remainder x (n, 3), kept for the next candidate's past (nothing where no candidate
+        waits: reversal off, no arm's states, no wait)."""
+        if self.reversal_s > 0.0 and self.arm is not None and self.lag_s > 0.0:
+            self._past = self.past(x, len(x), odr_hz)
 
     def mask(self, t: np.ndarray):
         """What is still allowed of the last step the arm's states explained, decaying with STEP_RING_TAU_S."""

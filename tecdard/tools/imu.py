@@ -17,6 +17,33 @@ def add_parser(sub) -> None:
     p.set_defaults(func=main)
 
 
+def read_board(src, seconds: float) -> dict:
+    """Read an opened SerialImuSource for `seconds`, then close it: its rates, the board's status, its
+    counters and the latest sample, in SI (`tecdard imu --json`, `tecdard report`)."""
+    t_start = time.monotonic()
+    n_samples = 0
+    try:
+        while time.monotonic() - t_start < seconds:
+            out = src.read(0.05)
+            if out is not None:
+                n_samples += len(out[0])
+    finally:
+        src.close()
+    elapsed = time.monotonic() - t_start
+    c = src.counters()
+    return {
+        "port": src.port_path, "seconds": round(elapsed, 3), "samples": n_samples,
+        "sample_rate_hz": round(n_samples / elapsed, 1),
+        "byte_rate_bps": round(c["bytes_in"] / elapsed, 1),
+        "packet_rate_hz": round(c["good_packets"] / elapsed, 1),
+        "status": None if src.status is None else {"odr_hz": src.status.odr_hz, "gyro_fs_dps": src.status.gyro_fs_dps,
+                                                   "accel_fs_g": src.status.accel_fs_g, "flags": src.status.flags},
+        "counters": c,
+        "latest": None if src.latest is None else {"t": src.latest[0], "gyro_rad_s": src.latest[1].tolist(),
+                                                   "accel_m_s2": src.latest[2].tolist()},
+    }
+
+
 def main(args) -> int:
     """Read the fingertip board for a while; print rates, counters and the latest sample in SI."""
     from tecdard.drivers.serial_imu import PortError, SerialImuSource, SerialParams
@@ -38,26 +65,8 @@ def main(args) -> int:
     except PortError as exc:
         print(f"tecdard imu: {exc}", file=sys.stderr)
         return 1
-    t_start = time.monotonic()
-    n_samples = 0
-    while time.monotonic() - t_start < args.seconds:
-        out = src.read(0.05)
-        if out is not None:
-            n_samples += len(out[0])
-    elapsed = time.monotonic() - t_start
-    src.close()
-    c = src.counters()
-    report = {
-        "port": src.port_path, "seconds": round(elapsed, 3),
-        "sample_rate_hz": round(n_samples / elapsed, 1),
-        "byte_rate_bps": round(c["bytes_in"] / elapsed, 1),
-        "packet_rate_hz": round(c["good_packets"] / elapsed, 1),
-        "status": None if src.status is None else {"odr_hz": src.status.odr_hz, "gyro_fs_dps": src.status.gyro_fs_dps,
-                                                   "accel_fs_g": src.status.accel_fs_g, "flags": src.status.flags},
-        "counters": c,
-        "latest": None if src.latest is None else {"t": src.latest[0], "gyro_rad_s": src.latest[1].tolist(),
-                                                   "accel_m_s2": src.latest[2].tolist()},
-    }
+    report = read_board(src, args.seconds)
+    c, elapsed, n_samples = report["counters"], report["seconds"], report["samples"]
     if args.json:
         print(json.dumps(report))
     else:

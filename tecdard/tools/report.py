@@ -77,20 +77,8 @@ def board_counters(daemon, seconds: float) -> dict:
     except PortError as exc:
         return {"skipped": f"cannot open the board ({exc}); a running daemon holds it: its counters are in "
                            "`tecdard status --json`"}
-    n, t0 = 0, time.monotonic()
-    try:
-        while time.monotonic() - t0 < seconds:
-            got = src.read(0.05)
-            if got is not None:
-                n += len(got[0])
-    finally:
-        src.close()
-    dt = time.monotonic() - t0
-    st = src.status
-    return {"port": src.port_path, "seconds": round(dt, 3), "sample_rate_hz": round(n / dt, 1),
-            "status": None if st is None else {"odr_hz": st.odr_hz, "gyro_fs_dps": st.gyro_fs_dps,
-                                               "accel_fs_g": st.accel_fs_g, "flags": st.flags},
-            "counters": src.counters()}
+    from tecdard.tools.imu import read_board
+    return read_board(src, seconds)
 
 
 def recordings(rec_dir: str | None, count: int) -> list[dict]:
