@@ -353,16 +353,10 @@ class SerialImuSource(ImuSource):
         """The board at its port; then its bridge (the link, the baud, the FTDI latency timer) and
         whether what arrives at that baud is frames (drivers/bridge.py)."""
         from tecdard.drivers.bridge import check_bridge, check_stream
-        board = check_board(self.params)
-        if board.status != "pass":
+        path, board = board_check(self.params)
+        if path is None:
             return [board]
-        p = self.params
-        try:
-            path = p.port if p.port is not None else find_port(p.vid, p.pid, p.serial_number)
-        except PortError:                     # unplugged since: the board's check said what it found
-            return [board]
-        return [board, *check_bridge(path, self.params.link, self.params.baud),
-                check_stream(path, self.params.baud)]
+        return [board, *check_bridge(path, self.params.link, self.params.baud), check_stream(path, self.params.baud)]
 
 
 def _access_problem(path: str) -> tuple[str, str] | None:
@@ -380,6 +374,11 @@ def _access_problem(path: str) -> tuple[str, str] | None:
 
 def check_board(serial_params: "SerialParams", comports=None) -> Check:
     """The board at its configured port (by path, or found by VID:PID) and readable and writable."""
+    return board_check(serial_params, comports)[1]
+
+
+def board_check(serial_params: "SerialParams", comports=None) -> tuple[str | None, Check]:
+    """check_board's finding, with the port's path where it passed (None otherwise)."""
     if comports is None:
         import serial.tools.list_ports
         comports = serial.tools.list_ports.comports
@@ -389,19 +388,19 @@ def check_board(serial_params: "SerialParams", comports=None) -> Check:
         if not os.path.exists(path):
             fix = ("plug the board in; with the udev rule installed it appears as /dev/tecdar-imu"
                    if "tecdar-imu" in path else "plug the board in, or correct imu.serial.port")
-            return Check("fingertip board", "fail", f"{path} does not exist", fix)
+            return None, Check("fingertip board", "fail", f"{path} does not exist", fix)
     else:
         try:
             path = find_port(p.vid, p.pid, p.serial_number, comports)
         except PortError as exc:
             seen = ", ".join(f"{i.device} {i.vid:04x}:{i.pid:04x}" for i in comports() if i.vid is not None)
-            return Check("fingertip board", "fail", f"{exc}" + (f" (connected: {seen})" if seen else ""),
+            return None, Check("fingertip board", "fail", f"{exc}" + (f" (connected: {seen})" if seen else ""),
                          "plug the board in, or correct imu.serial.vid_pid (`lsusb` lists the IDs)")
     problem = _access_problem(path)
     if problem is not None:
         detail, group = problem
-        return Check("fingertip board", "fail", detail,
+        return None, Check("fingertip board", "fail", detail,
                      f"`sudo usermod -aG {group} $USER` and log in again (the unit runs with "
                      f"SupplementaryGroups={group}); the udev rule sets the group")
-    return Check("fingertip board", "pass", f"{path} (real path {os.path.realpath(path)}) readable and writable")
+    return path, Check("fingertip board", "pass", f"{path} (real path {os.path.realpath(path)}) readable and writable")
 
