@@ -31,6 +31,11 @@ class ImuSource:
         """Release the device (a source whose device another owner stops has nothing to do)."""
 
     @property
+    def part(self) -> str | None:
+        """The sensor behind the source, for `status` and `tecdard imu`; None when the source cannot say."""
+        return None
+
+    @property
     def saturation(self) -> tuple[float, float]:
         """(gyro rad/s, accel m/s^2) at which a sample is clipped: the LSM6DSR's default full scales."""
         return Scaling().saturation

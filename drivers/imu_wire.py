@@ -10,6 +10,7 @@ import numpy as np
 SYNC = b"\xa5\x5a"
 TYPE_SAMPLES = 0x01
 TYPE_STATUS = 0x02
+TYPE_IDENTITY = 0x03      # our extension: the sensor's WHO_AM_I after each status (a reader of the spec skips it)
 MAX_LEN = 1024
 HEADER_BYTES = 5          # sync (2), type (1), len (2)
 CRC_BYTES = 2
@@ -17,6 +18,7 @@ SAMPLES_HEADER_BYTES = 7  # seq (2), t0_us (4), n (1)
 SAMPLE_BYTES = 12
 MAX_SAMPLES = 64
 STATUS_BYTES = 6
+IDENTITY_BYTES = 1        # who_am_i; a longer payload is a later board's: the first byte is read, the rest skipped
 FLAG_FIFO_OVERRUN = 0x01
 FLAG_SELF_TEST_FAILED = 0x02   # the sensor's self-test failed at the board's start
 FLAG_SENSOR_ABSENT = 0x04      # the sensor did not answer (WHO_AM_I wrong or no reply): no samples follow
@@ -46,6 +48,10 @@ def encode_status(odr_hz: int, gyro_fs_dps: int, accel_fs_g: int, flags: int = 0
     return frame(TYPE_STATUS, struct.pack("<HHBB", odr_hz, gyro_fs_dps, accel_fs_g, flags))
 
 
+def encode_identity(who_am_i: int) -> bytes:
+    return frame(TYPE_IDENTITY, bytes([who_am_i & 0xFF]))
+
+
 @dataclass
 class SamplesPacket:
     seq: int
@@ -62,9 +68,18 @@ class StatusPacket:
     flags: int
 
 
-def frame_bytes(pkt: "SamplesPacket | StatusPacket") -> int:
+@dataclass
+class IdentityPacket:
+    who_am_i: int              # as the board read it: 0x6B LSM6DSR, 0x6C LSM6DSO/DSOX, else a wrong or absent part
+    payload_bytes: int = IDENTITY_BYTES
+
+
+def frame_bytes(pkt: "SamplesPacket | StatusPacket | IdentityPacket") -> int:
     """The bytes of a decoded packet's whole frame on the wire."""
-    payload = SAMPLES_HEADER_BYTES + SAMPLE_BYTES * len(pkt.raw) if isinstance(pkt, SamplesPacket) else STATUS_BYTES
+    if isinstance(pkt, SamplesPacket):
+        payload = SAMPLES_HEADER_BYTES + SAMPLE_BYTES * len(pkt.raw)
+    else:
+        payload = pkt.payload_bytes if isinstance(pkt, IdentityPacket) else STATUS_BYTES
     return HEADER_BYTES + payload + CRC_BYTES
 
 
@@ -79,6 +94,7 @@ class Counters:
     bytes_discarded: int = 0
     samples_lost: int = 0
     status_packets: int = 0
+    identity_packets: int = 0   # our extension (type 0x03): the sensor's WHO_AM_I
     bad_status: int = 0         # status packets whose values are outside the protocol's ranges (ignored)
     fifo_overruns: int = 0
     restarts: int = 0           # board restarts seen in seq (not counted as lost samples)
@@ -189,5 +205,12 @@ class WireParser:
             if flags & FLAG_FIFO_OVERRUN:
                 c.fifo_overruns += 1
             return StatusPacket(odr, gfs, afs, flags)
+        if ptype == TYPE_IDENTITY:
+            if not payload:
+                c.malformed += 1
+                return None
+            c.good_packets += 1
+            c.identity_packets += 1
+            return IdentityPacket(payload[0], len(payload))
         c.unknown_types += 1
         return None

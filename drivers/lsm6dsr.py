@@ -1,12 +1,40 @@
-"""ST LSM6DSR: full-scale settings and sensitivities (datasheet), raw int16 -> SI."""
+"""ST LSM6DSR and LSM6DSO/LSM6DSOX: full-scale settings and sensitivities (datasheets), raw int16 -> SI."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
+# LSM6DSR (DS12544 Table 2): the union of both parts' ranges; the LSM6DSO has the same sensitivities
+# at every range it has (DS12140 Table 2) and no 4000 dps
 GYRO_SENS_MDPS_PER_LSB = {125: 4.375, 250: 8.75, 500: 17.5, 1000: 35.0, 2000: 70.0, 4000: 140.0}
 ACCEL_SENS_MG_PER_LSB = {2: 0.061, 4: 0.122, 8: 0.244, 16: 0.488}
+
+
+@dataclass(frozen=True)
+class Part:
+    """A sensor the board may carry, known by the WHO_AM_I it reports in its identity packet."""
+    name: str
+    who_am_i: int
+    gyro_fs_dps: tuple[int, ...]
+    accel_fs_g: tuple[int, ...]
+    datasheet: str
+
+
+LSM6DSR = Part("LSM6DSR", 0x6B, (125, 250, 500, 1000, 2000, 4000), (2, 4, 8, 16), "ST DS12544")
+# one WHO_AM_I for the LSM6DSO and the LSM6DSOX (their register maps agree where the board uses them); the
+# LSM6DSO32 answers 0x6C too, but its accelerometer's ranges are 4-32 g: not a part the board supports
+LSM6DSO = Part("LSM6DSO/LSM6DSOX", 0x6C, (125, 250, 500, 1000, 2000), (2, 4, 8, 16), "ST DS12140, DS13158")
+PARTS = {p.who_am_i: p for p in (LSM6DSR, LSM6DSO)}
+
+
+def part_name(who_am_i: int | None) -> str | None:
+    """The part a WHO_AM_I names, or what else answered (None: the board has not said)."""
+    if who_am_i is None:
+        return None
+    part = PARTS.get(who_am_i)
+    return part.name if part is not None else f"unknown (WHO_AM_I {who_am_i:#04x})"
 STANDARD_GRAVITY_M_S2 = 9.80665
 DEFAULT_ODR_HZ = 6667
 # The chip's output data rates (datasheet Table 52/53, high-performance mode), Hz; a board reports
@@ -26,18 +54,21 @@ def odr_problem(odr_hz: float) -> str | None:
 
 
 class Scaling:
-    """Raw (n, 6) int16 [gx, gy, gz, ax, ay, az] to SI (rad/s, m/s^2) at the given full scales."""
+    """Raw (n, 6) int16 [gx, gy, gz, ax, ay, az] to SI (rad/s, m/s^2) at the given full scales, checked
+    against `part`'s ranges (the LSM6DSR's by default: the widest)."""
 
-    def __init__(self, gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS, accel_fs_g: int = DEFAULT_ACCEL_FS_G):
+    def __init__(self, gyro_fs_dps: int = DEFAULT_GYRO_FS_DPS, accel_fs_g: int = DEFAULT_ACCEL_FS_G,
+                 part: Part = LSM6DSR):
+        self.part = part
         self.set(gyro_fs_dps, accel_fs_g)
 
     def set(self, gyro_fs_dps: int, accel_fs_g: int) -> None:
-        if gyro_fs_dps not in GYRO_SENS_MDPS_PER_LSB:
-            raise ValueError(f"gyro_fs_dps: {gyro_fs_dps} is not an LSM6DSR range "
-                             f"({', '.join(map(str, GYRO_SENS_MDPS_PER_LSB))})")
-        if accel_fs_g not in ACCEL_SENS_MG_PER_LSB:
-            raise ValueError(f"accel_fs_g: {accel_fs_g} is not an LSM6DSR range "
-                             f"({', '.join(map(str, ACCEL_SENS_MG_PER_LSB))})")
+        if gyro_fs_dps not in self.part.gyro_fs_dps:
+            raise ValueError(f"gyro_fs_dps: {gyro_fs_dps} is not an {self.part.name} range "
+                             f"({', '.join(map(str, self.part.gyro_fs_dps))})")
+        if accel_fs_g not in self.part.accel_fs_g:
+            raise ValueError(f"accel_fs_g: {accel_fs_g} is not an {self.part.name} range "
+                             f"({', '.join(map(str, self.part.accel_fs_g))})")
         self.gyro_fs_dps = gyro_fs_dps
         self.accel_fs_g = accel_fs_g
         self.gyro_rad_s_per_lsb = GYRO_SENS_MDPS_PER_LSB[gyro_fs_dps] * 1e-3 * math.pi / 180.0

@@ -14,9 +14,10 @@ import serial
 import serial.tools.list_ports
 
 from tecdard.drivers.imu_source import ImuSource
-from tecdard.drivers.imu_wire import (FLAG_SELF_TEST_FAILED, FLAG_SENSOR_ABSENT, SamplesPacket, StatusPacket,
-                                      WireParser, frame_bytes)
-from tecdard.drivers.lsm6dsr import DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, Scaling, odr_problem
+from tecdard.drivers.imu_wire import (FLAG_SELF_TEST_FAILED, FLAG_SENSOR_ABSENT, IdentityPacket, SamplesPacket,
+                                      StatusPacket, WireParser, frame_bytes)
+from tecdard.drivers.lsm6dsr import (DEFAULT_ACCEL_FS_G, DEFAULT_GYRO_FS_DPS, DEFAULT_ODR_HZ, PARTS, Scaling,
+                                     odr_problem, part_name)
 from tecdard.drivers.timesync import ClockSync, Unwrapper
 from tecdard.host import Check
 from tecdard.options import option, read_options
@@ -110,6 +111,7 @@ class SerialImuSource(ImuSource):
         self.disconnects = 0
         self.reconnects = 0
         self.status: StatusPacket | None = None
+        self.who_am_i: int | None = None         # the sensor's, from the board's identity packet
         self.latest: tuple[float, np.ndarray, np.ndarray] | None = None
         self._retry_at = 0.0
         self._last_t: float | None = None        # the last sample time handed on (host clock)
@@ -238,7 +240,7 @@ class SerialImuSource(ImuSource):
                 problem = odr_problem(pkt.odr_hz)
                 if problem is None:
                     try:
-                        Scaling(pkt.gyro_fs_dps, pkt.accel_fs_g)
+                        Scaling(pkt.gyro_fs_dps, pkt.accel_fs_g, self.scaling.part)
                     except ValueError as exc:
                         problem = str(exc)
                 if problem is not None:
@@ -251,6 +253,9 @@ class SerialImuSource(ImuSource):
                 self.status = pkt
                 self.scaling.set(pkt.gyro_fs_dps, pkt.accel_fs_g)
                 self.odr_hz = float(pkt.odr_hz)
+            elif isinstance(pkt, IdentityPacket):
+                if pkt.who_am_i != self.who_am_i:
+                    self._identified(pkt.who_am_i)
             elif isinstance(pkt, SamplesPacket):
                 if pkt.restart:
                     self._restarted()
@@ -274,20 +279,44 @@ class SerialImuSource(ImuSource):
                             "message": f"the IMU board restarted ({self.parser.counters.restarts} so far); "
                                        "its clock is fitted afresh"})
 
+    @property
+    def part(self) -> str | None:
+        """The sensor the board found ("LSM6DSR", "LSM6DSO/LSM6DSOX", or what else answered), None until the
+        board's first identity packet (a board older than the packet never says)."""
+        return part_name(self.who_am_i)
+
+    def _identified(self, who_am_i: int) -> None:
+        """The board said which sensor answered: its ranges check the statuses from now on, and a configured
+        range the part lacks (used only until the first status) is said once."""
+        self.who_am_i = who_am_i
+        part = PARTS.get(who_am_i)
+        if part is None:
+            self.events.append({"kind": "warning", "code": "imu_unknown_part",
+                                "message": f"the IMU board read WHO_AM_I {who_am_i:#04x} from its sensor: not an "
+                                           "LSM6DSR (0x6b) or LSM6DSO/LSM6DSOX (0x6c); check the part and its SPI wiring"})
+            return
+        self.scaling.part = part
+        if self.params.gyro_fs_dps not in part.gyro_fs_dps or self.params.accel_fs_g not in part.accel_fs_g:
+            self.events.append({"kind": "warning", "code": "imu_config_range",
+                                "message": f"the IMU board carries an {part.name}, which has no "
+                                           f"{self.params.gyro_fs_dps} dps / {self.params.accel_fs_g} g range: "
+                                           "set imu.serial.gyro_fs_dps and accel_fs_g to the ranges its status "
+                                           f"reports (gyro {', '.join(map(str, part.gyro_fs_dps))} dps)"})
+
     def _flags_changed(self, old: StatusPacket | None, new: StatusPacket) -> None:
         """A status whose flags say something new: the sensor not answering is a fault until a status
         says it answers; a failed self-test is a warning, said once each time the board reports it."""
         was = 0 if old is None else old.flags
         if new.flags & FLAG_SENSOR_ABSENT and not was & FLAG_SENSOR_ABSENT:
             self.events.append({"kind": "fault", "code": "imu_sensor_absent",
-                                "message": "the IMU board says its LSM6DSR does not answer (wrong WHO_AM_I or no "
-                                           "reply): check the sensor's SPI wiring and supply"})
+                                "message": "the IMU board says its sensor does not answer (no LSM6DSR or LSM6DSO "
+                                           "WHO_AM_I, or no reply): check the sensor's SPI wiring and supply"})
         elif was & FLAG_SENSOR_ABSENT and not new.flags & FLAG_SENSOR_ABSENT:
             self.events.append({"kind": "fault_cleared", "code": "imu_sensor_absent",
                                 "message": "the IMU board's sensor answers again"})
         if new.flags & FLAG_SELF_TEST_FAILED and not was & FLAG_SELF_TEST_FAILED:
             self.events.append({"kind": "warning", "code": "imu_self_test_failed",
-                                "message": "the IMU board's LSM6DSR failed its self-test at start: its samples "
+                                "message": "the IMU board's sensor failed its self-test at start: its samples "
                                            "may be wrong; replace the fingertip's sensor"})
 
     def _packet_times(self, pkt: SamplesPacket, host_s: float) -> np.ndarray:

@@ -29,6 +29,7 @@ class BoardParams:
     drift_ppm: float = 0.0            # MCU clock error: mcu = true * (1 + drift)
     t0_us: int = 0                    # MCU time at start (set near 2^32 to test wrapping)
     status_period_s: float = 1.0
+    who_am_i: int | None = 0x6B       # the identity packet after each status (None: a board that sends none)
 
 
 class Board:
@@ -47,7 +48,9 @@ class Board:
         return int(round(self.params.t0_us + true_s * (1 + self.params.drift_ppm * 1e-6) * 1e6)) & 0xFFFFFFFF
 
     def status(self, flags: int = 0) -> bytes:
-        return W.encode_status(self.params.odr_hz, self.params.gyro_fs_dps, self.params.accel_fs_g, flags)
+        """A status frame, and the identity frame the firmware sends after it."""
+        out = W.encode_status(self.params.odr_hz, self.params.gyro_fs_dps, self.params.accel_fs_g, flags)
+        return out if self.params.who_am_i is None else out + W.encode_identity(self.params.who_am_i)
 
     def packets(self, gyro: np.ndarray, accel: np.ndarray) -> list[bytes]:
         """One frame per packet (status frames interleaved once a second of samples)."""

@@ -314,6 +314,11 @@ class PipeImuSource(ImuSource):
         return float(self.link.spec.imu.odr_hz)
 
     @property
+    def part(self) -> str:
+        """The chip the simulator models."""
+        return "LSM6DSR (simulated)"
+
+    @property
     def saturation(self) -> tuple[float, float]:
         """(gyro rad/s, accel m/s^2) at which the simulated chip clips (its int16 at the full scales)."""
         return Scaling(self.link.spec.imu.gyro_fs_dps, self.link.spec.imu.accel_fs_g).saturation

@@ -22,6 +22,7 @@ def test_status_state_and_events_follow_the_spec(shared_daemon):
     assert set(state["tcp"]) == {"p", "q", "v"}
     assert abs(np.linalg.norm(state["tcp"]["q"]) - 1.0) < 1e-6
     assert state["control"]["planner_fallbacks"] == 0 and state["control"]["ticks"] > 0
+    assert state["imu"]["part"] == "LSM6DSR (simulated)"
     # state streams at the tick rate
     time.sleep(0.5)
     seqs = []

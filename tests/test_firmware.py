@@ -54,7 +54,7 @@ def test_the_cores_unit_tests_pass(host_build):
 
 def read_vectors(path: pathlib.Path):
     """[(contents, bytes)] of one .vec file: contents ("samples", seq, t0_us, rows) / ("status", odr, gfs, afs,
-    flags) / ("frame", type, payload)."""
+    flags) / ("identity", who_am_i) / ("frame", type, payload)."""
     entries, pending, rows = [], None, []
     for line in path.read_text().splitlines():
         if line.startswith("#") or not line.strip():
@@ -67,6 +67,8 @@ def read_vectors(path: pathlib.Path):
             rows.append([int(x) for x in rest.split()])
         elif word == "status":
             pending = ("status", *(int(fields[k]) for k in ("odr_hz", "gyro_fs_dps", "accel_fs_g", "flags")))
+        elif word == "identity":
+            pending = ("identity", int(fields["who_am_i"]))
         elif word == "frame":
             pending = ("frame", int(fields["type"]), bytes.fromhex(fields.get("payload", "")))
         elif word == "bytes":
@@ -82,7 +84,7 @@ VECTOR_FILES = sorted(VECTORS.glob("*.vec"))
 
 def test_there_are_golden_vectors_for_every_packet_type():
     kinds = {c[0] for f in VECTOR_FILES for c, _ in read_vectors(f)}
-    assert kinds == {"samples", "status", "frame"}
+    assert kinds == {"samples", "status", "identity", "frame"}
     sizes = {len(c[3]) for f in VECTOR_FILES for c, _ in read_vectors(f) if c[0] == "samples"}
     assert {1, 64} <= sizes
     fs = {(c[2], c[3]) for f in VECTOR_FILES for c, _ in read_vectors(f) if c[0] == "status"}
@@ -104,6 +106,8 @@ def test_the_parser_decodes_the_golden_vectors(path):
             if w[0] == "samples":
                 assert isinstance(g, W.SamplesPacket)
                 assert (g.seq, g.t0_us, g.raw.tolist()) == (w[1], w[2], w[3])
+            elif w[0] == "identity":
+                assert g == W.IdentityPacket(w[1])
             else:
                 assert g == W.StatusPacket(*w[1:])
         c = p.counters
@@ -119,6 +123,8 @@ def test_the_python_encoder_agrees_with_the_golden_vectors(path):
             assert W.encode_samples(contents[1], contents[2], np.array(contents[3])) == raw
         elif contents[0] == "status":
             assert W.encode_status(*contents[1:]) == raw
+        elif contents[0] == "identity":
+            assert W.encode_identity(contents[1]) == raw
         else:
             assert W.frame(contents[1], contents[2]) == raw
 
@@ -211,7 +217,7 @@ def wait_opened(proc, tty_path, timeout_s=30.0):
 def assert_counters_match(rep, fw, corrupted_samples=0, corrupted_packets=0, unseen_gap=0):
     c = rep["counters"]
     assert c["samples"] == fw["samples_sent"] - corrupted_samples
-    assert c["good_packets"] == fw["packets_sent"] + fw["status_sent"] - corrupted_packets
+    assert c["good_packets"] == fw["packets_sent"] + fw["status_sent"] + fw["identity_sent"] - corrupted_packets
     assert c["status_packets"] == fw["status_sent"]
     assert c["samples_lost"] == fw["samples_dropped"] + corrupted_samples - unseen_gap
     assert c["fifo_overruns"] == fw["overrun_statuses"]
@@ -335,6 +341,18 @@ def test_a_board_without_its_sensor_says_so_and_sends_no_samples(host_build, tmp
     assert got == 0 and fw["samples_sent"] == 0 and fw["sensor_retries"] >= 1
     assert src.status.flags == W.FLAG_SENSOR_ABSENT
     assert ("fault", "imu_sensor_absent") in [(e["kind"], e["code"]) for e in events]
+
+
+def test_an_lsm6dso_board_streams_at_2000_dps_and_names_its_part(host_build, tmp_path):
+    """The firmware on an LSM6DSO (the model answers WHO_AM_I 0x6C and keeps no FS_4000 bit): the default 4000 dps
+    becomes the part's widest, 2000, in the status; `tecdard imu` names the part from the identity packet."""
+    board = HostBoard(tmp_path, "--whoami", "0x6C", "--gen", "sine", seconds=2.5)
+    rep = tecdard_imu(board.link, 5.0)
+    fw = board.counters()
+    assert rep["part"] == "LSM6DSO/LSM6DSOX" and fw["who_am_i"] == 0x6C
+    assert rep["status"] == {"odr_hz": ODR_HZ, "gyro_fs_dps": 2000, "accel_fs_g": 16, "flags": 0}
+    assert_counters_match(rep, fw)
+    assert rep["counters"]["identity_packets"] == fw["identity_sent"] == fw["status_sent"]
 
 
 @pytest.mark.slow

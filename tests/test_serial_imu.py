@@ -138,12 +138,17 @@ def test_tecdard_imu_bad_port_exits_nonzero(tmp_path):
 def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
     # the tests' stale limit, not the product's 50 ms: the board here is a Python thread of the test
     # process, which a loaded machine stalls for 50-70 ms now and then (the stop on unplug is the same)
-    streamer = StreamThread(pty, Board()).start()
+    streamer = StreamThread(pty, Board(BoardParams(who_am_i=0x6C, gyro_fs_dps=2000))).start()
     try:
-        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link)}})
+        d = make_daemon(**{"imu.source": "serial", "imu.serial": {"port": str(pty.link), "gyro_fs_dps": 2000}})
         cli = d.client
         time.sleep(0.5)
         assert cli.command("status")["state"]["faults"] == []
+        t_end, part = time.monotonic() + 3.0, None     # the identity packet follows the board's next status
+        while part is None and time.monotonic() < t_end:
+            part = cli.command("status")["state"]["imu"]["part"]
+            time.sleep(0.1)
+        assert part == "LSM6DSO/LSM6DSOX"
         pty.unplug()
         ev = cli.wait_event(("fault",), timeout=10.0)
         codes = {ev["code"]}

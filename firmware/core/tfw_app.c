@@ -51,6 +51,7 @@ void tfw_app_tx_done(tfw_app *app, size_t n) { app->tx.tail += (uint32_t)n; }
 void tfw_app_init(tfw_app *app, const tfw_bus *bus, const tfw_app_config *cfg) {
     memset(app, 0, sizeof *app);
     app->cfg = *cfg;
+    app->active = cfg->sensor;
     tfw_lsm_init(&app->dev, bus);
     app->tx.mem = app->tx_mem;
     app->tx.size = TFW_TX_BYTES;
@@ -73,7 +74,7 @@ static void send_samples(tfw_app *app, size_t len) {
 }
 
 static void send_status(tfw_app *app) {
-    tfw_status st = {app->cfg.sensor.odr_hz, app->cfg.sensor.gyro_fs_dps, app->cfg.sensor.accel_fs_g,
+    tfw_status st = {app->active.odr_hz, app->active.gyro_fs_dps, app->active.accel_fs_g,
                      (uint8_t)(app->flags | (app->overrun_since_status ? TFW_FLAG_FIFO_OVERRUN : 0u))};
     uint8_t buf[TFW_STATUS_FRAME_BYTES];
     size_t len = tfw_encode_status(&st, buf, sizeof buf);
@@ -83,6 +84,12 @@ static void send_status(tfw_app *app) {
         app->overrun_since_status = 0;      /* reported: the next status covers the next second */
     } else {
         app->counters.status_dropped++;
+    }
+    /* the part the board found (or what answered in its place), after every status: a reader that opens the
+     * port late learns it within a second */
+    len = tfw_encode_identity(app->dev.who_am_i, buf, sizeof buf);
+    if (ring_put(&app->tx, buf, len)) {
+        app->counters.identity_sent++;
     }
 }
 
@@ -94,8 +101,12 @@ static int bring_up(tfw_app *app) {
             app->flags |= TFW_FLAG_SELF_TEST_FAILED;      /* reported in every status; samples still flow */
         }
     }
+    app->active = app->cfg.sensor;
+    if (rc == TFW_LSM_OK && app->active.gyro_fs_dps > tfw_lsm_max_gyro_fs(&app->dev)) {
+        app->active.gyro_fs_dps = tfw_lsm_max_gyro_fs(&app->dev);   /* 4000 dps asked of an LSM6DSO: 2000 */
+    }
     if (rc == TFW_LSM_OK) {
-        rc = tfw_lsm_configure(&app->dev, &app->cfg.sensor);
+        rc = tfw_lsm_configure(&app->dev, &app->active);
     }
     app->last_error = rc;
     app->streaming = rc == TFW_LSM_OK;

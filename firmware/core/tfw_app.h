@@ -30,6 +30,7 @@ typedef struct {
     uint32_t packets_dropped;            /* made but not queued: the UART fell behind (the host sees a seq gap) */
     uint32_t samples_dropped;
     uint32_t status_dropped;
+    uint32_t identity_sent;              /* identity packets (WHO_AM_I), one after each status */
     uint32_t fifo_overruns;              /* polls that found the sensor's FIFO overrun */
     uint32_t overrun_statuses;           /* status packets sent with flag bit 0 */
     uint32_t sensor_retries;             /* bring-up attempts after the first */
@@ -44,6 +45,8 @@ typedef struct {
 
 typedef struct {
     tfw_app_config cfg;
+    tfw_lsm_config active;               /* what the sensor runs, which the status reports: cfg.sensor, with a
+                                          * gyro range the part lacks (4000 dps on an LSM6DSO) at its widest */
     tfw_lsm6dsr dev;
     tfw_stamp stamp;
     tfw_batch batch;
@@ -68,10 +71,10 @@ typedef struct {
 
 /* cfg is checked: a rate or full scale outside the spec makes tfw_app_start report TFW_LSM_ERR_CONFIG. */
 void tfw_app_init(tfw_app *app, const tfw_bus *bus, const tfw_app_config *cfg);
-/* Bring the sensor up (probe, reset, self-test, configure) and queue the first status. Returns the bring-up's
+/* Bring the sensor up (probe, reset, self-test, configure) and queue the first status and identity. Returns the bring-up's
  * tfw_lsm_err; on failure the status says so (flag bit 2) and tfw_app_poll retries once a second. */
 int tfw_app_start(tfw_app *app, uint32_t now_us);
-/* Bounded work: at most TFW_POLL_MAX_WORDS FIFO words, one status, the batch's deadline. */
+/* Bounded work: at most TFW_POLL_MAX_WORDS FIFO words, one status and identity, the batch's deadline. */
 void tfw_app_poll(tfw_app *app, uint32_t now_us);
 /* The UART side: up to max contiguous queued bytes at *data; then tfw_app_tx_done with how many went out. */
 size_t tfw_app_tx_peek(const tfw_app *app, const uint8_t **data);

@@ -1,4 +1,5 @@
-/* ST LSM6DSR over SPI, written from the datasheet (DS12544): identity, reset, self-test, rates, tagged FIFO. */
+/* ST LSM6DSR (DS12544) and LSM6DSO/LSM6DSOX (DS12140, DS13158) over SPI: identity, reset, self-test, rates,
+ * tagged FIFO. */
 #include "tfw_lsm6dsr.h"
 
 #include <string.h>
@@ -7,8 +8,10 @@
 #define SETTLE_US 100000u             /* the self-test's 100 ms settling, at each step */
 #define DATA_READY_POLLS 100u         /* x 1 ms: a 52 Hz sample comes within 20 ms */
 #define SELF_TEST_SAMPLES 5
-/* datasheet self-test limits: accelerometer at 4 g, gyroscope at 2000 dps */
+/* datasheet self-test limits: accelerometer at 4 g, gyroscope at 2000 dps; the LSM6DSO's accelerometer
+ * window starts at 50 mg (DS12140), the rest is the same on both parts */
 #define ST_XL_MIN_MG 40
+#define ST_XL_MIN_MG_LSM6DSO 50
 #define ST_XL_MAX_MG 1700
 #define ST_G_MIN_DPS 150
 #define ST_G_MAX_DPS 700
@@ -45,8 +48,11 @@ static uint8_t accel_fs_bits(uint8_t g) {
     }
 }
 
-/* FS_G bits 3:2, FS_125 bit 1 and FS_4000 bit 0 of CTRL2_G; 0xFF for none */
-static uint8_t gyro_fs_bits(uint16_t dps) {
+/* FS_G bits 3:2, FS_125 bit 1 and FS_4000 bit 0 of CTRL2_G (bit 0 is reserved on the LSM6DSO); 0xFF for none */
+static uint8_t gyro_fs_bits(uint16_t dps, uint8_t part) {
+    if (dps == 4000u && part != TFW_PART_LSM6DSR) {
+        return 0xFFu;
+    }
     switch (dps) {
     case 125: return 0x02u;
     case 250: return 0x00u;
@@ -101,7 +107,8 @@ int tfw_lsm_probe_and_reset(tfw_lsm6dsr *dev) {
     if (rc != TFW_LSM_OK) {
         return rc;
     }
-    if (v != LSM_WHO_AM_I_VALUE) {
+    dev->part = v == LSM_WHO_AM_I_VALUE ? TFW_PART_LSM6DSR : v == LSM_WHO_AM_I_LSM6DSO ? TFW_PART_LSM6DSO : TFW_PART_NONE;
+    if (dev->part == TFW_PART_NONE) {
         return TFW_LSM_ERR_WHO_AM_I;
     }
     rc = tfw_lsm_write(dev, LSM_CTRL3_C, LSM_CTRL3_SW_RESET | LSM_CTRL3_IF_INC);
@@ -198,8 +205,9 @@ int tfw_lsm_self_test_run(tfw_lsm6dsr *dev, tfw_lsm_self_test *result) {
             rc = self_test_one(dev, SELF_TESTS[k].ready_bit, SELF_TESTS[k].out_reg, SELF_TESTS[k].st_bits, d);
         }
         for (int a = 0; rc == TFW_LSM_OK && a < 3; a++) {
+            int32_t lo = k == 0 && dev->part == TFW_PART_LSM6DSO ? ST_XL_MIN_MG_LSM6DSO : SELF_TESTS[k].min;
             deltas[k][a] = d[a] * SELF_TESTS[k].milli_per_lsb / 1000;
-            if (deltas[k][a] < SELF_TESTS[k].min || deltas[k][a] > SELF_TESTS[k].max) {
+            if (deltas[k][a] < lo || deltas[k][a] > SELF_TESTS[k].max) {
                 result->passed = 0;
             }
         }
@@ -214,7 +222,7 @@ int tfw_lsm_self_test_run(tfw_lsm6dsr *dev, tfw_lsm_self_test *result) {
 
 int tfw_lsm_configure(tfw_lsm6dsr *dev, const tfw_lsm_config *cfg) {
     uint8_t odr = tfw_lsm_odr_code(cfg->odr_hz), afs = accel_fs_bits(cfg->accel_fs_g);
-    uint8_t gfs = gyro_fs_bits(cfg->gyro_fs_dps);
+    uint8_t gfs = gyro_fs_bits(cfg->gyro_fs_dps, dev->part);
     if (!odr || afs == 0xFFu || gfs == 0xFFu || cfg->watermark_words < 1u || cfg->watermark_words >= 512u) {
         return TFW_LSM_ERR_CONFIG;
     }
@@ -322,3 +330,5 @@ uint32_t tfw_lsm_actual_odr_mhz(const tfw_lsm6dsr *dev) {
     int64_t nominal = (int64_t)dev->cfg.odr_hz * 1000;
     return (uint32_t)(nominal + nominal * 15 * dev->freq_fine / 10000);
 }
+
+uint16_t tfw_lsm_max_gyro_fs(const tfw_lsm6dsr *dev) { return dev->part == TFW_PART_LSM6DSR ? 4000u : 2000u; }

@@ -1,5 +1,6 @@
-/* ST LSM6DSR over SPI, written from the datasheet: identity, reset, self-test, ODR and full scales, and the
- * tagged FIFO in continuous mode. The bus is two functions the board supplies; nothing here allocates, and
+/* ST LSM6DSR, and the LSM6DSO/LSM6DSOX beside it, over SPI, written from the datasheets (DS12544; DS12140,
+ * DS13158): identity, reset, self-test, ODR and full scales, and the tagged FIFO in continuous mode. The two
+ * share the register map, the rate codes, the FIFO's tags and the self-test; the LSM6DSO has no 4000 dps. The bus is two functions the board supplies; nothing here allocates, and
  * every call is bounded in time (waits poll a bounded number of times). */
 #ifndef TFW_LSM6DSR_H
 #define TFW_LSM6DSR_H
@@ -34,7 +35,8 @@
 #define LSM_FIFO_DATA_OUT_TAG 0x78u
 #define LSM_FIFO_DATA_OUT_Z_H 0x7Eu
 
-#define LSM_WHO_AM_I_VALUE 0x6Bu
+#define LSM_WHO_AM_I_VALUE 0x6Bu         /* LSM6DSR */
+#define LSM_WHO_AM_I_LSM6DSO 0x6Cu       /* LSM6DSO and LSM6DSOX (and the LSM6DSO32, whose accel scales differ) */
 #define LSM_SPI_READ 0x80u
 #define LSM_CTRL3_SW_RESET 0x01u
 #define LSM_CTRL3_IF_INC 0x04u
@@ -59,9 +61,15 @@ typedef struct {
     void *ctx;
 } tfw_bus;
 
+typedef enum {
+    TFW_PART_NONE = 0,
+    TFW_PART_LSM6DSR = 1,
+    TFW_PART_LSM6DSO = 2         /* LSM6DSO or LSM6DSOX: one WHO_AM_I */
+} tfw_lsm_part;
+
 typedef struct {
     uint16_t odr_hz;          /* one of the chip's rates, rounded: 12, 26, ... 3333, 6667 */
-    uint16_t gyro_fs_dps;     /* 125, 250, 500, 1000, 2000 or 4000 */
+    uint16_t gyro_fs_dps;     /* 125, 250, 500, 1000, 2000, and 4000 on the LSM6DSR only */
     uint8_t accel_fs_g;       /* 2, 4, 8 or 16 */
     uint16_t watermark_words; /* FIFO threshold, 1..511 words */
 } tfw_lsm_config;
@@ -69,7 +77,7 @@ typedef struct {
 typedef enum {
     TFW_LSM_OK = 0,
     TFW_LSM_ERR_BUS = -1,        /* the bus reported a failed transfer */
-    TFW_LSM_ERR_WHO_AM_I = -2,   /* no LSM6DSR answers (wrong id, or the line floats at 0x00/0xFF) */
+    TFW_LSM_ERR_WHO_AM_I = -2,   /* no LSM6DSR or LSM6DSO answers (wrong id, or the line floats at 0x00/0xFF) */
     TFW_LSM_ERR_TIMEOUT = -3,    /* reset or data-ready never came */
     TFW_LSM_ERR_CONFIG = -4,     /* a rate or full scale the chip does not have */
     TFW_LSM_ERR_READBACK = -5    /* a control register did not keep what was written */
@@ -85,6 +93,7 @@ typedef struct {
     tfw_bus bus;
     tfw_lsm_config cfg;
     uint8_t who_am_i;            /* as last read */
+    uint8_t part;                /* tfw_lsm_part of that WHO_AM_I */
     int8_t freq_fine;            /* INTERNAL_FREQ_FINE: the ODR's deviation, 0.15 % per LSB */
     /* FIFO pairing: a gyro and an accel word of the same time slot (TAG_CNT) make a sample */
     uint8_t have_g, have_xl, cnt_g, cnt_xl;
@@ -98,7 +107,7 @@ typedef struct {
 void tfw_lsm_init(tfw_lsm6dsr *dev, const tfw_bus *bus);
 int tfw_lsm_read(tfw_lsm6dsr *dev, uint8_t reg, uint8_t *data, size_t n);
 int tfw_lsm_write(tfw_lsm6dsr *dev, uint8_t reg, uint8_t value);
-/* WHO_AM_I, then a software reset (CTRL3_C.SW_RESET, polled until it clears). */
+/* WHO_AM_I (an LSM6DSR or an LSM6DSO), then a software reset (CTRL3_C.SW_RESET, polled until it clears). */
 int tfw_lsm_probe_and_reset(tfw_lsm6dsr *dev);
 /* The datasheet's self-test, accelerometer (52 Hz, 4 g) then gyroscope (208 Hz, 2000 dps); leaves the
  * chip powered down. Returns TFW_LSM_OK with result->passed set, or an error. */
@@ -112,6 +121,8 @@ int tfw_lsm_fifo_status(tfw_lsm6dsr *dev, uint16_t *words, uint8_t *overrun);
 int tfw_lsm_fifo_read(tfw_lsm6dsr *dev, uint16_t words, tfw_sample *out, size_t cap, size_t *n_out);
 /* The chip's actual output rate, Hz x 1000, from the nominal rate and INTERNAL_FREQ_FINE. */
 uint32_t tfw_lsm_actual_odr_mhz(const tfw_lsm6dsr *dev);
+/* The widest gyro full scale of the part found: 4000 dps on the LSM6DSR, 2000 on the LSM6DSO. */
+uint16_t tfw_lsm_max_gyro_fs(const tfw_lsm6dsr *dev);
 /* The rate's register code, or 0 for a rate the chip does not have. */
 uint8_t tfw_lsm_odr_code(uint16_t odr_hz);
 

@@ -77,3 +77,11 @@ size_t tfw_encode_status(const tfw_status *status, uint8_t *out, size_t cap) {
     p[5] = (uint8_t)(status->flags & 0x07u);
     return seal(TFW_TYPE_STATUS, TFW_STATUS_BYTES, out);
 }
+
+size_t tfw_encode_identity(uint8_t who_am_i, uint8_t *out, size_t cap) {
+    if (cap < TFW_IDENTITY_FRAME_BYTES) {
+        return 0;
+    }
+    out[TFW_HEADER_BYTES] = who_am_i;
+    return seal(TFW_TYPE_IDENTITY, TFW_IDENTITY_BYTES, out);
+}

@@ -9,6 +9,7 @@
 #define TFW_SYNC1 0x5Au
 #define TFW_TYPE_SAMPLES 0x01u
 #define TFW_TYPE_STATUS 0x02u
+#define TFW_TYPE_IDENTITY 0x03u      /* the sensor's WHO_AM_I as read: an extension readers of tecdar-imu/1 skip */
 #define TFW_MAX_LEN 1024u
 #define TFW_MAX_SAMPLES 64u
 #define TFW_HEADER_BYTES 5u          /* sync (2), type (1), len (2) */
@@ -17,8 +18,10 @@
 #define TFW_SAMPLES_HEADER_BYTES 7u  /* seq (2), t0_us (4), n (1) */
 #define TFW_SAMPLE_BYTES 12u
 #define TFW_STATUS_BYTES 6u
+#define TFW_IDENTITY_BYTES 1u
 #define TFW_SAMPLES_FRAME_BYTES(n) (TFW_OVERHEAD_BYTES + TFW_SAMPLES_HEADER_BYTES + TFW_SAMPLE_BYTES * (n))
 #define TFW_STATUS_FRAME_BYTES (TFW_OVERHEAD_BYTES + TFW_STATUS_BYTES)
+#define TFW_IDENTITY_FRAME_BYTES (TFW_OVERHEAD_BYTES + TFW_IDENTITY_BYTES)
 #define TFW_MAX_FRAME_BYTES (TFW_OVERHEAD_BYTES + TFW_MAX_LEN)
 
 /* status flags (the spec's clarifications): bits 3-7 are always zero */
@@ -48,5 +51,8 @@ size_t tfw_encode_frame(uint8_t type, const uint8_t *payload, size_t len, uint8_
 size_t tfw_encode_samples(uint16_t seq, uint32_t t0_us, const tfw_sample *samples, size_t n,
                           uint8_t *out, size_t cap);
 size_t tfw_encode_status(const tfw_status *status, uint8_t *out, size_t cap);
+/* The identity packet: the WHO_AM_I byte the board last read (0x6B LSM6DSR, 0x6C LSM6DSO/DSOX; anything
+ * else, 0x00 or 0xFF included, is what a wrong or missing part answered). */
+size_t tfw_encode_identity(uint8_t who_am_i, uint8_t *out, size_t cap);
 
 #endif

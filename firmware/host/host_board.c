@@ -167,7 +167,7 @@ static void write_counters(const board *b) {
     const tfw_app_counters *c = &b->app.counters;
     fprintf(f,
             "{\"samples_sent\": %u, \"packets_sent\": %u, \"status_sent\": %u, \"packets_dropped\": %u, "
-            "\"samples_dropped\": %u, \"status_dropped\": %u, \"fifo_overruns\": %u, \"overrun_statuses\": %u, "
+            "\"samples_dropped\": %u, \"status_dropped\": %u, \"identity_sent\": %u, \"fifo_overruns\": %u, \"overrun_statuses\": %u, "
             "\"sensor_retries\": %u, \"max_poll_words\": %u, \"words_unpaired\": %u, \"words_read\": %u, "
             "\"chip_samples\": %llu, \"chip_words_overwritten\": %llu, \"chip_overruns\": %llu, "
             "\"bytes_out\": %lld, \"bytes_unsent\": %zu, \"stdin_records\": %llu, \"flags\": %u, "
@@ -175,7 +175,7 @@ static void write_counters(const board *b) {
             "\"first_fifo_ns\": %lld, \"chip_period_ns\": %lld, \"true_ns\": %lld, "
             "\"latency_max_us\": %lld, \"latency_mean_us\": %.1f, \"packets_timed\": %llu}\n",
             c->samples_sent, c->packets_sent, c->status_sent, c->packets_dropped, c->samples_dropped,
-            c->status_dropped, c->fifo_overruns, c->overrun_statuses, c->sensor_retries, c->max_poll_words,
+            c->status_dropped, c->identity_sent, c->fifo_overruns, c->overrun_statuses, c->sensor_retries, c->max_poll_words,
             b->app.dev.words_unpaired, b->app.dev.words_read, (unsigned long long)b->chip.samples_made,
             (unsigned long long)b->chip.words_overwritten, (unsigned long long)b->chip.overruns,
             (long long)b->bytes_out, tfw_app_tx_pending(&b->app), (unsigned long long)b->stdin_records,

@@ -242,6 +242,9 @@ static void write_reg(lsm_model *m, uint8_t a, uint8_t v) {
     if (a == R_CTRL1_XL && (v >> 4) != (m->reg[a] >> 4)) {
         m->next_xl_ns = -1;          /* a new rate: a new schedule */
     }
+    if (a == R_CTRL2_G && m->who_am_i == 0x6C) {
+        v &= (uint8_t)~0x01;         /* the LSM6DSO: bit 0 is reserved (no 4000 dps) and reads 0 */
+    }
     if (a == R_CTRL2_G && (v >> 4) != (m->reg[a] >> 4)) {
         m->next_g_ns = -1;
     }

@@ -23,7 +23,8 @@ typedef struct {
     uint8_t tag_cnt;
     uint8_t word[7];                 /* the FIFO word being read out */
     /* the chip as built */
-    uint8_t who_am_i;                /* 0x6B; anything else models the wrong part */
+    uint8_t who_am_i;                /* 0x6B LSM6DSR; 0x6C an LSM6DSO (CTRL2_G bit 0 reserved: no 4000 dps);
+                                      * anything else models the wrong part */
     uint8_t absent;                  /* no chip: MISO reads miso_idle */
     uint8_t miso_idle;
     double st_xl_mg, st_g_dps;       /* self-test deflection (datasheet window 40-1700 mg, 150-700 dps) */

@@ -66,6 +66,9 @@ static int check_vector_file(const char *path) {
             tfw_status st = {(uint16_t)odr, (uint16_t)gfs, (uint8_t)afs, (uint8_t)flags};
             got_len = tfw_encode_status(&st, got, sizeof got);
             kind = 't';
+        } else if (sscanf(line, "identity who_am_i=%u", &type) == 1) {
+            got_len = tfw_encode_identity((uint8_t)type, got, sizeof got);
+            kind = 'i';
         } else if (sscanf(line, "frame type=%u payload=", &type) == 1) {
             payload_len = unhex(strstr(line, "payload=") + 8, payload, sizeof payload);
             got_len = tfw_encode_frame((uint8_t)type, payload, payload_len, got, sizeof got);
@@ -237,13 +240,44 @@ static void test_driver_reset_and_configure(void) {
     CHECK_EQ(tfw_lsm_configure(&dev, &bad), TFW_LSM_ERR_CONFIG);
 }
 
+/* an LSM6DSO (DS12140): the same register map and rate codes, every range but 4000 dps, which it refuses; its
+ * reserved CTRL2_G bit 0 reads 0 in the model, so a driver that wrote it would fail the read-back */
+static void test_driver_lsm6dso(void) {
+    rig r;
+    tfw_lsm6dsr dev;
+    rig_init(&r, &dev);
+    r.chip.who_am_i = r.chip.reg[LSM_WHO_AM_I] = 0x6C;
+    CHECK_EQ(tfw_lsm_probe_and_reset(&dev), TFW_LSM_OK);
+    CHECK_EQ(dev.part, TFW_PART_LSM6DSO);
+    CHECK_EQ(tfw_lsm_max_gyro_fs(&dev), 2000);
+    static const struct { uint16_t dps; uint8_t bits; } G[] = {{125, 0xA2}, {250, 0xA0}, {500, 0xA4},
+                                                             {1000, 0xA8}, {2000, 0xAC}};
+    for (size_t i = 0; i < 5; i++) {
+        tfw_lsm_config c = CFG;
+        c.gyro_fs_dps = G[i].dps;
+        CHECK_EQ(tfw_lsm_configure(&dev, &c), TFW_LSM_OK);
+        CHECK_EQ(r.chip.reg[LSM_CTRL2_G], G[i].bits);
+    }
+    CHECK_EQ(tfw_lsm_configure(&dev, &CFG), TFW_LSM_ERR_CONFIG);     /* 4000 dps */
+    tfw_lsm_self_test st;
+    r.chip.st_xl_mg = 45.0;                                     /* in the LSM6DSR's window, not the LSM6DSO's */
+    CHECK_EQ(tfw_lsm_self_test_run(&dev, &st), TFW_LSM_OK);
+    CHECK_EQ(st.passed, 0);
+    rig_init(&r, &dev);
+    r.chip.st_xl_mg = 45.0;
+    CHECK_EQ(tfw_lsm_probe_and_reset(&dev), TFW_LSM_OK);        /* the LSM6DSR passes it */
+    CHECK_EQ(tfw_lsm_self_test_run(&dev, &st), TFW_LSM_OK);
+    CHECK_EQ(st.passed, 1);
+}
+
 static void test_driver_wrong_who_am_i_and_no_chip(void) {
     rig r;
     tfw_lsm6dsr dev;
     rig_init(&r, &dev);
-    r.chip.who_am_i = r.chip.reg[LSM_WHO_AM_I] = 0x6C;          /* an LSM6DSO on the board */
+    r.chip.who_am_i = r.chip.reg[LSM_WHO_AM_I] = 0x69;          /* an LSM6DS3 on the board */
     CHECK_EQ(tfw_lsm_probe_and_reset(&dev), TFW_LSM_ERR_WHO_AM_I);
-    CHECK_EQ(dev.who_am_i, 0x6C);
+    CHECK_EQ(dev.who_am_i, 0x69);
+    CHECK_EQ(dev.part, TFW_PART_NONE);
     rig_init(&r, &dev);
     r.chip.absent = 1;                                          /* MISO pulled up, nobody answers */
     CHECK_EQ(tfw_lsm_probe_and_reset(&dev), TFW_LSM_ERR_WHO_AM_I);
@@ -368,6 +402,7 @@ static void app_rig_begin(app_rig *a, const tfw_app_config *cfg) {
 /* run for seconds with a poll every poll_us; parse what the app queues with a plain reader */
 typedef struct {
     uint32_t samples, packets, statuses, flags_or, last_flags;
+    uint32_t identities, last_who_am_i;
     uint32_t seq_gaps;
     int have_seq;
     uint16_t last_seq;
@@ -395,6 +430,11 @@ static void consume(app_rig *a, stream_stats *s) {
             s->statuses++;
             s->flags_or |= q[5];
             s->last_flags = q[5];
+        } else if (type == TFW_TYPE_IDENTITY) {
+            CHECK_EQ(plen, TFW_IDENTITY_BYTES);
+            CHECK_EQ(s->identities + 1u, s->statuses);              /* one after each status */
+            s->identities++;
+            s->last_who_am_i = q[0];
         } else {
             uint16_t seq = (uint16_t)(q[0] | (q[1] << 8));
             uint32_t t0 = (uint32_t)q[2] | ((uint32_t)q[3] << 8) | ((uint32_t)q[4] << 16) | ((uint32_t)q[5] << 24);
@@ -441,6 +481,30 @@ static void test_app_streams_with_a_status_each_second(void) {
     CHECK_EQ(a->app.counters.samples_sent, s.samples);
     CHECK(a->app.counters.max_poll_words <= TFW_POLL_MAX_WORDS);
     CHECK(s.max_step_err_us <= 100e-6 * 1200);                  /* within 100 ppm of a packet's 1.2 ms */
+}
+
+/* 4000 dps asked of an LSM6DSO: the app runs it at 2000 and says so in every status, with the part's
+ * WHO_AM_I in the identity packet that follows each status */
+static void test_app_lsm6dso_at_its_widest_gyro_range(void) {
+    app_rig *a = app_rig_new();
+    stream_stats s = {0};
+    tfw_app_config cfg = tfw_app_default_config();
+    a->r.chip.who_am_i = a->r.chip.reg[LSM_WHO_AM_I] = 0x6C;
+    app_rig_begin(a, &cfg);
+    CHECK_EQ(a->app.last_error, TFW_LSM_OK);
+    CHECK_EQ(a->app.active.gyro_fs_dps, 2000);
+    CHECK_EQ(a->r.chip.reg[LSM_CTRL2_G], 0xAC);
+    run(a, 1.5, 200, &s);
+    CHECK(s.statuses >= 2);
+    CHECK_EQ(s.identities, s.statuses);
+    CHECK_EQ(s.last_who_am_i, 0x6C);
+    CHECK_EQ(a->app.counters.identity_sent, s.statuses);
+    CHECK(abs((int)s.samples - 10000) < 20);
+    CHECK_EQ(s.seq_gaps, 0);
+    uint8_t buf[TFW_STATUS_FRAME_BYTES];
+    tfw_status st = {a->app.active.odr_hz, a->app.active.gyro_fs_dps, a->app.active.accel_fs_g, 0};
+    CHECK_EQ(tfw_encode_status(&st, buf, sizeof buf), TFW_STATUS_FRAME_BYTES);
+    CHECK_EQ(buf[7] | (buf[8] << 8), 2000);
 }
 
 static void test_app_reports_an_overrun_in_the_next_status_only(void) {
@@ -529,11 +593,13 @@ int main(int argc, char **argv) {
     RUN(test_batch_fills_then_sends_and_seq_wraps);
     RUN(test_batch_deadline_bounds_latency_at_low_rates);
     RUN(test_driver_reset_and_configure);
+    RUN(test_driver_lsm6dso);
     RUN(test_driver_wrong_who_am_i_and_no_chip);
     RUN(test_driver_self_test_passes_and_fails);
     RUN(test_driver_fifo_tags_watermark_and_overrun);
     RUN(test_driver_pairs_by_time_slot_after_a_lost_word);
     RUN(test_app_streams_with_a_status_each_second);
+    RUN(test_app_lsm6dso_at_its_widest_gyro_range);
     RUN(test_app_reports_an_overrun_in_the_next_status_only);
     RUN(test_app_self_test_failure_is_reported_and_samples_flow);
     RUN(test_app_without_a_sensor_sends_status_only_and_retries);

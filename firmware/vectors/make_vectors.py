@@ -38,6 +38,10 @@ def status(odr, gfs, afs, flags):
             frame(0x02, struct.pack("<HHBB", odr, gfs, afs, flags)))
 
 
+def identity(who_am_i):
+    return [f"identity who_am_i={who_am_i}"], frame(0x03, bytes([who_am_i]))
+
+
 def unknown(ptype, payload):
     return [f"frame type={ptype} payload={payload.hex()}"], frame(ptype, payload)
 
@@ -68,9 +72,12 @@ def main():
     write("sizes", "n = 1 and n = 64 (the largest packet), with the int16 extremes", [
         samples(7, 0, rows(rng, 1, True)), samples(8, 150, rows(rng, 64, True)), samples(9, 9750, rows(rng, 1))])
     write("unknown_types", "frames of types the protocol does not define, skipped by their len, between samples", [
-        samples(100, 5000, rows(rng, 2)), unknown(0x00, b""), unknown(0x03, bytes([1, 2, 3, 4])),
+        samples(100, 5000, rows(rng, 2)), unknown(0x00, b""), unknown(0x04, bytes([1, 2, 3, 4])),
         samples(101, 5300, rows(rng, 2)), unknown(0x7E, bytes(range(256)) * 4), unknown(0xFF, b"\xa5\x5a\x01"),
         status(6667, 4000, 16, 0), samples(102, 5600, rows(rng, 2))])
+    write("identity", "our extension (type 0x03): the sensor's WHO_AM_I after each status, for either part and none",
+          [status(6667, 4000, 16, 0), identity(0x6B), status(6667, 2000, 16, 0), identity(0x6C),
+           status(6667, 4000, 16, 4), identity(0xFF)])
 
 
 if __name__ == "__main__":

@@ -89,6 +89,11 @@ def status_lines(state: dict) -> list[str]:
                      + (f", turned {contact['angle_deg']:.1f} deg" if _finite(contact.get("angle_deg")) else "")))
     else:
         rows.append(("contact", "none"))
+    imu = state.get("imu")
+    if isinstance(imu, dict):
+        rate = imu.get("rate_hz")
+        rows.append(("IMU", (f"{rate:.0f} samples/s" if _finite(rate) else "no rate yet")
+                     + (f", {imu['part']}" if isinstance(imu.get("part"), str) else "")))
     ctl = state.get("control") or {}
     if ctl:
         late = ctl.get("late_ms_p99")

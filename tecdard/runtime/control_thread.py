@@ -325,6 +325,11 @@ class ControlThread:
         if request is not None:
             self.replies.put(Reply(request, payload))
 
+    def _imu_part(self) -> str | None:
+        """The IMU source's sensor (drivers.imu_source.ImuSource.part), None when it cannot say."""
+        source = getattr(self.estimator, "source", None)
+        return None if source is None else source.part
+
     def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
         self._seq += 1
         task = self.runner.task
@@ -343,7 +348,8 @@ class ControlThread:
             "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
                         "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
-            "imu": {"rate_hz": self._imu_rate_hz},     # samples a second the daemon took (None in the first second)
+            # samples a second the daemon took (None in the first second), and the sensor the board found
+            "imu": {"rate_hz": self._imu_rate_hz, "part": self._imu_part()},
         }
         self.latest_state.set(state)
         self.outbox.put("state", state)

@@ -36,6 +36,7 @@ def read_board(src, seconds: float) -> dict:
         "sample_rate_hz": round(n_samples / elapsed, 1),
         "byte_rate_bps": round(c["bytes_in"] / elapsed, 1),
         "packet_rate_hz": round(c["good_packets"] / elapsed, 1),
+        "part": src.part,
         "status": None if src.status is None else {"odr_hz": src.status.odr_hz, "gyro_fs_dps": src.status.gyro_fs_dps,
                                                    "accel_fs_g": src.status.accel_fs_g, "flags": src.status.flags},
         "counters": c,
@@ -75,6 +76,7 @@ def main(args) -> int:
               f"{report['byte_rate_bps'] / 1000:.1f} kB/s over {elapsed:.1f} s")
         print("status: " + ("none received (using config full scales)" if st is None else
                             f"ODR {st['odr_hz']} Hz, gyro {st['gyro_fs_dps']} dps, accel {st['accel_fs_g']} g, flags {st['flags']:#x}"))
+        print("sensor: " + (report["part"] or "not said (the board sent no identity packet: firmware older than the LSM6DSO support)"))
         print("counters: " + ", ".join(f"{k} {v}" for k, v in c.items()))
         if report["latest"]:
             g, a = report["latest"]["gyro_rad_s"], report["latest"]["accel_m_s2"]
