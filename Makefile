@@ -1,5 +1,6 @@
 # tecdar: `make run` (demo on the simulated robot), `make test`, `make check` (quick tier), `make bench`,
-# `make firmware` (the fingertip board's firmware: the host board and the STM32F405 image).
+# `make firmware` (the fingertip board's firmware: the host board and the STM32F405 image), `make fingertip` (the soft
+# fingertip's parts as STL files, checked closed, and its drawing).
 PY_BOOT ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -11,7 +12,7 @@ KERNELS := $(wildcard control/estimators/kernels/*.py)
 WARM := $(VENV)/.warm
 WARM_JIT := $(VENV)/.warm-jit
 
-.PHONY: install run test check lint bench firmware clean
+.PHONY: install run test check lint bench firmware fingertip clean
 
 $(PY):
 	$(PY_BOOT) -m venv $(VENV)
@@ -46,6 +47,7 @@ NO_CROSS = echo "make: no arm-none-eabi-gcc or qemu-system-arm here: the firmwar
 
 test: $(WARM_JIT) lint
 	@$(CROSS_TOOLS) || $(NO_CROSS)
+	@command -v openscad >/dev/null || $(NO_OPENSCAD)
 	$(PY) -m pytest -q
 
 # the quick tier: the type checker, then pure logic and transports, without the whole-daemon runs
@@ -56,6 +58,13 @@ check: $(WARM_JIT) lint
 # linked under tecdard/ (tecdard/control -> control/, ...), as the wheel installs them
 lint: $(STAMP)
 	$(PY) -m mypy
+
+# the soft fingertip (hardware/fingertip/): every part as an STL, each checked closed, and the drawing
+# docs/img/fingertip.png; Debian's openscad (.ci/run installs it)
+NO_OPENSCAD = echo "make: no openscad here: the fingertip's parts are neither rendered nor checked (apt install openscad)"
+fingertip: $(STAMP)
+	@command -v openscad >/dev/null || { $(NO_OPENSCAD); exit 1; }
+	$(PY) hardware/fingertip/render.py
 
 firmware:
 	$(MAKE) -s -C firmware host
@@ -86,4 +95,4 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.fleet
 
 clean:
-	rm -rf $(VENV) build *.egg-info firmware/build
+	rm -rf $(VENV) build *.egg-info firmware/build hardware/fingertip/build
