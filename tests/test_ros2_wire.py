@@ -231,6 +231,42 @@ def test_humble_says_type_hash_not_supported_in_keys_and_tokens():
         "0/sim/imu/sensor_msgs::msg::dds_::Imu_/TypeHashNotSupported"
 
 
+# The hashes Jazzy systems report for stock types the node publishes or subscribes, read off Jazzy installations
+# by others: `ros2 topic info -v /tf` on a Jazzy node and a Jazzy bag's metadata.yaml (TFMessage), the constants
+# of a firmware written against Jazzy's rmw_zenoh_cpp (Imu, its key and its token below), rmw_zenoh's design
+# document (String), a Jazzy client library's messages (DiagnosticArray, Marker), and `ros2 topic info -v
+# /joint_states` on a ros2_control system (JointState). None of them comes from the wheels the other tests use.
+JAZZY_HASHES = {
+    "sensor_msgs/msg/Imu": "RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b",
+    "tf2_msgs/msg/TFMessage": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+    "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
+    "diagnostic_msgs/msg/DiagnosticArray": "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
+    "visualization_msgs/msg/Marker": "RIHS01_45b13ccf791f225962bf74e746f9644518855d783a6f42ba0cc14fde2b4f3ce0",
+    "geometry_msgs/msg/PoseStamped": "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8",
+    "sensor_msgs/msg/JointState": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+}
+JAZZY_ZID = "100f0e0d0c0b0a090807060504030201"
+JAZZY_IMU_KEY = ("0/nucleo/imu/data/sensor_msgs::msg::dds_::Imu_/"
+                 "RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b")
+JAZZY_IMU_TOKEN = (f"@ros2_lv/0/{JAZZY_ZID}/0/11/MP/%/%/nucleo_h743zi2/%nucleo%imu%data/sensor_msgs::msg::dds_::Imu_/"
+                   "RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b/::,:,:,:,,")
+
+
+def test_with_distro_jazzy_the_hashes_keys_and_tokens_are_what_jazzy_systems_report():
+    """`ros2.distro: jazzy`: every hash, key and token as a Jazzy system of rmw_zenoh_cpp writes it. Jazzy and
+    Kilted define these types alike, so the Kilted store gives the same; this holds it against Jazzy's own."""
+    jazzy = TypeSupport("jazzy")
+    for name, h in JAZZY_HASHES.items():
+        assert jazzy.type_hash(name) == h, name
+    node = rmw.NodeInfo(0, JAZZY_ZID, 0, "", "nucleo_h743zi2")
+    assert node.token() == f"@ros2_lv/0/{JAZZY_ZID}/0/0/NN/%/%/nucleo_h743zi2"
+    imu = jazzy.type_hash("sensor_msgs/msg/Imu")
+    assert rmw.data_keyexpr(0, "/nucleo/imu/data", dds_type_name("sensor_msgs/msg/Imu"), imu) == JAZZY_IMU_KEY
+    assert rmw.entity_token(node, 11, rmw.PUBLISHER, "/nucleo/imu/data", dds_type_name("sensor_msgs/msg/Imu"), imu,
+                            rmw.DEFAULT_QOS) == JAZZY_IMU_TOKEN
+    assert rmw.parse_token(JAZZY_IMU_TOKEN).qos == rmw.DEFAULT_QOS
+
+
 # -- rmw_zenoh's conventions -----------------------------------------------------------------------
 def test_data_keys_are_the_design_documents():
     """design.md's own examples: chatter in the default domain, and under the /robot1 namespace."""
