@@ -71,6 +71,8 @@ class ProprioSample:
     w_world: np.ndarray | None        # the TCP's own angular rate, world, rad/s (None: derived)
     grip_force_n: float = np.nan      # the gripper's grasp force, N (nan: not measured)
     q: np.ndarray | None = None       # the joints, rad (for the recording: the export draws the arm)
+    grip_width_m: float = np.nan      # the gripper's opening, m (nan: no gripper, or it cannot say)
+    grasped: float = np.nan           # 1: the gripper holds something, 0: nothing, nan: it cannot say
 
 
 @dataclass(frozen=True, slots=True)

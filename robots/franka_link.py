@@ -277,11 +277,29 @@ class _FrankaChild:
                 self._call("hold", lambda: robot.move(franky.JointVelocityStopMotion(), asynchronous=True))
         elif msg[0] == "recover":
             self._recover()
+        elif msg[0] == "grip":
+            threading.Thread(target=self._grip, args=(msg[1],), name="franka-grip", daemon=True).start()
+        elif msg[0] == "grip_stop" and self.gripper is not None:
+            self._call("gripper stop", self.gripper.stop)
         elif msg[0] == "rest":                 # child_link.REST_STATE_PERIOD_S while the daemon rests, else 0
             self.period = max(self.state_period, float(msg[1]))
         elif msg[0] == "close":
             return False
         return True
+
+    def _grip(self, spec: tuple) -> None:
+        """A grasp or a move of the hand (franky's calls block until the fingers stop), on a thread of its
+        own: the arm's states and commands go on meanwhile. Answers ("gripped", ok, why)."""
+        if self.gripper is None:
+            self.state_tx.send(("gripped", False, "no Franka Hand answered at connect"))
+            return
+        try:
+            # ("grasp", width, speed, force, epsilon_inner, epsilon_outer) or ("move", width, speed)
+            ok = bool(self.gripper.grasp(*spec[1:]) if spec[0] == "grasp" else self.gripper.move(*spec[1:]))
+        except Exception as exc:
+            self.state_tx.send(("gripped", False, _first_line(exc)))
+        else:
+            self.state_tx.send(("gripped", ok, ""))
 
     def _recover(self) -> None:
         ok = False
@@ -361,6 +379,8 @@ class FrankaLink(ChildLink):
         self.robot_fault: str = ""                  # the robot's reflex or stop, "" when none
         self.recovery: threading.Event = threading.Event()   # set when a recovery answer arrives
         self.recovery_result: tuple[bool, str] = (False, "")
+        self.gripped: threading.Event = threading.Event()     # set when the hand's grasp or move answers
+        self.grip_result: tuple[bool, str] = (False, "")
         self.identity: dict = {}                    # what the child read at connect (O_T_EE, q, gripper version)
         self.server_version: int | None = None      # the robot server's, from its Connect reply
 
@@ -426,6 +446,9 @@ class FrankaLink(ChildLink):
         elif kind == "recovered":
             self.recovery_result = (bool(msg[1]), msg[2])
             self.recovery.set()
+        elif kind == "gripped":
+            self.grip_result = (bool(msg[1]), msg[2])
+            self.gripped.set()
         elif kind == "note":
             self.notes.append(msg[1])
 
@@ -453,6 +476,19 @@ class FrankaLink(ChildLink):
     def hold(self) -> None:
         """Bring the arm to rest with franky's stop motion, sent once per hold."""
         self._send(("hold",))
+
+    def grip(self, spec: tuple, timeout_s: float) -> tuple[bool, str]:
+        """The hand's ("grasp", width, speed, force, epsilon_inner, epsilon_outer) or ("move", width, speed):
+        (grasped or reached, why it failed: "" when it answered)."""
+        self.gripped.clear()
+        self._send(("grip", tuple(spec)))
+        if not self.gripped.wait(timeout_s):
+            self.grip_stop()
+            return False, f"no answer from the hand within {timeout_s:g} s (stopped)"
+        return self.grip_result
+
+    def grip_stop(self) -> None:
+        self._send(("grip_stop",))
 
     def recover(self, timeout_s: float = 5.0) -> tuple[bool, str]:
         """franky's automatic error recovery: (succeeded, why not)."""

@@ -218,7 +218,8 @@ def test_the_daemons_own_probes_on_the_simulator_calibrate_to_its_eta_and_lag(ma
     from tecdard.recording.format import load_recording, save_recording
     from tests.test_home import until_idle
     rec_dir = tmp_path / "recordings"
-    d = make_daemon(**{"record.enabled": True, "record.dir": str(rec_dir)})
+    # no gripper: the grip force is the configured one, assumed (tests/test_gripper.py has a gripper's)
+    d = make_daemon(**{"record.enabled": True, "record.dir": str(rec_dir), "gripper.backend": "none"})
     done, tasks = 0, []
     for _ in range(3):
         time.sleep(1.0)               # probes start from rest: the gyro's bias is taken before the onset

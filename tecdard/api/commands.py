@@ -17,7 +17,8 @@ from tecdard.verbs import REQUIRED, Field, TaskVerb
 
 log = logging.getLogger("tecdar.commands")
 
-CONTROL_VERBS = ("stop", "status", "cancel", "record")     # the verbs that are not tasks
+CONTROL_VERBS = ("stop", "status", "cancel", "record", "grasp", "release")     # the verbs that are not tasks
+GRIP_VERBS = ("grasp", "release")         # the gripper's (robots/gripper.py), one at a time, never during a task
 
 
 def task_verbs() -> tuple[str, ...]:
@@ -45,6 +46,12 @@ PAYLOAD_TOO_LARGE = "payload_too_large"
 RATE_LIMITED = "rate_limited"
 NOT_RECORDING = "not_recording"
 READ_ONLY = "read_only"                  # the daemon observes an arm that something else drives
+NO_GRIPPER = "no_gripper"                # gripper.backend: none (or an arm without one)
+GRIPPER = "gripper"                      # the gripper refused, failed or did not answer
+NOT_GRASPED = "not_grasped"              # a task, while a gripper that says what it holds holds nothing
+MAX_GRIP_FORCE_N = 300.0                 # the fields' own bounds; gripper.max_force_n bounds the force further
+MAX_GRIP_WIDTH_M = 0.15
+MAX_GRIP_SPEED_M_S = 0.2
 RECORD_ACTIONS = ("start", "stop")
 MAX_LABEL_CHARS = 64
 
@@ -296,6 +303,16 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
             raise CommandError(BAD_TYPE, f"label: expected a string of at most {MAX_LABEL_CHARS} characters, "
                                          f"got {show(label)}")
         return {"action": action, "label": label}
+    if verb in GRIP_VERBS:
+        _check_fields(obj, verb, ("force", "width", "speed") if verb == "grasp" else ("width", "speed"))
+        # absent fields: the gripper section's (gripper.force_n, width_m or open_width_m, speed_m_s)
+        def optional(name: str, lo: float, hi: float, unit: str) -> float | None:
+            return _number(obj, name, None, lo, hi, unit) if name in obj else None
+        out = {"width_m": optional("width", 0.0, MAX_GRIP_WIDTH_M, "m"),
+               "speed_m_s": optional("speed", 0.001, MAX_GRIP_SPEED_M_S, "m/s")}
+        if verb == "grasp":
+            out["force_n"] = optional("force", 0.1, MAX_GRIP_FORCE_N, "N")
+        return out
     _check_fields(obj, verb, ("task",))
     task = obj.get("task")
     if task is not None and (not isinstance(task, str) or len(task) > MAX_TASK_ID_CHARS):

@@ -24,6 +24,7 @@ def sections() -> list[tuple[str, type]]:
     from tecdard.drivers.serial_imu import SerialParams
     from tecdard.fleet.episodes import StoreParams
     from tecdard.robots.franka_link import FrankaLinkSettings
+    from tecdard.robots.gripper import GripperParams
     from tecdard.robots.ros2_observer import ObserverOptions
     from tecdard.robots.state_check import StateOptions
     from tecdard.robots.ur_link import UrLinkSettings
@@ -47,7 +48,7 @@ def sections() -> list[tuple[str, type]]:
             seen.add(spec.section)
             each_estimator.append((f"estimator.{spec.section}", spec.options))
     return [("robot", RobotOptions), ("robot", StateOptions), ("robot.ur", UrLinkSettings),
-            ("robot.franka", FrankaLinkSettings), ("robot.ros2", ObserverOptions),
+            ("robot.franka", FrankaLinkSettings), ("robot.ros2", ObserverOptions), ("gripper", GripperParams),
             ("zenoh", ZenohOptions), ("zenoh", IntakeParams), ("zenoh", SecurityOptions), ("zenoh.tls", TlsOptions),
             ("ros2", Ros2Params), ("limits", Limits), ("control", ControlParams), ("map", MapSettings),
             ("record", RecordParams), ("store", StoreParams), ("viz.foxglove", VizParams),

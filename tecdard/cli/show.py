@@ -69,6 +69,20 @@ def result_lines(verb: str, result: dict) -> list[str]:
     return [f"{verb} done"] + _rows(rows)
 
 
+def gripper_text(g: dict) -> str:
+    """A gripper's state in words: what it holds, its opening (mm) and its force (N, and where that came from)."""
+    held = {True: "holding", False: "holding nothing", None: "cannot say what it holds"}.get(g.get("grasped"),
+                                                                                              "cannot say")
+    parts = [f"{g.get('kind', '?')}: {held}"]
+    if _finite(g.get("width_m")):
+        parts.append(f"opening {g['width_m'] * M_TO_MM:.1f} mm")
+    if _finite(g.get("force_n")):
+        parts.append(f"force {g['force_n']:.0f} N ({g.get('force_source', '?')})")
+    if g.get("fault"):
+        parts.append(f"fault: {g['fault']}")
+    return ", ".join(parts)
+
+
 def status_lines(state: dict) -> list[str]:
     """`status` as a short table."""
     rows = [("mode", str(state.get("mode", "-")))]
@@ -94,6 +108,8 @@ def status_lines(state: dict) -> list[str]:
         rate = imu.get("rate_hz")
         rows.append(("IMU", (f"{rate:.0f} samples/s" if _finite(rate) else "no rate yet")
                      + (f", {imu['part']}" if isinstance(imu.get("part"), str) else "")))
+    if isinstance(state.get("gripper"), dict):
+        rows.append(("gripper", gripper_text(state["gripper"])))
     ctl = state.get("control") or {}
     if ctl:
         late = ctl.get("late_ms_p99")

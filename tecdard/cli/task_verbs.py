@@ -51,13 +51,25 @@ def _ints(text: str) -> list[int]:
 CONTROL_OPTIONS = {"stop": [], "status": [],
                    "cancel": [("--task", "task", str, "task id (default: the running task)", None)],
                    "record": [("--action", "action", str, "start or stop a capture on demand", ("start", "stop")),
-                              ("--label", "label", str, "a label for the file's name", None)]}
+                              ("--label", "label", str, "a label for the file's name", None)],
+                   "grasp": [("--force", "force", _finite, "the grip force, N (default gripper.force_n; at most "
+                                                           "gripper.max_force_n); eta is looked up by it", None),
+                             ("--width", "width", _finite, "the object's width between the fingers, m (default "
+                                                           "gripper.width_m; Franka Hand)", None),
+                             ("--speed", "speed", _finite, "the fingers' speed, m/s (default gripper.speed_m_s)", None)],
+                   "release": [("--width", "width", _finite, "the opening to move to, m (default "
+                                                             "gripper.open_width_m)", None),
+                               ("--speed", "speed", _finite, "the fingers' speed, m/s (default gripper.speed_m_s)",
+                                None)]}
 CONTROL_SUMMARIES = {"stop": "stop the arm now, whatever runs (always allowed)",
                      "status": "the daemon's mode, task, faults, TCP and contact (mm, deg)",
                      "cancel": "end the running task as stop does, and report it failed",
-                     "record": "start or stop a recording on demand"}
+                     "record": "start or stop a recording on demand",
+                     "grasp": "close the gripper on the object at a grip force (never during a task)",
+                     "release": "open the gripper (never during a task); tasks then refuse until a grasp"}
 CONTROL_EXAMPLES = {"stop": "tecdard stop", "status": "tecdard status --robot ur5e-left",
-                    "cancel": "tecdard cancel", "record": "tecdard record --action start --label hinge-a"}
+                    "cancel": "tecdard cancel", "record": "tecdard record --action start --label hinge-a",
+                    "grasp": "tecdard grasp --force 30", "release": "tecdard release"}
 FIELD_TYPES = {"number": _finite, "direction": _vec, "numbers": _vec, "choice": str, "bool": bool, "grid": _ints,
                "int_choice": int}
 ENV_CONNECT, ENV_ROBOT = "TECDAR_CONNECT", "TECDAR_ROBOT"
@@ -341,7 +353,9 @@ def _answered(cli: Client, args, reply: dict) -> int:
         _say(args.verb, f"refused: {err.get('code')}: {err.get('message')}")
         return EXIT_REFUSED
     if args.verb not in task_verbs():
-        if not args.json and args.verb != "status":
+        if not args.json and isinstance(reply.get("gripper"), dict):
+            print(f"{args.verb}: ok, {show.gripper_text(reply['gripper'])}")
+        elif not args.json and args.verb != "status":
             print(f"{args.verb}: ok")
         return EXIT_DONE
     task = reply["task"]

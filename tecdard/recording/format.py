@@ -405,6 +405,7 @@ class LiveLog:
     est: np.ndarray              # (K, 7) the live estimates: t, p, std
     events: list
     q: np.ndarray | None = None  # (M, n) the measured joints at each proprioception sample, rad (newer recordings)
+    gripper: np.ndarray | None = None   # (M, 2) the gripper's opening (m) and whether it held (1, 0; -1: unknown)
 
 
 def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
@@ -441,8 +442,12 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
             if np.any(np.abs(q) > MAX_JOINT_RAD):
                 raise RecordingError(f"live_q: expected ({n_tcp}, 1..{MAX_JOINTS}) joint angles within "
                                      f"{MAX_JOINT_RAD:g} rad")
+        gripper = array("live_gripper") if "live_gripper" in data else None
+        if gripper is not None and not (np.all((gripper[:, 0] == -1) | ((gripper[:, 0] >= 0) & (gripper[:, 0] <= 1)))
+                                        and np.all(np.isin(gripper[:, 1], (-1.0, 0.0, 1.0)))):
+            raise RecordingError(f"live_gripper: expected ({n_tcp}, 2) rows: an opening in 0..1 m (or -1), and 0, 1 or -1")
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), array("live_tcp_w"), changes,
-                       array("live_bias0"), array("live_est"), _events(data, rec), q)
+                       array("live_bias0"), array("live_est"), _events(data, rec), q, gripper)
     finally:
         data.close()
 

@@ -50,6 +50,9 @@ AXIS_FIELDS = {"type": "object", "properties": {k: {"type": "number"} for k in "
 IMU_MEAN_SCHEMA = {"type": "object", "properties": {"gyro": AXIS_FIELDS, "accel": AXIS_FIELDS,
                                                     "samples": {"type": "integer"}}}
 STRING_SCHEMA = {"type": "object", "properties": {"data": {"type": "string"}}}
+GRIPPER_SCHEMA = {"type": "object", "properties": {"width_m": {"type": ["number", "null"]},
+                                                   "force_n": {"type": ["number", "null"]},
+                                                   "grasped": {"type": ["boolean", "null"]}}}
 
 
 def _stamp(ns: int):
@@ -79,6 +82,9 @@ class Channels:
         self.imu_mean = foxglove.Channel("/imu/mean", message_encoding="json", context=context,
                                          schema=foxglove.Schema(name="tecdar.ImuMean", encoding="jsonschema",
                                                                 data=json.dumps(IMU_MEAN_SCHEMA).encode()))
+        self.gripper_ch = foxglove.Channel("/gripper", message_encoding="json", context=context,
+                                           schema=foxglove.Schema(name="tecdar.Gripper", encoding="jsonschema",
+                                                                  data=json.dumps(GRIPPER_SCHEMA).encode()))
         self.joints = self.description = None
         if arm:
             self.joints = JointStatesChannel("/joint_states", context=context)
@@ -91,7 +97,8 @@ class Channels:
         return max(0, int(round((float(t) - self.origin_s + self.epoch_s) * 1e9)))
 
     def close(self) -> None:
-        for ch in (self.imu, self.tf, self.contact_ch, self.events, self.imu_mean, self.joints, self.description):
+        for ch in (self.imu, self.tf, self.contact_ch, self.events, self.imu_mean, self.gripper_ch, self.joints,
+                   self.description):
             if ch is not None:
                 ch.close()
 
@@ -101,6 +108,10 @@ class Channels:
             g, a = np.mean(gyro, axis=0), np.mean(accel, axis=0)
             self.imu_mean.log({"gyro": dict(zip("xyz", map(float, g))), "accel": dict(zip("xyz", map(float, a))),
                                "samples": int(len(t))}, log_time=self._ns(t[-1]))
+
+    def gripper(self, t: float, width_m: float | None, force_n: float | None, grasped: bool | None) -> None:
+        """The gripper: its opening (m), its grip force (N) and whether it holds; null where it cannot say."""
+        self.gripper_ch.log({"width_m": width_m, "force_n": force_n, "grasped": grasped}, log_time=self._ns(t))
 
     def joint_states(self, t: float, names: list[str], q: np.ndarray) -> None:
         self.joints.log(JointStates(timestamp=_stamp(self._ns(t)),

@@ -24,9 +24,10 @@ def wall_clock_offset(meta: dict) -> float | None:
     return None
 
 
-def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.ndarray | None = None) -> int:
-    """Write the recording, its estimates (ContactEstimate), events and (a daemon recording's) joints to
-    `out`; the messages written."""
+def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.ndarray | None = None,
+               gripper: np.ndarray | None = None) -> int:
+    """Write the recording, its estimates (ContactEstimate), events and (a daemon recording's) joints and
+    gripper (`live_gripper`: opening and grasped, -1 unknown) to `out`; the messages written."""
     try:
         import foxglove
 
@@ -55,6 +56,9 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
             raise ExportError(f"live_q: {q.shape[1]} joints, but meta.model {model} has {len(desc.joint_names)}")
         for j in range(len(rec.tcp_t)):
             items.append((rec.tcp_t[j], 4, "joints", j))
+    if gripper is not None:
+        for j in range(len(rec.tcp_t)):
+            items.append((rec.tcp_t[j], 5, "gripper", j))
     for est in estimates:
         items.append((est.t, 2, "contact", est))
     for ev in events:
@@ -99,6 +103,10 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
                 ch.contact(t, x.p, x.cov, x.axis)
             elif kind == "joints":
                 ch.joint_states(t, names, q[x])
+            elif kind == "gripper":
+                width, held = gripper[x]
+                force = None if rec.grip_force is None or held != 1 else float(rec.grip_force[x])
+                ch.gripper(t, None if width < 0 else float(width), force, None if held < 0 else bool(held))
             else:
                 ch.event(t, x)
     finally:
@@ -122,5 +130,6 @@ def export_mcap(path, out, config: str | None = None, method: str | None = None,
     run_replay(r, on_estimate=found.append, on_event=events.append)
     if r.live is not None:
         events = r.live.events          # the pipeline's and the daemon's, as they happened live
-    n = write_mcap(str(out), r.rec, found, events, load_truth(path), None if r.live is None else r.live.q)
+    n = write_mcap(str(out), r.rec, found, events, load_truth(path), None if r.live is None else r.live.q,
+                   None if r.live is None else r.live.gripper)
     return n, found, events

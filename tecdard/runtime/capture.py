@@ -90,7 +90,10 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         imu_t=imu[:, 0].copy(), gyro=imu[:, 1:4].copy(), accel=imu[:, 4:7].copy(), tcp_t=tcp_t,
         tcp_pos=np.array([s.p_world for _, s in rows]), tcp_quat=np.array([matrix_to_quat(r) for r in R]),
         imu_in_tcp_quat=np.asarray(meta["imu_in_tcp_quat"], float),
-        grip_force=grip if len(grip) and np.all(np.isfinite(grip)) else None,
+        # where the gripper said no force (not holding yet, or a backend that reads none) the estimator took
+        # the configured one: so does the file, and a replay takes what the live estimator took
+        grip_force=np.where(np.isfinite(grip), grip, float(meta["grip_force"])) if np.any(np.isfinite(grip))
+        else None,
         plane_normal=None if meta.get("plane_normal") is None else np.asarray(meta["plane_normal"], float),
         tcp_vel=np.array(vel) if all(v is not None for v in vel) else None,
         meta={k: v for k, v in meta.items() if k not in ("imu_in_tcp_quat", "plane_normal")} |
@@ -122,4 +125,7 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     q = [s.q for _, s in rows if s.q is not None]
     if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
         extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
+    gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
+    if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
+        extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
     return rec, extra

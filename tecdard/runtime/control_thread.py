@@ -25,7 +25,7 @@ from tecdard.control.runner import TaskRunner
 from tecdard.control.servo import PlanSample, joint_velocities
 from tecdard.api import commands as C
 from tecdard import verbs
-from tecdard.runtime.messages import Cancel, LatestValue, Outbox, Reply, StartTask, Stop
+from tecdard.runtime.messages import Cancel, Grip, LatestValue, Outbox, Reply, StartTask, Stop
 from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.options import option, read_options
 from tecdard.safejson import show_name
@@ -36,6 +36,7 @@ WORKSPACE_MAX_M = 5.0         # no arm reaches further from its base: a workspac
 COMMAND_QUEUE = 64            # task commands (StartTask, Cancel) waiting for the next tick
 STALL_LOG_S = 0.1             # a tick that starts this late is logged (the whole daemon was held up)
 IMU_RATE_WINDOW_S = 1.0       # state.imu.rate_hz: the samples the ring took over this long
+GRIP_FREE_VERBS = ("home", "wrist")   # tasks that move the arm without needing the object held
 
 
 @dataclass
@@ -105,6 +106,7 @@ class ControlThread:
         self.q_home, self.robot_name, self.notifier = q_home, robot_name, notifier
         self.services = dict(services or {})
         self.estimator = estimator
+        self.gripper = None                  # runtime.gripper_worker.GripperWorker once started (None: no gripper)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
@@ -273,6 +275,8 @@ class ControlThread:
             stop = self._stops.popleft()
             self._stop_waiters.append(stop.request)
             self.runner.stop(stop.reason)
+            if self.gripper is not None and self.gripper.busy:
+                self.gripper.stop()              # the fingers too, where they are
         while True:
             try:
                 msg = self.commands.get_nowait()
@@ -286,6 +290,30 @@ class ControlThread:
                     self._reply(msg.request, C.CommandError(C.NO_TASK, f"task: no running task{which}").reply())
             elif isinstance(msg, StartTask):
                 self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p, js))
+            elif isinstance(msg, Grip):
+                refused = self._grip_refusal(msg)
+                if refused is not None:
+                    self._reply(msg.request, refused)
+
+    def _grip_refusal(self, msg: Grip) -> dict | None:
+        """Hand a grasp or a release to the gripper's thread (it replies when the fingers stop), or the refusal:
+        never during a task or a fault (the object is the task's, and a faulted arm's), one at a time."""
+        running = self.runner.busy()
+        if self.gripper is None:
+            return C.CommandError(C.NO_GRIPPER, f"{msg.verb}: no gripper here (gripper.backend: none); set "
+                                                "gripper.backend (manual, if a person grasps)").reply()
+        if running is not None:
+            return C.CommandError(C.BUSY, f"{msg.verb}: refused, {running} is still running").reply()
+        if self.faults:
+            return C.CommandError(C.FAULT, f"{msg.verb}: refused while fault '{next(iter(self.faults))}' "
+                                           "is active").reply()
+        force = msg.fields.get("force_n")
+        if force is not None and force > self.gripper.params.max_force_n:
+            return C.CommandError(C.OUT_OF_LIMITS, f"force: {force:g} N is above gripper.max_force_n "
+                                                   f"{self.gripper.params.max_force_n:g} N").reply()
+        if not self.gripper.submit(msg):
+            return C.CommandError(C.BUSY, f"{msg.verb}: refused, the gripper is still moving").reply()
+        return None
 
     def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray, js) -> dict:
         """Start the verb's task from validated fields at the measured TCP position `p` (of the tick's
@@ -296,6 +324,9 @@ class ControlThread:
         if self.faults:
             code = next(iter(self.faults))
             return C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply()
+        refused = self._gripper_refusal(verb)
+        if refused is not None:
+            return refused
         spec = verbs.get(verb)
         if spec is None:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
@@ -312,6 +343,21 @@ class ControlThread:
         self.runner.start(task, now, p, f)
         return {"ok": True, "task": task.id}
 
+    def _gripper_refusal(self, verb: str) -> dict | None:
+        """A task needs the object held: refused while the gripper moves, or says it holds nothing (`home`, which
+        moves the arm without a contact, goes on)."""
+        g = self.gripper
+        if g is None or verb in GRIP_FREE_VERBS:
+            return None
+        if g.busy:
+            return C.CommandError(C.BUSY, f"{verb}: refused, the gripper is still moving").reply()
+        if g.holds_nothing():
+            width = g.state().width_m
+            return C.CommandError(C.NOT_GRASPED, f"{verb}: refused, the {g.kind} gripper holds nothing"
+                                  + ("" if width is None else f" (opening {width * 1e3:.1f} mm)")
+                                  + ": grasp the object first (tecdard grasp --force N)").reply()
+        return None
+
     # -- out ------------------------------------------------------------------------
     def _answer_stops(self) -> None:
         for request in self._stop_waiters:
@@ -324,6 +370,10 @@ class ControlThread:
     def _reply(self, request: int | None, payload: dict) -> None:
         if request is not None:
             self.replies.put(Reply(request, payload))
+
+    def _gripper_json(self) -> dict:
+        g = self.gripper
+        return {**g.state().to_json(g.kind), "busy": g.busy}
 
     def _imu_part(self) -> str | None:
         """The IMU source's sensor (drivers.imu_source.ImuSource.part), None when it cannot say."""
@@ -350,6 +400,8 @@ class ControlThread:
                         "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
             # samples a second the daemon took (None in the first second), and the sensor the board found
             "imu": {"rate_hz": self._imu_rate_hz, "part": self._imu_part()},
+            # the gripper: its opening, force and where that comes from, whether it holds (None: no gripper)
+            "gripper": None if self.gripper is None else self._gripper_json(),
         }
         self.latest_state.set(state)
         self.outbox.put("state", state)

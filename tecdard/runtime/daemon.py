@@ -24,6 +24,10 @@ from tecdard.host import name_os_thread
 from tecdard.options import read_options
 from tecdard.safejson import show
 from tecdard.robots import backends
+from tecdard.robots.backends import BackendError
+from tecdard.robots.gripper import (ASSUMED, GripperError, GripperParams, build_gripper, force_source,
+                                    gripper_kind)
+from tecdard.runtime.gripper_worker import GripperWorker
 from tecdard.robots.model import READY_Q, ArmModel, UnknownRobotError
 from tecdard.runtime.ros2_node import Ros2Params
 from tecdard.runtime.control_thread import ControlParams, ControlThread
@@ -99,6 +103,12 @@ class Daemon:
         self.record_params = RecordParams.from_config(cfg.section("record"))
         self.viz_params = VizParams.from_config(cfg.section("viz").section("foxglove"))
         self.store_params = StoreParams.from_config(cfg.section("store"))
+        self.gripper_params = GripperParams.from_config(cfg.section("gripper"))
+        try:
+            self.gripper_kind = gripper_kind(self.gripper_params.backend, backend_name)
+        except GripperError as exc:
+            raise ConfigError(str(exc)) from None
+        self._robot_section = robot
         cfg.check_unused()
         self._build_threads(cfg, backend_name, mount, ring_capacity)
         try:
@@ -175,8 +185,10 @@ class Daemon:
             "config_digest": config_digest(json.dumps(cfg.data, sort_keys=True, default=str)),
             "estimator": self.method, "imu_in_tcp_quat": list(mount), "imu_time_offset_s": self.imu_time_offset_s,
             "plane_normal": self.pipeline.params.plane_normal,
-            # a grip force the backend does not measure is the configured one: recorded, and said so
-            "grip_force": self.pipeline.params.grip_force_n, "grip_force_assumed": True,
+            # where the grip force comes from (robots/gripper.py): a gripper's command, a person's word, or the
+            # configured estimator.grip_force_n where no gripper says (recorded, and said so)
+            "grip_force": self.pipeline.params.grip_force_n, "grip_force_source": force_source(self.gripper_kind),
+            "grip_force_assumed": force_source(self.gripper_kind) == ASSUMED,
             # the transmission eta calibrated for that grip force (estimator.eta_table): the index's eta
             "eta": float(self.pipeline.measure.eta(np.array([self.pipeline.params.grip_force_n]))[0]),
             "fingertip_lag_s_assumed": self.pipeline.params.fingertip_lag_s})
@@ -256,6 +268,8 @@ class Daemon:
         # the robot's states to the estimator: on the link's own reader where the backend has one (a
         # thread fewer to wake for every state), else on a proprioception thread
         feed = ProprioFeed(self.model.clone(), self.estimator.proprio)
+        worker = self._gripper_worker()
+        feed.gripper = self.control.gripper = worker
         own_reader = self.backend.feed_states(feed)
         specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox,
                                                               self.imu_time_offset_s)),
@@ -264,11 +278,24 @@ class Daemon:
                  ("recorder", lambda: self.recorder.run(self.stop_event)),
                  *([("uploader", lambda: self.uploader.run(self.stop_event))] if self.uploader is not None else []),
                  *([("viz", lambda: self.view.run(self.stop_event))] if self.view is not None else []),
+                 *([("gripper", lambda: worker.run(self.stop_event))] if worker is not None else []),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:
             th = threading.Thread(target=_named(name, body), name=name, daemon=True)
             th.start()
             self._threads.append(th)
+
+    def _gripper_worker(self) -> GripperWorker | None:
+        """The configured gripper, reached once the arm's backend has started (a Franka Hand's connection is the
+        arm link's), on a thread of its own; BackendError (one line) when it cannot be reached."""
+        try:
+            gripper = build_gripper(self.gripper_params, self.gripper_kind, self.backend, self._robot_section)
+        except GripperError as exc:
+            raise BackendError(str(exc)) from None
+        if gripper is None:
+            return None
+        log.info("gripper: %s, %s", gripper.kind, gripper.state().to_json(gripper.kind))
+        return GripperWorker(gripper, self.gripper_params, self.outbox, self.control.replies)
 
     def _shutdown(self) -> None:
         """Stop motion first, then the threads; each step guarded so one failure skips nothing."""

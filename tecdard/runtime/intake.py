@@ -3,7 +3,7 @@
 The queryables under `tecdar/{robot}/cmd/`:
 - `cmd/stop` has a callback of its own (Zenoh's callback thread): it registers the query and hands
   a `Stop` to the control thread at once, so a stop never waits behind other queries.
-- each task verb and `cancel` (the "task" class), `cmd/record` ("record": a capture costs a file,
+- each task verb, `cancel`, `grasp` and `release` (the "task" class), `cmd/record` ("record": a capture costs a file,
   so a flood of it must not spend the task verbs' budget), `cmd/status` ("status"), and `cmd/**`
   for every other key ("other": unknown verbs such as `cmd/stop/now`, which get `unknown_verb`)
   fill Zenoh ring channels of their own that the main thread polls. A flood overwrites the oldest queued
@@ -32,7 +32,7 @@ import zenoh
 
 from tecdard.api import commands as C
 from tecdard.options import option, read_options
-from tecdard.runtime.messages import Cancel, Reply, StartTask, Stop
+from tecdard.runtime.messages import Cancel, Grip, Reply, StartTask, Stop
 from tecdard.safejson import show_name
 from tecdard.api.session import JSON, Keys, dumps
 
@@ -117,7 +117,7 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",)}
+        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",) + C.GRIP_VERBS}
         self._record_key = keys.cmd("record")
         self._known_keys = {keys.cmd(v) for v in C.verbs()}
         self._parse = {k: TokenBucket(self.params.rate(k), max(self.params.rate(k), MIN_BURST)) for k in BACKLOG}
@@ -231,10 +231,11 @@ class QueryIntake:
                     raise C.CommandError(C.NOT_IMPLEMENTED, "record: this daemon does not record")
                 self._send(query, self.record(fields["action"], fields["label"]))
                 return
-            if self.read_only and verb in C.task_verbs():
+            if self.read_only and (verb in C.task_verbs() or verb in C.GRIP_VERBS):
                 raise C.CommandError(C.READ_ONLY, f"{verb}: {self.read_only}")
             request = self._register(query)
-            msg = Cancel(request, fields["task"]) if verb == "cancel" else StartTask(request, verb, fields)
+            msg = Cancel(request, fields["task"]) if verb == "cancel" else Grip(request, verb, fields) \
+                if verb in C.GRIP_VERBS else StartTask(request, verb, fields)
             if not self.control.submit(msg):
                 self._forget(request)
                 raise C.CommandError(C.BUSY, f"{verb}: control queue full, try again")

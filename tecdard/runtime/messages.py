@@ -33,6 +33,13 @@ class Cancel:
 
 
 @dataclass(frozen=True)
+class Grip:
+    request: int
+    verb: str             # "grasp" or "release"
+    fields: dict          # validated: force_n, width_m, speed_m_s (tecdard.commands.validate)
+
+
+@dataclass(frozen=True)
 class Stop:
     request: int | None   # None: nobody waits for the reply (the daemon's own shutdown)
     reason: str = "stopped by command"

@@ -85,6 +85,7 @@ class ProprioFeed:
         self.model, self.ring = model, ring
         self.seq = -1                     # the newest state's seq taken
         self._logged = 0
+        self.gripper = None               # runtime.gripper_worker.GripperWorker once started: its force and opening
         self._lock = threading.Lock()
 
     def __call__(self, js) -> None:
@@ -98,10 +99,16 @@ class ProprioFeed:
                 log.exception("proprioception: joint state %d skipped", js.seq)
                 return
             grip = np.nan if js.grip_force is None else float(js.grip_force)
+            width = grasped = np.nan
+            st = None if self.gripper is None else self.gripper.state()
+            if st is not None:            # the gripper's own force, where it has one, over the backend's
+                grip = grip if st.force_n is None else float(st.force_n)
+                width = np.nan if st.width_m is None else float(st.width_m)
+                grasped = np.nan if st.grasped is None else float(st.grasped)
             # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
             ring = self.ring
             ring.push(ProprioSample(js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
-                                    twist[3:].copy(), grip, np.array(js.q, dtype=float)))
+                                    twist[3:].copy(), grip, np.array(js.q, dtype=float), width, grasped))
             if ring.overwritten != self._logged and (self._logged == 0 or ring.overwritten - self._logged >= 1000):
                 self._logged = ring.overwritten
                 log.warning("the estimator fell behind: %d proprioception samples overwritten", self._logged)
