@@ -347,11 +347,12 @@ SIM_LATE_S = 0.070
 SIM_ATTEMPTS = 3
 
 
-def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -> tuple[dict, dict, list, str]:
+def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, before=None, after=None,
+               **fields) -> tuple[dict, dict, list, str]:
     """The daemon on franky-sim's cutter (the fingertip board's samples from MuJoCo over the pty;
-    `sim_args` for tests/fakes/franka_sim.py, `config` over the daemon's): one rotate with `fields`.
-    Returns its task_done or task_failed event, the scene's truth after it, the events and the
-    daemon's log."""
+    `sim_args` for tests/fakes/franka_sim.py, `config` over the daemon's): one rotate with `fields`
+    (`before(d)` and `after(d)` around it). Returns its task_done or task_failed event, the scene's truth
+    after it, the events and the daemon's log."""
     import json
     tmp_path.mkdir(parents=True, exist_ok=True)
     pty, truth_path = str(tmp_path / "ttyF"), str(tmp_path / "truth.json")
@@ -359,9 +360,13 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
     try:
         d = DaemonProcess(tmp_path, franka_config(srv.host, pty, **{**FRANKY_SIM_STALLS, **(config or {})}))
         try:
+            if before is not None:
+                before(d)
             reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
             assert reply["ok"] is True, reply
             ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], ROTATE_TIMEOUT_S)
+            if after is not None and ev["kind"] == "task_done":
+                after(d)
             time.sleep(0.2)                                   # the truth file is rewritten every 50 ms
             truth = json.load(open(truth_path))
             return ev, truth, list(d.client.event_log), d.log()
@@ -371,13 +376,14 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, **fields) -
         srv.close()
 
 
-def judged_run(tmp_path, judged, *sim_args: str, config: dict | None = None, **fields):
+def judged_run(tmp_path, judged, *sim_args: str, config: dict | None = None, before=None, after=None, **fields):
     """cutter_run, again while its outcome is not one the test judges (`judged(ev, events)`) and
     franky-sim fell further behind its own schedule than SIM_LATE_S: such a run judged the
     simulator, not the daemon. Said each time; SIM_ATTEMPTS such runs in a row are a skip that
     says so."""
     for attempt in range(SIM_ATTEMPTS):
-        ev, truth, events, log = cutter_run(tmp_path / f"run{attempt}", *sim_args, config=config, **fields)
+        ev, truth, events, log = cutter_run(tmp_path / f"run{attempt}", *sim_args, config=config, before=before,
+                                            after=after, **fields)
         if judged(ev, events) or truth["worst_behind_s"] <= SIM_LATE_S:
             return ev, truth, events, log
         print(f"franky-sim fell {truth['worst_behind_s'] * 1e3:.0f} ms behind and the run ended "
@@ -421,3 +427,34 @@ def test_a_straight_pull_on_franky_sim_drags_the_cutters_base(tmp_path):
     summary = f"{ev['kind']}: handle {truth['handle_angle_deg']:.1f} deg, base {truth['base_displacement'] * 1e3:.1f} mm"
     print(summary)
     assert truth["base_displacement"] > STRAIGHT_BASE_MIN_M, summary
+
+
+def test_the_franka_hand_lets_go_is_refused_a_task_grasps_again_and_the_rotate_finds_the_hinge(tmp_path):
+    """Issue 49, through franky's Gripper on franky-sim's hand: the hand starts holding the handle; `release`
+    opens it (the weld off), a task is then refused (not_grasped); `grasp` closes it on the 25 mm handle (the
+    weld on where they are); the rotate opens the cutter about its true hinge; `release` opens the hand again."""
+    seen = {}
+
+    def before(d):
+        cli = d.client
+        g = cli.command("status")["state"]["gripper"]
+        assert (g["kind"], g["grasped"]) == ("franka-hand", True), g
+        reply = cli.command("release", {}, timeout=20)
+        assert reply["ok"] and reply["gripper"]["grasped"] is False, reply
+        assert cli.command("rotate", {"angle_deg": 30.0})["error"]["code"] == "not_grasped"
+        reply = cli.command("grasp", {"force": FRANKY_SIM_GRIP_N}, timeout=20)
+        assert reply["ok"] and reply["gripper"]["grasped"] is True, reply
+        seen["grasp"] = reply["gripper"]
+        time.sleep(1.0)                     # the fingertip settles on the handle: the rotate's probe starts from rest
+
+    def after(d):
+        seen["release"] = d.client.command("release", {}, timeout=20)
+
+    ev, truth, _, log = judged_run(tmp_path, lambda ev, events: ev["kind"] == "task_done", before=before,
+                                   after=after)
+    assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
+    assert abs(seen["grasp"]["width_m"] - 0.025) < 0.003 and seen["grasp"]["force_n"] == FRANKY_SIM_GRIP_N
+    assert seen["release"]["ok"] and seen["release"]["gripper"]["grasped"] is False, seen["release"]
+    err = distance_to_axis(np.array(ev["result"]["hinge"]["p"]), np.array(truth["hinge_point"]),
+                           np.array(truth["hinge_axis"]))
+    assert err < ROTATE_HINGE_TOL_M, f"hinge error {err * 1e3:.2f} mm"

@@ -52,11 +52,14 @@ def cutter_arm(tmp_path, seed: int = 1) -> SimArmSpec:
 
 
 @contextlib.contextmanager
-def cutter_rig(tmp_path, seed: int = 1, **config):
-    """(fake controller whose arm is the simulated cutter, daemon on robot.backend ur), closed after."""
+def cutter_rig(tmp_path, seed: int = 1, urcap=None, **config):
+    """(fake controller whose arm is the simulated cutter, daemon on robot.backend ur), closed after. `urcap`:
+    a callable that starts a Robotiq URCap fake on the controller's address (before the daemon connects)."""
     spec = cutter_arm(tmp_path, seed=seed)
     fake = FakeController(free_loopback_host(), arm="UR5e", sim=spec)
+    gripper = None
     try:
+        gripper = urcap(fake.host) if urcap is not None else None
         d = DaemonProcess(tmp_path, ur_config(fake.host, spec.sim_spec.pty_link,
                                               **{"robot.model": ARM, "robot.q_home": Q_HOME, **config}))
         try:
@@ -64,6 +67,8 @@ def cutter_rig(tmp_path, seed: int = 1, **config):
         finally:
             d.close()
     finally:
+        if gripper is not None:
+            gripper.close()
         fake.close()
 
 
@@ -114,3 +119,28 @@ def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(
         assert np.max(np.abs(np.array(arm["q"]) - q_back)) < STILL_RAD
         assert abs(fake.truth().handle_angle_rad - angle_at_stop) < np.radians(0.2)
         assert all(v == 0.0 for v in arm["speedj_t"][-1][1])
+
+
+def test_a_robotiq_on_the_ur_grasps_the_handle_then_the_daemon_rotates_it_and_releases(tmp_path):
+    """Issue 49: the gripper's protocol fake (a Robotiq 2F-85's URCap on the controller's port 63352) through the
+    daemon: an open hand refuses the task, `grasp` closes on the 25 mm handle, `rotate` opens the cutter with eta
+    scheduled by the grasp's force, `release` opens the hand and the next task is refused again."""
+    from tests.fakes.robotiq_urcap import FakeUrcap
+    with cutter_rig(tmp_path, urcap=FakeUrcap, **{"gripper.backend": "robotiq"}) as (fake, d):
+        cli = d.client
+        g = cli.command("status")["state"]["gripper"]
+        assert (g["kind"], g["grasped"]) == ("robotiq", False), g
+        assert cli.command("rotate", {"angle_deg": 20.0})["error"]["code"] == "not_grasped"
+        reply = cli.command("grasp", {"force": 30.0}, timeout=15)
+        assert reply["ok"] and reply["gripper"]["grasped"] is True, reply
+        assert abs(reply["gripper"]["width_m"] - 0.025) < 0.001 and abs(reply["gripper"]["force_n"] - 30.0) < 1.0
+        reply = cli.command("rotate", {"angle_deg": 20.0})
+        assert reply["ok"] is True, reply
+        ev = with_truth(cli.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S), fake.truth())
+        assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
+        res, sim = ev["result"], ev["result"]["sim"]
+        err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
+        assert err < HINGE_TOL_M, f"hinge error {err * 1e3:.2f} mm"
+        reply = cli.command("release", {}, timeout=15)
+        assert reply["ok"] and reply["gripper"]["grasped"] is False, reply
+        assert cli.command("rotate", {"angle_deg": 20.0})["error"]["code"] == "not_grasped"

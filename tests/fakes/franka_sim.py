@@ -203,6 +203,42 @@ def _recover_clears_the_injected_reflex() -> None:
     rp.AutomaticErrorRecoveryCommand.handle = recover
 
 
+HANDLE_WIDTH_M = 0.025         # the handle between the fingers (its capsule's diameter)
+
+
+def _the_hand_holds_the_handle(sim) -> None:
+    """The hand's commands act on the cutter as a real hand's would (franky-sim's fingers meet nothing: contacts
+    are off): it starts holding the handle (the weld is on before READY); a grasp closes the fingers on the
+    25 mm handle and welds the pad to it where they are; a move (an opening) lets go (the weld off)."""
+    import mujoco
+    from franky_sim import franka_gripper_server as gs
+    cls = gs.FrankaGripperServer
+    init, start_grasp, start_move = cls.__init__, cls.start_grasp, cls.start_move
+
+    def weld(active: bool) -> None:
+        if active:
+            grasp(sim)
+        else:
+            sim.data.eq_active[sim.model.equality("grasp").id] = 0
+            mujoco.mj_forward(sim.model, sim.data)
+
+    def holding_init(self, robot, hostname):
+        init(self, robot, hostname)
+        self._is_grasping = True
+        robot.set_hand_goal(HANDLE_WIDTH_M, 0.05, 70.0)
+
+    def grasp_the_handle(self, width, speed, force, epsilon_inner, epsilon_outer, command_id, tcp_socket):
+        start_grasp(self, width, speed, force, epsilon_inner, epsilon_outer, command_id, tcp_socket)
+        self._robot.set_hand_goal(max(width, HANDLE_WIDTH_M), speed, force)     # the fingers stop on it
+        weld(True)
+
+    def open_the_hand(self, width, speed, command_id, tcp_socket):
+        start_move(self, width, speed, command_id, tcp_socket)
+        if width > HANDLE_WIDTH_M:
+            weld(False)
+    cls.__init__, cls.start_grasp, cls.start_move = holding_init, grasp_the_handle, open_the_hand
+
+
 def _poll_control(path: str | None) -> None:
     """`--control PATH`: a test writes `reflex` there; the next poll injects it and removes the file."""
     if path and os.path.exists(path):
@@ -308,6 +344,7 @@ def run(args) -> None:
         board = None
         if args.cutter:
             truth = add_cutter(sim, args.radius, args.radius, args.hinge_friction)
+            _the_hand_holds_the_handle(sim)
             board = FingertipBoard(sim, args.pty)
             sim.register_post_step_callback(board.post_step)
             truth_path = args.truth
