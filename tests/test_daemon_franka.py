@@ -80,7 +80,9 @@ def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_mid_task_is_a_f
     srv = ServerProcess(host=host)
     # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
     # as a motion starts): the force stop is set out of the way of this test's free motion
-    d = DaemonProcess(tmp_path, franka_config(host, str(board.link), **{"control.max_force_n": 100.0}))
+    # nothing in franky-sim's plain scene for the hand to hold: no gripper, or every task is not_grasped
+    d = DaemonProcess(tmp_path, franka_config(host, str(board.link), **{"control.max_force_n": 100.0,
+                                                                        "gripper.backend": "none"}))
     try:
         state = d.client.command("status")["state"]
         expected = ArmModel("fr3").fk(np.array(Q_SIM)).translation
@@ -301,7 +303,8 @@ def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_it
     srv = ServerProcess("--control", str(control))
     # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
     # as a motion starts): the force stop is set out of the way of this test's free motion
-    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{"control.max_force_n": 100.0}))
+    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{"control.max_force_n": 100.0,
+                                                                            "gripper.backend": "none"}))
     try:
         # long enough (4 s at 20 mm/s) that the reflex lands mid-motion on a loaded machine too: a 3 cm
         # approach can end before the injection reaches franky-sim (one full run saw no reflex in 10 s)

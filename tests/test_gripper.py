@@ -146,3 +146,13 @@ def test_on_the_simulated_arm_release_empties_the_hand_tasks_refuse_and_a_grasp_
     assert rec.meta["grip_force_source"] == "commanded" and len(held) - since > 0.5 * len(held)
     assert np.all(rec.grip_force[since:] == 25.0) and np.all(rec.grip_force[~held] == 30.0)
     assert np.allclose(live.gripper[since:, 0], 0.025) and np.all(live.gripper[~held] == [0.08, 0.0])
+    # and in its MCAP: /gripper at every proprioception sample, the force only while it holds
+    import json
+    from tests.conftest import tecdard
+    from tests.test_recorder import read_mcap
+    out = tmp_path / "rotate.mcap"
+    assert tecdard("export", path, "--mcap", str(out)).returncode == 0
+    msgs = [json.loads(d) for _, _, d in read_mcap(out)["/gripper"]]
+    assert len(msgs) == len(rec.tcp_t)
+    assert msgs[-1] == {"width_m": 0.025, "force_n": 25.0, "grasped": True}
+    assert {"width_m": 0.08, "force_n": None, "grasped": False} in msgs
