@@ -12,10 +12,11 @@ Reads `robot.franka`:
   limits for every motion (default 0.5);
 - `state_rate_hz`: robot states handed to the daemon per second (default 500, as a UR e-Series
   gives; the robot's own are 1 kHz, and 1000 takes them all at twice the daemon's CPU for them);
-- `gripper`: read the Franka Hand's state (default true);
-- `grasp_force_n`: the force the grasp was commanded with (libfranka's gripper state carries the
-  width and whether it holds, not the force): while the hand holds, this feeds eta's schedule;
-  otherwise estimator.grip_force_n does (default 20 N).
+- `gripper`: connect the Franka Hand (default true): its state, and the daemon's `grasp` and `release`
+  (`gripper.backend: franka-hand`, robots/gripper.py), which the link's child runs on the hand's one connection;
+- `grasp_force_n`: the force of a grasp made outside the daemon (Desk, a script): libfranka's gripper state
+  carries the width and whether it holds, not the force, so while the hand holds this feeds eta's schedule
+  until a `grasp` of the daemon's gives its own (default 20 N).
 
 State: the arm's joints on the link's own thread at the robot's rate (about 1 kHz). The TCP is our
 Pinocchio FK of the measured joints (robots.model `fr3`/`panda`, with robot.tool_offset), checked

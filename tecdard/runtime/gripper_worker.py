@@ -75,14 +75,14 @@ class GripperWorker:
             log.exception("gripper state")
 
     def _do(self, msg: Grip) -> None:
-        f, p = msg.fields, self.params
+        p = self.params
+        f = {k: v for k, v in msg.fields.items() if v is not None}       # a field not given: the config's
+        speed = f.get("speed_m_s", p.speed_m_s)
         try:
             if msg.verb == "grasp":
-                st = self.gripper.grasp(f.get("force_n") or p.force_n, p.width_m if f.get("width_m") is None
-                                        else f["width_m"], f.get("speed_m_s") or p.speed_m_s, p.timeout_s)
+                st = self.gripper.grasp(f.get("force_n", p.force_n), f.get("width_m", p.width_m), speed, p.timeout_s)
             else:
-                st = self.gripper.release(p.open_width_m if f.get("width_m") is None else f["width_m"],
-                                          f.get("speed_m_s") or p.speed_m_s, p.timeout_s)
+                st = self.gripper.release(f.get("width_m", p.open_width_m), speed, p.timeout_s)
         except GripperError as exc:
             self._poll()
             log.warning("%s: %s", msg.verb, exc)
