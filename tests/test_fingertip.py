@@ -60,6 +60,16 @@ def test_every_part_renders_closed_and_the_carrier_is_cast_in(tmp_path):
 
 @pytest.mark.slow
 @needs_openscad
+def test_a_bonded_backing_has_no_screw_holes_and_stays_closed(tmp_path):
+    screwed = render.read_stl(render.render("backing_franka", tmp_path))
+    (tmp_path / "b").mkdir()
+    bonded = render.read_stl(render.render("backing_franka", tmp_path / "b", mount='"bonded"'))
+    assert render.mesh_problems(bonded) == []
+    assert render.volume_mm3(bonded) > render.volume_mm3(screwed) + 40    # two M3 holes and counterbores filled
+
+
+@pytest.mark.slow
+@needs_openscad
 def test_a_pad_too_thin_for_its_carrier_is_refused(tmp_path):
     with pytest.raises(RuntimeError, match="1 mm of silicone behind it"):
         render.render("pad", tmp_path, pad_t=3)

@@ -34,6 +34,11 @@ key_d = 1.6;         // keying holes through the boss
 plate_t = 3.0;       // the mount plate over the boss
 clearance = 0.2;     // boss to mould wall, each side
 
+/* [How the backing holds on: screws (the spacings below, unverified: measure your finger) or bonded (no holes:
+   the plate's back face on the finger's flat gripping face with 1 mm acrylic foam tape, e.g. 3M VHB 4910; the
+   tape adds compliance under the pad, so calibrate eta after mounting, as for any new pad)] */
+mount = "screws";    // screws | bonded
+
 /* [Mount on a Franka Hand finger: unverified, measure your finger] */
 franka_plate_l = 34;
 franka_plate_w = 20;
@@ -101,8 +106,11 @@ module boss() {
 }
 
 module backing(plate_l, plate_w, spacing, screw_d, head_d) {
-    assert(spacing / 2 - head_d / 2 >= pad_l / 2 + 0.5, "the screws' heads must clear the pad: widen the spacing");
-    assert(spacing / 2 + head_d / 2 <= plate_l / 2, "the screws' heads must lie on the plate: lengthen it");
+    assert(mount == "bonded" || mount == "screws", "mount is screws or bonded");
+    assert(mount == "bonded" || spacing / 2 - head_d / 2 >= pad_l / 2 + 0.5,
+           "the screws' heads must clear the pad: widen the spacing");
+    assert(mount == "bonded" || spacing / 2 + head_d / 2 <= plate_l / 2,
+           "the screws' heads must lie on the plate: lengthen it");
     assert(plate_w / 2 >= pad_w / 2 + wall / 2 + 1 + pin_d, "the plate must reach the mould's pins: widen it");
     difference() {
         union() {
@@ -110,7 +118,7 @@ module backing(plate_l, plate_w, spacing, screw_d, head_d) {
             translate([0, 0, pad_t + back_t]) rounded_rect(plate_l, plate_w, plate_t, 2);
         }
         // two screws into the finger, outside the pad, their heads counterbored into the plate's pad side
-        for (sx = [-1, 1]) translate([sx * spacing / 2, 0, pad_t + back_t - eps]) {
+        if (mount == "screws") for (sx = [-1, 1]) translate([sx * spacing / 2, 0, pad_t + back_t - eps]) {
             cylinder(d = screw_d, h = plate_t + 2 * eps);
             cylinder(d = head_d, h = plate_t / 2);
         }
