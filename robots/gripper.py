@@ -380,7 +380,42 @@ def build_gripper(params: GripperParams, kind: str, backend, robot_section) -> G
         return SimGripper(backend.world_control, params.force_n)
     if kind == "franka-hand":
         return FrankaHand(backend.link)
+    return RobotiqGripper(robotiq_host(params, robot_section), params.robotiq_port, params.robotiq_model)
+
+
+def robotiq_host(params: GripperParams, robot_section) -> str:
     host = params.robotiq_host or robot_section.section("ur").getstr("host", "", max_len=253)
     if not host:
         raise GripperError("gripper.robotiq_host: no host (give it, or use robot.backend: ur with robot.ur.host)")
-    return RobotiqGripper(host, params.robotiq_port, params.robotiq_model)
+    return host
+
+
+def check_gripper(params: GripperParams, kind: str, robot_section, timeout_s: float = 1.0):
+    """`tecdard doctor`'s line for the gripper: a Robotiq's URCap answers on its port and says whether the gripper
+    is activated; the other kinds say what they are (a Franka Hand is reached through the arm's own check)."""
+    from tecdard.host import Check
+    if kind != "robotiq":
+        what = {"none": "none: grasp and release are refused, the grip force is estimator.grip_force_n, assumed",
+                "manual": "manual: a person grasps; the force given to `grasp` (or gripper.force_n) is assumed"}
+        return Check("gripper", "pass", what.get(kind, f"{kind}: reached through the arm's backend"))
+    import socket
+    try:
+        host = robotiq_host(params, robot_section)
+        with socket.create_connection((host, params.robotiq_port), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            sock.sendall(b"GET STA\n")
+            reply = sock.recv(64).decode("ascii", "replace").strip()
+    except GripperError as exc:
+        return Check("gripper", "fail", str(exc), "set gripper.robotiq_host")
+    except OSError as exc:
+        return Check("gripper", "fail", f"no Robotiq URCap answers at {host}:{params.robotiq_port} "
+                                        f"({exc.strerror or type(exc).__name__})",
+                     "install Robotiq's gripper URCap on the controller and activate the gripper once on the pendant")
+    if reply == "STA 3":
+        return Check("gripper", "pass", f"Robotiq URCap at {host}:{params.robotiq_port} answers; the gripper is activated")
+    if reply.startswith("STA "):
+        return Check("gripper", "warn", f"Robotiq URCap at {host}:{params.robotiq_port} answers {reply!r}: the gripper "
+                                        "is not activated (the daemon activates it at start, which opens and closes it)",
+                     "activate it on the pendant, with nothing between the fingers")
+    return Check("gripper", "fail", f"{host}:{params.robotiq_port} answered {reply[:40]!r} to GET STA: not a Robotiq "
+                                    "URCap", "check gripper.robotiq_host and robotiq_port")

@@ -156,3 +156,19 @@ def test_on_the_simulated_arm_release_empties_the_hand_tasks_refuse_and_a_grasp_
     assert len(msgs) == len(rec.tcp_t)
     assert msgs[-1] == {"width_m": 0.025, "force_n": 25.0, "grasped": True}
     assert {"width_m": 0.08, "force_n": None, "grasped": False} in msgs
+
+
+def test_doctor_says_whether_the_urcap_answers_and_the_gripper_is_activated(urcap):
+    from tecdard.config import Config
+    from tecdard.robots.gripper import check_gripper
+    robot = Config({"robot": {"ur": {"host": urcap.host}}}).section("robot")
+    params = GripperParams()
+    warn = check_gripper(params, "robotiq", robot)
+    assert warn.status == "warn" and "not activated" in warn.detail
+    urcap.reg.update(ACT=1, STA=3)
+    assert check_gripper(params, "robotiq", robot).status == "pass"
+    urcap.close()
+    fail = check_gripper(params, "robotiq", robot)
+    assert fail.status == "fail" and f"no Robotiq URCap answers at {urcap.host}:63352" in fail.detail
+    assert "URCap" in fail.fix
+    assert check_gripper(params, "none", robot).status == "pass"

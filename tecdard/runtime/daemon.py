@@ -108,7 +108,7 @@ class Daemon:
             self.gripper_kind = gripper_kind(self.gripper_params.backend, backend_name)
         except GripperError as exc:
             raise ConfigError(str(exc)) from None
-        self._robot_section = robot
+        self.robot_section = robot
         cfg.check_unused()
         self._build_threads(cfg, backend_name, mount, ring_capacity)
         try:
@@ -289,7 +289,7 @@ class Daemon:
         """The configured gripper, reached once the arm's backend has started (a Franka Hand's connection is the
         arm link's), on a thread of its own; BackendError (one line) when it cannot be reached."""
         try:
-            gripper = build_gripper(self.gripper_params, self.gripper_kind, self.backend, self._robot_section)
+            gripper = build_gripper(self.gripper_params, self.gripper_kind, self.backend, self.robot_section)
         except GripperError as exc:
             raise BackendError(str(exc)) from None
         if gripper is None:

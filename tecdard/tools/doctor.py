@@ -243,6 +243,8 @@ def run_checks(config_path: str) -> list[Check]:
     if daemon is not None:
         checks += check_endpoints(daemon.zenoh.listen, daemon.zenoh.connect, daemon.robot_name, daemon.zenoh.tls)
         checks += daemon.backend.checks()
+        from tecdard.robots.gripper import check_gripper
+        checks.append(check_gripper(daemon.gripper_params, daemon.gripper_kind, daemon.robot_section))
     checks.append(check_kernel_cache())
     return checks
 
