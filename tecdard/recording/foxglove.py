@@ -70,8 +70,8 @@ class Channels:
     nanoseconds since the Unix epoch, never negative)."""
 
     def __init__(self, context=None, origin_s: float = 0.0, epoch_s: float = 0.0, arm: bool = True):
-        """`arm`: the /joint_states and /robot_description channels too (the export's; the live view
-        has no joints to send)."""
+        """`arm`: the /joint_states, /robot_description and /gripper channels too (the export's; the live view
+        has no joints or gripper states to send)."""
         self.origin_s, self.epoch_s = float(origin_s), float(epoch_s)
         self.imu = foxglove.Channel("/imu", message_encoding="json", context=context,
                                     schema=foxglove.Schema(name="tecdar.ImuBatch", encoding="jsonschema",
@@ -82,11 +82,11 @@ class Channels:
         self.imu_mean = foxglove.Channel("/imu/mean", message_encoding="json", context=context,
                                          schema=foxglove.Schema(name="tecdar.ImuMean", encoding="jsonschema",
                                                                 data=json.dumps(IMU_MEAN_SCHEMA).encode()))
-        self.gripper_ch = foxglove.Channel("/gripper", message_encoding="json", context=context,
-                                           schema=foxglove.Schema(name="tecdar.Gripper", encoding="jsonschema",
-                                                                  data=json.dumps(GRIPPER_SCHEMA).encode()))
-        self.joints = self.description = None
+        self.joints = self.description = self.gripper_ch = None
         if arm:
+            self.gripper_ch = foxglove.Channel("/gripper", message_encoding="json", context=context,
+                                               schema=foxglove.Schema(name="tecdar.Gripper", encoding="jsonschema",
+                                                                      data=json.dumps(GRIPPER_SCHEMA).encode()))
             self.joints = JointStatesChannel("/joint_states", context=context)
             self.description = foxglove.Channel("/robot_description", message_encoding="json", context=context,
                                                 schema=foxglove.Schema(name="std_msgs/msg/String",
