@@ -324,7 +324,7 @@ class ControlThread:
         if self.faults:
             code = next(iter(self.faults))
             return C.CommandError(C.FAULT, f"{verb}: refused while fault '{code}' is active").reply()
-        refused = self._gripper_refusal(verb)
+        refused = self._refused_without_grasp(verb)
         if refused is not None:
             return refused
         spec = verbs.get(verb)
@@ -343,7 +343,7 @@ class ControlThread:
         self.runner.start(task, now, p, f)
         return {"ok": True, "task": task.id}
 
-    def _gripper_refusal(self, verb: str) -> dict | None:
+    def _refused_without_grasp(self, verb: str) -> dict | None:
         """A task needs the object held: refused while the gripper moves, or says it holds nothing (`home`, which
         moves the arm without a contact, goes on)."""
         g = self.gripper
