@@ -526,3 +526,20 @@ def test_plot_reads_as_a_person_reads_it(tmp_path):
                   "since the onset, deg", "error, mm", "onset", "start", "done", "time since the recording"):
         assert label in text, label
     assert text.count("±3σ") == 2                  # x and z banded; y, along the hinge, not
+
+
+def test_a_capture_on_demand_that_closed_itself_at_its_limit_does_not_leave_start_busy(tmp_path):
+    """Issue 50 item 7: a capture on demand closes itself after MAX_CAPTURE_S (120 s); `record start` then
+    answered `busy` until someone sent `record stop`."""
+    from tecdard.api import commands as C
+    rec = R.Recorder(R.RecordParams(dir=str(tmp_path)), lambda *a, **k: None, {})
+    assert rec.request("start", "long")["ok"] is True
+    rec._on_command("start", "long")                     # the recorder thread opens it
+    with pytest.raises(C.CommandError) as busy:
+        rec.request("start", "again")                     # still running: busy, as before
+    assert busy.value.code == C.BUSY
+    rec._capture.t_open -= R.MAX_CAPTURE_S + 1.0
+    rec._check_age()                                      # the recorder thread closes it at its limit
+    assert rec._capture is None
+    reply = rec.request("start", "next")
+    assert reply["ok"] is True and reply["label"] == "next"

@@ -124,6 +124,9 @@ class Recorder:
         self._capture: Capture | None = None
         self._task: tuple[str, str] | None = None       # (id, verb) of the running task
         self._manual: str | None = None                  # main thread: the label of a capture on demand
+        # captures on demand started (main thread) and ended (recorder thread: record stop, 120 s, the daemon
+        # stopping); all ended: the one the main thread holds has closed by itself, and a start is no longer busy
+        self._manual_started = self._manual_ended = 0
         self._starts = TokenBucket(params.max_on_demand_per_min / 60.0, params.max_on_demand_burst)
 
     # -- hand-over (other threads) -------------------------------------------------
@@ -138,6 +141,8 @@ class Recorder:
     def request(self, action: str, label: str) -> dict:
         """On the main thread: a `record` command's reply. The main thread owns whether a capture on
         demand runs (`_manual`); the capture itself is the recorder thread's."""
+        if self._manual is not None and self._manual_ended >= self._manual_started:
+            self._manual = None                              # it closed by itself (MAX_CAPTURE_S): written
         if action == "start":
             if self._manual is not None:
                 raise C.CommandError(C.BUSY, f"record: a capture on demand is running (label "
@@ -148,6 +153,7 @@ class Recorder:
                                                      f"in a row, then {p.max_on_demand_per_min:g} a minute "
                                                      "(record.max_on_demand_per_min); try again later")
             self._manual = clean_label(label)
+            self._manual_started += 1
             self._inbox.put(CaptureCommand("start", self._manual))
             return {"ok": True, "recording": True, "label": self._manual, "dir": self.params.dir}
         if self._manual is None:
@@ -254,6 +260,7 @@ class Recorder:
             self._finish("record stop")
         elif action == "close" and self._capture is not None:
             cap, self._capture = self._capture, None
+            self._manual_ended += cap.manual
             self._write(cap, label, compress=False)
 
     def _open(self, reason: str, label: str, task, verb, episode: int, manual: bool = False) -> None:
@@ -291,6 +298,7 @@ class Recorder:
     def _finish(self, why: str) -> None:
         cap, self._capture = self._capture, None
         if cap is not None:
+            self._manual_ended += cap.manual
             self._write(cap, why)
 
     # -- writing --------------------------------------------------------------------
