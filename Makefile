@@ -14,7 +14,20 @@ WARM_JIT := $(VENV)/.warm-jit
 
 .PHONY: install run test check lint bench firmware fingertip clean
 
+# A .venv made by another Python than PY_BOOT's (a start that failed on Python 3.10, then the README's
+# `PY_BOOT=python3.11`) is made again, not reused: its packages are that other Python's.
+PY_VERSION = import sys; print("%d.%d" % sys.version_info[:2])
+VENV_PY := $(shell [ -x $(PY) ] && $(PY) -c '$(PY_VERSION)' 2>/dev/null)
+BOOT_PY := $(shell $(PY_BOOT) -c '$(PY_VERSION)' 2>/dev/null)
+ifneq ($(VENV_PY),)
+ifneq ($(VENV_PY),$(BOOT_PY))
+$(info make: $(VENV) is Python $(VENV_PY)'s, $(PY_BOOT) is $(or $(BOOT_PY),missing): $(VENV) is made again)
+$(shell rm -rf $(VENV))
+endif
+endif
+
 $(PY):
+	@$(PY_BOOT) -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null || { echo "make: $(PY_BOOT) is Python $(or $(BOOT_PY),missing); tecdar needs 3.11 or later: make $(MAKECMDGOALS) PY_BOOT=python3.11 (README, Python)"; exit 1; }
 	$(PY_BOOT) -m venv $(VENV)
 
 $(STAMP): $(PY) pyproject.toml
