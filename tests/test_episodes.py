@@ -85,7 +85,7 @@ def test_an_episode_goes_up_once_and_its_rows_answer_sql(tmp_path, recordings):
     store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
     first = sorted(rec.glob("*.npz"))[0]
     ep = upload(store, first, robot=ROBOT, mcap=True)
-    assert is_uploaded(first)
+    assert is_uploaded(first, store.url)
     assert ep.key(".npz") == f"{ROBOT}/{ep.day}/{first.stem}.npz"
     assert objects(store, ROBOT) == sorted([ep.key(".npz"), ep.key(".mcap")])
     assert (tmp_path / "store" / ep.key(".npz")).read_bytes() == first.read_bytes()
@@ -99,6 +99,37 @@ def test_an_episode_goes_up_once_and_its_rows_answer_sql(tmp_path, recordings):
     assert len(contacts) == 1 and contacts[0][1] < ERROR_M, contacts
 
 
+def test_a_copy_in_another_store_never_counts_for_the_daemons_own(tmp_path, recordings):
+    """Issue 50 item 2: after `episodes sync` to a try-out store (or a changed store.url) the `.uploaded` marker
+    counted for every store: the uploader never uploaded those recordings to the daemon's own store, and the
+    recorder's budget deleted them. A marker names each store that has the recording."""
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    tryout = EpisodeStore(StoreParams(url=f"file://{tmp_path}/tryout"))
+    own = StoreParams(url=f"file://{tmp_path}/own/")
+    path = sorted(rec.glob("*.npz"))[0]
+    upload(tryout, path, robot=ROBOT, mcap=False)
+    uploader = Uploader(own, str(rec), ROBOT, lambda kind, **f: None)
+    assert is_uploaded(path, tryout.url) and not is_uploaded(path, own.url)
+    assert not uploader.may_delete(path)                            # the recorder's budget keeps it
+    assert path in uploader._scan()                                 # and the uploader has it to do
+    upload(EpisodeStore(own), path, robot=ROBOT, mcap=False)
+    assert uploader.may_delete(path) and is_uploaded(path, tryout.url)       # both stores named now
+    old = path.with_name(path.name + ".uploaded")                   # a marker of the older form: its one store
+    old.write_text(json.dumps({"store": tryout.url, "key": "k", "at": "t"}))
+    assert is_uploaded(path, tryout.url) and not uploader.may_delete(path)
+    old.write_text("{not json")                                     # unreadable: kept, and uploaded again
+    assert not uploader.may_delete(path)
+
+
+def test_sync_to_a_new_store_uploads_what_another_store_has(tmp_path, recordings):
+    rec = fresh_copy(recordings, tmp_path / "rec")
+    for name in ("one", "two"):
+        res = tecdard("episodes", "sync", "--dir", str(rec), "--store", f"file://{tmp_path}/{name}", "--robot", ROBOT)
+        assert res.returncode == 0, res.stderr
+        n = len(list(rec.glob("*.npz")))
+        assert f"{n} uploaded, 0 failed, 0 there already" in res.stderr, res.stderr
+
+
 def test_a_store_that_has_another_file_of_that_name_is_never_overwritten(tmp_path, recordings):
     rec = fresh_copy(recordings, tmp_path / "rec")
     store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
@@ -107,7 +138,7 @@ def test_a_store_that_has_another_file_of_that_name_is_never_overwritten(tmp_pat
     store.put_once(ep.key(".npz"), b"someone else's")
     with pytest.raises(StoreError, match="not these"):
         upload(store, path, robot=ROBOT, mcap=False)
-    assert store.get(ep.key(".npz")) == b"someone else's" and not is_uploaded(path)
+    assert store.get(ep.key(".npz")) == b"someone else's" and not is_uploaded(path, store.url)
 
 
 @pytest.mark.slow
@@ -160,9 +191,9 @@ def test_the_store_going_away_mid_upload_loses_nothing_and_doubles_nothing(tmp_p
     th.start()
     try:
         _wait_for(lambda: any(k == "upload_failed" for k, _ in events), 30.0, lambda: events)
-        assert not any(is_uploaded(f) for f in rec.glob("*.npz"))            # nothing marked while away
+        assert not any(is_uploaded(f, store.url) for f in rec.glob("*.npz"))            # nothing marked while away
         server.start()
-        _wait_for(lambda: all(is_uploaded(f) for f in rec.glob("*.npz")), UPLOAD_WAIT_S, lambda: events[-3:])
+        _wait_for(lambda: all(is_uploaded(f, store.url) for f in rec.glob("*.npz")), UPLOAD_WAIT_S, lambda: events[-3:])
     finally:
         stop.set()
         th.join(5.0)
@@ -242,11 +273,13 @@ def test_the_recorder_deletes_only_what_the_store_has(tmp_path):
         f.write_bytes(b"x" * 400_000)
         old.append(f)
         time.sleep(0.01)
-    (folder / (old[1].name + ".uploaded")).write_text("{}")
+    own = StoreParams(url=f"file://{tmp_path}/store")
+    (folder / (old[1].name + ".uploaded")).write_text(json.dumps({"stores": [{"store": own.url, "key": "k"}]}))
+    (folder / (old[2].name + ".uploaded")).write_text(json.dumps({"stores": [{"store": "file:///elsewhere"}]}))
     recorder = Recorder(RecordParams(dir=str(folder), max_mb=1.0, keep_free_mb=0.0), lambda *a, **k: None, {})
-    recorder.may_delete = Uploader.may_delete
+    recorder.may_delete = Uploader(own, str(folder), ROBOT, lambda *a, **k: None).may_delete
     recorder._make_room(folder, 400_000, keep=folder / "20261204-110000-new.npz")
-    assert old[0].exists() and old[2].exists()              # not in the store: kept
+    assert old[0].exists() and old[2].exists()              # not in the daemon's store (old[2]: in another): kept
     assert not old[1].exists() and not (folder / (old[1].name + ".uploaded")).exists()
 
 

@@ -57,7 +57,7 @@ def _sync(args) -> int:
     if not folder.is_dir():
         _say("sync", f"--dir {show(str(folder))}: no such directory")
         return EXIT_BAD_INPUT
-    files = sorted(f for f in folder.glob("*.npz") if args.again or not is_uploaded(f))
+    files = sorted(f for f in folder.glob("*.npz") if args.again or not is_uploaded(f, store.url))
     done = failed = 0
     for f in files:
         try:
@@ -189,7 +189,7 @@ def add_parser(sub) -> None:
     p.add_argument("--dir", help="the recordings (default: --config's record.dir)")
     p.add_argument("--robot", help="the robot of recordings that do not name one (simulated ones)")
     p.add_argument("--no-mcap", action="store_true", help="no MCAP beside each recording")
-    p.add_argument("--again", action="store_true", help="also those marked uploaded (a new store): still never twice")
+    p.add_argument("--again", action="store_true", help="also those marked uploaded to this store: still never twice")
     p.set_defaults(func=_sync)
     p = verbs.add_parser("query", help="SQL (DuckDB) over the index: views `episodes` and `contacts`",
                          description="Views: episodes (one row per episode: id, robot, episode, start_time, day, task, "

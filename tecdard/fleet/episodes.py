@@ -388,11 +388,29 @@ def marker(path: pathlib.Path) -> pathlib.Path:
 
 
 def mark_uploaded(path: pathlib.Path, url: str, ep: Episode) -> None:
+    """Add `url` to the stores the marker beside `path` names (written whole, then moved into place)."""
+    entries = [e for e in _marker_entries(path) if e.get("store") != url.rstrip("/")]
+    entries.append({"store": url.rstrip("/"), "key": ep.key(".npz"),
+                    "at": datetime.datetime.now(datetime.timezone.utc).isoformat()})
     tmp = marker(path).with_suffix(".tmp")
-    tmp.write_text(json.dumps({"store": url, "key": ep.key(".npz"), "at": datetime.datetime.now(
-        datetime.timezone.utc).isoformat()}) + "\n")
+    tmp.write_text(json.dumps({"stores": entries}) + "\n")
     os.replace(tmp, marker(path))
 
 
-def is_uploaded(path: pathlib.Path) -> bool:
-    return marker(path).exists()
+def _marker_entries(path: pathlib.Path) -> list[dict]:
+    """The stores the marker says have the recording: `{"stores": [{store, key, at}, ...]}`, or an older
+    marker's one `{store, key, at}`; none for a marker that is missing or unreadable (then the recording is
+    kept and uploaded again: an upload never writes an object twice)."""
+    try:
+        data = json.loads(marker(path).read_text())
+    except (OSError, ValueError):
+        return []
+    entries = data.get("stores") if isinstance(data, dict) and "stores" in data else [data]
+    return [e for e in entries if isinstance(e, dict) and isinstance(e.get("store"), str)] \
+        if isinstance(entries, list) else []
+
+
+def is_uploaded(path: pathlib.Path, url: str) -> bool:
+    """Whether the store at `url` has the recording (a marker names each store that has it: one store's copy
+    never counts for another)."""
+    return any(e["store"] == url.rstrip("/") for e in _marker_entries(path))

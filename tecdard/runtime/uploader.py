@@ -58,9 +58,10 @@ class Uploader:
         except queue.Full:
             self._rescan.set()
 
-    @staticmethod
-    def may_delete(path: pathlib.Path) -> bool:
-        return is_uploaded(path)
+    def may_delete(self, path: pathlib.Path) -> bool:
+        """The recorder's budget may delete `path` once this daemon's own store has it (a copy in another store,
+        an `episodes sync` to a try-out store, does not count)."""
+        return is_uploaded(path, self.params.url)
 
     def run(self, stop: threading.Event) -> None:
         try:
@@ -116,7 +117,7 @@ class Uploader:
                 retry_s, next_try = RETRY_FIRST_S, time.monotonic() + (time.monotonic() - now) * (1.0 / DUTY - 1.0)
 
     def _add(self, path: pathlib.Path) -> None:
-        if path not in self.pending and path.exists() and not is_uploaded(path):
+        if path not in self.pending and path.exists() and not is_uploaded(path, self.params.url):
             self.pending.append(path)
 
     def _scan(self) -> list[pathlib.Path]:
@@ -125,7 +126,7 @@ class Uploader:
             files = [f for f in self.directory.iterdir() if self.own_name is None or self.own_name.match(f.name)]
         except OSError:
             return []
-        return sorted((f for f in files if f.suffix == ".npz" and not is_uploaded(f)), key=_mtime)
+        return sorted((f for f in files if f.suffix == ".npz" and not is_uploaded(f, self.params.url)), key=_mtime)
 
     def _upload(self, path: pathlib.Path) -> None:
         if self._worker is None:
