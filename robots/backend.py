@@ -35,7 +35,8 @@ class JointState:
 @dataclass(frozen=True)
 class TopicState:
     """A robot whose state arrives on a front door's topic instead of a link of its own (an arm that ROS 2
-    drives): the door subscribes and hands each message over, `take(msg | None, problem | None)`."""
+    drives): the door subscribes and hands each message over, `take(msg | None, problem | None, source)` (source:
+    the publisher's id, None when it did not say)."""
     door: str                      # the front door that subscribes: "ros2" (the ROS 2 node's ros2.joint_states)
     take: Callable
 

@@ -11,9 +11,10 @@ Faults, never a wrong TCP: a stream silent for longer than `robot.ros2.stale_s` 
 state that jumps further than the joints' speed limits allow, out of range or non-finite
 (robot_state, robots.state_check), a message lacking a joint of the model, with mismatched array
 lengths, duplicated names, an arm's worth of joints none of which is the model's, or a stamp that is
-zero or in the future (robot_joint_states). A message with fewer joints than the model and none of
-its (a gripper driver's, on the same topic) is skipped and counted; names the model does not have
-beside its own are ignored, as the interface says.
+zero or in the future, more joints than any arm has (MAX_JOINTS), or the model's joints from a second
+publisher beside the one it started with (robot_joint_states). A message with fewer joints than the
+model and none of its (a gripper driver's, on the same topic) is skipped and counted; names the model
+does not have beside its own are ignored, as the interface says (the first MAX_EXTRA_NAMES logged).
 """
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ log = logging.getLogger("tecdar.ros2")
 STALE_S = 0.1                    # robot.ros2.stale_s: a joint-state stream silent for longer is a fault
 FIRST_STATE_S = 3.0              # robot.ros2.first_state_s: at start, joint states this long decide the model's fit
 MAX_FUTURE_S = 0.05              # a stamp further ahead of the system clock is refused (clocks not in sync)
+MAX_JOINTS = 64                  # a message naming more joints is no arm's (a fault; what it names is not kept)
+MAX_EXTRA_NAMES = 64             # names beside the model's remembered (and logged) at most
 FAULT = "robot_joint_states"
 
 
@@ -71,8 +74,12 @@ class Ros2Observer(RobotBackend):
         self._fault_t = -math.inf
         self.skipped = 0                 # messages naming none of the model's joints
         self.commands_dropped = 0
-        self.extra_names: set[str] = set()
+        self.extra_names: set[str] = set()           # at most MAX_EXTRA_NAMES of them
         self.names_seen: list[str] | None = None     # the names of the first message that named none or not all
+        # the publisher of the arm's joint states (its GID, from rmw_zenoh's attachment) and when it last sent:
+        # a second one beside it is a fault; a new one after it fell silent (a driver's restart) is taken
+        self.source: bytes | None = None
+        self._source_t = -math.inf
         self.topic_state = TopicState("ros2", self.on_joint_state)
 
     # -- lifecycle: the node owns the subscription ------------------------------------------------
@@ -130,17 +137,20 @@ class Ros2Observer(RobotBackend):
             return {} if self._fault is None else {FAULT: self._fault}
 
     # -- the node's handler (Zenoh's thread) ----------------------------------------------------------
-    def on_joint_state(self, msg, problem: str | None) -> None:
-        """One JointState message (or why none could be read): a new state, or a fault naming what is wrong."""
+    def on_joint_state(self, msg, problem: str | None, source: bytes | None = None) -> None:
+        """One JointState message (or why none could be read) from the publisher `source` (its GID; None: it
+        did not say): a new state, or a fault naming what is wrong."""
         if msg is not None:
             try:
-                problem = self._state(msg)
+                problem = self._state(msg, source)
             except Exception as exc:             # a message of the right type with values no arm sends
                 problem = f"joint_states: {type(exc).__name__}: {str(exc)[:120]}"
         if problem is not None:
             self._refuse(problem)
 
-    def _state(self, msg) -> str | None:
+    def _state(self, msg, source: bytes | None = None) -> str | None:
+        if len(msg.name) > MAX_JOINTS:
+            return f"joint_states: {len(msg.name)} joints, more than an arm has (at most {MAX_JOINTS})"
         names = list(msg.name)
         pos, vel = np.asarray(msg.position, float), np.asarray(msg.velocity, float)
         if len(pos) != len(names):
@@ -163,10 +173,15 @@ class Ros2Observer(RobotBackend):
                     f"model's joints: {', '.join(self.names)})")
         if missing:
             return f"joint_states: no {missing[0]} (the model's joints: {', '.join(self.names)})"
+        problem = self._one_publisher(source)
+        if problem is not None:
+            return problem
         extra = set(names) - set(self.names) - self.extra_names
-        if extra:
+        if extra and len(self.extra_names) < MAX_EXTRA_NAMES:
+            extra = set(sorted(extra)[:MAX_EXTRA_NAMES - len(self.extra_names)])
             self.extra_names |= extra
-            log.info("joint_states: ignoring joints the model does not have: %s", ", ".join(sorted(extra)))
+            log.info("joint_states: ignoring joints the model does not have: %s%s", ", ".join(sorted(extra)),
+                     " (no more are listed)" if len(self.extra_names) >= MAX_EXTRA_NAMES else "")
         order = [names.index(n) for n in self.names]
         q = pos[order]
         stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
@@ -195,6 +210,21 @@ class Ros2Observer(RobotBackend):
             self._prev = js
             self._latest = js
             self._cond.notify_all()
+        return None
+
+    def _one_publisher(self, source: bytes | None) -> str | None:
+        """Only the publisher the observer started with drives the state; another beside it is a fault (two
+        drivers, or a second node echoing the arm), one after it fell silent for stale_s is the driver again."""
+        now = time.monotonic()
+        if source is None or source == self.source:
+            self._source_t = now if source is not None else self._source_t
+            return None
+        if self.source is not None and now - self._source_t <= self.stale_s:
+            return (f"joint_states: a second publisher (GID {source.hex()[:16]}...) beside the arm's "
+                    f"({self.source.hex()[:16]}...): only its driver may publish them")
+        if self.source is not None:
+            log.warning("joint_states: a new publisher (GID %s...) after the last fell silent", source.hex()[:16])
+        self.source, self._source_t = source, now
         return None
 
     def _refuse(self, problem: str) -> None:

@@ -171,3 +171,67 @@ def test_a_urdf_that_cannot_be_the_arm_is_one_line(tmp_path, text, link, expect)
     assert expect in str(exc.value) and "\n" not in str(exc.value)
     with pytest.raises(UnknownRobotError, match="no such file"):
         ArmModel("urdf", urdf=str(tmp_path / "none.urdf"), tcp_link="tool")
+
+
+def test_a_message_with_more_joints_than_an_arm_is_a_fault_and_what_it_names_is_not_kept(ts, observer):
+    """Issue 50 item 3: a second publisher sent the model's joints plus 15 000 new names per message; the
+    daemon kept and logged every name (122 -> 434 MB in 6 s)."""
+    many = PANDA + [f"junk_{k}" for k in range(15000)]
+    observer.on_joint_state(joint_state(ts, many, list(Q) + [0.0] * 15000), None)
+    assert "15007 joints, more than an arm has" in observer.faults()[FAULT]
+    assert observer.read_state().seq == 0 and observer.extra_names == set()
+
+
+def test_names_beside_the_models_are_remembered_and_logged_only_so_many(ts, observer):
+    from tecdard.robots.ros2_observer import MAX_EXTRA_NAMES
+    t0 = time.time() - 1.0
+    for k in range(5):
+        extra = [f"aux_{k}_{j}" for j in range(40)]
+        observer.on_joint_state(joint_state(ts, PANDA + extra, list(Q) + [0.0] * 40, stamp_s=t0 + k * STATE_DT_S),
+                                None)
+    assert observer.read_state().seq == 5 and observer.faults() == {}
+    assert len(observer.extra_names) == MAX_EXTRA_NAMES
+
+
+def test_a_second_publisher_of_the_arms_joints_is_a_fault_and_a_restarted_driver_is_taken(ts, observer):
+    driver, echo, restarted = b"\x01" * 16, b"\x02" * 16, b"\x03" * 16
+    t0 = time.time() - 1.0
+    observer.on_joint_state(joint_state(ts, PANDA, Q, stamp_s=t0), None, driver)
+    observer.on_joint_state(joint_state(ts, PANDA, Q, stamp_s=t0 + STATE_DT_S), None, echo)
+    assert "a second publisher (GID 0202" in observer.faults()[FAULT]
+    assert observer.read_state().seq == 1                                  # the echo moved nothing
+    # a gripper driver's few joints from its own publisher are still skipped, not a fault of their own
+    observer.on_joint_state(joint_state(ts, ["panda_finger_joint1"], [0.01], stamp_s=t0 + 0.003), None, echo)
+    assert observer.skipped == 1
+    time.sleep(0.15)                                                       # the driver silent past stale_s
+    observer.on_joint_state(joint_state(ts, PANDA, Q, stamp_s=time.time()), None, restarted)
+    assert observer.read_state().seq == 2 and observer.source == restarted
+
+
+def test_the_node_refuses_a_joint_state_larger_than_an_arms_before_decoding_it_and_names_its_publisher(ts):
+    import types
+    from tecdard.ros2 import rmw
+    from tecdard.runtime.ros2_node import JOINT_STATE, MAX_JOINT_STATE_BYTES, Ros2Node, Ros2Params
+    node = Ros2Node(Ros2Params(enabled=True), "sim", None, types=ts)
+    node.node = rmw.NodeInfo(0, "z", 0, "/sim", "tecdard")
+    subscribed = {}
+    node.session = types.SimpleNamespace(
+        declare_subscriber=lambda key, cb: subscribed.setdefault("cb", cb),
+        liveliness=lambda: types.SimpleNamespace(declare_token=lambda key: None))
+    got = []
+    node._subscribe_joint_states(lambda *args: got.append(args))
+
+    class Payload(bytes):                                             # zenoh.ZBytes as the callback uses it
+        def to_bytes(self):
+            return bytes(self)
+    decoded = []
+    real_decode = node.ts.decode
+    node.ts.decode = lambda raw, t: decoded.append(len(raw)) or real_decode(raw, t)
+    subscribed["cb"](types.SimpleNamespace(payload=Payload(b"\0" * (MAX_JOINT_STATE_BYTES + 1)), attachment=None))
+    assert got[-1][0] is None and f"{MAX_JOINT_STATE_BYTES + 1} bytes, more than an arm's" in got[-1][1]
+    assert decoded == []                                              # refused undecoded
+    gid = b"\x07" * 16
+    raw = node.ts.encode(joint_state(ts, PANDA, Q), JOINT_STATE)
+    subscribed["cb"](types.SimpleNamespace(payload=Payload(raw), attachment=Payload(rmw.attachment(1, 0, gid))))
+    msg, problem, source = got[-1]
+    assert problem is None and list(msg.name) == PANDA and source == gid

@@ -48,6 +48,7 @@ TOPICS = {
 }
 SERVICE_QOS = rmw.RELIABLE_10           # rmw_qos_profile_services_default
 JOINT_STATES_QOS = rmw.SENSOR_DATA      # best effort: takes a reliable or a best-effort publisher
+MAX_JOINT_STATE_BYTES = 16384           # a JointState larger than this is no arm's (64 joints with long names fit)
 SERVICE_BACKLOG = 16                    # requests waiting per service (the oldest overwritten)
 TAP_PASSES = 256                        # estimator passes waiting for the publish pass; more are dropped
 IMU_BLOCKS_PER_PASS = 200               # averaged IMU messages published per pass at most (a backlog is dropped)
@@ -218,8 +219,18 @@ class Ros2Node(FrontDoor):
         key, _ = self._entity(rmw.SUBSCRIPTION, self.params.joint_states, JOINT_STATE, JOINT_STATES_QOS)
 
         def on_sample(sample) -> None:
-            """Zenoh's thread: decode and hand over to the backend (its check decides), never raising."""
+            """Zenoh's thread: decode and hand over to the backend (its check decides), never raising. A message
+            larger than any arm's is refused undecoded; the publisher's GID comes from rmw_zenoh's attachment."""
             self.counters["joint_states"] += 1
+            size = len(sample.payload)
+            if size > MAX_JOINT_STATE_BYTES:
+                self.counters["bad_joint_states"] += 1
+                handler(None, f"{JOINT_STATE}: {size} bytes, more than an arm's (at most {MAX_JOINT_STATE_BYTES})")
+                return
+            try:
+                source = rmw.parse_attachment(_bytes(sample.attachment))[2]
+            except ValueError:
+                source = None
             try:
                 msg = self.ts.decode(sample.payload.to_bytes(), JOINT_STATE)
             except TypeError_ as exc:
@@ -230,7 +241,7 @@ class Ros2Node(FrontDoor):
                 self.counters["bad_joint_states"] += 1
                 handler(None, f"{JOINT_STATE}: {type(exc).__name__}")
                 return
-            handler(msg, None)
+            handler(msg, None, source)
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
     def undeclare(self) -> None:
