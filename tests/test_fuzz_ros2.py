@@ -6,6 +6,7 @@ Whatever comes: nothing raises, a request is answered at most once (an error rep
 or handed to the control thread within the configured limits, and a joint state is a new state or a
 fault, never a state that fails the checks."""
 import math
+import time
 
 import numpy as np
 import pytest
@@ -32,11 +33,16 @@ def fuzz_settings(examples: int) -> settings:
 
 
 class ZBytes:
+    """zenoh.ZBytes as the node uses it: its bytes and its length."""
+
     def __init__(self, raw):
         self.raw = raw
 
     def to_bytes(self):
         return self.raw
+
+    def __len__(self):
+        return len(self.raw)
 
 
 class RosQuery:
@@ -192,3 +198,42 @@ def test_any_joint_state_is_a_checked_state_or_a_fault(node, observer, names, po
             check = observer.state_check
             assert math.isfinite(js.t) and js.q.shape == (7,) and np.all(np.isfinite(js.q))
             assert np.all(js.q >= check.q_min) and np.all(js.q <= check.q_max)
+
+
+def test_a_flood_of_large_ros2_requests_is_charged_before_it_is_decoded(node):
+    """Issue 50 item 1: two clients sent 1.9 MB `Map` requests for 5 s and the daemon froze: the node decoded
+    each request's CDR into Python objects before the intake saw its size or its class's budget. Now a request
+    over the size limit is refused unread, and one beyond the class's rate is refused before it is decoded."""
+    sink = Sink()
+    intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams(max_task_rate_hz=5.0))
+    node.intake = intake
+    svc = _Service("map", "tecdar_msgs/srv/Map", "key")
+    decoded = []
+    real = node.ts.decode
+    node.ts.decode = lambda raw, t: decoded.append(len(raw)) or real(raw, t)
+    try:
+        req = node.ts.cls("tecdar_msgs/srv/Map_Request")(
+            origin=np.zeros(0), size=np.zeros(0), grid=np.arange(480_000, dtype=np.int32), depth=0.0, speed=0.0,
+            orientations=0)
+        huge = node.ts.encode(req, "tecdar_msgs/srv/Map_Request")
+        assert len(huge) > 1_900_000
+        t0 = time.monotonic()                                                # the intake's clock
+        queries = [RosQuery(huge, rmw.attachment(k, 0, GID)) for k in range(50)]
+        for k, q in enumerate(queries):
+            assert node._call(svc, q, now=t0 + k * 0.01) is None            # refused: too large, or over the rate
+        assert decoded == []                                                  # none decoded
+        codes = [real(q.replies[0][0], "tecdar_msgs/srv/Map_Response") for q in queries if q.replies]
+        assert codes and {r.error_code for r in codes} <= {C.PAYLOAD_TOO_LARGE, C.RATE_LIMITED}
+        assert any(r.error_code == C.PAYLOAD_TOO_LARGE for r in codes)
+        # small requests beyond the task class's 5 a second: refused before they are decoded
+        small = node.ts.encode(node.ts.cls("tecdar_msgs/srv/Map_Request")(
+            origin=np.zeros(0), size=np.zeros(0), grid=np.zeros(0, np.int32), depth=0.0, speed=0.0,
+            orientations=0), "tecdar_msgs/srv/Map_Request")
+        decoded.clear()
+        for k in range(40):
+            call = node._call(svc, RosQuery(small, rmw.attachment(k, 0, GID)), now=t0 + 10.0)
+            if call is not None:
+                intake.handle(call, call.key_expr, call.payload, t0 + 10.0, charged=True)
+        assert 0 < len(decoded) <= 10 and intake.counters["rate_limited"] + intake.counters["dropped"] >= 30
+    finally:
+        node.ts.decode = real

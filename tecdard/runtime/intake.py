@@ -195,16 +195,14 @@ class QueryIntake:
             return "record"
         return "status" if key == self.keys.cmd("status") else "other"
 
-    def handle(self, query, key: str, payload, now: float) -> None:
-        """One query of key `key` with `payload` (zenoh.ZBytes, bytes or None): refused, answered, or
-        handed to the control thread. No input raises."""
-        self.counters["queries"] += 1
+    def charge(self, query, key: str, size: int, now: float) -> bool:
+        """Charge a query of `size` payload bytes to its class's budget before anything of it is parsed:
+        False when the budget refuses it (answered rate_limited while the refusals' own budget lasts, else
+        dropped) or it is over the size limit (answered payload_too_large, unread). A front door that must
+        decode before the intake parses (the ROS 2 node's CDR) calls this first, then `handle(charged=True)`."""
+        klass = self._class(key)
         prefix = self.keys.cmd_prefix
         verb = key[len(prefix):] if key.startswith(prefix) else key
-        if key == self._stop_key:
-            return          # the stop queryable has it (a stop's copies elsewhere are not answered)
-        klass = self._class(key)
-        size = len(payload) if payload is not None else 0
         # parsing costs by size; an oversized payload is refused unread, at the cost of an empty query
         # (the refusal costs nothing to send, so it is sent)
         cost = 1.0 + (size / PAYLOAD_COST_BYTES if size <= C.MAX_PAYLOAD_BYTES else 0.0)
@@ -216,10 +214,27 @@ class QueryIntake:
                                                  "try again later").reply())
             else:
                 self.counters["dropped"] += 1
+            return False
+        if size > C.MAX_PAYLOAD_BYTES:          # refused unread
+            exc = C.CommandError(C.PAYLOAD_TOO_LARGE, f"payload: {size} bytes, at most {C.MAX_PAYLOAD_BYTES}")
+            self.counters["refused"] += 1
+            self._log_refusal(now, verb, exc)
+            self._send(query, exc.reply())
+            return False
+        return True
+
+    def handle(self, query, key: str, payload, now: float, charged: bool = False) -> None:
+        """One query of key `key` with `payload` (zenoh.ZBytes, bytes or None): refused, answered, or
+        handed to the control thread (`charged`: its budget was taken already, by `charge`). No input raises."""
+        self.counters["queries"] += 1
+        prefix = self.keys.cmd_prefix
+        verb = key[len(prefix):] if key.startswith(prefix) else key
+        if key == self._stop_key:
+            return          # the stop queryable has it (a stop's copies elsewhere are not answered)
+        size = len(payload) if payload is not None else 0
+        if not charged and not self.charge(query, key, size, now):
             return
         try:
-            if size > C.MAX_PAYLOAD_BYTES:      # refused unread
-                raise C.CommandError(C.PAYLOAD_TOO_LARGE, f"payload: {size} bytes, at most {C.MAX_PAYLOAD_BYTES}")
             raw = None if payload is None else (payload if isinstance(payload, (bytes, str)) else payload.to_bytes())
             fields = C.admit(verb, raw, self.limits)
             if verb == "status":

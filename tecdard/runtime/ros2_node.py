@@ -353,8 +353,11 @@ class Ros2Node(FrontDoor):
         ]
 
     # -- services ---------------------------------------------------------------------------------------
-    def _call(self, svc: _Service, query) -> ServiceCall | None:
-        """A query as a ServiceCall; None (and an error reply where one can be sent) when it is no request."""
+    def _call(self, svc: _Service, query, now: float | None = None) -> ServiceCall | None:
+        """A query as a ServiceCall; None (and an error reply where one can be sent) when it is no request.
+        With `now` (the queued services; not a stop), the request is charged to its class's budget, and checked
+        against the size limit, before its CDR is decoded: a flood of large requests costs the main thread no
+        more than the Zenoh interface's does."""
         self.counters["requests"] += 1
         try:
             seq, _t, client_gid = rmw.parse_attachment(_bytes(query.attachment))
@@ -362,6 +365,11 @@ class Ros2Node(FrontDoor):
             self.counters["bad_requests"] += 1
             log.info("ROS 2 %s: request refused: %s", svc.verb, exc)
             return None
+        key = self.intake.keys.cmd(svc.verb)
+        if now is not None:
+            size = len(query.payload) if query.payload is not None else 0
+            if not self.intake.charge(ServiceCall(self, svc, query, key, b"", seq, client_gid), key, size, now):
+                return None
         try:
             raw = _bytes(query.payload) or b""
             if svc.verb in ("stop", "status"):
@@ -398,9 +406,9 @@ class Ros2Node(FrontDoor):
                 if query is None:
                     break
                 n += 1
-                call = self._call(svc, query)
+                call = self._call(svc, query, now)
                 if call is not None:
-                    self.intake.handle(call, call.key_expr, call.payload, now)
+                    self.intake.handle(call, call.key_expr, call.payload, now, charged=True)
                 del query
         return n
 
