@@ -119,6 +119,8 @@ class SensorWatch:
         verdict = imu_staleness(now, total, last_t, now - self.t_boot, late_s, self._stale_deferred, self.limits)
         self._stale_deferred = verdict.deferred
         changes = self._set("imu_stale", verdict.stale, keep=verdict.deferred)
+        if verdict.stale is not None and "imu_stale" in self.faults:
+            self.faults["imu_stale"] = verdict.stale         # said as it stands: "for 2300 ms", not the first 58
         changes += self._set("imu_saturated", imu_saturation(now, saturated_since, self.limits),
                              keep=saturated_since is not None)
         return changes

@@ -40,6 +40,11 @@ class ImuSource:
         """(gyro rad/s, accel m/s^2) at which a sample is clipped: the LSM6DSR's default full scales."""
         return Scaling().saturation
 
+    def faults(self) -> dict[str, str]:
+        """The source's own faults that hold now, code -> message (its port lost, its sensor silent), said as
+        they stand (how long ago), for `status`; their events come through drain_events."""
+        return {}
+
     def drain_events(self) -> list[dict]:
         """The source's own events since the last call (a port lost, a port back), for the outbox."""
         return []

@@ -112,6 +112,7 @@ class SerialImuSource(ImuSource):
         self.reconnects = 0
         self.status: StatusPacket | None = None
         self.who_am_i: int | None = None         # the sensor's, from the board's identity packet
+        self._lost: tuple[float, str] | None = None      # (when, why) the port was lost, until it is back
         self.latest: tuple[float, np.ndarray, np.ndarray] | None = None
         self._retry_at = 0.0
         self._last_t: float | None = None        # the last sample time handed on (host clock)
@@ -158,6 +159,7 @@ class SerialImuSource(ImuSource):
 
     def mark_lost(self, why: str) -> None:
         self.close()
+        self._lost = (self.clock(), why)
         self.disconnects += 1
         self.parser.reset_sequence()
         self.events.append({"kind": "fault", "code": "imu_disconnected", "message": f"IMU port lost: {why}"})
@@ -175,6 +177,7 @@ class SerialImuSource(ImuSource):
             self._retry_at = now + self._retry_s
             return False
         self.reconnects += 1
+        self._lost = None
         self.unwrap.reset()
         self.sync.reset()
         self._last_mcu = None
@@ -371,6 +374,17 @@ class SerialImuSource(ImuSource):
         out = self.parser.counters.as_dict()
         out.update(disconnects=self.disconnects, reconnects=self.reconnects, clock_resets=self.sync.resets,
                    clock_steps=self.clock_steps)
+        return out
+
+    def faults(self) -> dict[str, str]:
+        out = {}
+        lost = self._lost
+        if lost is not None:
+            out["imu_disconnected"] = (f"the board's port {self.port_path or self.params.port or ''} was lost "
+                                       f"{self.clock() - lost[0]:.1f} s ago ({lost[1]}); reopened every "
+                                       f"{self._retry_s:g} s at most")
+        if self.status is not None and self.status.flags & FLAG_SENSOR_ABSENT:
+            out["imu_sensor_absent"] = "the board says its sensor does not answer (check its SPI wiring and supply)"
         return out
 
     def drain_events(self) -> list[dict]:

@@ -375,6 +375,10 @@ class ControlThread:
         g = self.gripper
         return {**g.state().to_json(g.kind), "busy": g.busy}
 
+    def _source_faults(self) -> dict[str, str]:
+        source = getattr(self.estimator, "source", None)
+        return {} if source is None else source.faults()
+
     def _imu_part(self) -> str | None:
         """The IMU source's sensor (drivers.imu_source.ImuSource.part), None when it cannot say."""
         source = getattr(self.estimator, "source", None)
@@ -395,7 +399,8 @@ class ControlThread:
             "contact": None if est is None else est.to_json(),
             "task": None if task is None else {"id": task.id, "kind": task.kind, "phase": task.status.phase,
                                                "progress": round(task.status.progress, 4)},
-            "faults": [{"code": c, "message": m} for c, m in self.faults.items()],
+            # the daemon's faults, then the IMU source's own as they stand (a lost port: since when)
+            "faults": [{"code": c, "message": m} for c, m in {**self._source_faults(), **self.faults}.items()],
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
                         "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
             # samples a second the daemon took (None in the first second), and the sensor the board found
