@@ -337,3 +337,18 @@ def test_the_ten_example_queries_of_the_docs_run(tmp_path, recordings):
     assert len(queries) == 10
     answers = [query(Index(store), q) for q in queries]
     assert answers[0][1] == [(ROBOT, EPISODES, EPISODES)]
+
+
+def test_a_recordings_robot_is_held_to_robot_names_rule(tmp_path, recordings):
+    """Issue 50 item 6: meta.robot `a/b` became the robot `a/b` in the index (and two segments of its keys)."""
+    from tecdard.recording.format import RecordingError, load_recording, save_recording
+    src = sorted(fresh_copy(recordings, tmp_path / "rec").glob("*.npz"))[0]
+    rec = load_recording(src)
+    for bad in ("a/b", "../up", "", "x" * 65, "ünïcode"):
+        rec.meta = {**rec.meta, "robot": bad}
+        path = tmp_path / "bad.npz"
+        save_recording(path, rec)
+        if bad:
+            with pytest.raises(RecordingError, match="meta.robot: .* give --robot"):
+                read_episode(path)
+        assert read_episode(path, robot="arm-1").robot == "arm-1"        # named by hand, it goes

@@ -199,6 +199,11 @@ def read_episode(path: pathlib.Path, robot: str | None = None) -> Episode:
     live = load_live(path, rec)
     meta = rec.meta or {}
     robot = robot or str(meta.get("robot") or "unknown")
+    from tecdard.fleet.roster import name_problem
+    problem = name_problem(robot) or (None if robot.replace("_", "").replace("-", "").isalnum() else
+                                      f"{show(robot)}: letters, digits, '-' or '_' only")
+    if problem is not None:     # it becomes a key's first segment and the index's robot: robot.name's rule
+        raise RecordingError(f"meta.robot: {problem} (a robot's name, as robot.name; give --robot)")
     wall = ((meta.get("clock") or {}).get("wall_minus_monotonic_s"))
     t0 = float(rec.imu_t[0])
     start = (t0 + float(wall)) if isinstance(wall, (int, float)) and math.isfinite(wall) else path.stat().st_mtime
