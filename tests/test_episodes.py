@@ -352,3 +352,31 @@ def test_a_recordings_robot_is_held_to_robot_names_rule(tmp_path, recordings):
             with pytest.raises(RecordingError, match="meta.robot: .* give --robot"):
                 read_episode(path)
         assert read_episode(path, robot="arm-1").robot == "arm-1"        # named by hand, it goes
+
+
+def test_the_index_says_how_a_task_failed_when_its_onset_was_commanded_and_when_it_settled(tmp_path):
+    """Issue 50 item 13: `result` was plain `failed` (the daemon sends `error` as a string), `detect_latency_s`
+    0 for commanded onsets, `converged_after_s` null on every contact of the flagship rotate (its one-sigma
+    never falls under 5 mm radially), and a query on a store that does not exist printed 0."""
+    import numpy as np
+    from tecdard.fleet import episodes as E
+    failed = {"kind": "task_failed", "task": "t1", "error": "protective stop (imu_stale): no IMU sample for 60 ms"}
+    assert E._result([failed], "t1") == "failed: protective stop (imu_stale)"
+    assert E._result([{"kind": "task_failed", "task": "t1", "error": {"code": "fault"}}], "t1") == "failed: fault"
+    assert E._result([{"kind": "task_failed", "task": "t1"}], "t1") == "failed"
+    t = np.linspace(0.0, 0.3, 31)
+    # an estimate that moves in, then stays within 2 mm of its end; its radial one-sigma 6 mm, the hinge axis 0.5 m
+    x = 0.157 + 0.05 * np.exp(-t / 0.02)
+    ests = np.column_stack([t, x, np.zeros_like(t), np.full_like(t, 0.487), np.full_like(t, 0.0065),
+                            np.full_like(t, 0.5), np.full_like(t, 0.004)])
+    rows = E._contacts([{"kind": "contact_onset", "t": 0.0, "detected_t": 0.0, "commanded": True}], ests, {}, 0.0)
+    assert rows[0]["detect_latency_s"] is None
+    settled = rows[0]["converged_after_s"]
+    assert settled is not None and abs(x[int(round(settled / 0.01))] - x[-1]) <= 0.005 < abs(x[0] - x[-1])
+    rows = E._contacts([{"kind": "contact_onset", "t": 0.0, "detected_t": 0.004}], ests, {}, 0.0)
+    assert rows[0]["detect_latency_s"] == pytest.approx(0.004)
+    with pytest.raises(StoreError, match="no such directory"):
+        EpisodeStore(StoreParams(url=f"file://{tmp_path}/nothing-here"), create=False)
+    assert not (tmp_path / "nothing-here").exists()
+    res = tecdard("episodes", "query", "SELECT count(*) FROM episodes", "--store", f"file://{tmp_path}/nothing-here")
+    assert res.returncode != 0 and "no such directory" in res.stderr and len(res.stderr.strip().splitlines()) == 1

@@ -79,7 +79,7 @@ def _index(args):
     from tecdard.fleet.episodes import EpisodeStore
     from tecdard.fleet.index import Index
     params, _ = _store_and_dir(args)
-    return Index(EpisodeStore(params), pathlib.Path(args.cache) if args.cache else None)
+    return Index(EpisodeStore(params, create=False), pathlib.Path(args.cache) if args.cache else None)
 
 
 def _query(args) -> int:
@@ -160,7 +160,7 @@ def _compact(args) -> int:
     from tecdard.fleet.index import compact
     try:
         params, _ = _store_and_dir(args)
-        merged = compact(EpisodeStore(params), pathlib.Path(args.cache) if args.cache else None)
+        merged = compact(EpisodeStore(params, create=False), pathlib.Path(args.cache) if args.cache else None)
     except (ConfigError, StoreError) as exc:
         _say("compact", str(exc))
         return EXIT_BAD_INPUT

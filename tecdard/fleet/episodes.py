@@ -30,7 +30,7 @@ INDEX = "index"
 EPISODES_TABLE, CONTACTS_TABLE = "episodes", "contacts"
 UPLOADED_SUFFIX = ".uploaded"       # beside a local recording: the store has it (JSON: where, when)
 SCHEMES = ("file", "s3")
-CONVERGED_SIGMA_M = 0.005           # a contact's estimate has converged once its one-sigma is under this (5 mm)
+CONVERGED_SIGMA_M = 0.005           # a contact's estimate has settled once it stays this close to its last (5 mm)
 UNOBSERVED_STD_M = 0.5              # what the estimator reports along a direction it cannot see (not a sigma)
 MAX_INDEX_FILE_BYTES = 64 << 20     # an index file larger than this is no index of ours
 
@@ -97,12 +97,15 @@ def url_problem(url: str) -> str | None:
 class EpisodeStore:
     """One object store (obstore) holding the fleet's episodes and their index."""
 
-    def __init__(self, params: StoreParams):
+    def __init__(self, params: StoreParams, create: bool = True):
+        """`create` False (a query, a fetch, a compaction): a file:// store's directory must exist already."""
         from obstore.store import from_url
         problem = url_problem(params.url)
         if problem:
             raise StoreError(problem)
         self.url = params.url.rstrip("/")
+        if not create and self.url.startswith("file://") and not pathlib.Path(self.url.removeprefix("file://")).is_dir():
+            raise StoreError(f"store {show(self.url)}: no such directory (nothing was ever uploaded there)")
         try:
             if self.url.startswith("file://"):
                 pathlib.Path(self.url.removeprefix("file://")).mkdir(parents=True, exist_ok=True)
@@ -252,15 +255,26 @@ def _result(events: list, task) -> str | None:
         if ev.get("kind") == "task_done":
             return "done"
         if ev.get("kind") == "task_failed":
-            code = (ev.get("error") or {}).get("code") if isinstance(ev.get("error"), dict) else ev.get("code")
-            return f"failed: {code}" if code else "failed"
+            return f"failed: {_cause(ev)}" if _cause(ev) else "failed"
     return None
+
+
+def _cause(ev: dict) -> str | None:
+    """How a task failed, in a few words: its code where the event has one, else its error's text up to the
+    first ':' (the daemon's `error` is a one-line string: "protective stop: imu_stale ...", "max_distance: ...")."""
+    err = ev.get("error")
+    if isinstance(err, dict):
+        err = err.get("code")
+    code = ev.get("code") or ev.get("cause") or err
+    if not isinstance(code, str) or not code.strip():
+        return None
+    return code.split(":")[0].strip()[:60]
 
 
 def _contacts(events: list, ests: np.ndarray, truth: dict, wall_offset_s: float) -> list[dict]:
     """One row per contact onset: the last estimate before the next onset, its one-sigma (the largest
     standard deviation along the directions observed: an edge's or hinge's own axis is not), when the
-    one-sigma first fell under CONVERGED_SIGMA_M, and the error against a truth (the simulator's hinge
+    estimate settled (_settled_after), and the error against a truth (the simulator's hinge
     in the task's result, or a simulated recording's contact point)."""
     # a daemon recording holds an onset both as its estimator passed it and as the daemon published it
     onsets = list({float(ev["t"]): ev for ev in events if isinstance(ev, dict) and ev.get("kind") == "contact_onset"
@@ -274,8 +288,9 @@ def _contacts(events: list, ests: np.ndarray, truth: dict, wall_offset_s: float)
         mine = ests[(ests[:, 0] >= t_on) & (ests[:, 0] < t_next)] if len(ests) else ests
         row = {"n": n, "onset_t": t_on,
                "onset_time": datetime.datetime.fromtimestamp(t_on + wall_offset_s, datetime.timezone.utc),
+               # a commanded onset (a task that starts its own episode) detected nothing: no latency
                "detect_latency_s": _num(ev.get("detected_t", math.nan) - t_on) if isinstance(
-                   ev.get("detected_t"), (int, float)) else None,
+                   ev.get("detected_t"), (int, float)) and not ev.get("commanded") else None,
                "x_m": None, "y_m": None, "z_m": None, "sigma_m": None, "std_x_m": None, "std_y_m": None,
                "std_z_m": None, "converged_after_s": None, "error_m": None}
         if len(mine):
@@ -283,9 +298,7 @@ def _contacts(events: list, ests: np.ndarray, truth: dict, wall_offset_s: float)
             last = mine[-1]
             row.update(x_m=float(last[1]), y_m=float(last[2]), z_m=float(last[3]), sigma_m=_num(sig[-1]),
                        std_x_m=float(last[4]), std_y_m=float(last[5]), std_z_m=float(last[6]))
-            under = np.flatnonzero(sig < CONVERGED_SIGMA_M)
-            if len(under):
-                row["converged_after_s"] = float(mine[under[0], 0] - t_on)
+            row["converged_after_s"] = _settled_after(mine, t_on)
             if truth_line is not None:
                 point, axis = truth_line
                 d = last[1:4] - point
@@ -294,6 +307,20 @@ def _contacts(events: list, ests: np.ndarray, truth: dict, wall_offset_s: float)
                 row["error_m"] = float(np.linalg.norm(d))
         rows.append(row)
     return rows
+
+
+def _settled_after(ests: np.ndarray, t_on: float) -> float | None:
+    """When the estimate came, and stayed, within CONVERGED_SIGMA_M of where it ended, along the directions
+    it observes (an edge's or hinge's own axis it cannot see, and its reported one-sigma there is a placeholder):
+    the contact's in-plane error against its own final answer, which needs no truth. None: it never settled
+    (the episode's last estimate alone, or it moved to the end)."""
+    final, observed = ests[-1, 1:4], ests[-1, 4:7] < 0.5 * UNOBSERVED_STD_M
+    if len(ests) < 2 or not observed.any():
+        return None
+    far = np.linalg.norm((ests[:, 1:4] - final)[:, observed], axis=1) > CONVERGED_SIGMA_M
+    last_far = np.flatnonzero(far)
+    k = 0 if not len(last_far) else int(last_far[-1]) + 1
+    return None if k >= len(ests) - 1 else float(ests[k, 0] - t_on)
 
 
 def _sigma(std: np.ndarray) -> float:
