@@ -105,7 +105,8 @@ class TaskRunner:
             est = None                                     # an earlier episode's
         cause = safety.check_task(safety.SafetyInput(contact_force, est, self._last_est), self.limits, self.task.reactions)
         if cause is not None:
-            self.protective_stop(cause)
+            hint = self.task.stop_hints.get(cause.cause)
+            self.protective_stop(cause if hint is None else dataclasses.replace(cause, message=f"{cause.message}; {hint}"))
         elif est is not None:
             self._last_est = est
 

@@ -100,6 +100,7 @@ class Task:
     touching_phases: tuple = ()        # phases where the tool touches outside a contact episode
     absorbed_phases: tuple = ()        # phases where the grasp absorbs the TCP's motion along the lever arm
     reactions: tuple = ()              # the task's own safety checks (control.safety.Reaction), after the generic ones
+    stop_hints: dict = {}              # protective stop cause -> the likely cause in this task, added to its message
 
     def __init__(self, task_id: str, direction: np.ndarray, speed: float):
         self.id = task_id

@@ -254,3 +254,15 @@ def test_a_thread_named_in_the_os_shows_its_name_in_proc():
     th.join()
     assert seen == {"ok": True, "comm": "imu-acquisition"}
     assert open(f"/proc/self/task/{threading.get_native_id()}/comm").read().strip() != "imu-acquisition"
+
+
+def test_a_rotate_that_diverges_says_the_likely_cause_its_direction(model):
+    """Issue 50 item 9: a second rotate with the first's direction (the handle has turned since) failed 3 times
+    in 3 with "estimator innovations 11x" and nothing more."""
+    from tecdard.control.rotate import RotateTask
+    ct = control(model, max_nis_ratio=10.0)
+    ct.runner.task = RotateTask("rotate-1", 0.5, 0.02, 0.005, np.array([0.0, 0.0, 1.0]), "arc")
+    ct.runner.check(JS.tcp_force, estimate([0.5, 0.0, 0.2], nis_ratio=11.0))
+    (stop,) = stops(ct)
+    assert stop["cause"] == "divergence" and "innovations 11x" in stop["message"]
+    assert "--direction along the handle's tangent" in stop["message"]
