@@ -48,7 +48,7 @@ def test_no_daemon_is_exit_3(tmp_path):
     from tecdard.tools.demo import free_port
     res = tecdard("status", "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "2")
     assert res.returncode == 3
-    assert "not alive" in res.stderr
+    assert "connection refused" in res.stderr          # nothing listens there: said at once
 
 
 def test_negative_vectors_work_as_typed(capsys):
@@ -62,7 +62,7 @@ def test_negative_vectors_work_as_typed(capsys):
     # parsed, then no daemon there: exit 3, not argparse's exit 2
     assert main(["probe", "--direction", "-0.26,0,0.96", "--connect", f"tcp/127.0.0.1:{free_port()}",
                  "--timeout", "0.5"]) == 3
-    assert "not alive" in capsys.readouterr().err
+    assert "connection refused" in capsys.readouterr().err
 
 
 def test_the_default_endpoint_is_not_zenohs_router_port():
@@ -250,3 +250,14 @@ def test_a_taken_port_says_what_took_it(tmp_path):
     assert lines[-1] == (f"tecdard: {ep}: port {ep.rpartition(':')[2]} is taken: another tecdard? "
                          f"`tecdard status --connect {ep}` (or set zenoh.listen / --listen to a free port)"), res.stderr
     assert ".cargo" not in res.stderr
+
+
+def test_an_endpoint_where_nothing_listens_is_said_at_once_stop_included(tmp_path):
+    """Issue 50 item 11: a wrong endpoint waited 10 s (the liveliness wait), `stop` included; a refused
+    connection is said at once. --wait-alive 60 under a 25 s timeout: a wait would not finish in time."""
+    from tecdard.tools.demo import free_port
+    for verb in ("stop", "status"):
+        res = tecdard(verb, "--connect", f"tcp/127.0.0.1:{free_port()}", "--wait-alive", "60", timeout=25)
+        assert res.returncode == 3, res.stderr
+        assert "(connection refused): is the daemon (or the router) running" in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1

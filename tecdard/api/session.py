@@ -28,6 +28,25 @@ PATH_PROTOCOLS = ("unixsock-stream",)
 _HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)$")
 
 
+def endpoint_refused(endpoint: str, timeout_s: float = 1.0) -> str | None:
+    """Whether nothing listens at a tcp/ or tls/ endpoint (its TCP connection refused, at once), in one line;
+    None when something answers, or when it cannot be told this way (another protocol, a host that does not
+    answer at all: then the liveliness wait says so)."""
+    import socket
+    proto, _, address = endpoint.partition("/")
+    if proto not in ("tcp", "tls") or endpoint_problem(endpoint):
+        return None
+    host, _, port = address.split("#")[0].split("?")[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return None
+    except ConnectionRefusedError:
+        return (f"nothing listens at {endpoint} (connection refused): is the daemon (or the router) running, "
+                "and is this its zenoh.listen?")
+    except OSError:
+        return None
+
+
 def endpoint_problem(endpoint: str) -> str | None:
     """Why a Zenoh endpoint (`proto/host:port`, or `unixsock-stream/PATH`, with optional `?...`
     and `#...`) cannot work, in a few words; None when it looks usable."""

@@ -12,7 +12,7 @@ import time
 
 from tecdard import verbs
 from tecdard.api.commands import task_verbs
-from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem
+from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem, endpoint_refused
 from tecdard.cli import show
 from tecdard.api.client import Client, ClientError
 from tecdard.safejson import first_line
@@ -307,6 +307,10 @@ def run_verb(args) -> int:
     if problem:
         _say(args.verb, problem)
         return EXIT_REFUSED
+    refused = endpoint_refused(args.connect)
+    if refused:                                  # said at once, not after the liveliness wait's 10 s
+        _say(args.verb, refused)
+        return EXIT_NO_DAEMON
     try:
         cli = Client(args.connect, robot=args.robot, tls=tls, daemon_name=args.tls_daemon_name)
     except Exception as exc:                      # zenoh refuses a file or a setting
