@@ -121,6 +121,7 @@ def test_a_copy_in_another_store_never_counts_for_the_daemons_own(tmp_path, reco
     assert not uploader.may_delete(path)
 
 
+@pytest.mark.slow
 def test_sync_to_a_new_store_uploads_what_another_store_has(tmp_path, recordings):
     rec = fresh_copy(recordings, tmp_path / "rec")
     for name in ("one", "two"):
