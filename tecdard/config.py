@@ -247,9 +247,20 @@ class Section:
 
     # -- unknown keys -------------------------------------------------------
     def unused_keys(self) -> list[str]:
-        out = [self._name(k) for k in self._data if k not in self._used]
+        return [name for name, _ in self._unused()]
+
+    def _unused(self) -> list[tuple[str, str | None]]:
+        """(the key no component read, the option of its section it is closest to, or None), section by section:
+        the options a section's readers asked for are its known ones (a typo's likely intent)."""
+        import difflib
+        known = {str(k).lower(): str(k) for k in self._used}
+        out = []
+        for k in self._data:
+            if k not in self._used:
+                close = difflib.get_close_matches(str(k).lower(), list(known), n=1, cutoff=0.75)
+                out.append((self._name(k), self._name(known[close[0]]) if close else None))
         for child in self._children.values():
-            out.extend(child.unused_keys())
+            out.extend(child._unused())
         return out
 
 
@@ -297,6 +308,7 @@ class Config(Section):
 
     def check_unused(self) -> None:
         """Raise ConfigError naming the first key that no component read."""
-        unused = self.unused_keys()
+        unused = self._unused()
         if unused:
-            raise ConfigError(f"{unused[0]}: unknown option")
+            name, hint = unused[0]
+            raise ConfigError(f"{name}: unknown option" + (f" (did you mean {hint}?)" if hint else ""))

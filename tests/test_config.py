@@ -37,7 +37,11 @@ def test_errors_name_the_key(data, call, fragment):
 def test_unknown_key_is_rejected():
     cfg = Config({"a": {"speed": 1.0, "sped": 2.0}})
     cfg.section("a").getfloat("speed")
-    with pytest.raises(ConfigError, match=r"^a\.sped: unknown option$"):
+    with pytest.raises(ConfigError, match=r"^a\.sped: unknown option \(did you mean a\.speed\?\)$"):
+        cfg.check_unused()
+    cfg = Config({"a": {"speed": 1.0, "banana": 2.0}})
+    cfg.section("a").getfloat("speed")
+    with pytest.raises(ConfigError, match=r"^a\.banana: unknown option$"):     # nothing close: no guess
         cfg.check_unused()
 
 
@@ -81,7 +85,8 @@ def run_with(tmp_path, cfg):
     ({"ros2": {"enabled": True, "distro": "iron"}}, "ros2.distro"),
     ({"ros2": {"enabled": True, "base_frame": "/world"}}, "ros2.base_frame: '/world': a tf2 frame id"),
     ({"ros2": {"enabled": True, "node_name": "tec-dar"}}, "ros2.node_name: 'tec-dar' is no ROS 2 node name"),
-    ({"ros2": {"enabld": True}}, "ros2.enabld: unknown option"),
+    ({"ros2": {"enabld": True}}, "ros2.enabld: unknown option (did you mean ros2.enabled?)"),
+    ({"estimator.ekf": {"sigma_W": 0.1}}, "estimator.ekf.sigma_W: unknown option (did you mean estimator.ekf.sigma_w?)"),
     ({"robot.ros2": {"stale_s": 0.1}}, "robot.ros2: unknown option"),
     ({"robot.tcp_link": "tool0"}, "robot.tcp_link: only with robot.urdf"),
     ({"robot.backend": "ros2", "sim": ..., "imu.source": "serial", "robot.urdf": "/nonexistent/arm.urdf",
