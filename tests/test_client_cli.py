@@ -261,3 +261,12 @@ def test_an_endpoint_where_nothing_listens_is_said_at_once_stop_included(tmp_pat
         assert res.returncode == 3, res.stderr
         assert "(connection refused): is the daemon (or the router) running" in res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_a_tls_endpoint_without_certificates_is_said_not_waited_for():
+    """Issue 50 item 10, in part: `--connect tls/...` without --tls-* files waited, and read as a dead daemon."""
+    for args in (("status",), ("fleet", "status")):
+        res = tecdard(*args, "--connect", "tls/127.0.0.1:7447", timeout=25)
+        assert res.returncode == 2, res.stderr
+        assert "a tls/ endpoint needs --tls-ca, --tls-cert and --tls-key" in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1

@@ -419,4 +419,8 @@ def tls_files(args) -> tuple[TlsFiles | None, str | None]:
     given = [x for x in (args.tls_ca, args.tls_cert, args.tls_key) if x]
     if given and len(given) != 3:
         return None, "--tls-ca, --tls-cert and --tls-key go together"
+    if not given and str(getattr(args, "connect", "")).startswith("tls/"):
+        # without them the TLS handshake never completes, and the wait for the daemon read as a dead daemon
+        return None, (f"--connect {args.connect}: a tls/ endpoint needs --tls-ca, --tls-cert and --tls-key (your "
+                      "certificate, its key, and the CA of the fleet: docs/fleet.md)")
     return (TlsFiles(args.tls_ca, args.tls_cert, args.tls_key) if given else None), None
