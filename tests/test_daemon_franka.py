@@ -441,6 +441,8 @@ def test_the_franka_hand_lets_go_is_refused_a_task_grasps_again_and_the_rotate_f
 
     def before(d):
         cli = d.client
+        # the hand's state comes from its own reader in the link's child, a moment after the arm's
+        assert wait_for(lambda: cli.command("status")["state"]["gripper"]["grasped"] is not None, 5.0)
         g = cli.command("status")["state"]["gripper"]
         assert (g["kind"], g["grasped"]) == ("franka-hand", True), g
         reply = cli.command("release", {}, timeout=20)
