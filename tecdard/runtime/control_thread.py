@@ -375,13 +375,17 @@ class ControlThread:
         g = self.gripper
         return {**g.state().to_json(g.kind), "busy": g.busy}
 
+    def _source(self):
+        """The IMU source (drivers.imu_source.ImuSource) the estimator thread reads, or None."""
+        return getattr(self.estimator, "source", None)
+
     def _source_faults(self) -> dict[str, str]:
-        source = getattr(self.estimator, "source", None)
+        source = self._source()
         return {} if source is None else source.faults()
 
     def _imu_part(self) -> str | None:
         """The IMU source's sensor (drivers.imu_source.ImuSource.part), None when it cannot say."""
-        source = getattr(self.estimator, "source", None)
+        source = self._source()
         return None if source is None else source.part
 
     def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
