@@ -295,17 +295,26 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
     assert np.median(forces[len(forces) // 2:]) < -0.5       # the hinge's friction resists the motion
 
 
-def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_itself(tmp_path, board):
-    """A joint reflex mid-task (injected into franky-sim's state: it simulates none) is a
-    `robot_reflex` fault naming libfranka's error, a protective stop that fails the task; the
-    daemon then runs franky's error recovery by itself, and the fault clears."""
+STALE_CODES = ("robot_stale", "imu_stale")
+
+
+def reflex_run(tmp_path, board) -> tuple[list, str, str, str] | None:
+    """One approach on franky-sim with a joint reflex injected mid-motion. Returns the events from the
+    reflex's fault to its clearing, franky-sim's output, the task and the daemon's log; None when franky-sim (or
+    the board's pty) stalled first and a stale state stopped the task before the reflex: a run that
+    judged the simulator."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     control = tmp_path / "control"
     srv = ServerProcess("--control", str(control))
     # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
-    # as a motion starts): the force stop is set out of the way of this test's free motion
-    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{"control.max_force_n": 100.0,
-                                                                            "gripper.backend": "none"}))
+    # as a motion starts): the force stop is set out of the way of this test's free motion. Its stalls
+    # on a loaded machine (FRANKY_SIM_STALLS) get their state-age allowance
+    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{
+        "control.max_force_n": 100.0, "gripper.backend": "none",
+        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
     try:
+        # the board's pty may start late on a loaded machine (imu_stale at start, then cleared)
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
         # long enough (4 s at 20 mm/s) that the reflex lands mid-motion on a loaded machine too: a 3 cm
         # approach can end before the injection reaches franky-sim (one full run saw no reflex in 10 s)
         reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": REFLEX_APPROACH_M})
@@ -313,20 +322,45 @@ def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_it
         assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
         control.write_text("reflex")
         ev = d.client.wait_event(("fault",), None, 10.0)
-        assert ev["code"] == "robot_reflex" and "joint_reflex" in ev["message"], ev
-        stop = d.client.wait_event(("protective_stop",), reply["task"], 5.0)
-        assert stop["cause"] == "robot_reflex"
-        ended = d.client.wait_event(("task_failed", "task_done"), reply["task"], 5.0)
-        assert ended["kind"] == "task_failed" and "protective stop" in ended["error"], \
-            [(e["kind"], e.get("task"), e.get("error")) for e in d.client.event_log]
+        if ev["code"] in STALE_CODES:
+            print(f"franky-sim stalled before the reflex ({ev['message']}): run again")
+            return None
+        assert ev["code"] == "robot_reflex", ev
+        # the recovery may hold franky's link long enough on a loaded machine that a stale fault is
+        # raised and cleared meanwhile (CI, 2026-12-06): the reflex's own clearing is waited for
+        deadline = time.monotonic() + 15.0
         cleared = d.client.wait_event(("fault_cleared",), None, 15.0)
-        assert cleared["code"] == "robot_reflex"
+        while cleared["code"] != "robot_reflex":
+            assert cleared["code"] in STALE_CODES, cleared
+            cleared = d.client.wait_event(("fault_cleared",), None, max(deadline - time.monotonic(), 0.1))
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
-        assert "RECOVERED" in srv.output               # franky's recover_from_errors reached the robot
+        events = list(d.client.event_log)
+        return events[events.index(ev):], srv.output, reply["task"], d.log()
     finally:
         d.close()
         srv.close()
-    (line,) = [x for x in d.log().splitlines() if "recovered from robot mode" in x]
+
+
+def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_itself(tmp_path, board):
+    """A joint reflex mid-task (injected into franky-sim's state: it simulates none) is a
+    `robot_reflex` fault naming libfranka's error, a protective stop that fails the task; the
+    daemon then runs franky's error recovery by itself, and the fault clears. A run in which franky-sim
+    stalled first is run again (SIM_ATTEMPTS), then skipped, saying so."""
+    for attempt in range(SIM_ATTEMPTS):
+        run = reflex_run(tmp_path / f"run{attempt}", board)
+        if run is not None:
+            break
+    else:
+        pytest.skip(f"franky-sim stalled before the reflex in {SIM_ATTEMPTS} runs: no judgement of the daemon")
+    events, output, task, log = run
+    fault = events[0]
+    assert "joint_reflex" in fault["message"], fault
+    stop = next(e for e in events if e["kind"] == "protective_stop")
+    assert stop["cause"] == "robot_reflex", stop
+    ended = next(e for e in events if e["kind"] in ("task_failed", "task_done") and e.get("task") == task)
+    assert ended["kind"] == "task_failed" and "protective stop" in ended["error"], ended
+    assert "RECOVERED" in output               # franky's recover_from_errors reached the robot
+    (line,) = [x for x in log.splitlines() if "recovered from robot mode" in x]
     assert "joint_reflex" in line
 
 
