@@ -270,3 +270,78 @@ def test_a_tls_endpoint_without_certificates_is_said_not_waited_for():
         assert res.returncode == 2, res.stderr
         assert "a tls/ endpoint needs --tls-ca, --tls-cert and --tls-key" in res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+# -- issue 50 item 15: Ctrl-C, each path one line ------------------------------------------------
+
+def test_a_ctrl_c_that_crosses_the_tasks_end_says_how_it_ended():
+    """The Ctrl-C race: the task ended as Ctrl-C was pressed, so the cancel finds no task. The line
+    said only "had already ended"; it now says how (the end event the client saw)."""
+    from tecdard.api.client import ClientError
+    from tecdard.cli import task_verbs
+
+    class Crossed:                          # the daemon's side of the race, as the client sees it
+        def __init__(self, end: dict):
+            self.event_log = [{"kind": "task_started", "task": "rotate-1"}, end]
+
+        def command(self, verb, payload=None, timeout=None):
+            assert verb == "cancel" and payload == {"task": "rotate-1"}
+            return {"ok": False, "error": {"code": "no_task", "message": "no task is running"}}
+
+        def wait_event(self, kinds, task=None, timeout=None):
+            raise ClientError("no event")
+
+    done = task_verbs._cancel(Crossed({"kind": "task_done", "task": "rotate-1"}), None, "rotate-1", "interrupted")
+    assert done == "interrupted; task rotate-1 had already ended: done"
+    failed = task_verbs._cancel(Crossed({"kind": "task_failed", "task": "rotate-1", "error": "protective stop: force"}),
+                                None, "rotate-1", "interrupted")
+    assert failed == "interrupted; task rotate-1 had already ended: failed (protective stop: force)"
+    unseen = task_verbs._cancel(Crossed({"kind": "task_started", "task": "other"}), None, "rotate-1", "interrupted")
+    assert unseen.endswith("its end event was not seen (`tecdard status`)")
+
+
+def test_ctrl_c_on_a_verb_without_its_own_handling_is_one_line(monkeypatch, capsys):
+    """A verb interrupted where it does not handle Ctrl-C itself (an offline one mid-computation): exit
+    130 and one line naming it, no traceback."""
+    import argparse
+    from tecdard.cli import main as cli_main
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    def parser(argv):
+        top = argparse.ArgumentParser(prog="tecdard")
+        top.add_argument("-v", "--verbose", action="store_true")
+        top.add_subparsers().add_parser("localize").set_defaults(func=interrupted)
+        return top
+    monkeypatch.setattr(cli_main, "parser", parser)
+    assert cli_main.main(["-v", "localize"]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["tecdard localize: interrupted"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_the_demo_cancels_its_task_then_stops_the_daemon():
+    """`make run` then Ctrl-C: the terminal's SIGINT reached the demo and its daemon alike, the daemon's
+    shutdown failed the task under the demo ("task failed: daemon shutting down") and the demo ended
+    in a traceback. The daemon now has a session of its own: the demo cancels its task, says so, and
+    stops the daemon (exit 0)."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    from tests.conftest import ROOT
+    proc = subprocess.Popen([sys.executable, "-m", "tecdard", "demo"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=ROOT, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    accepted = _wait_for_line(proc, "accepted as task", timeout=120.0)[-1]
+    task = re.search(r"task (\S+);", accepted).group(1)
+    os.killpg(proc.pid, signal.SIGINT)      # as a terminal's Ctrl-C: to the demo's whole process group
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out + err
+    assert "Traceback" not in out + err, out + err
+    assert f"demo: interrupted; task {task} cancelled (task_failed)" in out, out
+    log_path = re.search(r"daemon exit +(\d+) \(log: (\S+)\)", out)
+    assert log_path and log_path.group(1) == "0", out
+    log = open(log_path.group(2)).read()
+    assert "cancelled" in log and "daemon shutting down" not in log, log[-2000:]

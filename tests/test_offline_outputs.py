@@ -51,6 +51,37 @@ def one_line_refusal(res, command: str) -> str:
 
 # -- outputs ------------------------------------------------------------------------------------
 
+@pytest.mark.skipif(not HAS_MATPLOTLIB, reason="the viz extra (matplotlib) is installed by `make test`")
+def test_a_plot_without_a_contact_has_no_empty_panels_and_no_warning(tmp_path):
+    """Issue 50 item 15: a capture at rest (no onset) drew four empty panels (the turn, the estimate's
+    three) and matplotlib warned of legends with nothing in them. Now: the signals' three panels, the
+    title says no contact, and no warning; a recording with a contact and its truth keeps all eight."""
+    from PIL import Image
+    contact = tmp_path / "contact.npz"
+    assert tecdard("sim-record", contact).returncode == 0
+    with np.load(contact) as z:
+        rest = {k: z[k] for k in z.files if not k.startswith("truth_")}
+    rng = np.random.default_rng(0)
+    n = len(rest["imu_t"])
+    rest["gyro"] = 0.002 * rng.standard_normal((n, 3))
+    rest["accel"] = np.array([0.0, 0.0, -9.81]) + 0.01 * rng.standard_normal((n, 3))
+    rest["tcp_pos"] = np.repeat(rest["tcp_pos"][:1], len(rest["tcp_t"]), axis=0)
+    rest["tcp_quat"] = np.repeat(rest["tcp_quat"][:1], len(rest["tcp_t"]), axis=0)
+    if "tcp_vel" in rest:
+        rest["tcp_vel"] = np.zeros_like(rest["tcp_vel"])
+    np.savez_compressed(tmp_path / "rest.npz", **rest)
+    heights = {}
+    for name in ("rest", "contact"):
+        res = subprocess.run([sys.executable, "-W", "error::UserWarning", "-m", "tecdard", "plot",
+                              str(tmp_path / f"{name}.npz"), "-o", str(tmp_path / f"{name}.png")],
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert res.returncode == 0 and "Warning" not in res.stderr, res.stderr
+        heights[name] = Image.open(tmp_path / f"{name}.png").size[1]
+        assert ("no contact detected" in res.stdout) == (name == "rest"), res.stdout
+    # 1.9 in a panel at 100 dpi: four panels' height (the least drawn) against eight (with the error's)
+    assert heights == {"rest": 760, "contact": 1520}, heights
+
+
 def test_an_output_that_is_the_input_is_refused_and_the_recording_kept(arrays, tmp_path):
     rec = tmp_path / "REC.npz"
     np.savez_compressed(rec, **arrays)

@@ -123,4 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     args = top.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:          # a verb that does not handle Ctrl-C itself: one line, no traceback
+        verb = next((a for a in argv if not a.startswith("-")), "")
+        print(f"tecdard {verb}: interrupted", file=sys.stderr)
+        return 130

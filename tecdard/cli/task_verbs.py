@@ -257,8 +257,8 @@ def _cancel(cli: Client, args, task: str | None, why: str) -> str:
         return f"{why}; could not cancel task {task} ({exc}): `tecdard stop` stops the arm"
     if not reply.get("ok"):
         code = (reply.get("error") or {}).get("code")
-        if code == "no_task":
-            return f"{why}; task {task} had already ended"
+        if code == "no_task":                    # the Ctrl-C and the task's end crossed: say how it ended
+            return f"{why}; task {task} had already ended: {_how_it_ended(cli, task)}"
         return f"{why}; cancel of task {task} refused ({code}): `tecdard stop` stops the arm"
     deadline = time.monotonic() + CANCEL_WAIT_S
     try:
@@ -270,6 +270,17 @@ def _cancel(cli: Client, args, task: str | None, why: str) -> str:
         return (f"{why}; task {task} cancelled, but the arm was still braking after {CANCEL_WAIT_S:g} s: "
                 "`tecdard status`, and `tecdard stop` stops the arm")
     return f"{why}; task {task} cancelled and the arm stopped"
+
+
+def _how_it_ended(cli: Client, task: str) -> str:
+    """The task's end as this client saw it (its end event may be in flight still: briefly waited for)."""
+    try:
+        ev = next((e for e in reversed(cli.event_log) if e.get("task") == task
+                   and e.get("kind") in ("task_done", "task_failed")), None) \
+            or cli.wait_event(("task_done", "task_failed"), task, timeout=1.0)
+    except ClientError:
+        return "its end event was not seen (`tecdard status`)"
+    return "done" if ev["kind"] == "task_done" else f"failed ({ev.get('error')})"
 
 
 def _braked(cli: Client, deadline: float) -> bool:

@@ -30,8 +30,11 @@ def distance_to_axis(p: np.ndarray, point: np.ndarray, axis: np.ndarray) -> floa
 
 
 def start_daemon(config: str, endpoint: str, log_file=None) -> subprocess.Popen:
+    """The daemon in a session of its own: a Ctrl-C at the terminal reaches the demo alone, which cancels
+    its task and then stops the daemon, rather than the daemon's shutdown failing the task under it."""
     return subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", config, "--listen", endpoint],
-                            stdout=log_file or subprocess.DEVNULL, stderr=log_file or subprocess.DEVNULL)
+                            stdout=log_file or subprocess.DEVNULL, stderr=log_file or subprocess.DEVNULL,
+                            start_new_session=True)
 
 
 def stop_daemon(proc: subprocess.Popen, timeout: float = 5.0) -> int:
@@ -58,28 +61,46 @@ def startup_budget_s() -> tuple[float, str]:
                                  f"{kernel_cache.COLD_COMPILE_S:.0f} s on 2 cores")
 
 
+def _rotate(cli: Client, proc: subprocess.Popen, angle_deg: float) -> tuple[dict, dict] | None:
+    """Wait for the daemon, rotate, wait for the end: the end event and the status after it. A Ctrl-C
+    meanwhile cancels the task (the daemon brakes the arm) and answers None, having said so."""
+    budget_s, why = startup_budget_s()
+    task = None
+    try:
+        print(f"waiting for the daemon to be ready (its liveliness token tecdar/sim/alive); {why}", flush=True)
+        cli.wait_alive(budget_s, running=lambda: proc.poll() is None,
+                       waiting=lambda s: s >= 1.0 and print(f"  still waiting, {s:.0f} s so far (up to "
+                                                            f"{budget_s:.0f} s)", flush=True))
+        reply = cli.command("rotate", {"angle_deg": angle_deg})
+        if not reply.get("ok"):
+            raise ClientError(f"rotate refused: {reply['error']['code']}: {reply['error']['message']}")
+        task = reply["task"]
+        print(f"rotate {angle_deg:g} deg accepted as task {task}; waiting ...", flush=True)
+        ev = cli.wait_event(("task_done", "task_failed"), task, timeout=120.0)
+        return ev, cli.command("status")
+    except KeyboardInterrupt:
+        if task is None:
+            print("demo: interrupted; nothing was started", flush=True)
+            return None
+        try:
+            cli.command("cancel", {"task": task}, timeout=5.0)
+            ended = cli.wait_event(("task_done", "task_failed"), task, timeout=10.0)
+            print(f"demo: interrupted; task {task} cancelled ({ended['kind']})", flush=True)
+        except (ClientError, KeyboardInterrupt):
+            print(f"demo: interrupted; task {task} may still be running: the daemon is stopped next, "
+                  f"which stops the arm", flush=True)
+        return None
+
+
 def run_demo(config: str, angle_deg: float) -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     print(f"starting tecdard on {config} at {endpoint} ...", flush=True)
     log_path = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"tecdard-demo-{os.getpid()}.log")
-    budget_s, why = startup_budget_s()
     with open(log_path, "w") as log_file:
         proc = start_daemon(config, endpoint, log_file)
         try:
             with Client(endpoint) as cli:
-                print(f"waiting for the daemon to be ready (its liveliness token tecdar/sim/alive); {why}",
-                      flush=True)
-                cli.wait_alive(budget_s, running=lambda: proc.poll() is None,
-                               waiting=lambda s: s >= 1.0 and print(f"  still waiting, {s:.0f} s so far (up to "
-                                                             f"{budget_s:.0f} s)", flush=True))
-                reply = cli.command("rotate", {"angle_deg": angle_deg})
-                if not reply.get("ok"):
-                    print(f"rotate refused: {reply['error']['code']}: {reply['error']['message']}")
-                    return 1
-                task = reply["task"]
-                print(f"rotate {angle_deg:g} deg accepted as task {task}; waiting ...", flush=True)
-                ev = cli.wait_event(("task_done", "task_failed"), task, timeout=120.0)
-                status = cli.command("status")
+                ran = _rotate(cli, proc, angle_deg)
         except ClientError as exc:
             print(f"demo failed: {exc} (daemon log: {log_path})")
             log_file.flush()
@@ -90,6 +111,10 @@ def run_demo(config: str, angle_deg: float) -> int:
             return 1
         finally:
             code = stop_daemon(proc)
+    if ran is None:
+        print(f"daemon exit     {code} (log: {log_path})")
+        return 130
+    ev, status = ran
     if ev["kind"] != "task_done":
         print(f"task failed: {ev.get('error')} (daemon log: {log_path})")
         return 1

@@ -66,63 +66,97 @@ def turned_deg(rec: Recording, onset_t: float | None) -> tuple[np.ndarray, np.nd
     return t[after], np.degrees(np.linalg.norm(np.cumsum(w * dt[:, None], axis=0), axis=1))
 
 
+def _legend(ax) -> None:
+    """A legend where the panel has labelled lines (matplotlib warns on an empty one)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+
+
+def _estimate_panel(ax, k: int, te: np.ndarray, rows: np.ndarray, p_true) -> None:
+    """Axis k of the estimate (mm) with its 3-sigma band, or the word that it is unobservable."""
+    label = f"contact {AXES[k]}, mm"
+    if len(rows):
+        p, sd = rows[:, 1 + k] * 1e3, rows[:, 4 + k] * 1e3
+        ax.plot(te, p, lw=1.0, color=f"C{k}", label=f"estimate {AXES[k]}")
+        unobservable = np.isfinite(sd[-1]) and sd[-1] > UNOBSERVABLE_M * 1e3
+        if unobservable:      # along a hinge: the band would hide everything else
+            label += f"\nunobservable\n(one-sigma {sd[-1]:.0f} mm)"
+        else:
+            ax.fill_between(te, p - SIGMA_BAND * sd, p + SIGMA_BAND * sd, color=f"C{k}", alpha=0.2,
+                            label=f"±{SIGMA_BAND:g}σ")
+        finite = p[np.isfinite(p)]
+        if len(finite):     # the band starts wide: show where the estimate lives
+            lo, hi = np.percentile(finite, [2, 98])
+            pad = max(10.0, 0.5 * (hi - lo))
+            ax.set_ylim(lo - pad, hi + pad)
+    if p_true is not None:
+        ax.axhline(float(np.asarray(p_true)[k]) * 1e3, color="k", lw=0.8, label="truth")
+    ax.set_ylabel(label, fontsize=8)
+    _legend(ax)
+
+
+def _error_panel(ax, te: np.ndarray, rows: np.ndarray, truth: dict) -> None:
+    d = rows[:, 1:4] - np.asarray(truth["p_c"], float)
+    axis = truth.get("axis")
+    line = truth.get("kind") is not None and "point" not in str(truth.get("kind")) and np.shape(axis) == (3,)
+    if line:        # a line contact: along the edge is unobservable; the error is in the plane of rotation
+        a = np.asarray(axis, float) / np.linalg.norm(axis)
+        d = d - np.outer(d @ a, a)
+    ax.semilogy(te, np.maximum(np.linalg.norm(d, axis=1), 1e-6) * 1e3, lw=1.0)
+    ax.set_ylabel("error, mm" + ("\n(in the plane\nof rotation)" if line else " (3D)"), fontsize=8)
+
+
+def _merged(marks: list, span_s: float, apart: float = 0.015) -> list:
+    """The marks' labels, those closer than `apart` of the time span joined ("start, onset"): drawn
+    apart they print over each other."""
+    out: list = []
+    for when, name in sorted(marks):
+        if out and when - out[-1][0] < apart * span_s:
+            out[-1] = (out[-1][0], f"{out[-1][1]}, {name}")
+        else:
+            out.append((when, name))
+    return out
+
+
 def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, out: str, title: str,
          fmt: str = "png", events: list | None = None) -> None:
     """Draw to the file `out` in the image format `fmt`. `rows` (k, 7): t, p, std (m); drawn in mm.
-    `events`: a daemon recording's (task start and end, stops), marked on every panel."""
+    `events`: a daemon recording's (task start and end, stops), marked on every panel. A panel with
+    nothing to show is left out (the turn without an onset, the estimate without one or a truth): the
+    title says no contact was detected."""
     plt = _pyplot()
     p_true = truth.get("p_c")
+    turned = turned_deg(rec, onset_t)
+    has_est = len(rows) > 0 or p_true is not None
     has_err = p_true is not None and len(rows) > 0
-    n_panels = 4 + 3 + (1 if has_err else 0)
-    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 1.9 * n_panels), sharex=True, constrained_layout=True)
+    n_panels = 3 + (turned is not None) + 3 * has_est + has_err
+    fig, axes = plt.subplots(n_panels, 1, figsize=(10, 1.9 * max(n_panels, 4)), sharex=True,
+                             constrained_layout=True)
+    panels = iter(axes)
     t0 = rec.imu_t[0]
     t = rec.imu_t - t0
-    for ax, data, what in ((axes[0], rec.gyro, "gyro, rad/s\n(IMU frame)"),
-                           (axes[1], rec.accel, "accel, m/s²\n(IMU frame)")):
+    for data, what in ((rec.gyro, "gyro, rad/s\n(IMU frame)"), (rec.accel, "accel, m/s²\n(IMU frame)")):
+        ax = next(panels)
         for k in range(3):
             ax.plot(t, data[:, k], lw=0.6, label=AXES[k])
         ax.set_ylabel(what, fontsize=8)
-        ax.legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+        _legend(ax)
+    ax = next(panels)
     tcp = (rec.tcp_pos - rec.tcp_pos[0]) * 1e3
     for k in range(3):
-        axes[2].plot(rec.tcp_t - t0, tcp[:, k], lw=1.0, label=AXES[k])
-    axes[2].set_ylabel("TCP from its start,\nmm (world)", fontsize=8)
-    axes[2].legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
-    turned = turned_deg(rec, onset_t)
+        ax.plot(rec.tcp_t - t0, tcp[:, k], lw=1.0, label=AXES[k])
+    ax.set_ylabel("TCP from its start,\nmm (world)", fontsize=8)
+    _legend(ax)
     if turned is not None:
-        axes[3].plot(turned[0] - t0, turned[1], lw=1.0, color="C4")
-    axes[3].set_ylabel("fingertip turned\nsince the onset, deg", fontsize=8)
+        ax = next(panels)
+        ax.plot(turned[0] - t0, turned[1], lw=1.0, color="C4")
+        ax.set_ylabel("fingertip turned\nsince the onset, deg", fontsize=8)
     te = rows[:, 0] - t0 if len(rows) else np.zeros(0)
-    for k in range(3):
-        ax = axes[4 + k]
-        label = f"contact {AXES[k]}, mm"
-        if len(rows):
-            p, sd = rows[:, 1 + k] * 1e3, rows[:, 4 + k] * 1e3
-            ax.plot(te, p, lw=1.0, color=f"C{k}", label=f"estimate {AXES[k]}")
-            unobservable = np.isfinite(sd[-1]) and sd[-1] > UNOBSERVABLE_M * 1e3
-            if unobservable:      # along a hinge: the band would hide everything else
-                label += f"\nunobservable\n(one-sigma {sd[-1]:.0f} mm)"
-            else:
-                ax.fill_between(te, p - SIGMA_BAND * sd, p + SIGMA_BAND * sd, color=f"C{k}", alpha=0.2,
-                                label=f"±{SIGMA_BAND:g}σ")
-            finite = p[np.isfinite(p)]
-            if len(finite):     # the band starts wide: show where the estimate lives
-                lo, hi = np.percentile(finite, [2, 98])
-                pad = max(10.0, 0.5 * (hi - lo))
-                ax.set_ylim(lo - pad, hi + pad)
-        if p_true is not None:
-            ax.axhline(float(np.asarray(p_true)[k]) * 1e3, color="k", lw=0.8, label="truth")
-        ax.set_ylabel(label, fontsize=8)
-        ax.legend(loc="upper left", fontsize=7, ncol=3, framealpha=0.6)
+    if has_est:
+        for k in range(3):
+            _estimate_panel(next(panels), k, te, rows, p_true)
     if has_err:
-        d = rows[:, 1:4] - np.asarray(p_true, float)
-        axis = truth.get("axis")
-        line = truth.get("kind") is not None and "point" not in str(truth.get("kind")) and np.shape(axis) == (3,)
-        if line:        # a line contact: along the edge is unobservable; the error is in the plane of rotation
-            a = np.asarray(axis, float) / np.linalg.norm(axis)
-            d = d - np.outer(d @ a, a)
-        axes[-1].semilogy(te, np.maximum(np.linalg.norm(d, axis=1), 1e-6) * 1e3, lw=1.0)
-        axes[-1].set_ylabel("error, mm" + ("\n(in the plane\nof rotation)" if line else " (3D)"), fontsize=8)
+        _error_panel(next(panels), te, rows, truth)
     marks = [(onset_t, "onset")] if onset_t is not None else []
     for ev in events or []:
         name = EVENT_KINDS.get(ev.get("kind"))
@@ -131,12 +165,13 @@ def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, o
     for when, name in marks:
         for ax in axes:
             ax.axvline(when - t0, color="k" if name == "onset" else "0.5", ls="--", lw=0.8)
+    for when, name in _merged(marks, span_s=float(t[-1]) if len(t) else 1.0):
         axes[0].annotate(name, (when - t0, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
                          rotation=90, va="top", ha="right")
     for ax in axes:
         ax.grid(True, alpha=0.3)
     axes[-1].set_xlabel("time since the recording's first sample, s")
-    fig.suptitle(title, fontsize=9)
+    fig.suptitle(title + ("" if onset_t is not None else ": no contact detected"), fontsize=9)
     try:
         fig.savefig(out, dpi=100, format=fmt)
     except ValueError as exc:
