@@ -30,9 +30,13 @@ $(PY):
 	@$(PY_BOOT) -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null || { echo "make: $(PY_BOOT) is Python $(or $(BOOT_PY),missing); tecdar needs 3.11 or later: make $(MAKECMDGOALS) PY_BOOT=python3.11 (README, Python)"; exit 1; }
 	$(PY_BOOT) -m venv $(VENV)
 
+# an editable install is what we want (a rig's `git pull` takes effect): setuptools' notice that it is
+# one is silenced by its message, and nothing else (its other warnings are mended, tests/test_makefile.py)
+PIP := PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip
+
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
+	$(PIP) install --quiet --upgrade pip
+	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) $(KERNELS)
@@ -46,8 +50,8 @@ $(WARM_JIT): $(STAMP) $(KERNELS)
 # a rig's install: the daemon with the arms' clients and the viewers, none of the test, bench or
 # simulator extras (`make run` and `make test` install those into the same .venv when asked)
 install: $(PY)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[ur,franka,viz,ros2,fleet]'
+	$(PIP) install --quiet --upgrade pip
+	$(PIP) install --quiet -e '.[ur,franka,viz,ros2,fleet]'
 	$(PY) -m tecdard warm
 
 run: $(WARM)
@@ -84,7 +88,7 @@ firmware:
 	@if $(CROSS_TOOLS); then $(MAKE) -s -C firmware cross; else $(NO_CROSS); fi
 
 bench: $(WARM_JIT)
-	$(PY) -m pip install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
+	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim

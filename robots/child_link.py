@@ -17,7 +17,7 @@ import multiprocessing
 import threading
 import time
 
-from tecdard.host import name_os_thread
+from tecdard.host import name_os_thread, without_ctrl_c
 from tecdard.robots.backend import JointState
 from tecdard.robots.backends import BackendError
 
@@ -162,8 +162,8 @@ class ChildLink:
         self._state_rx, state_tx = ctx.Pipe(duplex=False)
         extra = [ctx.Pipe(duplex=False) for _ in range(self.extra_pipes)]
         self._extra_rx = [rx for rx, _ in extra]
-        self._proc = ctx.Process(target=type(self).child, name=self.process_name, daemon=True,
-                                 args=(self.settings, cmd_rx, state_tx, *(tx for _, tx in extra)))
+        self._proc = ctx.Process(target=without_ctrl_c, name=self.process_name, daemon=True,
+                                 args=(type(self).child, self.settings, cmd_rx, state_tx, *(tx for _, tx in extra)))
         self._proc.start()
         for end in (cmd_rx, state_tx, *(tx for _, tx in extra)):
             end.close()      # the child holds its own copies: EOF on either side means the other has gone

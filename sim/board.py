@@ -229,7 +229,8 @@ class FirmwareWire:
         self.proc = subprocess.Popen(
             [binary, "--pty", link, "--signal", "-", "--signal-fs", f"{gyro_fs_dps},{accel_fs_g}",
              "--odr", str(odr_hz), "--gyro-fs", str(gyro_fs_dps), "--accel-fs", str(accel_fs_g)],
-            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+            process_group=0)       # the terminal's Ctrl-C is the daemon's: it closes the board after the arm
         self.fd = self.proc.stdin.fileno()
         os.set_blocking(self.fd, False)
         self.dropped = 0                   # samples the host board had no room for

@@ -10,6 +10,7 @@ import os
 import pathlib
 import platform
 import resource
+import signal
 import threading
 from dataclasses import dataclass
 
@@ -95,3 +96,13 @@ def name_os_thread(name: str) -> bool:
         return libc.prctl(PR_SET_NAME, name[:OS_THREAD_NAME_CHARS].encode("ascii", "replace"), 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False
+
+
+def without_ctrl_c(target, *args) -> None:
+    """A child process's entry (the arm's link, the simulation, the uploader): the terminal's Ctrl-C, which
+    reaches the whole foreground process group, is the daemon's to act on. The daemon holds the arm
+    first and then closes its children; a child interrupted under it left the hold without its link
+    and three tracebacks in the log after "tecdard stopped". SIGTERM keeps its default: the daemon's
+    own `terminate` of a child that does not close."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    target(*args)

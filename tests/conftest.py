@@ -127,11 +127,13 @@ def sim_config(**overrides) -> dict:
 
 class DaemonProcess:
     def __init__(self, tmp_path: pathlib.Path, cfg: dict, env: dict | None = None, client_tls=None, protocol="tcp",
-                 router: str | None = None, endpoint: str | None = None, node_name: str | None = None):
+                 router: str | None = None, endpoint: str | None = None, node_name: str | None = None,
+                 own_group: bool = False):
         """`router`: the daemon runs as a Zenoh client of the router at that endpoint, listening on
         nothing, and the test's client reaches it through the router. `endpoint`: where it listens
         (default: `protocol` on a free loopback port). `node_name`: with TLS, the certificate name the
-        test's client expects of the node it connects to (default the daemon's, DAEMON_NAME)."""
+        test's client expects of the node it connects to (default the daemon's, DAEMON_NAME). `own_group`: the
+        daemon leads a process group of its own, which a test signals as a terminal does (`os.killpg`)."""
         cfg = copy.deepcopy(cfg)
         if router is None:
             self.endpoint = endpoint or f"{protocol}/127.0.0.1:{free_port()}"
@@ -148,7 +150,7 @@ class DaemonProcess:
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "tecdard", "run", "--config", str(self.config_path)],
                                      stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
-                                     env=None if env is None else {**os.environ, **env})
+                                     env=None if env is None else {**os.environ, **env}, start_new_session=own_group)
         self.client = Client(self.endpoint, robot=cfg["robot"]["name"], tls=client_tls,
                              **({} if node_name is None else {"daemon_name": node_name}))
         try:

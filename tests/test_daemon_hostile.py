@@ -241,3 +241,28 @@ def test_a_record_flood_neither_starves_other_verbs_nor_fills_the_disk(make_daem
     files = [f for f in os.listdir(d.config_path.parent / "recordings") if not f.startswith(".")]
     print(f"{sent[0]} record queries sent; {len(files)} files written")
     assert sent[0] > 40 and len(files) <= 11, (sent[0], files)
+
+
+def test_ctrl_c_to_the_daemons_process_group_holds_the_arm_and_logs_no_traceback(tmp_path):
+    """Issue 50 item 15: `tecdard run` in a terminal, then Ctrl-C. The terminal signals the whole foreground
+    process group: the simulation's process died of KeyboardInterrupt under the daemon, whose hold on exit
+    then failed twice, and the log carried three tracebacks around "tecdard stopped". The daemon's
+    children now leave SIGINT to it: it holds the arm, then closes them."""
+    import signal
+    from tests.conftest import DaemonProcess, daemon_config
+    d = DaemonProcess(tmp_path, daemon_config(), own_group=True)
+    try:
+        reply = d.client.command("rotate", {"angle_deg": 30.0})
+        assert reply["ok"] is True, reply
+        deadline = time.monotonic() + TASK_TIMEOUT_S      # into the arc: the simulation is busiest there
+        while (d.client.command("status")["state"].get("task") or {}).get("phase") != "arc":
+            assert time.monotonic() < deadline, d.log()[-3000:]
+            time.sleep(0.05)
+        os.killpg(d.proc.pid, signal.SIGINT)
+        assert d.proc.wait(15.0) == 0, d.log()[-3000:]
+    finally:
+        d.close()
+    log = d.log()
+    assert "Traceback" not in log and " ERROR " not in log, log[-4000:]
+    assert log.rstrip().endswith("tecdard stopped"), log[-2000:]
+    assert '"error":"daemon shutting down"' in log, log[-2000:]

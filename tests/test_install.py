@@ -114,6 +114,10 @@ def test_tecdar_installs_beside_python_control(tmp_path, how):
         assert roots == {"tecdard", wheel.name.split("-")[0] + "-" + wheel.name.split("-")[1] + ".dist-info"}, roots
         missing = sorted(set(installed_sources()) - names)
         assert not missing, f"modules the wheel leaves out (pyproject's packages): {missing}"
+        # the ament interface package's definitions, which the node encodes with (their folders are packages)
+        interfaces = {f"tecdard/ros2/tecdar_msgs/{p.relative_to(ROOT / 'ros2' / 'tecdar_msgs').as_posix()}"
+                      for p in (ROOT / "ros2" / "tecdar_msgs").rglob("*") if p.is_file()}
+        assert interfaces and not interfaces - names, sorted(interfaces - names)
         # setup.py compiled the estimator's kernels into it: a platform wheel
         assert any(n.startswith(f"{KERNELS}/_compiled.") and n.endswith(".so") for n in names), sorted(names)
         assert f"{KERNELS}/_compiled.digest" in names and "-cp311-" in wheel.name, wheel.name

@@ -40,3 +40,20 @@ def test_a_python_older_than_3_11_is_refused_in_one_line(tmp_path):
     assert res.returncode != 0 and not (tmp_path / "venv").exists()
     assert f"make: {old} is Python 3.10; tecdar needs 3.11 or later: make " in res.stdout
     assert "PY_BOOT=python3.11" in res.stdout
+
+
+def test_the_install_prints_no_warning_of_setuptools():
+    """Issue 50 item 15: `make install` printed setuptools' warnings, one for each folder of ros2/tecdar_msgs
+    (importable, yet not in pyproject's packages), and its notice that the install is editable. The
+    Makefile's own pip command, run as it runs it (the package alone, into this venv), prints nothing."""
+    import os
+    import re
+    res = make("-n", "install", "VENV=.venv")
+    (line,) = [x for x in res.stdout.splitlines() if re.search(r"pip install --quiet -e", x)]
+    env_part, _, cmd = line.partition(" .venv/bin/python ")
+    assert env_part.startswith("PYTHONWARNINGS="), line
+    name, _, value = env_part.partition("=")
+    out = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "-e", "."], cwd=ROOT,
+                         env={**os.environ, name: value.strip('"')}, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "Warning" not in out.stderr and "warning" not in out.stdout.lower(), out.stderr[:3000]

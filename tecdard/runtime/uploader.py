@@ -178,7 +178,9 @@ class UploadWorker:
         import multiprocessing
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_worker_main, args=(child, *self.args), name="tecdar-upload", daemon=True)
+        from tecdard.host import without_ctrl_c
+        self._proc = ctx.Process(target=without_ctrl_c, args=(_worker_main, child, *self.args), name="tecdar-upload",
+                                 daemon=True)
         self._proc.start()
         child.close()
         self._conn = parent
