@@ -242,7 +242,8 @@ class RotateTask(TwoPhaseTask):
     # a probe across the handle instead of along its tangent: the gyro's twist then fits no hinge (a second
     # rotate with the first's direction, the handle having turned since, failed 3 times in 3 this way)
     stop_hints = {"divergence": "is --direction along the handle's tangent at the grasp? After a rotate the "
-                                "tangent has turned with the handle: give the new one"}
+                                "tangent has turned with the handle: give the new one (a rotate without "
+                                "--direction takes it from the last rotate's hinge while the TCP is on its circle)"}
 
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("turn_tool", True)

@@ -266,3 +266,26 @@ def test_a_rotate_that_diverges_says_the_likely_cause_its_direction(model):
     (stop,) = stops(ct)
     assert stop["cause"] == "divergence" and "innovations 11x" in stop["message"]
     assert "--direction along the handle's tangent" in stop["message"]
+
+
+def test_the_last_hinge_gives_the_tangent_onwards_while_the_tcp_is_on_its_circle():
+    """Issue 50 item 9 (control/last_hinge.py): the tangent at the grasp about the last rotate's hinge, onwards in
+    the sense it turned; the configured default once the TCP has left that circle; a result without a usable
+    hinge remembers nothing."""
+    from tecdard.control.last_hinge import ON_CIRCLE_M, LastHinge
+    hinge = np.array([0.157, 0.0, 0.487])
+    # the first rotate probed up (+z) from a handle along +x: its result's axis is oriented so that
+    # axis x (p_tcp - hinge) = +z there, i.e. -y
+    h = LastHinge.from_result("rotate-1", {"hinge": {"p": hinge.tolist(), "axis": [0.0, -2.0, 0.0]}, "radius": 0.15})
+    assert h is not None and np.allclose(h.axis, [0.0, -1.0, 0.0])
+    assert np.allclose(h.tangent(hinge + [0.15, 0.0, 0.0])[0], [0.0, 0.0, 1.0])
+    th = np.radians(30.0)                     # 30 deg later, the handle up at 30 deg: onwards is up and back
+    t, why = h.tangent(hinge + 0.15 * np.array([np.cos(th), 0.0, np.sin(th)]) + [0.0, 0.04, 0.0])
+    assert np.allclose(t, [-np.sin(th), 0.0, np.cos(th)]) and "rotate-1" in why
+    off, why = h.tangent(hinge + [0.15 + 2 * ON_CIRCLE_M, 0.0, 0.0])
+    assert off is None and "no longer held on that hinge's circle" in why
+    for bad in ({}, {"hinge": None, "radius": 0.1}, {"hinge": {"p": [0, 0], "axis": [0, 1, 0]}, "radius": 0.1},
+                {"hinge": {"p": [0, 0, 0], "axis": [0, 0, 0]}, "radius": 0.1},
+                {"hinge": {"p": [0, 0, float("nan")], "axis": [0, 1, 0]}, "radius": 0.1},
+                {"hinge": {"p": [0, 0, 0], "axis": [0, 1, 0]}, "radius": 0.001}):
+        assert LastHinge.from_result("rotate-2", bad) is None, bad

@@ -344,3 +344,41 @@ def test_map_probes_a_small_grid_in_two_orientations_and_writes_the_depth_map(ma
         assert abs(depth[i, j] - ideal[i, j]) < MAP_POINT_TOL_M
         assert abs(depth[i, j] - scene.surface_z(x, y)) < 0.0045 + MAP_POINT_TOL_M
     assert open(res["files"]["depth.png"], "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_second_rotate_probes_along_the_tangent_the_first_left(make_daemon):
+    """Issue 50 item 9: after a rotate the handle has turned, and the default direction (straight up) no longer
+    runs along its tangent: a second rotate without --direction failed 3 times in 3 ("estimator innovations
+    11x"). The daemon now takes the tangent at the grasp about the hinge the first rotate found, onwards,
+    and says so in its reply; the handle ends at the sum of both angles, the hinge found again."""
+    d = make_daemon()
+    first = run_rotate(d, angle_deg=20.0)
+    _wait_at_rest(d)
+    reply = d.client.command("rotate", {"angle_deg": 20.0})
+    assert reply["ok"] is True, reply
+    assert "tangent" in reply["direction_from"] and first["hinge"] is not None, reply
+    turned = np.radians(first["sim"]["angle_deg"])      # the handle's true tangent now: +z turned with it
+    true_tangent = np.array([-np.sin(turned), 0.0, np.cos(turned)])
+    assert float(np.dot(reply["direction"], true_tangent)) > np.cos(np.radians(5.0)), (reply, true_tangent)
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
+    sim = ev["result"]["sim"]
+    err = distance_to_axis(np.array(ev["result"]["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
+    print(f"second rotate: hinge {err * 1e3:.2f} mm, handle {sim['angle_deg']:.2f} deg, direction "
+          f"{np.degrees(np.arccos(min(1.0, float(np.dot(reply['direction'], true_tangent))))):.2f} deg off the tangent")
+    assert err < HINGE_TOL_M, f"hinge {err * 1e3:.2f} mm"
+    assert abs(sim["angle_deg"] - 40.0) < 2 * ANGLE_TOL_DEG, sim
+    started = next(e for e in d.client.event_log if e["kind"] == "task_started" and e["task"] == reply["task"])
+    assert started["params"]["direction"] == reply["direction"] and started["params"]["direction_from"]
+    # a direction given is the operator's: no hinge's tangent replaces it
+    _wait_at_rest(d)
+    given = d.client.command("rotate", {"angle_deg": 5.0, "direction": [0.0, 0.0, 1.0]})
+    assert given["ok"] is True and "direction_from" not in given, given
+    d.client.command("cancel", {"task": given["task"]})
+
+
+def _wait_at_rest(d, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while d.client.command("status")["state"]["mode"] == "busy":
+        assert time.monotonic() < deadline, d.log()[-2000:]
+        time.sleep(0.05)

@@ -276,10 +276,18 @@ def _field(obj: dict, f: Field, limits: Limits, verb: str):
     raise CommandError(INTERNAL, f"{verb}.{f.name}: unknown field kind {f.kind!r}")
 
 
-def validate_task(spec: TaskVerb, obj: dict, limits: Limits) -> dict:
+class TaskFields(dict):
+    """A task's validated fields (defaults applied), and `given`: those its payload named. A verb whose default
+    depends on the daemon's state (rotate's direction after a rotate) tells a given value from a default."""
+    given: frozenset = frozenset()
+
+
+def validate_task(spec: TaskVerb, obj: dict, limits: Limits) -> TaskFields:
     """A task verb's payload against its fields: normalised values, defaults applied."""
     _check_fields(obj, spec.name, tuple(f.name for f in spec.fields))
-    return {f.name: _field(obj, f, limits, spec.name) for f in spec.fields}
+    out = TaskFields((f.name, _field(obj, f, limits, spec.name)) for f in spec.fields)
+    out.given = frozenset(obj)
+    return out
 
 
 def validate(verb: str, obj: dict, limits: Limits) -> dict:

@@ -376,6 +376,9 @@ def _answered(cli: Client, args, reply: dict) -> int:
     task = reply["task"]
     if not args.json:
         print(f"{args.verb}: accepted as task {task}")
+        if isinstance(reply.get("direction_from"), str):          # a rotate after a rotate: which way it probes
+            shown = ", ".join(f"{float(x):.3f}" for x in reply.get("direction") or [])
+            print(f"{args.verb}: direction {shown or 'the configured default'}: {reply['direction_from']}")
     if args.no_follow:
         return EXIT_DONE
     progress = Progress(sys.stderr)

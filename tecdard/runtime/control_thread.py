@@ -25,6 +25,7 @@ from tecdard.control.runner import TaskRunner
 from tecdard.control.servo import PlanSample, joint_velocities
 from tecdard.api import commands as C
 from tecdard import verbs
+from tecdard.control.last_hinge import LastHinge
 from tecdard.runtime.messages import Cancel, Grip, LatestValue, Outbox, Reply, StartTask, Stop
 from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.options import option, read_options
@@ -128,6 +129,7 @@ class ControlThread:
         self.first_tick = threading.Event()
         self._wd_interval = notifier.watchdog_interval_s() if notifier else None
         self._wd_last = 0.0
+        self.last_hinge: LastHinge | None = None    # the last rotate's: the next one's default direction
 
     # -- in (any thread) ----------------------------------------------------------
     def submit(self, msg: StartTask | Cancel) -> bool:
@@ -294,6 +296,8 @@ class ControlThread:
                 refused = self._grip_refusal(msg)
                 if refused is not None:
                     self._reply(msg.request, refused)
+                else:
+                    self.last_hinge = None       # a grasp or a release: the object held may not be the one turned
 
     def _grip_refusal(self, msg: Grip) -> dict | None:
         """Hand a grasp or a release to the gripper's thread (it replies when the fingers stop), or the refusal:
@@ -330,6 +334,9 @@ class ControlThread:
         spec = verbs.get(verb)
         if spec is None:
             return C.CommandError(C.NOT_IMPLEMENTED, f"verb: '{verb}' is not implemented yet").reply()
+        direction_from = None
+        if verb == "rotate":
+            f, direction_from = self._rotate_direction(f, p)
         R_hold = self.runner.R_hold if self.runner.R_hold is not None else np.eye(3)
         ctx = verbs.TaskContext(f"{verb}-{uuid.uuid4().hex[:8]}", p.copy(), R_hold, self.params.max_speed,
                                 self.params.workspace_min, self.params.workspace_max, self.services.get(verb),
@@ -340,8 +347,12 @@ class ControlThread:
             task = spec.build(f, ctx)
         except verbs.BuildRefused as exc:
             return C.CommandError(C.OUT_OF_LIMITS, str(exc)).reply()
-        self.runner.start(task, now, p, f)
-        return {"ok": True, "task": task.id}
+        if direction_from is None:
+            self.runner.start(task, now, p, f)
+            return {"ok": True, "task": task.id}
+        log.info("%s: direction %s, %s", task.id, np.round(f["direction"], 3).tolist(), direction_from)
+        self.runner.start(task, now, p, {**f, "direction_from": direction_from})
+        return {"ok": True, "task": task.id, "direction": f["direction"], "direction_from": direction_from}
 
     def _refused_without_grasp(self, verb: str) -> dict | None:
         """A task needs the object held: refused while the gripper moves, or says it holds nothing (`home`, which
@@ -365,7 +376,22 @@ class ControlThread:
         self._stop_waiters.clear()
 
     def _event(self, kind: str, **fields) -> None:
+        if kind == "task_done" and fields.get("verb") == "rotate":
+            self.last_hinge = LastHinge.from_result(fields["task"], fields.get("result") or {})
+        elif kind == "task_failed" and fields.get("verb") == "rotate":
+            self.last_hinge = None           # the handle stood wherever the failure left it
         self.outbox.event(kind, **fields)
+
+    def _rotate_direction(self, f: dict, p: np.ndarray) -> tuple[dict, str | None]:
+        """A rotate without a `direction` after a rotate: the tangent at the grasp about the hinge it found, where
+        the TCP still lies on that hinge's circle (control/last_hinge.py). The fields, and what chose the
+        direction (None: the payload's, or the configured default with no hinge known)."""
+        if "direction" in getattr(f, "given", ("direction",)) or self.last_hinge is None:
+            return f, None
+        t, why = self.last_hinge.tangent(p)
+        if t is None:
+            return f, f"the configured default ({why})"
+        return {**f, "direction": [float(x) for x in t]}, why
 
     def _reply(self, request: int | None, payload: dict) -> None:
         if request is not None:

@@ -16,8 +16,9 @@ FIELDS = (
     Field("probe_distance", "number", lambda lim: lim.default_probe_distance, 0.0005,
           lambda lim: lim.max_probe_distance, "m", "phase-1 probe length"),
     Field("direction", "direction", lambda lim: lim.default_direction,
-          help="the phase-1 probe, unit vector x,y,z (world): along the handle's tangent at the grasp (after a rotate "
-               "it has turned with the handle: give the new one)"),
+          help="the phase-1 probe, unit vector x,y,z (world): along the handle's tangent at the grasp. Not given "
+               "after a rotate that left the TCP on its hinge's circle: the tangent there, onwards (the reply says "
+               "so); else the configured default"),
     Field("strategy", "choice", "arc", choices=("arc", "straight"),
           help="arc: follow the estimated hinge; straight: the paper's pull, which drags an unfixed base"),
     Field("turn_tool", "bool", True, help="the gripper turns with the object (default; --no-turn-tool: held)"),
