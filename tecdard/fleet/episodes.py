@@ -104,6 +104,8 @@ class EpisodeStore:
         if problem:
             raise StoreError(problem)
         self.url = params.url.rstrip("/")
+        self.bad_keys: list[str] = []       # keys the store's client refused to name, left out of listings
+        self.unlisted: list[str] = []       # listings' pages that could not be sought around such a key, said
         if not create and self.url.startswith("file://") and not pathlib.Path(self.url.removeprefix("file://")).is_dir():
             raise StoreError(f"store {show(self.url)}: no such directory (nothing was ever uploaded there)")
         try:
@@ -160,12 +162,25 @@ class EpisodeStore:
             raise StoreError(f"{key}: {first_line(exc)}") from None
 
     def list(self, prefix: str) -> list[dict]:
-        """Every object under `prefix`: {path, size, last_modified}."""
+        """Every object under `prefix`: {path, size, last_modified}. A key the store's client refuses to name
+        (a `..` segment in a bucket) is left out and kept in `bad_keys`; the rest are listed (fleet/listing.py)."""
+        import urllib.parse
+
         import obstore
+
+        from tecdard.fleet.listing import ListingError, list_around_bad_keys
+
+        def page(under: str, offset: str | None) -> list[dict]:
+            return [m for batch in obstore.list(self.store, prefix=under, offset=offset) for m in batch]
+
+        def folders(under: str) -> tuple[list[str], list[dict]]:
+            found = obstore.list_with_delimiter(self.store, prefix=under)
+            return [str(f) for f in found["common_prefixes"]], list(found["objects"])
+        store_prefix = "" if self.local_root is not None else urllib.parse.urlparse(self.url).path.strip("/")
         try:
-            return [m for batch in obstore.list(self.store, prefix=prefix) for m in batch]
-        except Exception as exc:
-            raise StoreError(f"{prefix}: {first_line(exc)}") from None
+            return list_around_bad_keys(page, folders, prefix, store_prefix, self.bad_keys, self.unlisted)
+        except ListingError as exc:
+            raise StoreError(f"{prefix}: {exc}") from None
 
     def delete(self, key: str) -> None:
         import obstore
