@@ -125,3 +125,46 @@ def test_viewers_that_never_read_are_capped_in_number_and_in_bytes(tmp_path):
         d.close()
     assert "imu_stale" not in d.log()
     assert "a viewer turned away, 3 are connected (viz.foxglove.max_viewers)" in d.log()
+
+
+def test_a_viewer_of_the_old_protocol_name_is_served():
+    """Issue 50 item 16: Lichtblick and Foxglove builds before the SDK ask for `foxglove.websocket.v1`, which
+    foxglove-sdk answered HTTP 400 (it knows the same protocol as `foxglove.sdk.v1` only). The gate renames it
+    both ways: the viewer gets the name it asked for and the server's advertisements."""
+    from tecdard.runtime.view_gate import rename_answer, rename_offer
+    head = b"GET / HTTP/1.1\r\nHost: x\r\nSec-WebSocket-Protocol: foxglove.websocket.v1\r\nUpgrade: websocket"
+    renamed, done = rename_offer(head)
+    assert done and b"Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n" in renamed
+    both = head.replace(b"foxglove.websocket.v1", b"foxglove.websocket.v1, foxglove.sdk.v1")
+    assert rename_offer(both) == (both, False)               # the SDK's own name offered: nothing to rename
+    assert rename_answer(b"HTTP/1.1 101\r\nsec-websocket-protocol: foxglove.sdk.v1") == \
+        b"HTTP/1.1 101\r\nsec-websocket-protocol: foxglove.websocket.v1"
+
+
+@pytest.mark.slow
+def test_lichtblicks_protocol_name_receives_the_live_view(tmp_path):
+    """A client offering only `foxglove.websocket.v1`, against the daemon's live view: it is accepted under that
+    name, and the server's advertisement of every channel arrives."""
+    port = free_port()
+    d = DaemonProcess(tmp_path, daemon_config(**{"viz.foxglove": {"enabled": True, "port": port}}))
+    try:
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"],
+                                       open_timeout=2.0)
+                break
+            except OSError:
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+        with ws:
+            assert ws.subprotocol == "foxglove.websocket.v1"
+            topics: set = set()
+            while topics != TOPICS:
+                msg = json.loads(ws.recv(timeout=5.0))
+                if msg.get("op") == "serverInfo":
+                    assert msg["name"] == "tecdard"
+                if msg.get("op") == "advertise":
+                    topics |= {c["topic"] for c in msg["channels"]}
+    finally:
+        d.close()

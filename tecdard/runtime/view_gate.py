@@ -12,7 +12,12 @@ byte relay on a thread of its own:
   that viewer's side of the server, whose own queue for it (sized from the same budget,
   `backlog_messages`) then drops its oldest messages: a slow viewer loses frames, and costs a
   bounded amount, as foxglove_bridge's `send_buffer_limit` (10 MB by default) bounds it;
-- the other direction (a viewer's subscriptions) is small and relayed as it comes.
+- the other direction (a viewer's subscriptions) is small and relayed as it comes;
+- a viewer that asks for the protocol by its old name, `foxglove.websocket.v1` (Lichtblick, Foxglove
+  builds before the SDK), is served: foxglove-sdk speaks only `foxglove.sdk.v1` and answered it HTTP 400,
+  though the two are the same protocol renamed (Foxglove's word, foxglove/ros-foxglove-bridge#382). The
+  gate renames it in the viewer's upgrade request, and back in the server's answer; after the
+  handshake the bytes pass as they come.
 """
 from __future__ import annotations
 
@@ -36,6 +41,34 @@ def backlog_messages(buffer_bytes: int) -> int:
     return max(8, buffer_bytes // LARGEST_MESSAGE_BYTES)
 
 
+OLD_NAME, SDK_NAME = b"foxglove.websocket.v1", b"foxglove.sdk.v1"
+MAX_HEAD_BYTES = 16 * 1024             # an upgrade request's or answer's headers; longer: no viewer of ours
+
+
+def rename_offer(head: bytes) -> tuple[bytes, bool]:
+    """A viewer's upgrade request with the old name of the protocol offered as the SDK's (where it does not
+    offer the SDK's itself), and whether it was renamed."""
+    lines = head.split(b"\r\n")
+    for i, line in enumerate(lines):
+        name, sep, value = line.partition(b":")
+        if sep and name.strip().lower() == b"sec-websocket-protocol":
+            offered = [v.strip() for v in value.split(b",")]
+            if OLD_NAME in offered and SDK_NAME not in offered:
+                lines[i] = name + b": " + b", ".join(SDK_NAME if v == OLD_NAME else v for v in offered)
+                return b"\r\n".join(lines), True
+    return head, False
+
+
+def rename_answer(head: bytes) -> bytes:
+    """The server's answer to a renamed offer, with the name the viewer asked for."""
+    lines = head.split(b"\r\n")
+    for i, line in enumerate(lines):
+        name, sep, value = line.partition(b":")
+        if sep and name.strip().lower() == b"sec-websocket-protocol" and value.strip() == SDK_NAME:
+            lines[i] = name + b": " + OLD_NAME
+    return b"\r\n".join(lines)
+
+
 class _Pair:
     """A viewer's connection and the relay's connection to the server for it."""
 
@@ -43,6 +76,30 @@ class _Pair:
         self.viewer, self.upstream = viewer, upstream
         self.to_viewer = bytearray()          # from the server, waiting for the viewer to read
         self.to_upstream = bytearray()        # from the viewer, waiting for the server
+        self.request: bytearray | None = bytearray()    # the viewer's upgrade request until it is whole
+        self.answer: bytearray | None = None            # the server's answer, held while a renamed offer's
+        self.renamed = False
+
+    def handshake(self, data: bytes, from_viewer: bool) -> bytes | None:
+        """`data` as it is to be relayed: the headers renamed once whole (None: not whole yet, held)."""
+        held = self.request if from_viewer else self.answer
+        if held is None:
+            return data
+        held += data
+        end = held.find(b"\r\n\r\n")
+        if end < 0:
+            if len(held) > MAX_HEAD_BYTES:
+                raise OSError("an upgrade's headers longer than any viewer's")
+            return None
+        head, rest = bytes(held[:end]), bytes(held[end:])
+        if from_viewer:
+            self.request = None
+            head, self.renamed = rename_offer(head)
+            self.answer = bytearray() if self.renamed else None
+        else:
+            self.answer = None
+            head = rename_answer(head)
+        return head + rest
 
 
 class ViewerGate:
@@ -159,8 +216,10 @@ class ViewerGate:
                 if not data:
                     self._close(pair)
                     return
-                out += data
-                self._flush(out, peer)
+                data = pair.handshake(data, from_viewer)
+                if data is not None:
+                    out += data
+                    self._flush(out, peer)
             if mask & selectors.EVENT_WRITE:
                 self._flush(inbox, s)
         except OSError:
