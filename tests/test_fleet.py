@@ -410,3 +410,39 @@ def test_a_fleet_robot_name_makes_a_ros2_namespace():
     from tecdard.runtime.ros2_node import Ros2Params
     for robot, namespace in (("ur5e-left", "/ur5e_left"), ("arm_2", "/arm_2"), ("3-arm", "/r_3_arm")):
         assert Ros2Params.from_config(Config({}).section("ros2"), robot).namespace == namespace
+
+
+def test_a_tls_mistake_and_a_denial_each_say_their_cause(mesh, pki):
+    """Issue 50 item 10: a `tcp/` endpoint for a TLS router and a certificate not on the roster each read "not alive
+    after 5 s", and a watch-only operator's rotate read "no reply within 5 s" with exit 3 ("no daemon"). Each now
+    names its likely cause; a denial reads as a denial, exit 4. The robot is a session with its certificate,
+    holding its token and answering its commands."""
+    r1, r2 = mesh
+    ca, ids, *_ = pki
+
+    def as_(who: str) -> list:
+        return ["--tls-ca", ca.path, "--tls-cert", ids[who].cert, "--tls-key", ids[who].key,
+                "--tls-daemon-name", "router-2", "--connect", r2.endpoint, "--robot", "arm-b", "--wait-alive", "3"]
+    with client_session(r1.endpoint, tls(ca, ids["arm-b"])) as robot:
+        token = robot.liveliness().declare_token("tecdar/arm-b/alive")
+        robot.declare_queryable("tecdar/arm-b/cmd/**", lambda q: q.reply(q.key_expr, '{"ok": true, "state": null}'))
+        time.sleep(MESH_SETTLE_S)
+        try:
+            res = tecdard("status", *as_("alice"), timeout=60)
+            assert res.returncode == 0, res.stderr                        # alice may command arm-b
+            res = tecdard("rotate", "--angle-deg", "10", *as_("dashboard"), timeout=60)
+            assert res.returncode == 4, (res.returncode, res.stderr)
+            assert "denied: tecdar/arm-b/alive is alive" in res.stderr and "access control" in res.stderr, res.stderr
+            res = tecdard("status", *as_("intruder"), timeout=60)
+            assert res.returncode == 3, res.stderr
+            assert f"is the name of --tls-cert {ids['intruder'].cert} on it?" in res.stderr, res.stderr
+            res = tecdard("status", "--connect", r2.endpoint.replace("tls/", "tcp/"), "--wait-alive", "3", timeout=60)
+            assert res.returncode == 3, res.stderr
+            assert f"speaks TLS: connect with {r2.endpoint}" in res.stderr, res.stderr
+            assert len(res.stderr.strip().splitlines()) == 1, res.stderr        # said at once, without the wait
+        finally:
+            token.undeclare()
+    # the router logs the refused handshakes (the tcp/ client's) and the certificate that matches no subject
+    log = r2.log.read_text()
+    assert "zenoh_link_tls" in log and ("InvalidContentType" in log or "handshake" in log), log[-3000:]
+    assert "did not match any" in log and "\x1b[" not in log, log[-3000:]

@@ -24,6 +24,14 @@ class ClientError(RuntimeError):
     pass
 
 
+class Denied(ClientError):
+    """The daemon is alive, yet the command reached no queryable: a router's access control (the fleet's roster)
+    does not let this session send it."""
+
+
+DENIED_BEFORE = 0.5        # a query that ends with no reply within this share of its timeout was routed nowhere
+
+
 class Client:
     """The daemon's client: a Zenoh session in client mode to the daemon's endpoint and nothing else
     (no gossip, no scouting), which takes what it receives on the robot's keys only from that node,
@@ -140,10 +148,18 @@ class Client:
         kwargs = {"timeout": timeout}
         if payload is not None:
             kwargs["payload"] = payload
+        t0 = time.monotonic()
         for reply in self.session.get(self.keys.cmd(verb), **kwargs):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_string())
             raise ClientError(f"{verb}: error reply {reply.err.payload.to_string()}")
+        # no reply: a query that ended long before its timeout was routed to no queryable. With the daemon's
+        # token in sight that is a router's access control, not a missing daemon (a watch-only operator's
+        # rotate read "no reply within 5 s" after 0.8 s, and exit 3)
+        if time.monotonic() - t0 < DENIED_BEFORE * timeout and self.alive(1.0):
+            raise Denied(f"{verb}: denied: {self.keys.alive} is alive, but {self.keys.cmd(verb)} reached no "
+                         "queryable: the router's access control does not let this certificate send it (the "
+                         "fleet's roster: an operator's robots)")
         raise ClientError(f"{verb}: no reply within {timeout:.0f} s")
 
     def wait_event(self, kinds: tuple[str, ...], task: str | None = None, timeout: float = 60.0) -> dict:

@@ -47,6 +47,33 @@ def endpoint_refused(endpoint: str, timeout_s: float = 1.0) -> str | None:
         return None
 
 
+def speaks_tls(endpoint: str, timeout_s: float = 1.0) -> bool:
+    """Whether a tcp/ endpoint answers a TLS ClientHello as a TLS server does (a handshake or an alert record):
+    a `tcp/` endpoint given for a router that listens on TLS. Asked only once a plain session saw nothing."""
+    import socket
+    import ssl
+    proto, _, address = endpoint.partition("/")
+    if proto != "tcp" or endpoint_problem(endpoint):
+        return False
+    host, _, port = address.split("#")[0].split("?")[0].rpartition(":")
+    ctx = ssl.create_default_context()
+    ctx.check_hostname, ctx.verify_mode = False, ssl.CERT_NONE
+    incoming, outgoing = ssl.MemoryBIO(), ssl.MemoryBIO()
+    tls = ctx.wrap_bio(incoming, outgoing)
+    try:
+        tls.do_handshake()
+    except ssl.SSLWantReadError:
+        pass                                   # the ClientHello is in `outgoing`
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s) as sock:
+            sock.sendall(outgoing.read())
+            first = sock.recv(3)
+    except OSError:
+        return False
+    # a TLS record: content type handshake (22) or alert (21), then version 3.x
+    return len(first) >= 2 and first[0] in (21, 22) and first[1] == 3
+
+
 def endpoint_problem(endpoint: str) -> str | None:
     """Why a Zenoh endpoint (`proto/host:port`, or `unixsock-stream/PATH`, with optional `?...`
     and `#...`) cannot work, in a few words; None when it looks usable."""

@@ -12,12 +12,13 @@ import time
 
 from tecdard import verbs
 from tecdard.api.commands import task_verbs
-from tecdard.api.session import DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem, endpoint_refused
+from tecdard.api.session import (DAEMON_NAME, DEFAULT_ENDPOINT, TlsFiles, endpoint_problem, endpoint_refused,
+                                  speaks_tls)
 from tecdard.cli import show
-from tecdard.api.client import Client, ClientError
+from tecdard.api.client import Client, ClientError, Denied
 from tecdard.safejson import first_line
 
-EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON = 0, 1, 2, 3
+EXIT_DONE, EXIT_FAILED, EXIT_REFUSED, EXIT_NO_DAEMON, EXIT_DENIED = 0, 1, 2, 3, 4
 
 
 def _finite(text: str) -> float:
@@ -235,6 +236,22 @@ def _say(verb: str, text: str) -> None:
     print(f"tecdard {verb}: {text}", file=sys.stderr, flush=True)
 
 
+def _not_alive_cause(args, tls) -> str:
+    """The likely cause of a daemon not seen at the endpoint, where one can be told: a tcp/ endpoint where a TLS
+    router listens, a certificate a roster's router lets see nothing, another robot's name."""
+    if speaks_tls(args.connect):
+        host_port = args.connect.partition("/")[2]
+        return (f"; {args.connect} speaks TLS: connect with tls/{host_port} and --tls-ca, --tls-cert and --tls-key")
+    if tls is not None:
+        other = _missing_robot(args, tls)
+        if other:
+            return other
+        return ("; no robot's token at all is visible through it: if the router enforces the fleet's roster, is "
+                f"the name of --tls-cert {tls.cert} on it? (a certificate of the fleet's CA not on the roster "
+                "connects, and is shown nothing)")
+    return _missing_robot(args, tls)
+
+
 def _missing_robot(args, tls) -> str:
     """Which robot names answer at the endpoint, for a robot that does not."""
     try:
@@ -325,7 +342,8 @@ def run_verb(args) -> int:
     try:
         cli = Client(args.connect, robot=args.robot, tls=tls, daemon_name=args.tls_daemon_name)
     except Exception as exc:                      # zenoh refuses a file or a setting
-        _say(args.verb, f"cannot open a session to {args.connect}: {first_line(exc)}")
+        cause = _not_alive_cause(args, tls) if speaks_tls(args.connect) else ""
+        _say(args.verb, f"cannot open a session to {args.connect}: {first_line(exc)}{cause}")
         return EXIT_NO_DAEMON
     task = None
     sent = None
@@ -333,13 +351,21 @@ def run_verb(args) -> int:
         try:
             try:
                 wait_s = args.wait_alive if args.wait_alive is not None else min(args.timeout, 10.0)
-                cli.wait_alive(wait_s, waiting=lambda s: _say(
-                    args.verb, f"waiting up to {wait_s:g} s for the daemon's liveliness token "
-                               f"{cli.keys.alive} at {args.connect} ({s:.0f} s so far)"))
+
+                def waiting(s: float) -> None:
+                    if s < 1.5 and speaks_tls(args.connect):     # a plain tcp/ to a TLS router: said at once
+                        raise ClientError(f"no session at {args.connect}{_not_alive_cause(args, tls)}")
+                    _say(args.verb, f"waiting up to {wait_s:g} s for the daemon's liveliness token "
+                                    f"{cli.keys.alive} at {args.connect} ({s:.0f} s so far)")
+                cli.wait_alive(wait_s, waiting=waiting)
                 sent = _send(cli, args, payload)
                 reply = sent.result()
+            except Denied as exc:                 # a denial reads as one, with its own exit code
+                _say(args.verb, str(exc))
+                return EXIT_DENIED
             except ClientError as exc:
-                _say(args.verb, f"{exc}{_missing_robot(args, tls) if 'not alive' in str(exc) else ''}")
+                cause = _not_alive_cause(args, tls) if "not alive" in str(exc) else ""
+                _say(args.verb, f"{exc}{cause}")
                 return EXIT_NO_DAEMON
             return _answered(cli, args, reply)
         except KeyboardInterrupt:

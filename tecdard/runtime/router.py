@@ -4,6 +4,7 @@ from the fleet's roster (fleet.acl) or read from a file as `tecdard fleet acl` w
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -91,6 +92,13 @@ def _first_line(exc: BaseException) -> str:
     return first_line(exc, 200)
 
 
+# Zenoh's own log in the router's (RUST_LOG overrides): its warnings, among them each refused TLS handshake (a
+# client without TLS, another CA's certificate), and access control's word on each certificate that matches no
+# subject of the roster. A denied message of a known subject is logged at zenoh's trace level only, with every
+# message passed (`RUST_LOG=warn,zenoh::net::routing::interceptor::access_control=trace`: for a session's debugging).
+ROUTER_LOG = "warn,zenoh::net::routing::interceptor::access_control=info"
+
+
 def serve(settings: RouterSettings, conf) -> int:
     """Run the router on its session config `conf` (settings.session_config()) until SIGTERM or Ctrl-C;
     READY=1 to systemd once it listens."""
@@ -100,6 +108,8 @@ def serve(settings: RouterSettings, conf) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    os.environ.setdefault("NO_COLOR", "1")          # plain text for journald (tracing-subscriber reads it)
+    zenoh.init_log_from_env_or(ROUTER_LOG)
     try:
         session = zenoh.open(conf)
     except Exception as exc:          # zenoh.ZError: an endpoint taken, a certificate refused
