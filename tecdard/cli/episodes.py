@@ -93,7 +93,7 @@ def _query(args) -> int:
         _say("query", str(exc))
         return EXIT_BAD_INPUT
     for name, why in index.skipped:
-        _say("query", f"{show(name)}: {why}" if name.endswith("/") else f"index file {show(name)} left out: {why}")
+        _say("query", f"index file {show(name)} left out: {why}")
     if args.json:
         print(json.dumps([json_ready(dict(zip(columns, (_plain(v) for v in r)))) for r in rows]))
     elif args.csv:

@@ -104,8 +104,8 @@ class EpisodeStore:
         if problem:
             raise StoreError(problem)
         self.url = params.url.rstrip("/")
+        self.params = params
         self.bad_keys: list[str] = []       # keys the store's client refused to name, left out of listings
-        self.unlisted: list[str] = []       # listings' pages that could not be sought around such a key, said
         if not create and self.url.startswith("file://") and not pathlib.Path(self.url.removeprefix("file://")).is_dir():
             raise StoreError(f"store {show(self.url)}: no such directory (nothing was ever uploaded there)")
         try:
@@ -162,23 +162,20 @@ class EpisodeStore:
             raise StoreError(f"{key}: {first_line(exc)}") from None
 
     def list(self, prefix: str) -> list[dict]:
-        """Every object under `prefix`: {path, size, last_modified}. A key the store's client refuses to name
-        (a `..` segment in a bucket) is left out and kept in `bad_keys`; the rest are listed (fleet/listing.py)."""
-        import urllib.parse
-
+        """Every object under `prefix`: {path, size, last_modified}. A key obstore refuses to name (a `..`, `.` or
+        empty segment, which S3 allows) is left out and kept in `bad_keys`; the rest are listed through
+        botocore (fleet/listing.py)."""
         import obstore
 
-        from tecdard.fleet.listing import ListingError, list_around_bad_keys
-
-        def page(under: str, offset: str | None) -> list[dict]:
-            return [m for batch in obstore.list(self.store, prefix=under, offset=offset) for m in batch]
-
-        def folders(under: str) -> tuple[list[str], list[dict]]:
-            found = obstore.list_with_delimiter(self.store, prefix=under)
-            return [str(f) for f in found["common_prefixes"]], list(found["objects"])
-        store_prefix = "" if self.local_root is not None else urllib.parse.urlparse(self.url).path.strip("/")
+        from tecdard.fleet.listing import ListingError, list_raw, refused_key
         try:
-            return list_around_bad_keys(page, folders, prefix, store_prefix, self.bad_keys, self.unlisted)
+            return [m for batch in obstore.list(self.store, prefix=prefix) for m in batch]
+        except Exception as exc:
+            if self.local_root is not None or refused_key(exc) is None:
+                raise StoreError(f"{prefix}: {first_line(exc)}") from None
+        p = self.params
+        try:
+            return list_raw(self.url, p.endpoint, p.region, p.allow_http, prefix, self.bad_keys)
         except ListingError as exc:
             raise StoreError(f"{prefix}: {exc}") from None
 

@@ -38,11 +38,10 @@ class Index:
         """The table's Parquet files as local paths (an S3 store's fetched into the cache, each once:
         index files are never rewritten, only added and, compacted, removed)."""
         prefix = f"{INDEX}/{table}/"
-        known_bad, known_unlisted = len(self.store.bad_keys), len(self.store.unlisted)
+        known_bad = len(self.store.bad_keys)
         objects = [m for m in self.store.list(prefix) if str(m["path"]).endswith(".parquet")]
         self.skipped += [(key, "a key the store's client refuses to name (a '..', '.' or empty segment)")
                          for key in self.store.bad_keys[known_bad:]]
-        self.skipped += [(prefix, note.removeprefix(prefix + ": ")) for note in self.store.unlisted[known_unlisted:]]
         self.listed[table] = {str(m["path"]) for m in objects}
         root = self.store.local_root
         if root is not None:

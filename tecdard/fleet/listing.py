@@ -1,23 +1,17 @@
-"""An object store's listing that a hostile key does not deny whole.
+"""An S3 store's listing that a hostile key does not deny whole.
 
-obstore (object_store underneath) refuses a key with a `..`, `.` or empty segment, and it parses a
-listing a page (up to 1000 keys) at a time: one such key in an S3 bucket's index prefix failed every
-`episodes query`, `fetch` and `compact`. Here the listing goes on around it:
-- the refused key is left out and said (its name is in the error);
-- the keys after it are listed from an offset past it;
-- the keys before it on its page are listed folder by folder: the folders of the prefix (a listing
-  with a delimiter), each on its own, the refused key's own folder again the same way.
-
-A listing's prefix is a whole folder (object_store lists by path segments, not characters): where a
-refused segment lies directly in the folder being listed, that folder's delimiter listing fails too,
-and the keys on a refused key's page before it cannot be sought. Each such page is said in one line
-(`unlisted`), never passed over in silence.
+obstore (object_store underneath) refuses a key with a `..`, `.` or empty segment, which S3 allows, and
+it parses a listing a page (up to 1000 keys) at a time: one such key in a bucket's index prefix failed
+every `episodes query`, `fetch` and `compact`. Where obstore refuses a listing, the same prefix is listed
+again through botocore, whose S3 client names any key. The keys obstore cannot name are left out, and
+said. The rest answer.
 """
 from __future__ import annotations
 
 import re
+import urllib.parse
 
-BAD_PATH = re.compile(r'Error parsing Path "([^"]*)"')
+BAD_PATH = re.compile(r'Path "([^"]*)"')    # obstore's words for a key it cannot name
 MAX_BAD_KEYS = 64          # a prefix with more refused keys than this is refused whole, in one line
 
 
@@ -25,85 +19,51 @@ class ListingError(Exception):
     """What keeps a prefix from being listed, in one line."""
 
 
-def list_around_bad_keys(list_page, list_folders, prefix: str, store_prefix: str, bad: list[str],
-                         unlisted: list[str]) -> list[dict]:
-    """Every object under `prefix` (a folder, ending in "/") that obstore can name. `list_page(prefix,
-    offset)` lists; `list_folders(prefix)` gives (its folders, its objects) by a delimiter; both raise
-    obstore's error on a refused key. `store_prefix` is the store's own path in its bucket ("" for none),
-    which the error's key carries; the refused keys are appended to `bad`, and to `unlisted` a line for each
-    page whose keys before its refused one could not be sought."""
-    return _list(list_page, list_folders, prefix, None, None, store_prefix, bad, unlisted)
-
-
-def _list(list_page, list_folders, prefix: str, offset: str | None, before: str | None, store_prefix: str,
-          bad: list[str], unlisted: list[str]) -> list[dict]:
-    try:
-        found = list_page(prefix, offset)
-    except Exception as exc:
-        key = _refused(exc, prefix, store_prefix, bad)
-        found = _before(list_page, list_folders, prefix, offset, key, store_prefix, bad, unlisted)
-        if before is None or _past(key) < before:
-            found += _list(list_page, list_folders, prefix, _past(key), before, store_prefix, bad, unlisted)
-    return [m for m in found if before is None or str(m["path"]) < before]
-
-
-def _refused(exc: Exception, prefix: str, store_prefix: str, bad: list[str]) -> str:
-    """The key obstore refused (kept in `bad`), or ListingError for any other failure."""
-    key = _refused_key(exc, store_prefix)
-    if key is None or not key.startswith(prefix):
-        raise ListingError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
-    if key not in bad:
-        bad.append(key)
-    if len(bad) > MAX_BAD_KEYS:
-        raise ListingError(f"{prefix}: more than {MAX_BAD_KEYS} keys the store's client refuses "
-                           f"(the first {bad[0]!r})") from None
-    return key
-
-
-def _before(list_page, list_folders, prefix: str, offset: str | None, key: str, store_prefix: str,
-            bad: list[str], unlisted: list[str]) -> list[dict]:
-    """The keys after `offset` and before the refused `key` under the folder `prefix`, folder by folder."""
-    try:
-        folders, objects = list_folders(prefix)
-    except Exception as exc:
-        # a refused segment in this folder itself (a folder `..`): its keys are said as the pages meet them, and
-        # the keys on the refused key's page before it cannot be sought: said too, not passed over in silence
-        if _refused_key(exc, store_prefix) is None:
-            raise ListingError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
-        note = f"{prefix}: keys before {key} on its listing's page (up to 1000) could not be listed"
-        if offset is not None or any(b < key for b in bad):
-            if note not in unlisted:
-                unlisted.append(note)
-        return []
-    out = [m for m in objects if str(m["path"]) < key and (offset is None or str(m["path"]) > offset)]
-    for folder in folders:
-        folder = folder if folder.endswith("/") else folder + "/"
-        if folder > key or (offset is not None and folder + "\U0010ffff" <= offset):
-            continue            # after the refused key (listed from past it), or before the offset
-        out += _list(list_page, list_folders, folder, offset if offset and offset.startswith(folder) else None,
-                     key, store_prefix, bad, unlisted)
-    return out
-
-
-def _refused_key(exc: Exception, store_prefix: str) -> str | None:
-    """The key obstore refused to name (its error carries the bucket's key), in the store's own terms."""
+def refused_key(exc: Exception) -> str | None:
+    """The bucket's key obstore refused to name, from its error; None for any other failure."""
     m = BAD_PATH.search(str(exc))
-    if m is None:
-        return None
-    key = m.group(1)
-    if store_prefix:
-        if not key.startswith(store_prefix + "/"):
-            return None
-        key = key[len(store_prefix) + 1:]
-    return key
+    return None if m is None else m.group(1)
 
 
-def _past(key: str) -> str:
-    """A key obstore takes that sorts after `key` and after every key sharing its first refused segment
-    (`..`, `.` or empty): that segment with a "0" after it ('0' sorts after the '/' that ends a segment)."""
-    start = 0
-    for seg in key.split("/"):
-        if seg in ("", ".", ".."):
-            return key[:start] + seg + "0"
-        start += len(seg) + 1
-    return key + "0"
+def nameable(key: str) -> bool:
+    """Whether obstore can name `key` (relative to the store): no empty, `.` or `..` segment."""
+    return all(seg not in ("", ".", "..") for seg in key.split("/"))
+
+
+def list_raw(url: str, endpoint: str | None, region: str | None, allow_http: bool, prefix: str,
+             bad: list[str]) -> list[dict]:
+    """Every object under `prefix` of the S3 store at `url` (s3://bucket/path) as obstore lists them ({path, size,
+    last_modified}, path relative to the store), through botocore; the keys obstore cannot name go to `bad`."""
+    try:
+        import boto3
+        from botocore.config import Config
+    except ImportError:
+        raise ListingError("a key the store's client refuses to name is in the way, and boto3 (the fleet extra) "
+                           "is not installed to list around it") from None
+    import logging
+    logging.getLogger("botocore").setLevel(logging.WARNING)     # its INFO (where it found credentials) is no news
+    parts = urllib.parse.urlparse(url)
+    bucket, root = parts.netloc, parts.path.strip("/")
+    full = f"{root}/{prefix}" if root else prefix
+    if (endpoint or "").startswith("http://") and not allow_http:
+        raise ListingError(f"{endpoint}: plain HTTP, and store.allow_http is false")
+    client = boto3.client("s3", endpoint_url=endpoint or None, region_name=region or None,
+                          config=Config(retries={"max_attempts": 3}))
+    out: list[dict] = []
+    try:
+        for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket, Prefix=full):
+            for obj in page.get("Contents", ()):
+                key = obj["Key"][len(root) + 1:] if root else obj["Key"]
+                if not nameable(key):
+                    if key not in bad:
+                        bad.append(key)
+                    if len(bad) > MAX_BAD_KEYS:
+                        raise ListingError(f"{prefix}: more than {MAX_BAD_KEYS} keys the store's client refuses "
+                                           f"(the first {bad[0]!r})")
+                    continue
+                out.append({"path": key, "size": int(obj["Size"]), "last_modified": obj["LastModified"]})
+    except ListingError:
+        raise
+    except Exception as exc:
+        raise ListingError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    return out
