@@ -45,6 +45,10 @@ class ImuSource:
         they stand (how long ago), for `status`; their events come through drain_events."""
         return {}
 
+    def lost_s(self) -> float | None:
+        """How long ago the source's device was lost (its port gone), None while it is there."""
+        return None
+
     def drain_events(self) -> list[dict]:
         """The source's own events since the last call (a port lost, a port back), for the outbox."""
         return []

@@ -387,6 +387,10 @@ class SerialImuSource(ImuSource):
             out["imu_sensor_absent"] = "the board says its sensor does not answer (check its SPI wiring and supply)"
         return out
 
+    def lost_s(self) -> float | None:
+        lost = self._lost
+        return None if lost is None else round(self.clock() - lost[0], 1)
+
     def drain_events(self) -> list[dict]:
         out = list(self.events)
         self.events.clear()

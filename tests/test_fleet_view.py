@@ -43,3 +43,18 @@ def test_a_message_that_is_not_a_json_object_leaves_the_robot_silent_not_the_vie
         assert FleetView._decoded(sample(payload)) is None, payload
     state = FleetView._decoded(sample(b'{"mode": "idle", "imu": {"rate_hz": NaN}}'))
     assert state == {"mode": "idle", "imu": {"rate_hz": None}}
+
+
+def test_a_lost_board_shows_in_the_fleet_view_with_how_long_ago():
+    """Issue 50 item 12: an unplugged board showed as imu_stale with a frozen age. The state's imu.lost_s (how
+    long ago the port was lost) makes the link `imu_disconnected 12 s`, and is in --json; a bad one is `?`."""
+    now = time.monotonic()
+    lost = {**GOOD, "faults": [{"code": "imu_stale", "message": "..."}, {"code": "imu_disconnected", "message": "..."}],
+            "imu": {"rate_hz": 0.0, "lost_s": 12.3}}
+    r = row("arm", seen(lost), now)
+    assert r["link"] == "imu_disconnected 12 s" and r["imu_lost_s"] == 12.3 and r["bad"] == [], r
+    assert json_rows([r])[0]["imu_lost_s"] == 12.3
+    bad = row("arm", seen({**lost, "imu": {"rate_hz": 0.0, "lost_s": float("nan")}}), now)
+    assert bad["link"] == "imu_stale" or bad["link"].startswith("imu_"), bad
+    assert "imu" in bad["bad"] and bad["imu_lost_s"] == BAD
+    assert row("arm", seen(GOOD), now)["imu_lost_s"] is None

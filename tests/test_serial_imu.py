@@ -167,6 +167,8 @@ def test_daemon_reads_the_board_and_sees_it_vanish(make_daemon, pty):
         assert {"imu_disconnected", "imu_stale"} <= set(later), later
         assert "was lost" in later["imu_disconnected"] and " s ago" in later["imu_disconnected"]
         assert later["imu_stale"] != first.get("imu_stale"), (first, later)
+        lost_s = cli.command("status")["state"]["imu"]["lost_s"]         # the same for programs (fleet status)
+        assert lost_s is not None and lost_s >= 0.5, lost_s
         refused = cli.command("rotate", {"angle_deg": 10})
         assert refused["ok"] is False and refused["error"]["code"] == "fault"
         pty.replug()

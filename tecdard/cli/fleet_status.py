@@ -154,19 +154,23 @@ def row(name: str, seen: RobotSeen, now: float) -> dict:
     imu = s.get("imu")
     rate = imu.get("rate_hz") if isinstance(imu, dict) else (BAD if imu is not None else None)
     rate = None if rate is None else check("imu", finite(rate) if finite(rate) is not None else BAD)
+    lost = imu.get("lost_s") if isinstance(imu, dict) else None
+    lost = None if lost is None else check("imu", finite(lost) if finite(lost) is not None else BAD)
     control = s.get("control")
     overruns = control.get("overruns") if isinstance(control, dict) else (BAD if control is not None else None)
     overruns = None if overruns is None else check("overruns", _count(overruns))
     age = now - seen.state_at
-    link_fault = next((c for c in faults if c in LINK_FAULTS), None)
+    link_fault = next((c for c in LINK_FAULTS if c in faults), None)     # the cause before its effect (stale)
     if not seen.alive:
         link = "gone"
     elif seen.state is None or age > STATE_FRESH_S:
         link = "silent"
     else:
         link = link_fault or "ok"
+        if link == "imu_disconnected" and lost is not None and lost != BAD:
+            link = f"imu_disconnected {lost:.0f} s"        # how long the board has been gone
     return {"robot": _text(name), "mode": mode, "task": task, "faults": faults, "contact_p": contact_p,
-            "imu_rate_hz": rate, "overruns": overruns, "link": link,
+            "imu_rate_hz": rate, "imu_lost_s": lost, "overruns": overruns, "link": link,
             "state_age_s": None if seen.state is None else round(age, 3), "bad": sorted(set(bad))}
 
 

@@ -414,6 +414,11 @@ class ControlThread:
         source = self._source()
         return None if source is None else source.part
 
+    def _imu_lost_s(self) -> float | None:
+        """How long ago the IMU source's board was lost (its port gone), None while it is there."""
+        source = self._source()
+        return None if source is None else source.lost_s()
+
     def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
         self._seq += 1
         task = self.runner.task
@@ -434,7 +439,7 @@ class ControlThread:
             "control": {**self.stats.snapshot(), "planner_fallbacks": self.runner.planner.fallbacks,
                         "outbox_dropped": self.outbox.counts(), "imu_overwritten": self.ring.overwritten},
             # samples a second the daemon took (None in the first second), and the sensor the board found
-            "imu": {"rate_hz": self._imu_rate_hz, "part": self._imu_part()},
+            "imu": {"rate_hz": self._imu_rate_hz, "part": self._imu_part(), "lost_s": self._imu_lost_s()},
             # the gripper: its opening, force and where that comes from, whether it holds (None: no gripper)
             "gripper": None if self.gripper is None else self._gripper_json(),
         }
