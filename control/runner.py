@@ -17,6 +17,12 @@ REST_SPEED_M_S = 1e-3         # the TCP counts as stopped below this speed
 # The onset trigger arms once the plan has moved at constant speed this long: the arm follows the plan
 # with a lag, and its own acceleration at the start of a descent must not read as an impact.
 TRIGGER_SETTLE_S = 0.1
+# A contact with no task ends once the arm and the fingertip rest (TaskRunner.end_idle_episode): the TCP slower
+# than REST_SPEED_M_S, and the object turning slower than REST_TURN_RAD_S since the rest began (its angle is
+# the gyro integrated less a bias frozen at the onset: at rest on a board it crept 0.15 deg/s after a knock),
+# or by less than REST_ANGLE_RAD in the rest's first moments.
+REST_ANGLE_RAD = np.radians(0.2)
+REST_TURN_RAD_S = np.radians(1.0)
 
 
 class TaskRunner:
@@ -43,6 +49,8 @@ class TaskRunner:
         self._steady_since = None              # when the plan last became steady in the trigger's phase
         self._last_est = None                  # the contact estimate seen on the previous tick
         self.qd_cmd: np.ndarray | None = None  # this tick's joint velocities from a joint-space task (home)
+        self._rest: tuple[float, float] | None = None    # an idle contact's rest: (since, the angle then)
+        self._now = 0.0                        # the last tick's time
 
     # -- commands ---------------------------------------------------------------------
     def busy(self) -> str | None:
@@ -116,6 +124,7 @@ class TaskRunner:
         joint-space task leaves its joint velocities in `qd_cmd` instead (the plan then follows the
         measured TCP: `v` its velocity, so that a stop brakes from there)."""
         self.qd_cmd = None
+        self._now = now
         if self.mode is Mode.BUSY:
             p_cmd = self._step_task(now, p, R, est, contact_force, q, q_t, v)
         elif self.mode.braking:
@@ -180,6 +189,27 @@ class TaskRunner:
         self.protective_stop(cause)
         return self._brake_step()
 
+    def end_idle_episode(self, now: float, v: np.ndarray, est, rest_s: float, faulted: bool = False) -> None:
+        """A contact with no task running (a bump of the idle arm, any contact of an observed one) is released
+        once the arm and the fingertip have rested `rest_s`, or at once on a fault: the next contact is a new
+        onset. (A task's episodes end with the task.) Only a task released them before; an idle daemon saw one
+        onset of six impacts, an observer only its run's first contact."""
+        if self.mode is not Mode.IDLE or est is None or est.onset_t is None or est.onset_t < self.task_t0:
+            self._rest = None
+            return
+        moving = float(np.linalg.norm(v)) > REST_SPEED_M_S
+        turned = abs(est.angle_rad - self._rest[1]) if self._rest is not None else 0.0
+        if self._rest is None or moving or turned > max(REST_ANGLE_RAD, REST_TURN_RAD_S * (now - self._rest[0])):
+            self._rest = None if moving else (now, est.angle_rad)
+            if not faulted:
+                return
+        if faulted or now - self._rest[0] >= rest_s:
+            self._rest = None
+            self.task_t0 = now                 # this episode's estimates no longer count
+            self._direct(episode=self.directive.episode + 1, armed=True, begin_t=None, since_t=now)
+            self.emit("contact_released", onset_t=est.onset_t, reason="fault" if faulted else "rest",
+                      p=[float(x) for x in est.p])
+
     def _trigger_armed(self, now: float, task: Task) -> bool:
         """Armed while the arm moves steadily, TRIGGER_SETTLE_S after the plan does: starting and
         braking are not impacts."""
@@ -210,6 +240,7 @@ class TaskRunner:
         if task is None:
             return
         self.task = None
+        self.task_t0 = self._now               # the task's contact is over: no idle contact (end_idle_episode)
         self.mode = transition(self.mode, Event.END)
         # the trigger stays disarmed while the arm brakes: it arms at rest (_brake_step), and the
         # estimator waits for the fingertip to settle after that (OnsetDetector.rearm)

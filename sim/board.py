@@ -4,6 +4,7 @@ Used by the tests (on a pseudo-terminal) and by the simulator to drive the whole
 """
 from __future__ import annotations
 
+import collections
 import errno
 import os
 import pathlib
@@ -157,6 +158,7 @@ class StreamThread:
         self.chunk_s = chunk_s
         self.mutate = mutate           # optional function(bytes) -> bytes, for fault injection
         self.override = None           # optional (gyro rad/s (3,), accel m/s^2 (3,)) sent instead of rest
+        self.pending: collections.deque = collections.deque()   # impacts' samples to add, (gyro, accel) rows
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="imu-emulator", daemon=True)
         self.rng = np.random.default_rng(0)
@@ -164,6 +166,16 @@ class StreamThread:
     def start(self) -> "StreamThread":
         self.thread.start()
         return self
+
+    def impact(self, peak_m_s2: float = 30.0, ring_hz: float = 150.0, tau_s: float = 0.01,
+               direction=(1.0, 0.0, 0.0), twist_rad_s: float = 0.05) -> None:
+        """A knock on the held object, from the next chunk on: the fingertip's decaying ring (`peak_m_s2` at
+        `ring_hz`, decaying with `tau_s`) along `direction` (IMU frame), and a short twist of the gyro."""
+        t = np.arange(int(round(8 * tau_s * self.board.params.odr_hz))) / self.board.params.odr_hz
+        ring = peak_m_s2 * np.exp(-t / tau_s) * np.sin(2 * np.pi * ring_hz * t)
+        accel = np.outer(ring, np.asarray(direction, float))
+        gyro = np.outer(twist_rad_s * np.exp(-t / tau_s), [0.0, 1.0, 0.0])
+        self.pending.extend(zip(gyro, accel))
 
     def _run(self) -> None:
         n = max(1, int(round(self.board.params.odr_hz * self.chunk_s)))
@@ -174,6 +186,10 @@ class StreamThread:
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
             if self.override is not None:            # e.g. a chip stuck at full scale (clipped by the board)
                 gyro, accel = np.tile(self.override[0], (n, 1)), np.tile(self.override[1], (n, 1))
+            for k in range(min(n, len(self.pending))):    # an impact under way
+                g, a = self.pending.popleft()
+                gyro[k] += g
+                accel[k] += a
             frames = self.board.packets(gyro, accel)
             if self.device.master is not None:
                 try:        # OSError: unplugged meanwhile

@@ -289,3 +289,37 @@ def test_the_last_hinge_gives_the_tangent_onwards_while_the_tcp_is_on_its_circle
                 {"hinge": {"p": [0, 0, float("nan")], "axis": [0, 1, 0]}, "radius": 0.1},
                 {"hinge": {"p": [0, 0, 0], "axis": [0, 1, 0]}, "radius": 0.001}):
         assert LastHinge.from_result("rotate-2", bad) is None, bad
+
+
+def test_an_idle_contact_ends_after_rest_or_at_once_on_a_fault_and_never_while_moving():
+    """Issue 51 item 4 (control/runner.py, end_idle_episode): a contact with no task is released once the TCP and the
+    fingertip have rested the configured time, at once on a fault, not while the arm moves or the object turns; a
+    task's own contact is never released this way."""
+    import types
+    from tecdard.control import safety
+    from tecdard.control.planner import CartesianPlanner
+    from tecdard.control.runner import TaskRunner
+    events = []
+    runner = TaskRunner(CartesianPlanner(0.02, 0.05, 0.5, 5.0), safety.SafetyLimits(),
+                        lambda kind, **f: events.append((kind, f)))
+    est = types.SimpleNamespace(onset_t=1.0, angle_rad=0.0, p=np.array([0.3, 0.0, 0.2]))
+    still, moving = np.zeros(3), np.array([0.01, 0.0, 0.0])
+    episode = runner.directive.episode
+    for k in range(60):                            # 1.2 s with the arm moving: never released
+        runner.end_idle_episode(1.0 + 0.02 * k, moving, est, rest_s=1.0)
+    est.angle_rad = 0.0
+    for k in range(60):                            # at rest but the object turning 5 deg/s: never
+        est.angle_rad = np.radians(5.0) * 0.02 * k
+        runner.end_idle_episode(3.0 + 0.02 * k, still, est, rest_s=1.0)
+    assert events == [] and runner.directive.episode == episode
+    t = 4.2
+    while not events:                              # then at rest (from the last tick it turned): released 1 s on
+        runner.end_idle_episode(t, still, est, rest_s=1.0)
+        t += 0.02
+    assert 5.15 < t < 5.25 and events[0][0] == "contact_released" and events[0][1]["reason"] == "rest", t
+    assert runner.directive.episode == episode + 1 and runner.directive.armed
+    runner.end_idle_episode(t, still, est, rest_s=1.0)       # that episode's estimate no longer counts
+    assert len(events) == 1
+    est2 = types.SimpleNamespace(onset_t=t + 1.0, angle_rad=0.0, p=np.zeros(3))
+    runner.end_idle_episode(t + 1.1, still, est2, rest_s=1.0, faulted=True)
+    assert events[-1][1]["reason"] == "fault" and len(events) == 2

@@ -87,3 +87,43 @@ def test_approaches_and_points_in_a_row_give_one_onset_each_and_no_idle_capture(
     # each at the impact: the block's edge meets the table 12 mm down
     assert all(e["trigger"] == "accel" and abs(e["p_tcp"][2] - (0.487 - 0.012)) < 0.003 for e in onsets), onsets
     check_counts(d, rec_dir, done, {"approach": 1})
+
+
+IMPACTS = 20
+IMPACT_GAP_S = 1.8             # a knock, the contact's rest (control.contact_rest_s, 1 s), the trigger re-armed
+
+
+@pytest.mark.slow
+def test_knocks_on_an_idle_arm_are_one_onset_each(tmp_path):
+    """Issue 51 item 4: with no task, only a task's end released a contact episode, and the trigger never re-armed:
+    six knocks 3 s apart on an idle daemon with a serial board gave one onset. Now an idle contact ends once the
+    arm and the fingertip have rested control.contact_rest_s (`contact_released`, reason rest) and the next knock
+    is an onset of its own: 20 knocks, 20 onsets, 20 releases."""
+    from tecdard.sim.board import Board, PtyDevice, StreamThread
+    from tests.conftest import DaemonProcess, daemon_config
+    device = PtyDevice(tmp_path / "ttyIMU")
+    stream = StreamThread(device, Board()).start()
+    d = DaemonProcess(tmp_path, daemon_config(**{"imu.source": "serial", "imu.serial": {"port": str(device.link)}}))
+    try:
+        deadline = time.monotonic() + 20.0
+        while d.client.command("status")["state"]["faults"]:          # the board's stream warms the trigger
+            assert time.monotonic() < deadline, d.log()[-2000:]
+            time.sleep(0.1)
+        time.sleep(1.0)
+        for _ in range(IMPACTS):
+            stream.impact()
+            time.sleep(IMPACT_GAP_S)
+        time.sleep(1.5)
+        events = list(d.client.event_log)
+    finally:
+        d.close()
+        stream.join()
+        device.close()
+    onsets = [e for e in events if e["kind"] == "contact_onset"]
+    released = [e for e in events if e["kind"] == "contact_released"]
+    assert len(onsets) == IMPACTS, [(e["kind"], e.get("t")) for e in events if "contact" in e["kind"]]
+    assert len(released) == IMPACTS and all(e["reason"] == "rest" for e in released), released
+    assert all(not e["commanded"] for e in onsets)
+    # each release follows its own onset by about the rest (1 s; the idle estimator's 100 ms batches add to it)
+    for onset, release in zip(onsets, released):
+        assert release["onset_t"] == onset["t"] and 0.9 <= release["t"] - onset["t"] <= IMPACT_GAP_S, (onset, release)

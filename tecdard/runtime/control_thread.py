@@ -63,6 +63,9 @@ class ControlParams:
                                         "size this much (smoothed NIS ratio)", above=1.0)
     max_contact_jump_m: float = option(0.02, "protective stop when a converged contact estimate moves this far in "
                                              "one tick", unit="m", above=0.0, maxval=1.0)
+    contact_rest_s: float = option(1.0, "a contact with no task running (an idle arm's bump, an observed arm's "
+                                        "contact) ends once the arm and the fingertip have rested this long; the "
+                                        "trigger then re-arms", unit="s", above=0.0, maxval=60.0)
     rt_priority: int | None = option(None, "SCHED_FIFO priority of the control thread where the host allows it "
                                            "(`tecdard doctor`); none: the default scheduler", kind="optint",
                                      minval=1, maxval=MAX_RT_PRIORITY)
@@ -209,6 +212,7 @@ class ControlThread:
         p_plan, v_plan = planner.position, planner.velocity
         fallbacks = planner.fallbacks
         p_cmd = runner.step(now, p, R, est, js.tcp_force, np.asarray(js.q, dtype=float), js.t, twist[:3])
+        runner.end_idle_episode(now, twist[:3], est, self.params.contact_rest_s, faulted=bool(self.faults))
         if planner.fallbacks != fallbacks:     # a task's step or a brake
             log.warning("ruckig failed on a valid re-plan; this cycle was planned axis by axis (%d so far)",
                         planner.fallbacks)
