@@ -375,3 +375,42 @@ def test_a_stream_without_a_joint_of_the_model_is_one_line_and_exit_2(tmp_path, 
         assert line.startswith("tecdard: config error: robot.model:") and "missing: panda_joint1" in line
     finally:
         publisher.kill()
+
+
+def test_knocks_on_an_observed_arm_are_one_onset_each(tmp_path, router):
+    """Issue 51 item 4, the observer: every contact of an arm that ROS 2 drives happens without a daemon task, and
+    only a run's first was ever seen (no task ended its episode; the trigger never re-armed). The arm at rest, its
+    joint states at 100 Hz, its board on a pty: 20 knocks, 20 onsets, each contact released after its rest."""
+    from tecdard.sim.board import Board, PtyDevice, StreamThread
+    from tests.test_onset_live import IMPACT_GAP_S, IMPACTS
+    device = PtyDevice(tmp_path / "ttyIMU")
+    stream = StreamThread(device, Board()).start()
+    n_states = int((IMPACTS * IMPACT_GAP_S + 40.0) / 0.01)
+    publisher = subprocess.Popen([sys.executable, "-m", "tests.fakes.ros2_client", str(router), "publish",
+                                  json.dumps({"topic": "/joint_states", "type": "sensor_msgs/msg/JointState",
+                                              **joint_states(READY_Q["panda"], n_states), "period_s": 0.01})],
+                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    d = None
+    try:
+        (tmp_path / "d").mkdir()
+        d = DaemonProcess(tmp_path / "d", observer_config(str(device.link), router))
+        deadline = time.monotonic() + 20.0
+        while faults_of(d):
+            assert time.monotonic() < deadline, d.log()[-2000:]
+            time.sleep(0.1)
+        time.sleep(1.0)
+        for _ in range(IMPACTS):
+            stream.impact()
+            time.sleep(IMPACT_GAP_S)
+        time.sleep(1.5)
+        events = list(d.client.event_log)
+    finally:
+        if d is not None:
+            d.close()
+        publisher.kill()
+        stream.join()
+        device.close()
+    onsets = [e for e in events if e["kind"] == "contact_onset"]
+    released = [e for e in events if e["kind"] == "contact_released"]
+    assert len(onsets) == IMPACTS, [(e["kind"], e.get("t"), e.get("code")) for e in events]
+    assert len(released) == IMPACTS and all(e["reason"] == "rest" for e in released), released
