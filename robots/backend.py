@@ -39,6 +39,9 @@ class TopicState:
     the publisher's id, None when it did not say)."""
     door: str                      # the front door that subscribes: "ros2" (the ROS 2 node's ros2.joint_states)
     take: Callable
+    # messages closer together than this are dropped before they are decoded (keep-last, decimated to the control
+    # tick: a 1 kHz publisher then costs about what a 50 Hz one does); 0: every message
+    min_period_s: float = 0.0
 
 
 def joint_rates(qd, nq: int) -> np.ndarray:

@@ -145,7 +145,8 @@ class Ros2Node(FrontDoor):
         self._diag_next = 0.0
         self._clock_offset_s = time.time() - time.monotonic()
         self._clock_next = 0.0
-        self.counters = {"published": 0, "requests": 0, "bad_requests": 0, "joint_states": 0, "bad_joint_states": 0}
+        self.counters = {"published": 0, "requests": 0, "bad_requests": 0, "joint_states": 0, "bad_joint_states": 0,
+                         "joint_states_decimated": 0}
         self.node: rmw.NodeInfo | None = None
         self._entities = 0
 
@@ -162,9 +163,10 @@ class Ros2Node(FrontDoor):
         return out
 
     # -- declaring ------------------------------------------------------------------------------
-    def declare(self, session: zenoh.Session, joint_states=None) -> None:
+    def declare(self, session: zenoh.Session, joint_states=None, joint_states_period_s: float = 0.0) -> None:
         """The node's token, its publishers, services and (with `joint_states(msg | None, problem)`, the
-        observer backend's handler) its joint-state subscription."""
+        observer backend's handler) its joint-state subscription, which drops messages closer together than
+        `joint_states_period_s` before decoding them."""
         p = self.params
         self.session = session
         self.node = rmw.NodeInfo(p.domain_id, str(session.info.zid()), 0, "" if p.namespace == "/" else p.namespace,
@@ -187,7 +189,7 @@ class Ros2Node(FrontDoor):
                 self._services.append(svc)
             self._declared.append(svc.ring)
         if joint_states is not None:
-            self._subscribe_joint_states(joint_states)
+            self._subscribe_joint_states(joint_states, joint_states_period_s)
         log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services", self.node.namespace,
                  p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1)
 
@@ -215,13 +217,21 @@ class Ros2Node(FrontDoor):
         self._token(token)
         return rmw.data_keyexpr(self.params.domain_id, fq, dds, type_hash), token
 
-    def _subscribe_joint_states(self, handler) -> None:
+    def _subscribe_joint_states(self, handler, min_period_s: float = 0.0) -> None:
         key, _ = self._entity(rmw.SUBSCRIPTION, self.params.joint_states, JOINT_STATE, JOINT_STATES_QOS)
+        taken = [-math.inf]
 
         def on_sample(sample) -> None:
             """Zenoh's thread: decode and hand over to the backend (its check decides), never raising. A message
-            larger than any arm's is refused undecoded; the publisher's GID comes from rmw_zenoh's attachment."""
+            within `min_period_s` of the last one taken is dropped first, undecoded (the control tick reads one
+            state a tick); one larger than any arm's is refused undecoded; the publisher's GID comes from
+            rmw_zenoh's attachment."""
             self.counters["joint_states"] += 1
+            now = time.monotonic()
+            if now - taken[0] < min_period_s:
+                self.counters["joint_states_decimated"] += 1
+                return
+            taken[0] = now
             size = len(sample.payload)
             if size > MAX_JOINT_STATE_BYTES:
                 self.counters["bad_joint_states"] += 1
