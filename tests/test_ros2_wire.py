@@ -28,8 +28,11 @@ STOCK = [t for t, _ in TOPICS.values() if not t.startswith(("tecdar_msgs", "tf2_
 
 @pytest.fixture(scope="module")
 def ts():
+    from tecdard.ros2.parameters import SRV_TEXTS
     support = TypeSupport("kilted")
     support.add_service(TRIGGER_SRV, TRIGGER)
+    for srv_type, text in SRV_TEXTS.items():
+        support.add_service(text, srv_type)
     return support
 
 
@@ -165,7 +168,11 @@ def wheel_hash(ros_type: str) -> str:
     return next(h["hash_string"] for h in data["type_hashes"] if h["type_name"] == ros_type)
 
 
-@pytest.mark.parametrize("ros_type", STOCK + ["sensor_msgs/msg/JointState", TRIGGER])
+PARAMETER_SERVICES = sorted(__import__("tecdard.ros2.parameters", fromlist=["SERVICES"]).SERVICES.values())
+
+
+@pytest.mark.parametrize("ros_type", STOCK + ["sensor_msgs/msg/JointState", TRIGGER, *PARAMETER_SERVICES,
+                                              "rcl_interfaces/msg/ParameterEvent"])
 def test_our_hash_of_each_stock_type_is_rosidls(ts, ros_type):
     ours = ts.type_hash(ros_type)
     assert ours == wheel_hash(ros_type)
@@ -410,3 +417,41 @@ def test_a_line_contacts_orientation_has_its_axis_as_x():
         assert np.allclose(R[:, 0], np.array(axis) / np.linalg.norm(axis))
         assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
     assert M.axis_quat(None) == M.axis_quat([0.0, 0.0, 0.0]) == (0.0, 0.0, 0.0, 1.0)
+
+
+def test_rclpy_reads_our_parameter_replies_and_we_read_its_requests(ts):
+    """Issue 51 item 1: the parameter services' responses, as rclpy deserialises them, say what the config says:
+    the value and type of a float option, a table as its JSON, a descriptor read-only with the option's range; a
+    set refused with the reason; and rclpy's own requests decode on our side."""
+    import yaml
+    from rcl_interfaces.srv import DescribeParameters, GetParameters, GetParameterTypes, ListParameters, SetParameters
+    from rclpy import serialization
+    from tecdard.ros2 import parameters as P
+    from tests.conftest import SIM_CONFIG
+    params = P.ParameterSet(yaml.safe_load(SIM_CONFIG.read_text()))
+
+    def round_trip(cls, srv_type: str, request):
+        req = ts.decode(serialization.serialize_message(request), srv_type + "_Request")
+        return serialization.deserialize_message(ts.encode(P.respond(ts, params, srv_type, req),
+                                                           srv_type + "_Response"), cls.Response)
+    got = round_trip(GetParameters, "rcl_interfaces/srv/GetParameters",
+                     GetParameters.Request(names=["control.max_force_n", "estimator.eta_table", "robot.name", "no.such"]))
+    assert [v.type for v in got.values] == [P.DOUBLE, P.STRING, P.STRING, P.NOT_SET]
+    assert got.values[0].double_value == 15.0 and got.values[2].string_value == "sim"
+    assert json.loads(got.values[1].string_value) == [[30.0, 2.0]]
+    types = round_trip(GetParameterTypes, "rcl_interfaces/srv/GetParameterTypes",
+                       GetParameterTypes.Request(names=["control.max_force_n", "robot.q_home"]))
+    assert list(types.types) == [P.DOUBLE, P.DOUBLE_ARRAY]
+    desc = round_trip(DescribeParameters, "rcl_interfaces/srv/DescribeParameters",
+                      DescribeParameters.Request(names=["control.max_force_n"])).descriptors[0]
+    assert desc.read_only and desc.type == P.DOUBLE and "N" in desc.description
+    assert (desc.floating_point_range[0].from_value, desc.floating_point_range[0].to_value) == (0.0, 200.0)
+    listed = round_trip(ListParameters, "rcl_interfaces/srv/ListParameters", ListParameters.Request())
+    assert "control.max_force_n" in listed.result.names and "control" in listed.result.prefixes
+    assert len(listed.result.names) == len(params.params) > 100
+    only = round_trip(ListParameters, "rcl_interfaces/srv/ListParameters", ListParameters.Request(prefixes=["limits"]))
+    assert only.result.names and all(n.startswith("limits.") for n in only.result.names)
+    from rcl_interfaces.msg import Parameter, ParameterValue
+    refused = round_trip(SetParameters, "rcl_interfaces/srv/SetParameters", SetParameters.Request(
+        parameters=[Parameter(name="control.max_force_n", value=ParameterValue(type=3, double_value=99.0))]))
+    assert [r.successful for r in refused.results] == [False] and "restart" in refused.results[0].reason

@@ -26,6 +26,7 @@ import zenoh
 from tecdard import verbs as task_verbs
 from tecdard.options import option, read_options
 from tecdard.ros2 import messages as M
+from tecdard.ros2 import parameters as P
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
 from tecdard.runtime.main_loop import FrontDoor
@@ -135,6 +136,9 @@ class Ros2Node(FrontDoor):
         self.params, self.robot, self.intake = params, robot, intake
         self.ts = types or TypeSupport(params.distro)
         self.ts.add_service(TRIGGER_SRV, TRIGGER)
+        for srv_type, text in P.SRV_TEXTS.items():
+            self.ts.add_service(text, srv_type)
+        self.param_server = None     # runtime.ros2_parameters.ParameterServer: the config as parameters
         self._inbox = Inbox(TAP_PASSES)
         self._declared: list = []
         self._pubs: dict[str, tuple] = {}         # topic -> (zenoh publisher, gid, [seq], type)
@@ -188,10 +192,17 @@ class Ros2Node(FrontDoor):
                 svc.ring = session.declare_queryable(key, zenoh.handlers.RingChannel(SERVICE_BACKLOG), complete=True)
                 self._services.append(svc)
             self._declared.append(svc.ring)
+        if self.param_server is not None:
+            self.param_server.declare(session)
         if joint_states is not None:
             self._subscribe_joint_states(joint_states, joint_states_period_s)
         log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services", self.node.namespace,
                  p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1)
+
+    def set_parameters(self, config_data: dict) -> None:
+        """The daemon's config as the node's read-only parameters (tecdard/ros2/parameters.py), before `declare`."""
+        from tecdard.runtime.ros2_parameters import ParameterServer
+        self.param_server = ParameterServer(self, P.ParameterSet(config_data))
 
     def _service_types(self) -> list[tuple[str, str]]:
         """(verb, service type) of every service: a task verb without its .srv in tecdar_msgs (a verb
@@ -420,6 +431,8 @@ class Ros2Node(FrontDoor):
                 if call is not None:
                     self.intake.handle(call, call.key_expr, call.payload, now, charged=True)
                 del query
+        if self.param_server is not None:
+            n += self.param_server.poll(now)
         return n
 
     def answer(self, call: ServiceCall, reply: dict) -> None:

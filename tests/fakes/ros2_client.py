@@ -71,13 +71,16 @@ def main() -> None:
         from zenoh_ros2_sdk import ZenohSession
         session = ZenohSession.get_instance("127.0.0.1", port)
         t_end = time.monotonic() + args.get("timeout", 10.0)
-        while True:             # as a user runs `ros2 topic list` again while the graph settles
+        last = None
+        while True:             # as a user runs `ros2 topic list` again while the graph settles: until two looks agree
             tokens = [str(r.ok.key_expr) for r in session.liveliness.get("@ros2_lv/**", timeout=1.0)
                       if r.ok is not None]
             topics = sdk.get_topic_names_and_types(router_port=port, timeout=1.0)
             services = sdk.get_service_names_and_types(router_port=port, timeout=1.0)
-            if (topics and services) or time.monotonic() > t_end:
+            look = (sorted(map(str, topics)), sorted(map(str, services)))
+            if (topics and services and look == last) or time.monotonic() > t_end:
                 break
+            last = look
             time.sleep(0.2)
         print(json.dumps({"tokens": tokens, "topics": topics, "services": services}), flush=True)
     elif action == "subscribe":
@@ -121,11 +124,14 @@ def main() -> None:
 
 
 def request(fields: dict) -> dict:
-    """Request fields from JSON: lists as float64 arrays (`grid`: int32), "nan" and "inf" as floats."""
+    """Request fields from JSON: lists as float64 arrays (`grid`: int32; of strings: as they are), "nan" and "inf" as
+    floats."""
     import numpy as np
     out = {}
     for k, v in fields.items():
-        if isinstance(v, list):
+        if isinstance(v, list) and all(isinstance(x, str) for x in v) and v:
+            v = list(v)                              # string[] (a parameter request's names)
+        elif isinstance(v, list):
             v = np.array([float(x) for x in v], dtype=np.int32 if k == "grid" else np.float64)
         elif v in ("nan", "inf", "-inf"):
             v = float(v)
