@@ -74,12 +74,12 @@ def _typed(value) -> tuple[int, object]:
 class ParameterSet:
     """name -> (ParameterType, value, description, (from, to) or None) of every option the config's daemon reads."""
 
-    def __init__(self, config_data: dict):
-        from tecdard.cli.options import sections
+    def __init__(self, config_data: dict, sections: list):
+        """`sections`: (path, options class) of every section the daemon reads (tecdard.option_sections)."""
         from tecdard.options import declared, default_of
         self.params: dict[str, tuple[int, object, str, tuple | None]] = {}
         data = config_data if isinstance(config_data, dict) else {}
-        for path, cls in sections():
+        for path, cls in sections:
             if path not in ALWAYS and not path.startswith("estimator.") and not _value_at(data, path)[1]:
                 continue
             for f, opt in declared(cls):

@@ -428,7 +428,8 @@ def test_rclpy_reads_our_parameter_replies_and_we_read_its_requests(ts):
     from rclpy import serialization
     from tecdard.ros2 import parameters as P
     from tests.conftest import SIM_CONFIG
-    params = P.ParameterSet(yaml.safe_load(SIM_CONFIG.read_text()))
+    from tecdard.runtime.option_sections import sections
+    params = P.ParameterSet(yaml.safe_load(SIM_CONFIG.read_text()), sections())
 
     def round_trip(cls, srv_type: str, request):
         req = ts.decode(serialization.serialize_message(request), srv_type + "_Request")

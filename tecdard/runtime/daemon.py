@@ -197,7 +197,8 @@ class Daemon:
             if self.viz_params.enabled else None
         self.ros2 = self._ros2_node()
         if self.ros2 is not None:
-            self.ros2.set_parameters(cfg.data)            # `ros2 param list/get/describe`: the effective config
+            from tecdard.runtime.option_sections import sections
+            self.ros2.set_parameters(cfg.data, sections())   # `ros2 param list/get/describe`: the effective config
         taps = (self.recorder,) + tuple(t for t in (self.view, self.ros2) if t is not None)
         # an arm that others drive (read_only) is watched for touches all the time: never at rest
         # at rest, 100 ms batches; 20 ms while a live view shows the stream to a person

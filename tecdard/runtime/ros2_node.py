@@ -199,10 +199,11 @@ class Ros2Node(FrontDoor):
         log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services", self.node.namespace,
                  p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1)
 
-    def set_parameters(self, config_data: dict) -> None:
-        """The daemon's config as the node's read-only parameters (tecdard/ros2/parameters.py), before `declare`."""
+    def set_parameters(self, config_data: dict, sections: list) -> None:
+        """The daemon's config as the node's read-only parameters (tecdard/ros2/parameters.py), before `declare`;
+        `sections`: tecdard.runtime.option_sections.sections()."""
         from tecdard.runtime.ros2_parameters import ParameterServer
-        self.param_server = ParameterServer(self, P.ParameterSet(config_data))
+        self.param_server = ParameterServer(self, P.ParameterSet(config_data, sections))
 
     def _service_types(self) -> list[tuple[str, str]]:
         """(verb, service type) of every service: a task verb without its .srv in tecdar_msgs (a verb

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import zenoh
 
@@ -14,7 +15,16 @@ from tecdard.ros2.typesupport import TypeError_
 log = logging.getLogger("tecdar.ros2")
 
 PARAMETER_EVENTS_QOS = rmw.Qos(rmw.RELIABLE, rmw.VOLATILE, rmw.KEEP_LAST, 1000)   # rmw_qos_profile_parameter_events
+SERVICE_QOS = rmw.RELIABLE_10      # rmw_qos_profile_services_default
 BACKLOG = 16                       # requests waiting per service (the oldest overwritten)
+
+
+@dataclass
+class _Service:
+    verb: str                      # its name under the node's
+    srv_type: str
+    key: str
+    ring: object = None
 
 
 class _Unanswered:
@@ -33,7 +43,6 @@ class ParameterServer:
         self.services: list = []
 
     def declare(self, session: zenoh.Session) -> None:
-        from tecdard.runtime.ros2_node import SERVICE_QOS, _Service
         node = self.node
         for name, srv_type in P.SERVICES.items():
             key, _ = node._entity(rmw.SERVICE, f"{node.params.node_name}/{name}", srv_type, SERVICE_QOS)
