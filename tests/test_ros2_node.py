@@ -458,3 +458,44 @@ def test_ros2_param_services_answer_through_an_independent_client(node):
     assert got.values[1].string_value == "sim"
     # (a set's refusal is checked through rclpy's own types: tests/test_ros2_wire.py)
     assert d.client.command("status")["state"]["mode"] == "idle"           # nothing changed
+
+
+def test_the_type_description_service_describes_our_types_by_their_hashes(node):
+    """Issue 51 item 2: `ros2 interface show` could not describe tecdar_msgs without the package built. The node's
+    ~/get_type_description (rclpy's own types, asked by the rmw_zenoh design) returns the full description of a type it
+    uses: hashed again, it is the hash its entity's token carries; the .srv text comes with it; a type it does not
+    use, or a wrong hash, is refused in rclcpp's words."""
+    from rclpy import serialization
+    from type_description_interfaces.srv import GetTypeDescription
+    from tecdard.ros2 import type_description as TD
+    from tecdard.ros2.typesupport import MSGS_DIR
+    router, d = node
+    with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
+        tokens = [rmw.parse_token(str(r.ok.key_expr)) for r in s.liveliness().get("@ros2_lv/**", timeout=2.0)
+                  if r.ok is not None]
+        rotate = next(t for t in tokens if t.kind == "SS" and t.name == "/sim/rotate")
+        server = next(t for t in tokens if t.kind == "SS" and t.name == "/sim/tecdard/get_type_description")
+
+        def ask(type_name: str, type_hash: str):
+            replies = list(s.get(rmw.data_keyexpr(0, server.name, server.dds_type, server.type_hash),
+                                 payload=serialization.serialize_message(GetTypeDescription.Request(
+                                     type_name=type_name, type_hash=type_hash, include_type_sources=True)),
+                                 attachment=rmw.attachment(3, time.time_ns(), bytes(16)), timeout=5.0))
+            assert len(replies) == 1 and replies[0].ok is not None, d.log()[-2000:]
+            return serialization.deserialize_message(replies[0].ok.payload.to_bytes(), GetTypeDescription.Response)
+        res = ask("tecdar_msgs/srv/Rotate", rotate.type_hash)
+        assert res.successful, res.failure_reason
+
+        def plain(individual) -> dict:
+            return {"type_name": individual.type_name, "fields": [
+                {"name": f.name, "type": {"type_id": f.type.type_id, "capacity": f.type.capacity,
+                                          "string_capacity": f.type.string_capacity,
+                                          "nested_type_name": f.type.nested_type_name}} for f in individual.fields]}
+        desc = {"type_description": plain(res.type_description.type_description),
+                "referenced_type_descriptions": [plain(x) for x in res.type_description.referenced_type_descriptions]}
+        assert TD.rihs01(desc) == rotate.type_hash                       # the description is the one hashed
+        sources = {x.type_name: x for x in res.type_sources}
+        assert sources["tecdar_msgs/srv/Rotate"].raw_file_contents == (MSGS_DIR / "srv" / "Rotate.srv").read_text()
+        assert not ask("geometry_msgs/msg/Twist", "").successful               # not one of the node's
+        wrong = ask("tecdar_msgs/srv/Rotate", "RIHS01_" + "0" * 64)
+        assert not wrong.successful and "hash" in wrong.failure_reason

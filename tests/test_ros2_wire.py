@@ -33,6 +33,8 @@ def ts():
     support.add_service(TRIGGER_SRV, TRIGGER)
     for srv_type, text in SRV_TEXTS.items():
         support.add_service(text, srv_type)
+    from tecdard.ros2 import type_description as TD
+    support.add_service(TD.SRV_TEXT, TD.SERVICE)
     return support
 
 
@@ -172,7 +174,8 @@ PARAMETER_SERVICES = sorted(__import__("tecdard.ros2.parameters", fromlist=["SER
 
 
 @pytest.mark.parametrize("ros_type", STOCK + ["sensor_msgs/msg/JointState", TRIGGER, *PARAMETER_SERVICES,
-                                              "rcl_interfaces/msg/ParameterEvent"])
+                                              "rcl_interfaces/msg/ParameterEvent",
+                                              "type_description_interfaces/srv/GetTypeDescription"])
 def test_our_hash_of_each_stock_type_is_rosidls(ts, ros_type):
     ours = ts.type_hash(ros_type)
     assert ours == wheel_hash(ros_type)

@@ -139,6 +139,7 @@ class Ros2Node(FrontDoor):
         for srv_type, text in P.SRV_TEXTS.items():
             self.ts.add_service(text, srv_type)
         self.param_server = None     # runtime.ros2_parameters.ParameterServer: the config as parameters
+        self.types_in_use: dict[str, str] = {}       # every type of an entity declared -> its hash
         self._inbox = Inbox(TAP_PASSES)
         self._declared: list = []
         self._pubs: dict[str, tuple] = {}         # topic -> (zenoh publisher, gid, [seq], type)
@@ -225,6 +226,7 @@ class Ros2Node(FrontDoor):
         self._entities += 1
         fq = rmw.fully_qualified(self.node.namespace, name)
         dds, type_hash = dds_type_name(ros_type), self.ts.type_hash(ros_type)
+        self.types_in_use[ros_type] = type_hash        # ~/get_type_description describes these
         token = rmw.entity_token(self.node, self._entities, kind, fq, dds, type_hash, qos)
         self._token(token)
         return rmw.data_keyexpr(self.params.domain_id, fq, dds, type_hash), token

@@ -1,5 +1,6 @@
-"""The ROS 2 node's parameter services (rclcpp's, which `ros2 param` calls) and its /parameter_events, over
-rmw_zenoh: the daemon's effective config, read-only (tecdard/ros2/parameters.py)."""
+"""The ROS 2 node's own services, as rclcpp gives every node: the parameter services (which `ros2 param` calls)
+and /parameter_events, the daemon's effective config read-only (tecdard/ros2/parameters.py); and
+`~/get_type_description`, every type the node uses described (tecdard/ros2/type_description.py)."""
 from __future__ import annotations
 
 import logging
@@ -9,6 +10,7 @@ from dataclasses import dataclass
 import zenoh
 
 from tecdard.ros2 import parameters as P
+from tecdard.ros2 import type_description as TD
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import TypeError_
 
@@ -41,10 +43,12 @@ class ParameterServer:
     def __init__(self, node, params: P.ParameterSet):
         self.node, self.params = node, params
         self.services: list = []
+        self._sources: dict[str, tuple[str, str]] | None = None
 
     def declare(self, session: zenoh.Session) -> None:
         node = self.node
-        for name, srv_type in P.SERVICES.items():
+        node.ts.add_service(TD.SRV_TEXT, TD.SERVICE)
+        for name, srv_type in {**P.SERVICES, "get_type_description": TD.SERVICE}.items():
             key, _ = node._entity(rmw.SERVICE, f"{node.params.node_name}/{name}", srv_type, SERVICE_QOS)
             svc = _Service(name, srv_type, key)
             svc.ring = session.declare_queryable(key, zenoh.handlers.RingChannel(BACKLOG), complete=True)
@@ -57,6 +61,14 @@ class ParameterServer:
         event = P.parameter_event(node.ts, self.params, fqn, time.time())
         pub.put(node.ts.encode(event, P.PARAMETER_EVENT), attachment=rmw.attachment(1, time.time_ns(), rmw.gid(token)))
         log.info("ROS 2 node %s: %d parameters (read-only)", fqn, len(self.params.params))
+
+    def sources(self) -> dict[str, tuple[str, str]]:
+        """tecdar_msgs' types -> (encoding, the .msg or .srv text), read once."""
+        if self._sources is None:
+            from tecdard.ros2.typesupport import MSGS_DIR, PACKAGE
+            self._sources = {f"{PACKAGE}/{kind}/{path.stem}": (kind, path.read_text())
+                             for kind in ("msg", "srv") for path in sorted((MSGS_DIR / kind).glob(f"*.{kind}"))}
+        return self._sources
 
     def poll(self, now: float) -> int:
         """Every queued request, answered (or dropped, over the budget or malformed); how many there were."""
@@ -86,7 +98,10 @@ class ParameterServer:
             return
         try:
             req = node.ts.decode(_bytes(query.payload) or b"", svc.srv_type + "_Request")
-            msg = P.respond(node.ts, self.params, svc.srv_type, req)
+            if svc.srv_type == TD.SERVICE:
+                msg = TD.respond(node.ts, node.types_in_use, self.sources(), req)
+            else:
+                msg = P.respond(node.ts, self.params, svc.srv_type, req)
             payload = node.ts.encode(msg, svc.srv_type + "_Response")
         except (TypeError_, ValueError) as exc:
             node.counters["bad_requests"] += 1
