@@ -31,6 +31,7 @@ class _Service:
 
 class _Unanswered:
     """A parameter request the intake's budget refuses: rcl_interfaces' services have no error reply; dropped."""
+    key_expr = "ros2 parameter service"
 
     def reply(self, *_args, **_kwargs) -> None:
         pass
