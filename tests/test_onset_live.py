@@ -93,6 +93,21 @@ IMPACTS = 20
 IMPACT_GAP_S = 1.8             # a knock, the contact's rest (control.contact_rest_s, 1 s), the trigger re-armed
 
 
+def knock(d, stream) -> list[dict]:
+    """Once the daemon has no fault (the board's stream has warmed the trigger), IMPACTS knocks IMPACT_GAP_S apart
+    on `stream` (sim.board.StreamThread); the events the daemon published."""
+    deadline = time.monotonic() + 20.0
+    while d.client.command("status")["state"]["faults"]:
+        assert time.monotonic() < deadline, d.log()[-2000:]
+        time.sleep(0.1)
+    time.sleep(1.0)
+    for _ in range(IMPACTS):
+        stream.impact()
+        time.sleep(IMPACT_GAP_S)
+    time.sleep(1.5)
+    return list(d.client.event_log)
+
+
 @pytest.mark.slow
 def test_knocks_on_an_idle_arm_are_one_onset_each(tmp_path):
     """Issue 51 item 4: with no task, only a task's end released a contact episode, and the trigger never re-armed:
@@ -105,16 +120,7 @@ def test_knocks_on_an_idle_arm_are_one_onset_each(tmp_path):
     stream = StreamThread(device, Board()).start()
     d = DaemonProcess(tmp_path, daemon_config(**{"imu.source": "serial", "imu.serial": {"port": str(device.link)}}))
     try:
-        deadline = time.monotonic() + 20.0
-        while d.client.command("status")["state"]["faults"]:          # the board's stream warms the trigger
-            assert time.monotonic() < deadline, d.log()[-2000:]
-            time.sleep(0.1)
-        time.sleep(1.0)
-        for _ in range(IMPACTS):
-            stream.impact()
-            time.sleep(IMPACT_GAP_S)
-        time.sleep(1.5)
-        events = list(d.client.event_log)
+        events = knock(d, stream)
     finally:
         d.close()
         stream.join()

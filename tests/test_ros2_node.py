@@ -385,7 +385,7 @@ def test_knocks_on_an_observed_arm_are_one_onset_each(tmp_path, router):
     only a run's first was ever seen (no task ended its episode; the trigger never re-armed). The arm at rest, its
     joint states at 100 Hz, its board on a pty: 20 knocks, 20 onsets, each contact released after its rest."""
     from tecdard.sim.board import Board, PtyDevice, StreamThread
-    from tests.test_onset_live import IMPACT_GAP_S, IMPACTS
+    from tests.test_onset_live import IMPACT_GAP_S, IMPACTS, knock
     device = PtyDevice(tmp_path / "ttyIMU")
     stream = StreamThread(device, Board()).start()
     n_states = int((IMPACTS * IMPACT_GAP_S + 40.0) / 0.01)
@@ -397,16 +397,7 @@ def test_knocks_on_an_observed_arm_are_one_onset_each(tmp_path, router):
     try:
         (tmp_path / "d").mkdir()
         d = DaemonProcess(tmp_path / "d", observer_config(str(device.link), router))
-        deadline = time.monotonic() + 20.0
-        while faults_of(d):
-            assert time.monotonic() < deadline, d.log()[-2000:]
-            time.sleep(0.1)
-        time.sleep(1.0)
-        for _ in range(IMPACTS):
-            stream.impact()
-            time.sleep(IMPACT_GAP_S)
-        time.sleep(1.5)
-        events = list(d.client.event_log)
+        events = knock(d, stream)
     finally:
         if d is not None:
             d.close()

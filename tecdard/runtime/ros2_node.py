@@ -29,6 +29,7 @@ from tecdard.ros2 import messages as M
 from tecdard.ros2 import parameters as P
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
+from tecdard.runtime.ros2_parameters import queued
 from tecdard.runtime.main_loop import FrontDoor
 from tecdard.runtime.messages import Inbox
 
@@ -424,16 +425,11 @@ class Ros2Node(FrontDoor):
     def poll(self, now: float) -> int:
         """The services' queued requests, each through the intake as its Zenoh verb."""
         n = 0
-        for svc in self._services:
-            for _ in range(SERVICE_BACKLOG):
-                query = svc.ring.try_recv()
-                if query is None:
-                    break
-                n += 1
-                call = self._call(svc, query, now)
-                if call is not None:
-                    self.intake.handle(call, call.key_expr, call.payload, now, charged=True)
-                del query
+        for svc, query in queued(self._services, SERVICE_BACKLOG):
+            n += 1
+            call = self._call(svc, query, now)
+            if call is not None:
+                self.intake.handle(call, call.key_expr, call.payload, now, charged=True)
         if self.param_server is not None:
             n += self.param_server.poll(now)
         return n

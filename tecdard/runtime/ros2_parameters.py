@@ -29,6 +29,16 @@ class _Service:
     ring: object = None
 
 
+def queued(services: list, backlog: int):
+    """(service, query) of each request waiting in the services' rings, at most `backlog` of each."""
+    for svc in services:
+        for _ in range(backlog):
+            query = svc.ring.try_recv()
+            if query is None:
+                break
+            yield svc, query
+
+
 class _Unanswered:
     """A parameter request the intake's budget refuses: rcl_interfaces' services have no error reply; dropped."""
     key_expr = "ros2 parameter service"
@@ -74,15 +84,10 @@ class ParameterServer:
     def poll(self, now: float) -> int:
         """Every queued request, answered (or dropped, over the budget or malformed); how many there were."""
         n = 0
-        for svc in self.services:
-            for _ in range(BACKLOG):
-                query = svc.ring.try_recv()
-                if query is None:
-                    break
-                n += 1
-                self.node.counters["requests"] += 1
-                self._answer(svc, query, now)
-                del query
+        for svc, query in queued(self.services, BACKLOG):
+            n += 1
+            self.node.counters["requests"] += 1
+            self._answer(svc, query, now)
         return n
 
     def _answer(self, svc, query, now: float) -> None:
