@@ -7,7 +7,7 @@ zenoh-ros2-sdk, with its fingertip board streaming on a pty.
 Prints {"pty": path, "joints": [...]} once the arm streams. Then, line by line on stdin:
 - `arc DEG SPEED`: the TCP follows an arc of DEG degrees about the cutter's true hinge at SPEED m/s (the
   gripper turning with the handle), servoed at 50 Hz; prints {"done": true, "truth": {...}} at the end;
-- `fault stop|jump|names`: from now on the stream stops, jumps 0.5 rad on joint 1 once, or names the
+- `fault stop|jump|names`: from now on the stream stops, jumps 0.5 rad on joint 1 for JUMP_S, or names the
   joints wrongly;
 - `quit`.
 JointStates go out at RATE_HZ, each stamped with its sample's time on the system clock.
@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 RATE_HZ = 200.0
+JUMP_S = 0.05                  # `fault jump`: how long the joint stays 0.5 rad off
 TICK_S = 0.02
 
 
@@ -63,9 +64,9 @@ def main() -> None:
             if js.seq != seq and fault["kind"] != "stop":
                 seq = js.seq
                 q = np.array(js.q, float)
-                if fault["kind"] == "jump" and not jumped:
-                    q[0] += 0.5
-                    jumped = True
+                if fault["kind"] == "jump" and (jumped is False or time.monotonic() < jumped):
+                    q[0] += 0.5          # for JUMP_S: a glitch shorter than a control tick is never read
+                    jumped = jumped or time.monotonic() + JUMP_S
                 stamp = time.time() - (time.monotonic() - js.t)
                 ns = int(stamp * 1e9)
                 msg = {"header": {"stamp": [ns // 10**9, ns % 10**9], "frame_id": ""},
