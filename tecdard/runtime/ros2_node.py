@@ -29,7 +29,7 @@ from tecdard.ros2 import messages as M
 from tecdard.ros2 import parameters as P
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
-from tecdard.runtime.ros2_parameters import queued
+from tecdard.runtime.ros2_parameters import _bytes, queued
 from tecdard.runtime.main_loop import FrontDoor
 from tecdard.runtime.messages import Inbox
 
@@ -450,10 +450,6 @@ class Ros2Node(FrontDoor):
                 call.query.reply(call.query.key_expr, payload, attachment=att)
         except Exception:
             log.exception("ROS 2 %s: the reply was not sent", svc.verb)
-
-
-def _bytes(z) -> bytes | None:
-    return None if z is None else z.to_bytes()
 
 
 class _BlockAverage:
