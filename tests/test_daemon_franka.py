@@ -2,6 +2,7 @@
 franky-sim's MuJoCo FR3 (tests/fakes/franka_sim.py), the fingertip board on a pseudo-terminal. Start,
 state, the command watchdog, a simulator that dies and comes back, and robots that cannot work: a
 version mismatch, nothing listening, a server that never answers."""
+import math
 import subprocess
 import sys
 import time
@@ -277,6 +278,7 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
             forces.append(js.tcp_force @ (v / np.linalg.norm(v)))
             time.sleep(0.02)
         t1 = time.monotonic()
+        truth_end = json.load(open(truth_path))                # the angle and the simulated time of one snapshot
         link.hold()
         time.sleep(0.3)
         truth1 = json.load(open(truth_path))
@@ -286,8 +288,15 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
         port.close()
         link.stop()
         srv.close()
-    turned_deg = truth1["handle_angle_deg"] - truth0["handle_angle_deg"]
-    assert 8.0 < turned_deg < 16.0, turned_deg            # 15 deg commanded, less the start's ramp
+    # judged in the simulation's time: franky-sim on a loaded machine runs late and drops what it cannot catch up
+    # (a CI run turned 4.3 deg in the 2 s of the test's clock)
+    sim_s = truth_end["sim_time_s"] - truth0["sim_time_s"]
+    if sim_s < 1.0:
+        pytest.skip(f"franky-sim simulated {sim_s:.2f} s of the test's 2 s: no judgement of the turn")
+    commanded_deg = math.degrees(abs(omega) * sim_s)
+    turned_deg = truth_end["handle_angle_deg"] - truth0["handle_angle_deg"]
+    # about 15 deg in 2 s, less the start's ramp
+    assert 0.5 * commanded_deg < turned_deg < 1.05 * commanded_deg + 0.5, (turned_deg, commanded_deg)
     assert truth1["base_displacement"] < 0.002               # the arc about the true hinge leaves the base
     steady = [g for t, g in rates if t0 + 0.8 < t < t1 - 0.1]
     twist = float(np.mean(steady, axis=0)[1] - bias[1])      # about the hand's y, the hinge's axis here

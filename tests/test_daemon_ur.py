@@ -221,7 +221,9 @@ def test_a_controller_that_lies_is_a_fault_and_its_lie_never_drives_the_arm(tmp_
             t_lie = time.monotonic()
             fake.lie(duration_s, **lie)
             ev = d.client.wait_event(("fault",), None, 5.0)
-            while ev["t"] < t_lie - 0.5:             # a fault the last lie raised after the one it waited for
+            # skipped: a fault the last lie raised after the one it waited for, and the fake's own stall on a
+            # loaded machine (its states late past the 50 ms limit: robot_stale, rightly) before a lie of another kind
+            while ev["t"] < t_lie - 0.5 or (ev["code"] == "robot_stale" != code):
                 ev = d.client.wait_event(("fault",), None, 5.0)
             assert ev["code"] == code and said in ev["message"], (name, ev)
             failed = d.client.wait_event(("task_failed",), reply["task"], 5.0)

@@ -519,23 +519,38 @@ class UrKinematics:
         self.flange_tcp[:3, :3] = rotvec_to_matrix(tcp_offset[3:])
         self.flange_tcp[:3, 3] = tcp_offset[:3]
 
+    def _joint(self, qi: float, d: float, a: float, alpha: float) -> np.ndarray:
+        ct, st, ca, sa = math.cos(qi), math.sin(qi), math.cos(alpha), math.sin(alpha)
+        return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
+                         [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+
     def matrix(self, q) -> np.ndarray:
         T = np.eye(4)
         for qi, d, a, alpha in zip(q, self.d, self.a, DH_ALPHA):
-            ct, st, ca, sa = math.cos(qi), math.sin(qi), math.cos(alpha), math.sin(alpha)
-            T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                              [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+            T = T @ self._joint(qi, d, a, alpha)
         return T @ self.flange_tcp
 
     def pose(self, q) -> list:
         T = self.matrix(q)
         return list(T[:3, 3]) + list(matrix_to_rotvec(T[:3, :3]))
 
-    def speed(self, q, qd, h: float = 1e-6) -> list:
-        """The TCP's linear and angular velocity, base frame: the pose's derivative along qd."""
-        T0, T1 = self.matrix(q), self.matrix(np.asarray(q) + h * np.asarray(qd))
-        w = T0[:3, :3] @ matrix_to_rotvec(T0[:3, :3].T @ T1[:3, :3]) / h
-        return list((T1[:3, 3] - T0[:3, 3]) / h) + list(w)
+    def speed(self, q, qd) -> list:
+        return self.pose_speed(q, qd)[1]
+
+    def pose_speed(self, q, qd) -> tuple[list, list]:
+        """The TCP's pose and its linear and angular velocity, base frame, from one pass along the chain:
+        each joint turns about its z axis (the DH frame before it), so v = sum z_i x (p_tcp - p_i) qd_i and
+        w = sum z_i qd_i (the geometric Jacobian: the controller's cycle cannot spare finite differences)."""
+        T = np.eye(4)
+        axes, origins = np.empty((6, 3)), np.empty((6, 3))
+        for i, (qi, d, a, alpha) in enumerate(zip(q, self.d, self.a, DH_ALPHA)):
+            axes[i], origins[i] = T[:3, 2], T[:3, 3]
+            T = T @ self._joint(qi, d, a, alpha)
+        T = T @ self.flange_tcp
+        rate = np.asarray(qd, dtype=float)
+        r = T[:3, 3] - origins
+        v = ((axes[:, [1, 2, 0]] * r[:, [2, 0, 1]] - axes[:, [2, 0, 1]] * r[:, [1, 2, 0]]).T @ rate)  # z_i x r_i
+        return list(T[:3, 3]) + list(matrix_to_rotvec(T[:3, :3])), list(v) + list(axes.T @ rate)
 
 
 # -- the simulated arm -----------------------------------------------------------------------
@@ -678,9 +693,11 @@ class ControlScript:
         self.controller.set_program_running(False)
 
     def cycle(self, now: float) -> None:
+        """The cycle due at `now`; the watchdog counts real time (a batch of cycles run late reads one input)."""
         if not self.running:
             return
         inputs, packages = self.rtde.read_inputs_counted()
+        now = time.monotonic()
         if packages != self._inputs_seen:
             self._inputs_seen, self._last_input_t = packages, now
         elif self.watchdog_hz > 0 and now - self._last_input_t > 1.0 / self.watchdog_hz:
@@ -771,6 +788,9 @@ def free_loopback_host(ports=(DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)) -> str:
     raise RuntimeError("no free 127.0.0.x address for a fake controller")
 
 
+STALL_S = 0.1                        # the fake's cycles further behind than this: caught up at once, not replayed
+
+
 def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control: bool, conn) -> None:
     """The fake controller's process: the arm and the control script step every controller cycle,
     which publishes its sample; it serves until told to stop, and answers the test's requests."""
@@ -796,6 +816,7 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
     t0 = time.monotonic() - CONTROLLER_UPTIME_S       # the controller was switched on a while before
 
     lies: list = []                 # (until, lie) the test asked for: what the controller reports instead
+    late = {"worst_s": 0.0}         # the cycles' worst lateness since the test last asked (a loaded machine's stall)
 
     def sample(t: float, q, qd, force_base) -> None:
         """One cycle's state: its clock counts whole cycles since it started, as the real one does.
@@ -804,35 +825,45 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
         stamp = round((t - t0) / period) * period
         lie = next((lie for until, lie in lies if time.monotonic() < until), None)
         if lie is None:
+            pose, speed = kinematics.pose_speed(q, qd)
             controller.publish(stamp, actual_q=list(q), target_q=list(q), actual_qd=list(qd),
-                               actual_TCP_pose=kinematics.pose(q), actual_TCP_speed=kinematics.speed(q, qd), **force)
+                               actual_TCP_pose=pose, actual_TCP_speed=speed, **force)
             return
         if lie.get("freeze"):
             last = controller.samples[-1][1]
             controller.publish(last["timestamp"], **{k: v for k, v in last.items() if k not in ("timestamp", "_due")})
             return
-        told = {"actual_q": list(q), "actual_qd": list(qd), "actual_TCP_pose": kinematics.pose(q),
-                "actual_TCP_speed": kinematics.speed(q, qd), **force}
+        pose, speed = kinematics.pose_speed(q, qd)
+        told = {"actual_q": list(q), "actual_qd": list(qd), "actual_TCP_pose": pose, "actual_TCP_speed": speed,
+                **force}
         for name, joints in lie.get("values", {}).items():
             for j, value in joints.items():
                 told[name][int(j)] = value
         controller.publish(stamp, delay_s=lie.get("delay_s", 0.0), target_q=list(q), **told)
 
+    def cycle(t: float) -> None:
+        script.cycle(t)
+        if controller.values.get("safety_mode") != 1:
+            arm.halt()                    # a protective or emergency stop halts the arm
+        for ts, q, qd, force in arm.step(period, t):
+            sample(ts, q, qd, force)
+
     def run_cycles() -> None:
+        """Every cycle at its own time on an absolute schedule. A wake-up that comes late (the GIL held by RTDE's
+        senders, the machine's load) runs every cycle that came due meanwhile at once, each at its own time, so
+        the lateness stays that of one wake-up and never drifts; a stall past STALL_S is given up on."""
         t_next = time.monotonic()
         while not stop.is_set():
             now = time.monotonic()
-            script.cycle(now)
-            if controller.values.get("safety_mode") != 1:
-                arm.halt()                    # a protective or emergency stop halts the arm
-            for t, q, qd, force in arm.step(period, now):
-                sample(t, q, qd, force)
-            t_next += period
+            late["worst_s"] = max(late["worst_s"], now - t_next)
+            if now - t_next > STALL_S:
+                t_next = now
+            while t_next <= now:
+                cycle(t_next)
+                t_next += period
             delay = t_next - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            elif delay < -0.1:
-                t_next = time.monotonic()
 
     cycles = threading.Thread(target=run_cycles, name="controller-cycle", daemon=True)
     cycles.start()
@@ -863,6 +894,9 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
                            "speedj_t": list(script.speedj_t), "moved_t": arm.moved_t})
             elif msg[0] == "truth":
                 conn.send(arm.truth() if sim is not None else None)
+            elif msg[0] == "late":
+                conn.send(late["worst_s"])
+                late["worst_s"] = 0.0
     except EOFError:
         pass
     finally:
@@ -908,6 +942,12 @@ class FakeController:
     def truth(self):
         """With `sim`: the simulated world's truth (sim.world.SimTruth) now."""
         self._conn.send(("truth",))
+        return self._conn.recv()
+
+    def worst_late_s(self) -> float:
+        """How far the controller's cycles fell behind their schedule at worst since the last call, s: the machine's
+        load stalling the fake (its arm, its samples and the simulated board's stream), not anything the client did."""
+        self._conn.send(("late",))
         return self._conn.recv()
 
     def set(self, **values) -> None:
