@@ -37,19 +37,44 @@ class ServiceType:
     response: str        # pkg/srv/Name_Response
 
 
+@dataclass(frozen=True)
+class ActionType:
+    """An action's types as rosidl names them (pkg/action/Name_...): its goal, result and feedback, its two
+    services (SendGoal, GetResult: ServiceType) and its feedback message."""
+    name: str
+    goal: str
+    result: str
+    feedback: str
+    send_goal: ServiceType
+    get_result: ServiceType
+    feedback_message: str
+
+
+UUID = "unique_identifier_msgs/msg/UUID"
+TIME = "builtin_interfaces/msg/Time"
+CANCEL_GOAL = "action_msgs/srv/CancelGoal"
+# action_msgs/srv/CancelGoal as action_msgs ships it (its comments left out: they are not hashed)
+CANCEL_GOAL_SRV = ("action_msgs/GoalInfo goal_info\n---\nint8 ERROR_NONE=0\nint8 ERROR_REJECTED=1\n"
+                   "int8 ERROR_UNKNOWN_GOAL_ID=2\nint8 ERROR_GOAL_TERMINATED=3\nint8 return_code\n"
+                   "action_msgs/GoalInfo[] goals_canceling\n")
+
+
 def dds_type_name(ros_type: str) -> str:
     """`sensor_msgs/msg/Imu` -> `sensor_msgs::msg::dds_::Imu_` (services: `pkg::srv::dds_::Name_`)."""
     pkg, kind, name = ros_type.split("/")
     return f"{pkg}::{kind}::dds_::{name}_"
 
 
-def split_srv(text: str, name: str) -> tuple[str, str]:
-    """A .srv file's request and response parts (around its `---` line)."""
+def split_srv(text: str, name: str, parts: int = 2) -> tuple[str, ...]:
+    """A .srv file's request and response parts (around its `---` line); an .action's goal, result and
+    feedback (`parts` 3)."""
     lines = text.splitlines()
     cut = [i for i, line in enumerate(lines) if line.strip() == "---"]
-    if len(cut) != 1:
-        raise TypeError_(f"{name}: a .srv needs exactly one '---' line, found {len(cut)}")
-    return "\n".join(lines[:cut[0]]), "\n".join(lines[cut[0] + 1:])
+    if len(cut) != parts - 1:
+        kind = ".srv" if parts == 2 else ".action"
+        raise TypeError_(f"{name}: a {kind} needs exactly {parts - 1} '---' line(s), found {len(cut)}")
+    bounds = [-1] + cut + [len(lines)]
+    return tuple("\n".join(lines[a + 1:b]) for a, b in zip(bounds, bounds[1:]))
 
 
 class TypeSupport:
@@ -65,6 +90,7 @@ class TypeSupport:
         self.store = get_typestore(Stores.ROS2_KILTED)
         self._fix_service_event_info()
         self.services: dict[str, ServiceType] = {}
+        self.actions: dict[str, ActionType] = {}
         self._hashes: dict[str, str] = {}
         self._register_package(msgs_dir)
 
@@ -85,18 +111,49 @@ class TypeSupport:
             types.update(self._service_types(path.read_text(), f"{PACKAGE}/srv/{path.stem}"))
         if not types:
             raise TypeError_(f"{root}: no .msg or .srv files (the tecdar_msgs package is missing)")
+        for path in sorted((root / "action").glob("*.action")):
+            types.update(self._action_types(path.read_text(), f"{PACKAGE}/action/{path.stem}"))
         self.store.register(types)
 
-    def _service_types(self, text: str, name: str) -> dict:
-        """The request, response, event and service types of one .srv, named as rosidl names them."""
+    def _action_types(self, text: str, name: str) -> dict:
+        """An .action's types as rosidl generates them: Name_Goal, _Result, _Feedback; the services
+        Name_SendGoal (goal_id and goal; accepted and stamp) and Name_GetResult (goal_id; status and result),
+        each with its event; Name_FeedbackMessage (goal_id and feedback); and Name, whose fields name them."""
         from rosbags.typesys import get_types_from_msg
         from rosbags.typesys.base import Nodetype
-        request, response = split_srv(text, name)
+        goal, result, feedback = split_srv(text, name, parts=3)
         types: dict = {}
-        for part, body in (("_Request", request), ("_Response", response)):
-            # rosbags files a service's parts under pkg/srv/msg/; rosidl names them pkg/srv/Name_Request
-            types.update({k.replace("/srv/msg/", "/srv/"): v for k, v in
+        for part, body in (("_Goal", goal), ("_Result", result), ("_Feedback", feedback)):
+            types.update({k.replace("/action/msg/", "/action/"): v for k, v in
                           get_types_from_msg(body, name + part).items()})
+        uuid = ("goal_id", (Nodetype.NAME, UUID))
+        send_goal = self._service_parts(name + "_SendGoal",
+                                        [uuid, ("goal", (Nodetype.NAME, name + "_Goal"))],
+                                        [("accepted", (Nodetype.BASE, ("bool", 0))), ("stamp", (Nodetype.NAME, TIME))],
+                                        types)
+        get_result = self._service_parts(name + "_GetResult", [uuid],
+                                         [("status", (Nodetype.BASE, ("int8", 0))),
+                                          ("result", (Nodetype.NAME, name + "_Result"))], types)
+        fb_message = name + "_FeedbackMessage"
+        types[fb_message] = ([], [uuid, ("feedback", (Nodetype.NAME, name + "_Feedback"))])
+        types[name] = ([], [("goal", (Nodetype.NAME, name + "_Goal")), ("result", (Nodetype.NAME, name + "_Result")),
+                            ("feedback", (Nodetype.NAME, name + "_Feedback")),
+                            ("send_goal_service", (Nodetype.NAME, send_goal.name)),
+                            ("get_result_service", (Nodetype.NAME, get_result.name)),
+                            ("feedback_message", (Nodetype.NAME, fb_message))])
+        self.actions[name] = ActionType(name, name + "_Goal", name + "_Result", name + "_Feedback", send_goal,
+                                        get_result, fb_message)
+        return types
+
+    def _service_parts(self, name: str, request: list, response: list, types: dict) -> ServiceType:
+        """A service made of field lists (an action's), with its event and service types, into `types`."""
+        types[name + "_Request"], types[name + "_Response"] = ([], request), ([], response)
+        return self._envelope(name, types)
+
+    def _envelope(self, name: str, types: dict) -> ServiceType:
+        """The event and service types of the service `name` whose request and response are in `types`, as
+        rosidl generates them (the event: ServiceEventInfo, then at most one request and one response)."""
+        from rosbags.typesys.base import Nodetype
         req, res, event = name + "_Request", name + "_Response", name + "_Event"
         types[event] = ([], [("info", (Nodetype.NAME, SERVICE_EVENT_INFO)),
                              ("request", (Nodetype.SEQUENCE, ((Nodetype.NAME, req), 1))),
@@ -104,6 +161,18 @@ class TypeSupport:
         types[name] = ([], [("request_message", (Nodetype.NAME, req)), ("response_message", (Nodetype.NAME, res)),
                             ("event_message", (Nodetype.NAME, event))])
         self.services[name] = ServiceType(name, req, res)
+        return self.services[name]
+
+    def _service_types(self, text: str, name: str) -> dict:
+        """The request, response, event and service types of one .srv, named as rosidl names them."""
+        from rosbags.typesys import get_types_from_msg
+        request, response = split_srv(text, name)
+        types: dict = {}
+        for part, body in (("_Request", request), ("_Response", response)):
+            # rosbags files a service's parts under pkg/srv/msg/; rosidl names them pkg/srv/Name_Request
+            types.update({k.replace("/srv/msg/", "/srv/"): v for k, v in
+                          get_types_from_msg(body, name + part).items()})
+        self._envelope(name, types)
         return types
 
     def add_service(self, text: str, name: str) -> ServiceType:

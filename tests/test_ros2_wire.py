@@ -185,6 +185,7 @@ def test_our_hash_of_each_stock_type_is_rosidls(ts, ros_type):
 def rosidl_generate(tmp: pathlib.Path, package: str, files: dict[str, str], deps: list[str]) -> dict[str, str]:
     """rosidl's own pipeline on .msg/.srv texts: rosidl_adapter to IDL, rosidl_generator_type_description
     to hashes (type name -> RIHS01), dependencies from the wheels' JSON type descriptions."""
+    from rosidl_adapter.action import convert_action_to_idl
     from rosidl_adapter.msg import convert_msg_to_idl
     from rosidl_adapter.srv import convert_srv_to_idl
     from rosidl_generator_type_description import generate_type_hash
@@ -194,7 +195,8 @@ def rosidl_generate(tmp: pathlib.Path, package: str, files: dict[str, str], deps
         path = src / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
-        convert = convert_msg_to_idl if rel.endswith(".msg") else convert_srv_to_idl
+        convert = {".msg": convert_msg_to_idl, ".srv": convert_srv_to_idl,
+                   ".action": convert_action_to_idl}[pathlib.Path(rel).suffix]
         target = idl / pathlib.Path(rel).parent
         target.mkdir(parents=True, exist_ok=True)
         convert(src, package, pathlib.Path(rel), target)
@@ -211,16 +213,38 @@ def rosidl_generate(tmp: pathlib.Path, package: str, files: dict[str, str], deps
 
 def test_our_hashes_of_tecdar_msgs_are_what_rosidls_generator_makes_of_the_package(ts, tmp_path, capsys):
     files = {str(p.relative_to(MSGS_DIR)): p.read_text() for p in sorted(MSGS_DIR.glob("*/*.*")) if p.suffix in
-             (".msg", ".srv")}
+             (".msg", ".srv", ".action")}
     theirs = rosidl_generate(tmp_path, "tecdar_msgs", files,
-                             ["builtin_interfaces", "geometry_msgs", "service_msgs", "std_msgs"])
+                             ["action_msgs", "builtin_interfaces", "geometry_msgs", "service_msgs", "std_msgs",
+                              "unique_identifier_msgs"])
     capsys.readouterr()
     mine = {name: h for name, h in theirs.items() if name.startswith("tecdar_msgs/")}
     n_srv = len(list((MSGS_DIR / "srv").glob("*.srv")))
+    n_action = len(list((MSGS_DIR / "action").glob("*.action")))
     assert n_srv == len(task_verbs.names()) + 2      # each task verb, cancel and status
-    assert len(mine) == 1 + 4 * n_srv    # Event; each service, its request, response and event
+    assert n_action == len(task_verbs.names())       # each task verb
+    # Event; each service, its request, response and event; each action, its goal, result, feedback, feedback
+    # message, and its two services with their request, response and event
+    assert len(mine) == 1 + 4 * n_srv + 13 * n_action
     for name, h in mine.items():
         assert ts.type_hash(name) == h, name
+
+
+def test_each_action_s_goal_is_its_service_s_request():
+    """The task verbs as actions take the same fields as their services (one intake, one validation)."""
+    for path in sorted((MSGS_DIR / "action").glob("*.action")):
+        goal = path.read_text().split("\n---\n")[0]
+        request = (MSGS_DIR / "srv" / f"{path.stem}.srv").read_text().split("\n---\n")[0]
+        assert goal.strip() == request.strip(), path.name
+
+
+def test_our_cancel_goal_hash_is_action_msgs_own(ts):
+    from tecdard.ros2.typesupport import CANCEL_GOAL, CANCEL_GOAL_SRV
+    ts.add_service(CANCEL_GOAL_SRV, CANCEL_GOAL)
+    shipped = json.loads((SHARE / "action_msgs" / "srv" / "CancelGoal.json").read_text())["type_hashes"]
+    for entry in shipped:
+        if entry["type_name"].startswith(CANCEL_GOAL):
+            assert ts.type_hash(entry["type_name"]) == entry["hash_string"], entry["type_name"]
 
 
 def test_our_tfmessage_hash_is_what_rosidl_makes_of_tf2_msgs_definition(ts, tmp_path, capsys):
