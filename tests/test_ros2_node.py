@@ -13,6 +13,7 @@ import pytest
 import zenoh
 
 from tecdard.api.session import session_config
+from tecdard import verbs as task_verbs
 from tecdard.robots.model import READY_Q
 from tecdard.ros2 import rmw
 from tecdard.tools.demo import distance_to_axis, free_port
@@ -120,7 +121,7 @@ def test_bad_requests_get_the_zenoh_interfaces_codes_and_move_nothing(node):
     # a request that is not CDR, and one without an attachment: refused, the daemon serves on
     with zenoh.open(session_config([], [f"tcp/127.0.0.1:{router}"], mode="client")) as s:
         key = next(str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/**", timeout=2.0)
-                   if r.ok is not None and "/SS/" in str(r.ok.key_expr) and "%rotate" in str(r.ok.key_expr))
+                   if r.ok is not None and "/SS/" in str(r.ok.key_expr) and "%sim%rotate/" in str(r.ok.key_expr))
         token = rmw.parse_token(key)
         data_key = rmw.data_keyexpr(0, token.name, token.dds_type, token.type_hash)
         att = rmw.attachment(1, time.time_ns(), bytes(16))
@@ -218,8 +219,11 @@ def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
             assert all(t.domain_id == 7 and t.namespace == "/lab/arm1" and t.node_name == "tecdard" and t.enclave == ""
                        for t in tokens)
             kinds = [t.kind for t in tokens]
-            # 7 topics and /parameter_events; the services, the six of the parameters among them
-            assert kinds.count("NN") == 1 and kinds.count("MP") == 8 and kinds.count("SS") >= 14
+            # 7 topics and /parameter_events, and each action's feedback and status; the services, the six of the
+            # parameters among them, and each action's three
+            n_actions = len(task_verbs.names())
+            assert kinds.count("NN") == 1 and kinds.count("MP") == 8 + 2 * n_actions
+            assert kinds.count("SS") >= 14 + 3 * n_actions
             assert len({t.entity_id for t in tokens if t.kind != "NN"}) == len(tokens) - 1
             by_name = {t.name: t for t in tokens if t.kind != "NN"}
             assert by_name["/lab/arm1/imu"].qos == rmw.SENSOR_DATA and by_name["/lab/arm1/tcp_pose"].qos == rmw.SENSOR_DATA
@@ -229,6 +233,15 @@ def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
             assert by_name["/diagnostics"].dds_type == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
             assert by_name["/lab/arm1/stop"].dds_type == "std_srvs::srv::dds_::Trigger_"
             assert all(t.type_hash.startswith("RIHS01_") for t in by_name.values())
+            # an action as rcl_action names its parts, with their QoS (the status topic transient local, depth 1)
+            rotate = "/lab/arm1/rotate/_action/"
+            assert by_name[rotate + "send_goal"].dds_type == "tecdar_msgs::action::dds_::Rotate_SendGoal_"
+            assert by_name[rotate + "get_result"].dds_type == "tecdar_msgs::action::dds_::Rotate_GetResult_"
+            assert by_name[rotate + "cancel_goal"].dds_type == "action_msgs::srv::dds_::CancelGoal_"
+            assert by_name[rotate + "feedback"].dds_type == "tecdar_msgs::action::dds_::Rotate_FeedbackMessage_"
+            assert by_name[rotate + "feedback"].qos == rmw.RELIABLE_10
+            assert by_name[rotate + "status"].dds_type == "action_msgs::msg::dds_::GoalStatusArray_"
+            assert by_name[rotate + "status"].qos == rmw.Qos(rmw.RELIABLE, rmw.TRANSIENT_LOCAL, rmw.KEEP_LAST, 1)
             imu = by_name["/lab/arm1/imu"]
             got = []
             sub = s.declare_subscriber(rmw.data_keyexpr(7, imu.name, imu.dds_type, imu.type_hash),

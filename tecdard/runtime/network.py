@@ -95,8 +95,13 @@ class ZenohSettings:
         """The daemon's Zenoh session config (zenoh.ZError where Zenoh refuses an endpoint); `ros2`: the
         ROS 2 node's key expressions, let through its access control."""
         acl = access_control(keys, self.commanders, ros2)
-        return session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES, tls=self.tls,
+        conf = session_config(self.listen, self.connect, self.multicast, DAEMON_MAX_MESSAGE_BYTES, tls=self.tls,
                               acl=acl, mode=self.mode)
+        if ros2 is not None:
+            # the node's transient-local publishers (its actions' status) keep their cache by timestamp, as
+            # rmw_zenoh's sessions do
+            conf.insert_json5("timestamping/enabled", "true")
+        return conf
 
     def where(self) -> str:
         parts = [f"listening on {', '.join(self.listen)}"] if self.listen else []

@@ -29,6 +29,7 @@ from tecdard.ros2 import messages as M
 from tecdard.ros2 import parameters as P
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
+from tecdard.runtime.ros2_actions import ActionServer
 from tecdard.runtime.ros2_parameters import _bytes, queued
 from tecdard.runtime.main_loop import FrontDoor
 from tecdard.runtime.messages import Inbox
@@ -140,6 +141,7 @@ class Ros2Node(FrontDoor):
         for srv_type, text in P.SRV_TEXTS.items():
             self.ts.add_service(text, srv_type)
         self.param_server = None     # runtime.ros2_parameters.ParameterServer: the config as parameters
+        self.actions: ActionServer | None = None     # the task verbs as actions, once declared
         self.types_in_use: dict[str, str] = {}       # every type of an entity declared -> its hash
         self._inbox = Inbox(TAP_PASSES)
         self._declared: list = []
@@ -196,10 +198,13 @@ class Ros2Node(FrontDoor):
             self._declared.append(svc.ring)
         if self.param_server is not None:
             self.param_server.declare(session)
+        self.actions = ActionServer(self)
+        self.actions.declare(session)
         if joint_states is not None:
             self._subscribe_joint_states(joint_states, joint_states_period_s)
-        log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services", self.node.namespace,
-                 p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1)
+        log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services, %d actions", self.node.namespace,
+                 p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1,
+                 len(self.actions.actions))
 
     def set_parameters(self, config_data: dict, sections: list) -> None:
         """The daemon's config as the node's read-only parameters (tecdard/ros2/parameters.py), before `declare`;
@@ -293,6 +298,8 @@ class Ros2Node(FrontDoor):
     def on_telemetry(self, kind: str, body: dict, text: str) -> None:
         """One message of the Zenoh interface as it is published: `state` -> tcp_pose, `event` -> events."""
         try:
+            if self.actions is not None:
+                self.actions.on_telemetry(kind, body)
             if kind == "state":
                 self._latest_state = body
                 if not self._wanted("tcp_pose"):
@@ -432,6 +439,8 @@ class Ros2Node(FrontDoor):
                 self.intake.handle(call, call.key_expr, call.payload, now, charged=True)
         if self.param_server is not None:
             n += self.param_server.poll(now)
+        if self.actions is not None:
+            n += self.actions.poll(now)
         return n
 
     def answer(self, call: ServiceCall, reply: dict) -> None:

@@ -74,11 +74,11 @@ class ParameterServer:
         log.info("ROS 2 node %s: %d parameters (read-only)", fqn, len(self.params.params))
 
     def sources(self) -> dict[str, tuple[str, str]]:
-        """tecdar_msgs' types -> (encoding, the .msg or .srv text), read once."""
+        """tecdar_msgs' types -> (encoding, the .msg, .srv or .action text), read once."""
         if self._sources is None:
             from tecdard.ros2.typesupport import MSGS_DIR, PACKAGE
-            self._sources = {f"{PACKAGE}/{kind}/{path.stem}": (kind, path.read_text())
-                             for kind in ("msg", "srv") for path in sorted((MSGS_DIR / kind).glob(f"*.{kind}"))}
+            self._sources = {f"{PACKAGE}/{kind}/{path.stem}": (kind, path.read_text()) for kind in ("msg", "srv", "action")
+                             for path in sorted((MSGS_DIR / kind).glob(f"*.{kind}"))}
         return self._sources
 
     def poll(self, now: float) -> int:
