@@ -348,3 +348,48 @@ def _parameter_server(node, ParameterServer, P, TD, sections, SIM_CONFIG, yaml):
                               IntakeParams(max_status_rate_hz=50.0))
     node.types_in_use = {"tecdar_msgs/srv/Rotate": node.ts.type_hash("tecdar_msgs/srv/Rotate")}
     return ParameterServer(node, P.ParameterSet(yaml.safe_load(SIM_CONFIG.read_text()), sections()))
+
+
+@fuzz_settings(200)
+@given(raw=st.binary(max_size=300), cut=st.integers(0, 400), angle=floats, direction=arrays,
+       uuid=st.binary(min_size=16, max_size=16), stamp=st.integers(0, 2**31 - 1))
+def test_any_action_request_is_one_reply_or_none_and_a_goal_is_handed_on_within_limits(node, raw, cut, angle,
+                                                                                      direction, uuid, stamp):
+    """Issue 51 item 6 for the actions (tecdard/runtime/ros2_actions.py): a send_goal, cancel_goal or get_result of
+    any bytes gets one reply of its service's type or none and never raises; a goal the intake takes is handed on
+    within the limits, one it refuses is not accepted."""
+    from tecdard.ros2.typesupport import CANCEL_GOAL, CANCEL_GOAL_SRV
+    from tecdard.runtime.ros2_actions import ActionServer, _Action
+    sink = Sink()
+    node.intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams(
+        max_task_rate_hz=1e4, max_status_rate_hz=1e4, max_other_rate_hz=1e4))
+    node.ts.add_service(CANCEL_GOAL_SRV, CANCEL_GOAL)
+    server = ActionServer(node)
+    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
+    server.actions.append(act)
+    T, types = node.ts.store.types, act.types
+    uuid_msg = T["unique_identifier_msgs/msg/UUID"](uuid=np.frombuffer(uuid, dtype=np.uint8).copy())
+    goal = T[types.goal](angle_deg=angle, speed=math.nan, probe_distance=math.nan,
+                         direction=np.array(direction, dtype=float), strategy="", turn_tool=0)
+    send = node.ts.encode(T[types.send_goal.request](goal_id=uuid_msg, goal=goal), types.send_goal.request)
+    result = node.ts.encode(T[types.get_result.request](goal_id=uuid_msg), types.get_result.request)
+    info = T["action_msgs/msg/GoalInfo"](goal_id=uuid_msg, stamp=T["builtin_interfaces/msg/Time"](sec=stamp, nanosec=0))
+    cancel = node.ts.encode(T[CANCEL_GOAL + "_Request"](goal_info=info), CANCEL_GOAL + "_Request")
+    for name, srv_type, valid in (("send_goal", types.send_goal.name, send), ("get_result", types.get_result.name,
+                                  result), ("cancel_goal", CANCEL_GOAL, cancel)):
+        for payload in (valid, valid[:cut], raw):
+            before = len(sink.submitted)
+            q = RosQuery(payload, rmw.attachment(9, 0, GID))
+            server._request(act, name, q, 0.0)
+            assert len(q.replies) <= 1
+            if q.replies:
+                reply, att = q.replies[0]
+                assert rmw.parse_attachment(att)[:3:2] == (9, GID)
+                res = node.ts.decode(reply, srv_type + "_Response")
+                if name == "send_goal":
+                    # accepted only once the control thread's reply says so (the sink never replies)
+                    assert res.accepted is False
+            for msg in sink.submitted[before:]:
+                assert isinstance(msg, StartTask) and name == "send_goal" and payload is valid
+                assert 0.0 < msg.fields["angle_deg"] <= LIMITS.max_rotation_deg
+                assert all(math.isfinite(x) for x in msg.fields.get("direction", []))
