@@ -108,6 +108,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.startup --cold
 	$(PY) -m benchmarks.firmware
 	$(PY) -m benchmarks.ros2
+	$(PY) -m benchmarks.ros2_actions
 	$(PY) -m benchmarks.figure
 	$(PY) -m benchmarks.fleet
 
