@@ -393,3 +393,30 @@ def test_any_action_request_is_one_reply_or_none_and_a_goal_is_handed_on_within_
                 assert isinstance(msg, StartTask) and name == "send_goal" and payload is valid
                 assert 0.0 < msg.fields["angle_deg"] <= LIMITS.max_rotation_deg
                 assert all(math.isfinite(x) for x in msg.fields.get("direction", []))
+
+
+def test_a_goal_flood_is_charged_before_it_is_decoded_and_buys_no_more_than_the_task_verbs_budget(node):
+    """Issue 51 item 6: 200 rotate goals at one instant through send_goal, on the daemon's default budgets: the task
+    verbs' burst reaches the control thread, the rest is refused before decoding (not accepted, or dropped once the
+    refusals' own budget is spent), and no goal is accepted without the control thread's reply."""
+    from tecdard.runtime.ros2_actions import ActionServer, _Action
+    sink = Sink()
+    node.intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams())
+    server = ActionServer(node)
+    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
+    server.actions.append(act)
+    T, types = node.ts.store.types, act.types
+    answered = 0
+    for k in range(200):
+        uuid = T["unique_identifier_msgs/msg/UUID"](uuid=np.full(16, k % 256, dtype=np.uint8))
+        goal = T[types.goal](angle_deg=10.0, speed=math.nan, probe_distance=math.nan, direction=np.zeros(0),
+                             strategy="", turn_tool=0)
+        q = RosQuery(node.ts.encode(T[types.send_goal.request](goal_id=uuid, goal=goal), types.send_goal.request),
+                     rmw.attachment(k, 0, GID))
+        server._request(act, "send_goal", q, 5.0)
+        for reply, _att in q.replies:
+            answered += 1
+            assert node.ts.decode(reply, types.send_goal.response).accepted is False
+    burst = max(IntakeParams().max_task_rate_hz, 5.0)          # a second of the class's rate, saved up
+    assert 0 < len(sink.submitted) <= burst, len(sink.submitted)
+    assert len(sink.submitted) + answered <= 200 and not server.goals
