@@ -420,3 +420,35 @@ def test_a_goal_flood_is_charged_before_it_is_decoded_and_buys_no_more_than_the_
     burst = max(IntakeParams().max_task_rate_hz, 5.0)          # a second of the class's rate, saved up
     assert 0 < len(sink.submitted) <= burst, len(sink.submitted)
     assert len(sink.submitted) + answered <= 200 and not server.goals
+
+
+def test_result_requests_for_a_running_goal_hold_at_most_64_queries_open(node):
+    """A flood of get_result for one running goal: 64 held until the task ends, the rest answered at once with the
+    goal's status (EXECUTING); the task's end answers the held ones with its result."""
+    import time as _time
+    from tecdard.runtime.ros2_actions import EXECUTING, MAX_WAITING, SUCCEEDED, ActionServer, Goal, _Action
+    node.intake = QueryIntake(Keys("sim"), LIMITS, Sink(), lambda: '{"mode":"idle"}', IntakeParams(
+        max_status_rate_hz=1e4))
+    server = ActionServer(node)
+    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
+
+    class Pub:
+        def put(self, *_a, **_k):
+            pass
+    act.status = (Pub(), GID, [0])
+    server.actions.append(act)
+    uuid = bytes(range(16))
+    goal = Goal(uuid, "rotate", _time.time(), _time.monotonic(), task="rotate-1")
+    server.goals[uuid], server.by_task["rotate-1"] = goal, goal
+    T, types = node.ts.store.types, act.types
+    req = node.ts.encode(T[types.get_result.request](goal_id=T["unique_identifier_msgs/msg/UUID"](
+        uuid=np.frombuffer(uuid, dtype=np.uint8).copy())), types.get_result.request)
+    queries = [RosQuery(req, rmw.attachment(k, 0, GID)) for k in range(200)]
+    for q in queries:
+        server._request(act, "get_result", q, 1.0)
+    early = [node.ts.decode(q.replies[0][0], types.get_result.response) for q in queries if q.replies]
+    assert len(goal.waiting) == MAX_WAITING and len(early) == 200 - MAX_WAITING
+    assert all(r.status == EXECUTING for r in early)
+    server.on_telemetry("event", {"kind": "task_done", "task": "rotate-1", "result": {"angle_deg": 20.0}})
+    held = [node.ts.decode(q.replies[0][0], types.get_result.response) for q in queries[:MAX_WAITING]]
+    assert all(r.status == SUCCEEDED and r.result.ok for r in held) and not goal.waiting

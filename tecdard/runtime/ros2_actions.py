@@ -43,6 +43,7 @@ FEEDBACK_PERIOD_S = 0.1          # feedback at 10 Hz at most (the state comes at
 RESULT_TIMEOUT_S = 900.0         # an ended goal's result is kept this long (rcl_action's default result_timeout)
 MAX_GOALS = 64                   # and no more than this many goals, the oldest ended ones forgotten first
 MAX_REFUSED = 64                 # refused goals whose refusal get_result can still read
+MAX_WAITING = 64                 # get_result queries held open per running goal
 ONSET_SLACK_S = 0.1              # a contact whose onset is this much before the goal's acceptance is still its own
 
 # action_msgs/msg/GoalStatus
@@ -253,8 +254,12 @@ class ActionServer:
             answer(self._result_response(act, UNKNOWN if refused is None else ABORTED, refused or _result({})))
         elif goal.status in ENDED:
             answer(self._result_response(act, goal.status, goal.result))
-        else:
+        elif len(goal.waiting) < MAX_WAITING:
             goal.waiting.append((query, seq, client_gid))     # answered when the task ends
+        else:
+            # a flood of result requests for one goal holds no more than MAX_WAITING queries open: the rest are
+            # answered at once with the goal's status as it stands and an empty result
+            answer(self._result_response(act, goal.status, _result({"task": goal.task})))
 
     def _result_response(self, act: _Action, status: int, result: dict):
         ts = self.node.ts
