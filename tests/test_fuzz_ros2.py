@@ -452,3 +452,40 @@ def test_result_requests_for_a_running_goal_hold_at_most_64_queries_open(node):
     server.on_telemetry("event", {"kind": "task_done", "task": "rotate-1", "result": {"angle_deg": 20.0}})
     held = [node.ts.decode(q.replies[0][0], types.get_result.response) for q in queries[:MAX_WAITING]]
     assert all(r.status == SUCCEEDED and r.result.ok for r in held) and not goal.waiting
+
+
+def test_a_task_that_ends_before_its_acceptance_is_handed_back_still_ends_its_goal(node):
+    """The task's end event reaches the node before the intake hands back its acceptance: the goal is accepted,
+    already ended, and its result is there (no get_result left waiting forever)."""
+    import json as _json
+    from tecdard.runtime.ros2_actions import SUCCEEDED, ActionServer, _Action
+
+    class Intake:
+        keys = Keys("sim")
+
+        def charge(self, *_a):
+            return True
+
+        def handle(self, call, _key, _payload, _now, charged=False):
+            server.on_telemetry("event", {"kind": "task_done", "task": "rotate-9", "result": {"angle_deg": 1.0}})
+            call.reply(None, _json.dumps({"ok": True, "task": "rotate-9"}))
+    node.intake = Intake()
+    server = ActionServer(node)
+    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
+
+    class Pub:
+        def put(self, *_a, **_k):
+            pass
+    act.status = (Pub(), GID, [0])
+    server.actions.append(act)
+    T, types = node.ts.store.types, act.types
+    uuid = T["unique_identifier_msgs/msg/UUID"](uuid=np.arange(16, dtype=np.uint8))
+    goal = T[types.goal](angle_deg=10.0, speed=math.nan, probe_distance=math.nan, direction=np.zeros(0),
+                         strategy="", turn_tool=0)
+    q = RosQuery(node.ts.encode(T[types.send_goal.request](goal_id=uuid, goal=goal), types.send_goal.request),
+                 rmw.attachment(1, 0, GID))
+    server._request(act, "send_goal", q, 1.0)
+    assert node.ts.decode(q.replies[0][0], types.send_goal.response).accepted is True
+    (only,) = server.goals.values()
+    assert only.status == SUCCEEDED and _json.loads(only.result["result_json"]) == {"angle_deg": 1.0}
+    assert not server.by_task

@@ -99,6 +99,7 @@ class ActionServer:
         self.goals: collections.OrderedDict[bytes, Goal] = collections.OrderedDict()
         self.by_task: dict[str, Goal] = {}
         self.refused: collections.OrderedDict[bytes, dict] = collections.OrderedDict()
+        self._ended: collections.OrderedDict[str, dict] = collections.OrderedDict()   # task id -> its end event
 
     # -- declaring ------------------------------------------------------------------------------
     def declare(self, session: zenoh.Session) -> None:
@@ -207,6 +208,10 @@ class ActionServer:
                 self.goals[uuid] = goal
                 self.by_task[goal.task] = goal
                 self._publish_status(act)
+                ended = self._ended.pop(goal.task, None)
+                if ended is not None:
+                    del self.by_task[goal.task]
+                    self._end(goal, ended)
             else:
                 self._refuse(uuid, reply)
             answer(response(accepted=bool(reply.get("ok")), stamp=M.ros_time(ts, stamp_s)))
@@ -267,13 +272,17 @@ class ActionServer:
 
     # -- the daemon's messages (the main thread) ---------------------------------------------------------
     def on_telemetry(self, kind: str, body: dict) -> None:
-        if not self.by_task:
-            return
         if kind == "event" and body.get("kind") in ("task_done", "task_failed"):
-            goal = self.by_task.pop(str(body.get("task")), None)
+            task = str(body.get("task"))
+            goal = self.by_task.pop(task, None)
             if goal is not None:
                 self._end(goal, body)
-        elif kind == "state":
+            else:
+                # a task whose acceptance the intake has not yet handed back (a task shorter than that hand-over)
+                self._ended[task] = body
+                while len(self._ended) > MAX_REFUSED:
+                    self._ended.popitem(last=False)
+        elif kind == "state" and self.by_task:
             self._feedback(body)
 
     def _end(self, goal: Goal, event: dict) -> None:
