@@ -12,9 +12,6 @@ from tecdard.control.tasks import ANGLE_TOL_RAD, LOOKAHEAD_S, ContactView, Motio
 
 PROBE_OVERSHOOT_M = 0.002     # phase-1 target lies beyond the probe distance so the TCP never stops there
 TOOL_TURN_RAMP_S = 0.5        # rotate: the tool's turning with the arc fades in over this long
-TOOL_CATCHUP_S = 1.0          # and it closes what it trails the handle by with this time constant,
-TOOL_SETTLE_S = 0.3           # this one once the arc's end is reached (the handle is still: only the fingertips
-TOOL_SETTLED_RAD = 0.005      # untwist), and the task ends once the tool is within this of the handle's turn
 # Arc radius correction per newton of radial grasp force, m/(N s). It integrates the force, so
 # against a grasp of radial stiffness k the loop's bandwidth is ARC_ADMITTANCE_M_NS * k, behind a
 # delay of a control tick, the arm's command latency and the planner's response (50-80 ms on a
@@ -145,8 +142,7 @@ class TwoPhaseTask(Task):
         phi_plan = signed_angle(r0, p_ref - c.p, a)
         self.status.progress = 0.1 + 0.9 * min(max(phi / self.angle_rad, 0.0), 1.0)
         remaining = self.angle_rad - phi
-        if (self._end_p is not None or remaining <= ANGLE_TOL_RAD) and inp.planner_at_rest and \
-                (not self.turn_tool or abs(phi_plan - self._turn) < TOOL_SETTLED_RAD):
+        if (self._end_p is not None or remaining <= ANGLE_TOL_RAD) and inp.planner_at_rest:
             self._finish(c)
             return None
         if self._timed_out(inp.t, self.angle_rad * rho / self.speed):
@@ -197,13 +193,8 @@ class TwoPhaseTask(Task):
         estimated axis, with its rate as feed-forward. The turning rate fades in over
         TOOL_TURN_RAMP_S (smoothstep) to the planned arc rate: a gripper rate that jumps would be
         seen late by 65 Hz proprioception, from which the estimator takes the gripper's rate. The
-        tool would then trail the handle by the probe's turn and half the ramp times the arc rate
-        (3.8 deg in all on the simulated cutter at 15 cm and 2 cm/s), which the fingertips hold as
-        twist after the task; rotates in a row added it up to their 10 deg stick limit, and the third
-        10 deg rotate slipped and stopped on divergence. So the tool also closes what it trails by
-        (`phi_plan`, the handle's planned turn since the task began, less its own), with the
-        TOOL_CATCHUP_S time constant, faded in with the turning, and TOOL_SETTLE_S at the arc's end,
-        where the task waits for it."""
+        tool then trails the handle by a constant angle (half the ramp times the arc rate: 1.1 to
+        2.9 deg over radii 25 to 10 cm at 2 cm/s), well inside the fingertips' stick range."""
         if not self.turn_tool:
             return self.R_hold, None
         if self._turn_t0 is None:
@@ -212,8 +203,6 @@ class TwoPhaseTask(Task):
         fade = x * x * (3.0 - 2.0 * x)
         step = fade * (phi_plan - self._phi_last)
         dt = t - self._t_last if self._t_last is not None else 0.0
-        tau = TOOL_CATCHUP_S if self._end_p is None else TOOL_SETTLE_S
-        step += fade * (phi_plan - self._turn - step) * min(dt / tau, 1.0)
         self._turn += step
         self._phi_last, self._t_last = phi_plan, t
         return rotvec_to_matrix(a * self._turn) @ self.R_hold, a * (step / dt if dt > 0 else 0.0)
