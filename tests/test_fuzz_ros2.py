@@ -350,6 +350,31 @@ def _parameter_server(node, ParameterServer, P, TD, sections, SIM_CONFIG, yaml):
     return ParameterServer(node, P.ParameterSet(yaml.safe_load(SIM_CONFIG.read_text()), sections()))
 
 
+class _Unheard:
+    """A publisher nobody listens to (the action server's status and feedback, off a session)."""
+
+    def put(self, *_args, **_kwargs) -> None:
+        pass
+
+
+def _rotate_action_server(node):
+    """The node's action server for `rotate` alone, without a session: (server, its action, the type store's
+    classes). Its status and feedback go nowhere."""
+    from tecdard.ros2.typesupport import CANCEL_GOAL, CANCEL_GOAL_SRV
+    from tecdard.runtime.ros2_actions import ActionServer, _Action
+    node.ts.add_service(CANCEL_GOAL_SRV, CANCEL_GOAL)
+    server = ActionServer(node)
+    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
+    act.status, act.feedback = (_Unheard(), GID, [0]), (_Unheard(), GID, [0])
+    server.actions.append(act)
+    return server, act, node.ts.store.types
+
+
+def _rotate_goal(T, types, angle_deg: float, direction=()):
+    return T[types.goal](angle_deg=angle_deg, speed=math.nan, probe_distance=math.nan,
+                         direction=np.array(direction, dtype=float), strategy="", turn_tool=0)
+
+
 @fuzz_settings(200)
 @given(raw=st.binary(max_size=300), cut=st.integers(0, 400), angle=floats, direction=arrays,
        uuid=st.binary(min_size=16, max_size=16), stamp=st.integers(0, 2**31 - 1))
@@ -358,19 +383,14 @@ def test_any_action_request_is_one_reply_or_none_and_a_goal_is_handed_on_within_
     """Issue 51 item 6 for the actions (tecdard/runtime/ros2_actions.py): a send_goal, cancel_goal or get_result of
     any bytes gets one reply of its service's type or none and never raises; a goal the intake takes is handed on
     within the limits, one it refuses is not accepted."""
-    from tecdard.ros2.typesupport import CANCEL_GOAL, CANCEL_GOAL_SRV
-    from tecdard.runtime.ros2_actions import ActionServer, _Action
+    from tecdard.ros2.typesupport import CANCEL_GOAL
     sink = Sink()
     node.intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams(
         max_task_rate_hz=1e4, max_status_rate_hz=1e4, max_other_rate_hz=1e4))
-    node.ts.add_service(CANCEL_GOAL_SRV, CANCEL_GOAL)
-    server = ActionServer(node)
-    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
-    server.actions.append(act)
-    T, types = node.ts.store.types, act.types
+    server, act, T = _rotate_action_server(node)
+    types = act.types
     uuid_msg = T["unique_identifier_msgs/msg/UUID"](uuid=np.frombuffer(uuid, dtype=np.uint8).copy())
-    goal = T[types.goal](angle_deg=angle, speed=math.nan, probe_distance=math.nan,
-                         direction=np.array(direction, dtype=float), strategy="", turn_tool=0)
+    goal = _rotate_goal(T, types, angle, direction)
     send = node.ts.encode(T[types.send_goal.request](goal_id=uuid_msg, goal=goal), types.send_goal.request)
     result = node.ts.encode(T[types.get_result.request](goal_id=uuid_msg), types.get_result.request)
     info = T["action_msgs/msg/GoalInfo"](goal_id=uuid_msg, stamp=T["builtin_interfaces/msg/Time"](sec=stamp, nanosec=0))
@@ -399,18 +419,14 @@ def test_a_goal_flood_is_charged_before_it_is_decoded_and_buys_no_more_than_the_
     """Issue 51 item 6: 200 rotate goals at one instant through send_goal, on the daemon's default budgets: the task
     verbs' burst reaches the control thread, the rest is refused before decoding (not accepted, or dropped once the
     refusals' own budget is spent), and no goal is accepted without the control thread's reply."""
-    from tecdard.runtime.ros2_actions import ActionServer, _Action
     sink = Sink()
     node.intake = QueryIntake(Keys("sim"), LIMITS, sink, lambda: '{"mode":"idle"}', IntakeParams())
-    server = ActionServer(node)
-    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
-    server.actions.append(act)
-    T, types = node.ts.store.types, act.types
+    server, act, T = _rotate_action_server(node)
+    types = act.types
     answered = 0
     for k in range(200):
         uuid = T["unique_identifier_msgs/msg/UUID"](uuid=np.full(16, k % 256, dtype=np.uint8))
-        goal = T[types.goal](angle_deg=10.0, speed=math.nan, probe_distance=math.nan, direction=np.zeros(0),
-                             strategy="", turn_tool=0)
+        goal = _rotate_goal(T, types, 10.0)
         q = RosQuery(node.ts.encode(T[types.send_goal.request](goal_id=uuid, goal=goal), types.send_goal.request),
                      rmw.attachment(k, 0, GID))
         server._request(act, "send_goal", q, 5.0)
@@ -426,21 +442,14 @@ def test_result_requests_for_a_running_goal_hold_at_most_64_queries_open(node):
     """A flood of get_result for one running goal: 64 held until the task ends, the rest answered at once with the
     goal's status (EXECUTING); the task's end answers the held ones with its result."""
     import time as _time
-    from tecdard.runtime.ros2_actions import EXECUTING, MAX_WAITING, SUCCEEDED, ActionServer, Goal, _Action
+    from tecdard.runtime.ros2_actions import EXECUTING, MAX_WAITING, SUCCEEDED, Goal
     node.intake = QueryIntake(Keys("sim"), LIMITS, Sink(), lambda: '{"mode":"idle"}', IntakeParams(
         max_status_rate_hz=1e4))
-    server = ActionServer(node)
-    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
-
-    class Pub:
-        def put(self, *_a, **_k):
-            pass
-    act.status = (Pub(), GID, [0])
-    server.actions.append(act)
+    server, act, T = _rotate_action_server(node)
     uuid = bytes(range(16))
     goal = Goal(uuid, "rotate", _time.time(), _time.monotonic(), task="rotate-1")
     server.goals[uuid], server.by_task["rotate-1"] = goal, goal
-    T, types = node.ts.store.types, act.types
+    types = act.types
     req = node.ts.encode(T[types.get_result.request](goal_id=T["unique_identifier_msgs/msg/UUID"](
         uuid=np.frombuffer(uuid, dtype=np.uint8).copy())), types.get_result.request)
     queries = [RosQuery(req, rmw.attachment(k, 0, GID)) for k in range(200)]
@@ -458,7 +467,7 @@ def test_a_task_that_ends_before_its_acceptance_is_handed_back_still_ends_its_go
     """The task's end event reaches the node before the intake hands back its acceptance: the goal is accepted,
     already ended, and its result is there (no get_result left waiting forever)."""
     import json as _json
-    from tecdard.runtime.ros2_actions import SUCCEEDED, ActionServer, _Action
+    from tecdard.runtime.ros2_actions import SUCCEEDED
 
     class Intake:
         keys = Keys("sim")
@@ -470,18 +479,10 @@ def test_a_task_that_ends_before_its_acceptance_is_handed_back_still_ends_its_go
             server.on_telemetry("event", {"kind": "task_done", "task": "rotate-9", "result": {"angle_deg": 1.0}})
             call.reply(None, _json.dumps({"ok": True, "task": "rotate-9"}))
     node.intake = Intake()
-    server = ActionServer(node)
-    act = _Action("rotate", node.ts.actions["tecdar_msgs/action/Rotate"])
-
-    class Pub:
-        def put(self, *_a, **_k):
-            pass
-    act.status = (Pub(), GID, [0])
-    server.actions.append(act)
-    T, types = node.ts.store.types, act.types
+    server, act, T = _rotate_action_server(node)
+    types = act.types
     uuid = T["unique_identifier_msgs/msg/UUID"](uuid=np.arange(16, dtype=np.uint8))
-    goal = T[types.goal](angle_deg=10.0, speed=math.nan, probe_distance=math.nan, direction=np.zeros(0),
-                         strategy="", turn_tool=0)
+    goal = _rotate_goal(T, types, 10.0)
     q = RosQuery(node.ts.encode(T[types.send_goal.request](goal_id=uuid, goal=goal), types.send_goal.request),
                  rmw.attachment(1, 0, GID))
     server._request(act, "send_goal", q, 1.0)
