@@ -475,6 +475,29 @@ def test_a_task_is_never_filed_inside_an_idle_capture(tmp_path):
     assert task.meta["task"] == "rotate-1" and float(task.imu_t[0]) >= 0.21 - params.pre_onset_s
 
 
+def test_a_tasks_onset_that_reaches_the_recorder_before_its_start_event_is_filed_with_the_task(tmp_path):
+    """A fresh clone's run: a commanded onset is dated at the task's first tick, and its pass reached the recorder
+    before the task's start event did. That opened an idle capture, and the start event closed it as
+    `...-idle.npz`. Now the task adopts it: one file, the task's, and no idle one."""
+    from tecdard.recording.format import load_recording
+    params = R.RecordParams(enabled=True, dir=str(tmp_path), pre_onset_s=0.1)
+    items = [("feed", a_pass(0.01 * k, episode=1)) for k in range(10)]
+    items.append(("feed", a_pass(0.1, episode=2, onset=True, est=True)))           # the task's first tick, 0.1
+    items.append(("note_event", {"kind": "task_started", "task": "probe-1", "verb": "probe", "t": 0.102}))
+    items += [("feed", a_pass(0.11 + 0.01 * k, episode=2, est=True)) for k in range(10)]
+    items.append(("note_event", {"kind": "task_done", "task": "probe-1", "verb": "probe", "t": 0.22}))
+    # and an idle onset well before a task's start is still an idle capture of its own
+    items += [("feed", a_pass(0.3 + 0.01 * k, episode=3)) for k in range(5)]
+    items.append(("feed", a_pass(0.35, episode=3, onset=True, est=True)))
+    items += [("feed", a_pass(0.36 + 0.01 * k, episode=3, est=True)) for k in range(10)]
+    items.append(("note_event", {"kind": "task_started", "task": "probe-2", "verb": "probe", "t": 0.6}))
+    run_recorder(params, items)
+    written = sorted(tmp_path.glob("*.npz"))
+    assert [p.name.split("-", 2)[2] for p in written] == ["idle.npz", "probe-1.npz"], written
+    task = load_recording(written[1])
+    assert task.meta["task"] == "probe-1" and float(task.imu_t[0]) <= 0.1
+
+
 def test_an_idle_capture_is_closed_after_max_idle_capture_s(tmp_path):
     """One idle capture ran 113 s on an arm at rest: it is closed after record.max_idle_capture_s."""
     params = R.RecordParams(enabled=True, dir=str(tmp_path), pre_onset_s=0.1, max_idle_capture_s=0.5)

@@ -64,6 +64,7 @@ class Capture:
     lost_at_open: int = 0         # the recorder's dropped count when it opened (its own losses: the difference)
     end_by: float | None = None   # its episode has ended: written at its task's end, or at this time
     path: pathlib.Path | None = None      # where it is written (fixed at its first checkpoint)
+    onset_t: float | None = None          # the contact onset it opened on (None: opened on a command)
     saved_at: float = field(default_factory=time.monotonic)   # its last checkpoint (or its opening)
 
 

@@ -63,6 +63,7 @@ MAX_LABEL_CHARS = 40
 TASK_END_KINDS = ("task_done", "task_failed")
 PRE_EVENTS = 64             # daemon events kept from before a capture (those in its window are written)
 TASK_END_GRACE_S = 0.5       # after its episode, a capture waits this long for its task's end event
+ADOPT_BEFORE_START_S = 0.05   # an idle capture whose onset is at most this much before a task's start is that task's
 CHECKPOINT_S = 10.0          # a capture still open is written this often (what SIGKILL can cost): record.checkpoint_s
 # The daemon's own recordings, by name (file_name): <YYYYmmdd-HHMMSS>-<task or idle>[-<label>][~n].npz.
 # Only these are ever deleted to make room.
@@ -227,16 +228,25 @@ class Recorder:
         else:
             self._pre.append(p)
             self._trim_pre()
-        if self._capture is None and self.params.enabled and any(e.get("kind") == "contact_onset" for e in p.events):
+        onset = next((e for e in p.events if e.get("kind") == "contact_onset"), None)
+        if self._capture is None and self.params.enabled and onset is not None:
             task, verb = self._task or (None, None)
             self._open("episode", "", task, verb, p.directive.episode)
+            t = onset.get("t")
+            self._capture.onset_t = float(t) if isinstance(t, (int, float)) else None
 
     def _on_event(self, ev: dict) -> None:
         kind = ev.get("kind")
         if kind == "task_started":
             self._task = (str(ev.get("task")), str(ev.get("verb")))
             cap = self._capture
-            if cap is not None and not cap.manual and cap.task != self._task[0]:
+            t_start = ev.get("t")
+            if (cap is not None and not cap.manual and cap.task is None and cap.onset_t is not None
+                    and isinstance(t_start, (int, float)) and cap.onset_t >= t_start - ADOPT_BEFORE_START_S):
+                # the task's own onset (a commanded one is dated at its first tick, a hair before its start
+                # event), whose pass reached this thread before the start event did: its capture, not an idle one
+                cap.task, cap.verb = self._task
+            elif cap is not None and not cap.manual and cap.task != self._task[0]:
                 self._finish("a task started")          # a task is never filed inside another capture
         cap = self._capture
         if cap is None:
