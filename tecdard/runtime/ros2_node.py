@@ -29,7 +29,7 @@ from tecdard.ros2 import messages as M
 from tecdard.ros2 import parameters as P
 from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
-from tecdard.runtime.ros2_actions import ActionServer
+from tecdard.runtime.ros2_actions import ActionServer, matching
 from tecdard.runtime.ros2_parameters import _bytes, queued
 from tecdard.runtime.main_loop import FrontDoor
 from tecdard.runtime.messages import Inbox
@@ -347,12 +347,7 @@ class Ros2Node(FrontDoor):
         """Whether anyone subscribes to `topic` (Zenoh's matching status, about 1 µs): a message nobody
         takes is neither built nor encoded."""
         pub = self._pubs.get(topic)
-        if pub is None:
-            return False
-        try:
-            return bool(pub[0].matching_status.matching)
-        except Exception:
-            return True
+        return pub is not None and matching(pub[0])
 
     def _put(self, topic: str, msg) -> None:
         pub, gid, seq, ros_type = self._pubs[topic]
