@@ -31,14 +31,43 @@ class Unwrapper:
         return (self._base + t_us) * 1e-6
 
 
+def lower_envelope_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(slope, intercept) of the line under every point (x increasing) that lies highest at their mean x:
+    the linear program of Moon, Skelly and Towsley ("Estimation and removal of clock skew from network
+    delay measurements", INFOCOM 1999), solved on the points' lower convex hull. An arrival is never early,
+    so a point above the envelope is a late one (a stalled read, a backlog taken at once) and never tilts
+    the line; a least-squares fit through the bins' minima took a start-up backlog for a clock 3.4 % slow.
+    Where the mean falls on a hull vertex, the flatter of its two edges."""
+    hull: list[int] = []
+    for i in range(len(x)):                        # Andrew's monotone chain, lower half
+        while len(hull) >= 2:
+            o, a = hull[-2], hull[-1]
+            if (x[a] - x[o]) * (y[i] - y[o]) - (y[a] - y[o]) * (x[i] - x[o]) <= 0.0:
+                hull.pop()                         # a lies on or above the chord o-i
+            else:
+                break
+        hull.append(i)
+    if len(hull) == 1:
+        return 0.0, float(y[hull[0]])
+    center = float(np.mean(x))
+    best = None
+    for i, j in zip(hull[:-1], hull[1:]):
+        if x[i] <= center <= x[j]:
+            slope = float((y[j] - y[i]) / (x[j] - x[i]))
+            if best is None or abs(slope) < abs(best[0]):
+                best = (slope, float(y[i] - slope * x[i]))
+    assert best is not None                        # the hull spans every x, so some edge holds the mean
+    return best
+
+
 class ClockSync:
     """Maps MCU time to the host's monotonic clock.
 
     Each packet gives a pair (MCU time of its last sample, host time of its
     arrival); arrival = true host time + latency >= 0, so the lower envelope of
     (host - mcu) follows the clock offset and its drift. Per bin of BIN_S the
-    minimum is kept; a line through the last WINDOW_BINS minima gives
-    host = a + b * mcu. Mapped times therefore include the link's minimum
+    minimum is kept; the line under the last WINDOW_BINS minima (their lower
+    envelope, `lower_envelope_line`) gives host = a + b * mcu. Mapped times therefore include the link's minimum
     latency, a constant of the USB path. Drift of 100 ppm moves the offset by
     0.1 ms per second and is tracked within the window.
     """
@@ -119,7 +148,7 @@ class ClockSync:
     def _refit(self) -> None:
         pts = np.array(self._bins)
         if len(pts) >= 3:
-            slope, intercept = np.polyfit(pts[:, 0] - pts[0, 0], pts[:, 1], 1)
+            slope, intercept = lower_envelope_line(pts[:, 0] - pts[0, 0], pts[:, 1])
             self.b = 1.0 + slope
             self.a = intercept - slope * pts[0, 0]
         else:

@@ -121,12 +121,6 @@ def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(
         assert all(v == 0.0 for v in arm["speedj_t"][-1][1])
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "a known defect, not yet found: on the Robotiq path the rotate fails in about 1 run in 3 on an idle machine "
-    "(divergence 20-30x, an estimate jump of 21-25 mm, or the hinge 53-72 mm off; 2026-12-07, 14 runs), while the "
-    "same rig with gripper.backend manual and the same grasp command passed 7 of 7 and without a grasp 6 of 6. "
-    "The fake controller kept its schedule (3-14 ms late) in the failing runs; its 10 Hz polling is not the cause "
-    "(0.1 Hz fails as often)"))
 def test_a_robotiq_on_the_ur_grasps_the_handle_then_the_daemon_rotates_it_and_releases(tmp_path):
     """Issue 49: the gripper's protocol fake (a Robotiq 2F-85's URCap on the controller's port 63352) through the
     daemon: an open hand refuses the task, `grasp` closes on the 25 mm handle, `rotate` opens the cutter with eta

@@ -268,15 +268,18 @@ class Daemon:
         problem = self.imu.start()
         if problem is not None:
             log.warning("%s", problem)
+        # the port is read from the moment it is open: a gripper's activation below takes seconds on a real
+        # Robotiq, and a board's stream held in the kernel's buffer meanwhile is read as one late backlog
+        # (dropped bytes once the buffer is full; the clock sync's first bins far above the envelope)
+        self._start("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox,
+                                                                self.imu_time_offset_s))
         # the robot's states to the estimator: on the link's own reader where the backend has one (a
         # thread fewer to wake for every state), else on a proprioception thread
         feed = ProprioFeed(self.model.clone(), self.estimator.proprio)
         worker = self._gripper_worker()
         feed.gripper = self.control.gripper = worker
         own_reader = self.backend.feed_states(feed)
-        specs = [("imu-acquisition", lambda: acquisition_loop(self.imu, self.ring, self.stop_event, self.outbox,
-                                                              self.imu_time_offset_s)),
-                 *([] if own_reader else [("proprioception", lambda: proprio_loop(self.robot, feed, self.stop_event))]),
+        specs = [*([] if own_reader else [("proprioception", lambda: proprio_loop(self.robot, feed, self.stop_event))]),
                  ("estimator", lambda: self.estimator.run(self.stop_event)),
                  ("recorder", lambda: self.recorder.run(self.stop_event)),
                  *([("uploader", lambda: self.uploader.run(self.stop_event))] if self.uploader is not None else []),
@@ -284,9 +287,12 @@ class Daemon:
                  *([("gripper", lambda: worker.run(self.stop_event))] if worker is not None else []),
                  ("control", lambda: self.control.run(self.stop_event))]
         for name, body in specs:
-            th = threading.Thread(target=_named(name, body), name=name, daemon=True)
-            th.start()
-            self._threads.append(th)
+            self._start(name, body)
+
+    def _start(self, name: str, body) -> None:
+        th = threading.Thread(target=_named(name, body), name=name, daemon=True)
+        th.start()
+        self._threads.append(th)
 
     def _gripper_worker(self) -> GripperWorker | None:
         """The configured gripper, reached once the arm's backend has started (a Franka Hand's connection is the
