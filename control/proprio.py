@@ -73,6 +73,9 @@ class ProprioSample:
     q: np.ndarray | None = None       # the joints, rad (for the recording: the export draws the arm)
     grip_width_m: float = np.nan      # the gripper's opening, m (nan: no gripper, or it cannot say)
     grasped: float = np.nan           # 1: the gripper holds something, 0: nothing, nan: it cannot say
+    wrench: np.ndarray | None = None  # the arm's own estimate at the TCP, world: force N, torque N m (6,), nan where
+                                      # it gives none (for the recording; None: the arm estimates no force)
+    wrench_source: str = ""           # whose estimate (robots.backend.WRENCH_SOURCES' key)
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,6 +17,15 @@ from tecdard.robots.backends import BackendError
 from tecdard.robots.state_check import StateCheck, StateOptions
 
 
+# where an arm's own wrench at the TCP comes from (JointState.wrench_source), as `state` and the recordings say
+WRENCH_SOURCES = {
+    "actual_TCP_force": "UR: the controller's estimate from the joint currents (RTDE actual_TCP_force)",
+    "O_F_ext_hat_K": "Franka: the robot's own estimate (O_F_ext_hat_K)",
+    "joint_torques": "Franka: J^T F = tau_J - g(q) with franky's model, where the robot estimates none",
+    "sim_contact": "the simulator's contact force on the TCP (force only: the torque is not modelled)",
+}
+
+
 @dataclass
 class JointState:
     """Proprioception as a robot reports it: joint positions and rates on the daemon's clock."""
@@ -26,6 +35,8 @@ class JointState:
     seq: int = 0             # increments with every new measurement
     tcp_twist: np.ndarray | None = None   # [v; w] world-aligned, m/s and rad/s, when the robot reports it
     tcp_force: np.ndarray | None = None   # external force on the TCP, world, N, when the robot estimates it
+    tcp_torque: np.ndarray | None = None  # external torque about the TCP, world, N m, when the robot estimates it
+    wrench_source: str = ""               # what tcp_force and tcp_torque are: WRENCH_SOURCES' key, "" when neither
     tcp_pose: np.ndarray | None = None    # oMtcp (4 x 4, world) as the robot reports it, from its own calibrated
                                           # kinematics and TCP setting; None: the daemon's FK of q
     grip_force: float | None = None       # the gripper's grasp force, N, where the robot reads one (eta's

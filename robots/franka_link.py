@@ -53,7 +53,7 @@ FORCE_DAMPING = 1e-6                    # m^2-scale damping of J Jᵀ in the for
 FORCE_FROM_TORQUES = "torques"          # FrankaState.force_source: Jᵀ F = τ_J − g(q)
 FORCE_FROM_ROBOT = "robot"              # the robot's own O_F_ext_hat_K
 ERROR_MODES = ("Reflex", "UserStopped", "Other")   # robot modes that hold a fault
-STATE_FLOATS = 37                       # a state on the pipe: t, rx_t, q, dq, O_T_EE, f_ext, grip width, grasped
+STATE_FLOATS = 40                       # a state on the pipe: t, rx_t, q, dq, O_T_EE, f_ext (6), grip width, grasped
 
 
 class FrankaLinkError(BackendError):
@@ -88,7 +88,7 @@ class FrankaState:
     q: tuple
     dq: tuple
     O_T_EE: tuple                # 16, column-major: the robot's own TCP pose (franky's, from the commanded joints in franky-sim)
-    f_ext: tuple                 # external force at the TCP, base frame, N
+    f_ext: tuple                 # external wrench at the TCP, base frame: force N, torque N m
     force_source: str            # FORCE_FROM_ROBOT or FORCE_FROM_TORQUES
     mode: str                    # franky's RobotMode name: Idle, Move, Reflex, UserStopped, ...
     errors: str                  # the robot's current errors, "" when none
@@ -138,13 +138,13 @@ class _Force:
     def __call__(self, state) -> tuple[np.ndarray, str]:
         f_robot = np.asarray(state.O_F_ext_hat_K, dtype=float)
         if np.any(f_robot != 0.0):
-            return f_robot[:3], FORCE_FROM_ROBOT
+            return f_robot[:6], FORCE_FROM_ROBOT
         tau_ext = np.asarray(state.tau_J, dtype=float) - np.asarray(self.model.gravity(state, GRAVITY), dtype=float)
         J = np.asarray(self.model.zero_jacobian(self.frame, state), dtype=float)
         # least squares through the normal equations, damped so a singular pose stays finite
         # (a tenth of lstsq's cost, at 1 kHz)
         wrench = np.linalg.solve(J @ J.T + FORCE_DAMPING * np.eye(6), J @ tau_ext)
-        return wrench[:3], FORCE_FROM_TORQUES
+        return wrench, FORCE_FROM_TORQUES
 
 
 def _motion(franky, settings: FrankaLinkSettings, qd) -> object:
@@ -353,9 +353,9 @@ class _FrankaChild:
         packed[0], packed[1] = t, now
         packed[2:9], packed[9:16] = st.q, st.dq
         packed[16:32] = _matrix(st.O_T_EE).ravel(order="F")
-        packed[32:35] = f_ext
-        packed[35] = np.nan if self.grip["width"] is None else self.grip["width"]
-        packed[36] = np.nan if self.grip["grasped"] is None else float(self.grip["grasped"])
+        packed[32:38] = f_ext
+        packed[38] = np.nan if self.grip["width"] is None else self.grip["width"]
+        packed[39] = np.nan if self.grip["grasped"] is None else float(self.grip["grasped"])
         self.state_tx.send(("state", packed))
 
 
@@ -431,8 +431,8 @@ class FrankaLink(ChildLink):
         if kind == "state":
             a = msg[1]
             st = FrankaState(float(a[0]), float(a[1]), tuple(a[2:9]), tuple(a[9:16]), tuple(a[16:32]),
-                             tuple(a[32:35]), self._mode[2], self._mode[0], self._mode[1],
-                             None if a[35] != a[35] else float(a[35]), None if a[36] != a[36] else bool(a[36]))
+                             tuple(a[32:38]), self._mode[2], self._mode[0], self._mode[1],
+                             None if a[38] != a[38] else float(a[38]), None if a[39] != a[39] else bool(a[39]))
             self._sync.add(st.robot_t, st.rx_t)
             self._seq += 1
             self.franka_state = st
@@ -466,7 +466,8 @@ class FrankaLink(ChildLink):
             t = self._last_t + 1e-4
         self._last_t = t
         return JointState(t=t, q=np.array(st.q), qd=np.array(st.dq),
-                          seq=self._seq, tcp_force=np.array(st.f_ext),
+                          seq=self._seq, tcp_force=np.array(st.f_ext[:3]), tcp_torque=np.array(st.f_ext[3:6]),
+                          wrench_source="O_F_ext_hat_K" if st.force_source == FORCE_FROM_ROBOT else "joint_torques",
                           grip_force=self.settings.grasp_force_n if st.grasped else None)
 
     # -- RobotControl ---------------------------------------------------------

@@ -283,6 +283,7 @@ class UrLink(ChildLink):
         pose[:3, 3] = st.tcp_pose[:3]
         return JointState(t=float(self._sync.to_host(st.controller_t)), q=np.array(st.q), qd=np.array(st.qd),
                           seq=self._seq, tcp_twist=np.array(st.tcp_speed), tcp_force=np.array(st.tcp_force[:3]),
+                          tcp_torque=np.array(st.tcp_force[3:6]), wrench_source="actual_TCP_force",
                           tcp_pose=pose)
 
     # -- RobotControl ---------------------------------------------------------

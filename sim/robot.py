@@ -218,7 +218,8 @@ class SimRobot:
                 force = self.world.tcp_force() if self.world is not None else np.zeros(3)
                 with self._lock:
                     self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
-                                             tcp_twist=reported, tcp_force=force)
+                                             tcp_twist=reported, tcp_force=force,
+                                             wrench_source="sim_contact")
                     self._new_states.append(self._state)
                     self._lock.notify_all()
         a_tcp[0] = a_tcp[1] if n >= 1 else 0.0

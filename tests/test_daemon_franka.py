@@ -89,6 +89,7 @@ def test_the_daemon_runs_on_franky_sim_and_a_simulator_that_dies_mid_task_is_a_f
         expected = ArmModel("fr3").fk(np.array(Q_SIM)).translation
         assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
         assert state["mode"] == "idle" and state["faults"] == []
+        assert state["wrench"]["source"] == "joint_torques" and len(state["wrench"]["torque_nm"]) == 3, state["wrench"]
         reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.03})
         assert reply["ok"] is True, reply
         assert wait_for(lambda: np.linalg.norm(d.client.command("status")["state"]["tcp"]["v"]) > 1e-3, 10.0)
@@ -127,7 +128,10 @@ def test_the_link_reads_states_at_the_robots_rate_and_the_force_from_the_torques
         assert n > 300, n                              # about 1 kHz; a loaded CI host gets fewer
         st = link.franka_state
         assert st.force_source == "torques"            # franky-sim's O_F_ext_hat_K is zeros
-        assert np.linalg.norm(st.f_ext) < 1.0          # at rest, nothing touching: gravity is taken out
+        assert len(st.f_ext) == 6                      # force N, torque N m: the wrench at the TCP
+        assert np.linalg.norm(st.f_ext[:3]) < 1.0      # at rest, nothing touching: gravity is taken out
+        js = link.read_state()
+        assert js.wrench_source == "joint_torques" and js.tcp_torque.shape == (3,)
         assert st.mode == "Idle" and st.errors == ""
         assert st.grip_width is not None and st.grip_width > 0.0 and link.identity["gripper_version"] == 3
     finally:

@@ -48,6 +48,12 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
         expected = ArmModel("ur5").fk(np.array(Q_HOME)).translation
         assert np.linalg.norm(np.array(state["tcp"]["p"]) - expected) < FK_TOL_M
         assert state["mode"] == "idle" and state["faults"] == []
+        # the controller's own wrench at the TCP (RTDE actual_TCP_force: force, then torque), as it reports it
+        fake.set(actual_TCP_force=[1.5, -2.0, 3.25, 0.1, -0.2, 0.3])
+        assert wait_for(lambda: (d.client.command("status")["state"]["wrench"] or {}).get("force_n") ==
+                        [1.5, -2.0, 3.25], 5.0), d.client.command("status")["state"]["wrench"]
+        assert d.client.command("status")["state"]["wrench"] == {
+            "force_n": [1.5, -2.0, 3.25], "torque_nm": [0.1, -0.2, 0.3], "source": "actual_TCP_force"}
         fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
         # the stop pauses the control script, so a speedJ in flight may be refused first: a fault too
         codes = [d.client.wait_event(("fault",), None, 5.0)["code"]]

@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 
+import numpy as np
 import pytest
 
 from tecdard.fleet.episodes import (EpisodeStore, StoreError, StoreParams, index_key, is_uploaded, read_episode,
@@ -341,16 +342,48 @@ def test_a_daemons_recording_reaches_the_store_with_its_task_and_contact(make_da
     store_dir = tmp_path / "store"
     d = make_daemon(**{"store": {"url": f"file://{store_dir}"}, "record.enabled": True})
     rotate_on_the_cutter(d)
+    # the arm's own wrench (issue 52): the simulator's contact force, its torque not modelled
+    wrench = d.client.command("status")["state"]["wrench"]
+    assert wrench["source"] == "sim_contact" and len(wrench["force_n"]) == 3 and wrench["torque_nm"] is None, wrench
     ev = d.client.wait_event(("episode_uploaded",), None, UPLOAD_WAIT_S)
     assert ev["store"] == f"file://{store_dir}"
     store = EpisodeStore(StoreParams(url=f"file://{store_dir}"))
-    _, rows = query(Index(store), "SELECT robot, task, verb, result, backend, eta, contacts FROM episodes")
+    _, rows = query(Index(store), "SELECT robot, task, verb, result, backend, eta, contacts, peak_force_n FROM episodes")
     assert len(rows) >= 1
-    robot, task, verb, result, backend, eta, contacts = rows[0]
+    robot, task, verb, result, backend, eta, contacts, peak = rows[0]
     assert (robot, verb, result, backend) == ("sim", "rotate", "done", "sim") and eta > 0 and contacts >= 1, rows
+    # the handle pulls back on the grasp as it turns: a force, in newtons, no arm's ceiling
+    assert peak is not None and 0.1 < peak < 1000.0, rows
+    rec = next(store_dir.glob("sim/*/*.npz"))
+    with np.load(rec) as z:
+        w, meta, n_tcp = z["tcp_wrench"], json.loads(str(z["meta"])), len(z["tcp_t"])
+    assert w.shape == (n_tcp, 6) and np.all(np.isfinite(w[:, :3]))
+    assert np.all(np.isnan(w[:, 3:])) and meta["wrench_source"] == "sim_contact"
+    assert abs(float(np.linalg.norm(w[:, :3], axis=1).max()) - peak) < 1e-2
     _, rows = query(Index(store), "SELECT error_m, sigma_m, converged_after_s FROM contacts ORDER BY n LIMIT 1")
     assert rows[0][0] is not None and rows[0][0] < ERROR_M, rows
     assert index_key("episodes", read_episode(next(store_dir.glob("sim/*/*.npz")), "sim")).startswith("index/")
+
+
+def test_an_index_written_before_a_column_was_added_reads_it_as_null(tmp_path, recordings):
+    """Index files written before `peak_force_n` existed (LATER_COLUMNS) are no foreign files: the view reads the
+    column as NULL for them, beside a newer file that has it, and compaction keeps both rows."""
+    from tecdard.fleet.episodes import EPISODE_COLUMNS, EPISODES_TABLE, INDEX, parquet_bytes
+    store = EpisodeStore(StoreParams(url=f"file://{tmp_path / 'store'}"))
+    old_columns = tuple(c for c in EPISODE_COLUMNS if c[0] != "peak_force_n")
+    rows = [{"id": "old-1", "robot": "a", "episode": "e1", "contacts": 1},
+            {"id": "new-1", "robot": "a", "episode": "e2", "contacts": 1, "peak_force_n": 12.5}]
+    store.put_once(f"{INDEX}/{EPISODES_TABLE}/old.parquet", parquet_bytes(old_columns, rows[:1]))
+    index = Index(store)
+    _, got = query(index, "SELECT id, peak_force_n FROM episodes")
+    assert got == [("old-1", None)] and index.skipped == []
+    store.put_once(f"{INDEX}/{EPISODES_TABLE}/new.parquet", parquet_bytes(EPISODE_COLUMNS, rows[1:]))
+    index = Index(store)
+    _, got = query(index, "SELECT id, peak_force_n FROM episodes ORDER BY id")
+    assert got == [("new-1", 12.5), ("old-1", None)] and index.skipped == []
+    compact(store)
+    _, got = query(Index(store), "SELECT id, peak_force_n FROM episodes ORDER BY id")
+    assert got == [("new-1", 12.5), ("old-1", None)]
 
 
 def _wait_for(cond, timeout_s: float, why) -> None:

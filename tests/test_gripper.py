@@ -156,6 +156,11 @@ def test_on_the_simulated_arm_release_empties_the_hand_tasks_refuse_and_a_grasp_
     assert len(msgs) == len(rec.tcp_t)
     assert msgs[-1] == {"width_m": 0.025, "force_n": 25.0, "grasped": True}
     assert {"width_m": 0.08, "force_n": None, "grasped": False} in msgs
+    # and the arm's own wrench (the simulator's contact force) on /wrench, as the recording has it
+    wrench = [json.loads(d) for _, _, d in read_mcap(out)["/wrench"]]
+    assert len(wrench) == len(rec.tcp_t) == len(live.wrench)
+    assert wrench[-1]["source"] == "sim_contact" and wrench[-1]["torque_nm"] is None
+    assert [wrench[-1]["force_n"][a] for a in "xyz"] == live.wrench[-1, :3].tolist()
 
 
 def test_doctor_says_whether_the_urcap_answers_and_the_gripper_is_activated(urcap):

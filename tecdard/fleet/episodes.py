@@ -40,7 +40,9 @@ EPISODE_COLUMNS = (
     ("model", "VARCHAR"), ("estimator", "VARCHAR"), ("config_digest", "VARCHAR"), ("eta", "DOUBLE"),
     ("grip_force_n", "DOUBLE"), ("duration_s", "DOUBLE"), ("result", "VARCHAR"), ("contacts", "INTEGER"),
     ("npz_key", "VARCHAR"), ("mcap_key", "VARCHAR"), ("bytes", "BIGINT"), ("uploaded_at", "TIMESTAMPTZ"),
-    ("version", "VARCHAR"))
+    ("version", "VARCHAR"), ("peak_force_n", "DOUBLE"))
+# columns added after the first index files were written: an older file reads them as NULL (fleet/index.py)
+LATER_COLUMNS = frozenset({"peak_force_n"})
 CONTACT_COLUMNS = (
     ("id", "VARCHAR"), ("robot", "VARCHAR"), ("episode", "VARCHAR"), ("n", "INTEGER"), ("onset_t", "DOUBLE"),
     ("onset_time", "TIMESTAMPTZ"), ("detect_latency_s", "DOUBLE"), ("x_m", "DOUBLE"), ("y_m", "DOUBLE"),
@@ -238,7 +240,8 @@ def read_episode(path: pathlib.Path, robot: str | None = None) -> Episode:
            "backend": meta.get("backend"), "model": meta.get("model"), "estimator": meta.get("estimator"),
            "config_digest": meta.get("config_digest"), "eta": _num(meta.get("eta")),
            "grip_force_n": _num(meta.get("grip_force")), "duration_s": float(rec.imu_t[-1] - rec.imu_t[0]),
-           "result": result, "contacts": len(contacts), "version": meta.get("version")}
+           "result": result, "contacts": len(contacts), "version": meta.get("version"),
+           "peak_force_n": _peak_force(live)}
     return Episode(robot, path.stem, start_dt.date().isoformat(), row, contacts)
 
 
@@ -253,6 +256,17 @@ def _replayed(path: pathlib.Path) -> tuple[list, np.ndarray]:
         raise RecordingError(str(exc)) from None
     rows, _, _ = replay(r.rec, r.pipeline, on_event=events.append)
     return events, rows
+
+
+def _peak_force(live) -> float | None:
+    """The largest force (N) the arm's own estimate at the TCP reached in the episode (`tcp_wrench`), None
+    where the recording has none."""
+    w = None if live is None else live.wrench
+    if w is None:
+        return None
+    f = np.linalg.norm(w[:, :3], axis=1)
+    f = f[np.isfinite(f)]
+    return round(float(f.max()), 3) if len(f) else None
 
 
 def _num(x) -> float | None:

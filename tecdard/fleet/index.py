@@ -10,7 +10,7 @@ import tempfile
 import uuid
 
 from tecdard.fleet.episodes import (CONTACT_COLUMNS, CONTACTS_TABLE, EPISODE_COLUMNS, EPISODES_TABLE, INDEX,
-                                    MAX_INDEX_FILE_BYTES, EpisodeStore, StoreError)
+                                    LATER_COLUMNS, MAX_INDEX_FILE_BYTES, EpisodeStore, StoreError)
 from tecdard.safejson import first_line
 
 log = logging.getLogger("tecdar.episodes")
@@ -70,8 +70,11 @@ class Index:
             files = self._readable(con, table, self.files(table), columns)
             empty = "SELECT " + ", ".join(f'CAST(NULL AS {t}) AS "{n}"' for n, t in columns) + " WHERE false"
             source = f"read_parquet({_sql_list(files)}, union_by_name = true)" if files else f"({empty})"
+            present = _columns(con, source)
             cols = ", ".join(f'"{n}"' for n, _ in columns)
-            con.execute(f"CREATE VIEW {table} AS SELECT {cols} FROM (SELECT {cols}, row_number() OVER ("
+            # a column no file has yet (LATER_COLUMNS, in an index older than it) reads as NULL
+            inner = ", ".join(f'"{n}"' if n in present else f'CAST(NULL AS {t}) AS "{n}"' for n, t in columns)
+            con.execute(f"CREATE VIEW {table} AS SELECT {cols} FROM (SELECT {inner}, row_number() OVER ("
                         f"PARTITION BY {', '.join(key)} ORDER BY uploaded_at DESC) AS _rn FROM {source}) WHERE _rn = 1")
         return con
 
@@ -81,8 +84,8 @@ class Index:
         if not names:
             return []
         try:          # every column read and cast: a corrupt page or a column of another type fails here
-            con.execute(f"SELECT {_casts(columns, 'count')} FROM read_parquet({_sql_list(names)}, "
-                        "union_by_name = true)").fetchall()
+            source = f"read_parquet({_sql_list(names)}, union_by_name = true)"
+            con.execute(f"SELECT {_casts(columns, 'count', _columns(con, source))} FROM {source}").fetchall()
             return names
         except Exception:
             pass
@@ -102,18 +105,23 @@ def _problem(con, name: str, columns: tuple) -> str | None:
         got = {row[0]: row[1] for row in described}
     except Exception as exc:
         return f"not Parquet ({first_line(exc, 160)})"
-    missing = [n for n, _ in columns if n not in got]
+    missing = [n for n, _ in columns if n not in got and n not in LATER_COLUMNS]
     if missing:
         return f"no column {missing[0]!r}: not an index file of ours"
     try:
-        con.execute(f"SELECT {_casts(columns, 'count')} FROM read_parquet({_sql_str(name)})").fetchall()
+        con.execute(f"SELECT {_casts(columns, 'count', set(got))} FROM read_parquet({_sql_str(name)})").fetchall()
     except Exception as exc:
         return f"a column of another type ({first_line(exc, 160)})"
     return None
 
 
-def _casts(columns: tuple, aggregate: str) -> str:
-    return ", ".join(f'{aggregate}(CAST("{n}" AS {t}))' for n, t in columns)
+def _casts(columns: tuple, aggregate: str, present: set) -> str:
+    return ", ".join(f'{aggregate}(CAST("{n}" AS {t}))' for n, t in columns if n in present or n not in LATER_COLUMNS)
+
+
+def _columns(con, source: str) -> set:
+    """The column names `source` (a read_parquet(...) or a subquery) has."""
+    return {row[0] for row in con.execute(f"DESCRIBE SELECT * FROM {source}").fetchall()}
 
 
 def _sql_str(text: str) -> str:

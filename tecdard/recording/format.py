@@ -44,7 +44,8 @@ IMU_RATE_RANGE_HZ = (100.0, 20_000.0)
 # Magnitudes no rig records: ten times the LSM6DSR's widest full scales (4000 dps = 70 rad/s, 16 g),
 # a TCP within 100 m of the base at under 100 m/s, a grip under 100 kN. Beyond them a value is a
 # corrupt file, and its sums overflow inside the estimator.
-ABS_MAX = {"gyro": 700.0, "accel": 1570.0, "tcp_pos": 100.0, "tcp_vel": 100.0, "grip_force": 1e5}
+ABS_MAX = {"gyro": 700.0, "accel": 1570.0, "tcp_pos": 100.0, "tcp_vel": 100.0, "grip_force": 1e5,
+           "tcp_wrench": 1e5}      # N and N m: no arm estimates more
 
 
 class RecordingError(ValueError):
@@ -156,8 +157,10 @@ def _why(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[:120]}" if text else type(exc).__name__
 
 
-def _array(data: _Npz, key: str, shape: tuple, required: bool = True, rows_max: int | None = None):
-    """The key as float64 of `shape` (None entries: any length, at most rows_max); RecordingError otherwise."""
+def _array(data: _Npz, key: str, shape: tuple, required: bool = True, rows_max: int | None = None,
+           nan_ok: bool = False):
+    """The key as float64 of `shape` (None entries: any length, at most rows_max; NaN only where `nan_ok`: a value
+    the source did not give); RecordingError otherwise."""
     if key not in data:
         if required:
             raise RecordingError(f"{key}: missing required key")
@@ -171,10 +174,10 @@ def _array(data: _Npz, key: str, shape: tuple, required: bool = True, rows_max: 
     if rows_max is not None and declared and declared[0] > rows_max:
         raise RecordingError(f"{key}: {declared[0]} rows, at most {rows_max}")
     arr = np.asarray(data.read(key), dtype=np.float64)
-    bad = ~np.isfinite(arr)
+    bad = np.isinf(arr) if nan_ok else ~np.isfinite(arr)
     if bad.any():
         row = int(np.argwhere(bad)[0][0]) if arr.ndim else 0
-        raise RecordingError(f"{key}: contains NaN or inf (first at row {row})")
+        raise RecordingError(f"{key}: contains {'inf' if nan_ok else 'NaN or inf'} (first at row {row})")
     limit = ABS_MAX.get(key)
     if limit is not None and arr.size:
         big = np.abs(arr) > limit
@@ -406,6 +409,7 @@ class LiveLog:
     events: list
     q: np.ndarray | None = None  # (M, n) the measured joints at each proprioception sample, rad (newer recordings)
     gripper: np.ndarray | None = None   # (M, 2) the gripper's opening (m) and whether it held (1, 0; -1: unknown)
+    wrench: np.ndarray | None = None    # (M, 6) the arm's own wrench at the TCP: force N, torque N m, world; nan: none
 
 
 def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
@@ -417,11 +421,11 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
             return None
         n_imu, n_tcp = len(rec.imu_t), len(rec.tcp_t)
 
-        def array(key: str, n: int | None = None):
+        def array(key: str, n: int | None = None, nan_ok: bool = False):
             """A declared live member, its proprioception rows n_tcp and its joints n."""
             m = MEMBERS[key]
             shape = tuple(s if isinstance(s, int) else n_tcp if s == "M" else n if s == "n" else None for s in m.shape)
-            return _array(data, key, shape, rows_max=m.rows_max)
+            return _array(data, key, shape, rows_max=m.rows_max, nan_ok=nan_ok)
 
         ends = array("live_pass_end")
         if len(ends) == 0 or np.any(np.diff(ends) < 0) or ends[0] < 0 or ends[-1] != n_imu:
@@ -446,8 +450,10 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
         if gripper is not None and not (np.all((gripper[:, 0] == -1) | ((gripper[:, 0] >= 0) & (gripper[:, 0] <= 1)))
                                         and np.all(np.isin(gripper[:, 1], (-1.0, 0.0, 1.0)))):
             raise RecordingError(f"live_gripper: expected ({n_tcp}, 2) rows: an opening in 0..1 m (or -1), and 0, 1 or -1")
+        # the arm's wrench: NaN where it gave none (a simulator's torque)
+        wrench = array("tcp_wrench", nan_ok=True) if "tcp_wrench" in data else None
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), array("live_tcp_w"), changes,
-                       array("live_bias0"), array("live_est"), _events(data, rec), q, gripper)
+                       array("live_bias0"), array("live_est"), _events(data, rec), q, gripper, wrench)
     finally:
         data.close()
 

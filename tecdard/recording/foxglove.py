@@ -53,6 +53,9 @@ STRING_SCHEMA = {"type": "object", "properties": {"data": {"type": "string"}}}
 GRIPPER_SCHEMA = {"type": "object", "properties": {"width_m": {"type": ["number", "null"]},
                                                    "force_n": {"type": ["number", "null"]},
                                                    "grasped": {"type": ["boolean", "null"]}}}
+_XYZ = {"type": "object", "properties": {a: {"type": "number"} for a in "xyz"}}
+WRENCH_SCHEMA = {"type": "object", "properties": {"force_n": _XYZ, "torque_nm": {"oneOf": [_XYZ, {"type": "null"}]},
+                                                  "frame_id": {"type": "string"}, "source": {"type": "string"}}}
 
 
 def _stamp(ns: int):
@@ -82,11 +85,14 @@ class Channels:
         self.imu_mean = foxglove.Channel("/imu/mean", message_encoding="json", context=context,
                                          schema=foxglove.Schema(name="tecdar.ImuMean", encoding="jsonschema",
                                                                 data=json.dumps(IMU_MEAN_SCHEMA).encode()))
-        self.joints = self.description = self.gripper_ch = None
+        self.joints = self.description = self.gripper_ch = self.wrench_ch = None
         if arm:
             self.gripper_ch = foxglove.Channel("/gripper", message_encoding="json", context=context,
                                                schema=foxglove.Schema(name="tecdar.Gripper", encoding="jsonschema",
                                                                       data=json.dumps(GRIPPER_SCHEMA).encode()))
+            self.wrench_ch = foxglove.Channel("/wrench", message_encoding="json", context=context,
+                                              schema=foxglove.Schema(name="tecdar.Wrench", encoding="jsonschema",
+                                                                     data=json.dumps(WRENCH_SCHEMA).encode()))
             self.joints = JointStatesChannel("/joint_states", context=context)
             self.description = foxglove.Channel("/robot_description", message_encoding="json", context=context,
                                                 schema=foxglove.Schema(name="std_msgs/msg/String",
@@ -97,8 +103,8 @@ class Channels:
         return max(0, int(round((float(t) - self.origin_s + self.epoch_s) * 1e9)))
 
     def close(self) -> None:
-        for ch in (self.imu, self.tf, self.contact_ch, self.events, self.imu_mean, self.gripper_ch, self.joints,
-                   self.description):
+        for ch in (self.imu, self.tf, self.contact_ch, self.events, self.imu_mean, self.gripper_ch, self.wrench_ch,
+                   self.joints, self.description):
             if ch is not None:
                 ch.close()
 
@@ -112,6 +118,12 @@ class Channels:
     def gripper(self, t: float, width_m: float | None, force_n: float | None, grasped: bool | None) -> None:
         """The gripper: its opening (m), its grip force (N) and whether it holds; null where it cannot say."""
         self.gripper_ch.log({"width_m": width_m, "force_n": force_n, "grasped": grasped}, log_time=self._ns(t))
+
+    def wrench(self, t: float, wrench: np.ndarray, source: str) -> None:
+        """The arm's own estimate of the external wrench at the TCP, world frame: force N, torque N m (null: none)."""
+        torque = None if not np.all(np.isfinite(wrench[3:])) else dict(zip("xyz", map(float, wrench[3:])))
+        self.wrench_ch.log({"force_n": dict(zip("xyz", map(float, wrench[:3]))), "torque_nm": torque,
+                            "frame_id": "world", "source": source}, log_time=self._ns(t))
 
     def joint_states(self, t: float, names: list[str], q: np.ndarray) -> None:
         self.joints.log(JointStates(timestamp=_stamp(self._ns(t)),

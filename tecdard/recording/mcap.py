@@ -25,9 +25,10 @@ def wall_clock_offset(meta: dict) -> float | None:
 
 
 def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.ndarray | None = None,
-               gripper: np.ndarray | None = None) -> int:
-    """Write the recording, its estimates (ContactEstimate), events and (a daemon recording's) joints and
-    gripper (`live_gripper`: opening and grasped, -1 unknown) to `out`; the messages written."""
+               gripper: np.ndarray | None = None, wrench: np.ndarray | None = None) -> int:
+    """Write the recording, its estimates (ContactEstimate), events and (a daemon recording's) joints,
+    gripper (`live_gripper`: opening and grasped, -1 unknown) and the arm's wrench (`tcp_wrench`) to `out`;
+    the messages written."""
     try:
         import foxglove
 
@@ -59,6 +60,10 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
     if gripper is not None:
         for j in range(len(rec.tcp_t)):
             items.append((rec.tcp_t[j], 5, "gripper", j))
+    if wrench is not None:
+        for j in range(len(rec.tcp_t)):
+            if np.all(np.isfinite(wrench[j, :3])):
+                items.append((rec.tcp_t[j], 6, "wrench", j))
     for est in estimates:
         items.append((est.t, 2, "contact", est))
     for ev in events:
@@ -107,6 +112,8 @@ def write_mcap(out: str, rec, estimates: list, events: list, truth: dict, q: np.
                 width, held = gripper[x]
                 force = None if rec.grip_force is None or held != 1 else float(rec.grip_force[x])
                 ch.gripper(t, None if width < 0 else float(width), force, None if held < 0 else bool(held))
+            elif kind == "wrench":
+                ch.wrench(t, wrench[x], str(meta.get("wrench_source") or ""))
             else:
                 ch.event(t, x)
     finally:
@@ -130,6 +137,7 @@ def export_mcap(path, out, config: str | None = None, method: str | None = None,
     run_replay(r, on_estimate=found.append, on_event=events.append)
     if r.live is not None:
         events = r.live.events          # the pipeline's and the daemon's, as they happened live
-    n = write_mcap(str(out), r.rec, found, events, load_truth(path), None if r.live is None else r.live.q,
-                   None if r.live is None else r.live.gripper)
+    live = r.live
+    n = write_mcap(str(out), r.rec, found, events, load_truth(path), None if live is None else live.q,
+                   None if live is None else live.gripper, None if live is None else live.wrench)
     return n, found, events

@@ -89,6 +89,11 @@ LIVE = (
     Member("live_gripper", ("M", 2), False, "the gripper at each proprioception sample: its opening (m) and whether "
                                             "it held something (1 or 0); -1 where it could not say "
                                             "(`meta.grip_force_source` says where `grip_force` came from)"),
+    Member("tcp_wrench", ("M", 6), False, field="wrench", meaning="the arm's own estimate of the external wrench at the TCP at each "
+                                          "proprioception sample: force (N) then torque (N m), world frame; NaN "
+                                          "where the arm gives none. `meta.wrench_source` says whose estimate: "
+                                          "`actual_TCP_force` (UR), `O_F_ext_hat_K` or `joint_torques` (Franka), "
+                                          "`sim_contact` (the simulator: force only)"),
 )
 
 MEMBERS = {m.key: m for m in CORE + LIVE}

@@ -129,4 +129,8 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
     if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
         extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
+    wrench = [s.wrench for _, s in rows]
+    if any(w is not None for w in wrench):                # the arm's own estimate at the TCP; nan where it gave none
+        extra["tcp_wrench"] = np.array([np.full(6, np.nan) if w is None else w for w in wrench], dtype=float)
+        rec.meta["wrench_source"] = next(s.wrench_source for _, s in reversed(rows) if s.wrench is not None)
     return rec, extra

@@ -85,6 +85,17 @@ class ControlParams:
             workspace_max=self.workspace_max)
 
 
+def wrench_json(js) -> dict | None:
+    """`state.wrench`: the arm's own estimate at the TCP, world frame, as its state gave it: force N, torque N m (None
+    where it gives none: the simulator's), and whose estimate (robots.backend.WRENCH_SOURCES)."""
+    if js.tcp_force is None or not np.all(np.isfinite(js.tcp_force)):
+        return None
+    torque = js.tcp_torque
+    return {"force_n": [round(float(x), 3) for x in js.tcp_force],
+            "torque_nm": None if torque is None or not np.all(np.isfinite(torque)) else
+            [round(float(x), 4) for x in torque], "source": js.wrench_source or None}
+
+
 class ControlThread:
     """Owns the robot's commands, the sensors' faults, and the TaskRunner (mode, task, plan).
 
@@ -232,7 +243,7 @@ class ControlThread:
                 self.estimator.set_resting(resting)
             self.robot.set_resting(resting)
         self._resting = resting
-        self._publish_state(now, p, R, twist[:3], est, js.t)
+        self._publish_state(now, p, R, twist[:3], est, js)
         for service in self.services.values():
             for ev in service.announcements():
                 self._event(**ev)
@@ -423,8 +434,9 @@ class ControlThread:
         source = self._source()
         return None if source is None else source.lost_s()
 
-    def _publish_state(self, now: float, p, R, v, est, tcp_t: float) -> None:
+    def _publish_state(self, now: float, p, R, v, est, js) -> None:
         self._seq += 1
+        tcp_t = js.t
         task = self.runner.task
         t_mark, n_mark = self._imu_mark
         if now - t_mark >= IMU_RATE_WINDOW_S:
@@ -446,6 +458,8 @@ class ControlThread:
             "imu": {"rate_hz": self._imu_rate_hz, "part": self._imu_part(), "lost_s": self._imu_lost_s()},
             # the gripper: its opening, force and where that comes from, whether it holds (None: no gripper)
             "gripper": None if self.gripper is None else self._gripper_json(),
+            # the arm's own estimate of the external wrench at the TCP (None where it estimates no force)
+            "wrench": wrench_json(js),
         }
         self.latest_state.set(state)
         self.outbox.put("state", state)

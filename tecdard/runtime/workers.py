@@ -108,10 +108,23 @@ class ProprioFeed:
             # the joints ride along for the recorder (the Foxglove export draws the arm); the pipeline takes the rest
             ring = self.ring
             ring.push(ProprioSample(js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
-                                    twist[3:].copy(), grip, np.array(js.q, dtype=float), width, grasped))
+                                    twist[3:].copy(), grip, np.array(js.q, dtype=float), width, grasped,
+                                    wrench_of(js), js.wrench_source))
             if ring.overwritten != self._logged and (self._logged == 0 or ring.overwritten - self._logged >= 1000):
                 self._logged = ring.overwritten
                 log.warning("the estimator fell behind: %d proprioception samples overwritten", self._logged)
+
+
+def wrench_of(js) -> np.ndarray | None:
+    """The arm's own wrench at the TCP as one (6,) array: force N, torque N m, world; nan for a torque it does not
+    give; None when it estimates no force."""
+    if js.tcp_force is None:
+        return None
+    out = np.full(6, np.nan)
+    out[:3] = js.tcp_force
+    if js.tcp_torque is not None:
+        out[3:] = js.tcp_torque
+    return out
 
 
 def proprio_loop(robot, feed: ProprioFeed, stop: threading.Event) -> None:
