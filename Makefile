@@ -102,6 +102,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.poses
 	$(PY) -m benchmarks.onset
 	$(PY) -m benchmarks.onset_live
+	$(PY) -m benchmarks.wrench_onset
 	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.robustness
 	$(PY) -m benchmarks.robustness --breaking

@@ -161,6 +161,16 @@ def test_on_the_simulated_arm_release_empties_the_hand_tasks_refuse_and_a_grasp_
     assert len(wrench) == len(rec.tcp_t) == len(live.wrench)
     assert wrench[-1]["source"] == "sim_contact" and wrench[-1]["torque_nm"] is None
     assert [wrench[-1]["force_n"][a] for a in "xyz"] == live.wrench[-1, :3].tolist()
+    # `tecdard plot` draws that force under the TCP: one panel more than the same recording without it
+    import struct
+    bare = tmp_path / "bare.npz"
+    with np.load(path) as z:
+        np.savez(bare, **{k: z[k] for k in z.files if k != "tcp_wrench"})
+    heights = []
+    for src, png in ((path, tmp_path / "with.png"), (bare, tmp_path / "bare.png")):
+        assert tecdard("plot", src, "-o", str(png)).returncode == 0
+        heights.append(struct.unpack(">II", png.read_bytes()[16:24])[1])       # the PNG's IHDR: width, height
+    assert heights[0] > heights[1], heights
 
 
 def test_doctor_says_whether_the_urcap_answers_and_the_gripper_is_activated(urcap):

@@ -119,17 +119,19 @@ def _merged(marks: list, span_s: float, apart: float = 0.015) -> list:
 
 
 def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, out: str, title: str,
-         fmt: str = "png", events: list | None = None) -> None:
+         fmt: str = "png", events: list | None = None, wrench: np.ndarray | None = None) -> None:
     """Draw to the file `out` in the image format `fmt`. `rows` (k, 7): t, p, std (m); drawn in mm.
-    `events`: a daemon recording's (task start and end, stops), marked on every panel. A panel with
-    nothing to show is left out (the turn without an onset, the estimate without one or a truth): the
-    title says no contact was detected."""
+    `events`: a daemon recording's (task start and end, stops), marked on every panel. `wrench` (M, 6): a
+    daemon recording's `tcp_wrench`, the arm's own force at the TCP drawn under the TCP, against the onset. A
+    panel with nothing to show is left out (the turn without an onset, the estimate without one or a truth,
+    the force where the arm gives none): the title says no contact was detected."""
     plt = _pyplot()
     p_true = truth.get("p_c")
     turned = turned_deg(rec, onset_t)
     has_est = len(rows) > 0 or p_true is not None
     has_err = p_true is not None and len(rows) > 0
-    n_panels = 3 + (turned is not None) + 3 * has_est + has_err
+    has_force = wrench is not None and bool(np.any(np.isfinite(wrench[:, :3])))
+    n_panels = 3 + has_force + (turned is not None) + 3 * has_est + has_err
     fig, axes = plt.subplots(n_panels, 1, figsize=(10, 1.9 * max(n_panels, 4)), sharex=True,
                              constrained_layout=True)
     panels = iter(axes)
@@ -147,6 +149,13 @@ def draw(rec: Recording, rows: np.ndarray, onset_t: float | None, truth: dict, o
         ax.plot(rec.tcp_t - t0, tcp[:, k], lw=1.0, label=AXES[k])
     ax.set_ylabel("TCP from its start,\nmm (world)", fontsize=8)
     _legend(ax)
+    if has_force:
+        ax = next(panels)
+        for k in range(3):
+            ax.plot(rec.tcp_t - t0, wrench[:, k], lw=0.8, label=AXES[k])
+        ax.plot(rec.tcp_t - t0, np.linalg.norm(wrench[:, :3], axis=1), lw=1.0, color="k", label="|F|")
+        ax.set_ylabel("the arm's force\nat the TCP, N (world)", fontsize=8)
+        _legend(ax)
     if turned is not None:
         ax = next(panels)
         ax.plot(turned[0] - t0, turned[1], lw=1.0, color="C4")
@@ -205,7 +214,7 @@ def main(args) -> int:
             truth.pop("p_c", None)
         with replacing(args.out, "-o") as tmp:                  # a failed write leaves what was there
             draw(rec, rows, onset_t, truth, str(tmp), f"{pathlib.Path(args.recording).name}, {pipeline.method}", fmt,
-                 events=None if live is None else live.events)
+                 events=None if live is None else live.events, wrench=None if live is None else live.wrench)
     except (BadInput, PlotError, RecordingError) as exc:
         return refused("plot", str(exc))
     except OutputError as exc:
