@@ -23,6 +23,7 @@ WRENCH_SOURCES = {
     "O_F_ext_hat_K": "Franka: the robot's own estimate (O_F_ext_hat_K)",
     "joint_torques": "Franka: J^T F = tau_J - g(q) with franky's model, where the robot estimates none",
     "sim_contact": "the simulator's contact force on the TCP (force only: the torque is not modelled)",
+    "ros2_topic": "an observed arm: its driver's geometry_msgs/WrenchStamped on ros2.wrench, in the base frame",
 }
 
 
@@ -53,6 +54,7 @@ class TopicState:
     # messages closer together than this are dropped before they are decoded (keep-last, decimated to the control
     # tick: a 1 kHz publisher then costs about what a 50 Hz one does); 0: every message
     min_period_s: float = 0.0
+    take_wrench: Callable | None = None    # the arm's wrench at the TCP, where the door has a topic for it (ros2.wrench)
 
 
 def joint_rates(qd, nq: int) -> np.ndarray:

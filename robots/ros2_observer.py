@@ -28,6 +28,7 @@ import numpy as np
 
 from tecdard.options import option, read_options
 from tecdard.robots.backend import JointState, RobotBackend, TopicState
+from tecdard.robots.ros2_wrench import WrenchTopic
 from tecdard.robots.backends import ModelMismatch
 from tecdard.robots.state_check import FAULT_HOLD_S
 
@@ -85,7 +86,9 @@ class Ros2Observer(RobotBackend):
         # messages to jitter, a 1 kHz one's nine in ten are dropped unread (three quarters of a tick, 15 ms, dropped
         # every other message of a 65 Hz stream)
         tick_s = ctx.cfg.section("control").getfloat("tick_s", 0.02)
-        self.topic_state = TopicState("ros2", self.on_joint_state, min_period_s=DECIMATE_TICKS * tick_s)
+        self.wrench = WrenchTopic(ctx.cfg.section("ros2").getstr("base_frame", "base_link", max_len=200), self.stale_s)
+        self.topic_state = TopicState("ros2", self.on_joint_state, min_period_s=DECIMATE_TICKS * tick_s,
+                                      take_wrench=self.wrench.take)
 
     # -- lifecycle: the node owns the subscription ------------------------------------------------
     def start(self) -> None:
@@ -205,7 +208,9 @@ class Ros2Observer(RobotBackend):
         else:
             qd = np.zeros(len(self.names))
         with self._cond:
-            js = JointState(t, q, qd, self._latest.seq + 1)
+            w = self.wrench.at(t)             # the driver's wrench, where ros2.wrench brings one
+            js = JointState(t, q, qd, self._latest.seq + 1) if w is None else \
+                JointState(t, q, qd, self._latest.seq + 1, tcp_force=w[0], tcp_torque=w[1], wrench_source="ros2_topic")
             if prev is not None and t <= prev.t:
                 return f"joint_states: stamp {stamp_s:.6f} s is not after the previous state's"
             # rates derived from the positions are the jump check's to judge, not the rate check's

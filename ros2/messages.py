@@ -139,6 +139,17 @@ def tcp_pose(ts, p, q, t_wall: float, frame: str):
     return ts.cls("geometry_msgs/msg/PoseStamped")(header=header(ts, t_wall, frame), pose=_pose(ts, p, q))
 
 
+def wrench(ts, force_n, torque_nm, t_wall: float, frame: str):
+    """geometry_msgs/WrenchStamped of `state.wrench`: the arm's own estimate at the TCP in `frame` (the base), N and
+    N m; a torque the arm does not give (the simulator's) is NaN, never a zero that reads as measured."""
+    V = ts.cls("geometry_msgs/msg/Vector3")
+    torque = [float("nan")] * 3 if torque_nm is None else torque_nm
+    return ts.cls("geometry_msgs/msg/WrenchStamped")(
+        header=header(ts, t_wall, frame), wrench=ts.cls("geometry_msgs/msg/Wrench")(
+            force=V(x=float(force_n[0]), y=float(force_n[1]), z=float(force_n[2])),
+            torque=V(x=float(torque[0]), y=float(torque[1]), z=float(torque[2]))))
+
+
 def imu(ts, t_wall: float, gyro, accel, frame: str):
     """sensor_msgs/Imu of one averaged block: rad/s and m/s^2 in the IMU's frame; no orientation
     (orientation_covariance[0] = -1), covariances unknown (zeros)."""

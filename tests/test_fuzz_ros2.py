@@ -20,6 +20,7 @@ from tecdard.runtime.messages import StartTask
 pytest.importorskip("rosbags", reason="rosbags is installed by `make test` (extra ros2)")
 from tecdard.ros2 import rmw  # noqa: E402
 from tecdard.runtime.ros2_node import Ros2Node, Ros2Params, _Service  # noqa: E402
+from tecdard.runtime.ros2_subscribe import JOINT_STATE, subscribe  # noqa: E402
 from tests.test_fuzz_commands import CODES, LIMITS, Sink  # noqa: E402
 
 CODES = CODES | {C.READ_ONLY}
@@ -258,8 +259,8 @@ def test_joint_states_are_decimated_to_the_tick_before_they_are_decoded(node, ob
         for period_s, n in ((0.001, 300), (0.02, 15)):
             taken: list = []
             subscribed.clear()
-            node._subscribe_joint_states(lambda m, problem, source=None: taken.append(m),
-                                         observer.topic_state.min_period_s)
+            subscribe(node, "/joint_states", JOINT_STATE, lambda m, problem, source=None: taken.append(m),
+                      "joint_states", observer.topic_state.min_period_s)
             t_next = time.monotonic()
             for _ in range(n):
                 subscribed["cb"](sample)

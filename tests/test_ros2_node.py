@@ -19,6 +19,7 @@ from tecdard.ros2 import rmw
 from tecdard.tools.demo import distance_to_axis, free_port
 from tecdard.config import dump_yaml
 from tests.conftest import ROOT, DaemonProcess, daemon_config
+from tests.fakes.fake_ur import wait_for
 
 pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk is installed by `make test` (extra ros2-test)")
 pytestmark = pytest.mark.slow
@@ -160,6 +161,11 @@ def test_a_ros2_client_finds_the_node_watches_it_and_rotates_through_it(node):
         assert m["header"]["frame_id"] == "fingertip_imu" and m["orientation_covariance"][0] == -1.0
         a = m["linear_acceleration"]
         assert abs(math.hypot(a["x"], a["y"], a["z"]) - 9.81) < GRAVITY_TOL_M_S2
+    # the arm's own wrench at the TCP (the simulator's contact force: the handle's pull on the grasp), in the base
+    wrench = sdk(router, "subscribe", {"topic": "/sim/wrench", "type": "geometry_msgs/msg/WrenchStamped",
+                                       "count": 5})["messages"]
+    assert len(wrench) == 5 and {m["header"]["frame_id"] for m in wrench} == {"base_link"}, wrench[:1]
+    assert all(all(math.isfinite(m["wrench"]["force"][a]) for a in "xyz") for m in wrench), wrench[:1]
 
     watch = Subscription(router, [["/sim/contact", "geometry_msgs/msg/PoseWithCovarianceStamped", 10**6],
                                   ["/sim/events", "tecdar_msgs/msg/Event", 10**6],
@@ -219,14 +225,16 @@ def test_every_token_and_sample_follows_the_design_document(tmp_path, router):
             assert all(t.domain_id == 7 and t.namespace == "/lab/arm1" and t.node_name == "tecdard" and t.enclave == ""
                        for t in tokens)
             kinds = [t.kind for t in tokens]
-            # 7 topics and /parameter_events, and each action's feedback and status; the services, the six of the
+            # 8 topics and /parameter_events, and each action's feedback and status; the services, the six of the
             # parameters among them, and each action's three
             n_actions = len(task_verbs.names())
-            assert kinds.count("NN") == 1 and kinds.count("MP") == 8 + 2 * n_actions
+            assert kinds.count("NN") == 1 and kinds.count("MP") == 9 + 2 * n_actions
             assert kinds.count("SS") >= 14 + 3 * n_actions
             assert len({t.entity_id for t in tokens if t.kind != "NN"}) == len(tokens) - 1
             by_name = {t.name: t for t in tokens if t.kind != "NN"}
             assert by_name["/lab/arm1/imu"].qos == rmw.SENSOR_DATA and by_name["/lab/arm1/tcp_pose"].qos == rmw.SENSOR_DATA
+            assert by_name["/lab/arm1/wrench"].qos == rmw.SENSOR_DATA
+            assert by_name["/lab/arm1/wrench"].dds_type == "geometry_msgs::msg::dds_::WrenchStamped_"
             assert by_name["/lab/arm1/contact"].qos == rmw.RELIABLE_10 and by_name["/tf"].qos == rmw.TF_QOS
             assert by_name["/parameter_events"].qos.depth == 1000 and by_name["/parameter_events"].kind == "MP"
             assert by_name["/lab/arm1/tecdard/get_parameters"].kind == "SS"
@@ -328,11 +336,15 @@ def test_the_observer_localises_the_hinge_of_an_arm_that_ros2_drives_and_bad_str
     arm = RosArm(tmp_path, router)
     d = None
     try:
-        cfg = observer_config(arm.info["pty"], router)
+        cfg = observer_config(arm.info["pty"], router, **{"ros2.wrench": "/wrench"})
         (tmp_path / "d").mkdir()
         d = DaemonProcess(tmp_path / "d", cfg)
         state = d.client.command("status")["state"]
         assert state["faults"] == [] and state["tcp_t"] is not None
+        # the driver's wrench (ros2.wrench) rides with the joint states it was stamped with
+        assert wait_for(lambda: (d.client.command("status")["state"]["wrench"] or {}).get("source") == "ros2_topic",
+                          10.0), d.client.command("status")["state"]["wrench"]
+        assert d.client.command("status")["state"]["wrench"]["torque_nm"] == [0.0, 0.0, 0.0]
         for verb in (("rotate", {"angle_deg": 10}), ("probe", {})):
             reply = d.client.command(*verb)
             assert reply["ok"] is False and reply["error"]["code"] == "read_only"

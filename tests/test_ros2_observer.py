@@ -211,7 +211,9 @@ def test_a_second_publisher_of_the_arms_joints_is_a_fault_and_a_restarted_driver
 def test_the_node_refuses_a_joint_state_larger_than_an_arms_before_decoding_it_and_names_its_publisher(ts):
     import types
     from tecdard.ros2 import rmw
-    from tecdard.runtime.ros2_node import JOINT_STATE, MAX_JOINT_STATE_BYTES, Ros2Node, Ros2Params
+    from tecdard.runtime.ros2_node import Ros2Node, Ros2Params
+    from tecdard.runtime.ros2_subscribe import JOINT_STATE, MAX_BYTES, subscribe
+    MAX_JOINT_STATE_BYTES = MAX_BYTES[JOINT_STATE]
     node = Ros2Node(Ros2Params(enabled=True), "sim", None, types=ts)
     node.node = rmw.NodeInfo(0, "z", 0, "/sim", "tecdard")
     subscribed = {}
@@ -219,7 +221,7 @@ def test_the_node_refuses_a_joint_state_larger_than_an_arms_before_decoding_it_a
         declare_subscriber=lambda key, cb: subscribed.setdefault("cb", cb),
         liveliness=lambda: types.SimpleNamespace(declare_token=lambda key: None))
     got = []
-    node._subscribe_joint_states(lambda *args: got.append(args))
+    subscribe(node, "/joint_states", JOINT_STATE, lambda *args: got.append(args), "joint_states")
 
     class Payload(bytes):                                             # zenoh.ZBytes as the callback uses it
         def to_bytes(self):
@@ -235,3 +237,38 @@ def test_the_node_refuses_a_joint_state_larger_than_an_arms_before_decoding_it_a
     subscribed["cb"](types.SimpleNamespace(payload=Payload(raw), attachment=Payload(rmw.attachment(1, 0, gid))))
     msg, problem, source = got[-1]
     assert problem is None and list(msg.name) == PANDA and source == gid
+
+
+def test_a_drivers_wrench_is_taken_in_the_base_frame_and_a_bad_one_is_left_out_in_one_line(caplog):
+    """robots/ros2_wrench.WrenchTopic: a WrenchStamped in ros2.base_frame rides with the joint states stamped near it;
+    one in another frame, not finite, beyond any arm's, unstamped or from the future is left out, said in one line,
+    and the wrench taken before it stays."""
+    import logging
+    import time
+    import types
+    from tecdard.robots.ros2_wrench import WrenchTopic
+
+    def msg(force=(1.0, 2.0, 3.0), torque=(0.1, 0.2, 0.3), frame="base_link", stamp=None):
+        t = time.time() if stamp is None else stamp
+        V = types.SimpleNamespace
+        return V(header=V(frame_id=frame, stamp=V(sec=int(t), nanosec=int((t % 1) * 1e9))),
+                 wrench=V(force=V(x=force[0], y=force[1], z=force[2]), torque=V(x=torque[0], y=torque[1], z=torque[2])))
+    topic = WrenchTopic("base_link", stale_s=0.1)
+    assert topic.at(time.monotonic()) is None
+    topic.take(msg(), None)
+    force, torque = topic.at(time.monotonic())
+    assert force.tolist() == [1.0, 2.0, 3.0] and torque.tolist() == [0.1, 0.2, 0.3]
+    assert topic.at(time.monotonic() + 1.0) is None            # a joint state a second later: that wrench is stale
+    bad = [(msg(frame="tool0"), "frame_id 'tool0'"), (msg(force=(float("nan"), 0, 0)), "not finite"),
+           (msg(force=(2e4, 0, 0)), "beyond"), (msg(stamp=0.0), "stamp is zero"),
+           (msg(stamp=time.time() + 10.0), "in the future")]
+    for m, why in bad:
+        topic.problems = 0                                      # each one said (the first of its kind)
+        with caplog.at_level(logging.WARNING, logger="tecdar.ros2"):
+            caplog.clear()
+            topic.take(m, None)
+        assert topic.problems == 1 and why in caplog.text and len(caplog.records) == 1, (why, caplog.text)
+        assert "\n" not in caplog.records[0].getMessage()
+    topic.take(None, "geometry_msgs/msg/WrenchStamped: 2000 bytes, more than an arm's (at most 1024)")
+    assert topic.problems == 2
+    assert topic.at(time.monotonic())[0].tolist() == [1.0, 2.0, 3.0]     # the good one stays

@@ -95,6 +95,8 @@ def published(ts):
         out.append(("sensor_msgs/msg/Imu", M.imu(ts, 1.7e9, [0.1, -2.0, 1e-9], [0.0, 9.81, -1e3], frame)))
         out.append(("sensor_msgs/msg/Imu", M.imu(ts, 0.0, [np.nan, np.inf, -np.inf], [0, 0, 0], frame)))
         out.append(("geometry_msgs/msg/PoseStamped", M.tcp_pose(ts, [0.3, 0.0, 0.5], [0, 0, 0, 1], 1.7e9, frame)))
+        out.append(("geometry_msgs/msg/WrenchStamped", M.wrench(ts, [1.5, -2.0, 30.0], [0.1, 0.0, -0.2], 1.7e9, frame)))
+        out.append(("geometry_msgs/msg/WrenchStamped", M.wrench(ts, [0.0, 0.0, 0.0], None, 1.7e9, frame)))
     out.append(("diagnostic_msgs/msg/DiagnosticArray", M.diagnostics(ts, 1.7e9, [])))
     out.append(("diagnostic_msgs/msg/DiagnosticArray", M.diagnostics(
         ts, 1.7e9, [("tecdard/sim: faults", M.ERROR, "", {"": "", "robot_stale": "é" * 300}),

@@ -341,7 +341,8 @@ class Daemon:
             if self.ros2 is not None:
                 state = self._ros2_state()
                 self.ros2.declare(session, None if state is None else state.take,
-                                  0.0 if state is None else state.min_period_s)
+                                  0.0 if state is None else state.min_period_s,
+                                  None if state is None else state.take_wrench)
             # Everything built so far lives as long as the daemon. A full garbage collection walks
             # every tracked object with the GIL held: with the estimator's compiled loops (numba,
             # llvmlite) loaded that is ~116 000 objects and a 57 ms stall of every thread, several

@@ -31,6 +31,7 @@ from tecdard.ros2 import rmw
 from tecdard.ros2.typesupport import DISTROS, TypeError_, TypeSupport, dds_type_name
 from tecdard.runtime.ros2_actions import ActionServer, matching
 from tecdard.runtime.ros2_parameters import _bytes, queued
+from tecdard.runtime.ros2_subscribe import JOINT_STATE, WRENCH_STAMPED, subscribe
 from tecdard.runtime.main_loop import FrontDoor
 from tecdard.runtime.messages import Inbox
 
@@ -38,20 +39,18 @@ log = logging.getLogger("tecdar.ros2")
 
 TRIGGER = "std_srvs/srv/Trigger"
 TRIGGER_SRV = "---\nbool success\nstring message\n"     # std_srvs/srv/Trigger, as std_srvs ships it
-JOINT_STATE = "sensor_msgs/msg/JointState"
 # topic (relative to the namespace, or absolute) -> (type, QoS)
 TOPICS = {
     "contact": ("geometry_msgs/msg/PoseWithCovarianceStamped", rmw.RELIABLE_10),
     "contact_marker": ("visualization_msgs/msg/Marker", rmw.RELIABLE_10),
     "imu": ("sensor_msgs/msg/Imu", rmw.SENSOR_DATA),
     "tcp_pose": ("geometry_msgs/msg/PoseStamped", rmw.SENSOR_DATA),
+    "wrench": ("geometry_msgs/msg/WrenchStamped", rmw.SENSOR_DATA),
     "events": ("tecdar_msgs/msg/Event", rmw.RELIABLE_10),
     "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", rmw.RELIABLE_10),
     "/tf": ("tf2_msgs/msg/TFMessage", rmw.TF_QOS),
 }
 SERVICE_QOS = rmw.RELIABLE_10           # rmw_qos_profile_services_default
-JOINT_STATES_QOS = rmw.SENSOR_DATA      # best effort: takes a reliable or a best-effort publisher
-MAX_JOINT_STATE_BYTES = 16384           # a JointState larger than this is no arm's (64 joints with long names fit)
 SERVICE_BACKLOG = 16                    # requests waiting per service (the oldest overwritten)
 TAP_PASSES = 256                        # estimator passes waiting for the publish pass; more are dropped
 IMU_BLOCKS_PER_PASS = 200               # averaged IMU messages published per pass at most (a backlog is dropped)
@@ -74,6 +73,8 @@ class Ros2Params:
                                 unit="Hz", minval=0.0, maxval=10000.0)
     joint_states: str = option("/joint_states", "the topic robot.backend ros2 reads the arm's joint states from",
                                max_len=200)
+    wrench: str = option("", "the topic robot.backend ros2 reads the arm's own wrench at the TCP from "
+                             "(geometry_msgs/WrenchStamped in base_frame; \"\": none)", max_len=200)
 
     @classmethod
     def from_config(cls, section, robot: str) -> "Ros2Params":
@@ -85,8 +86,10 @@ class Ros2Params:
                                              "digits and '_')")
         if not _ros_name(p.node_name):
             raise section.error("node_name", f"{p.node_name!r} is no ROS 2 node name (letters, digits and '_')")
-        if not _ros_name(p.joint_states.lstrip("/"), allow_slash=True):
-            raise section.error("joint_states", f"{p.joint_states!r} is no ROS 2 topic name")
+        for key in ("joint_states", "wrench"):
+            topic = getattr(p, key)
+            if (topic or key == "joint_states") and not _ros_name(topic.lstrip("/"), allow_slash=True):
+                raise section.error(key, f"{topic!r} is no ROS 2 topic name")
         for key in ("base_frame", "tcp_frame", "imu_frame"):
             frame = getattr(p, key)
             if not frame or frame.startswith("/"):
@@ -154,7 +157,7 @@ class Ros2Node(FrontDoor):
         self._clock_offset_s = time.time() - time.monotonic()
         self._clock_next = 0.0
         self.counters = {"published": 0, "requests": 0, "bad_requests": 0, "joint_states": 0, "bad_joint_states": 0,
-                         "joint_states_decimated": 0}
+                         "joint_states_decimated": 0}          # and "wrench", "bad_wrench", where subscribed
         self.node: rmw.NodeInfo | None = None
         self._entities = 0
 
@@ -167,14 +170,16 @@ class Ros2Node(FrontDoor):
         out = {"publish": [mine] + [f"{p.domain_id}/{t.strip('/')}/**" for t in TOPICS if t.startswith("/")],
                "tokens": [f"{rmw.ADMIN_SPACE}/{p.domain_id}/**"], "serve": [mine]}
         if subscribes:
-            out["subscribe"] = [f"{p.domain_id}/{p.joint_states.strip('/')}/**"]
+            out["subscribe"] = [f"{p.domain_id}/{t.strip('/')}/**" for t in (p.joint_states, p.wrench) if t]
         return out
 
     # -- declaring ------------------------------------------------------------------------------
-    def declare(self, session: zenoh.Session, joint_states=None, joint_states_period_s: float = 0.0) -> None:
+    def declare(self, session: zenoh.Session, joint_states=None, joint_states_period_s: float = 0.0,
+                wrench=None) -> None:
         """The node's token, its publishers, services and (with `joint_states(msg | None, problem)`, the
         observer backend's handler) its joint-state subscription, which drops messages closer together than
-        `joint_states_period_s` before decoding them."""
+        `joint_states_period_s` before decoding them; with `wrench` (the backend's handler) and `ros2.wrench`
+        set, the arm's wrench at the TCP."""
         p = self.params
         self.session = session
         self.node = rmw.NodeInfo(p.domain_id, str(session.info.zid()), 0, "" if p.namespace == "/" else p.namespace,
@@ -201,7 +206,9 @@ class Ros2Node(FrontDoor):
         self.actions = ActionServer(self)
         self.actions.declare(session)
         if joint_states is not None:
-            self._subscribe_joint_states(joint_states, joint_states_period_s)
+            subscribe(self, p.joint_states, JOINT_STATE, joint_states, "joint_states", joint_states_period_s)
+        if wrench is not None and p.wrench:
+            subscribe(self, p.wrench, WRENCH_STAMPED, wrench, "wrench")
         log.info("ROS 2 node %s/%s on domain %d (%s): %d topics, %d services, %d actions", self.node.namespace,
                  p.node_name, p.domain_id, p.distro, len(self._pubs), len(self._services) + 1,
                  len(self.actions.actions))
@@ -237,43 +244,6 @@ class Ros2Node(FrontDoor):
         self._token(token)
         return rmw.data_keyexpr(self.params.domain_id, fq, dds, type_hash), token
 
-    def _subscribe_joint_states(self, handler, min_period_s: float = 0.0) -> None:
-        key, _ = self._entity(rmw.SUBSCRIPTION, self.params.joint_states, JOINT_STATE, JOINT_STATES_QOS)
-        taken = [-math.inf]
-
-        def on_sample(sample) -> None:
-            """Zenoh's thread: decode and hand over to the backend (its check decides), never raising. A message
-            within `min_period_s` of the last one taken is dropped first, undecoded (the control tick reads one
-            state a tick); one larger than any arm's is refused undecoded; the publisher's GID comes from
-            rmw_zenoh's attachment."""
-            self.counters["joint_states"] += 1
-            now = time.monotonic()
-            if now - taken[0] < min_period_s:
-                self.counters["joint_states_decimated"] += 1
-                return
-            taken[0] = now
-            size = len(sample.payload)
-            if size > MAX_JOINT_STATE_BYTES:
-                self.counters["bad_joint_states"] += 1
-                handler(None, f"{JOINT_STATE}: {size} bytes, more than an arm's (at most {MAX_JOINT_STATE_BYTES})")
-                return
-            try:
-                source = rmw.parse_attachment(_bytes(sample.attachment))[2]
-            except ValueError:
-                source = None
-            try:
-                msg = self.ts.decode(sample.payload.to_bytes(), JOINT_STATE)
-            except TypeError_ as exc:
-                self.counters["bad_joint_states"] += 1
-                handler(None, str(exc))
-                return
-            except Exception as exc:
-                self.counters["bad_joint_states"] += 1
-                handler(None, f"{JOINT_STATE}: {type(exc).__name__}")
-                return
-            handler(msg, None, source)
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
-
     def undeclare(self) -> None:
         for entity in reversed(self._declared):
             try:
@@ -302,11 +272,14 @@ class Ros2Node(FrontDoor):
                 self.actions.on_telemetry(kind, body)
             if kind == "state":
                 self._latest_state = body
-                if not self._wanted("tcp_pose"):
-                    return
-                tcp = body["tcp"]
                 t = body["t"] if body.get("tcp_t") is None else body["tcp_t"]
-                self._put("tcp_pose", M.tcp_pose(self.ts, tcp["p"], tcp["q"], self.wall(t), self.params.base_frame))
+                if self._wanted("tcp_pose"):
+                    tcp = body["tcp"]
+                    self._put("tcp_pose", M.tcp_pose(self.ts, tcp["p"], tcp["q"], self.wall(t), self.params.base_frame))
+                w = body.get("wrench")
+                if w is not None and self._wanted("wrench"):
+                    self._put("wrench", M.wrench(self.ts, w["force_n"], w["torque_nm"], self.wall(t),
+                                                 self.params.base_frame))
             elif kind == "event":
                 t = body.get("t")
                 t = float(t) if isinstance(t, (int, float)) and math.isfinite(t) else time.monotonic()

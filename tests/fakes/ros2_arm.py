@@ -10,7 +10,9 @@ Prints {"pty": path, "joints": [...]} once the arm streams. Then, line by line o
 - `fault stop|jump|names`: from now on the stream stops, jumps 0.5 rad on joint 1 for JUMP_S, or names the
   joints wrongly;
 - `quit`.
-JointStates go out at RATE_HZ, each stamped with its sample's time on the system clock.
+JointStates go out at RATE_HZ, each stamped with its sample's time on the system clock, and beside each the
+simulator's contact force at the TCP as geometry_msgs/WrenchStamped on /wrench in `base_link` (as a driver's
+force-torque broadcaster would publish it, transformed to the base).
 """
 from __future__ import annotations
 
@@ -51,7 +53,10 @@ def main() -> None:
     sim.start()
     pub = sdk.ROS2Publisher("/joint_states", "sensor_msgs/msg/JointState", router_port=port,
                             node_name="tecdar_test_arm")
+    wrench_pub = sdk.ROS2Publisher("/wrench", "geometry_msgs/msg/WrenchStamped", router_port=port,
+                                   node_name="tecdar_test_arm")
     types = pub.session_mgr.store.types
+    wtypes = wrench_pub.session_mgr.store.types
     names = list(model.joint_names)
     fault = {"kind": None}
     stop = threading.Event()
@@ -73,6 +78,13 @@ def main() -> None:
                        "name": [n + "_x" for n in names] if fault["kind"] == "names" else names,
                        "position": q.tolist(), "velocity": list(map(float, js.qd))}
                 pub.publish(**joint_state(types, msg))
+                f = np.zeros(3) if js.tcp_force is None else np.asarray(js.tcp_force, float)
+                V = wtypes["geometry_msgs/msg/Vector3"]
+                wrench_pub.publish(
+                    header=wtypes["std_msgs/msg/Header"](stamp=wtypes["builtin_interfaces/msg/Time"](
+                        sec=ns // 10**9, nanosec=ns % 10**9), frame_id="base_link"),
+                    wrench=wtypes["geometry_msgs/msg/Wrench"](force=V(x=float(f[0]), y=float(f[1]), z=float(f[2])),
+                                                              torque=V(x=0.0, y=0.0, z=0.0)))
             time.sleep(max(0.0, t_next - time.monotonic()))
     threading.Thread(target=publish, daemon=True).start()
     time.sleep(0.5)
