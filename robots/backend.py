@@ -45,6 +45,15 @@ class JointState:
 
 
 @dataclass(frozen=True)
+class Recovery:
+    """What `recover` did (RobotBackend.recover): the arm can take tasks again (`ok`), the steps taken in order, and
+    where it could not, what a person must do (one line)."""
+    ok: bool
+    steps: tuple[str, ...] = ()
+    person: str = ""
+
+
+@dataclass(frozen=True)
 class TopicState:
     """A robot whose state arrives on a front door's topic instead of a link of its own (an arm that ROS 2
     drives): the door subscribes and hands each message over, `take(msg | None, problem | None, source)` (source:
@@ -114,6 +123,19 @@ class RobotBackend:
     def hold(self) -> None:
         """Bring the arm to rest and keep it there."""
         raise NotImplementedError
+
+    # -- recovery ----------------------------------------------------------------------
+    recoverable: frozenset = frozenset()    # the fault codes of faults() that `recover` clears on this backend
+
+    def recover(self, timeout_s: float) -> Recovery:
+        """Return the arm to a state where tasks can run, within `timeout_s`, or say what a person must do. Runs on
+        a thread of its own while the control tick holds the arm (never during a task). This default clears
+        nothing: a backend that can, says how."""
+        faults = self.faults()
+        if not faults:
+            return Recovery(True, ("the arm reports no fault: nothing to recover",))
+        code, message = next(iter(faults.items()))
+        return Recovery(False, (), f"{code}: {message}; `recover` cannot clear it on robot.backend {self.name}")
 
     def set_resting(self, resting: bool) -> None:
         """The control thread: no task runs (True), or one has started (False). A backend may then

@@ -41,13 +41,14 @@ from __future__ import annotations
 
 import logging
 import resource
+import threading
 import time
 
 import numpy as np
 
 from tecdard.host import Check, can_set_fifo, check_rt_kernel
 from tecdard.options import read_options
-from tecdard.robots.backend import LinkBackend, rig_section
+from tecdard.robots.backend import LinkBackend, Recovery, rig_section
 from tecdard.robots.backends import BackendContext
 from tecdard.robots.franka_link import FrankaLink, FrankaLinkSettings
 from tecdard.robots.franka_server import LIBFRANKA_ROBOT_SERVER_VERSION, ROBOT_PORT, server_version
@@ -68,6 +69,8 @@ class FrankaBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a FrankaLink; the IMU is the serial board."""
 
     log = log
+    name = "franka"
+    recoverable = frozenset({"robot_reflex"})
 
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "franka", FRANKA_MODELS, "Franka", "the robot's FCI address")
@@ -75,6 +78,7 @@ class FrankaBackend(LinkBackend):
         if self.settings.watchdog_s < 2.0 * ctx.tick_s:
             raise section.error("watchdog_s", f"{self.settings.watchdog_s} is below the minimum {2.0 * ctx.tick_s}")
         self._attach(ctx, FrankaLink(self.settings), f"Franka robot {self.settings.host}")
+        self._recovering = threading.Lock()      # one error recovery at a time: the supervisor's or `recover`'s
 
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
@@ -121,7 +125,8 @@ class FrankaBackend(LinkBackend):
             if now < next_recovery or "UserStopped" in link.robot_fault:
                 continue
             fault = link.robot_fault
-            ok, why = link.recover()
+            with self._recovering:                 # never beside a `recover` the daemon was asked for
+                ok, why = link.recover()
             recoveries += 1
             deadline = time.monotonic() + RECOVERY_SETTLE_S
             while not ok and link.robot_fault and time.monotonic() < deadline and not self._stop.wait(0.02):
@@ -132,6 +137,33 @@ class FrankaBackend(LinkBackend):
             else:
                 log.warning("error recovery %d on %s failed: %s", recoveries, self.settings.host, why)
             next_recovery = time.monotonic() + RECOVER_S[min(recoveries, len(RECOVER_S) - 1)]
+
+    def recover(self, timeout_s: float) -> Recovery:
+        """franky's error recovery now (the supervisor's own waits its back-off), then the robot's mode read back: a
+        robot that stays in Reflex without an error is said as such (libfranka's known case), as is a user stop."""
+        link, host = self.link, self.settings.host
+        if link.exited.is_set() or link.fault:
+            return Recovery(False, (), f"the link to the Franka robot {host} is down ({link.fault or 'not connected'}): "
+                                       "the daemon reconnects by itself; check the robot, Desk's FCI and the network")
+        fault = link.robot_fault
+        if not fault:
+            return Recovery(True, ("the robot reports no fault: nothing to recover",))
+        if "UserStopped" in fault:
+            return Recovery(False, (), "the user stop is pressed: release it (the recovery then runs by itself)")
+        deadline = time.monotonic() + timeout_s
+        with self._recovering:
+            ok, why = link.recover(max(min(timeout_s, 5.0), 0.1))
+        steps = (f"franky's error recovery (recover_from_errors) on {fault}",)
+        while link.robot_fault and time.monotonic() < deadline:
+            time.sleep(0.02)
+        st = link.franka_state
+        if not link.robot_fault:
+            return Recovery(True, steps + (f"the robot reads back mode {st.mode if st else '?'}, no error",))
+        if st is not None and st.mode == "Reflex" and not st.errors:
+            return Recovery(False, steps, "the robot stays in Reflex without an error after the recovery (a known "
+                                          "libfranka case): press and release the user stop, then `recover`; if it "
+                                          "stays, restart the arm from Desk")
+        return Recovery(False, steps, f"the recovery did not clear it ({why or link.robot_fault}): see Desk")
 
     def checks(self) -> list[Check]:
         """This host's real-time fitness for robot.franka.realtime, and the robot's FCI and server version."""
@@ -155,7 +187,7 @@ class FrankaBackend(LinkBackend):
             out["robot_refused"] = f"Franka robot {host} refused a command: {fault}"
         else:
             out["robot_reflex"] = (f"Franka robot {host}: {fault}; recovering by itself (franky's "
-                                   f"recover_from_errors), then a new task may run")
+                                   f"recover_from_errors; `recover` runs it now), then a new task may run")
         return out
 
 

@@ -53,6 +53,7 @@ class ObserverOptions:
 
 
 class Ros2Observer(RobotBackend):
+    name = "ros2"
     commands_arm = False
     read_only_reason = ("robot.backend ros2 observes an arm that ROS 2 drives: tasks are refused; command the arm "
                         "through its own driver")

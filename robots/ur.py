@@ -30,6 +30,7 @@ from tecdard.options import read_options
 from tecdard.robots.backend import LinkBackend, rig_section
 from tecdard.robots.backends import BackendContext
 from tecdard.robots.ur_link import ROBOT_MODE_RUNNING, UrLink, UrLinkError, UrLinkSettings, controller_identity
+from tecdard.robots.ur_recover import RECOVERABLE, recover_ur
 
 log = logging.getLogger("tecdar.ur")
 
@@ -43,6 +44,8 @@ class UrBackend(LinkBackend):
     """The robot (receive and control, as any backend) on a UrLink; the IMU is the serial board."""
 
     log = log
+    name = "ur"
+    recoverable = RECOVERABLE
 
     def __init__(self, ctx: BackendContext):
         section = rig_section(ctx, "ur", UR_MODELS, "UR", "the controller's address")
@@ -124,7 +127,7 @@ class UrBackend(LinkBackend):
             out["robot_emergency_stop"] = "the UR controller reports an emergency stop"
         elif st.protective_stopped:
             out["robot_protective_stop"] = ("the UR controller reports a protective stop: inspect its cause, "
-                                            "then unlock it on the pendant or the dashboard")
+                                            "then `recover` (or unlock it on the pendant)")
         elif st.robot_mode != ROBOT_MODE_RUNNING:
             out["robot_not_running"] = f"the UR arm is not running (robot mode {st.robot_mode})"
         elif not st.program_running:
@@ -132,6 +135,11 @@ class UrBackend(LinkBackend):
                                     "off, or stopped from the pendant)")
         return out
 
+
+    def recover(self, timeout_s: float):
+        """Unlock a protective stop (after UR's 5 s rule), power on and release the brakes where allowed, or say
+        what a person must do (robots/ur_recover.py)."""
+        return recover_ur(self, timeout_s)
 
     def checks(self) -> list[Check]:
         """The controller's ports, its arm against robot.model, and remote control."""

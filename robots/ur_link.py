@@ -71,6 +71,8 @@ class UrLinkSettings:
                                       above=0.0, maxval=120.0)
     watchdog_hz: float = option(10.0, "the controller stops the program when the daemon writes less often (at most "
                                       "half the control tick's rate)", unit="Hz", minval=2.0, maxval=500.0)
+    allow_power_on: bool = option(False, "`recover` may power the arm on and release its brakes through the dashboard "
+                                         "(else it says a person must, on the pendant)")
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,8 @@ def remove_stale_pty_dirs() -> None:
 
 
 class SimBackend(RobotBackend):
+    name = "sim"
+
     """The simulated arm (a SimProcess child) as a robot backend, and the simulator's own IMU sources:
     `sim` (samples on a pipe) and `sim-wire` (tecdar-imu/1 on a pty, the real serial driver reading it)."""
 

@@ -520,3 +520,42 @@ def test_the_franka_hand_lets_go_is_refused_a_task_grasps_again_and_the_rotate_f
     # re-grasped, the pad is welded where it came to rest, without the first grasp's settling: 0.96-1.09 mm alone,
     # 6.96 mm once under the whole suite's load
     assert err < REGRASP_HINGE_TOL_M, f"hinge error {err * 1e3:.2f} mm"
+
+
+def test_recover_runs_frankys_recovery_and_says_a_reflex_without_an_error_is_a_persons(tmp_path, board):
+    """Issue 52: `recover` on a Franka. A robot held in Reflex with no error (a known libfranka case, injected into
+    franky-sim's state) is a robot_reflex fault; franky's error recovery does not clear it, and `recover` says so
+    and what a person must do. Once the user stop has been pressed and released the fault clears, `recover` has
+    nothing left to do, and a task runs."""
+    control = tmp_path / "control"
+    srv = ServerProcess("--control", str(control))
+    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{
+        "control.max_force_n": 100.0, "gripper.backend": "none",
+        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
+    try:
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
+        control.write_text("reflex-stuck")
+        assert wait_for(lambda: any(f["code"] == "robot_reflex"
+                                    for f in d.client.command("status")["state"]["faults"]), 10.0)
+        fault = next(f for f in d.client.command("status")["state"]["faults"] if f["code"] == "robot_reflex")
+        assert fault["message"].endswith("(`recover` clears it)") and "Reflex" in fault["message"], fault
+        reply = d.client.command("recover", {}, timeout=30.0)
+        assert reply["ok"] is False and reply["error"]["code"] == "not_recovered", reply
+        assert "stays in Reflex without an error" in reply["error"]["message"]
+        assert "user stop" in reply["error"]["message"]
+        refused = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.01})
+        assert refused["ok"] is False and refused["error"]["code"] == "fault", refused
+        control.write_text("user-stop")
+        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0), \
+            d.client.command("status")["state"]["faults"]
+        again = d.client.command("recover", {}, timeout=30.0)
+        assert again == {"ok": True, "steps": ["the robot reports no fault: nothing to recover"],
+                         "took_s": again.get("took_s")}, again
+        reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.01})
+        assert reply["ok"] is True, reply
+        ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 30.0)
+        # the arm moved the whole way down free air: the task ran to its own end (no contact there)
+        assert ev["kind"] == "task_done" or "no contact within max_distance" in ev.get("error", ""), ev
+    finally:
+        d.close()
+        srv.close()

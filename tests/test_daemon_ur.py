@@ -62,14 +62,28 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
         assert set(codes) <= {"robot_protective_stop", "robot_refused", "robot_program"}, codes
         refused = d.client.command("probe", {})
         assert refused["ok"] is False and refused["error"]["code"] == "fault"
-        db = dashboard_client.DashboardClient(fake.host)
-        db.connect()
-        db.unlockProtectiveStop()                     # as the operator would, after inspecting the cause
-        db.disconnect()
-        # the stop clears, and the control script is uploaded again: no fault is left
-        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0), \
-            d.client.command("status")["state"]["faults"]
+        faults = d.client.command("status")["state"]["faults"]
+        stop = next(f for f in faults if f["code"] == "robot_protective_stop")
+        assert stop["message"].endswith("(`recover` clears it)"), faults
+        # `recover` (issue 52): the dashboard unlocks it once UR's 5 s rule allows, closes the popup, and the
+        # control script is uploaded again; no fault is left, and a second recover has nothing to do
+        reply = d.client.command("recover", {}, timeout=30.0)
+        assert reply["ok"] is True, reply
+        assert any("unlocked the protective stop" in s for s in reply["steps"]), reply
+        assert "closed the safety popup" in reply["steps"] and fake.arm()["popup"] is False
+        assert d.client.command("status")["state"]["faults"] == []
         assert fake.arm()["scripts"] >= 2
+        again = d.client.command("recover", {}, timeout=30.0)
+        assert again["ok"] is True and again["steps"] == ["the arm reports no fault: nothing to recover"], again
+        # an arm powered off: recover says a person must power it on, unless robot.ur.allow_power_on
+        fake.set(robot_mode=3)
+        assert wait_for(lambda: any(f["code"] == "robot_not_running"
+                                    for f in d.client.command("status")["state"]["faults"]), 5.0)
+        off = d.client.command("recover", {}, timeout=30.0)
+        assert off["ok"] is False and off["error"]["code"] == "not_recovered", off
+        assert "powered off" in off["error"]["message"] and "robot.ur.allow_power_on" in off["error"]["message"]
+        assert "power on" not in [c.lower() for c in fake.dashboard_commands()[0]]
+        fake.set(robot_mode=7)
     finally:
         d.close()
     assert "leaked" not in d.log() and "robot.tool_offset / robot.model" not in d.log()

@@ -89,15 +89,25 @@ def test_the_real_dashboard_client_talks_to_the_dashboard_server(fake):
     assert not_understood == []
 
 
-def test_a_protective_stop_is_unlocked_on_the_dashboard_and_clears_on_rtde(fake):
+def test_a_protective_stop_is_unlocked_on_the_dashboard_5_s_after_it_and_clears_on_rtde(fake):
+    """UR's rule: the dashboard refuses to unlock a protective stop until 5 s after it (ur-rtde raises on the
+    answer), and the pendant's safety popup stays until it is closed."""
+    import time
+    from tests.fakes.fake_ur import UNLOCK_AFTER_S
     r = rtde_receive.RTDEReceiveInterface(fake.host, 500.0, UR_VARIABLES)
     db = dashboard_client.DashboardClient(fake.host)
     db.connect()
     try:
         fake.set(safety_status_bits=1 << PROTECTIVE_STOPPED_BIT, safety_mode=3)
+        t_stop = time.monotonic()
         assert wait_for(r.isProtectiveStopped)
-        assert db.safetystatus() == "Safetystatus: PROTECTIVE_STOP"
+        assert db.safetystatus() == "Safetystatus: PROTECTIVE_STOP" and fake.arm()["popup"] is True
+        with pytest.raises(Exception, match="5s after occurrence"):
+            db.unlockProtectiveStop()
+        time.sleep(max(0.0, t_stop + UNLOCK_AFTER_S + 0.1 - time.monotonic()))
         db.unlockProtectiveStop()
+        db.closeSafetyPopup()
+        assert fake.arm()["popup"] is False
         assert wait_for(lambda: not r.isProtectiveStopped()) and r.getSafetyMode() == 1
         assert db.safetystatus() == "Safetystatus: NORMAL"
     finally:

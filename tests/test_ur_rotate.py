@@ -89,9 +89,10 @@ def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
     assert "robot.tool_offset / robot.model" not in d.log() and "leaked" not in d.log()
 
 
-def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(tmp_path):
+def test_a_protective_stop_mid_rotate_fails_the_task_nothing_moves_after_it_and_recover_lets_a_rotate_run(tmp_path):
+    """Issue 52: a protective stop mid-rotate, `recover` (the dashboard's unlock after UR's 5 s rule, the popup
+    closed, the control script back), the arm still where it stopped, then a rotate opens the cutter further."""
     import time
-    import dashboard_client
     from tests.fakes.fake_ur import wait_for
     with cutter_rig(tmp_path, seed=2) as (fake, d):
         reply = d.client.command("rotate", {"angle_deg": 30.0})
@@ -104,11 +105,11 @@ def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(
         failed = d.client.wait_event(("task_failed",), reply["task"], 5.0)
         assert "protective stop" in failed["error"]
         angle_at_stop = fake.truth().handle_angle_rad
-        db = dashboard_client.DashboardClient(fake.host)
-        db.connect()
-        db.unlockProtectiveStop()
-        db.disconnect()
-        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
+        refused = d.client.command("rotate", {"angle_deg": 10.0})
+        assert refused["error"]["code"] == "fault" and "robot_protective_stop" in refused["error"]["message"]
+        reply = d.client.command("recover", {}, timeout=30.0)
+        assert reply["ok"] is True and any("unlocked the protective stop" in s for s in reply["steps"]), reply
+        assert d.client.command("status")["state"]["faults"] == [] and fake.arm()["popup"] is False
         # the control script is back, and the daemon only holds: the arm stays where it stopped
         # (the controller's registers still held the last speedJ of the task; the link writes
         # zeros as soon as the new script runs, and the daemon's plan stopped where the arm did)
@@ -119,6 +120,12 @@ def test_a_protective_stop_mid_rotate_fails_the_task_and_nothing_moves_after_it(
         assert np.max(np.abs(np.array(arm["q"]) - q_back)) < STILL_RAD
         assert abs(fake.truth().handle_angle_rad - angle_at_stop) < np.radians(0.2)
         assert all(v == 0.0 for v in arm["speedj_t"][-1][1])
+        # and the task that follows runs: the cutter opens further from where the stop left it
+        reply = d.client.command("rotate", {"angle_deg": 10.0})
+        assert reply["ok"] is True, reply
+        ev = with_truth(d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S), fake.truth())
+        assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-2000:]}"
+        assert abs(fake.truth().handle_angle_rad) > abs(angle_at_stop) + np.radians(5.0)
 
 
 def test_a_robotiq_on_the_ur_grasps_the_handle_then_the_daemon_rotates_it_and_releases(tmp_path):

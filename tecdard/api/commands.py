@@ -17,7 +17,7 @@ from tecdard.verbs import REQUIRED, Field, TaskVerb
 
 log = logging.getLogger("tecdar.commands")
 
-CONTROL_VERBS = ("stop", "status", "cancel", "record", "grasp", "release")     # the verbs that are not tasks
+CONTROL_VERBS = ("stop", "status", "cancel", "record", "grasp", "release", "recover")   # the verbs that are not tasks
 GRIP_VERBS = ("grasp", "release")         # the gripper's (robots/gripper.py), one at a time, never during a task
 
 
@@ -49,6 +49,7 @@ READ_ONLY = "read_only"                  # the daemon observes an arm that somet
 NO_GRIPPER = "no_gripper"                # gripper.backend: none (or an arm without one)
 GRIPPER = "gripper"                      # the gripper refused, failed or did not answer
 NOT_GRASPED = "not_grasped"              # a task, while a gripper that says what it holds holds nothing
+NOT_RECOVERED = "not_recovered"          # `recover` could not return the arm to a state where tasks run: a person must
 MAX_GRIP_FORCE_N = 300.0                 # the fields' own bounds; gripper.max_force_n bounds the force further
 MAX_GRIP_WIDTH_M = 0.15
 MAX_GRIP_SPEED_M_S = 0.2
@@ -297,7 +298,7 @@ def validate(verb: str, obj: dict, limits: Limits) -> dict:
         return validate_task(spec, obj, limits)
     if verb not in CONTROL_VERBS:
         raise CommandError(UNKNOWN_VERB, f"verb: unknown command '{show_name(verb)}' (known: {', '.join(verbs())})")
-    if verb in ("stop", "status"):
+    if verb in ("stop", "status", "recover"):
         _check_fields(obj, verb, ())
         return {}
     if verb == "record":

@@ -61,16 +61,19 @@ CONTROL_OPTIONS = {"stop": [], "status": [],
                    "release": [("--width", "width", _finite, "the opening to move to, m (default "
                                                              "gripper.open_width_m)", None),
                                ("--speed", "speed", _finite, "the fingers' speed, m/s (default gripper.speed_m_s)",
-                                None)]}
+                                None)],
+                   "recover": []}
 CONTROL_SUMMARIES = {"stop": "stop the arm now, whatever runs (always allowed)",
                      "status": "the daemon's mode, task, faults, TCP and contact (mm, deg)",
                      "cancel": "end the running task as stop does, and report it failed",
                      "record": "start or stop a recording on demand",
                      "grasp": "close the gripper on the object at a grip force (never during a task)",
-                     "release": "open the gripper (never during a task); tasks then refuse until a grasp"}
+                     "release": "open the gripper (never during a task); tasks then refuse until a grasp",
+                     "recover": "return the arm to where tasks run (unlock a protective stop, franky's error "
+                                "recovery), or say what a person must do"}
 CONTROL_EXAMPLES = {"stop": "tecdard stop", "status": "tecdard status --robot ur5e-left",
                     "cancel": "tecdard cancel", "record": "tecdard record --action start --label hinge-a",
-                    "grasp": "tecdard grasp --force 30", "release": "tecdard release"}
+                    "grasp": "tecdard grasp --force 30", "release": "tecdard release", "recover": "tecdard recover"}
 FIELD_TYPES = {"number": _finite, "direction": _vec, "numbers": _vec, "choice": str, "bool": bool, "grid": _ints,
                "int_choice": int}
 ENV_CONNECT, ENV_ROBOT = "TECDAR_CONNECT", "TECDAR_ROBOT"
@@ -396,6 +399,8 @@ def _answered(cli: Client, args, reply: dict) -> int:
     if args.verb not in task_verbs():
         if not args.json and isinstance(reply.get("gripper"), dict):
             print(f"{args.verb}: ok, {show.gripper_text(reply['gripper'])}")
+        elif not args.json and isinstance(reply.get("steps"), list):          # recover: what it did
+            print(f"{args.verb}: ok: " + "; ".join(str(s) for s in reply["steps"]))
         elif not args.json and args.verb != "status":
             print(f"{args.verb}: ok")
         return EXIT_DONE

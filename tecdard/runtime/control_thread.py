@@ -26,7 +26,8 @@ from tecdard.control.servo import PlanSample, joint_velocities
 from tecdard.api import commands as C
 from tecdard import verbs
 from tecdard.control.last_hinge import LastHinge
-from tecdard.runtime.messages import Cancel, Grip, LatestValue, Outbox, Reply, StartTask, Stop
+from tecdard.runtime.messages import Cancel, Grip, LatestValue, Outbox, Recover, Reply, StartTask, Stop
+from tecdard.runtime.recovery import Recoverer, recover_hint
 from tecdard.runtime.realtime import MAX_RT_PRIORITY, TickStats, apply_rt_priority
 from tecdard.options import option, read_options
 from tecdard.safejson import show_name
@@ -124,6 +125,7 @@ class ControlThread:
         self.gripper = None                  # runtime.gripper_worker.GripperWorker once started (None: no gripper)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
+        self.recoverer = Recoverer(robot, outbox, self.replies)       # `recover`, on a thread of its own
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
         self._stop_waiters: list = []
         self.runner = TaskRunner(CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk),
@@ -262,7 +264,7 @@ class ControlThread:
                                                            self.estimator.saturated_since)]
         # the robot's own controller has stopped the arm where it is: the plan stops there too
         changes += [(c, p) for c in self.sensors.update_state_age(now, state_t, robot.state_age_s, self._late_s)]
-        backend = {**robot.faults(), **robot.state_faults()}
+        backend = {c: m + recover_hint(c, robot.recoverable) for c, m in {**robot.faults(), **robot.state_faults()}.items()}
         # the daemon cut from its Zenoh router (network.RouterLink): no command, `stop` included, can
         # reach it, so the task stops as on a lost robot link, braking on its plan (the arm still obeys)
         net = self.network_fault.get()
@@ -307,6 +309,13 @@ class ControlThread:
                     self._reply(msg.request, C.CommandError(C.NO_TASK, f"task: no running task{which}").reply())
             elif isinstance(msg, StartTask):
                 self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p, js))
+            elif isinstance(msg, Recover):
+                running = self.runner.busy()
+                if running is not None or self.recoverer.busy or (self.gripper is not None and self.gripper.busy):
+                    what = running or ("a recovery" if self.recoverer.busy else "the gripper")
+                    self._reply(msg.request, C.CommandError(C.BUSY, f"recover: refused, {what} is still running").reply())
+                else:
+                    self.recoverer.start(msg.request)
             elif isinstance(msg, Grip):
                 refused = self._grip_refusal(msg)
                 if refused is not None:
@@ -317,7 +326,7 @@ class ControlThread:
     def _grip_refusal(self, msg: Grip) -> dict | None:
         """Hand a grasp or a release to the gripper's thread (it replies when the fingers stop), or the refusal:
         never during a task or a fault (the object is the task's, and a faulted arm's), one at a time."""
-        running = self.runner.busy()
+        running = self.runner.busy() or ("a recovery" if self.recoverer.busy else None)
         if self.gripper is None:
             return C.CommandError(C.NO_GRIPPER, f"{msg.verb}: no gripper here (gripper.backend: none); set "
                                                 "gripper.backend (manual, if a person grasps)").reply()
@@ -337,7 +346,7 @@ class ControlThread:
     def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray, js) -> dict:
         """Start the verb's task from validated fields at the measured TCP position `p` (of the tick's
         joint state `js`); the command's reply."""
-        running = self.runner.busy()
+        running = self.runner.busy() or ("a recovery" if self.recoverer.busy else None)
         if running is not None:
             return C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply()
         if self.faults:

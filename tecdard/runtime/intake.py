@@ -32,7 +32,7 @@ import zenoh
 
 from tecdard.api import commands as C
 from tecdard.options import option, read_options
-from tecdard.runtime.messages import Cancel, Grip, Reply, StartTask, Stop
+from tecdard.runtime.messages import Cancel, Grip, Recover, Reply, StartTask, Stop
 from tecdard.safejson import show_name
 from tecdard.api.session import JSON, Keys, dumps
 
@@ -117,7 +117,7 @@ class QueryIntake:
         self._pending_stops = 0
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
-        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel",) + C.GRIP_VERBS}
+        self._task_keys = {keys.cmd(v) for v in C.task_verbs() + ("cancel", "recover") + C.GRIP_VERBS}
         self._record_key = keys.cmd("record")
         self._known_keys = {keys.cmd(v) for v in C.verbs()}
         self._parse = {k: TokenBucket(self.params.rate(k), max(self.params.rate(k), MIN_BURST)) for k in BACKLOG}
@@ -246,11 +246,11 @@ class QueryIntake:
                     raise C.CommandError(C.NOT_IMPLEMENTED, "record: this daemon does not record")
                 self._send(query, self.record(fields["action"], fields["label"]))
                 return
-            if self.read_only and (verb in C.task_verbs() or verb in C.GRIP_VERBS):
+            if self.read_only and (verb in C.task_verbs() or verb in C.GRIP_VERBS or verb == "recover"):
                 raise C.CommandError(C.READ_ONLY, f"{verb}: {self.read_only}")
             request = self._register(query)
-            msg = Cancel(request, fields["task"]) if verb == "cancel" else Grip(request, verb, fields) \
-                if verb in C.GRIP_VERBS else StartTask(request, verb, fields)
+            msg = Cancel(request, fields["task"]) if verb == "cancel" else Recover(request) if verb == "recover" \
+                else Grip(request, verb, fields) if verb in C.GRIP_VERBS else StartTask(request, verb, fields)
             if not self.control.submit(msg):
                 self._forget(request)
                 raise C.CommandError(C.BUSY, f"{verb}: control queue full, try again")

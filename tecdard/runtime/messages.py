@@ -40,6 +40,11 @@ class Grip:
 
 
 @dataclass(frozen=True)
+class Recover:
+    request: int          # `recover`: return the arm to a state where tasks can run (robots.backend.Recovery)
+
+
+@dataclass(frozen=True)
 class Stop:
     request: int | None   # None: nobody waits for the reply (the daemon's own shutdown)
     reason: str = "stopped by command"

@@ -319,6 +319,9 @@ NORMAL_MODE_BIT, PROTECTIVE_STOP_BIT = 0, 2          # safety_status_bits
 POWER_ON_BIT, PROGRAM_RUNNING_BIT = 0, 1             # robot_status_bits
 
 
+UNLOCK_AFTER_S = 5.0            # UR: a protective stop may be unlocked only this long after it occurred
+
+
 class ControllerState:
     """The values both servers share (RTDE's output variables by name), under one lock."""
 
@@ -331,6 +334,9 @@ class ControllerState:
         self.serial_number = "20215500001"        # year, model code, number, as the controller reports it
         self.samples: collections.deque = collections.deque(maxlen=256)    # (index, values), oldest first
         self.count = 0                            # samples published so far
+        # a protective stop: when it began (UR's dashboard unlocks it only 5 s after), and the pendant's popup
+        self.protective_since: float | None = None
+        self.popup = False
 
     def snapshot(self) -> dict:
         with self.lock:
@@ -354,6 +360,8 @@ class ControllerState:
 
     def update(self, **values) -> None:
         with self.lock:
+            if values.get("safety_mode") == 3 and self.values.get("safety_mode") != 3:
+                self.protective_since, self.popup = time.monotonic(), True
             self.values.update(values)
 
     def program_running(self) -> bool:
@@ -366,8 +374,11 @@ class ControllerState:
             self.values["runtime_state"] = 2 if running else 1          # PLAYING, STOPPED
 
     def unlock_protective_stop(self) -> bool:
+        """False while not protective-stopped, or within UNLOCK_AFTER_S of the stop (UR's rule)."""
         with self.lock:
             if self.values.get("safety_mode") != 3:
+                return False
+            if self.protective_since is not None and time.monotonic() - self.protective_since < UNLOCK_AFTER_S:
                 return False
             self.values["safety_mode"] = 1
             self.values["safety_status_bits"] = 1 << NORMAL_MODE_BIT
@@ -431,6 +442,7 @@ class DashboardServer(_TcpServer):
             return "Protective stop releasing" if c.unlock_protective_stop() else \
                 "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of protective stop before unlocking"
         if lower == "close safety popup":
+            c.popup = False
             return "closing safety popup"
         if lower == "close popup":
             return "closing popup"
@@ -891,7 +903,8 @@ def _child(host: str, arm_name: str, version, q, tcp_offset, sim, remote_control
                 conn.send({"q": list(arm.q), "qd": list(arm.qd), "commands": list(script.commands),
                            "scripts": len(scripts.scripts), "program_running": script.running,
                            "watchdog_hz": script.watchdog_hz, "watchdog_trips": script.watchdog_trips,
-                           "speedj_t": list(script.speedj_t), "moved_t": arm.moved_t})
+                           "speedj_t": list(script.speedj_t), "moved_t": arm.moved_t, "popup": controller.popup,
+                           "robot_mode": controller.snapshot().get("robot_mode")})
             elif msg[0] == "truth":
                 conn.send(arm.truth() if sim is not None else None)
             elif msg[0] == "late":

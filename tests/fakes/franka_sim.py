@@ -18,7 +18,9 @@ Options for the tests:
   meets, and franky.Robot() then waits for ever);
 - `--joint7-kv`: joint 7's velocity gain (franky-sim's default 200 makes it chatter);
 - `--control FILE`: `reflex` written there raises libfranka's joint_reflex error in the robot's
-  state (franky-sim simulates none) until the robot's automatic error recovery clears it;
+  state (franky-sim simulates none) until the robot's automatic error recovery clears it; `reflex-stuck`
+  holds the robot in Reflex with no error, which the recovery does not clear (a known libfranka case), until
+  `user-stop` (a person pressing and releasing the user stop) does;
 - `--cutter`: the paper cutter in the hand, the fingertip board on `--pty` (below).
 
 `ServerProcess` starts one and waits for READY; `close()` ends it; `kill()` ends it as a crash would.
@@ -157,7 +159,8 @@ def add_cutter(sim, radius: float, hinge_behind_m: float, hinge_friction_nm: flo
 
 
 JOINT_REFLEX = 6                # libfranka's Errors: the joint_reflex flag's index
-INJECTED = {"errors": False}    # a reflex the test asked for (--control), until the robot's error recovery
+INJECTED = {"errors": False,    # a reflex the test asked for (--control), until the robot's error recovery
+            "stuck": False}     # Reflex with no error (--control reflex-stuck), until `user-stop`
 
 
 def report_state_extras(robot, sim, grasp_force: bool) -> None:
@@ -189,6 +192,18 @@ def report_state_extras(robot, sim, grasp_force: bool) -> None:
                 extra.update(errors=flags, reflex_reason=flags)
             return st.replace(**extra) if extra else st
     robot.__class__ = WithExtras
+
+
+def _reflex_stuck_holds_the_mode() -> None:
+    """`reflex-stuck`: the server reports Reflex with no error (it sets the mode itself, after the state's extras)."""
+    from franky_sim import franka_robot_server as rs
+    from franky_sim.franka_robot_protocol import RobotMode
+    prop = rs.FrankaRobotServer.robot_state
+
+    def robot_state(self):
+        st = prop.fget(self)
+        return st.replace(robot_mode=RobotMode.kReflex) if INJECTED["stuck"] else st
+    rs.FrankaRobotServer.robot_state = property(robot_state)
 
 
 def _recover_clears_the_injected_reflex() -> None:
@@ -248,6 +263,12 @@ def _poll_control(path: str | None) -> None:
         if what == "reflex":
             INJECTED["errors"] = True
             print("REFLEX", flush=True)
+        elif what == "reflex-stuck":
+            INJECTED["stuck"] = True
+            print("REFLEX-STUCK", flush=True)
+        elif what == "user-stop":
+            INJECTED["stuck"] = False
+            print("USER-STOP", flush=True)
 
 
 def grasp(sim) -> None:
@@ -338,6 +359,7 @@ def run(args) -> None:
 
     kv = tuple(MUJOCO_DEFAULT_KV[:6]) + (args.joint7_kv,)
     _recover_clears_the_injected_reflex()
+    _reflex_stuck_holds_the_mode()
     with MujocoSimulator() as sim:
         robot = sim.add_robot(kv=kv)
         report_state_extras(robot, sim, grasp_force=args.cutter)
