@@ -89,6 +89,26 @@ def test_the_daemon_runs_on_a_ur_controller_and_its_protective_stop_is_a_fault(t
     assert "leaked" not in d.log() and "robot.tool_offset / robot.model" not in d.log()
 
 
+def test_recover_powers_on_and_releases_the_brakes_only_where_the_config_allows(tmp_path, board, fake):
+    """robot.ur.allow_power_on: true: an arm powered off is powered on and its brakes released through the
+    dashboard (in that order), and tasks may run again."""
+    cfg = ur_config(fake.host, str(board.link))
+    cfg["robot"]["ur"]["allow_power_on"] = True
+    d = DaemonProcess(tmp_path, cfg)
+    try:
+        fake.set(robot_mode=3)
+        assert wait_for(lambda: any(f["code"] == "robot_not_running"
+                                    for f in d.client.command("status")["state"]["faults"]), 5.0)
+        reply = d.client.command("recover", {}, timeout=30.0)
+        assert reply["ok"] is True, reply
+        assert reply["steps"][:2] == ["powered the arm on (dashboard server)", "released the brakes (dashboard server)"]
+        sent = [c.lower() for c in fake.dashboard_commands()[0]]
+        assert sent.index("power on") < sent.index("brake release") and fake.arm()["robot_mode"] == 7
+        assert d.client.command("status")["state"]["faults"] == []
+    finally:
+        d.close()
+
+
 def test_a_controller_tcp_far_from_our_kinematics_is_said_at_start(tmp_path, board):
     # the pendant's TCP is 12 mm out of the flange; the daemon's tool offset says nothing of it
     fake = FakeController(free_loopback_host(), arm="UR5", q=Q_HOME, tcp_offset=(0.0, 0.0, 0.012, 0.0, 0.0, 0.0))
