@@ -13,6 +13,7 @@ import pathlib
 import secrets
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ import numpy as np
 from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
 from tecdard.host import Check
 from tecdard.options import option, read_options
-from tecdard.robots.backend import JointState, RobotBackend
+from tecdard.robots.backend import JointState, Recovery, RobotBackend
 from tecdard.robots.backends import BackendContext
 from tecdard.shipped import host_board
 from tecdard.sim.board import BoardParams
@@ -52,6 +53,7 @@ def remove_stale_pty_dirs() -> None:
 
 class SimBackend(RobotBackend):
     name = "sim"
+    recoverable = frozenset({"robot_protective_stop"})
 
     """The simulated arm (a SimProcess child) as a robot backend, and the simulator's own IMU sources:
     `sim` (samples on a pipe) and `sim-wire` (tecdar-imu/1 on a pty, the real serial driver reading it)."""
@@ -153,6 +155,32 @@ class SimBackend(RobotBackend):
 
     def hold(self) -> None:
         self.process.hold()
+
+    def faults(self) -> dict[str, str]:
+        """The simulated controller's protective stop (a force at the TCP beyond sim.robot.protective_stop_force_n),
+        held as a real controller holds one, until `recover`."""
+        force = self.process.protective_stop
+        if force is None:
+            return {}
+        return {"robot_protective_stop": f"the simulated controller's protective stop: {force:.1f} N at the TCP, "
+                                         f"beyond sim.robot.protective_stop_force_n {self.spec.robot.protective_stop_force_n:g} N"}
+
+    def recover(self, timeout_s: float) -> Recovery:
+        """Unlock the simulated controller's protective stop, as the dashboard does a UR's."""
+        if self.process.protective_stop is None:
+            return Recovery(True, ("the arm reports no fault: nothing to recover",))
+        deadline = time.monotonic() + timeout_s
+        answered, holding = self.process.unlock(timeout_s)
+        if not answered:
+            return Recovery(False, (), f"the simulation did not answer the unlock within {timeout_s:g} s")
+        limit = self.spec.robot.protective_stop_force_n
+        if holding is not None:
+            return Recovery(False, (), f"the protective stop holds: {holding:.1f} N at the TCP, beyond {limit:g} N; "
+                                       "free the tool (a person backdrives the arm or lets go of the object), then "
+                                       "`recover` again")
+        while self.process.protective_stop is not None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return Recovery(True, ("unlocked the simulated controller's protective stop",))
 
     @property
     def world_control(self) -> "WorldControl | None":

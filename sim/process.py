@@ -26,6 +26,7 @@ import gc
 import logging
 import struct
 import termios
+import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.reduction import ForkingPickler
@@ -171,6 +172,7 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
     imu = robot.imu if spec.imu_out == "pipe" else None
     imu_tx, state_tx = PipeSender(imu_conn), PipeSender(state_conn)
     t_next = on_grid(robot.t)
+    stopped = None                        # the protective stop as last sent to the daemon
     try:
         while True:
             try:
@@ -178,6 +180,8 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
                     msg = cmd_conn.recv()
                     if msg[0] == "cmd":
                         robot.command_at(msg[1], msg[2])
+                    elif msg[0] == "unlock":
+                        state_conn.send(("unlocked", robot.unlock()))
                     elif msg[0] == "world":
                         robot.let_go() if msg[1] == "let_go" else robot.rebuild_world()
                         log.info("sim: the world %s", "is let go" if msg[1] == "let_go" else "is rebuilt at the TCP")
@@ -195,6 +199,9 @@ def child_main(spec: SimSpec, cmd_conn, state_conn, imu_conn) -> None:
                     truth = robot.truth()
                     for js in states:
                         state_tx.send(("state", js, truth))
+                if robot.protective_stop != stopped:
+                    stopped = robot.protective_stop
+                    state_tx.send(("protective_stop", stopped))
                 if imu is not None and (chunk := _drain_imu(imu)) is not None:
                     imu_tx.send(chunk)
             except (BrokenPipeError, OSError):
@@ -248,6 +255,9 @@ class SimProcess(ChildLink):
         self.spec = spec
         self.nq = nq
         self._truth: SimTruth | None = None
+        self.protective_stop: float | None = None    # the force (N) that stopped the simulated arm, until unlocked
+        self.unlock_answered = threading.Event()
+        self.unlock_answer: float | None = None
         self.imu = PipeImuSource(self)
 
     def start(self) -> None:
@@ -277,6 +287,11 @@ class SimProcess(ChildLink):
         if msg[0] == "state":
             _, state, self._truth = msg
             self._publish(state)
+        elif msg[0] == "protective_stop":
+            self.protective_stop = msg[1]
+        elif msg[0] == "unlocked":             # the answer to `unlock`: None, or the force that still holds it
+            self.unlock_answer = msg[1]
+            self.unlock_answered.set()
 
     def _gone(self) -> None:
         proc = self._proc
@@ -300,6 +315,13 @@ class SimProcess(ChildLink):
     def world(self, action: str) -> None:
         """"let_go" of the held object, or "rebuild" a fresh world around the gripper."""
         self._send(("world", action))
+
+    def unlock(self, timeout_s: float) -> tuple[bool, float | None]:
+        """Release the simulated controller's protective stop (`recover`): (answered, the force that still holds it
+        or None)."""
+        self.unlock_answered.clear()
+        self._send(("unlock",))
+        return self.unlock_answered.wait(timeout_s), self.unlock_answer
 
 
 class PipeImuSource(ImuSource):

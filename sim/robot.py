@@ -42,6 +42,9 @@ class SimRobotParams:
     tcp_speed_noise: float = option(2e-4, "noise of the reported TCP velocity", unit="m/s", minval=0.0)
     command_timeout_s: float = option(0.1, "no joint command for this long: the arm stops by itself (0: never)",
                                       unit="s", minval=0.0, maxval=10.0)
+    protective_stop_force_n: float = option(150.0, "the simulated controller's protective stop: a force at the TCP "
+                                                   "beyond this halts the arm until `recover` (a UR's default limit)",
+                                            unit="N", above=0.0, maxval=10000.0)
 
     @classmethod
     def from_config(cls, section, q_home: np.ndarray) -> "SimRobotParams":
@@ -77,6 +80,7 @@ class SimRobot:
         self.world = world_factory(oMtcp.translation.copy(), oMtcp.rotation.copy()) if world_factory else None
         self._v_prev = twist[:3].copy()
         self._cmds: collections.deque = collections.deque(maxlen=64)   # (t_effective, qd), from any thread
+        self.protective_stop: float | None = None   # the force (N) that stopped the arm, until `unlock`
         self._pending: collections.deque = collections.deque()        # owned by the physics thread
         self._qd_cmd = np.zeros(model.nq)
         self._t_cmd = self.t                 # when the command in force took effect
@@ -124,6 +128,19 @@ class SimRobot:
 
     def hold(self) -> None:
         self.command_joint_velocity(np.zeros(self.model.nq))
+
+    def unlock(self) -> float | None:
+        """Release the simulated controller's protective stop (`recover`); the arm stays at rest until commanded.
+        While the force at the TCP is still beyond the limit the stop holds (a real controller's recurs at once):
+        that force is returned, else None."""
+        force = float(np.linalg.norm(self.world.tcp_force())) if self.world is not None else 0.0
+        if self.protective_stop is not None and force > self.p.protective_stop_force_n:
+            log.info("sim: the protective stop holds: still %.1f N at the TCP", force)
+            return force
+        if self.protective_stop is not None:
+            log.info("sim: the protective stop is unlocked")
+        self.protective_stop = None
+        return None
 
     # -- lifecycle ----------------------------------------------------------
     def sync_clock(self) -> None:
@@ -184,6 +201,8 @@ class SimRobot:
                 t = self.t + dt
                 while pending and pending[0][0] <= t:
                     self._t_cmd, self._qd_cmd = pending.popleft()
+                if self.protective_stop is not None:
+                    self._qd_cmd = np.zeros(self.model.nq)      # held until `recover` unlocks it
                 if timeout > 0 and t - self._t_cmd > timeout and self._qd_cmd.any():
                     self._qd_cmd = np.zeros(self.model.nq)      # the arm's own stop: the controller went quiet
                     self.watchdog_stops += 1
@@ -216,6 +235,10 @@ class SimRobot:
                 reported = twist.copy()
                 reported[:3] += self.rng.normal(0.0, self.p.tcp_speed_noise, 3)
                 force = self.world.tcp_force() if self.world is not None else np.zeros(3)
+                if self.protective_stop is None and float(np.linalg.norm(force)) > self.p.protective_stop_force_n:
+                    self.protective_stop = float(np.linalg.norm(force))
+                    log.warning("sim: protective stop: %.1f N at the TCP (limit %g N)", self.protective_stop,
+                                self.p.protective_stop_force_n)
                 with self._lock:
                     self._state = JointState(t=self.t, q=noisy_q, qd=self.qd.copy(), seq=self._state.seq + 1,
                                              tcp_twist=reported, tcp_force=force,

@@ -264,7 +264,8 @@ class ControlThread:
                                                            self.estimator.saturated_since)]
         # the robot's own controller has stopped the arm where it is: the plan stops there too
         changes += [(c, p) for c in self.sensors.update_state_age(now, state_t, robot.state_age_s, self._late_s)]
-        backend = {c: m + recover_hint(c, robot.recoverable) for c, m in {**robot.faults(), **robot.state_faults()}.items()}
+        backend = {c: m + recover_hint(c, robot.recoverable)
+                   for c, m in {**robot.faults(), **robot.state_faults()}.items()}
         # the daemon cut from its Zenoh router (network.RouterLink): no command, `stop` included, can
         # reach it, so the task stops as on a lost robot link, braking on its plan (the arm still obeys)
         net = self.network_fault.get()
@@ -332,7 +333,9 @@ class ControlThread:
                                                 "gripper.backend (manual, if a person grasps)").reply()
         if running is not None:
             return C.CommandError(C.BUSY, f"{msg.verb}: refused, {running} is still running").reply()
-        if self.faults:
+        # a protective stop held by a contact's force is freed by letting go of the object (the arm itself holds):
+        # `release` is the one grip command a protective stop allows
+        if self.faults and not (msg.verb == "release" and set(self.faults) <= {"robot_protective_stop"}):
             return C.CommandError(C.FAULT, f"{msg.verb}: refused while fault '{next(iter(self.faults))}' "
                                            "is active").reply()
         force = msg.fields.get("force_n")
