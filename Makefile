@@ -103,6 +103,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.onset
 	$(PY) -m benchmarks.onset_live
 	$(PY) -m benchmarks.wrench_onset
+	$(PY) -m benchmarks.recover
 	$(PY) -m benchmarks.onset_study
 	$(PY) -m benchmarks.robustness
 	$(PY) -m benchmarks.robustness --breaking
