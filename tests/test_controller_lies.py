@@ -73,10 +73,11 @@ class Feed:
             self.link._handle(("state", UrState(t_host - 1000.0, t_host + lateness_s, tuple(q), tuple(qd),
                                                 tuple(pose), (0.0,) * 6, (0.0,) * 6, 7, 1, 1, True)))
         elif self.name == "franka":
-            a = np.zeros(37)
+            from tecdard.robots.franka_link import STATE_FLOATS
+            a = np.zeros(STATE_FLOATS)             # t, rx_t, q, dq, O_T_EE, f_ext (6), grip width, grasped
             a[0], a[1], a[2:9], a[9:16] = t_host - 1000.0, t_host + lateness_s, q, qd
             a[16:32] = np.eye(4).ravel()
-            a[35:37] = np.nan
+            a[38:40] = np.nan
             if pose_nan:
                 a[32] = np.nan            # the force the child computed from the torques
             self.link._handle(("state", a))
