@@ -63,23 +63,17 @@ def ur_run(tmp: pathlib.Path) -> dict:
 
 def franka_run(tmp: pathlib.Path) -> dict:
     from tecdard.sim.board import Board, PtyDevice, StreamThread
-    from tests.fakes.franka_sim import ServerProcess
-    from tests.test_daemon_franka import franka_config
+    from tests.test_daemon_franka import franka_with_control
     device = PtyDevice(tmp / "ttyIMU")
     streamer = StreamThread(device, Board()).start()
-    control = tmp / "control"
-    srv = ServerProcess("--control", str(control))
-    d = DaemonProcess(tmp, franka_config(srv.host, str(device.link), **{"control.max_force_n": 100.0,
-                                                                        "gripper.backend": "none",
-                                                                        "robot.max_state_age_s": 0.5}))
     try:
-        assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
-        control.write_text("reflex")
-        return timeline(d, "robot_reflex", lambda d: None,
-                        lambda d: d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "max_distance": 0.01}))
+        with franka_with_control(tmp / "franka", str(device.link)) as (control, _srv, d):
+            assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
+            control.write_text("reflex")
+            return timeline(d, "robot_reflex", lambda d: None,
+                            lambda d: d.client.command("approach", {"direction": [0.0, 0.0, -1.0],
+                                                                    "max_distance": 0.01}))
     finally:
-        d.close()
-        srv.close()
         streamer.join()
         device.close()
 

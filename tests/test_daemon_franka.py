@@ -2,6 +2,7 @@
 franky-sim's MuJoCo FR3 (tests/fakes/franka_sim.py), the fingertip board on a pseudo-terminal. Start,
 state, the command watchdog, a simulator that dies and comes back, and robots that cannot work: a
 version mismatch, nothing listening, a server that never answers."""
+import contextlib
 import math
 import subprocess
 import sys
@@ -311,21 +312,31 @@ def test_the_cutter_scene_turns_the_handle_and_the_fingertip_reports_it_over_the
 STALE_CODES = ("robot_stale", "imu_stale")
 
 
+@contextlib.contextmanager
+def franka_with_control(tmp_path, port_link: str):
+    """(the file franky-sim takes injections from, franky-sim, a daemon on it with no gripper), closed after.
+    franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP as a motion
+    starts): the force stop is set out of the way of free motion. Its stalls on a loaded machine
+    (FRANKY_SIM_STALLS) get their state-age allowance."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    control = tmp_path / "control"
+    srv = ServerProcess("--control", str(control))
+    d = DaemonProcess(tmp_path, franka_config(srv.host, port_link, **{
+        "control.max_force_n": 100.0, "gripper.backend": "none",
+        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
+    try:
+        yield control, srv, d
+    finally:
+        d.close()
+        srv.close()
+
+
 def reflex_run(tmp_path, board) -> tuple[list, str, str, str] | None:
     """One approach on franky-sim with a joint reflex injected mid-motion. Returns the events from the
     reflex's fault to its clearing, franky-sim's output, the task and the daemon's log; None when franky-sim (or
     the board's pty) stalled first and a stale state stopped the task before the reflex: a run that
     judged the simulator."""
-    tmp_path.mkdir(parents=True, exist_ok=True)
-    control = tmp_path / "control"
-    srv = ServerProcess("--control", str(control))
-    # franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP
-    # as a motion starts): the force stop is set out of the way of this test's free motion. Its stalls
-    # on a loaded machine (FRANKY_SIM_STALLS) get their state-age allowance
-    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{
-        "control.max_force_n": 100.0, "gripper.backend": "none",
-        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
-    try:
+    with franka_with_control(tmp_path, str(board.link)) as (control, srv, d):
         # the board's pty may start late on a loaded machine (imu_stale at start, then cleared)
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
         # long enough (4 s at 20 mm/s) that the reflex lands mid-motion on a loaded machine too: a 3 cm
@@ -349,9 +360,6 @@ def reflex_run(tmp_path, board) -> tuple[list, str, str, str] | None:
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
         events = list(d.client.event_log)
         return events[events.index(ev):], srv.output, reply["task"], d.log()
-    finally:
-        d.close()
-        srv.close()
 
 
 def test_a_reflex_is_a_fault_and_a_protective_stop_and_the_daemon_recovers_by_itself(tmp_path, board):
@@ -527,12 +535,7 @@ def test_recover_runs_frankys_recovery_and_says_a_reflex_without_an_error_is_a_p
     franky-sim's state) is a robot_reflex fault; franky's error recovery does not clear it, and `recover` says so
     and what a person must do. Once the user stop has been pressed and released the fault clears, `recover` has
     nothing left to do, and a task runs."""
-    control = tmp_path / "control"
-    srv = ServerProcess("--control", str(control))
-    d = DaemonProcess(tmp_path, franka_config(srv.host, str(board.link), **{
-        "control.max_force_n": 100.0, "gripper.backend": "none",
-        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
-    try:
+    with franka_with_control(tmp_path, str(board.link)) as (control, srv, d):
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 10.0)
         control.write_text("reflex-stuck")
         assert wait_for(lambda: any(f["code"] == "robot_reflex"
@@ -556,6 +559,3 @@ def test_recover_runs_frankys_recovery_and_says_a_reflex_without_an_error_is_a_p
         ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], 30.0)
         # the arm moved the whole way down free air: the task ran to its own end (no contact there)
         assert ev["kind"] == "task_done" or "no contact within max_distance" in ev.get("error", ""), ev
-    finally:
-        d.close()
-        srv.close()
