@@ -311,10 +311,9 @@ class ControlThread:
             elif isinstance(msg, StartTask):
                 self._reply(msg.request, self._start_task(msg.verb, msg.fields, now, p, js))
             elif isinstance(msg, Recover):
-                running = self.runner.busy()
-                if running is not None or self.recoverer.busy or (self.gripper is not None and self.gripper.busy):
-                    what = running or ("a recovery" if self.recoverer.busy else "the gripper")
-                    self._reply(msg.request, C.CommandError(C.BUSY, f"recover: refused, {what} is still running").reply())
+                running = self._occupied() or ("the gripper" if self.gripper is not None and self.gripper.busy else None)
+                if running is not None:
+                    self._reply(msg.request, C.CommandError(C.BUSY, f"recover: refused, {running} is still running").reply())
                 else:
                     self.recoverer.start(msg.request)
             elif isinstance(msg, Grip):
@@ -324,10 +323,14 @@ class ControlThread:
                 else:
                     self.last_hinge = None       # a grasp or a release: the object held may not be the one turned
 
+    def _occupied(self) -> str | None:
+        """What keeps a task, a grip command or `recover` from starting: the running task, or a recovery."""
+        return self.runner.busy() or ("a recovery" if self.recoverer.busy else None)
+
     def _grip_refusal(self, msg: Grip) -> dict | None:
         """Hand a grasp or a release to the gripper's thread (it replies when the fingers stop), or the refusal:
         never during a task or a fault (the object is the task's, and a faulted arm's), one at a time."""
-        running = self.runner.busy() or ("a recovery" if self.recoverer.busy else None)
+        running = self._occupied()
         if self.gripper is None:
             return C.CommandError(C.NO_GRIPPER, f"{msg.verb}: no gripper here (gripper.backend: none); set "
                                                 "gripper.backend (manual, if a person grasps)").reply()
@@ -349,7 +352,7 @@ class ControlThread:
     def _start_task(self, verb: str, f: dict, now: float, p: np.ndarray, js) -> dict:
         """Start the verb's task from validated fields at the measured TCP position `p` (of the tick's
         joint state `js`); the command's reply."""
-        running = self.runner.busy() or ("a recovery" if self.recoverer.busy else None)
+        running = self._occupied()
         if running is not None:
             return C.CommandError(C.BUSY, f"{verb}: refused, {running} is still running").reply()
         if self.faults:
