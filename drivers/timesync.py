@@ -11,6 +11,12 @@ WINDOW_BINS = 60           # fit over the last 30 s
 RESET_JUMP_S = 0.25        # a residual this large means the MCU clock jumped (restart) or the link stalled
 RESET_LATE_PACKETS = 20    # this many late packets in a row: the MCU clock jumped backwards, refit
 REFIT_SLEW_RATE = 5e-3     # a refit's change of the mapping is spread at this many seconds per second
+# The envelope moved up: the last STEP_BINS bins' minima all lie more than STEP_TOL_S above the line under the
+# window. No real board's free-running counter loses time, but a simulator's clock does whenever the simulator
+# stalls (its time stops while the host's runs on), and so would a board whose counter was paused. The bins before
+# those are left out and the line is fitted again (1 s to follow a step; SlewClock's window, a robot's, is 2 s).
+STEP_BINS = 2
+STEP_TOL_S = 0.002
 
 
 class Unwrapper:
@@ -124,8 +130,11 @@ class ClockSync:
 
     def _fit(self) -> None:
         before = None if self.a is None or self._last_mcu is None else float(self.to_host(self._last_mcu))
-        self._refit()
-        if before is not None:
+        stepped = self._refit()
+        if stepped and before is not None and before < self.a + self.b * self._last_mcu:
+            # the envelope stepped up: the samples move later at once (a gap in their times, never a step back)
+            self._corr0 = 0.0
+        elif before is not None:
             # no jump where the new fit takes over: the difference is taken out at REFIT_SLEW_RATE
             # (each bin's refit moved samples by milliseconds when arrivals were noisy)
             self._corr0 = before - (self.a + self.b * self._last_mcu)
@@ -145,14 +154,27 @@ class ClockSync:
                           abs(self._corr0))
         return np.copysign(left, self._corr0)
 
-    def _refit(self) -> None:
+    def _refit(self) -> bool:
+        """Fit the line under the window's bins; True when the envelope had stepped up (the bins before it left)."""
+        stepped = False
         pts = np.array(self._bins)
         if len(pts) >= 3:
             slope, intercept = lower_envelope_line(pts[:, 0] - pts[0, 0], pts[:, 1])
+            if len(pts) > STEP_BINS:
+                recent = pts[-STEP_BINS:]
+                above = recent[:, 1] - (intercept + slope * (recent[:, 0] - pts[0, 0]))
+                if np.all(above > STEP_TOL_S):       # the envelope stepped up: the bins before the step go
+                    for _ in range(len(pts) - STEP_BINS):
+                        self._bins.popleft()
+                    # the clock's rate is the window's (a step moved its offset, not its rate): the line under the
+                    # recent bins at that slope
+                    pts, stepped = recent, True
+                    intercept = float(np.min(pts[:, 1] - slope * (pts[:, 0] - pts[0, 0])))
             self.b = 1.0 + slope
             self.a = intercept - slope * pts[0, 0]
         else:
             self.a, self.b = float(pts[:, 1].min()), 1.0
+        return stepped
 
     def to_host(self, mcu_s: np.ndarray) -> np.ndarray:
         return self.a + self.b * np.asarray(mcu_s) + self._correction(mcu_s)

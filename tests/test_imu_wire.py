@@ -251,6 +251,26 @@ def test_clock_sync_is_not_misled_by_a_backlog_read_at_start(backlog_s, drift_pp
     assert abs(sync.b * (1.0 + drift_ppm * 1e-6) - 1.0) < 50e-6, sync.b
 
 
+@pytest.mark.parametrize("step_s", [0.01, 0.06, 0.2])
+def test_clock_sync_follows_a_board_clock_that_lost_time(step_s):
+    """A simulator's board clock stops while the simulator stalls (franky-sim's sim time): from then on every
+    arrival is `step_s` later against it. The lower envelope moves up; within 2 s the mapping follows it to
+    SAMPLE_TIME_TOL_S, instead of keeping the line under the old points (which left a franky-sim rotate's IMU
+    60-90 ms early against the arm's states, its hinge 91 mm off)."""
+    rng = np.random.default_rng(6)
+    sync = ClockSync()
+    period, host0, worst, step_at = 8 / 6667, 500.0, 0.0, 10.0
+    for k in range(int(20.0 / period)):
+        mcu = k * period
+        lost = step_s if mcu > step_at else 0.0                  # the host's time the board's clock did not count
+        true_host = host0 + mcu + lost
+        sync.add(mcu, true_host + 0.0002 + rng.exponential(0.0005))
+        if mcu > step_at + 2.0:
+            worst = max(worst, abs(float(sync.to_host(mcu)) - (true_host + 0.0002)))
+    assert worst < SAMPLE_TIME_TOL_S, f"{worst * 1e3:.2f} ms"
+    assert sync.resets == 0
+
+
 def test_slew_clock_keeps_a_robots_states_in_order_through_late_and_bursty_arrivals():
     """drivers.timesync.SlewClock (the Franka link's robot clock): arrivals late by up to 60 ms
     in bursts, as a loaded host delivers a simulator's states, map to host times whose spacing
