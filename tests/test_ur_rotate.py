@@ -137,13 +137,15 @@ def test_a_robotiq_on_the_ur_grasps_the_handle_then_the_daemon_rotates_it_and_re
         cli = d.client
         g = cli.command("status")["state"]["gripper"]
         assert (g["kind"], g["grasped"]) == ("robotiq", False), g
+        # the daemon's start: robot_program until ur-rtde's script runs (a fault refuses before the grasp is judged)
+        from tests.fakes.fake_ur import wait_for
+        assert wait_for(lambda: cli.command("status")["state"]["faults"] == [], 10.0)
         assert cli.command("rotate", {"angle_deg": 20.0})["error"]["code"] == "not_grasped"
         reply = cli.command("grasp", {"force": 30.0}, timeout=15)
         assert reply["ok"] and reply["gripper"]["grasped"] is True, reply
         assert abs(reply["gripper"]["width_m"] - 0.025) < 0.001 and abs(reply["gripper"]["force_n"] - 30.0) < 1.0
         # a loaded machine may have stalled the simulated board's stream past control.imu_stale_s meanwhile: that
         # fault refuses the task until the stream is back (it clears by itself)
-        from tests.fakes.fake_ur import wait_for
         assert wait_for(lambda: cli.command("status")["state"]["faults"] == [], 10.0)
         reply = cli.command("rotate", {"angle_deg": 20.0})
         assert reply["ok"] is True, reply
