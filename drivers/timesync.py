@@ -11,11 +11,18 @@ WINDOW_BINS = 60           # fit over the last 30 s
 RESET_JUMP_S = 0.25        # a residual this large means the MCU clock jumped (restart) or the link stalled
 RESET_LATE_PACKETS = 20    # this many late packets in a row: the MCU clock jumped backwards, refit
 REFIT_SLEW_RATE = 5e-3     # a refit's change of the mapping is spread at this many seconds per second
+SLEW_WINDOW_S = 2.0         # SlewClock: the arrivals' lower envelope over this much of the device's time
+SLEW_RATE = 2e-3            # SlewClock: its offset moves at most this many seconds per second
 # The envelope moved up: the last STEP_BINS bins' minima all lie more than STEP_TOL_S above the line under the
 # window. No real board's free-running counter loses time, but a simulator's clock does whenever the simulator
 # stalls (its time stops while the host's runs on), and so would a board whose counter was paused. The bins before
-# those are left out and the line is fitted again (1 s to follow a step; SlewClock's window, a robot's, is 2 s).
-STEP_BINS = 2
+# those are left out and the line is fitted again, and the mapping moves to it at SLEW_RATE: the robot's clock
+# (SlewClock) follows the same step after the same SLEW_WINDOW_S at the same rate, so where one simulator stamps
+# both, the fingertip's samples and the arm's states stay together. (Following a step at once after 1 s split
+# them by the 10-70 ms a loaded host's simulator runs late: franky-sim rotates diverged 55-110x or found the hinge
+# 14-18 mm off.) A step beyond RESET_JUMP_S restarts a board's clock (RESET_LATE_PACKETS) but never a robot's,
+# whose states that late read stale.
+STEP_BINS = round(SLEW_WINDOW_S / BIN_S)
 STEP_TOL_S = 0.002
 
 
@@ -89,6 +96,7 @@ class ClockSync:
         self._last_mcu = None
         self._corr0 = 0.0    # a refit's jump at _corr_m0, taken out at REFIT_SLEW_RATE from there
         self._corr_m0 = 0.0
+        self._corr_rate = REFIT_SLEW_RATE
         self._corr_done_s = 0.0
 
     def reset(self) -> None:
@@ -99,6 +107,7 @@ class ClockSync:
         self.b = 1.0
         self._late = 0
         self._corr0 = 0.0
+        self._corr_rate = REFIT_SLEW_RATE
         self.resets += 1
 
     def add(self, mcu_s: float, host_s: float) -> None:
@@ -131,15 +140,15 @@ class ClockSync:
     def _fit(self) -> None:
         before = None if self.a is None or self._last_mcu is None else float(self.to_host(self._last_mcu))
         stepped = self._refit()
-        if stepped and before is not None and before < self.a + self.b * self._last_mcu:
-            # the envelope stepped up: the samples move later at once (a gap in their times, never a step back)
-            self._corr0 = 0.0
-        elif before is not None:
-            # no jump where the new fit takes over: the difference is taken out at REFIT_SLEW_RATE
-            # (each bin's refit moved samples by milliseconds when arrivals were noisy)
+        if before is not None:
+            # no jump where the new fit takes over: the difference is taken out at REFIT_SLEW_RATE (each bin's
+            # refit moved samples by milliseconds when arrivals were noisy), a step's at a robot clock's SLEW_RATE
+            # (the refits while a step's correction is still being taken out keep its rate)
+            stepping = self._corr_rate == SLEW_RATE and self._last_mcu - self._corr_m0 < self._corr_done_s
             self._corr0 = before - (self.a + self.b * self._last_mcu)
             self._corr_m0 = self._last_mcu
-            self._corr_done_s = abs(self._corr0) / REFIT_SLEW_RATE    # MCU time after which none is left
+            self._corr_rate = SLEW_RATE if stepped or stepping else REFIT_SLEW_RATE
+            self._corr_done_s = abs(self._corr0) / self._corr_rate    # MCU time after which none is left
 
     def _correction(self, mcu_s):
         if self._corr0 == 0.0:
@@ -150,7 +159,7 @@ class ClockSync:
             # below gives, without its five numpy calls for every packet until the next refit
             return 0.0
         # np.clip's bounds without its wrapper (a packet's times are mapped 840 times a second)
-        left = np.minimum(np.maximum(abs(self._corr0) - REFIT_SLEW_RATE * (m - self._corr_m0), 0.0),
+        left = np.minimum(np.maximum(abs(self._corr0) - self._corr_rate * (m - self._corr_m0), 0.0),
                           abs(self._corr0))
         return np.copysign(left, self._corr0)
 
@@ -180,28 +189,42 @@ class ClockSync:
         return self.a + self.b * np.asarray(mcu_s) + self._correction(mcu_s)
 
 
-SLEW_WINDOW_S = 2.0         # SlewClock: the arrivals' lower envelope over this much of the device's time
-SLEW_RATE = 2e-3            # SlewClock: its offset moves at most this many seconds per second
-
-
 class SlewClock:
     """Maps a steady device clock (a robot controller's) to the host's monotonic clock as
     host = device + offset. The offset follows the lower envelope of (arrival - device time) over
     the last SLEW_WINDOW_S, but moves at most SLEW_RATE seconds per second of device time, so
-    consecutive mapped times keep their spacing within 0.2 % and never go back.
+    consecutive mapped times keep their spacing within 0.2 % and never go back, once SLEW_WINDOW_S
+    has passed since it started: until then a lower envelope is taken at once, as ClockSync takes
+    its first second's (the first arrivals may be late). An arrival RESET_JUMP_S early (a clock that
+    jumped ahead) starts it afresh; arrivals RESET_JUMP_S late are stale states, never a reason to
+    move it at once (ClockSync takes a run of them for a board that restarted).
 
     ClockSync fits a line through 0.5 s bins for a board's crystal, whose drift matters over
-    minutes; each refit moves the mapping at once, by milliseconds when the arrivals are noisy
-    (a loaded host, a simulator's clock), and proprioception a few microseconds apart read as a
-    turn of hundreds of rad/s. A robot's clock drifts by ppm: an offset that slews is enough."""
+    minutes; a refit by milliseconds (noisy arrivals: a loaded host, a simulator's clock) taken at
+    once made proprioception a few microseconds apart read as a turn of hundreds of rad/s. A
+    robot's clock drifts by ppm: an offset that slews is enough. Both follow a step of the
+    envelope below RESET_JUMP_S after SLEW_WINDOW_S at SLEW_RATE, so two devices stamped by one
+    clock stay together."""
 
     def __init__(self):
         self.offset: float | None = None
         self._env: collections.deque = collections.deque()    # (device_s, offset) candidates, increasing
         self._last_device = None
+        self.resets = 0
+        self._fresh_until = -np.inf
 
     def add(self, device_s: float, host_s: float) -> None:
+        if device_s == self._last_device:
+            return      # a state repeated (a frozen controller): no news of the clock, and never a reason to restart it
         cand = host_s - device_s
+        if self.offset is not None and cand - self.offset < -RESET_JUMP_S:
+            # an arrival RESET_JUMP_S before its mapped time: the clock jumped ahead (slewed, the states would read
+            # fresher than they are for minutes): afresh. Arrivals that late are never taken for a clock that lost
+            # time, unlike ClockSync's board: states that late are stale (robot_stale), and a clock that lost time
+            # reads the same; the link's reconnect restarts it after a controller's restart
+            self._env.clear()
+            self.offset = None
+            self.resets += 1
         env = self._env
         while env and env[-1][1] >= cand:
             env.pop()                       # a later, lower candidate makes older higher ones moot
@@ -211,6 +234,11 @@ class SlewClock:
         target = env[0][1]
         if self.offset is None or self._last_device is None or device_s - self._last_device > SLEW_WINDOW_S:
             self.offset = target            # the first sample, or after a gap: start afresh
+            # the arrivals it starts from may be late (a backlog draining, a simulator running behind): for a window
+            # the envelope is taken down at once (slewed, a first state 70 ms late left them all late for 35 s)
+            self._fresh_until = device_s + SLEW_WINDOW_S
+        elif device_s < self._fresh_until and target < self.offset:
+            self.offset = target
         else:
             step = SLEW_RATE * max(device_s - self._last_device, 0.0)
             self.offset += min(max(target - self.offset, -step), step)

@@ -358,6 +358,9 @@ def reflex_run(tmp_path, board) -> tuple[list, str, str, str] | None:
             assert cleared["code"] in STALE_CODES, cleared
             cleared = d.client.wait_event(("fault_cleared",), None, max(deadline - time.monotonic(), 0.1))
         assert wait_for(lambda: d.client.command("status")["state"]["faults"] == [], 5.0)
+        # the robot's clear state may reach the daemon before franky's answer to the recovery, which the
+        # supervisor logs (a run of the whole file read the log between the two)
+        wait_for(lambda: "recovered from robot mode" in d.log(), 5.0)
         events = list(d.client.event_log)
         return events[events.index(ev):], srv.output, reply["task"], d.log()
 
@@ -421,6 +424,7 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, before=None
         try:
             if before is not None:
                 before(d)
+            task_from_s = json.load(open(truth_path))["sim_time_s"]
             reply = d.client.command("rotate", {"angle_deg": 30.0, **fields})
             stalled = not reply["ok"] and "robot_stale" in reply["error"]["message"]
             assert reply["ok"] is True or stalled, reply
@@ -431,6 +435,9 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, before=None
                 after(d)
             time.sleep(0.2)                                   # the truth file is rewritten every 50 ms
             truth = json.load(open(truth_path))
+            # how far franky-sim fell behind from the rotate's start on (the hand's own moves before it stall it
+            # for up to a second, which the task never sees)
+            truth["task_behind_s"] = max([b for t, b in truth["late"] if t >= task_from_s - 0.05], default=0.0)
             return ev, truth, list(d.client.event_log), d.log()
         finally:
             d.close()
@@ -440,18 +447,19 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, before=None
 
 def judged_run(tmp_path, judged, *sim_args: str, config: dict | None = None, before=None, after=None, **fields):
     """cutter_run, again while its outcome is not one the test judges (`judged(ev, events)`) and
-    franky-sim fell further behind its own schedule than SIM_LATE_S: such a run judged the
+    franky-sim fell further behind its own schedule than SIM_LATE_S during the task (the hand's moves
+    before it stall the simulator for up to a second, which the task never sees): such a run judged the
     simulator, not the daemon. Said each time; SIM_ATTEMPTS such runs in a row are a skip that
     says so."""
     for attempt in range(SIM_ATTEMPTS):
         ev, truth, events, log = cutter_run(tmp_path / f"run{attempt}", *sim_args, config=config, before=before,
                                             after=after, **fields)
-        if judged(ev, events) or truth["worst_behind_s"] <= SIM_LATE_S:
+        if judged(ev, events) or truth["task_behind_s"] <= SIM_LATE_S:
             return ev, truth, events, log
-        print(f"franky-sim fell {truth['worst_behind_s'] * 1e3:.0f} ms behind and the run ended "
+        print(f"franky-sim fell {truth['task_behind_s'] * 1e3:.0f} ms behind in the task and the run ended "
               f"{ev['kind']} ({ev.get('error')}): run again")
     pytest.skip(f"franky-sim could not keep its schedule on this machine in {SIM_ATTEMPTS} runs (last "
-                f"{truth['worst_behind_s'] * 1e3:.0f} ms behind): no judgement of the daemon")
+                f"{truth['task_behind_s'] * 1e3:.0f} ms behind in the task): no judgement of the daemon")
 
 
 def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
@@ -464,7 +472,7 @@ def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     res = ev["result"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
     summary = (f"hinge error {err * 1e3:.2f} mm, handle {truth['handle_angle_deg']:.2f} deg, "
-               f"base {truth['base_displacement'] * 1e3:.2f} mm, franky-sim behind by {truth['worst_behind_s'] * 1e3:.0f} ms")
+               f"base {truth['base_displacement'] * 1e3:.2f} mm, franky-sim behind by {truth['task_behind_s'] * 1e3:.0f} ms in the task")
     print(summary)
     assert err < ROTATE_HINGE_TOL_M, summary
     assert abs(truth["handle_angle_deg"] - 30.0) < ROTATE_ANGLE_TOL_DEG, summary
@@ -524,7 +532,8 @@ def test_the_franka_hand_lets_go_is_refused_a_task_grasps_again_and_the_rotate_f
     assert seen["release"]["ok"] and seen["release"]["gripper"]["grasped"] is False, seen["release"]
     err = distance_to_axis(np.array(ev["result"]["hinge"]["p"]), np.array(truth["hinge_point"]),
                            np.array(truth["hinge_axis"]))
-    print(f"hinge error {err * 1e3:.2f} mm")
+    print(f"hinge error {err * 1e3:.2f} mm, franky-sim behind by {truth['task_behind_s'] * 1e3:.0f} ms in the task, "
+          f"{truth['worst_behind_s'] * 1e3:.0f} ms in the run")
     # re-grasped, the pad is welded where it came to rest, without the first grasp's settling: 0.96-1.09 mm alone,
     # 6.96 mm once under the whole suite's load
     assert err < REGRASP_HINGE_TOL_M, f"hinge error {err * 1e3:.2f} mm"

@@ -380,19 +380,25 @@ def run(args) -> None:
             print(f"READY {args.host} {realtime}", flush=True)
             next_t = started = time.monotonic()
             behind = 0
-            worst_behind = 0.0
+            worst_behind = window_behind = 0.0
+            late: list = []             # [simulated time, worst behind in that truth window] above LATE_LOG_MIN_S
             steps = 0
             while not stop.is_set():
                 server.run_once(realtime=False)
                 steps += 1
                 if steps % TRUTH_EVERY_STEPS == 0:
                     _poll_control(args.control)
+                    if window_behind > LATE_LOG_MIN_S:
+                        late = (late + [[float(sim.data.time), window_behind]])[-LATE_LOG_LEN:]
+                    window_behind = 0.0
                     if truth_out is not None:
-                        truth.update(resyncs=behind, worst_behind_s=worst_behind, wall_s=time.monotonic() - started)
+                        truth.update(resyncs=behind, worst_behind_s=worst_behind, late=late,
+                                     wall_s=time.monotonic() - started)
                         truth_out.put(_truth_now(truth, sim))
                 next_t += STEP_S
                 delay = next_t - time.monotonic()
                 worst_behind = max(worst_behind, -delay)
+                window_behind = max(window_behind, -delay)
                 if delay > 0:
                     time.sleep(delay)
                 elif delay < -RESYNC_BEHIND_S:
@@ -403,6 +409,8 @@ def run(args) -> None:
 
 
 TRUTH_EVERY_STEPS = 50          # the truth file is rewritten every 50 ms of simulated time
+LATE_LOG_MIN_S = 0.010          # truth["late"]: each 50 ms window that fell further behind than this,
+LATE_LOG_LEN = 400              # the last this many, so a test can judge the lateness during its task alone
 
 
 def _truth_now(truth: dict, sim) -> dict:
