@@ -317,13 +317,15 @@ def franka_with_control(tmp_path, port_link: str):
     """(the file franky-sim takes injections from, franky-sim, a daemon on it with no gripper), closed after.
     franky-sim's force is the joint torques', which carry its joints' friction (8-20 N at the TCP as a motion
     starts): the force stop is set out of the way of free motion. Its stalls on a loaded machine
-    (FRANKY_SIM_STALLS) get their state-age allowance."""
+    (FRANKY_SIM_STALLS) get their state-age allowance, and so does the board's pty, fed from the test's
+    process (an approach on a machine with one core busy stopped on no IMU sample for 206 ms)."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     control = tmp_path / "control"
     srv = ServerProcess("--control", str(control))
     d = DaemonProcess(tmp_path, franka_config(srv.host, port_link, **{
         "control.max_force_n": 100.0, "gripper.backend": "none",
-        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"]}))
+        "robot.max_state_age_s": FRANKY_SIM_STALLS["robot.max_state_age_s"],
+        "control.imu_stale_s": FRANKY_SIM_STALLS["control.imu_stale_s"]}))
     try:
         yield control, srv, d
     finally:
@@ -446,15 +448,15 @@ def cutter_run(tmp_path, *sim_args: str, config: dict | None = None, before=None
 
 
 def judged_run(tmp_path, judged, *sim_args: str, config: dict | None = None, before=None, after=None, **fields):
-    """cutter_run, again while its outcome is not one the test judges (`judged(ev, events)`) and
-    franky-sim fell further behind its own schedule than SIM_LATE_S during the task (the hand's moves
-    before it stall the simulator for up to a second, which the task never sees): such a run judged the
-    simulator, not the daemon. Said each time; SIM_ATTEMPTS such runs in a row are a skip that
-    says so."""
+    """cutter_run, again while franky-sim fell further behind its own schedule than SIM_LATE_S during the task
+    (the hand's moves before it stall the simulator for up to a second, which the task never sees) and the
+    outcome is not one the test judges even then (`judged(ev, events)`; None: none is, as for a hinge's
+    accuracy: a rotate on a world 250 ms late found it 32 mm off, CI's 18 mm). Such a run judged the
+    simulator, not the daemon. Said each time; SIM_ATTEMPTS such runs in a row are a skip that says so."""
     for attempt in range(SIM_ATTEMPTS):
         ev, truth, events, log = cutter_run(tmp_path / f"run{attempt}", *sim_args, config=config, before=before,
                                             after=after, **fields)
-        if judged(ev, events) or truth["task_behind_s"] <= SIM_LATE_S:
+        if truth["task_behind_s"] <= SIM_LATE_S or (judged is not None and judged(ev, events)):
             return ev, truth, events, log
         print(f"franky-sim fell {truth['task_behind_s'] * 1e3:.0f} ms behind in the task and the run ended "
               f"{ev['kind']} ({ev.get('error')}): run again")
@@ -466,8 +468,8 @@ def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     """The paper's task through the real client: probe, localise the hinge from the fingertip's
     gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
     within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still. A run that
-    failed while franky-sim fell behind its own schedule is run again (judged_run)."""
-    ev, truth, _, log = judged_run(tmp_path, lambda ev, events: ev["kind"] == "task_done")
+    in which franky-sim fell behind its own schedule during the task is run again (judged_run)."""
+    ev, truth, _, log = judged_run(tmp_path, None)
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     res = ev["result"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
@@ -525,8 +527,7 @@ def test_the_franka_hand_lets_go_is_refused_a_task_grasps_again_and_the_rotate_f
     def after(d):
         seen["release"] = d.client.command("release", {}, timeout=20)
 
-    ev, truth, _, log = judged_run(tmp_path, lambda ev, events: ev["kind"] == "task_done", before=before,
-                                   after=after)
+    ev, truth, _, log = judged_run(tmp_path, None, before=before, after=after)
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     assert abs(seen["grasp"]["width_m"] - 0.025) < 0.003 and seen["grasp"]["force_n"] == FRANKY_SIM_GRIP_N
     assert seen["release"]["ok"] and seen["release"]["gripper"]["grasped"] is False, seen["release"]
