@@ -94,7 +94,7 @@ class ClockSync:
         self.resets = 0
         self._late = 0
         self._last_mcu = None
-        self._corr0 = 0.0    # a refit's jump at _corr_m0, taken out at REFIT_SLEW_RATE from there
+        self._corr0 = 0.0    # a refit's jump at _corr_m0, taken out at _corr_rate from there
         self._corr_m0 = 0.0
         self._corr_rate = REFIT_SLEW_RATE
         self._corr_done_s = 0.0

@@ -467,14 +467,15 @@ def judged_run(tmp_path, judged, *sim_args: str, config: dict | None = None, bef
 def test_rotate_opens_the_cutter_on_franky_sim_about_its_true_hinge(tmp_path):
     """The paper's task through the real client: probe, localise the hinge from the fingertip's
     gyro and franky's states, follow the arc 30 deg with the gripper turning along. The hinge
-    within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still. A run that
-    in which franky-sim fell behind its own schedule during the task is run again (judged_run)."""
+    within 5 mm (measured 0.48-1.42 mm), the handle at 30 deg, the base left still. A run in which
+    franky-sim fell behind its own schedule during the task is run again (judged_run)."""
     ev, truth, _, log = judged_run(tmp_path, None)
     assert ev["kind"] == "task_done", f"{ev}\n{truth}\n{log[-3000:]}"
     res = ev["result"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(truth["hinge_point"]), np.array(truth["hinge_axis"]))
     summary = (f"hinge error {err * 1e3:.2f} mm, handle {truth['handle_angle_deg']:.2f} deg, "
-               f"base {truth['base_displacement'] * 1e3:.2f} mm, franky-sim behind by {truth['task_behind_s'] * 1e3:.0f} ms in the task")
+               f"base {truth['base_displacement'] * 1e3:.2f} mm, "
+               f"franky-sim behind by {truth['task_behind_s'] * 1e3:.0f} ms in the task")
     print(summary)
     assert err < ROTATE_HINGE_TOL_M, summary
     assert abs(truth["handle_angle_deg"] - 30.0) < ROTATE_ANGLE_TOL_DEG, summary
