@@ -125,7 +125,8 @@ class ControlThread:
         self.gripper = None                  # runtime.gripper_worker.GripperWorker once started (None: no gripper)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
-        self.recoverer = Recoverer(robot, outbox, self.replies)       # `recover`, on a thread of its own
+        self.recoverer = Recoverer(robot, outbox, self.replies,       # `recover`, on a thread of its own
+                                   settled=self._recovered)
         self._stops: collections.deque = collections.deque()     # Stop requests, appended from any thread
         self._stop_waiters: list = []
         self.runner = TaskRunner(CartesianPlanner(params.tick_s, params.max_speed, params.max_accel, params.max_jerk),
@@ -209,6 +210,13 @@ class ControlThread:
                 except Exception:
                     log.exception("shutting down a verb's service failed")
             self.runner.planner.release()
+
+    def _recovered(self) -> bool:
+        """(the recover thread) No fault that `recover` clears is held at the tick."""
+        try:
+            return not set(self.faults) & self.robot.recoverable
+        except RuntimeError:                 # the tick changed the faults meanwhile: asked again
+            return False
 
     def tick(self, now: float) -> None:
         runner = self.runner

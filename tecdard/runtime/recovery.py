@@ -14,6 +14,7 @@ from tecdard.runtime.messages import Reply
 log = logging.getLogger("tecdar")
 
 RECOVER_TIMEOUT_S = 20.0        # UR's 5 s rule, a power-on and a brake release, the script uploaded again
+SETTLE_S = 2.0                  # a recovery that succeeded: how long its faults may take to clear at the control tick
 
 
 def recover_hint(code: str, recoverable: frozenset) -> str:
@@ -22,8 +23,11 @@ def recover_hint(code: str, recoverable: frozenset) -> str:
 
 
 class Recoverer:
-    def __init__(self, robot, outbox, replies, timeout_s: float = RECOVER_TIMEOUT_S):
+    def __init__(self, robot, outbox, replies, timeout_s: float = RECOVER_TIMEOUT_S, settled=None):
+        """`settled()`: True once the control tick holds none of the faults `recover` clears; an `ok` reply waits
+        for it (SETTLE_S at most), so that a task sent on it is not refused for a fault the tick has yet to clear."""
         self.robot, self.outbox, self.replies, self.timeout_s = robot, outbox, replies, timeout_s
+        self.settled = settled
         self._busy = threading.Event()
 
     @property
@@ -43,6 +47,10 @@ class Recoverer:
         except Exception as exc:          # a backend's bug: one reply and the log, never the thread's silence
             log.exception("recover")
             rec = Recovery(False, (), f"the recovery failed ({type(exc).__name__}: {exc}); see the log")
+        if rec.ok and self.settled is not None:
+            settle_by = time.monotonic() + SETTLE_S
+            while not self.settled() and time.monotonic() < settle_by:
+                time.sleep(0.01)
         took = round(time.monotonic() - t0, 2)
         (log.info if rec.ok else log.warning)("recover: %s%s (%.1f s)", "; ".join(rec.steps) or "nothing done",
                                               "" if rec.ok else f"; a person must: {rec.person}", took)
