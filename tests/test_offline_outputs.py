@@ -257,6 +257,15 @@ def test_a_bad_live_cmd_is_a_one_line_refusal_naming_it(arrays, tmp_path, name, 
     assert said in str(err.value) and "\n" not in str(err.value), (name, str(err.value))
 
 
+def test_joint_rates_without_their_joints_are_refused(arrays, tmp_path):
+    from tecdard.recording.format import RecordingError
+    from tecdard.recording.live import load_live
+    path = tmp_path / "qd.npz"
+    np.savez(path, **arrays, **live_keys(arrays, []), live_qd=np.zeros((len(arrays["tcp_t"]), 6)))
+    with pytest.raises(RecordingError, match="live_qd: the joints' rates without live_q"):
+        load_live(path, load_recording(path))
+
+
 def test_a_live_cmd_loads_as_the_ticks_and_their_joint_rates(arrays, tmp_path):
     from tecdard.recording.live import load_live
     path = tmp_path / "cmd.npz"

@@ -16,7 +16,7 @@ from tecdard.safejson import JsonLimitError, loads, show
 
 MAX_JOINTS = 12                  # live_q, live_cmd: the joints of one arm
 MAX_JOINT_RAD = 100.0            # live_q: no revolute joint turns further (a corrupt file beyond)
-MAX_JOINT_RATE = 100.0           # live_cmd: rad/s no arm is commanded (a UR's fastest joint: 3.14 rad/s)
+MAX_JOINT_RATE = 100.0           # live_qd, live_cmd: rad/s no arm turns (a UR's fastest joint: 3.14 rad/s)
 MAX_EVENTS = 100_000             # live_events: a 120 s capture holds hundreds
 
 
@@ -59,6 +59,7 @@ class LiveLog:
     est: np.ndarray              # (K, 7) the live estimates: t, p, std
     events: list
     q: np.ndarray | None = None  # (M, n) the measured joints at each proprioception sample, rad (newer recordings)
+    qd: np.ndarray | None = None        # (M, n) the joints' measured rates, rad/s (with q)
     gripper: np.ndarray | None = None   # (M, 2) the gripper's opening (m) and whether it held (1, 0; -1: unknown)
     wrench: np.ndarray | None = None    # (M, 6) the arm's own wrench at the TCP: force N, torque N m, world; nan: none
     cmd: np.ndarray | None = None       # (T, 1 + n) each control tick's time (s) and commanded joint rates (rad/s)
@@ -96,6 +97,13 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
             if np.any(np.abs(q) > MAX_JOINT_RAD):
                 raise RecordingError(f"live_q: expected ({n_tcp}, 1..{MAX_JOINTS}) joint angles within "
                                      f"{MAX_JOINT_RAD:g} rad")
+        qd = None
+        if "live_qd" in data:
+            if q is None:
+                raise RecordingError("live_qd: the joints' rates without live_q, their joints")
+            qd = array("live_qd", q.shape[1])
+            if np.any(np.abs(qd) > MAX_JOINT_RATE):
+                raise RecordingError(f"live_qd: joint rates beyond {MAX_JOINT_RATE:g} rad/s")
         gripper = array("live_gripper") if "live_gripper" in data else None
         if gripper is not None and not (np.all((gripper[:, 0] == -1) | ((gripper[:, 0] >= 0) & (gripper[:, 0] <= 1)))
                                         and np.all(np.isin(gripper[:, 1], (-1.0, 0.0, 1.0)))):
@@ -103,7 +111,7 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
         # the arm's wrench: NaN where it gave none (a simulator's torque)
         wrench = array("tcp_wrench", nan_ok=True) if "tcp_wrench" in data else None
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), array("live_tcp_w"), changes,
-                       array("live_bias0"), array("live_est"), _events(data, rec), q, gripper, wrench,
+                       array("live_bias0"), array("live_est"), _events(data, rec), q, qd, gripper, wrench,
                        _commands(data, rec, None if q is None else q.shape[1]))
     finally:
         data.close()

@@ -86,6 +86,8 @@ LIVE = (
                                     "end, faults, stops)", kind="json"),
     Member("live_q", ("M", "n"), False, "the measured joints at each proprioception sample, rad (the export "
                                         "draws the arm from it)"),
+    Member("live_qd", ("M", "n"), False, "the joints' measured rates at each proprioception sample, rad/s (with "
+                                         "`live_q`: a dataset's state)"),
     Member("live_gripper", ("M", 2), False, "the gripper at each proprioception sample: its opening (m) and whether "
                                             "it held something (1 or 0); -1 where it could not say "
                                             "(`meta.grip_force_source` says where `grip_force` came from)"),

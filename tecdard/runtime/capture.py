@@ -135,6 +135,9 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     q = [s.q for _, s in rows if s.q is not None]
     if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
         extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
+        qd = [s.qd for _, s in rows]
+        if all(x is not None and len(x) == len(q[0]) for x in qd) and np.all(np.isfinite(qd)):
+            extra["live_qd"] = np.array(qd, dtype=float)   # and their measured rates, rad/s
     gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
     if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
         extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
