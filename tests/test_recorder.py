@@ -86,6 +86,8 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     assert np.all(~moving[live.cmd[:, 0] < t_start - 0.05]), "the arm was commanded before its task started"
     assert moving.sum() * tick > 1.0, f"{moving.sum()} ticks commanded a motion"
     assert live.qd is not None and live.qd.shape == (len(rec.tcp_t), 7) and np.abs(live.qd).max() > 1e-3
+    assert live.axis is not None and live.axis.shape == (len(live.est), 3)
+    assert abs(abs(live.axis[-1, 1]) - 1.0) < 0.05, live.axis[-1]      # the simulated cutter's hinge: along y
     # the command line gives the same answer
     res = tecdard("localize", written["path"], "--json", "--config", d.config_path)
     assert res.returncode == 0, res.stderr

@@ -58,6 +58,7 @@ class LiveLog:
     bias0: np.ndarray            # (4,) the gyro bias at the first pass (rad/s, IMU frame) and its rest time (s)
     est: np.ndarray              # (K, 7) the live estimates: t, p, std
     events: list
+    axis: np.ndarray | None = None      # (K, 3) the rotation axis with each estimate, world unit; nan until excited
     q: np.ndarray | None = None  # (M, n) the measured joints at each proprioception sample, rad (newer recordings)
     qd: np.ndarray | None = None        # (M, n) the joints' measured rates, rad/s (with q)
     gripper: np.ndarray | None = None   # (M, 2) the gripper's opening (m) and whether it held (1, 0; -1: unknown)
@@ -110,8 +111,15 @@ def load_live(path: str | pathlib.Path, rec: Recording) -> LiveLog | None:
             raise RecordingError(f"live_gripper: expected ({n_tcp}, 2) rows: an opening in 0..1 m (or -1), and 0, 1 or -1")
         # the arm's wrench: NaN where it gave none (a simulator's torque)
         wrench = array("tcp_wrench", nan_ok=True) if "tcp_wrench" in data else None
+        est = array("live_est")
+        axis = None
+        if "live_axis" in data:
+            axis = _array(data, "live_axis", (len(est), 3), nan_ok=True)
+            norm = np.linalg.norm(axis, axis=1)
+            if np.any(np.isfinite(norm) & (np.abs(norm - 1.0) > 1e-3)):
+                raise RecordingError(f"live_axis: expected ({len(est)}, 3) unit vectors (or NaN)")
         return LiveLog(ends.astype(np.int64), passes.astype(np.int64), array("live_tcp_w"), changes,
-                       array("live_bias0"), array("live_est"), _events(data, rec), q, qd, gripper, wrench,
+                       array("live_bias0"), est, _events(data, rec), axis, q, qd, gripper, wrench,
                        _commands(data, rec, None if q is None else q.shape[1]))
     finally:
         data.close()

@@ -82,6 +82,8 @@ LIVE = (
     Member("live_bias0", (4,), True, "the gyro bias at the first pass (rad/s, IMU frame) and the rest time "
                                      "averaged into it (s)"),
     Member("live_est", ("K", 7), True, "the live estimates: `t, px, py, pz, sx, sy, sz`"),
+    Member("live_axis", ("K", 3), False, "the rotation axis (world, unit) with each of `live_est`'s estimates; NaN "
+                                         "until the motion excites it", field="axis"),
     Member("live_events", (), True, "the pipeline's and the daemon's events during the capture (task start and "
                                     "end, faults, stops)", kind="json"),
     Member("live_q", ("M", "n"), False, "the measured joints at each proprioception sample, rad (the export "

@@ -130,6 +130,8 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         "live_changes": np.array(json.dumps(json_ready(changes))),
         "live_bias0": np.asarray(first.bias, float),
         "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
+        # the rotation axis with each estimate (NaN until the motion excites it)
+        "live_axis": np.array([np.full(3, np.nan) if e.axis is None else e.axis for e in ests], float).reshape(-1, 3),
         "live_events": np.array(json.dumps(json_ready(events))),
     }
     q = [s.q for _, s in rows if s.q is not None]
