@@ -38,7 +38,7 @@ def daemon_recording(path, seconds: float = 3.0, seed: int = 0, verb: str = "rot
               "tcp_t": tcp_t, "tcp_pos": np.column_stack([0.4 + 1e-3 * np.arange(n_arm) / ARM_HZ,
                                                           np.zeros(n_arm), np.full(n_arm, 0.5)]),
               "tcp_quat": np.tile([0.0, 0.0, 0.0, 1.0], (n_arm, 1)), "imu_in_tcp_quat": np.array([0.0, 0, 0, 1]),
-              "meta": np.array(json.dumps({"robot": "sim"}))}
+              "meta": np.array(json.dumps({"robot": "sim", "task": f"{verb}-1", "verb": verb}))}
     est_t = T0 + 1.5 + np.arange(20) * 0.05
     events = [{"t": T0 + 0.2, "kind": "task_started", "task": f"{verb}-1", "verb": verb,
                "params": {"angle_deg": 30.0, "speed": 0.02}},
@@ -157,3 +157,23 @@ def test_bad_exports_are_one_line_refusals_that_write_nothing(tmp_path, why, arg
     err = res.stderr.strip()
     assert res.returncode == 2 and len(err.splitlines()) == 1 and said in err, (why, err)
     assert not (tmp_path / "ds").exists() and (tmp_path / "full" / "x").read_text() == "a lab's file", why
+
+
+def test_a_query_over_the_episode_index_picks_the_episodes(tmp_path):
+    """`--store URL --query SQL`: the recordings a lab uploaded (`tecdard episodes sync`), picked by the index."""
+    pytest.importorskip("duckdb", reason="the fleet extra is installed by `make test`")
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    for k, verb in enumerate(("rotate", "probe", "rotate")):
+        daemon_recording(rec / f"20261207-12000{k}-{verb}.npz", seconds=2.0, seed=k, verb=verb)
+    url = f"file://{tmp_path}/store"
+    res = tecdard("episodes", "sync", "--dir", str(rec), "--store", url, "--robot", "arm1")
+    assert res.returncode == 0, res.stderr
+    out = tmp_path / "ds"
+    res = tecdard("export", "--lerobot", str(out), "--store", url, "--query",
+                  "SELECT npz_key FROM episodes WHERE verb = 'rotate' ORDER BY npz_key")
+    assert res.returncode == 0, res.stderr
+    episodes = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()
+    assert [json.loads(e["tecdar"])["verb"] for e in episodes] == ["rotate", "rotate"]
+    res = tecdard("export", "--lerobot", str(tmp_path / "ds2"), "--store", url, "--query", "SELECT verb FROM episodes")
+    assert res.returncode == 2 and "have no npz_key" in res.stderr and not (tmp_path / "ds2").exists()

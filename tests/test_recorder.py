@@ -88,6 +88,18 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     assert live.qd is not None and live.qd.shape == (len(rec.tcp_t), 7) and np.abs(live.qd).max() > 1e-3
     assert live.axis is not None and live.axis.shape == (len(live.est), 3)
     assert abs(abs(live.axis[-1, 1]) - 1.0) < 0.05, live.axis[-1]      # the simulated cutter's hinge: along y
+    if importlib.util.find_spec("pyarrow") is not None:         # the `lerobot` extra: the episode as a dataset
+        ds = tmp_path / "dataset"
+        res = tecdard("export", "--lerobot", ds, written["path"])
+        assert res.returncode == 0, res.stderr
+        import pyarrow.parquet as pq
+        frames = pq.read_table(ds / "data" / "chunk-000" / "file-000.parquet").to_pydict()
+        span = min(live.cmd[-1, 0], rec.tcp_t[-1], rec.imu_t[-1]) - max(live.cmd[0, 0], rec.tcp_t[0], rec.imu_t[133])
+        assert abs(len(frames["index"]) - span * 50) <= 2, (len(frames["index"]), span)
+        moved = np.abs(np.array(frames["action"])).max(axis=1) > 1e-3
+        assert abs(moved.sum() - moving.sum()) <= 2, (moved.sum(), moving.sum())      # the ticks that moved the arm
+        assert np.array(frames["observation.imu"][0]).shape == (133, 6)               # 6667 Hz / 50 fps
+        assert np.array(frames["observation.contact"])[-1, 9] == 1.0                   # the hinge estimated by then
     # the command line gives the same answer
     res = tecdard("localize", written["path"], "--json", "--config", d.config_path)
     assert res.returncode == 0, res.stderr
