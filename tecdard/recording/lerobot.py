@@ -178,6 +178,18 @@ def _arrow_type(pa, ft: dict):
     return out
 
 
+def _arrow_array(pa, values: np.ndarray, typ):
+    """`values` (F, ...) as an arrow column of `typ`, built from the flat buffer (not through Python lists)."""
+    if values.ndim == 1:
+        return pa.array(values, typ)
+    flat = pa.array(values.ravel())
+    if values.ndim == 2:
+        return pa.FixedSizeListArray.from_arrays(flat, values.shape[1])
+    rows, n, m = values.shape
+    inner = pa.ListArray.from_arrays(pa.array(np.arange(rows * n + 1, dtype=np.int32) * m), flat)
+    return pa.ListArray.from_arrays(pa.array(np.arange(rows + 1, dtype=np.int32) * n), inner)
+
+
 def write_dataset(out: pathlib.Path, episodes: list[Episode], robot_type: str | None) -> dict:
     """The episodes as a LeRobot v3 dataset under `out` (made, and empty); its info.json's content."""
     import pyarrow as pa
@@ -214,7 +226,7 @@ def write_dataset(out: pathlib.Path, episodes: list[Episode], robot_type: str | 
         values = np.concatenate(columns[key])
         typ = _arrow_type(pa, ft)
         dtype = np.float32 if ft["dtype"] == "float32" else np.int64
-        arrays.append(pa.array(values.astype(dtype).tolist() if values.ndim > 1 else values.astype(dtype), typ))
+        arrays.append(_arrow_array(pa, values.astype(dtype), typ))
         fields.append(pa.field(key, typ))
     schema = pa.schema(fields, metadata={"huggingface": json.dumps(
         {"info": {"features": {k: _hf_feature(ft) for k, ft in feats.items()}}})})
