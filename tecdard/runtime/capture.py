@@ -143,7 +143,7 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
     if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
         extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
-    cmd = [c for c in cap.commands if c.t >= imu[0, 0] and len(c.qd) == len(cap.commands[-1].qd)]
+    cmd = [c for c in cap.commands if imu[0, 0] <= c.t <= imu[-1, 0] and len(c.qd) == len(cap.commands[-1].qd)]
     if cmd and np.all(np.isfinite([c.qd for c in cmd])):   # each tick's action: t, then the commanded joint rates
         extra["live_cmd"] = np.array([[c.t, *c.qd] for c in cmd], dtype=float)
     wrench = [s.wrench for _, s in rows]
