@@ -36,7 +36,7 @@ PIP := PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip
 
 $(STAMP): $(PY) pyproject.toml
 	$(PIP) install --quiet --upgrade pip
-	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
+	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet,lerobot,lerobot-test]'
 	touch $(STAMP)
 
 $(WARM): $(STAMP) $(KERNELS)
@@ -88,7 +88,7 @@ firmware:
 	@if $(CROSS_TOOLS); then $(MAKE) -s -C firmware cross; else $(NO_CROSS); fi
 
 bench: $(WARM_JIT)
-	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet]'
+	$(PIP) install --quiet -e '.[test,ur,viz,bench,franka,franka-sim,ros2,ros2-test,fleet,lerobot,lerobot-test]'
 	$(PY) -m benchmarks.estimation
 	$(PY) -m benchmarks.serial
 	$(PY) -m benchmarks.sim

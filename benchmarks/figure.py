@@ -19,7 +19,8 @@ sys.path.insert(0, str(ROOT))
 
 from tecdard.api.client import Client  # noqa: E402
 from tecdard.config import dump_yaml  # noqa: E402
-from tecdard.recording.format import load_live, load_recording  # noqa: E402
+from tecdard.recording.format import load_recording  # noqa: E402
+from tecdard.recording.live import load_live  # noqa: E402
 from tecdard.tools.demo import free_port, start_daemon, stop_daemon  # noqa: E402
 
 OUT = ROOT / "docs" / "img" / "rotate.png"

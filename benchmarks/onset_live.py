@@ -73,7 +73,8 @@ def approach_errors(speeds=(0.01, 0.02, 0.03), runs: int = 3) -> list[str]:
     from tecdard.config import Config
     from tecdard.control.geometry import quat_to_matrix
     from tecdard.control.pipeline import ContactPipeline
-    from tecdard.recording.format import load_live, load_recording
+    from tecdard.recording.format import load_recording
+    from tecdard.recording.live import load_live
     from tecdard.recording import replay as L
     from tecdard.tools.demo import distance_to_axis
     axis = np.array([0.0, 1.0, 0.0])

@@ -47,7 +47,8 @@ def force_seen(tcp_t: np.ndarray, wrench: np.ndarray, after_t: float, threshold_
 
 
 def one(path: pathlib.Path) -> dict | None:
-    from tecdard.recording.format import load_live, load_recording
+    from tecdard.recording.format import load_recording
+    from tecdard.recording.live import load_live
     rec = load_recording(path)
     live = load_live(path, rec)
     onset = next((e for e in live.events if e.get("kind") == "contact_onset" and not e.get("commanded")), None)

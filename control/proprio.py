@@ -76,6 +76,7 @@ class ProprioSample:
     wrench: np.ndarray | None = None  # the arm's own estimate at the TCP, world: force N, torque N m (6,), nan where
                                       # it gives none (for the recording; None: the arm estimates no force)
     wrench_source: str = ""           # whose estimate (robots.backend.WRENCH_SOURCES' key)
+    qd: np.ndarray | None = None      # the joints' measured rates, rad/s (for the recording: a dataset's state)
 
 
 @dataclass(frozen=True, slots=True)

@@ -135,7 +135,8 @@ def test_on_the_simulated_arm_release_empties_the_hand_tasks_refuse_and_a_grasp_
     assert reply["ok"] and reply["gripper"]["force_n"] == 25.0, reply
     assert rotate_on_the_cutter(d, 20.0) < HINGE_TOL_M
     # the recording of that rotate: the grip force the grasp set, where it came from, the hand's state
-    from tecdard.recording.format import load_live, load_recording
+    from tecdard.recording.format import load_recording
+    from tecdard.recording.live import load_live
     path = cli.wait_event(("recording_written",), None, 30.0)["path"]
     rec, live = load_recording(path), None
     live = load_live(path, rec)

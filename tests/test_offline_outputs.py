@@ -218,7 +218,8 @@ events_strategy = st.lists(st.one_of(
 def test_any_live_events_load_or_are_one_line_refusals(arrays, tmp_path, events):
     """Through the reader every tool shares: load_live returns the events, each a dict with a string
     kind and a finite t near the recording, or raises one RecordingError line."""
-    from tecdard.recording.format import RecordingError, load_live
+    from tecdard.recording.format import RecordingError
+    from tecdard.recording.live import load_live
     path = tmp_path / "fuzz.npz"
     np.savez(path, **arrays, **live_keys(arrays, events))
     rec = load_recording(path)
@@ -230,6 +231,47 @@ def test_any_live_events_load_or_are_one_line_refusals(arrays, tmp_path, events)
     for ev in live.events:
         assert isinstance(ev, dict) and isinstance(ev["kind"], str) and np.isfinite(ev["t"])
         assert abs(ev["t"] - rec.imu_t[0]) <= 2 * 3600.0
+
+
+def _ticks(arrays, n_joints: int = 6) -> np.ndarray:
+    t = np.arange(arrays["imu_t"][0], arrays["imu_t"][-1], 0.02)
+    return np.column_stack([t, np.full((len(t), n_joints), 0.01)])
+
+
+@pytest.mark.parametrize("name, cmd, said", [
+    ("joint rates of a 3-D block", lambda a: _ticks(a)[None], "live_cmd: expected shape (T, 1 + 1..12 joints)"),
+    ("a time alone", lambda a: _ticks(a)[:, :1], "live_cmd: expected shape (T, 1 + 1..12 joints)"),
+    ("times that go back", lambda a: _ticks(a)[::-1], "live_cmd: tick times must increase strictly"),
+    ("ticks an hour after the samples", lambda a: _ticks(a) + np.r_[3600.0, np.zeros(6)], "live_cmd: tick times must"),
+    ("a rate of 1000 rad/s", lambda a: _ticks(a) + np.r_[0.0, 1000.0, np.zeros(5)], "beyond 100 rad/s"),
+    ("a NaN rate", lambda a: _ticks(a) + np.r_[np.zeros(6), np.nan], "live_cmd: contains NaN or inf"),
+])
+def test_a_bad_live_cmd_is_a_one_line_refusal_naming_it(arrays, tmp_path, name, cmd, said):
+    """Issue 52: the control ticks' commands (a dataset's action) are read as strictly as every member."""
+    from tecdard.recording.format import RecordingError
+    from tecdard.recording.live import load_live
+    path = tmp_path / "cmd.npz"
+    np.savez(path, **arrays, **live_keys(arrays, []), live_cmd=cmd(arrays))
+    with pytest.raises(RecordingError) as err:
+        load_live(path, load_recording(path))
+    assert said in str(err.value) and "\n" not in str(err.value), (name, str(err.value))
+
+
+def test_joint_rates_without_their_joints_are_refused(arrays, tmp_path):
+    from tecdard.recording.format import RecordingError
+    from tecdard.recording.live import load_live
+    path = tmp_path / "qd.npz"
+    np.savez(path, **arrays, **live_keys(arrays, []), live_qd=np.zeros((len(arrays["tcp_t"]), 6)))
+    with pytest.raises(RecordingError, match="live_qd: the joints' rates without live_q"):
+        load_live(path, load_recording(path))
+
+
+def test_a_live_cmd_loads_as_the_ticks_and_their_joint_rates(arrays, tmp_path):
+    from tecdard.recording.live import load_live
+    path = tmp_path / "cmd.npz"
+    np.savez(path, **arrays, **live_keys(arrays, []), live_cmd=_ticks(arrays))
+    live = load_live(path, load_recording(path))
+    np.testing.assert_array_equal(live.cmd, _ticks(arrays))
 
 
 @settings(max_examples=40, deadline=None, database=None,

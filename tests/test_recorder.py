@@ -19,7 +19,8 @@ from tecdard.recording import replay as L
 from tecdard.runtime import recorder as R
 from tecdard.config import Config
 from tecdard.control.pipeline import ContactPipeline
-from tecdard.recording.format import load_live, load_recording
+from tecdard.recording.format import load_recording
+from tecdard.recording.live import load_live
 from tecdard.runtime.capture import Pass
 from tests.conftest import ROOT, DaemonProcess, daemon_config, tecdard
 
@@ -75,6 +76,30 @@ def test_an_episode_is_recorded_and_replays_to_the_live_estimates(tmp_path):
     assert rec.tcp_vel is not None and rec.meta["robot"] == "sim" and rec.meta["task"] == written["task"]
     assert rec.meta["config_digest"] and rec.meta["backend"] == "sim"
     assert {e["kind"] for e in live.events} >= {"contact_onset", "task_started", "task_done"}
+    # issue 52: every control tick's command, the action a dataset learns: the tick's time, then 7 joint rates
+    assert live.cmd is not None and live.cmd.shape[1] == 1 + 7, None if live.cmd is None else live.cmd.shape
+    tick = np.median(np.diff(live.cmd[:, 0]))
+    assert abs(tick - 0.02) < 1e-3, tick
+    assert rec.imu_t[0] <= live.cmd[0, 0] and live.cmd[-1, 0] <= rec.imu_t[-1] + 0.1
+    (t_start,) = [e["t"] for e in live.events if e["kind"] == "task_started"]
+    moving = np.abs(live.cmd[:, 1:]).max(axis=1) > 1e-3
+    assert np.all(~moving[live.cmd[:, 0] < t_start - 0.05]), "the arm was commanded before its task started"
+    assert moving.sum() * tick > 1.0, f"{moving.sum()} ticks commanded a motion"
+    assert live.qd is not None and live.qd.shape == (len(rec.tcp_t), 7) and np.abs(live.qd).max() > 1e-3
+    assert live.axis is not None and live.axis.shape == (len(live.est), 3)
+    assert abs(abs(live.axis[-1, 1]) - 1.0) < 0.05, live.axis[-1]      # the simulated cutter's hinge: along y
+    if importlib.util.find_spec("pyarrow") is not None:         # the `lerobot` extra: the episode as a dataset
+        ds = tmp_path / "dataset"
+        res = tecdard("export", "--lerobot", ds, written["path"])
+        assert res.returncode == 0, res.stderr
+        import pyarrow.parquet as pq
+        frames = pq.read_table(ds / "data" / "chunk-000" / "file-000.parquet").to_pydict()
+        span = min(live.cmd[-1, 0], rec.tcp_t[-1], rec.imu_t[-1]) - max(live.cmd[0, 0], rec.tcp_t[0], rec.imu_t[133])
+        assert abs(len(frames["index"]) - span * 50) <= 2, (len(frames["index"]), span)
+        moved = np.abs(np.array(frames["action"])).max(axis=1) > 1e-3
+        assert abs(moved.sum() - moving.sum()) <= 2, (moved.sum(), moving.sum())      # the ticks that moved the arm
+        assert np.array(frames["observation.imu"][0]).shape == (133, 6)               # 6667 Hz / 50 fps
+        assert np.array(frames["observation.contact"])[-1, 9] == 1.0                   # the hinge estimated by then
     # the command line gives the same answer
     res = tecdard("localize", written["path"], "--json", "--config", d.config_path)
     assert res.returncode == 0, res.stderr

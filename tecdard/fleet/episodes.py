@@ -211,7 +211,8 @@ class Episode:
 def read_episode(path: pathlib.Path, robot: str | None = None) -> Episode:
     """The index rows of a recording (RecordingError, one line, for a malformed file): from its meta,
     the live estimates and events a daemon recording carries, or its truth where a simulated one has it."""
-    from tecdard.recording.format import RecordingError, load_live, load_recording, load_truth
+    from tecdard.recording.format import RecordingError, load_recording, load_truth
+    from tecdard.recording.live import load_live
     rec = load_recording(path)
     live = load_live(path, rec)
     meta = rec.meta or {}

@@ -15,7 +15,7 @@ ROWS_OF = {"N": "imu_t", "M": "tcp_t"}
 @dataclass(frozen=True)
 class Member:
     """One key of the archive. `shape` names its rows symbolically ("N": as imu_t, "M": as tcp_t, "B",
-    "K": any number, "n": the arm's joints); `kind` is "array" (numbers), "string" (a string scalar) or
+    "K", "T": any number, "n": the arm's joints, "1+n": a time and the joints); `kind` is "array" (numbers), "string" (a string scalar) or
     "json" (a string scalar holding a JSON list or object)."""
     key: str
     shape: tuple
@@ -69,7 +69,7 @@ CORE = (
     Member("meta", (), False, "JSON object: free-form rig description (robot, tool, notes)", kind="json"),
 )
 
-# What a daemon's recording adds: how its live estimator was fed (recording/format.py's LiveLog), so
+# What a daemon's recording adds: how its live estimator was fed (recording/live.py's LiveLog), so
 # that a replay is the live answer.
 LIVE = (
     Member("live_pass_end", ("B",), True, "IMU rows fed to the pipeline up to the end of each estimator pass",
@@ -82,10 +82,14 @@ LIVE = (
     Member("live_bias0", (4,), True, "the gyro bias at the first pass (rad/s, IMU frame) and the rest time "
                                      "averaged into it (s)"),
     Member("live_est", ("K", 7), True, "the live estimates: `t, px, py, pz, sx, sy, sz`"),
+    Member("live_axis", ("K", 3), False, "the rotation axis (world, unit) with each of `live_est`'s estimates; NaN "
+                                         "until the motion excites it", field="axis"),
     Member("live_events", (), True, "the pipeline's and the daemon's events during the capture (task start and "
                                     "end, faults, stops)", kind="json"),
     Member("live_q", ("M", "n"), False, "the measured joints at each proprioception sample, rad (the export "
                                         "draws the arm from it)"),
+    Member("live_qd", ("M", "n"), False, "the joints' measured rates at each proprioception sample, rad/s (with "
+                                         "`live_q`: a dataset's state)"),
     Member("live_gripper", ("M", 2), False, "the gripper at each proprioception sample: its opening (m) and whether "
                                             "it held something (1 or 0); -1 where it could not say "
                                             "(`meta.grip_force_source` says where `grip_force` came from)"),
@@ -94,6 +98,9 @@ LIVE = (
                                           "where the arm gives none. `meta.wrench_source` says whose estimate: "
                                           "`actual_TCP_force` (UR), `O_F_ext_hat_K` or `joint_torques` (Franka), "
                                           "`sim_contact` (the simulator: force only)"),
+    Member("live_cmd", ("T", "1+n"), False, field="cmd", meaning="each control tick's command: its time (s, the "
+                                            "samples' clock), then the joint rates sent to the arm (rad/s; zeros "
+                                            "where the tick held it): a dataset's action", rows_max=MAX_TCP_SAMPLES),
 )
 
 MEMBERS = {m.key: m for m in CORE + LIVE}

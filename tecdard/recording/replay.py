@@ -12,7 +12,8 @@ import numpy as np
 
 from tecdard.config import Config, ConfigError
 from tecdard.control.geometry import quat_to_matrix
-from tecdard.recording.format import LiveLog, Recording, RecordingError, load_live, load_recording
+from tecdard.recording.format import Recording, RecordingError, load_recording
+from tecdard.recording.live import LiveLog, load_live
 from tecdard.safejson import show
 
 if TYPE_CHECKING:        # the pipeline (and its compiled kernels) loads when a replay runs, not for --help

@@ -28,6 +28,14 @@ class CaptureCommand:
 
 
 @dataclass(frozen=True)
+class Commanded:
+    """A control tick's command, from the control thread to the recorder's: its time (s, monotonic) and the
+    joint rates sent (rad/s; zeros where the arm was held)."""
+    t: float
+    qd: np.ndarray
+
+
+@dataclass(frozen=True)
 class NotedEvent:
     """A published event, from the main thread to the recorder's (a capture keeps its task's)."""
     event: dict
@@ -66,6 +74,7 @@ class Capture:
     path: pathlib.Path | None = None      # where it is written (fixed at its first checkpoint)
     onset_t: float | None = None          # the contact onset it opened on (None: opened on a command)
     saved_at: float = field(default_factory=time.monotonic)   # its last checkpoint (or its opening)
+    commands: list = field(default_factory=list)              # the control ticks' Commanded, in order
 
 
 def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
@@ -121,14 +130,22 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
         "live_changes": np.array(json.dumps(json_ready(changes))),
         "live_bias0": np.asarray(first.bias, float),
         "live_est": np.array([np.concatenate([[e.t], e.p, e.std]) for e in ests]).reshape(-1, 7),
+        # the rotation axis with each estimate (NaN until the motion excites it)
+        "live_axis": np.array([np.full(3, np.nan) if e.axis is None else e.axis for e in ests], float).reshape(-1, 3),
         "live_events": np.array(json.dumps(json_ready(events))),
     }
     q = [s.q for _, s in rows if s.q is not None]
     if len(q) == len(rows) and q and len({len(x) for x in q}) == 1 and np.all(np.isfinite(q)):
         extra["live_q"] = np.array(q, dtype=float)         # the measured joints, rad (the export draws the arm)
+        qd = [s.qd for _, s in rows]
+        if all(x is not None and len(x) == len(q[0]) for x in qd) and np.all(np.isfinite(qd)):
+            extra["live_qd"] = np.array(qd, dtype=float)   # and their measured rates, rad/s
     gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
     if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
         extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
+    cmd = [c for c in cap.commands if imu[0, 0] <= c.t <= imu[-1, 0] and len(c.qd) == len(cap.commands[-1].qd)]
+    if cmd and np.all(np.isfinite([c.qd for c in cmd])):   # each tick's action: t, then the commanded joint rates
+        extra["live_cmd"] = np.array([[c.t, *c.qd] for c in cmd], dtype=float)
     wrench = [s.wrench for _, s in rows]
     if any(w is not None for w in wrench):                # the arm's own estimate at the TCP; nan where it gave none
         extra["tcp_wrench"] = np.array([np.full(6, np.nan) if w is None else w for w in wrench], dtype=float)

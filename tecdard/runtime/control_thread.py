@@ -123,6 +123,7 @@ class ControlThread:
         self.services = dict(services or {})
         self.estimator = estimator
         self.gripper = None                  # runtime.gripper_worker.GripperWorker once started (None: no gripper)
+        self.on_command = None               # on_command(t, qd): each tick's commanded joint rates (zeros: held)
         self.commands: queue.Queue = queue.Queue(maxsize=COMMAND_QUEUE)
         self.replies: queue.SimpleQueue = queue.SimpleQueue()
         self.recoverer = Recoverer(robot, outbox, self.replies,       # `recover`, on a thread of its own
@@ -239,12 +240,17 @@ class ControlThread:
                         planner.fallbacks)
         if p_cmd is None or not fresh:
             self.robot.hold()
+            qd_sent = np.zeros(len(js.q))
         elif runner.qd_cmd is not None:           # a joint-space task (home)
-            self.robot.command_joint_velocity(runner.qd_cmd)
+            qd_sent = runner.qd_cmd
+            self.robot.command_joint_velocity(qd_sent)
         else:
             plan = PlanSample(now, p_plan, v_plan, p_cmd, runner.R_hold, runner.w_ff)
-            self.robot.command_joint_velocity(joint_velocities(self.model, js, oMtcp, plan, self.params.tick_s,
-                                                               self.params.max_speed, self.q_home))
+            qd_sent = joint_velocities(self.model, js, oMtcp, plan, self.params.tick_s, self.params.max_speed,
+                                       self.q_home)
+            self.robot.command_joint_velocity(qd_sent)
+        if self.on_command is not None:           # the recorder's (a recording's live_cmd: the tick's action)
+            self.on_command(now, qd_sent)
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
         resting = runner.mode is Mode.IDLE

@@ -209,6 +209,7 @@ class Daemon:
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,
                                      estimator=self.estimator)
+        self.control.on_command = self.recorder.note_command
         self.ring.wake = WakeStats()
         self.threads = ThreadUsage({"control": self.control.stats.wake, "estimator": self.ring.wake})
         self.keys = Keys(self.robot_name)

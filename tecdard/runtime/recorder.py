@@ -46,7 +46,7 @@ import numpy as np
 
 from tecdard.api import commands as C
 from tecdard.options import option, read_options
-from tecdard.runtime.capture import Capture, CaptureCommand, EmptyCapture, NotedEvent, Pass, build
+from tecdard.runtime.capture import Capture, CaptureCommand, Commanded, EmptyCapture, NotedEvent, Pass, build
 from tecdard.runtime.intake import TokenBucket
 from tecdard.runtime.messages import Inbox
 from tecdard.fleet.episodes import UPLOADED_SUFFIX
@@ -62,6 +62,8 @@ LABEL_RE = re.compile(r"[^A-Za-z0-9_.-]+")
 MAX_LABEL_CHARS = 40
 TASK_END_KINDS = ("task_done", "task_failed")
 PRE_EVENTS = 64             # daemon events kept from before a capture (those in its window are written)
+PRE_COMMANDS = 600          # control ticks' commands kept from before a capture (12 s at 50 Hz; record.pre_onset_s
+                            # is at most 10 s): those from its first IMU sample on are written
 TASK_END_GRACE_S = 0.5       # after its episode, a capture waits this long for its task's end event
 ADOPT_BEFORE_START_S = 0.05   # an idle capture whose onset is at most this much before a task's start is that task's
 CHECKPOINT_S = 10.0          # a capture still open is written this often (what SIGKILL can cost): record.checkpoint_s
@@ -122,6 +124,7 @@ class Recorder:
         self.may_delete = None         # set before run(): may_delete(path) False keeps that recording (an upload due)
         self._pre: collections.deque = collections.deque()
         self._pre_events: collections.deque = collections.deque(maxlen=PRE_EVENTS)
+        self._pre_cmds: collections.deque = collections.deque(maxlen=PRE_COMMANDS)
         self._capture: Capture | None = None
         self._task: tuple[str, str] | None = None       # (id, verb) of the running task
         self._manual: str | None = None                  # main thread: the label of a capture on demand
@@ -138,6 +141,10 @@ class Recorder:
     def note_event(self, event: dict) -> None:
         """On the main thread: a daemon event (task starts and ends close captures)."""
         self._inbox.put(NotedEvent(event))
+
+    def note_command(self, t: float, qd) -> None:
+        """On the control thread: the tick's commanded joint rates (never blocks; an overflow is dropped)."""
+        self._inbox.put(Commanded(t, np.array(qd, dtype=float)))
 
     def request(self, action: str, label: str) -> dict:
         """On the main thread: a `record` command's reply. The main thread owns whether a capture on
@@ -208,6 +215,11 @@ class Recorder:
             self._on_pass(item)
         elif isinstance(item, NotedEvent):
             self._on_event(item.event)
+        elif isinstance(item, Commanded):
+            if self._capture is not None:
+                self._capture.commands.append(item)
+            else:
+                self._pre_cmds.append(item)
         else:
             self._on_command(item.what, item.arg)
         self._check_age()
@@ -278,9 +290,11 @@ class Recorder:
         events = [e for e in self._pre_events if t0 is not None and isinstance(e.get("t"), (int, float))
                   and e["t"] >= t0 - self.params.pre_onset_s]
         self._capture = Capture(reason, label, task, verb, episode, list(self._pre), events, manual=manual,
-                                lost_at_open=self.dropped_passes)
+                                lost_at_open=self.dropped_passes,
+                                commands=[c for c in self._pre_cmds if t0 is not None and c.t >= t0])
         self._pre.clear()
         self._pre_events.clear()
+        self._pre_cmds.clear()
 
     def _trim_pre(self) -> None:
         newest = next((p.t_end for p in reversed(self._pre) if p.t_end is not None), None)

@@ -109,7 +109,7 @@ class ProprioFeed:
             ring = self.ring
             ring.push(ProprioSample(js.t, oMtcp.translation.copy(), twist[:3].copy(), oMtcp.rotation.copy(),
                                     twist[3:].copy(), grip, np.array(js.q, dtype=float), width, grasped,
-                                    wrench_of(js), js.wrench_source))
+                                    wrench_of(js), js.wrench_source, np.array(js.qd, dtype=float)))
             if ring.overwritten != self._logged and (self._logged == 0 or ring.overwritten - self._logged >= 1000):
                 self._logged = ring.overwritten
                 log.warning("the estimator fell behind: %d proprioception samples overwritten", self._logged)
