@@ -4,6 +4,7 @@ paper cutter's hinge, the fingertip IMU streaming tecdar-imu/1 on a pseudo-termi
 daemon reads as its serial board). Everything between the daemon and the arm is the real path:
 RTDE v2 on loopback, the controller's base frame and clock, the serial wire protocol."""
 import contextlib
+import importlib.util
 
 import numpy as np
 import pytest
@@ -73,12 +74,14 @@ def cutter_rig(tmp_path, seed: int = 1, urcap=None, **config):
 
 
 def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
-    with cutter_rig(tmp_path) as (fake, d):
+    with cutter_rig(tmp_path, **{"record.enabled": True, "record.dir": str(tmp_path / "rec")}) as (fake, d):
         reply = d.client.command("rotate", {"angle_deg": 30.0})
         assert reply["ok"] is True, reply
         ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
         ev = with_truth(ev, fake.truth())
         assert ev["kind"] == "task_done", f"{ev}\n{d.log()[-3000:]}"
+        written = d.client.wait_event(("recording_written",), None, 30.0)
+    lerobot_episode_of_a_ur(written["path"], tmp_path / "dataset")
     res, sim = ev["result"], ev["result"]["sim"]
     err = distance_to_axis(np.array(res["hinge"]["p"]), np.array(sim["hinge_point"]), np.array(sim["hinge_axis"]))
     summary = f"hinge error {err * 1e3:.2f} mm, angle {sim['angle_deg']:.2f} deg, base {sim['base_displacement'] * 1e3:.2f} mm"
@@ -87,6 +90,28 @@ def test_rotate_opens_the_cutter_through_ur_rtde(tmp_path):
     assert abs(sim["angle_deg"] - 30.0) < ANGLE_TOL_DEG, summary
     assert sim["base_displacement"] < BASE_MAX_M, summary
     assert "robot.tool_offset / robot.model" not in d.log() and "leaked" not in d.log()
+
+
+def lerobot_episode_of_a_ur(path: str, out) -> None:
+    """Issue 52: the rotate's recording through ur-rtde as a LeRobot episode: the UR5e's 6 joints, its speedJ
+    commands as the action (the arc's ticks move the arm), the board's 133-sample windows."""
+    if importlib.util.find_spec("pyarrow") is None:          # the `lerobot` extra, which `make test` installs
+        return
+    import json
+
+    import pyarrow.parquet as pq
+
+    from tests.conftest import tecdard
+    res = tecdard("export", "--lerobot", str(out), path)
+    assert res.returncode == 0, res.stderr
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["features"]["action"]["shape"] == [6] and info["features"]["observation.state"]["shape"] == [19]
+    frames = pq.read_table(out / "data" / "chunk-000" / "file-000.parquet").to_pydict()
+    moved = np.abs(np.array(frames["action"])).max(axis=1) > 1e-3
+    assert moved.sum() > 50, moved.sum()                        # over a second of the arc's commands
+    assert np.array(frames["observation.imu"][-1]).shape == (133, 6)
+    episode = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()[0]
+    assert json.loads(episode["tecdar"])["outcome"] == "task_done"
 
 
 def test_a_protective_stop_mid_rotate_fails_the_task_nothing_moves_after_it_and_recover_lets_a_rotate_run(tmp_path):
