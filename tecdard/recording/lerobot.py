@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,12 +144,10 @@ def _stats(values: np.ndarray) -> dict:
     """lerobot's per-feature statistics over the frames (axis 0), NaN-aware (a wrench's missing torque)."""
     v = values.astype(np.float64).reshape(len(values), -1)
     shape = values.shape[1:] or (1,)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out = {"min": np.nanmin(v, 0), "max": np.nanmax(v, 0), "mean": np.nanmean(v, 0), "std": np.nanstd(v, 0)}
-            out |= {f"q{round(q * 100):02d}": np.nanquantile(v, q, axis=0) for q in QUANTILES}
+    with warnings.catch_warnings():                  # an all-NaN column (a torque never given) is NaN, said once here
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = {"min": np.nanmin(v, 0), "max": np.nanmax(v, 0), "mean": np.nanmean(v, 0), "std": np.nanstd(v, 0)}
+        out |= {f"q{round(q * 100):02d}": np.nanquantile(v, q, axis=0) for q in QUANTILES}
     stats = {k: a.reshape(shape).tolist() for k, a in out.items()}
     stats["count"] = [len(values)]
     return stats

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pathlib
 import tempfile
+import time
 
 from tecdard.tools.args import BadInput, checked_method, refused, show_path_error
 
@@ -57,8 +58,6 @@ def _mcap(args) -> int:
 
 
 def _lerobot(args) -> int:
-    import time
-
     from tecdard.recording.lerobot import DatasetError, episode_of, write_dataset
 
     out = pathlib.Path(args.lerobot)
