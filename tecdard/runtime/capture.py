@@ -143,9 +143,10 @@ def build(cap: Capture, meta: dict) -> tuple[Recording, dict]:
     gripper = np.array([[s.grip_width_m, s.grasped] for _, s in rows], dtype=float)
     if np.any(np.isfinite(gripper)):                      # the gripper's opening (m) and whether it held; -1: unknown
         extra["live_gripper"] = np.where(np.isfinite(gripper), gripper, -1.0)
-    cmd = [c for c in cap.commands if imu[0, 0] <= c.t <= imu[-1, 0] and len(c.qd) == len(cap.commands[-1].qd)]
-    if cmd and np.all(np.isfinite([c.qd for c in cmd])):   # each tick's action: t, then the commanded joint rates
-        extra["live_cmd"] = np.array([[c.t, *c.qd] for c in cmd], dtype=float)
+    cmd = np.array([[c.t, *c.qd] for c in cap.commands                  # each tick's action: t, then the
+                    if imu[0, 0] <= c.t <= imu[-1, 0] and len(c.qd) == len(cap.commands[-1].qd)], dtype=float)
+    if len(cmd) and np.all(np.isfinite(cmd)):                           # commanded joint rates
+        extra["live_cmd"] = cmd
     wrench = [s.wrench for _, s in rows]
     if any(w is not None for w in wrench):                # the arm's own estimate at the TCP; nan where it gave none
         extra["tcp_wrench"] = np.array([np.full(6, np.nan) if w is None else w for w in wrench], dtype=float)
