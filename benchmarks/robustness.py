@@ -10,8 +10,10 @@ MuJoCo (sim/mujoco_source.py), replayed causally as `tecdard localize` replays:
 - false onsets per minute of free motion on every profile of sim/profiles.py (UR CB3 and e-Series
   trapezoids, Franka, a JTC's splines, a pendant jog), each episode released 0.3 s after its
   detection so that every onset counts;
-- an impact at constant speed (sim `edge-ongoing`, 20 mm/s): where the onset was dated and when it
-  was decided, ms after the true contact;
+- an impact at constant speed (sim `edge-ongoing`, 20 mm/s): where the onset was dated, ms after the
+  true contact on the arm's clock, and when it was decided: ms from the contact's sample to the
+  sample it was decided on, both on the board's clock (the clock disturbance's offset moves where
+  the contact is dated, not how long the decision took);
 - an impact-free rotation of a grasped edge (sim `edge-arc`, 8 cm, no click: the twist must find it)
   and MuJoCo's `arc` (the paper cutter, 8 cm);
 - the error at 30 ms, 180 ms and the end, in-plane, mm, and whether 3 sigma covered it;
@@ -43,11 +45,13 @@ RATES = (6667.0, 1000.0, 250.0)
 
 
 def false_onsets(profile: str, scale: float, only: str = "", minutes: float = 1.0, imu_hz: float = 6667.0,
-                 seed: int = 1) -> tuple[int, float, dict]:
-    """(onsets, minutes of motion, by trigger) on `minutes` of free motion on `profile`."""
-    fields, truth = free_motion(profile, 60.0 * minutes, imu_hz=imu_hz, rig=RigParams().at(scale, only), seed=seed)
+                 seed: int = 1, tick_s: float = 0.0) -> tuple[int, float, dict]:
+    """(onsets, minutes of motion, by trigger) on `minutes` of free motion on `profile`; tick_s > 0: the
+    daemon commanded it, with control ticks that far apart (their commands replayed)."""
+    fields, truth = free_motion(profile, 60.0 * minutes, imu_hz=imu_hz, rig=RigParams().at(scale, only), seed=seed,
+                                command_tick_s=tick_s)
     rec = Recording.from_fields(fields)
-    found = L.replay_onsets(rec, pipeline(rec))
+    found = L.replay_onsets(rec, pipeline(rec), commands=fields.get("live_cmd"))
     kinds: dict = {}
     for e in found:
         kinds[e["trigger"]] = kinds.get(e["trigger"], 0) + 1
@@ -59,12 +63,13 @@ def contact(fields: dict, truth: dict) -> dict:
     the error (mm) at 30 ms, 180 ms and the end with whether 3 sigma covered it."""
     rec = Recording.from_fields(fields)
     events: list = []
-    rows, onset_t, last = L.replay(rec, pipeline(rec), 1000.0, on_event=events.append)
+    rows, onset_t, last = L.replay(rec, pipeline(rec), 1000.0, on_event=events.append, commands=fields.get("live_cmd"))
     onset = next((e for e in events if e["kind"] == "contact_onset"), None)
     t0 = float(truth["onset_t"])
     out = {"dated_ms": np.nan, "detected_ms": np.nan, "trigger": "-"}
     if onset is not None:
-        out.update(dated_ms=(onset["t"] - t0) * 1e3, detected_ms=(onset["detected_t"] - t0) * 1e3,
+        t0_board = float(truth.get("onset_stamp_t", t0))
+        out.update(dated_ms=(onset["t"] - t0) * 1e3, detected_ms=(onset["detected_t"] - t0_board) * 1e3,
                    trigger=onset["trigger"])
     for name, at in (("30", 0.030), ("180", 0.180), ("end", np.inf)):
         if at == np.inf and len(rows):
@@ -74,9 +79,11 @@ def contact(fields: dict, truth: dict) -> dict:
     return out
 
 
-def impact(scale: float, only: str = "", imu_hz: float = 6667.0, seed: int = 1) -> dict:
+def impact(scale: float, only: str = "", imu_hz: float = 6667.0, seed: int = 1, tick_s: float = 0.0) -> dict:
+    """tick_s > 0: the daemon drives the arm, with control ticks that far apart (their commands replayed)."""
     return contact(*generate(Scenario(kind="edge-ongoing", speed=0.02, radius=0.12, imu_hz=imu_hz, tcp_hz=125.0,
-                                      tcp_latency_s=0.008, rig_scale=scale, rig_only=only, seed=seed)))
+                                      tcp_latency_s=0.008, rig_scale=scale, rig_only=only, seed=seed,
+                                      command_tick_s=tick_s)))
 
 
 def rotation(scale: float, only: str = "", imu_hz: float = 6667.0, seed: int = 1) -> dict:

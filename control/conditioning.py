@@ -112,3 +112,18 @@ class GyroConditioner:
         if R_world_tcp.ndim == 2:
             return w_tcp_imu @ R_world_tcp.T
         return (R_world_tcp @ w_tcp_imu[:, :, None])[:, :, 0]
+
+
+def first_coincidence(t: np.ndarray, conds: dict, last_true: dict, window_s: float) -> int:
+    """The first sample of t (n,) at which every condition (name -> (n,) bool) has been true within
+    window_s, or -1; `last_true` (name -> time) carries each one's last true time over batches."""
+    names = list(conds)
+    last = np.empty((len(names), len(t)))
+    for i, name in enumerate(names):
+        true_t = np.where(conds[name], t, -np.inf)
+        prev = last_true.get(name, -np.inf)
+        last[i] = np.maximum.accumulate(np.concatenate([[prev], true_t]))[1:]
+        last_true[name] = last[i, -1]
+    ok = np.all(t[None, :] - last <= window_s, axis=0)
+    idx = np.flatnonzero(ok)
+    return int(idx[0]) if len(idx) else -1

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from tecdard.control.band_energy import band_at_rate
-from tecdard.control.conditioning import mean0, moving_mean
+from tecdard.control.command_track import COMMAND_SETTLE_S, COMMAND_STEADY_RAD_S2, CommandTrack
+from tecdard.control.conditioning import first_coincidence, mean0, moving_mean
 from tecdard.control.onset_guard import FLOOR_K, PREDICT_HORIZON_S, REVERSAL_S, NoiseFloor, Predictor, StepGuard
 from tecdard.control.proprio import ACCEL_WINDOW_S
 from tecdard.options import option, read_options
@@ -79,6 +80,11 @@ class OnsetOptions:
     reversal_s: float = option(REVERSAL_S, "an accelerometer onset that swings back past its threshold this soon is "
                                            "decided without the arm's states (a step keeps its sign); 0: off",
                                unit="s", minval=0.0, maxval=0.05)
+    command_settle_s: float = option(COMMAND_SETTLE_S, "the daemon driving the arm: an accelerometer onset is decided "
+                                     "at once once the commanded joint rates held this long; 0: off",
+                                     unit="s", minval=0.0, maxval=1.0)
+    command_steady_rad_s2: float = option(COMMAND_STEADY_RAD_S2, "held: each tick's change of them over its period "
+                                          "(the joints' sum) within this", unit="rad/s^2", above=0.0, maxval=10.0)
     floor_k: float = option(FLOOR_K, "the accelerometer's threshold is at least this many times the remainder's "
                                      "moving RMS (the arm's own vibration); 0: off", minval=0.0, maxval=50.0)
 
@@ -212,6 +218,8 @@ class OnsetDetector:
         det.swing_accel = o.swing_accel
         det.guard.lag_s = o.proprio_lag_s
         det.guard.reversal_s = o.reversal_s
+        if o.command_settle_s > 0.0:
+            det.guard.commands = CommandTrack(o.command_settle_s, o.command_steady_rad_s2)
         det.floor.k = o.floor_k
         det.predictor = Predictor(o.predict_horizon_s, odr_hz)
         det.mount_tolerance = math.radians(o.mount_tolerance_deg)
@@ -488,13 +496,4 @@ class OnsetDetector:
 
     def _coincidence(self, t: np.ndarray, conds: dict) -> int:
         """First sample at which every condition has been true within coincidence_s."""
-        names = list(conds)
-        last = np.empty((len(names), len(t)))
-        for i, name in enumerate(names):
-            true_t = np.where(conds[name], t, -np.inf)
-            prev = self._last_true.get(name, -np.inf)
-            last[i] = np.maximum.accumulate(np.concatenate([[prev], true_t]))[1:]
-            self._last_true[name] = last[i, -1]
-        ok = np.all(t[None, :] - last <= self.coincidence_s, axis=0)
-        idx = np.flatnonzero(ok)
-        return int(idx[0]) if len(idx) else -1
+        return first_coincidence(t, conds, self._last_true, self.coincidence_s)

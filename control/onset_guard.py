@@ -53,7 +53,8 @@ class Candidate:
     views: np.ndarray | None = None     # the peak of each view of the remainder (StepGuard.decide)
     x_peak: np.ndarray | None = None    # the remainder (3,) at its largest since the candidate, m/s^2
     level: np.ndarray | None = None     # the remainder's mean (3,) over the REVERSAL_PAST_S before it, m/s^2
-    swing: float = 0.0                  # its largest swing from that mean then, m/s^2
+    past: np.ndarray | None = None      # the remainder then, less that mean (m, 3), m/s^2: its swing along
+                                        # the peak's direction is the reversal's bar (StepGuard._reversal)
 
 
 class NoiseFloor:
@@ -112,6 +113,8 @@ class StepGuard:
         self.explained_steps = 0
         self.reversal_s = REVERSAL_S       # a candidate that swings back this soon is an onset (estimator.onset.reversal_s)
         self.reversals = 0                 # candidates decided so
+        self.commands = None               # control.command_track.CommandTrack: the daemon's own commands, or None
+        self.commanded = 0                 # candidates decided at once, the arm's commands steady
         self._past = np.zeros((0, 3))      # the remainder's last REVERSAL_PAST_S (observe)
 
     @property
@@ -131,8 +134,7 @@ class StepGuard:
         c = self.candidate = Candidate(t_c, 0.0, allow)
         if past is not None and len(past):
             c.level = past.mean(axis=0)
-            d = past - c.level
-            c.swing = float(np.sqrt(np.einsum("ij,ij->i", d, d)).max())
+            c.past = past - c.level
 
     def past(self, x: np.ndarray, k: int, odr_hz: float) -> np.ndarray:
         """The remainder over the REVERSAL_PAST_S before sample k of the batch x (n, 3) (observe
@@ -153,11 +155,18 @@ class StepGuard:
         return amp * np.exp(-np.maximum(t - since, 0.0) / STEP_RING_TAU_S)
 
     def decide(self, t: np.ndarray, dev: np.ndarray | None, swing_accel: float, x: np.ndarray | None = None) -> int:
-        """The waiting candidate against the arm's states, with this batch's accelerometer remainder
+        """The waiting candidate: at once where the daemon's own commands were steady at it (`commands`),
+        else against the arm's states, with this batch's accelerometer remainder
         `dev` (n,), or several views of it (k, n) whose peaks are each taken and the smallest weighed,
         and the remainder itself `x` (n, 3) for its reversal: the index of the sample it is decided at
         (an onset; `decided_t` its time), or -1 (still waiting, or the arm's own step)."""
         c = self.candidate
+        if self.commands is not None and self.commands.steady(c.t):
+            # the daemon drives the arm and commanded no change of its acceleration: no step of its own
+            self.candidate = None
+            self.decided_t = c.t
+            self.commanded += 1
+            return min(int(np.searchsorted(t, c.t)), len(t) - 1)
         if x is not None and self.reversal_s > 0.0:
             at = self._reversal(t, x)
             if at >= 0:
@@ -189,7 +198,9 @@ class StepGuard:
         """The first sample within reversal_s of the candidate where the remainder x (n, 3), from its
         level before the candidate and along the direction of its largest value since (carried over
         batches), is below minus the larger of the candidate's threshold and REVERSAL_SWING_K times
-        the swing before it: its index, or -1."""
+        the swing before it along that direction: its index, or -1. (Along it, not in magnitude: a
+        step along u plus a vibration whose component along u never exceeds its past swing stays above
+        minus that swing; the vibration across u cannot turn the projection round.)"""
         c = self.candidate
         idx = np.flatnonzero((t >= c.t) & (t <= c.t + self.reversal_s))
         if len(idx) == 0:
@@ -204,7 +215,10 @@ class StepGuard:
         proj = np.einsum("ij,ij->i", xs, u)
         c.x_peak = xs[peak[-1]].copy()
         first = 1 if len(xs) > len(idx) else 0
-        hit = np.flatnonzero(proj[first:] < -max(c.allow, REVERSAL_SWING_K * c.swing))
+        bar = np.full(len(xs), c.allow)
+        if c.past is not None:
+            bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
+        hit = np.flatnonzero(proj[first:] < -bar[first:])
         return int(idx[hit[0]]) if len(hit) else -1
 
 

@@ -186,6 +186,13 @@ class ContactPipeline:
                     grip_force_n: float = np.nan) -> None:
         self.proprio.add(t, p, v, R, w, grip_force_n)
 
+    def add_command(self, t: float, qd) -> None:
+        """A control tick's commanded joint rates (rad/s) at t: the daemon's own drive of the arm, which
+        decides an accelerometer onset at once where it was steady (control.command_track)."""
+        commands = self.detector.guard.commands
+        if commands is not None:
+            commands.add(t, qd)
+
     def add_sample(self, s: ProprioSample) -> None:
         """One robot state as the daemon's threads hand it over (control.proprio.ProprioSample)."""
         self.proprio.add(s.t, s.p_world, s.v_world, s.R_world_tcp, s.w_world, s.grip_force_n)

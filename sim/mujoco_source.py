@@ -240,6 +240,7 @@ def generate(sc: MujocoScenario) -> tuple[dict, dict]:
     if sc.motion == "carry":
         return fields, {"onset_t": np.array(np.nan), "kind": np.array("free-air"), "moves": np.array(path.moves(t[-1]))}
     truth = {"p_c": HINGE.copy(), "axis": np.zeros(3) if point else path.axis, "onset_t": np.array(t[n_rest]),
+             "onset_stamp_t": np.array(t_imu[n_rest]),     # the board's stamp of the contact's instant
              "kind": np.array("point-circle" if point else "edge-arc"), "radius": np.array(L),
              "eta": np.array(sc.eta), "angle_t": t, "angle": angle - angle[0]}
     return fields, truth

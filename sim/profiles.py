@@ -90,12 +90,17 @@ def _shape(kind: str, ramp: int, cruise: int) -> np.ndarray:
     return np.concatenate([bump, np.zeros(cruise), -bump])
 
 
+COMMAND_LATENCY_S = 0.002     # free_motion's commands take effect this late ...
+COMMAND_NOISE = 5e-4          # ... with the servo's corrections on each (m/s, rad/s), as sim.scenarios'
+
+
 def free_motion(profile_name: str, duration_s: float = 60.0, imu_hz: float = 6667.0, rig: RigParams | None = None,
                 seed: int = 0, imu_in_tcp_quat=(0.0, 0.0, 0.0, 1.0), tcp_noise: float = 5e-5,
-                tcp_vel_noise: float = 1e-3):
+                tcp_vel_noise: float = 1e-3, command_tick_s: float = 0.0):
     """(recording fields, truth) of `duration_s` of free motion on profile `profile_name`, the IMU at
     `imu_hz` through the rig's disturbances (none: clean). Truth: the moves' accelerations' changes
-    (`steps_t`), no contact."""
+    (`steps_t`), no contact. `command_tick_s` > 0: the daemon commanded the motion (live_cmd: every
+    tick, the rates the arm was to reach by the next, as sim.scenarios' Cartesian arm's, and the yaw's)."""
     profile = PROFILES[profile_name]
     rig = rig or RigParams()
     rng = np.random.default_rng(seed)
@@ -131,6 +136,12 @@ def free_motion(profile_name: str, duration_s: float = 60.0, imu_hz: float = 666
         "meta": {"simulated": True, "kind": f"free-motion {profile_name}", "rig_scale": rig.scale,
                  "rig_only": rig.only, "seed": seed},
     }
+    if command_tick_s > 0.0:
+        # as a velocity interface (speedJ) is told: the rates to reach by the next tick's command
+        tk = np.arange(0.0, t_k[-1] - COMMAND_LATENCY_S, command_tick_s)
+        k = np.minimum(((tk + COMMAND_LATENCY_S + command_tick_s) / STEP_S).astype(int), len(t_k) - 1)
+        noise = np.random.default_rng(seed + 1).normal(0.0, COMMAND_NOISE, (len(tk), 4))
+        fields["live_cmd"] = np.column_stack([tk, vel4[k] + noise])
     changes = np.flatnonzero(np.any(np.abs(np.diff(acc4, axis=0)) > 1e-9, axis=1)) * STEP_S
     truth = {"onset_t": np.array(np.nan), "kind": np.array("free-motion"), "steps_t": changes,
              "moving_s": np.array(float(np.count_nonzero(np.linalg.norm(vel4, axis=1) > 1e-4)) * STEP_S)}

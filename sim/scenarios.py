@@ -47,6 +47,9 @@ class Scenario:
     rig_scale: float = 0.0            # a real rig's disturbances (sim.rig) at this multiple; 0: the noise above
     rig_only: str = ""                # ... only this one of them (sim.rig.DISTURBANCES)
     tcp_latency_s: float = 0.0        # the states stamped this late (on arrival), at rig_scale 1
+    command_tick_s: float = 0.0       # the daemon drives the arm: its ticks' commands in live_cmd (0: none)
+    command_latency_s: float = 0.002  # ... each takes effect this late
+    command_noise: float = 5e-4       # m/s, the servo's corrections on each tick's command (its feedback)
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -101,6 +104,16 @@ def _imu(sc: Scenario, rng, t, s_time, t0_dir, acc, v, w_tcp, w_obj, R_tcp):
         imu_t = rig.stamps(imu_t)
 
     return gyro, accel, imu_t, rig
+
+
+def _commands(sc: Scenario, rng, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """live_cmd's rows for a daemon that drives the arm along the scenario's path: each tick's time and the
+    rates it commanded, those of a Cartesian arm (three prismatic joints, m/s, world axes: the signal
+    model has no joints): the TCP's velocity to reach by the next tick (a velocity interface's target, as
+    speedJ's), with the servo's corrections."""
+    tk = np.arange(t[0], t[-1] - sc.command_latency_s, sc.command_tick_s)
+    idx = np.clip(np.searchsorted(t, tk + sc.command_latency_s + sc.command_tick_s), 0, len(t) - 1)
+    return np.column_stack([tk, v[idx] + rng.normal(0.0, sc.command_noise, (len(tk), 3))])
 
 
 def generate(sc: Scenario):
@@ -183,7 +196,11 @@ def generate(sc: Scenario):
         "meta": {"simulated": True, "kind": sc.kind, "radius": L, "speed": sc.speed, "grip_force": sc.grip_force,
                  "eta_true": eta, "seed": sc.seed},
     }
+    if sc.command_tick_s > 0.0:
+        fields["live_cmd"] = _commands(sc, rng, t, v)
     truth = {"p_c": truth_p, "axis": a, "onset_t": np.array(t_on), "kind": np.array(sc.kind),
+             # the board's stamp of the contact's instant (its clock's offset and drift, sim.rig)
+             "onset_stamp_t": np.array(t_on if rig is None else float(rig.stamps(np.array([t_on]))[0])),
              "radius": np.array(L), "eta": np.array(eta), "angle_t": t, "angle": obj_angle}
     return fields, truth
 

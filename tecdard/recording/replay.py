@@ -23,9 +23,10 @@ DIRECTIVE_FIELDS = ("episode", "armed", "arc_following", "bias_held", "begin_t",
 
 
 def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, chunk_s: float = 0.1,
-           on_estimate=None, on_event=None):
+           on_estimate=None, on_event=None, commands: np.ndarray | None = None):
     """Run the pipeline over the recording; returns (rows (k, 7): t, p, std; onset_t or None; last estimate).
-    `on_estimate(est)` and `on_event(ev)` see each estimate and pipeline event as it comes.
+    `on_estimate(est)` and `on_event(ev)` see each estimate and pipeline event as it comes; `commands`: the
+    control ticks' (live_cmd's rows), where the daemon drove the arm.
 
     Rows come at the estimator's output cadence, never more than rate_hz per second. The
     recording is fed in chunks of chunk_s with the proprioception stamped up to each chunk's
@@ -35,7 +36,7 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     t, p, std = [], [], []
     last: ContactEstimate | None = None
     onset_t = None
-    for batch in fed_chunks(rec, pipeline, chunk_s):
+    for batch in fed_chunks(rec, pipeline, chunk_s, commands):
         events, estimates = pipeline.process_all(batch)
         for ev in events:
             if ev["kind"] == "contact_onset" and onset_t is None:
@@ -53,16 +54,17 @@ def replay(rec: Recording, pipeline: ContactPipeline, rate_hz: float = 1000.0, c
     return (np.column_stack([t, p, std]) if t else np.zeros((0, 7))), onset_t, last
 
 
-def fed_chunks(rec: Recording, pipeline: ContactPipeline, chunk_s: float):
+def fed_chunks(rec: Recording, pipeline: ContactPipeline, chunk_s: float, commands: np.ndarray | None = None):
     """The recording's IMU samples as (n, 7) batches of chunk_s, each yielded once the pipeline has
     been handed the proprioception stamped up to its end (the TCP's own rate is derived from the
-    orientations by the pipeline: recordings carry none)."""
+    orientations by the pipeline: recordings carry none), and the control ticks' commands
+    (`commands`, live_cmd's (T, 1 + n) rows) up to it."""
     R = quat_to_matrix(rec.tcp_quat)
     vel, force = rec.tcp_vel, rec.grip_force
     batch = np.column_stack([rec.imu_t, rec.gyro, rec.accel])
     grid = np.arange(rec.imu_t[0] + chunk_s, rec.imu_t[-1] + chunk_s, chunk_s)
     ends = np.unique(np.append(np.searchsorted(rec.imu_t, grid, side="right"), len(rec.imu_t)))
-    j, start = 0, 0        # the next proprioception sample to hand over; the next IMU sample
+    j, start, i = 0, 0, 0  # the next proprioception sample to hand over; the next IMU sample; command
     for end in ends:
         if end <= start:
             continue
@@ -71,16 +73,26 @@ def fed_chunks(rec: Recording, pipeline: ContactPipeline, chunk_s: float):
             pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if vel is None else vel[j], R[j], None,
                                  np.nan if force is None else force[j])
             j += 1
+        i = hand_commands(pipeline, commands, i, t_end)
         yield batch[start:end]
         start = end
 
 
-def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 0.3, chunk_s: float = 0.02) -> list:
+def hand_commands(pipeline: ContactPipeline, commands: np.ndarray | None, i: int, t_end: float) -> int:
+    """The commands (live_cmd rows) from row i stamped up to t_end, to the pipeline: the next row."""
+    while commands is not None and i < len(commands) and commands[i, 0] <= t_end:
+        pipeline.add_command(commands[i, 0], commands[i, 1:])
+        i += 1
+    return i
+
+
+def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 0.3, chunk_s: float = 0.02,
+                  commands: np.ndarray | None = None) -> list:
     """Every contact_onset event of a causal replay, each episode released `episode_s` after its
     detection (as a task's end releases it; the trigger then settles and re-arms as the daemon's
     does): how often the trigger fires over a whole recording, not only its first onset."""
     found, release_at = [], None
-    for batch in fed_chunks(rec, pipeline, chunk_s):
+    for batch in fed_chunks(rec, pipeline, chunk_s, commands):
         if release_at is not None and batch[-1, 0] >= release_at:
             pipeline.release()
             release_at = None
@@ -94,7 +106,8 @@ def replay_onsets(rec: Recording, pipeline: ContactPipeline, episode_s: float = 
 
 def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline, on_estimate=None):
     """Run the pipeline over a daemon recording as the live estimator ran: the same passes (each
-    pass's IMU batch), each proprioception sample added before the pass it reached live, the
+    pass's IMU batch), each proprioception sample added before the pass it reached live, each control
+    tick's command (live_cmd) once the pass's samples reach its time, the
     directives, data rates and clipping points as they changed, from the gyro bias the live
     pipeline had at the start. Returns (rows (k, 7): t, p, std, one per estimate the live pass
     published; onset_t or None; last estimate). `pipeline` must be built from the daemon's
@@ -107,12 +120,14 @@ def replay_live(rec: Recording, live: LiveLog, pipeline: ContactPipeline, on_est
     changes = {c["pass"]: c for c in live.changes}
     applied = None
     rows, last, onset_t = [], None, None
-    j, start = 0, 0
+    j, start, i = 0, 0, 0
     for k, end in enumerate(live.pass_end):
         while j < len(rec.tcp_t) and live.tcp_pass[j] <= k:
             pipeline.add_proprio(rec.tcp_t[j], rec.tcp_pos[j], None if rec.tcp_vel is None else rec.tcp_vel[j], R[j],
                                  live.tcp_w[j], np.nan if force is None else force[j])
             j += 1
+        if end > 0:              # the ticks up to the pass's newest sample had reached the estimator live
+            i = hand_commands(pipeline, live.cmd, i, rec.imu_t[end - 1])
         change = changes.get(k)
         if change is not None:
             directive = EstimatorDirective(**{f: change["directive"][f] for f in DIRECTIVE_FIELDS

@@ -251,6 +251,8 @@ class ControlThread:
             self.robot.command_joint_velocity(qd_sent)
         if self.on_command is not None:           # the recorder's (a recording's live_cmd: the tick's action)
             self.on_command(now, qd_sent)
+        if self.estimator is not None:            # the onset trigger's (control.command_track)
+            self.estimator.note_command(now, qd_sent)
         if self.directive.get() is not runner.directive:
             self.directive.set(runner.directive)
         resting = runner.mode is Mode.IDLE

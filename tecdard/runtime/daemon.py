@@ -204,7 +204,8 @@ class Daemon:
         # at rest, 100 ms batches; 20 ms while a live view shows the stream to a person
         rest_factor = REST_BATCH_FACTOR if self.view is None else VIEWED_REST_BATCH_FACTOR
         self.estimator = EstimatorThread(self.pipeline, self.ring, self.contact, self.outbox, source=self.imu,
-                                         taps=taps, rests=self.backend.commands_arm, rest_factor=rest_factor)
+                                         taps=taps, rests=self.backend.commands_arm, rest_factor=rest_factor,
+                                         commands=self.backend.commands_arm)
         self.control = ControlThread(self.control_params, self.model, self.robot, self.ring, self.contact,
                                      self.estimator.directive, self.outbox, self.q_home, self.robot_name,
                                      self.notifier, self.services,

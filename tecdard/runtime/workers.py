@@ -70,6 +70,7 @@ def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event,
 
 PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
 PROPRIO_RING = 1024          # proprioception samples waiting for the estimator (about 2 s at 500 Hz)
+COMMAND_RING = 256           # control ticks waiting for the estimator (5 s at 50 Hz)
 
 
 class ProprioFeed:
@@ -147,11 +148,12 @@ class EstimatorThread:
 
     def __init__(self, pipeline: ContactPipeline, ring: SampleRing, contact, outbox: Outbox,
                  source: ImuSource | None = None, min_batch: int = 1, taps: tuple = (), rests: bool = True,
-                 rest_factor: int = REST_BATCH_FACTOR):
+                 rest_factor: int = REST_BATCH_FACTOR, commands: bool = False):
         """`source` is read for its clipping points (gyro rad/s, accel m/s^2), which change with the
         full scales a board reports, and its data rate, which a board reports in its status packets
         (the onset detector's band window and `min_batch`, one output period of samples, follow it);
-        its samples come through the ring."""
+        its samples come through the ring. `commands`: the daemon drives the arm, and each control
+        tick's command reaches the pipeline (note_command; control.command_track)."""
         self.pipeline = pipeline
         self.taps = tuple(taps)         # each gets every pass (`feed(Pass)`, never blocking): recorder, live view
         self.source = source
@@ -167,6 +169,7 @@ class EstimatorThread:
         self.contact = contact
         self.outbox = outbox
         self.proprio = DropOldestRing(PROPRIO_RING)
+        self.commands = DropOldestRing(COMMAND_RING) if commands else None
         self.directive = LatestValue(EstimatorDirective())
         self.warm = threading.Event()   # set once the pipeline can detect a contact (its onset warm-up is done)
         self.resting = threading.Event()  # set while no task runs: longer batches (REST_BATCH_FACTOR)
@@ -198,6 +201,11 @@ class EstimatorThread:
                 log.warning("%s", problem)
                 self.outbox.event("warning", code="imu_mount", message=problem)
 
+    def note_command(self, t: float, qd: np.ndarray) -> None:
+        """(the control thread) The tick at t commanded joint rates qd (rad/s; zeros: held)."""
+        if self.commands is not None:
+            self.commands.push((t, qd))
+
     def set_resting(self, resting: bool) -> None:
         """The control thread: no task runs (True), or one has started (False). A start ends a rest
         batch's wait at the task's batch, so the task's trigger waits no longer than it would have."""
@@ -228,6 +236,9 @@ class EstimatorThread:
             proprio = self.proprio.drain()
             for sample in proprio:
                 pipe.add_sample(sample)
+            if self.commands is not None:
+                for t_cmd, qd in self.commands.drain():
+                    pipe.add_command(t_cmd, qd)
             directive = self.directive.get()
             if directive is not applied:
                 pipe.follow(directive, applied)
