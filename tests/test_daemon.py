@@ -382,3 +382,25 @@ def _wait_at_rest(d, timeout_s: float = 10.0) -> None:
     while d.client.command("status")["state"]["mode"] == "busy":
         assert time.monotonic() < deadline, d.log()[-2000:]
         time.sleep(0.05)
+
+
+@pytest.mark.parametrize("rig", [{}, {"scale": 1.0, "only": "harmonics"}, {"scale": 1.0, "only": "mount"}])
+def test_an_impact_is_decided_at_its_own_sample_while_the_daemon_drives(make_daemon, rig):
+    """Issue 48: the daemon's own approach at 20 mm/s onto a table, clean, with the joints' harmonics at 1x,
+    and with the IMU 5 deg off its configured mount: no onset on the way down, and the impact decided at
+    its own sample (its control ticks said the arm took no step of its own: control.command_track), not
+    after the arm's states or the ring's swing back. (With the servo's dither at 1x, sim.rig's `dither`,
+    this approach finds no contact at all, with or without the commands: a known gap, docs/estimation.md.)"""
+    tool_m, tilt = 0.12, np.radians(10.0)
+    tip_tcp = [float(tool_m * np.cos(tilt)), 0.0, float(tool_m * np.sin(tilt))]
+    table = float(0.487 - tool_m * np.sin(tilt) - 0.012)
+    d = make_daemon(**{"sim.hinge": ..., "sim.rig": rig,
+                       "sim.pivot": {"tip_in_tcp": tip_tcp, "table_height": table, "edge_x": 1.0}})
+    reply = d.client.command("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
+                                          "stop_angle_deg": 5.0})
+    assert reply["ok"] is True
+    ev = d.client.wait_event(("task_done", "task_failed"), reply["task"], TASK_TIMEOUT_S)
+    onset = next((e for e in d.client.event_log if e["kind"] == "contact_onset"), None)
+    assert onset is not None, f"{ev}\n{d.log()[-3000:]}"
+    assert abs(onset["p_tcp"][2] - (0.487 - 0.012)) < 0.003, f"{onset}\n{d.log()[-3000:]}"   # at the impact
+    assert onset["trigger"] == "accel" and onset["detected_t"] - onset["t"] <= 0.002, onset
