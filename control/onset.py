@@ -35,6 +35,7 @@ SETTLE_LEVEL = 0.8            # settled: every condition under this fraction of 
 # A grasped hinge turns the fingertip one way as long as the arm moves it; the arm's vibration turns it
 # back and forth at tens of Hz. The hold is judged on the twist's mean over TWIST_HOLD_MEAN_S.
 TWIST_HOLD_MEAN_S = 0.05
+TWIST_FLOOR_K = 3.0           # ... and the twist's threshold is at least this many times that mean's moving RMS
 
 
 @dataclass(frozen=True)
@@ -104,21 +105,18 @@ class OnsetDetector:
       rms at rest (or a twentieth of the threshold), less the mean's group delay, at most
       BACKDATE_MAX_S before it fired.
 
-    What the arm's own motion explains is taken off first when the caller knows it (`explained`:
-    the specific force and the gripper's rate the robot's state predicts, IMU frame, and what each
-    may be off by, which widens the thresholds): the arm's starts, stops and turns then are not
-    contacts. The rest levels are those of the remainder (the accelerometer's bias and the mount's
-    error; the gyro's bias), tracked while armed (time
-    constant `rest_tau_s`); nothing fires until `warmup_s` of data has been seen. After firing it
-    stays disarmed until `rearm()`, and after `rearm(settle=True)` until the remainder has been
-    still for `settle_s` (its rest levels follow it meanwhile, `settle_s` / 4).
+    What the arm's own motion explains is taken off first when the caller knows it (`explained`: the
+    specific force and the gripper's rate the robot's state predicts, IMU frame, and what each may be
+    off by, which widens the thresholds): the arm's starts, stops and turns then are not contacts. The
+    rest levels (the accelerometer's bias and the mount's error, the gyro's bias) follow the remainder
+    while armed (`rest_tau_s`); nothing fires before `warmup_s` of data. After firing it stays disarmed
+    until `rearm()`, and after `rearm(settle=True)` until the remainder has been still `settle_s`.
 
-    On a real rig (control.onset_guard): the accelerometer's threshold is at least the remainder's
-    moving noise floor (`floor`: the arm's vibration), and with the arm's states to ask (`guard.arm`,
-    the pipeline's ProprioTrack) an accelerometer onset waits for them and is kept only if its peak
-    exceeds what they then show of the arm's own acceleration change (`guard`: an acceleration step
-    the arm took), dated back to its first sample. The twist's hold is judged on its
-    TWIST_HOLD_MEAN_S mean. A configured mount off by up to `mount_tolerance` is allowed for.
+    On a real rig (control.onset_guard): the accelerometer's and the twist's thresholds are at least
+    their moving noise floors (`floor`, `twist_floor`: the arm's vibration), the twist's hold is judged
+    on its TWIST_HOLD_MEAN_S mean, and an accelerometer onset waits for the arm's states (`guard`)
+    unless the daemon's own commands say the arm took no step (`guard.commands`). A configured mount
+    off by up to `mount_tolerance` is allowed for.
     """
 
     def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,
@@ -175,10 +173,11 @@ class OnsetDetector:
         self._rest_expl = None         # the explained (force, rate) means the rest levels were learned under
         self._slow_hist = np.zeros((0, 3))   # the twist's TWIST_HOLD_MEAN_S mean's history
         self.floor = NoiseFloor()      # the accelerometer remainder's moving floor (from_config: floor_k)
+        self.twist_floor = NoiseFloor(TWIST_FLOOR_K)   # the twist's hold mean's: the arm's vibration turning it
         self.predictor = Predictor(0.0, odr_hz)   # its prediction from its own past (from_config: predict_horizon_s)
         self._x_a = self._x_g = None   # the batch's accelerometer remainder (the predictor learns it), the guard's
         self._dev_a = self._dev_guard = None   # its magnitude judged (the prediction's error), and the guard's
-        self._thr_a = 0.0              # its threshold per sample (the moving floors)
+        self._thr_a = self._thr_w = 0.0    # its and the twist's thresholds per sample (the moving floors)
         self.guard = StepGuard()       # an accelerometer onset waits for the arm's states (from_config, pipeline)
         self.onset_from_t: float | None = None    # the fired onset dated back (twist), else None
         self.fired_by: str | None = None          # the condition that fired ("accel", "twist", ...)
@@ -253,6 +252,7 @@ class OnsetDetector:
         self._candidate = None
         self.guard.clear()
         self.predictor.reset()
+        self.twist_floor.restart()
 
     def _swing(self, t: np.ndarray, a_arm: np.ndarray) -> np.ndarray:
         """The envelope of the arm's acceleration (n,), m/s^2: its running maximum, decaying with
@@ -296,13 +296,14 @@ class OnsetDetector:
             dev = gyro - self.rest_gyro
             level["gyro"] = np.sqrt(np.einsum("ij,ij->i", dev, dev)) / (self.gyro_threshold + allow_w)
         if twist is not None:
-            level["twist"] = twist[1] / (self.twist_threshold + allow_w)
+            self._thr_w = thr_w = self.twist_floor.threshold(self.twist_threshold) + allow_w
+            level["twist"] = twist[1] / thr_w
         if self.band is not None:
             level["band"] = np.sqrt(self.band.process(accel - self.rest_accel)) / self.band_threshold
         for name, x in level.items():
             out[name] = x > 1.0
         if twist is not None:
-            out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * (self.twist_threshold + allow_w), twist[2])
+            out["twist"] = self._held(t, twist[0], out["twist"], 0.5 * thr_w, twist[2])
         return out, level
 
     def _magnitude(self, dev: np.ndarray) -> np.ndarray:
@@ -312,11 +313,10 @@ class OnsetDetector:
         return np.sqrt(np.einsum("ij,ij->i", dev, dev))
 
     def _held(self, t: np.ndarray, tw: np.ndarray, over: np.ndarray, floor, slow: np.ndarray) -> np.ndarray:
-        """The twist fires only once it has held one way for TWIST_HOLD_S: over its threshold at the
-        start, then its TWIST_HOLD_MEAN_S mean (`slow`) never under `floor` (half of it) along that
-        direction. A grasped hinge the arm turns keeps twisting one way as long as the arm moves; a
-        held object swinging in the grasp turns back within half its period, and the arm's vibration
-        within its mean. True at the sample where the hold completes."""
+        """The twist fires once it has held one way for TWIST_HOLD_S: over its threshold at the start,
+        then its TWIST_HOLD_MEAN_S mean (`slow`) never under `floor` (half of it) along that direction
+        (a grasped hinge keeps twisting one way as long as the arm moves; a held object swinging in the
+        grasp turns back within half its period). True at the sample where the hold completes."""
         n = len(t)
         fired = np.zeros(n, dtype=bool)
         floor = np.broadcast_to(floor, (n,))
@@ -327,7 +327,9 @@ class OnsetDetector:
                 if not len(up):
                     break
                 i += int(up[0])
-                self._candidate = (float(t[i]), tw[i] / np.linalg.norm(tw[i]), self._quiet_before(t, i))
+                before = self._quiet[self._quiet < i]        # where the twist was last within its noise
+                quiet_t = float(t[before[-1]]) if len(before) else self._twist_quiet_t
+                self._candidate = (float(t[i]), tw[i] / np.linalg.norm(tw[i]), quiet_t)
             t0, u, _ = self._candidate
             drop = np.flatnonzero(slow[i:] @ u < floor[i:])
             held = np.flatnonzero(t[i:] - t0 >= TWIST_HOLD_S)
@@ -341,11 +343,6 @@ class OnsetDetector:
             self._candidate = None
             i += k_drop + 1
         return fired
-
-    def _quiet_before(self, t: np.ndarray, k: int) -> float:
-        """The last time before sample k of this batch at which the twist was within its noise."""
-        before = self._quiet[self._quiet < k]
-        return float(t[before[-1]]) if len(before) else self._twist_quiet_t
 
     @property
     def pending(self) -> bool:
@@ -407,7 +404,7 @@ class OnsetDetector:
         if self.guard.waiting and self.armed and not self.settling:
             hit, by = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._x_g), "accel"  # nothing else fires
         elif self.settling:
-            self._settle(t, level)
+            self._settle(t, level, twist)
         elif self.armed and self._seen_s >= self.warmup_s and conds:
             if first > 0:
                 conds = {k: np.where(np.arange(n) >= first, v, False) for k, v in conds.items()}
@@ -447,6 +444,8 @@ class OnsetDetector:
             self._seen_s += dt
         if hit < 0 and not self.pending and self._dev_a is not None:
             self.floor.learn(t, self._dev_a, self.odr_hz)
+        if hit < 0 and not self.pending and twist is not None and self._explaining:   # the arm's turning taken off
+            self.twist_floor.learn(t, np.linalg.norm(twist[2], axis=1), self.odr_hz)
         if self._x_a is not None:
             self.guard.observe(self._x_g, self.odr_hz)
             if hit < 0 and not self.pending and self.armed and not self.settling:
@@ -465,8 +464,7 @@ class OnsetDetector:
         self.armed = False
         self.fired_by = by
         self.onset_from_t = None
-        if self.guard.decided_t is not None:
-            # an onset the arm's states had to clear: at the candidate's sample
+        if self.guard.decided_t is not None:     # one the guard had to clear: at the candidate's sample
             self.onset_from_t, self.guard.decided_t = self.guard.decided_t, None
         elif self._candidate is not None and self._candidate[0] <= float(t[hit]):
             # a twist holding since before (any condition may fire first: a hinge's friction
@@ -480,9 +478,11 @@ class OnsetDetector:
         arm's vibration or the sensor's noise is larger (NoiseFloor)."""
         return self.floor.threshold(self.accel_threshold)
 
-    def _settle(self, t: np.ndarray, level: dict) -> None:
+    def _settle(self, t: np.ndarray, level: dict, twist) -> None:
         """While settling: the remainder still (every condition under SETTLE_LEVEL of its threshold,
-        the accelerometer's with its moving floor) for settle_s ends it."""
+        the accelerometer's with its moving floor, the twist's on its hold mean) for settle_s ends it."""
+        if twist is not None and "twist" in level:      # the hold mean: the arm's dither turns it to and fro
+            level = {**level, "twist": np.linalg.norm(twist[2], axis=1) / self._thr_w}
         still = np.logical_and.reduce([x < SETTLE_LEVEL for x in level.values()])
         moving = np.flatnonzero(~still)
         if len(moving):
