@@ -100,7 +100,8 @@ LIVE = (
                                           "`sim_contact` (the simulator: force only)"),
     Member("live_cmd", ("T", "1+n"), False, field="cmd", meaning="each control tick's command: its time (s, the "
                                             "samples' clock), then the joint rates sent to the arm (rad/s; zeros "
-                                            "where the tick held it): a dataset's action", rows_max=MAX_TCP_SAMPLES),
+                                            "where the tick held it): a dataset's action, and what the replayed "
+                                            "onset trigger asks of the arm's own steps", rows_max=MAX_TCP_SAMPLES),
 )
 
 MEMBERS = {m.key: m for m in CORE + LIVE}
