@@ -11,7 +11,7 @@ its ring to swing back).
 A tick's commanded joint acceleration is its rates' change over its period, summed over the joints.
 Beyond `steady_rad_s2` it is the arm's own motion: a start, a stop, a ramp, a hold. Under it, the
 servo's own corrections: the daemon's approach at constant speed on the simulated arm commands
-0.05-0.18 rad/s^2 (its feedback on the arm's noisy states; p50 0.09, max 0.18 over 72 ticks), its
+0.04-0.18 rad/s^2 (its feedback on the arm's noisy states; p50 0.09 over 72 ticks), its
 starts and stops 0.5-2.5 rad/s^2. With the joints at most a metre from the TCP, `steady_rad_s2`
 bounds what a tick asks of the TCP's acceleration in m/s^2, under the trigger's 0.4 m/s^2; the
 kicks the corrections give the arm are part of the vibration the trigger's floor learns.
@@ -19,7 +19,7 @@ kicks the corrections give the arm are part of the vibration the trigger's floor
 The envelope (docs/estimation.md): an arm that follows its joint-rate commands within `settle_s`
 (the UR's speedJ at 4 rad/s^2 follows within a tick; franky's velocity motion is jerk-limited, so it
 never steps). An arm moved by anyone else (a pendant, a program, the ROS 2 observer) sends no command
-through the daemon: the track is then not `covered` and the states decide as before.
+through the daemon: no instant is then steady, and the states decide as before.
 """
 from __future__ import annotations
 

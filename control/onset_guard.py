@@ -162,7 +162,7 @@ class StepGuard:
         (an onset; `decided_t` its time), or -1 (still waiting, or the arm's own step)."""
         c = self.candidate
         if self.commands is not None and self.commands.steady(c.t):
-            # the daemon drives the arm and commanded no change of its acceleration: no step of its own
+            # the daemon drives the arm, and its commanded rates held: no step of its own
             self.candidate = None
             self.decided_t = c.t
             self.commanded += 1
