@@ -65,7 +65,7 @@ NO_CROSS = echo "make: no arm-none-eabi-gcc or qemu-system-arm here: the firmwar
 test: $(WARM_JIT) lint
 	@$(CROSS_TOOLS) || $(NO_CROSS)
 	@command -v openscad >/dev/null || $(NO_OPENSCAD)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=20
 
 # the quick tier: the type checker, then pure logic and transports, without the whole-daemon runs
 check: $(WARM_JIT) lint
