@@ -209,9 +209,13 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
 
         def __init__(self):
             self.said = []
+            self.ticks = []
 
         def set_resting(self, resting):
             self.said.append(resting)
+
+        def note_command(self, t, qd):
+            self.ticks.append((t, np.array(qd)))
 
     keys = Keys("sim")
     ct = control_thread(model)
@@ -235,6 +239,9 @@ def test_the_estimator_is_told_when_the_daemon_rests_and_when_a_task_starts(mode
             break
     assert told.said == [True, False, True]                       # at rest again once the arm has braked
     assert robot_told == told.said
+    # every tick's command reaches the estimator too (the onset trigger's word on the arm's own steps)
+    assert len(told.ticks) == k and [t for t, _ in told.ticks] == sorted(t for t, _ in told.ticks)
+    assert any(np.abs(qd).sum() > 0 for _, qd in told.ticks) and not np.abs(told.ticks[0][1]).any()
 
     # the estimator thread's side: a rest batch's wait ends at a task's batch when the task starts
     ring = SampleRing(4096)
