@@ -82,7 +82,7 @@ class OnsetOptions:
                                            "decided without the arm's states (a step keeps its sign); 0: off",
                                unit="s", minval=0.0, maxval=0.05)
     command_settle_s: float = option(COMMAND_SETTLE_S, "the daemon driving the arm: an accelerometer onset is decided "
-                                     "at once once the commanded joint rates held this long; 0: off",
+                                     "at its sample when the commanded joint rates held this long; 0: off",
                                      unit="s", minval=0.0, maxval=1.0)
     command_steady_rad_s2: float = option(COMMAND_STEADY_RAD_S2, "held: each tick's change of them over its period "
                                           "(the joints' sum) within this", unit="rad/s^2", above=0.0, maxval=10.0)
