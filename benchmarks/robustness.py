@@ -125,7 +125,8 @@ def matrix_rows(minutes: float, seeds: int) -> list[str]:
             rot = [rotation(level, only, seed=s) for s in range(1, seeds + 1)]
             rows.append(f"| {name} | {level:g}x | {n_on} / {mins:.1f} min | "
                         f"{_span([r['dated_ms'] for r in imp])} | {_span([r['detected_ms'] for r in imp])} | "
-                        f"{_span([r['detected_ms'] for r in cmd])} | {_span([r['dated_ms'] for r in rot])} | {_span([r['detected_ms'] for r in rot])} | "
+                        f"{_span([r['detected_ms'] for r in cmd])} | "
+                        f"{_span([r['dated_ms'] for r in rot])} | {_span([r['detected_ms'] for r in rot])} | "
                         f"{' '.join(_err(r['30']) for r in rot)} | {' '.join(_err(r['180']) for r in rot)} | "
                         f"{' '.join(_err(r['end']) for r in rot)} |")
             print(rows[-1], flush=True)

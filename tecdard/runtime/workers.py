@@ -203,8 +203,8 @@ class EstimatorThread:
 
     def note_command(self, t: float, qd: np.ndarray) -> None:
         """(the control thread) The tick at t commanded joint rates qd (rad/s; zeros: held)."""
-        if self.commands is not None:
-            self.commands.push((t, qd))
+        if self.commands is not None:           # a copy, as the recorder keeps: the tick may reuse its array
+            self.commands.push((t, np.array(qd, dtype=float)))
 
     def set_resting(self, resting: bool) -> None:
         """The control thread: no task runs (True), or one has started (False). A start ends a rest
