@@ -41,6 +41,16 @@ STALE_WAIT_S = 0.05           # states that stop coming: decided this long after
 REVERSAL_S = 0.006
 REVERSAL_PAST_S = 0.025
 REVERSAL_SWING_K = 1.0
+# The past ends REVERSAL_GAP_S before the candidate: an impact rises for a sample or three before it crosses
+# its threshold, and that rise, counted as the past's swing, raised the bar by itself (0.5 m/s^2 of 0.6).
+REVERSAL_GAP_S = RECENT_GAP_S
+# With the predictor fitted (Predictor), the arm's narrow-band vibration is forecast from the FORECAST_PAST_S
+# before that gap over the reversal's span and taken off, and the bar is what such forecasts missed from
+# FORECAST_ORIGINS origins within that past (with the noise floor and the explained motion's allowance): a
+# step plus a vibration that the forecast follows stays above it, and the ring's reversal need not clear the
+# vibration's whole swing (all disturbances at 1x: 5.3-5.5 ms to a decision without it).
+FORECAST_PAST_S = 0.06
+FORECAST_ORIGINS = 48
 
 
 @dataclass
@@ -55,6 +65,9 @@ class Candidate:
     level: np.ndarray | None = None     # the remainder's mean (3,) over the REVERSAL_PAST_S before it, m/s^2
     past: np.ndarray | None = None      # the remainder then, less that mean (m, 3), m/s^2: its swing along
                                         # the peak's direction is the reversal's bar (StepGuard._reversal)
+    forecast: np.ndarray | None = None  # or: the vibration forecast (k, 3) from REVERSAL_GAP_S before it, m/s^2,
+    missed: np.ndarray | None = None    # what such forecasts missed within the past (k, n, 3), m/s^2,
+    quiet: float = 0.0                  # and the bar's floor, m/s^2
 
 
 class NoiseFloor:
@@ -115,7 +128,8 @@ class StepGuard:
         self.reversals = 0                 # candidates decided so
         self.commands = None               # control.command_track.CommandTrack: the daemon's own commands, or None
         self.commanded = 0                 # candidates decided at once, the arm's commands steady
-        self._past = np.zeros((0, 3))      # the remainder's last REVERSAL_PAST_S (observe)
+        self._past = np.zeros((0, 3))      # the remainder's last FORECAST_PAST_S and gap (observe)
+        self.odr_hz = 6667.0
 
     @property
     def waiting(self) -> bool:
@@ -128,24 +142,37 @@ class StepGuard:
     def clear(self) -> None:
         self.candidate = None
 
-    def start(self, t_c: float, allow: float, past: np.ndarray | None = None) -> None:
+    def start(self, t_c: float, allow: float, past: np.ndarray | None = None, predictor=None,
+              quiet: float = 0.0) -> None:
         """A candidate at t_c with its threshold `allow` (m/s^2), and the accelerometer remainder
-        before it (m, 3; `past`), whose level and swing its reversal is judged from."""
+        before it (m, 3; `past`, ending REVERSAL_GAP_S before it), whose level and swing its reversal is
+        judged from, or, with a fitted `predictor`, the vibration forecast from it and what such forecasts
+        missed (the bar at least `quiet`, m/s^2)."""
         c = self.candidate = Candidate(t_c, 0.0, allow)
-        if past is not None and len(past):
-            c.level = past.mean(axis=0)
-            c.past = past - c.level
+        if past is None or not len(past):
+            return
+        if predictor is not None and predictor.fitted:
+            gap = int(round(REVERSAL_GAP_S * predictor.odr_hz))
+            fc = predictor.backtest(past, gap + int(round(self.reversal_s * predictor.odr_hz)) + 2)
+            if fc is not None:
+                c.forecast, c.missed, c.quiet = fc[0], fc[1], quiet
+                return
+        past = past[-max(1, int(round(REVERSAL_PAST_S * self.odr_hz))):]
+        c.level = past.mean(axis=0)
+        c.past = past - c.level
 
     def past(self, x: np.ndarray, k: int, odr_hz: float) -> np.ndarray:
-        """The remainder over the REVERSAL_PAST_S before sample k of the batch x (n, 3) (observe
-        keeps what came before the batch)."""
-        return np.concatenate([self._past, x[:k]])[-max(1, int(round(REVERSAL_PAST_S * odr_hz))):]
+        """The remainder over the FORECAST_PAST_S that end REVERSAL_GAP_S before sample k of the batch x
+        (n, 3) (observe keeps what came before the batch)."""
+        self.odr_hz = odr_hz
+        full = np.concatenate([self._past, x[:k]])
+        return full[:len(full) - int(round(REVERSAL_GAP_S * odr_hz))][-max(1, int(round(FORECAST_PAST_S * odr_hz))):]
 
     def observe(self, x: np.ndarray, odr_hz: float) -> None:
         """The batch's remainder x (n, 3), kept for the next candidate's past (nothing where no candidate
         waits: reversal off, no arm's states, no wait)."""
         if self.reversal_s > 0.0 and self.arm is not None and self.lag_s > 0.0:
-            self._past = self.past(x, len(x), odr_hz)
+            self._past = np.concatenate([self._past, x])[-int(round((FORECAST_PAST_S + REVERSAL_GAP_S) * odr_hz)):]
 
     def mask(self, t: np.ndarray):
         """What is still allowed of the last step the arm's states explained, decaying with STEP_RING_TAU_S."""
@@ -203,9 +230,16 @@ class StepGuard:
         minus that swing; the vibration across u cannot turn the projection round.)"""
         c = self.candidate
         idx = np.flatnonzero((t >= c.t) & (t <= c.t + self.reversal_s))
+        if c.forecast is not None:
+            # the forecast's sample for each: it starts REVERSAL_GAP_S before the candidate's
+            j = np.rint((t[idx] - c.t) * self.odr_hz).astype(int) + int(round(REVERSAL_GAP_S * self.odr_hz))
+            idx, j = idx[j < len(c.forecast)], j[j < len(c.forecast)]
         if len(idx) == 0:
             return -1
-        xs = x[idx] if c.level is None else x[idx] - c.level
+        if c.forecast is not None:
+            xs = x[idx] - c.forecast[j]
+        else:
+            xs = x[idx] if c.level is None else x[idx] - c.level
         if c.x_peak is not None:
             xs = np.concatenate([c.x_peak[None, :], xs])
         mag = np.sqrt(np.einsum("ij,ij->i", xs, xs))
@@ -218,6 +252,11 @@ class StepGuard:
         bar = np.full(len(xs), c.allow)
         if c.past is not None:
             bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
+        elif c.missed is not None:
+            # what the forecasts missed along each row's direction, up to its horizon
+            missed = np.maximum.accumulate(np.abs(c.missed @ u.T).max(axis=0), axis=0)   # (n, rows)
+            jj = np.concatenate([[j[0]], j]) if first else j
+            bar = np.maximum(c.quiet, REVERSAL_SWING_K * missed[jj, np.arange(len(xs))])
         hit = np.flatnonzero(proj[first:] < -bar[first:])
         return int(idx[hit[0]]) if len(hit) else -1
 
@@ -281,6 +320,28 @@ class Predictor:
         for j, lag in enumerate(self.lags):
             pred += self.coef[j] * full[m - lag:m - lag + n]
         return x - pred
+
+    def forecast(self, hist: np.ndarray, n: int) -> np.ndarray:
+        """The free-run forecast (b, n, 3) of the n samples after each history hist (b, m, 3), m at least
+        the longest lag: each forecast sample is predicted from the samples and forecasts before it."""
+        span = int(self.lags[-1])
+        s = np.concatenate([hist[:, -span:], np.zeros((len(hist), n, 3))], axis=1)
+        for j in range(n):
+            s[:, span + j] = np.einsum("lk,blk->bk", self.coef, s[:, span + j - self.lags])
+        return s[:, span:]
+
+    def backtest(self, past: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The forecast (n, 3) of the n samples after past (m, 3), and what the same forecast missed from
+        FORECAST_ORIGINS origins within past ((k, n, 3), m/s^2); None where past is too short for both."""
+        span = int(self.lags[-1])
+        last = len(past) - n                  # the latest origin whose forecast the past covers
+        if last < span + 1:
+            return None
+        origins = np.unique(np.linspace(span, last, FORECAST_ORIGINS).astype(int))
+        hist = np.stack([past[o - span:o] for o in origins] + [past[-span:]])
+        f = self.forecast(hist, n)
+        truth = np.stack([past[o:o + n] for o in origins])
+        return f[-1], truth - f[:-1]
 
     def gap(self) -> None:
         """The remainder stops being the arm's own (an episode, a wait, settling): the run ends."""

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.conftest import ROOT, DaemonProcess
+from tests.conftest import (ROOT, TEST_IMU_STALE_S, TEST_MAX_NIS_RATIO, TEST_SIM_COMMAND_TIMEOUT_S, TEST_STATE_AGE_S,
+                            DaemonProcess)
 from tests.test_firmware import host_build  # noqa: F401  (the fixture: the host board, built once)
 
 pytestmark = pytest.mark.slow
@@ -41,6 +42,16 @@ def overrides() -> dict[str, dict]:
     }
 
 
+def with_test_allowances(cfg: dict) -> dict:
+    """A shipped config with the suite's allowances for a loaded machine (tests/conftest.py: the stale-data
+    and divergence stops): these tests judge the documented command's answer, and CI (2026-12-07) stopped
+    the map on a 110 ms stall of the simulator's states and the sim-wire demo on a 55 ms IMU gap."""
+    return with_overrides(cfg, {"control.imu_stale_s": max(cfg["control"]["imu_stale_s"], TEST_IMU_STALE_S),
+                                "robot.max_state_age_s": TEST_STATE_AGE_S,
+                                "control.max_nis_ratio": TEST_MAX_NIS_RATIO,
+                                "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S})
+
+
 def with_overrides(base: dict, changes: dict) -> dict:
     out = copy.deepcopy(base)
     for dotted, value in changes.items():
@@ -63,9 +74,12 @@ def test_a_scene_config_is_sim_yaml_but_for_what_it_says(name):
 
 
 @pytest.mark.parametrize("source", ["sim-wire", "sim-firmware"])
-def test_the_demo_rotates_on_each_imu_source_config(source, host_build):  # noqa: F811
-    """The documented command, `tecdard demo --config configs/<source>.yaml` (the demo listens on a free port)."""
-    res = subprocess.run([sys.executable, "-m", "tecdard", "demo", "--config", str(CONFIGS / f"{source}.yaml")],
+def test_the_demo_rotates_on_each_imu_source_config(source, host_build, tmp_path):  # noqa: F811
+    """The documented command, `tecdard demo --config configs/<source>.yaml` (the demo listens on a free port),
+    on that config with the suite's allowances for a loaded machine."""
+    config = tmp_path / f"{source}.yaml"
+    config.write_text(yaml.safe_dump(with_test_allowances(shipped(f"{source}.yaml"))))
+    res = subprocess.run([sys.executable, "-m", "tecdard", "demo", "--config", str(config)],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     err = float(re.search(r"hinge error +([0-9.]+) mm", res.stdout).group(1))
@@ -81,7 +95,7 @@ def test_the_map_scenes_documented_first_look_maps_the_container(tmp_path):
     from tecdard.sim.world import mapping_scene
     text = (CONFIGS / "sim-map.yaml").read_text()
     (command,) = re.findall(r"^#   tecdard (map .*?) +# a first look", text, flags=re.M)
-    cfg = shipped("sim-map.yaml")
+    cfg = with_test_allowances(shipped("sim-map.yaml"))
     d = DaemonProcess(tmp_path, cfg)
     try:
         res = subprocess.run([sys.executable, "-m", "tecdard", *command.split(), "--connect", d.endpoint,
