@@ -68,6 +68,7 @@ class Candidate:
     forecast: np.ndarray | None = None  # or: the vibration forecast (k, 3) from REVERSAL_GAP_S before it, m/s^2,
     missed: np.ndarray | None = None    # what such forecasts missed within the past (k, n, 3), m/s^2,
     quiet: float = 0.0                  # and the bar's floor, m/s^2
+    x_peak_fc: np.ndarray | None = None  # the remainder less the forecast at its largest since the candidate
 
 
 class NoiseFloor:
@@ -146,20 +147,19 @@ class StepGuard:
               quiet: float = 0.0) -> None:
         """A candidate at t_c with its threshold `allow` (m/s^2), and the accelerometer remainder
         before it (m, 3; `past`, ending REVERSAL_GAP_S before it), whose level and swing its reversal is
-        judged from, or, with a fitted `predictor`, the vibration forecast from it and what such forecasts
-        missed (the bar at least `quiet`, m/s^2)."""
+        judged from, and with a fitted `predictor` also the vibration forecast from it and what such
+        forecasts missed (that frame's bar at least `quiet`, m/s^2)."""
         c = self.candidate = Candidate(t_c, 0.0, allow)
         if past is None or not len(past):
             return
+        recent = past[-max(1, int(round(REVERSAL_PAST_S * self.odr_hz))):]
+        c.level = recent.mean(axis=0)
+        c.past = recent - c.level
         if predictor is not None and predictor.fitted:
             gap = int(round(REVERSAL_GAP_S * predictor.odr_hz))
             fc = predictor.backtest(past, gap + int(round(self.reversal_s * predictor.odr_hz)) + 2)
             if fc is not None:
                 c.forecast, c.missed, c.quiet = fc[0], fc[1], quiet
-                return
-        past = past[-max(1, int(round(REVERSAL_PAST_S * self.odr_hz))):]
-        c.level = past.mean(axis=0)
-        c.past = past - c.level
 
     def past(self, x: np.ndarray, k: int, odr_hz: float) -> np.ndarray:
         """The remainder over the FORECAST_PAST_S that end REVERSAL_GAP_S before sample k of the batch x
@@ -222,43 +222,49 @@ class StepGuard:
         return -1
 
     def _reversal(self, t: np.ndarray, x: np.ndarray) -> int:
-        """The first sample within reversal_s of the candidate where the remainder x (n, 3), from its
-        level before the candidate and along the direction of its largest value since (carried over
-        batches), is below minus the larger of the candidate's threshold and REVERSAL_SWING_K times
-        the swing before it along that direction: its index, or -1. (Along it, not in magnitude: a
-        step along u plus a vibration whose component along u never exceeds its past swing stays above
-        minus that swing; the vibration across u cannot turn the projection round.)"""
+        """The first sample within reversal_s of the candidate where the remainder x (n, 3), along the
+        direction of its largest value since the candidate (carried over batches), is below minus its bar
+        in either frame: from its level before the candidate, the larger of the candidate's threshold and
+        REVERSAL_SWING_K times its swing then; from its vibration's forecast (Predictor.backtest),
+        REVERSAL_SWING_K times what such forecasts missed up to that horizon, at least c.quiet. Its index,
+        or -1. (Along it, not in magnitude: a step along u plus a vibration whose component along u never
+        exceeds its bar stays above minus that bar; the vibration across u cannot turn it round. Each frame
+        alone holds that; the forecast's errors may compound, the level's swing is the whole vibration.)"""
         c = self.candidate
         idx = np.flatnonzero((t >= c.t) & (t <= c.t + self.reversal_s))
-        if c.forecast is not None:
-            # the forecast's sample for each: it starts REVERSAL_GAP_S before the candidate's
-            j = np.rint((t[idx] - c.t) * self.odr_hz).astype(int) + int(round(REVERSAL_GAP_S * self.odr_hz))
-            idx, j = idx[j < len(c.forecast)], j[j < len(c.forecast)]
         if len(idx) == 0:
             return -1
+        xs = x[idx] - c.level if c.level is not None else x[idx]
+        u, proj, c.x_peak = self._along(xs, c.x_peak)
+        bar = np.full(len(u), c.allow)
+        if c.past is not None:
+            bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
+        first = len(u) - len(idx)
+        hits = [np.flatnonzero(proj[first:] < -bar[first:])]
         if c.forecast is not None:
-            xs = x[idx] - c.forecast[j]
-        else:
-            xs = x[idx] if c.level is None else x[idx] - c.level
-        if c.x_peak is not None:
-            xs = np.concatenate([c.x_peak[None, :], xs])
+            # each sample's place in the forecast, which starts REVERSAL_GAP_S before the candidate
+            j = np.rint((t[idx] - c.t) * self.odr_hz).astype(int) + int(round(REVERSAL_GAP_S * self.odr_hz))
+            k = np.flatnonzero(j < len(c.forecast))
+            if len(k):
+                u, proj, c.x_peak_fc = self._along(x[idx[k]] - c.forecast[j[k]], c.x_peak_fc)
+                first = len(u) - len(k)
+                missed = np.maximum.accumulate(np.abs(c.missed @ u[first:].T).max(axis=0), axis=0)   # (n, rows)
+                bar = np.maximum(c.quiet, REVERSAL_SWING_K * missed[j[k], np.arange(len(k))])
+                hits.append(k[np.flatnonzero(proj[first:] < -bar)])
+        hit = min((int(h[0]) for h in hits if len(h)), default=-1)
+        return int(idx[hit]) if hit >= 0 else -1
+
+    @staticmethod
+    def _along(xs: np.ndarray, carried: np.ndarray | None):
+        """Each row's running peak direction u (rows, 3), xs's projection on it (rows,), and the peak to
+        carry to the next batch; the carried peak, if any, is the first row."""
+        if carried is not None:
+            xs = np.concatenate([carried[None, :], xs])
         mag = np.sqrt(np.einsum("ij,ij->i", xs, xs))
         new_max = mag >= np.maximum.accumulate(mag)
         peak = np.maximum.accumulate(np.where(new_max, np.arange(len(xs)), 0))   # the running peak's row
         u = xs[peak] / np.maximum(mag[peak], 1e-12)[:, None]
-        proj = np.einsum("ij,ij->i", xs, u)
-        c.x_peak = xs[peak[-1]].copy()
-        first = 1 if len(xs) > len(idx) else 0
-        bar = np.full(len(xs), c.allow)
-        if c.past is not None:
-            bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
-        elif c.missed is not None:
-            # what the forecasts missed along each row's direction, up to its horizon
-            missed = np.maximum.accumulate(np.abs(c.missed @ u.T).max(axis=0), axis=0)   # (n, rows)
-            jj = np.concatenate([[j[0]], j]) if first else j
-            bar = np.maximum(c.quiet, REVERSAL_SWING_K * missed[jj, np.arange(len(xs))])
-        hit = np.flatnonzero(proj[first:] < -bar[first:])
-        return int(idx[hit[0]]) if len(hit) else -1
+        return u, np.einsum("ij,ij->i", xs, u), xs[peak[-1]].copy()
 
 
 # A real arm's tool vibrates in a few narrow bands (its structural modes, the joints' harmonics, the servo's
