@@ -14,6 +14,11 @@ WARM_JIT := $(VENV)/.warm-jit
 
 .PHONY: install run test check lint bench firmware fingertip clean
 
+# A machine whose environment says PYTHONDONTWRITEBYTECODE (ours does) has every process compile the project's
+# sources again: the test runner's assertion rewriting of ~80 modules, each daemon and CLI a test starts. Our
+# commands write the bytecode caches (__pycache__, which .gitignore keeps out of the repository).
+unexport PYTHONDONTWRITEBYTECODE
+
 # A .venv made by another Python than PY_BOOT's (a start that failed on Python 3.10, then the README's
 # `PY_BOOT=python3.11`) is made again, not reused: its packages are that other Python's.
 PY_VERSION = import sys; print("%d.%d" % sys.version_info[:2])

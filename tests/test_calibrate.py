@@ -28,6 +28,7 @@ def probes(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_eta_is_recovered_at_three_grip_forces_with_a_known_contact(probes):
     p_c = load_truth(probes[0])["p_c"]
     res = tecdard("calibrate-eta", *map(str, probes), "--contact", ",".join(f"{x:.9f}" for x in p_c))
@@ -46,6 +47,7 @@ def test_eta_is_recovered_at_three_grip_forces_with_a_known_contact(probes):
     np.testing.assert_allclose(values[:, 0], sorted(ETAS))
 
 
+@pytest.mark.slow
 def test_eta_from_the_lever_arm_alone(probes):
     res = tecdard("calibrate-eta", *map(str, probes[:2]), "--radius", "0.08")
     assert res.returncode == 0, res.stderr
@@ -72,6 +74,7 @@ def test_too_few_recordings_and_probes_that_never_turned_are_one_line_errors(pro
 LAG_TOL_S = 0.0015            # the fitted fingertip lag (measured within 0.9 ms on MuJoCo arcs with two probes)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lag_s", [0.0, 0.006])
 def test_the_fingertip_lag_is_fitted_from_probes_that_start_from_rest(tmp_path, lag_s):
     """MuJoCo arcs (rigid-body physics, the fingertip's twist a first-order lag of lag_s): the lag that

@@ -4,6 +4,7 @@ is decided at its first sample instead of after the arm's late states or its rin
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from benchmarks.robustness import false_onsets, impact
 from tecdard.control.command_track import CommandTrack
@@ -49,6 +50,7 @@ def test_an_impact_is_decided_at_its_first_sample_when_the_daemon_drives_the_arm
         assert abs(driven["180"][0] - alone["180"][0]) < 1.0, (alone, driven)
 
 
+@pytest.mark.slow
 def test_the_daemons_own_starts_and_stops_never_fire():
     """UR trapezoids (acceleration steps up to 1.5 m/s^2) commanded tick by tick, every disturbance at
     1x: the ticks that start, stop and ramp the arm keep the states' wait, so no step is an onset."""

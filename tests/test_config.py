@@ -210,6 +210,7 @@ def test_an_alias_bomb_is_refused_in_bounded_time_and_memory(tmp_path):
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 100_000      # kB: no expansion
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [
     lambda: sim_yaml().encode("utf-16"),
     lambda: sim_yaml().replace("seed: 1", "seed: " + "9" * 5000),

@@ -418,6 +418,7 @@ TOOL_TIP = '''
 '''
 
 
+@pytest.mark.slow
 def test_a_new_estimator_with_its_own_option_and_input_is_one_file(tmp_path):
     from tecdard.config import Config, ConfigError
     from tecdard.control import estimators

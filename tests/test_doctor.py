@@ -138,6 +138,7 @@ def test_udev_rule(tmp_path):
     assert 'SYMLINK+="tecdar-imu"' in rule and 'GROUP="dialout"' in rule and "0403" in rule
 
 
+@pytest.mark.slow
 def test_endpoints_free_taken_reachable_unreachable():
     free = f"tcp/127.0.0.1:{free_port()}"
     with socket.socket() as taken:
@@ -150,6 +151,7 @@ def test_endpoints_free_taken_reachable_unreachable():
     assert "unreachable" in checks[3].detail
 
 
+@pytest.mark.slow
 def test_an_endpoint_held_by_a_running_daemon_passes(shared_daemon):
     (c,) = doctor.check_endpoints([shared_daemon.endpoint], [])
     assert c.status == "pass" and "running tecdard" in c.detail
@@ -168,6 +170,7 @@ def ur5e_config(tmp_path, host: str) -> str:
     return str(path)
 
 
+@pytest.mark.slow
 def test_the_shipped_ur5e_config_is_valid_and_its_controller_is_checked(tmp_path):
     pytest.importorskip("rtde_control", reason="ur-rtde is installed by `make test` (extra `ur`)")
     from tests.fakes.fake_ur import FakeController, free_loopback_host
@@ -220,6 +223,7 @@ def fr3_config(tmp_path, host: str, realtime: str = "enforce") -> str:
     return str(path)
 
 
+@pytest.mark.slow
 def test_the_shipped_fr3_config_is_valid_and_its_robot_and_realtime_are_checked(tmp_path):
     """Issue 22: doctor tells a Franka user whether the host is fit for realtime enforcement, and
     whether the robot's server speaks this franky's version (franky-sim here)."""
@@ -254,6 +258,7 @@ def test_franka_realtime_checks_read_the_host():
     assert ignored.status == "warn" and "franky-sim" in ignored.detail
 
 
+@pytest.mark.slow
 def test_a_franka_robot_of_another_version_or_none_fails(tmp_path):
     pytest.importorskip("franky_sim", reason="franky-sim is installed by `make test` (extra `franka-sim`)")
     from tests.fakes.franka_sim import ServerProcess, free_franka_host
@@ -297,6 +302,7 @@ def test_run_checks_on_each_shipped_config_checks_its_board(tmp_path, name):
     assert all(c.status == "fail" for c in rig), rig                       # no controller at that host
 
 
+@pytest.mark.slow
 def test_a_listener_that_is_not_a_ur_dashboard_fails(tmp_path):
     """The UR check passed on any TCP listener: it now reads the dashboard's greeting."""
     from tecdard.robots.ur import check_ur_controller

@@ -81,6 +81,7 @@ class S3Server:
             self.server = None
 
 
+@pytest.mark.slow
 def test_an_episode_goes_up_once_and_its_rows_answer_sql(tmp_path, recordings):
     rec = fresh_copy(recordings, tmp_path / "rec")
     store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))
@@ -175,6 +176,7 @@ def test_sync_query_fetch_through_the_command_line_on_s3(tmp_path, recordings, s
     assert res.returncode == 2 and "not overwritten" in res.stderr
 
 
+@pytest.mark.slow
 def test_a_key_the_store_client_refuses_is_left_out_and_the_rest_answers(tmp_path, recordings, s3):
     """Issue 50 item 5: one key with a `..` segment in the bucket's index prefix made every query, fetch and
     compact fail (obstore refuses such a key, and the whole page of a listing with it). Now the prefix is listed
@@ -249,6 +251,7 @@ def test_the_store_going_away_mid_upload_loses_nothing_and_doubles_nothing(tmp_p
     assert rows == [(EPISODES,)]
 
 
+@pytest.mark.slow
 def test_two_writers_and_a_compaction_at_once_lose_no_row(tmp_path, recordings):
     url = f"file://{tmp_path}/store"
     folders = []
@@ -279,6 +282,7 @@ def test_two_writers_and_a_compaction_at_once_lose_no_row(tmp_path, recordings):
     assert rows == [(8, 8)]
 
 
+@pytest.mark.slow
 def test_a_corrupt_or_hostile_index_file_is_one_line_and_the_rest_answers(tmp_path, recordings):
     rec = fresh_copy(recordings, tmp_path / "rec")
     url = f"file://{tmp_path}/store"
@@ -324,6 +328,7 @@ def test_the_recorder_deletes_only_what_the_store_has(tmp_path):
     assert not old[1].exists() and not (folder / (old[1].name + ".uploaded")).exists()
 
 
+@pytest.mark.slow
 def test_a_bad_store_config_is_one_line(tmp_path):
     from tests.conftest import daemon_config
     from tecdard.config import dump_yaml
@@ -408,6 +413,7 @@ def docs_queries() -> list[str]:
     return queries
 
 
+@pytest.mark.slow
 def test_the_ten_example_queries_of_the_docs_run(tmp_path, recordings):
     rec = fresh_copy(recordings, tmp_path / "rec")
     store = EpisodeStore(StoreParams(url=f"file://{tmp_path}/store"))

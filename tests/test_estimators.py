@@ -187,6 +187,7 @@ def test_position_evidence_alone_gives_the_exact_centre_and_eta_ratio(planar, k_
     assert ev.residual_ratio(k_est) < 0.1       # noise-free: nothing left unexplained at the fitted k
 
 
+@pytest.mark.slow
 def test_positions_sharpen_the_estimate_at_low_speed():
     """10 mm/s about an edge at 12 cm, 65 Hz proprioception: velocity noise dominates, positions help."""
     axis, center = np.array([0.0, -1.0, 0.0]), np.array([0.2, 0.0, 0.5])

@@ -30,6 +30,7 @@ def fake():
     controller.close()
 
 
+@pytest.mark.slow
 def test_the_real_receive_client_reads_the_controller_state_and_its_stops(fake):
     r = rtde_receive.RTDEReceiveInterface(fake.host, 500.0, UR_VARIABLES)
     try:
@@ -46,6 +47,7 @@ def test_the_real_receive_client_reads_the_controller_state_and_its_stops(fake):
         r.disconnect()
 
 
+@pytest.mark.slow
 def test_the_clients_default_recipe_is_served_whole(fake):
     """Without a variable list the client asks for everything its PolyScope version has."""
     r = rtde_receive.RTDEReceiveInterface(fake.host)
@@ -89,6 +91,7 @@ def test_the_real_dashboard_client_talks_to_the_dashboard_server(fake):
     assert not_understood == []
 
 
+@pytest.mark.slow
 def test_a_protective_stop_is_unlocked_on_the_dashboard_5_s_after_it_and_clears_on_rtde(fake):
     """UR's rule: the dashboard refuses to unlock a protective stop until 5 s after it (ur-rtde raises on the
     answer), and the pendant's safety popup stays until it is closed."""
@@ -121,6 +124,7 @@ SPEEDJ_ACCEL = 1.0                             # rad/s^2
 TICK_S = 0.02
 
 
+@pytest.mark.slow
 def test_the_real_control_client_runs_its_script_and_speedj_moves_the_arm(fake):
     c = rtde_control.RTDEControlInterface(fake.host)
     try:
@@ -142,6 +146,7 @@ def test_the_real_control_client_runs_its_script_and_speedj_moves_the_arm(fake):
     assert not fake.arm()["program_running"]
 
 
+@pytest.mark.slow
 def test_a_protective_stop_halts_the_arm_and_the_controller_refuses_speedj(fake):
     c = rtde_control.RTDEControlInterface(fake.host)
     try:
@@ -156,6 +161,7 @@ def test_a_protective_stop_halts_the_arm_and_the_controller_refuses_speedj(fake)
         c.disconnect()
 
 
+@pytest.mark.slow
 def test_the_controllers_watchdog_stops_a_client_that_went_quiet(fake):
     c = rtde_control.RTDEControlInterface(fake.host)
     try:

@@ -156,6 +156,7 @@ def test_a_bad_roster_is_one_line_naming_what_is_wrong(tmp_path, roster, fragmen
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 def test_a_bad_router_config_is_one_line(tmp_path, pki):
     ca, ids, *_ = pki
     bad_acl = tmp_path / "acl.json5"
@@ -415,6 +416,7 @@ def test_a_fleet_robot_name_makes_a_ros2_namespace():
         assert Ros2Params.from_config(Config({}).section("ros2"), robot).namespace == namespace
 
 
+@pytest.mark.slow
 def test_a_tls_mistake_and_a_denial_each_say_their_cause(mesh, pki):
     """Issue 50 item 10: a `tcp/` endpoint for a TLS router and a certificate not on the roster each read "not alive
     after 5 s", and a watch-only operator's rotate read "no reply within 5 s" with exit 3 ("no daemon"). Each now

@@ -226,6 +226,7 @@ def mutate(data: bytes, rng, raw: bytes) -> bytes:
     return data[:i] + b"\\" * rng.randrange(1, 9) + b'"' + data[i:]    # escapes and quotes
 
 
+@pytest.mark.slow
 @fuzz_settings(1800)
 @given(st.sampled_from(range(len(TEMPLATES))), st.sampled_from(range(len(VERB_FORMS) + 8)),
        st.integers(0, 2 ** 32 - 1), st.binary(max_size=48), st.integers(1, 6))
@@ -246,6 +247,7 @@ def test_any_payload_is_answered_once_or_handed_on_within_limits(template, verb_
     assert_accounted(outcomes, sink)
 
 
+@pytest.mark.slow
 @fuzz_settings(60)
 @given(st.lists(payloads, min_size=10, max_size=10))
 def test_structured_payloads_are_answered_once_or_handed_on_within_limits(batch):
@@ -255,6 +257,7 @@ def test_structured_payloads_are_answered_once_or_handed_on_within_limits(batch)
     assert_accounted(outcomes, sink)
 
 
+@pytest.mark.slow
 @fuzz_settings(20)
 @given(st.lists(command_text(), min_size=10, max_size=10))
 def test_a_full_control_queue_is_a_busy_reply_not_a_lost_command(batch):

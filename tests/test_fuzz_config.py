@@ -70,6 +70,7 @@ FUZZ = settings(max_examples=150, deadline=None, database=None,
                                        HealthCheck.data_too_large])
 
 
+@pytest.mark.slow
 @FUZZ
 @given(st.lists(st.tuples(st.one_of(st.sampled_from(PATHS),
                                     st.lists(st.text(min_size=1, max_size=12), min_size=1, max_size=3).map(tuple)),
@@ -86,6 +87,7 @@ def test_any_mutated_config_is_a_daemon_or_one_line_naming_the_key(tmp_path, cha
     assert check(tmp_path, text) in ("built", "refused")
 
 
+@pytest.mark.slow
 @settings(max_examples=80, deadline=None, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(st.integers(0, len(text_of(BASE))), st.binary(min_size=1, max_size=40), st.integers(0, 60))
@@ -94,6 +96,7 @@ def test_any_corrupted_config_file_is_a_daemon_or_one_line(tmp_path, at, junk, c
     assert check(tmp_path, raw[:at] + junk + raw[at + cut:]) in ("built", "refused")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", [10**400, {"a": [[[]]]}])
 def test_every_leaf_takes_a_hostile_value_without_a_traceback(tmp_path, value):
     """Each option in turn, not a random sample: every getter sees each of these once."""

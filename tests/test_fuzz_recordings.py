@@ -248,6 +248,7 @@ def outcome(path) -> str:
     return "replayed"
 
 
+@pytest.mark.slow
 @fuzz(120)
 @given(st.lists(st.tuples(st.sampled_from(KEYS + ("junk",)), st.one_of(st.none(), st.integers(0, 10 ** 6))),
                 min_size=1, max_size=3), st.data())
@@ -262,6 +263,7 @@ def test_any_member_swapped_for_a_hostile_array_is_refused_or_replays(arrays, tm
     assert outcome(write(tmp_path / "f.npz", out)) in ("refused", "replayed")
 
 
+@pytest.mark.slow
 @fuzz(150)
 @given(st.booleans(), st.floats(0.0, 1.0), st.binary(min_size=1, max_size=64), st.integers(0, 200))
 def test_any_corrupted_archive_is_refused_or_replays(arrays, tmp_path, compressed, where, junk, cut):
@@ -271,6 +273,7 @@ def test_any_corrupted_archive_is_refused_or_replays(arrays, tmp_path, compresse
     assert outcome(tmp_path / "f.npz") in ("refused", "replayed")
 
 
+@pytest.mark.slow
 @fuzz(60)
 @given(st.sampled_from(["gyro", "accel", "tcp_pos", "tcp_vel", "grip_force"]),
        st.sampled_from([0.0, 1e-300, 1e3, 1e6, 1e12, 1e100, -1e100]),

@@ -104,6 +104,7 @@ floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
 arrays = st.lists(floats, max_size=8)
 
 
+@pytest.mark.slow
 @fuzz_settings(EXAMPLES)
 @given(angle=floats, speed=floats, probe=floats, direction=arrays, strategy=st.text(max_size=40),
        turn=st.integers(0, 255), seq=st.integers(-2**63, 2**63 - 1))
@@ -120,6 +121,7 @@ def test_any_rotate_request_is_refused_with_a_code_or_handed_on_within_limits(no
         assert rmw.parse_attachment(q.replies[0][1])[0] == seq
 
 
+@pytest.mark.slow
 @fuzz_settings(EXAMPLES)
 @given(grid=st.lists(st.integers(-2**31, 2**31 - 1), max_size=6), origin=arrays, size=arrays, depth=floats,
        speed=floats, orientations=st.integers(0, 255))
@@ -132,6 +134,7 @@ def test_any_map_request_is_refused_with_a_code_or_handed_on_within_limits(node,
     assert check_reply(node, "tecdar_msgs/srv/Map", q, serve(node, "map", "tecdar_msgs/srv/Map", q)) == 1
 
 
+@pytest.mark.slow
 @fuzz_settings(EXAMPLES)
 @given(raw=st.binary(max_size=300), cut=st.integers(0, 200), att=st.one_of(st.none(), st.binary(max_size=40)))
 def test_random_truncated_bytes_and_attachments_never_raise(node, raw, cut, att):
@@ -176,6 +179,7 @@ def observer():
 PANDA = [f"panda_joint{i}" for i in range(1, 8)]
 
 
+@pytest.mark.slow
 @fuzz_settings(EXAMPLES)
 @given(names=st.lists(st.sampled_from(PANDA + ["", "x", "panda_finger_joint1"]), max_size=10),
        position=st.lists(floats, max_size=10), velocity=st.lists(floats, max_size=10),
@@ -289,6 +293,7 @@ class _Payload:
         return self.data
 
 
+@pytest.mark.slow
 @fuzz_settings(200)
 @given(raw=st.binary(max_size=300), cut=st.integers(0, 400), names=st.lists(st.text(max_size=40), max_size=20))
 def test_any_parameter_or_type_request_is_one_reply_or_none_and_never_raises(node, raw, cut, names):
@@ -376,6 +381,7 @@ def _rotate_goal(T, types, angle_deg: float, direction=()):
                          direction=np.array(direction, dtype=float), strategy="", turn_tool=0)
 
 
+@pytest.mark.slow
 @fuzz_settings(200)
 @given(raw=st.binary(max_size=300), cut=st.integers(0, 400), angle=floats, direction=arrays,
        uuid=st.binary(min_size=16, max_size=16), stamp=st.integers(0, 2**31 - 1))

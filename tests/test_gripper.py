@@ -23,6 +23,7 @@ def urcap():
     fake.close()
 
 
+@pytest.mark.slow
 def test_robotiq_activates_grasps_an_object_finds_an_empty_hand_and_releases(urcap):
     g = RobotiqGripper(urcap.host, model="2f-85")
     assert "SET ACT 1" in urcap.commands and urcap.reg["STA"] == 3       # activated at connect

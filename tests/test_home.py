@@ -41,6 +41,7 @@ def run_home(feed: Feed, fields: dict, q_start: np.ndarray, seconds: float = 40.
     return ct, np.array(qs), reply
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["ur", "franka", "sim"])
 def test_home_moves_every_backend_to_q_home_within_its_speeds(backend):
     if backend == "ur":

@@ -62,6 +62,7 @@ def pki(tmp_path):
     return lambda cn: TlsFiles(str(ca.path), str(ids[cn].cert), str(ids[cn].key))
 
 
+@pytest.mark.slow
 def test_with_tls_a_watcher_never_answers_for_the_daemon_before_or_after_it_exits(make_daemon, pki):
     keys = Keys("sim")
     d = make_daemon(protocol="tls", client_tls=pki("operator"),
@@ -103,6 +104,7 @@ def test_with_tls_a_watcher_never_answers_for_the_daemon_before_or_after_it_exit
                 pass
 
 
+@pytest.mark.slow
 def test_on_loopback_no_impostor_answers_while_the_daemon_runs(make_daemon):
     keys = Keys("sim")
     d = make_daemon()
@@ -134,6 +136,7 @@ def test_the_daemons_access_control_keeps_other_sessions_off_its_keys():
     assert acl["default_permission"] == "deny"
 
 
+@pytest.mark.slow
 def test_a_unix_socket_in_the_daemons_own_directory_serves_clients(make_daemon, tmp_path):
     """The loopback endpoint no other user can take: a socket in a directory only the daemon's
     user may write (docs/zenoh-api.md, Reaching only the daemon)."""

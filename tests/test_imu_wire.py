@@ -139,6 +139,7 @@ def test_fuzz_arbitrary_bytes_never_raise_and_bytes_add_up(data, chunk):
     assert c.samples == sum(len(o.raw) for o in out if isinstance(o, W.SamplesPacket))
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.tuples(st.integers(0, 4000), st.integers(0, 255)), max_size=6), st.integers(1, 97))
 def test_fuzz_mutated_valid_streams(mutations, chunk):
@@ -201,6 +202,7 @@ def test_unwrap_t0_us():
     assert ts[2] - ts[1] == pytest.approx(1200e-6)
 
 
+@pytest.mark.slow
 def test_clock_sync_tracks_100ppm_drift_for_an_hour():
     """An hour of packets, MCU clock 100 ppm fast, random USB latency: sample times within 0.5 ms.
     Every fourth packet reaches the fit (the others as if lost on the bus): a quarter of the run time."""
@@ -273,6 +275,7 @@ def _one_clock_two_devices(step_s: float, seconds: float, seed: int):
         yield mcu, float(sync.to_host(mcu)) - (true_host + 0.0002), clock.to_host(mcu) - (true_host + 0.0002)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step_s", [0.01, 0.06])
 def test_a_board_and_an_arm_on_one_simulated_clock_that_lost_time_stay_together(step_s):
     """franky-sim stamps the fingertip board's samples and the arm's states with its own clock, which runs late

@@ -89,6 +89,7 @@ def test_warm_builds_them_ahead_of_time(monkeypatch, capsys, no_build):
     assert capsys.readouterr().out.startswith("compiled the estimator's kernels ahead of time in ")
 
 
+@pytest.mark.slow
 def test_warm_builds_without_compiling_the_kernels_with_the_jit_first():
     """`tecdard warm` as the install runs it: the command line does not import the estimator (whose
     kernels, not yet built, would be compiled by numba's JIT before the build: 40 s more)."""

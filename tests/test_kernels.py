@@ -373,6 +373,7 @@ def test_position_increment_and_residual_match_numpy():
     assert evidence.position_residual(ev, float((y ** 2).sum()), 5, var, k, 8) == 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("planar", [False, True])
 @pytest.mark.parametrize("nk", [0, 1])
 @pytest.mark.parametrize("chunk", [7, 33, 150])

@@ -30,6 +30,7 @@ def test_the_install_built_them_and_loading_them_imports_no_numba():
     assert api.KIND == "aot"
 
 
+@pytest.mark.slow
 def test_jit_on_request_and_aot_refused_when_it_cannot_be_had(monkeypatch):
     assert probe(TECDAR_KERNELS="jit") == ["jit", "TECDAR_KERNELS=jit", True, True]
     monkeypatch.setattr(build, "DIGEST_FILE", os.path.join(os.path.dirname(build.DIGEST_FILE), "none.digest"))
@@ -51,6 +52,7 @@ def test_the_extension_releases_the_gil():
     assert "PyEval_SaveThread" in syms and "PyEval_RestoreThread" in syms
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind,seed", [("edge-arc", 3), ("hinge", 7)])
 def test_localize_gives_the_jits_answer_to_the_last_digit(tmp_path, kind, seed):
     """The whole estimator through `tecdard localize`, once on the build and once on numba's JIT:
@@ -72,6 +74,7 @@ MDWE = ("import ctypes, os, sys; assert ctypes.CDLL(None).prctl(65, 1, 0, 0, 0) 
         "os.execv(sys.executable, [sys.executable, '-m', 'tecdard', 'run', '--config', sys.argv[1]])")
 
 
+@pytest.mark.slow
 def test_the_daemon_runs_where_memory_may_not_be_written_and_executed(tmp_path):
     """The unit's MemoryDenyWriteExecute, as the kernel's PR_SET_MDWE (what systemd sets on Linux 6.3+,
     inherited across exec): a daemon on the built kernels opens the cutter; one that would need

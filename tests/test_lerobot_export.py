@@ -70,6 +70,7 @@ def hf_features(features: dict):
     return datasets.Features(out)
 
 
+@pytest.mark.slow
 def test_each_frame_holds_the_ticks_action_the_newest_state_and_the_imu_window_ending_at_it(tmp_path):
     arrays = [daemon_recording(tmp_path / f"ep{k}.npz", seed=k, verb=verb) for k, verb in enumerate(("rotate", "probe"))]
     out = tmp_path / "ds"
@@ -123,6 +124,7 @@ def test_each_frame_holds_the_ticks_action_the_newest_state_and_the_imu_window_e
     assert "LeRobot" in (out / "README.md").read_text()
 
 
+@pytest.mark.slow
 def test_the_dataset_loads_as_lerobot_loads_it(tmp_path):
     datasets = pytest.importorskip("datasets", reason="the lerobot-test extra is installed by `make test`")
     daemon_recording(tmp_path / "ep.npz")
@@ -159,6 +161,7 @@ def test_bad_exports_are_one_line_refusals_that_write_nothing(tmp_path, why, arg
     assert not (tmp_path / "ds").exists() and (tmp_path / "full" / "x").read_text() == "a lab's file", why
 
 
+@pytest.mark.slow
 def test_a_query_over_the_episode_index_picks_the_episodes(tmp_path):
     """`--store URL --query SQL`: the recordings a lab uploaded (`tecdard episodes sync`), picked by the index."""
     pytest.importorskip("duckdb", reason="the fleet extra is installed by `make test`")

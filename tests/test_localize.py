@@ -216,6 +216,7 @@ def test_minimal_recording_round_trip(tmp_path):
     assert rec.imu_rate_hz == pytest.approx(6667.0)
 
 
+@pytest.mark.slow
 def test_sim_record_cli(tmp_path):
     out = tmp_path / "hinge.npz"
     res = subprocess.run([sys.executable, "-m", "tecdard", "sim-record", str(out), "--kind", "hinge",

@@ -4,6 +4,8 @@ Python older than 3.11 is refused in one line that says what to run."""
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import ROOT
 
 
@@ -42,6 +44,7 @@ def test_a_python_older_than_3_11_is_refused_in_one_line(tmp_path):
     assert "PY_BOOT=python3.11" in res.stdout
 
 
+@pytest.mark.slow
 def test_the_install_prints_no_warning_of_setuptools():
     """Issue 50 item 15: `make install` printed setuptools' warnings, one for each folder of ros2/tecdar_msgs
     (importable, yet not in pyproject's packages), and its notice that the install is editable. The

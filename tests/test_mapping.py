@@ -341,6 +341,7 @@ def test_write_map_writes_the_four_files(tmp_path):
     assert (w, h) == (640, 500)                       # the figure (matplotlib, the viz extra)
 
 
+@pytest.mark.slow
 def test_the_depth_image_has_axes_in_mm_and_a_labelled_colour_bar(tmp_path, monkeypatch):
     """Issue 33: a person reads the map's image: world x and y in mm, the height's colour bar
     labelled, the probes marked. Without matplotlib it is the raw raster with its colour bar."""

@@ -40,6 +40,7 @@ def steady(fields, truth, t_from=0.7, t_to=1.9):
     return (t > truth["onset_t"] + t_from - 0.5) & (t < t_to)
 
 
+@pytest.mark.slow
 def test_the_handle_turns_as_the_arc_commands_and_the_fingertip_sees_one_over_eta(arc):
     fields, truth = arc
     sc = MujocoScenario()
@@ -55,6 +56,7 @@ def test_the_handle_turns_as_the_arc_commands_and_the_fingertip_sees_one_over_et
     np.testing.assert_allclose(fields["accel"][rest].mean(axis=0), [0.0, 0.0, -9.80665], atol=0.02)
 
 
+@pytest.mark.slow
 def test_a_gripper_turning_with_the_handle_leaves_the_fingertip_little_to_see():
     fields, truth = generate(MujocoScenario(motion="arc-turning", seed=1))
     rest = fields["imu_t"] < truth["onset_t"] - 0.05
@@ -94,6 +96,7 @@ def _twist_lag_s(fields, truth):
     return float(shifts[int(np.argmin(cost))] * (t[1] - t[0]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lag_s", [0.0, 0.004])
 def test_the_fingertip_twist_lags_the_handle_by_its_time_constant(lag_s):
     """The silicone's damping on the IMU body: eta x the IMU's rate follows the handle's rate
@@ -131,6 +134,7 @@ def test_the_fingertip_lag_is_compensated_within_the_first_30_ms(arc):
     assert lagged < EARLY_TOL_M < ignored, (lagged, ignored)
 
 
+@pytest.mark.slow
 def test_a_pen_on_its_tip_is_found_in_3d_once_its_top_has_circled():
     """The point contact: a 9 cm pen on its tip, its top circled (2 cm, 3 cm/s) with the gripper held.
     The fingertip twists about ever new axes, more than one eta describes (the twist composes in 3D);
@@ -152,6 +156,7 @@ def test_a_pen_on_its_tip_is_found_in_3d_once_its_top_has_circled():
         assert abs(float((e.p - e.onset_p_tcp) @ e.axis)) < 1e-9
 
 
+@pytest.mark.slow
 def test_a_block_tipped_on_its_edge_pivots_there_and_the_estimator_finds_the_edge():
     """The block on the table, its bottom edge against the ridge: tipped by an arc about that edge it
     turns as commanded on MuJoCo's contacts, and the estimator finds the edge (measured 0.7-1.0 mm at
@@ -163,6 +168,7 @@ def test_a_block_tipped_on_its_edge_pivots_there_and_the_estimator_finds_the_edg
     assert _error_at(fields, truth, np.inf) < BLOCK_END_TOL_M
 
 
+@pytest.mark.slow
 def test_a_push_that_stretches_the_grasp_is_no_evidence_along_the_lever_arm():
     """A straight push along the handle's first tangent: the handle turns on its circle, the TCP runs
     off it, and the grasp stretches along the lever arm. Once the positions show that (the rigid-body
@@ -193,6 +199,7 @@ def _relative_twist_deg(fields, truth, t_rel):
     return abs(math.degrees(float(np.sum(w[sel]) * (t[1] - t[0]))))
 
 
+@pytest.mark.slow
 def test_a_grasp_that_slips_stops_the_fingertip_twisting_while_the_handle_turns_on():
     """`slip`: the grasp holds until the fingertip's twist torque reaches slip_torque_nm (0.05 N m:
     the pad twisted 0.05 rad at eta 2, 1.4 deg at the IMU), then the handle turns in the grasp: over
@@ -207,6 +214,7 @@ def test_a_grasp_that_slips_stops_the_fingertip_twisting_while_the_handle_turns_
     assert twist_mid < 2.0 and abs(twist_end - twist_mid) < 0.5 and handle_end - handle_mid > 4.0
 
 
+@pytest.mark.slow
 def test_an_ongoing_motion_meets_the_ridge_at_speed_and_the_block_turns_from_there(ongoing):
     """`ongoing`: the arm slides the block along the table into the ridge at 20 mm/s, so the TCP is
     already at speed at the onset (the impact), and the block turns only from then on; the trigger
@@ -234,6 +242,7 @@ def test_an_arm_moving_at_the_onset_pushes_through_the_grasp_before_the_pivot_co
     assert _error_at(fields, truth, 0.03) < EARLY_TOL_M
 
 
+@pytest.mark.slow
 def test_a_slip_no_filter_models_shows_in_the_reported_uncertainty():
     """`slip` at 12 cm: once the grasp turns on the handle the IMU no longer sees it, and `ekf` reads a
     lever arm that grows with the slip (24.5 mm off at the end, a known limit). Its innovations then

@@ -51,6 +51,7 @@ def one_line_refusal(res, command: str) -> str:
 
 # -- outputs ------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.skipif(not HAS_MATPLOTLIB, reason="the viz extra (matplotlib) is installed by `make test`")
 def test_a_plot_without_a_contact_has_no_empty_panels_and_no_warning(tmp_path):
     """Issue 50 item 15: a capture at rest (no onset) drew four empty panels (the turn, the estimate's
@@ -82,6 +83,7 @@ def test_a_plot_without_a_contact_has_no_empty_panels_and_no_warning(tmp_path):
     assert heights == {"rest": 760, "contact": 1520}, heights
 
 
+@pytest.mark.slow
 def test_an_output_that_is_the_input_is_refused_and_the_recording_kept(arrays, tmp_path):
     rec = tmp_path / "REC.npz"
     np.savez_compressed(rec, **arrays)
@@ -212,6 +214,7 @@ events_strategy = st.lists(st.one_of(
                           optional={"task": json_values, "result": json_values})), max_size=5)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(events=events_strategy)

@@ -31,6 +31,7 @@ def moves():
     return Recording.from_fields(free_air(FreeAirMoves(moves=15, seed=3))[0])
 
 
+@pytest.mark.slow
 def test_free_air_moves_at_the_configured_limits_give_no_onset(moves):
     """15 jerk-limited moves at 0.5 m/s^2 and 5 m/s^3 per axis, the tool turning at up to 0.5 rad/s:
     none is a contact. The trigger that judged the raw accelerometer fired on them (the arm's own
@@ -47,6 +48,7 @@ def test_a_hundred_free_air_moves_give_no_onset():
     assert replay_onsets(rec, pipeline_for(rec), chunk_s=0.1) == []
 
 
+@pytest.mark.slow
 def test_an_impact_during_a_move_fires_within_5_ms(moves):
     """A tap on the held object while the arm cruises (the ring of sim/imu.py, 100 (m/s^2)/(m/s) at
     2 cm/s): the onset within 5 ms of it, on the accelerometer."""
@@ -65,6 +67,7 @@ def test_an_impact_during_a_move_fires_within_5_ms(moves):
     assert 0.0 <= found[0]["t"] - t_hit <= IMPACT_LATENCY_S, found[0]["t"] - t_hit
 
 
+@pytest.mark.slow
 def test_a_block_carried_in_a_soft_grasp_swings_without_an_onset():
     """MuJoCo's two-spring fingertip carrying a 0.3 kg block clear of the table, started and stopped
     at 0.5 m/s^2: the block swings in the grasp (4 Hz, up to 0.3 rad/s of twist, as much as a grasped
@@ -83,6 +86,7 @@ def test_a_block_carried_in_a_soft_grasp_swings_without_an_onset():
     assert len(onsets(rec, raw)) >= 1
 
 
+@pytest.mark.slow
 def test_a_mujoco_hinge_whose_friction_breaks_away_first_is_dated_to_the_twists_start():
     """A 4 cm MuJoCo arc: the hinge's dry friction rings the accelerometer some 0.2 s in, while the
     twist holds; the onset is dated back to where the twist began, not the ring."""

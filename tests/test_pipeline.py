@@ -87,6 +87,7 @@ def test_pipeline_localises_with_rotated_mount_and_rotating_gripper(mount, tool_
     assert pipe.estimator.positions.n > 20 and not pipe.estimator.positions.broken
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["paper-ekf", "svd-diff", "svd-geo"])
 def test_pipeline_runs_every_method(method):
     _, est, center, axis, _, _ = simulate(np.eye(3), method=method, plane=np.array([0.0, 1.0, 0.0]))
@@ -231,6 +232,7 @@ def test_signed_angle_recovers_a_rotation_about_the_axis(axis, a, angle, along):
     assert signed_angle(tuple(a), tuple(b), tuple(n)) == signed_angle(a, b, n)
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(quats, quats, vecs, vecs, st.floats(0.5, 5.0))
 def test_conditioning_inverts_the_fingertip_model(q_mount, q_tcp, w_tcp, w_obj, eta):
@@ -357,6 +359,7 @@ def _scenario(**kw):
     return generate(Scenario(**{"seed": 3, "rest_s": 0.2, "duration_s": 0.6, **kw}))[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["arc", "arc-3d-following", "pen", "hinge", "eta-blend", "troubled",
                                   "troubled-3d", "troubled-long-blocks"])
 def test_the_compiled_run_equals_the_reference_filter(case):
@@ -506,6 +509,7 @@ def test_the_tcp_rate_is_interpolated_where_it_belongs_and_extrapolated_past_the
     np.testing.assert_allclose(w[3, 2], 0.045 + WDOT_MAX_AGE_S, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_start_from_rest_at_65_hz_is_not_read_as_a_short_lever():
     """The arm starts from rest with proprioception at 65 Hz: for up to 15 ms the newest TCP velocity
     still reads zero while the object already turns. Paired with the object's rate from when it was

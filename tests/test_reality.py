@@ -154,6 +154,7 @@ def test_an_impact_and_a_rotation_are_dated_on_time_at_1x():
     assert err <= 1.5 * err_clean and covered >= 0.9 * len(rough), (err, err_clean, covered)
 
 
+@pytest.mark.slow
 def test_at_3x_fewer_onsets_and_never_a_confident_wrong_answer():
     """Three times every disturbance: the impact's click is under the vibration's floor, and the
     rotation is found late; what is reported is covered by its 3 sigma."""

@@ -3,6 +3,7 @@ arm's is (a force at the TCP beyond its limit, sim.robot.protective_stop_force_n
 unlocks it; then a task runs. The UR's and the Franka's are tested against their protocol fakes
 (tests/test_daemon_ur.py, tests/test_ur_rotate.py, tests/test_daemon_franka.py)."""
 import numpy as np
+import pytest
 
 from benchmarks.onset_live import scene
 from tests.fakes.fake_ur import wait_for
@@ -10,6 +11,7 @@ from tests.fakes.fake_ur import wait_for
 TASK_TIMEOUT_S = 60.0
 
 
+@pytest.mark.slow
 def test_a_protective_stop_on_the_simulated_arm_holds_until_recover_then_a_task_runs(make_daemon):
     # a block held nearly level onto a table: the grasp's force passes 1 N some 100 ms after the touch at 20 mm/s
     d = make_daemon(**{"sim.robot.protective_stop_force_n": 1.0, **scene("table")})
@@ -52,6 +54,7 @@ def test_a_protective_stop_on_the_simulated_arm_holds_until_recover_then_a_task_
     assert ev["kind"] == "task_done", ev
 
 
+@pytest.mark.slow
 def test_recover_with_nothing_to_recover_says_so_and_is_refused_during_a_task(make_daemon):
     d = make_daemon()
     cli = d.client

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import tarfile
 
+import pytest
+
 from tecdard.recording.format import Recording, save_recording
 from tecdard.sim.scenarios import Scenario, generate
 from tecdard.tools import report
@@ -13,6 +15,7 @@ from tests.conftest import ROOT
 PEM_BODY = "MIIEvQIBADANBgkqhkiG9w0BAQEFAASCBKcwggSjAgEAAoIBAQC7"
 
 
+@pytest.mark.slow
 def test_a_report_has_what_a_bug_needs_and_no_secret(tmp_path):
     rec_dir = tmp_path / "recordings"
     rec_dir.mkdir()
@@ -54,6 +57,7 @@ def test_redact_leaves_out_secret_values_and_keeps_the_rest():
     assert "/etc/tecdar/tls/daemon.key" in out and "s3://b/p" in out     # a path is not a secret; its file is never read
 
 
+@pytest.mark.slow
 def test_a_report_reads_the_boards_counters_and_doctor_its_stream(tmp_path):
     """The simulated board on a pty (`tecdard fake-board`) as imu.source serial: the report holds its rate and
     counters, and doctor's stream check reads frames from it."""

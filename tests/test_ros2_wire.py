@@ -213,6 +213,7 @@ def rosidl_generate(tmp: pathlib.Path, package: str, files: dict[str, str], deps
     return hashes
 
 
+@pytest.mark.slow
 def test_our_hashes_of_tecdar_msgs_are_what_rosidls_generator_makes_of_the_package(ts, tmp_path, capsys):
     files = {str(p.relative_to(MSGS_DIR)): p.read_text() for p in sorted(MSGS_DIR.glob("*/*.*")) if p.suffix in
              (".msg", ".srv", ".action")}

@@ -12,6 +12,7 @@ from tecdard.sim.world import HingeParams
 Q_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 
 
+@pytest.mark.slow
 def test_the_child_streams_state_and_imu_follows_commands_and_stops():
     spec = SimSpec(arm="panda", tool_offset=[0.0, 0.0, 0.0], tool_quat=[0.0, 0.0, 0.0, 1.0],
                    robot=SimRobotParams(q_home=Q_HOME.copy()), imu=SimImuParams(),

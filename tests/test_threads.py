@@ -3,6 +3,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from tecdard.drivers.ring import SampleRing
 from tecdard.runtime import threads
@@ -21,6 +22,7 @@ def test_wake_stats_keep_the_largest_wait_of_the_last_seconds():
     assert w.max_ms(200.0) is None
 
 
+@pytest.mark.slow
 def test_thread_usage_measures_a_busy_named_thread(tmp_path):
     """A thread that spins for a second shows as itself, near a whole core; a sleeping one near zero."""
     stop = threading.Event()
@@ -91,6 +93,7 @@ def test_the_ring_wakes_its_consumer_once_the_batch_is_there_and_times_the_wait(
     assert wait_ms is not None and 0.0 <= wait_ms < 5000.0
 
 
+@pytest.mark.slow
 def test_a_running_daemons_status_names_its_threads(shared_daemon):
     """`status` of a live daemon: each named thread's share of a core, the wake-up waits of the control
     tick and the estimator, and the CLI's table of them."""
@@ -157,6 +160,7 @@ class PacedSource:
         return []
 
 
+@pytest.mark.slow
 def test_the_acquisition_thread_reads_a_batch_in_a_few_wake_ups_and_loses_nothing():
     """Issue 37: the reader naps until the consumer's batch is nearly complete instead of waking for
     every packet (840 a second from a board); every sample still reaches the consumer, in order."""

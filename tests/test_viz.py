@@ -29,6 +29,7 @@ def connect(port: int, within_s: float = 10.0):
             time.sleep(0.1)
 
 
+@pytest.mark.slow
 def test_a_websocket_client_receives_every_channel_of_the_live_view(tmp_path):
     port = free_port()
     d = DaemonProcess(tmp_path, daemon_config(**{"viz.foxglove": {"enabled": True, "port": port}}))
@@ -65,6 +66,7 @@ def test_a_websocket_client_receives_every_channel_of_the_live_view(tmp_path):
     assert "live view: Foxglove WebSocket server on ws://127.0.0.1:" in d.log()
 
 
+@pytest.mark.slow
 def test_a_live_view_whose_port_is_taken_leaves_the_daemon_running(tmp_path):
     import socket
     with socket.create_server(("127.0.0.1", 0)) as taken:
