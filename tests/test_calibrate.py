@@ -256,6 +256,7 @@ def test_the_daemons_own_probes_on_the_simulator_calibrate_to_its_eta_and_lag(ma
     assert abs(float(lag) - 0.003) < 0.0025 and float(se) < 0.003, res.stdout
 
 
+@pytest.mark.slow
 def test_a_probe_that_did_not_start_from_rest_is_left_out_in_one_line(probes):
     """The gyro's bias is its mean before the onset: a probe sent right after a move (a `home`) once
     read eta 2.04 among 1.98s. An arm that moved in that window is said and left out."""

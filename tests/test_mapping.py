@@ -269,6 +269,7 @@ def test_a_failing_writer_fails_the_task():
     assert task.status.state == "failed" and "disk full" in task.status.error
 
 
+@pytest.mark.slow
 def test_a_stopped_map_still_writes_the_points_probed_so_far(tmp_path):
     from tecdard.robots.model import READY_Q, ArmModel
     from tecdard.control.modes import Mode

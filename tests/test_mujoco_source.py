@@ -68,6 +68,7 @@ def test_a_gripper_turning_with_the_handle_leaves_the_fingertip_little_to_see():
     assert abs(turned - abs(math.degrees(truth["angle"][-1]))) < 1.0
 
 
+@pytest.mark.slow
 def test_the_estimator_finds_the_hinge_on_a_mujoco_arc_once_the_onset_is_given(arc):
     fields, truth = arc
     rec = Recording.from_fields(fields)
@@ -232,6 +233,7 @@ def test_an_ongoing_motion_meets_the_ridge_at_speed_and_the_block_turns_from_the
     assert onset_t is not None and abs(onset_t - on) < 0.03, onset_t - on
 
 
+@pytest.mark.slow
 def test_an_arm_moving_at_the_onset_pushes_through_the_grasp_before_the_pivot_counts(ongoing):
     """`ongoing` at 12 cm: for the first 10-15 ms after the impact the block has not taken up the arm's
     20 mm/s (the TCP's velocity read 7x, 2x, 1.2x the lever arm over the first 5, 10, 15 ms), and
