@@ -183,6 +183,18 @@ class DaemonProcess:
             self._log.close()
 
 
+@pytest.fixture(autouse=True)
+def frozen_heap():
+    """What the runner holds before a test is frozen out of the garbage collector's way for the test
+    (gc.freeze, as the daemon does after its start): late in the suite the runner holds some 800 MB,
+    and a full collection over it stalled the test's own real-time threads (a board's stream on a pty,
+    a fake controller) by hundreds of ms. Freezing and unfreezing are list splices, not scans."""
+    import gc
+    gc.freeze()
+    yield
+    gc.unfreeze()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def default_endpoint_taken():
     """The default endpoint is held for the whole run, as a developer's own daemon would hold it: a
