@@ -78,9 +78,8 @@ class OnsetOptions:
                                                           "past does not predict this far ahead (the arm's "
                                                           "narrow-band vibration taken off); 0: off", unit="s",
                                       minval=0.0, maxval=0.01)
-    reversal_s: float = option(REVERSAL_S, "an accelerometer onset that swings back this soon, past the arm's "
-                                           "vibration and noise, is decided without the arm's states (a step keeps "
-                                           "its sign); 0: off",
+    reversal_s: float = option(REVERSAL_S, "an accelerometer onset that swings back past its threshold this soon is "
+                                           "decided without the arm's states (a step keeps its sign); 0: off",
                                unit="s", minval=0.0, maxval=0.05)
     command_settle_s: float = option(COMMAND_SETTLE_S, "the daemon driving the arm: an accelerometer onset is decided "
                                      "at its sample when the commanded joint rates held this long; 0: off",
@@ -113,10 +112,12 @@ class OnsetDetector:
     while armed (`rest_tau_s`); nothing fires before `warmup_s` of data. After firing it stays disarmed
     until `rearm()`, and after `rearm(settle=True)` until the remainder has been still `settle_s`.
 
-    On a real rig (control.onset_guard): the thresholds are at least their moving noise floors (`floor`,
-    `twist_floor`), the twist's hold is judged on its TWIST_HOLD_MEAN_S mean, and an accelerometer onset
-    waits for the arm's states (`guard`) unless the daemon's commands held or its ring reverses. A mount
-    off by up to `mount_tolerance` is allowed for."""
+    On a real rig (control.onset_guard): the accelerometer's and the twist's thresholds are at least
+    their moving noise floors (`floor`, `twist_floor`: the arm's vibration), the twist's hold is judged
+    on its TWIST_HOLD_MEAN_S mean, and an accelerometer onset waits for the arm's states (`guard`)
+    unless the daemon's own commands say the arm took no step (`guard.commands`). A configured mount
+    off by up to `mount_tolerance` is allowed for.
+    """
 
     def __init__(self, accel_threshold: float | None = 0.4, accel_axis=None, gyro_threshold: float | None = None,
                  band_threshold: float | None = None, band_hz=(40.0, 200.0), mode: str = "any",
@@ -150,7 +151,10 @@ class OnsetDetector:
         self.rest_tau_s = rest_tau_s
         self.warmup_s = warmup_s
         self.settle_s = settle_s
-        self.swing_accel = 0.0         # allowed per m/s^2 of the arm's acceleration envelope (a held object's swing)
+        # a held object swings in the soft grasp as the arm accelerates: the accelerometer's remainder
+        # per m/s^2 of the arm's acceleration envelope is allowed for (none by default; the config's
+        # swing_accel, SWING_ACCEL)
+        self.swing_accel = 0.0
         self._swing_env, self._swing_t = 0.0, None
         self.rest_accel = None
         self.rest_gyro = None
@@ -413,7 +417,9 @@ class OnsetDetector:
             if hit >= 0:
                 by = next(k for k, v in conds.items() if v[hit])
                 if by == "accel" and self.guard.applies(bool(self._explaining), self.mode):
-                    self._candidate_at(t, hit, float(np.broadcast_to(allow_a, (n,))[hit]))
+                    self.guard.start(float(t[hit]), float(np.broadcast_to(self._thr_a, (n,))[hit]
+                                                          + np.broadcast_to(allow_a, (n,))[hit]),
+                                     self.guard.past(self._x_g, hit, self.odr_hz))
                     hit = self.guard.decide(t, self._peak_dev(), self.swing_accel, self._x_g)
         if hit >= 0:
             self._fire(t, hit, by)
@@ -448,13 +454,6 @@ class OnsetDetector:
             else:
                 self.predictor.gap()
         return hit
-
-    def _candidate_at(self, t: np.ndarray, k: int, allow_a: float) -> None:
-        """The step guard's candidate at sample k: its threshold, past and vibration forecast (the predictor's), and
-        its bar's floor, m/s^2: the noise floor along one direction (a third of its mean square) and allow_a."""
-        self.guard.start(float(t[k]), float(np.broadcast_to(self._thr_a, (len(t),))[k]) + allow_a,
-                         self.guard.past(self._x_g, k, self.odr_hz), None if self.accel_axis is not None
-                         else self.predictor, self.floor.k * math.sqrt(self.floor.ms / 3.0) + allow_a)
 
     def _peak_dev(self):
         """What the step guard weighs a candidate's peak on: the prediction's error and the remainder

@@ -41,16 +41,6 @@ STALE_WAIT_S = 0.05           # states that stop coming: decided this long after
 REVERSAL_S = 0.006
 REVERSAL_PAST_S = 0.025
 REVERSAL_SWING_K = 1.0
-# The past ends REVERSAL_GAP_S before the candidate: an impact rises for a sample or three before it crosses
-# its threshold, and that rise, counted as the past's swing, raised the bar by itself (0.5 m/s^2 of 0.6).
-REVERSAL_GAP_S = RECENT_GAP_S
-# With the predictor fitted (Predictor), the arm's narrow-band vibration is forecast from the FORECAST_PAST_S
-# before that gap over the reversal's span and taken off, and the bar is what such forecasts missed from
-# FORECAST_ORIGINS origins within that past (with the noise floor and the explained motion's allowance): a
-# step plus a vibration that the forecast follows stays above it, and the ring's reversal need not clear the
-# vibration's whole swing (all disturbances at 1x: 5.3-5.5 ms to a decision without it).
-FORECAST_PAST_S = 0.06
-FORECAST_ORIGINS = 48
 
 
 @dataclass
@@ -65,10 +55,6 @@ class Candidate:
     level: np.ndarray | None = None     # the remainder's mean (3,) over the REVERSAL_PAST_S before it, m/s^2
     past: np.ndarray | None = None      # the remainder then, less that mean (m, 3), m/s^2: its swing along
                                         # the peak's direction is the reversal's bar (StepGuard._reversal)
-    forecast: np.ndarray | None = None  # or: the vibration forecast (k, 3) from REVERSAL_GAP_S before it, m/s^2,
-    missed: np.ndarray | None = None    # what such forecasts missed within the past (k, n, 3), m/s^2,
-    quiet: float = 0.0                  # and the bar's floor, m/s^2
-    x_peak_fc: np.ndarray | None = None  # the remainder less the forecast at its largest since the candidate
 
 
 class NoiseFloor:
@@ -129,8 +115,7 @@ class StepGuard:
         self.reversals = 0                 # candidates decided so
         self.commands = None               # control.command_track.CommandTrack: the daemon's own commands, or None
         self.commanded = 0                 # candidates decided at once, the arm's commands steady
-        self._past = np.zeros((0, 3))      # the remainder's last FORECAST_PAST_S and gap (observe)
-        self.odr_hz = 6667.0
+        self._past = np.zeros((0, 3))      # the remainder's last REVERSAL_PAST_S (observe)
 
     @property
     def waiting(self) -> bool:
@@ -143,36 +128,24 @@ class StepGuard:
     def clear(self) -> None:
         self.candidate = None
 
-    def start(self, t_c: float, allow: float, past: np.ndarray | None = None, predictor=None,
-              quiet: float = 0.0) -> None:
+    def start(self, t_c: float, allow: float, past: np.ndarray | None = None) -> None:
         """A candidate at t_c with its threshold `allow` (m/s^2), and the accelerometer remainder
-        before it (m, 3; `past`, ending REVERSAL_GAP_S before it), whose level and swing its reversal is
-        judged from, and with a fitted `predictor` also the vibration forecast from it and what such
-        forecasts missed (that frame's bar at least `quiet`, m/s^2)."""
+        before it (m, 3; `past`), whose level and swing its reversal is judged from."""
         c = self.candidate = Candidate(t_c, 0.0, allow)
-        if past is None or not len(past):
-            return
-        recent = past[-max(1, int(round(REVERSAL_PAST_S * self.odr_hz))):]
-        c.level = recent.mean(axis=0)
-        c.past = recent - c.level
-        if predictor is not None and predictor.fitted:
-            gap = int(round(REVERSAL_GAP_S * predictor.odr_hz))
-            fc = predictor.backtest(past, gap + int(round(self.reversal_s * predictor.odr_hz)) + 2)
-            if fc is not None:
-                c.forecast, c.missed, c.quiet = fc[0], fc[1], quiet
+        if past is not None and len(past):
+            c.level = past.mean(axis=0)
+            c.past = past - c.level
 
     def past(self, x: np.ndarray, k: int, odr_hz: float) -> np.ndarray:
-        """The remainder over the FORECAST_PAST_S that end REVERSAL_GAP_S before sample k of the batch x
-        (n, 3) (observe keeps what came before the batch)."""
-        self.odr_hz = odr_hz
-        full = np.concatenate([self._past, x[:k]])
-        return full[:len(full) - int(round(REVERSAL_GAP_S * odr_hz))][-max(1, int(round(FORECAST_PAST_S * odr_hz))):]
+        """The remainder over the REVERSAL_PAST_S before sample k of the batch x (n, 3) (observe
+        keeps what came before the batch)."""
+        return np.concatenate([self._past, x[:k]])[-max(1, int(round(REVERSAL_PAST_S * odr_hz))):]
 
     def observe(self, x: np.ndarray, odr_hz: float) -> None:
         """The batch's remainder x (n, 3), kept for the next candidate's past (nothing where no candidate
         waits: reversal off, no arm's states, no wait)."""
         if self.reversal_s > 0.0 and self.arm is not None and self.lag_s > 0.0:
-            self._past = np.concatenate([self._past, x])[-int(round((FORECAST_PAST_S + REVERSAL_GAP_S) * odr_hz)):]
+            self._past = self.past(x, len(x), odr_hz)
 
     def mask(self, t: np.ndarray):
         """What is still allowed of the last step the arm's states explained, decaying with STEP_RING_TAU_S."""
@@ -222,49 +195,31 @@ class StepGuard:
         return -1
 
     def _reversal(self, t: np.ndarray, x: np.ndarray) -> int:
-        """The first sample within reversal_s of the candidate where the remainder x (n, 3), along the
-        direction of its largest value since the candidate (carried over batches), is below minus its bar
-        in either frame: from its level before the candidate, the larger of the candidate's threshold and
-        REVERSAL_SWING_K times its swing then; from its vibration's forecast (Predictor.backtest),
-        REVERSAL_SWING_K times what such forecasts missed up to that horizon, at least c.quiet. Its index,
-        or -1. (Along it, not in magnitude: a step along u plus a vibration whose component along u never
-        exceeds its bar stays above minus that bar; the vibration across u cannot turn it round. Each frame
-        alone holds that; the forecast's errors may compound, the level's swing is the whole vibration.)"""
+        """The first sample within reversal_s of the candidate where the remainder x (n, 3), from its
+        level before the candidate and along the direction of its largest value since (carried over
+        batches), is below minus the larger of the candidate's threshold and REVERSAL_SWING_K times
+        the swing before it along that direction: its index, or -1. (Along it, not in magnitude: a
+        step along u plus a vibration whose component along u never exceeds its past swing stays above
+        minus that swing; the vibration across u cannot turn the projection round.)"""
         c = self.candidate
         idx = np.flatnonzero((t >= c.t) & (t <= c.t + self.reversal_s))
         if len(idx) == 0:
             return -1
-        xs = x[idx] - c.level if c.level is not None else x[idx]
-        u, proj, c.x_peak = self._along(xs, c.x_peak)
-        bar = np.full(len(u), c.allow)
-        if c.past is not None:
-            bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
-        first = len(u) - len(idx)
-        hits = [np.flatnonzero(proj[first:] < -bar[first:])]
-        if c.forecast is not None:
-            # each sample's place in the forecast, which starts REVERSAL_GAP_S before the candidate
-            j = np.rint((t[idx] - c.t) * self.odr_hz).astype(int) + int(round(REVERSAL_GAP_S * self.odr_hz))
-            k = np.flatnonzero(j < len(c.forecast))
-            if len(k):
-                u, proj, c.x_peak_fc = self._along(x[idx[k]] - c.forecast[j[k]], c.x_peak_fc)
-                first = len(u) - len(k)
-                missed = np.maximum.accumulate(np.abs(c.missed @ u[first:].T).max(axis=0), axis=0)   # (n, rows)
-                bar = np.maximum(c.quiet, REVERSAL_SWING_K * missed[j[k], np.arange(len(k))])
-                hits.append(k[np.flatnonzero(proj[first:] < -bar)])
-        hit = min((int(h[0]) for h in hits if len(h)), default=-1)
-        return int(idx[hit]) if hit >= 0 else -1
-
-    @staticmethod
-    def _along(xs: np.ndarray, carried: np.ndarray | None):
-        """Each row's running peak direction u (rows, 3), xs's projection on it (rows,), and the peak to
-        carry to the next batch; the carried peak, if any, is the first row."""
-        if carried is not None:
-            xs = np.concatenate([carried[None, :], xs])
+        xs = x[idx] if c.level is None else x[idx] - c.level
+        if c.x_peak is not None:
+            xs = np.concatenate([c.x_peak[None, :], xs])
         mag = np.sqrt(np.einsum("ij,ij->i", xs, xs))
         new_max = mag >= np.maximum.accumulate(mag)
         peak = np.maximum.accumulate(np.where(new_max, np.arange(len(xs)), 0))   # the running peak's row
         u = xs[peak] / np.maximum(mag[peak], 1e-12)[:, None]
-        return u, np.einsum("ij,ij->i", xs, u), xs[peak[-1]].copy()
+        proj = np.einsum("ij,ij->i", xs, u)
+        c.x_peak = xs[peak[-1]].copy()
+        first = 1 if len(xs) > len(idx) else 0
+        bar = np.full(len(xs), c.allow)
+        if c.past is not None:
+            bar = np.maximum(bar, REVERSAL_SWING_K * np.abs(c.past @ u.T).max(axis=0))
+        hit = np.flatnonzero(proj[first:] < -bar[first:])
+        return int(idx[hit[0]]) if len(hit) else -1
 
 
 # A real arm's tool vibrates in a few narrow bands (its structural modes, the joints' harmonics, the servo's
@@ -326,28 +281,6 @@ class Predictor:
         for j, lag in enumerate(self.lags):
             pred += self.coef[j] * full[m - lag:m - lag + n]
         return x - pred
-
-    def forecast(self, hist: np.ndarray, n: int) -> np.ndarray:
-        """The free-run forecast (b, n, 3) of the n samples after each history hist (b, m, 3), m at least
-        the longest lag: each forecast sample is predicted from the samples and forecasts before it."""
-        span = int(self.lags[-1])
-        s = np.concatenate([hist[:, -span:], np.zeros((len(hist), n, 3))], axis=1)
-        for j in range(n):
-            s[:, span + j] = np.einsum("lk,blk->bk", self.coef, s[:, span + j - self.lags])
-        return s[:, span:]
-
-    def backtest(self, past: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """The forecast (n, 3) of the n samples after past (m, 3), and what the same forecast missed from
-        FORECAST_ORIGINS origins within past ((k, n, 3), m/s^2); None where past is too short for both."""
-        span = int(self.lags[-1])
-        last = len(past) - n                  # the latest origin whose forecast the past covers
-        if last < span + 1:
-            return None
-        origins = np.unique(np.linspace(span, last, FORECAST_ORIGINS).astype(int))
-        hist = np.stack([past[o - span:o] for o in origins] + [past[-span:]])
-        f = self.forecast(hist, n)
-        truth = np.stack([past[o:o + n] for o in origins])
-        return f[-1], truth - f[:-1]
 
     def gap(self) -> None:
         """The remainder stops being the arm's own (an episode, a wait, settling): the run ends."""
