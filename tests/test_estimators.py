@@ -89,6 +89,7 @@ def test_noise_free_arc_gives_the_exact_centre(method, axis, planar):
         assert np.dot(std, np.abs(axis)) > 0.1      # large and honest along the edge
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["ekf", "paper-ekf"])
 def test_point_contact_from_circular_probing_in_3d(method):
     """A tool pivoting about its tip while the TCP circles above it: all three coordinates are observable."""

@@ -319,6 +319,7 @@ def read_png(path) -> np.ndarray:
     return raw[:, 1:].reshape(h, w, 3)
 
 
+@pytest.mark.slow
 def test_write_map_writes_the_four_files(tmp_path):
     records = []
     task = MapTask("map-5", map_params(), Files(lambda rec: records.append(rec) or done_now({})))

@@ -125,6 +125,7 @@ def _error_at(fields, truth, horizon_s, **estimator):
     return float(np.linalg.norm(d - (d @ a) * a))
 
 
+@pytest.mark.slow
 def test_the_fingertip_lag_is_compensated_within_the_first_30_ms(arc):
     """Issue 21's early horizon: at 30 ms the arm is still speeding up, and a twist read 3 ms late
     puts the hinge ~20 mm off at 12 cm. With the fingertip's lag (estimator.fingertip_lag_s, the
@@ -181,6 +182,7 @@ def test_a_push_that_stretches_the_grasp_is_no_evidence_along_the_lever_arm():
     assert with_slip < PUSH_END_TOL_M < without, (with_slip, without)
 
 
+@pytest.mark.slow
 def test_the_positions_pair_with_the_twist_read_a_lag_later(arc):
     """The TCP's positions as evidence integrate the object's rotation up to each position. The
     twist the IMU reads now is the object's of a lag ago: paired with the position of now, the

@@ -40,6 +40,7 @@ def run(seed, seconds=2.0, with_world=True):
     return robot, states, chunks
 
 
+@pytest.mark.slow
 def test_as_fast_as_possible_is_deterministic():
     a_robot, a_states, a_chunks = run(seed=5)
     b_robot, b_states, b_chunks = run(seed=5)
