@@ -89,6 +89,9 @@ TEST_MAX_NIS_RATIO = 20.0
 # 50 ms, the simulator 100 ms; robots.backend.RobotBackend.STATE_AGE_S).
 TEST_STATE_AGE_S = 0.25
 STILL_M = 2e-4               # the TCP has not moved (encoder noise is ~0.03 mm)
+# the allowances above as a test's daemon takes them (dotted config paths)
+TEST_ALLOWANCES = {"control.imu_stale_s": TEST_IMU_STALE_S, "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
+                   "control.max_nis_ratio": TEST_MAX_NIS_RATIO, "robot.max_state_age_s": TEST_STATE_AGE_S}
 
 
 def tcp_now(cli) -> np.ndarray:
@@ -104,11 +107,7 @@ def tecdard(*args, timeout: float = 120.0) -> subprocess.CompletedProcess:
 def daemon_config(**overrides) -> dict:
     """configs/sim.yaml with the allowances above for a test's daemon, listening on a free port (never
     the default 7507, where a developer's own daemon may run), and `overrides` (sim_config's)."""
-    return sim_config(**{"zenoh.listen": [f"tcp/127.0.0.1:{free_port()}"],
-                         "control.imu_stale_s": TEST_IMU_STALE_S,
-                         "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S,
-                         "control.max_nis_ratio": TEST_MAX_NIS_RATIO, "robot.max_state_age_s": TEST_STATE_AGE_S,
-                         **overrides})
+    return sim_config(**{"zenoh.listen": [f"tcp/127.0.0.1:{free_port()}"], **TEST_ALLOWANCES, **overrides})
 
 
 def sim_config(**overrides) -> dict:

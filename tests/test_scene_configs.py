@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.conftest import (ROOT, TEST_IMU_STALE_S, TEST_MAX_NIS_RATIO, TEST_SIM_COMMAND_TIMEOUT_S, TEST_STATE_AGE_S,
-                            DaemonProcess)
+from tests.conftest import ROOT, TEST_ALLOWANCES, TEST_IMU_STALE_S, DaemonProcess
 from tests.test_firmware import host_build  # noqa: F401  (the fixture: the host board, built once)
 
 pytestmark = pytest.mark.slow
@@ -46,10 +45,8 @@ def with_test_allowances(cfg: dict) -> dict:
     """A shipped config with the suite's allowances for a loaded machine (tests/conftest.py: the stale-data
     and divergence stops): these tests judge the documented command's answer, and CI (2026-12-07) stopped
     the map on a 110 ms stall of the simulator's states and the sim-wire demo on a 55 ms IMU gap."""
-    return with_overrides(cfg, {"control.imu_stale_s": max(cfg["control"]["imu_stale_s"], TEST_IMU_STALE_S),
-                                "robot.max_state_age_s": TEST_STATE_AGE_S,
-                                "control.max_nis_ratio": TEST_MAX_NIS_RATIO,
-                                "sim.robot.command_timeout_s": TEST_SIM_COMMAND_TIMEOUT_S})
+    return with_overrides(cfg, {**TEST_ALLOWANCES,
+                                "control.imu_stale_s": max(cfg["control"]["imu_stale_s"], TEST_IMU_STALE_S)})
 
 
 def with_overrides(base: dict, changes: dict) -> dict:
