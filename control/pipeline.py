@@ -129,8 +129,8 @@ class ContactPipeline:
         self.measure = Measurements(conditioner, self.eta, self.proprio, self.params.grip_force_n,
                                     self.params.fingertip_lag_s)
         self.tracking = False
-        self.onset_t: float | None = None
-        self.onset_p_tcp: np.ndarray | None = None
+        self.on_onset = None       # (events so far) called at an onset, within its batch (the daemon's publisher)
+        self.onset_t, self.onset_p_tcp = None, None    # s; (3,) m, world
         self._t_prev: float | None = None
         self._wwT = np.zeros((3, 3))
         self._w_sum = np.zeros(3)
@@ -278,6 +278,8 @@ class ContactPipeline:
             start, pre = self._onset(t, gyro, accel, tainted, events)
             if start < 0:
                 return events, []
+            if self.on_onset is not None:  # the onset leaves before the episode's first estimates
+                self.on_onset(events)
         w_f = self.cond.lowpass(gyro)[start:]
         ts, ok, acc = t[start:], ~tainted[start:], accel[start:]
         if pre is not None:                # an onset dated back into earlier batches

@@ -1,12 +1,16 @@
 """Bounded single-producer/single-consumer ring buffer of IMU samples (t, gyro xyz, accel xyz)."""
 from __future__ import annotations
 
+import math
 import threading
 import time
 
 import numpy as np
 
 COLUMNS = 7  # t, gx, gy, gz, ax, ay, az
+# The alarm's level: the accelerometer's mean, following the stream with this time constant (the
+# arm's own acceleration and gravity's turn change it slowly; an impact's first packet does not).
+ALARM_LEVEL_TAU_S = 0.05
 
 
 class SampleRing:
@@ -36,6 +40,12 @@ class SampleRing:
         self.hurry = threading.Event()
         self._due_t = 0.0             # when the push that satisfied the waiting consumer notified it
         self.wake = None              # optional: .note(late_s, now) gets each wait from then to running again
+        # A pushed accelerometer sample this far from the stream's level (m/s^2; inf: off) ends the
+        # consumer's wait at once, whatever batch it waits for: the onset trigger sees an impact's
+        # packet as it comes (the consumer sets it from the trigger's threshold; `alarms` counts them).
+        self.alarm_m_s2 = math.inf
+        self.alarms = 0
+        self._level: np.ndarray | None = None   # (3,) m/s^2, the producer's
 
     def push(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         n = len(t)
@@ -46,6 +56,7 @@ class SampleRing:
             skipped = n - self.capacity
             t, gyro, accel = t[-self.capacity:], gyro[-self.capacity:], accel[-self.capacity:]
             n = self.capacity
+        alarm = self._alarmed(t, accel)
         with self._cond:
             self.overwritten += skipped
             start = self._head % self.capacity
@@ -64,9 +75,26 @@ class SampleRing:
                 self.overwritten += self._head - self._tail - self.capacity
                 self._tail = self._head - self.capacity
             self.last_t = float(t[-1])
+            if alarm:
+                self.alarms += 1
+                self._want = 1
             if self._head - self._tail >= self._want:
                 self._due_t = time.monotonic()
                 self._cond.notify()
+
+    def _alarmed(self, t: np.ndarray, accel: np.ndarray) -> bool:
+        """Whether a sample of the pushed accel (n, 3) is alarm_m_s2 or more from the level before it;
+        the level then follows the push (ALARM_LEVEL_TAU_S)."""
+        limit = self.alarm_m_s2
+        if limit == math.inf:
+            self._level = None
+            return False
+        level = accel[0] if self._level is None else self._level
+        hit = bool((np.abs(accel - level) >= limit).any())
+        span = float(t[-1] - t[0]) * len(t) / max(len(t) - 1, 1)
+        alpha = 1.0 - math.exp(-span / ALARM_LEVEL_TAU_S) if span > 0.0 else 1.0
+        self._level = level + alpha * (accel.mean(axis=0) - level)
+        return hit
 
     def pop(self, max_n: int = 1024, timeout: float = 0.05, min_n: int = 1) -> np.ndarray:
         """Up to max_n oldest unread samples as an (n, 7) copy, once at least min_n are there or

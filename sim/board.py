@@ -159,6 +159,7 @@ class StreamThread:
         self.mutate = mutate           # optional function(bytes) -> bytes, for fault injection
         self.override = None           # optional (gyro rad/s (3,), accel m/s^2 (3,)) sent instead of rest
         self.pending: collections.deque = collections.deque()   # impacts' samples to add, (gyro, accel) rows
+        self.written_t: list[float] = []  # monotonic s at which each impact's first packet was written
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="imu-emulator", daemon=True)
         self.rng = np.random.default_rng(0)
@@ -175,7 +176,7 @@ class StreamThread:
         ring = peak_m_s2 * np.exp(-t / tau_s) * np.sin(2 * np.pi * ring_hz * t)
         accel = np.outer(ring, np.asarray(direction, float))
         gyro = np.outer(twist_rad_s * np.exp(-t / tau_s), [0.0, 1.0, 0.0])
-        self.pending.extend(zip(gyro, accel))
+        self.pending.extend([None, *zip(gyro, accel)])      # None: the impact's first sample follows
 
     def _run(self) -> None:
         n = max(1, int(round(self.board.params.odr_hz * self.chunk_s)))
@@ -186,10 +187,15 @@ class StreamThread:
             accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + self.rng.normal(0, 0.03, (n, 3))
             if self.override is not None:            # e.g. a chip stuck at full scale (clipped by the board)
                 gyro, accel = np.tile(self.override[0], (n, 1)), np.tile(self.override[1], (n, 1))
-            for k in range(min(n, len(self.pending))):    # an impact under way
-                g, a = self.pending.popleft()
-                gyro[k] += g
-                accel[k] += a
+            started, k = False, 0
+            while k < n and self.pending:                  # an impact under way
+                row = self.pending.popleft()
+                if row is None:
+                    started = True
+                    continue
+                gyro[k] += row[0]
+                accel[k] += row[1]
+                k += 1
             frames = self.board.packets(gyro, accel)
             if self.device.master is not None:
                 try:        # OSError: unplugged meanwhile
@@ -199,6 +205,8 @@ class StreamThread:
                         self.device.write_frames(frames)
                 except OSError:
                     pass
+            if started:
+                self.written_t.append(time.monotonic())
             delay = t_next - time.monotonic()
             if delay > 0:
                 self.stop.wait(delay)

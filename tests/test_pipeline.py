@@ -18,7 +18,8 @@ TOL_M = 3e-3
 CLIPPED_EXTRA_ERR_M = 1e-3     # a clipped burst left out costs the estimate at most this
 
 
-def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf", options=None):
+def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane=None, method="ekf", options=None,
+             on_onset=None):
     """A hinge rotated by a TCP that may itself turn about the hinge axis (rotating gripper); the
     fingertip without lag, and the pipeline told so."""
     rng = np.random.default_rng(seed)
@@ -41,6 +42,7 @@ def simulate(R_tcp_imu, R_tool_rate=0.0, eta_true=2.0, noise=5e-3, seed=1, plane
     accel[(t >= t_on) & (t < t_on + 0.01)] += [2.0, 0.0, 0.0]
     params = PipelineParams(method=method, plane_normal=plane, fingertip_lag_s=0.0, options=options or {})
     pipe = ContactPipeline(OnsetDetector(0.4, warmup_s=0.05), GyroConditioner(R_tcp_imu, lpf_window=17), params)
+    pipe.on_onset = on_onset and (lambda evs: on_onset(pipe, evs))
     events, last, next_proprio = [], None, 0.0
     for k0 in range(0, len(t), 64):
         sl = slice(k0, k0 + 64)
@@ -85,6 +87,22 @@ def test_pipeline_localises_with_rotated_mount_and_rotating_gripper(mount, tool_
     # Positions are evidence whether the gripper holds its orientation or turns (PositionEvidence),
     # and they fit the rigid pivot.
     assert pipe.estimator.positions.n > 20 and not pipe.estimator.positions.broken
+
+
+def test_the_onset_is_handed_on_within_its_batch_before_the_episodes_first_estimate():
+    """Issue 53 item 2: the daemon publishes an onset as soon as it is decided (EstimatorThread._onset_now), not
+    after the episode's first estimates of the rest of the batch have been made."""
+    seen = []
+
+    def on_onset(pipe, events):
+        seen.append((list(events), pipe.tracking, pipe._t_out))
+
+    events, est, *_ = simulate(np.eye(3), on_onset=on_onset)
+    assert len(seen) == 1
+    handed, tracking, t_out = seen[0]
+    assert handed[-1]["kind"] == "contact_onset" and handed[-1] is next(e for e in events if e["kind"] == "contact_onset")
+    assert tracking and t_out == -np.inf          # the episode has begun, and no estimate is made yet
+    assert est is not None and est.t > handed[-1]["t"]
 
 
 @pytest.mark.slow

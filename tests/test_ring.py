@@ -57,3 +57,29 @@ def test_pop_waits_for_a_minimum_batch_and_gives_what_there_is_at_the_timeout():
     assert len(out) >= 20 and np.array_equal(out[:, 0], np.arange(len(out), dtype=float))
     rest = ring.pop(100, timeout=0.05, min_n=100)    # fewer than asked: returned after the timeout
     assert len(out) + len(rest) == 32
+
+
+def test_a_sample_beyond_the_alarm_ends_a_long_wait_and_one_within_it_does_not():
+    """Issue 53 item 2: a consumer waiting for a rest batch (here 2000 samples, up to 10 s) is woken by the first
+    push holding an accelerometer sample alarm_m_s2 or more from the stream's level, with what has come."""
+    ring = SampleRing(4096)
+    ring.alarm_m_s2 = 1.0
+    n, zeros = 80, np.zeros((80, 3))
+    t = np.arange(n) / 6667.0
+    level = np.tile([0.0, 0.0, 9.81], (n, 1))
+    ring.push(t, zeros, level)
+    got = {}
+    consumer = threading.Thread(target=lambda: got.update(out=ring.pop(4096, timeout=10.0, min_n=2000)))
+    consumer.start()
+    ring.push(t + 0.012, zeros, level + [0.5, 0.0, 0.0])     # a step within the alarm: the wait goes on
+    consumer.join(0.2)
+    assert consumer.is_alive() and ring.alarms == 0
+    knock = level.copy()
+    knock[40] += [0.0, -3.0, 0.0]
+    ring.push(t + 0.024, zeros, knock)
+    consumer.join(5.0)
+    assert not consumer.is_alive() and ring.alarms == 1
+    assert len(got["out"]) == 3 * n                          # all that had come, long before the 2000
+    ring.alarm_m_s2 = float("inf")                           # off: a knock wakes nobody
+    ring.push(t + 0.036, zeros, knock)
+    assert ring.alarms == 1

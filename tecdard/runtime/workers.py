@@ -46,6 +46,15 @@ VIEWED_REST_BATCH_FACTOR = 4
 NAP_MARGIN_S = 0.0025
 NAP_MIN_S = 0.001
 NAP_MAX_S = 0.02
+# An impact's onset must not wait for a batch (issue 53 item 2). While the accelerometer's trigger is
+# armed, the acquisition naps at most TRIGGER_READ_S, and the ring ends the estimator's wait at once
+# for a pushed sample ALARM_K times the trigger's threshold from the stream's level
+# (SampleRing.alarm_m_s2): the trigger runs on what has come, and a candidate waiting for its decision
+# (a reversal, the arm's states) takes batches of PENDING_BATCH_S (a board's packet). The onset event
+# leaves as soon as it is decided, before the episode's first estimates are made (ContactPipeline.on_onset).
+TRIGGER_READ_S = 0.0025
+ALARM_K = 0.5
+PENDING_BATCH_S = 0.0012
 
 
 def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event, outbox: Outbox,
@@ -65,7 +74,7 @@ def acquisition_loop(source: ImuSource, ring: SampleRing, stop: threading.Event,
         ring.hurry.clear()
         nap = ring.shortfall() / source.odr_hz - NAP_MARGIN_S
         if nap >= NAP_MIN_S:
-            ring.hurry.wait(min(nap, NAP_MAX_S))
+            ring.hurry.wait(min(nap, NAP_MAX_S if ring.alarm_m_s2 == math.inf else TRIGGER_READ_S))
 
 
 PROPRIO_WAIT_S = 0.05        # the proprioception thread checks its stop event at least this often
@@ -178,6 +187,8 @@ class EstimatorThread:
         # the configured mount and clock, watched over free motion (issue 48 §5)
         self.mount = MountMonitor(pipeline.cond.R_tcp_imu)
         self._mount_checked_t = -math.inf
+        self._sent = 0                    # of this pass's events, those already in the outbox (_onset_now)
+        pipeline.on_onset = self._onset_now
         if source is not None:
             self._follow_odr(source.odr_hz)
 
@@ -215,6 +226,31 @@ class EstimatorThread:
             self.resting.clear()
             self.ring.lower_want(IDLE_BATCH_FACTOR * self.min_batch)
 
+    def _want(self, pipe: ContactPipeline) -> int:
+        """The batch to wait for, samples: an output period's while an episode runs; between episodes
+        only the trigger runs, and it costs per batch: twice the samples then, rest_factor times while
+        no task runs, and a packet's while a candidate waits for its decision."""
+        if pipe.tracking:
+            return self.min_batch
+        if pipe.detector.pending and self._odr_seen:
+            return max(1, int(round(PENDING_BATCH_S * self._odr_seen)))
+        return (self.rest_factor if self.resting.is_set() else IDLE_BATCH_FACTOR) * self.min_batch
+
+    @staticmethod
+    def _alarm(pipe: ContactPipeline) -> float:
+        """The ring's alarm (m/s^2; inf: off): ALARM_K times the accelerometer's threshold while it is
+        armed between episodes."""
+        det = pipe.detector
+        if pipe.tracking or not det.armed or det.accel_threshold is None:
+            return math.inf
+        return ALARM_K * det.accel_threshold_now()
+
+    def _onset_now(self, events: list) -> None:
+        """(the pipeline, at an onset) The batch's events so far leave now, the onset last."""
+        for ev in events[self._sent:]:
+            self.outbox.put("event", ev)
+        self._sent = len(events)
+
     def _follow_odr(self, odr_hz: float) -> None:
         if odr_hz == self._odr_seen:
             return
@@ -233,24 +269,23 @@ class EstimatorThread:
         sat_limits = None
         applied = self.directive.get()
         while not stop.is_set():
-            proprio = self.proprio.drain()
-            for sample in proprio:
-                pipe.add_sample(sample)
-            if self.commands is not None:
-                for t_cmd, qd in self.commands.drain():
-                    pipe.add_command(t_cmd, qd)
             directive = self.directive.get()
             if directive is not applied:
                 pipe.follow(directive, applied)
                 applied = directive
             if self.source is not None:
                 self._follow_odr(self.source.odr_hz)
-            # between episodes only the trigger runs, and it costs per batch: twice the samples then,
-            # rest_factor times while no task runs
-            want = self.min_batch if pipe.tracking else \
-                (self.rest_factor if self.resting.is_set() else IDLE_BATCH_FACTOR) * self.min_batch
+            want = self._want(pipe)
             wait_s = max(POP_TIMEOUT_S, POP_TIMEOUT_MARGIN * want / self._odr_seen) if self._odr_seen else POP_TIMEOUT_S
             batch = self.ring.pop(POP_MAX_SAMPLES, wait_s, want)
+            # the arm's states and commands as they stand now, after the wait (an alarm ends a rest
+            # batch's wait early: the commands then are what decides an onset at once)
+            proprio = self.proprio.drain()
+            for sample in proprio:
+                pipe.add_sample(sample)
+            if self.commands is not None:
+                for t_cmd, qd in self.commands.drain():
+                    pipe.add_command(t_cmd, qd)
             if self.source is not None:
                 limits = self.source.saturation
                 if limits != sat_limits:
@@ -267,8 +302,10 @@ class EstimatorThread:
             self.saturated_since = pipe.saturated_since
             if not self.warm.is_set() and pipe.warm:
                 self.warm.set()
-            for ev in events:
+            self.ring.alarm_m_s2 = self._alarm(pipe)
+            for ev in events[self._sent:]:
                 self.outbox.put("event", ev)
+            self._sent = 0
             if est is not None:
                 self.contact.set(est)
                 self.outbox.put("contact", est.to_json())
