@@ -11,6 +11,13 @@ COLUMNS = 7  # t, gx, gy, gz, ax, ay, az
 # The alarm's level: the accelerometer's mean, following the stream with this time constant (the
 # arm's own acceleration and gravity's turn change it slowly; an impact's first packet does not).
 ALARM_LEVEL_TAU_S = 0.05
+# ... and a sample alarms only beyond ALARM_SPREAD_K times the largest distance from the level that the
+# stream has shown lately (a peak decaying with ALARM_SPREAD_TAU_S): on an arm that moves and vibrates,
+# the raw stream strays from its level by more than the trigger's threshold all the time (the trigger
+# judges what the arm's motion and vibration leave), and an alarm on every packet would run the trigger
+# on every packet. An impact that stands out less than that waits for the estimator's batch, as before.
+ALARM_SPREAD_K = 1.5
+ALARM_SPREAD_TAU_S = 0.2
 
 
 class SampleRing:
@@ -46,6 +53,7 @@ class SampleRing:
         self.alarm_m_s2 = math.inf
         self.alarms = 0
         self._level: np.ndarray | None = None   # (3,) m/s^2, the producer's
+        self._spread = 0.0                      # m/s^2, the producer's: the decaying peak distance from the level
 
     def push(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         n = len(t)
@@ -83,17 +91,18 @@ class SampleRing:
                 self._cond.notify()
 
     def _alarmed(self, t: np.ndarray, accel: np.ndarray) -> bool:
-        """Whether a sample of the pushed accel (n, 3) is alarm_m_s2 or more from the level before it;
-        the level then follows the push (ALARM_LEVEL_TAU_S)."""
-        limit = self.alarm_m_s2
-        if limit == math.inf:
-            self._level = None
+        """Whether a sample of the pushed accel (n, 3) is alarm_m_s2 or more from the level before it, and
+        ALARM_SPREAD_K times the stream's recent spread; the level and the spread then follow the push."""
+        if self.alarm_m_s2 == math.inf:
+            self._level, self._spread = None, 0.0
             return False
         level = accel[0] if self._level is None else self._level
-        hit = bool((np.abs(accel - level) >= limit).any())
+        dev = float(np.abs(accel - level).max())
+        hit = dev >= max(self.alarm_m_s2, ALARM_SPREAD_K * self._spread)
         span = float(t[-1] - t[0]) * len(t) / max(len(t) - 1, 1)
         alpha = 1.0 - math.exp(-span / ALARM_LEVEL_TAU_S) if span > 0.0 else 1.0
         self._level = level + alpha * (accel.mean(axis=0) - level)
+        self._spread = max(self._spread * math.exp(-span / ALARM_SPREAD_TAU_S), dev)
         return hit
 
     def pop(self, max_n: int = 1024, timeout: float = 0.05, min_n: int = 1) -> np.ndarray:

@@ -83,3 +83,28 @@ def test_a_sample_beyond_the_alarm_ends_a_long_wait_and_one_within_it_does_not()
     ring.alarm_m_s2 = float("inf")                           # off: a knock wakes nobody
     ring.push(t + 0.036, zeros, knock)
     assert ring.alarms == 1
+
+
+def test_a_stream_that_strays_from_its_level_raises_its_own_alarm():
+    """A moving, vibrating arm's raw accelerometer strays from its level by more than the trigger's threshold all
+    the time: the alarm then stands at 1.5 times the spread it has shown lately, so that it does not ring on every
+    packet (the trigger judges what the arm's motion and vibration leave); an impact beyond that still rings."""
+    ring = SampleRing(65536)
+    ring.alarm_m_s2 = 0.3
+    n, zeros = 17, np.zeros((17, 3))
+    for k in range(400):                                     # 1 s of 40 Hz vibration, 2 m/s^2, in 2.5 ms pushes
+        t = (k * n + np.arange(n)) / 6667.0
+        accel = np.zeros((n, 3)) + [0.0, 0.0, 9.81]
+        accel[:, 0] += 2.0 * np.sin(2 * np.pi * 40.0 * t)
+        ring.push(t, zeros, accel)
+    vibrating = ring.alarms
+    assert vibrating <= 2                                    # its first swings, before it had a spread
+    t = (400 * n + np.arange(n)) / 6667.0
+    within = np.zeros((n, 3)) + [0.0, 0.0, 9.81]
+    within[5, 1] += 2.5                                      # beyond the alarm, within 1.5 x the spread
+    ring.push(t, zeros, within)
+    assert ring.alarms == vibrating
+    beyond = np.zeros((n, 3)) + [0.0, 0.0, 9.81]
+    beyond[5, 1] += 6.0
+    ring.push(t + n / 6667.0, zeros, beyond)
+    assert ring.alarms == vibrating + 1
