@@ -107,6 +107,7 @@ bench: $(WARM_JIT)
 	$(PY) -m benchmarks.poses
 	$(PY) -m benchmarks.onset
 	$(PY) -m benchmarks.onset_live
+	$(PY) -m benchmarks.trigger_latency
 	$(PY) -m benchmarks.wrench_onset
 	$(PY) -m benchmarks.recover
 	$(PY) -m benchmarks.onset_study
