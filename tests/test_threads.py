@@ -216,3 +216,55 @@ def test_with_rt_priority_the_threads_the_tick_waits_on_run_less_nice():
             os.setpriority(os.PRIO_PROCESS, main, before)
         except PermissionError:
             pass
+
+
+def test_the_estimator_takes_the_commands_given_during_its_wait_before_the_batch_that_ends_it():
+    """Issue 53 item 2: the arm's states and the daemon's commands were taken before the estimator's wait, so
+    the commands that held an idle arm still were 50-90 ms old when a knock's alarm ended a rest batch's wait,
+    and could not decide its onset at once. Now they are taken after the wait: a tick noted while the
+    estimator waits reaches the pipeline before the batch the alarm brought, and the alarm (armed from the
+    trigger's threshold once it is warm) ends the 100 ms rest wait with what has come."""
+    from tecdard.config import Config
+    from tecdard.control.pipeline import ContactPipeline
+    from tecdard.control.proprio import ProprioSample
+    from tecdard.runtime.messages import Outbox
+    from tecdard.runtime.workers import EstimatorThread
+    pipe = ContactPipeline.from_config(Config({}).section("estimator"), np.eye(3), 6667.0)
+    ring = SampleRing(65536)
+    est = EstimatorThread(pipe, ring, None, Outbox(64), min_batch=33, commands=True)
+    est._follow_odr(6667.0)
+    est.set_resting(True)
+    order = []
+    add_command, process = pipe.add_command, pipe.process
+    pipe.add_command = lambda t, qd: (order.append(("command", t)), add_command(t, qd))[1]
+    pipe.process = lambda batch: (order.append(("batch", len(batch))), process(batch))[1]
+    stop = threading.Event()
+    worker = threading.Thread(target=est.run, args=(stop,), daemon=True)
+    worker.start()
+    try:
+        rest = np.tile([0.0, 0.0, 9.81], (8, 1))
+        for k in range(170):                                   # 0.2 s of rest in packets: the trigger warms
+            t = (8 * k + np.arange(8)) / 6667.0
+            if k % 16 == 0:                                    # the arm's states at about 50 Hz, held still
+                est.proprio.push(ProprioSample(float(t[0]), np.array([0.3, 0.0, 0.5]), np.zeros(3), np.eye(3),
+                                               np.zeros(3)))
+            ring.push(t, np.zeros((8, 3)), rest)
+            time.sleep(0.0012)
+        deadline = time.monotonic() + 5.0
+        while ring.alarm_m_s2 == float("inf") and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert ring.alarm_m_s2 < 1.0, ring.alarm_m_s2          # armed: half the trigger's threshold
+        before = len(order)
+        time.sleep(0.03)                                       # the estimator waits for its rest batch
+        est.note_command(0.2, np.zeros(6))                     # a tick while it waits
+        knock = rest.copy()
+        knock[2] += [0.0, 5.0, 0.0]
+        ring.push((8 * 170 + np.arange(8)) / 6667.0, np.zeros((8, 3)), knock)
+        while not any(kind == "batch" for kind, _ in order[before:]) and time.monotonic() < deadline:
+            time.sleep(0.005)
+    finally:
+        stop.set()
+        worker.join(2.0)
+    after = order[before:]
+    assert ring.alarms >= 1 and after[0] == ("command", 0.2), after[:3]
+    assert after[1][0] == "batch" and after[1][1] < 660, after[:3]     # less than the 100 ms rest batch
