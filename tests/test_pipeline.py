@@ -90,7 +90,7 @@ def test_pipeline_localises_with_rotated_mount_and_rotating_gripper(mount, tool_
 
 
 def test_the_onset_is_handed_on_within_its_batch_before_the_episodes_first_estimate():
-    """Issue 53 item 2: the daemon publishes an onset as soon as it is decided (EstimatorThread._onset_now), not
+    """Issue 53 item 2: the daemon publishes an onset as soon as it is decided (EstimatorThread._hand_on), not
     after the episode's first estimates of the rest of the batch have been made."""
     seen = []
 

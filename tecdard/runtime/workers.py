@@ -187,8 +187,8 @@ class EstimatorThread:
         # the configured mount and clock, watched over free motion (issue 48 §5)
         self.mount = MountMonitor(pipeline.cond.R_tcp_imu)
         self._mount_checked_t = -math.inf
-        self._sent = 0                    # of this pass's events, those already in the outbox (_onset_now)
-        pipeline.on_onset = self._onset_now
+        self._sent = 0                    # of this pass's events, those already in the outbox (_hand_on)
+        pipeline.on_onset = self._hand_on  # an onset leaves as soon as it is decided, within its pass
         if source is not None:
             self._follow_odr(source.odr_hz)
 
@@ -245,8 +245,8 @@ class EstimatorThread:
             return math.inf
         return ALARM_K * det.accel_threshold_now()
 
-    def _onset_now(self, events: list) -> None:
-        """(the pipeline, at an onset) The batch's events so far leave now, the onset last."""
+    def _hand_on(self, events: list) -> None:
+        """The pass's events not yet handed on go to the outbox (at an onset, from within the pass)."""
         for ev in events[self._sent:]:
             self.outbox.put("event", ev)
         self._sent = len(events)
@@ -303,8 +303,7 @@ class EstimatorThread:
             if not self.warm.is_set() and pipe.warm:
                 self.warm.set()
             self.ring.alarm_m_s2 = self._alarm(pipe)
-            for ev in events[self._sent:]:
-                self.outbox.put("event", ev)
+            self._hand_on(events)
             self._sent = 0
             if est is not None:
                 self.contact.set(est)
