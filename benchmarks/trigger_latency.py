@@ -13,6 +13,7 @@ read by the daemon's serial driver, as a real board is. Prints a table; nothing 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -37,27 +38,35 @@ def table_scene() -> dict:
                                             "edge_x": 1.0}}
 
 
-def measure(rounds: int, source: str) -> np.ndarray:
-    """Arrival at the client less the firing sample's time, ms, one per accelerometer onset."""
+@contextlib.contextmanager
+def onsets_heard(d):
+    """[(a Zenoh client's arrival, monotonic s; the contact_onset event)] as they come, while in the block."""
     import zenoh
-    arrivals = []
+    heard = []
 
     def on_event(sample) -> None:
         ev = json.loads(sample.payload.to_string())
-        if ev.get("kind") == "contact_onset" and ev.get("trigger") == "accel":
-            arrivals.append((time.monotonic() - ev["detected_t"]) * 1e3)
+        if ev.get("kind") == "contact_onset":
+            heard.append((time.monotonic(), ev))
 
+    sub = d.client.session.declare_subscriber(d.client.keys.events, zenoh.handlers.Callback(on_event, indirect=False))
+    try:
+        yield heard
+    finally:
+        sub.undeclare()
+
+
+def measure(rounds: int, source: str) -> np.ndarray:
+    """Arrival at the client less the firing sample's time, ms, one per accelerometer onset."""
     with tempfile.TemporaryDirectory() as tmp:
         d = DaemonProcess(pathlib.Path(tmp), daemon_config(**{"imu.source": source, **table_scene()}))
         try:
-            sub = d.client.session.declare_subscriber(d.client.keys.events,
-                                                      zenoh.handlers.Callback(on_event, indirect=False))
-            run_rounds(d, [("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
-                                         "stop_angle_deg": 3.0})], rounds)
-            sub.undeclare()
+            with onsets_heard(d) as heard:
+                run_rounds(d, [("approach", {"direction": [0.0, 0.0, -1.0], "speed": 0.02, "max_distance": 0.08,
+                                             "stop_angle_deg": 3.0})], rounds)
         finally:
             d.close()
-    return np.array(arrivals)
+    return np.array([(at - ev["detected_t"]) * 1e3 for at, ev in heard if ev.get("trigger") == "accel"])
 
 
 def measure_board(rounds: int, task: bool = False) -> np.ndarray:
@@ -65,16 +74,7 @@ def measure_board(rounds: int, task: bool = False) -> np.ndarray:
     board does (sim.board.StreamThread): a client's arrival less the time the knock's first packet was
     written, ms, one per knock. Idle (no task: the estimator's rest batches), or each knock 1 s into an
     `approach` of the simulated arm in free air (2 cm up at 10 mm/s), followed by a `home`."""
-    import zenoh
     from tecdard.sim.board import Board, PtyDevice, StreamThread
-    from tests.test_onset_live import IMPACT_GAP_S, until_idle
-    arrivals = []
-
-    def on_event(sample) -> None:
-        ev = json.loads(sample.payload.to_string())
-        if ev.get("kind") == "contact_onset":
-            arrivals.append(time.monotonic())
-
     with tempfile.TemporaryDirectory() as tmp:
         device = PtyDevice(pathlib.Path(tmp) / "ttyIMU")
         board = Board()
@@ -82,34 +82,40 @@ def measure_board(rounds: int, task: bool = False) -> np.ndarray:
         d = DaemonProcess(pathlib.Path(tmp), daemon_config(**{"imu.source": "serial", **table_scene(),
                                                                "imu.serial": {"port": str(device.link)}}))
         try:
-            sub = d.client.session.declare_subscriber(d.client.keys.events,
-                                                      zenoh.handlers.Callback(on_event, indirect=False))
-            deadline = time.monotonic() + 20.0
-            while d.client.command("status")["state"]["faults"] and time.monotonic() < deadline:
-                time.sleep(0.1)
-            time.sleep(1.0)
-            for _ in range(rounds):
-                if not task:
-                    stream.impact()
-                    time.sleep(IMPACT_GAP_S)
-                    continue
-                until_idle(d.client)
-                reply = d.client.command("approach", {"direction": [0.0, 0.0, 1.0], "speed": 0.01,
-                                                      "max_distance": 0.02})
-                assert reply["ok"], reply
-                time.sleep(1.0)
-                stream.impact()
-                d.client.wait_event(("task_done", "task_failed"), reply["task"], 30.0)
-                reply = d.client.command("home", {"reset_world": True})
-                d.client.wait_event(("task_done", "task_failed"), reply["task"], 60.0)
-            sub.undeclare()
+            heard = run_knocks(d, stream, rounds, task)
         finally:
             d.close()
             stream.join()
             device.close()
+    arrivals = [at for at, _ in heard]
     if len(arrivals) != len(stream.written_t):
         raise SystemExit(f"{len(stream.written_t)} knocks gave {len(arrivals)} onsets: no figure")
     return (np.array(arrivals) - np.array(stream.written_t)) * 1e3
+
+
+def run_knocks(d, stream, rounds: int, task: bool) -> list:
+    """`rounds` knocks on `stream` once the daemon has no fault, idle or each 1 s into an approach (then a
+    home): the onsets heard."""
+    from tests.test_onset_live import IMPACT_GAP_S, until_idle
+    with onsets_heard(d) as heard:
+        deadline = time.monotonic() + 20.0
+        while d.client.command("status")["state"]["faults"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+        for _ in range(rounds):
+            if not task:
+                stream.impact()
+                time.sleep(IMPACT_GAP_S)
+                continue
+            until_idle(d.client)
+            reply = d.client.command("approach", {"direction": [0.0, 0.0, 1.0], "speed": 0.01, "max_distance": 0.02})
+            assert reply["ok"], reply
+            time.sleep(1.0)
+            stream.impact()
+            d.client.wait_event(("task_done", "task_failed"), reply["task"], 30.0)
+            reply = d.client.command("home", {"reset_world": True})
+            d.client.wait_event(("task_done", "task_failed"), reply["task"], 60.0)
+    return heard
 
 
 CASES = {   # name: (what, how measured, function of rounds)
