@@ -67,14 +67,21 @@ run: $(WARM)
 CROSS_TOOLS = command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null
 NO_CROSS = echo "make: no arm-none-eabi-gcc or qemu-system-arm here: the firmware's board image is neither built nor run in QEMU (apt install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)"
 
+# The suite runs on TEST_WORKERS pytest-xdist workers: most of a whole-daemon test's time is the arm's
+# real time (a rotate, a map), with a core at a time busy, so two cores take several such tests at once.
+# A test marked `alone` (franky-sim's, QEMU's, a reinstall of this venv) has the machine to itself
+# (tests/conftest.py, cores_shared). TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= 3
+PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
+
 test: $(WARM_JIT) lint
 	@$(CROSS_TOOLS) || $(NO_CROSS)
 	@command -v openscad >/dev/null || $(NO_OPENSCAD)
-	$(PY) -m pytest -q --durations=20
+	$(PYTEST) --durations=20
 
 # the quick tier: the type checker, then pure logic and transports, without the whole-daemon runs
 check: $(WARM_JIT) lint
-	$(PY) -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 # the type checker (mypy, pyproject's [tool.mypy]): every tecdard.* import resolves through the folders
 # linked under tecdard/ (tecdard/control -> control/, ...), as the wheel installs them

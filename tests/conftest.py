@@ -1,6 +1,7 @@
 """Shared fixtures: temporary configs, a tecdard subprocess on a free loopback port, a Zenoh client."""
 from __future__ import annotations
 
+import contextlib
 import copy
 import importlib.abc
 import importlib.machinery
@@ -9,6 +10,7 @@ import pathlib
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -25,6 +27,7 @@ for _name in ("TECDAR_CONNECT", "TECDAR_ROBOT"):
     os.environ.pop(_name, None)
 SIM_CONFIG = ROOT / "configs" / "sim.yaml"
 DAEMON_START_TIMEOUT_S = 60.0
+HANG_DUMP_S = 3.0            # a daemon that outlives its SIGTERM: this long to write its threads' stacks
 # The folders that install under tecdard (pyproject's package-dir). From the checkout they are also
 # importable by their bare names, and a test that did so would pass here and fail on a wheel.
 CHECKOUT_ONLY_ROOTS = ("control", "drivers", "robots", "sim", "ros2")
@@ -170,8 +173,13 @@ class DaemonProcess:
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+                # where it hangs, in its log (the daemon's faulthandler), before it is killed
+                self.proc.send_signal(signal.SIGABRT)
+                try:
+                    self.proc.wait(HANG_DUMP_S)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
         return self.proc.returncode
 
     def close(self) -> None:
@@ -192,6 +200,43 @@ def frozen_heap():
     gc.freeze()
     yield
     gc.unfreeze()
+
+
+def _run_lock_file(name: str):
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "run")
+    return open(pathlib.Path(tempfile.gettempdir()) / f"tecdar-tests-{run}-{name}.lock", "a+")
+
+
+@contextlib.contextmanager
+def run_lock(name: str, shared: bool = False):
+    """Across the workers of one run (`make test` runs the suite on pytest-xdist's workers), a lock by
+    name: a build in the checkout (the firmware's make) made by one worker at a time. Serial runs take
+    none. Writers first: every taker passes a gate one at a time, and an exclusive one holds the gate
+    until it has the lock, so the shared takers that keep overlapping one another cannot starve it (with
+    plain flock, a test marked `alone` once waited 221 s on three workers)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    import fcntl
+    with _run_lock_file(name + "-gate") as gate, _run_lock_file(name) as lock:
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_SH if shared else fcntl.LOCK_EX)
+        finally:
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.fixture(autouse=True)
+def cores_shared(request):
+    """On the workers, a test marked `alone` (one that judges a simulator's or an emulator's timing, which the
+    other workers' load would starve, or one that reinstalls the running venv) has the machine to itself:
+    it takes the run's `machine` lock exclusively, every other test takes it shared."""
+    with run_lock("machine", shared=request.node.get_closest_marker("alone") is None):
+        yield
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -19,7 +19,7 @@ import pytest
 from tecdard.drivers import imu_wire as W
 from tecdard.drivers.serial_imu import SerialImuSource, SerialParams
 from tecdard.sim.board import PtyDevice
-from tests.conftest import ROOT, rotate_on_the_cutter
+from tests.conftest import ROOT, rotate_on_the_cutter, run_lock
 
 # the slow tier (`make check` leaves it out): the board's builds and QEMU runs (`make firmware` and the full suite)
 pytestmark = pytest.mark.slow
@@ -39,7 +39,8 @@ QEMU_ATTEMPTS = 3              # runs of the image in QEMU before a starved host
 @pytest.fixture(scope="session")
 def host_build():
     """The host board, the core's tests and its bench, built as `make firmware` builds them."""
-    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "host"], capture_output=True, text=True, timeout=300)
+    with run_lock("firmware"):      # the workers build in the same folder, one at a time
+        res = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "host"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     return BUILD
 
@@ -399,7 +400,8 @@ needs_cross = pytest.mark.skipif(CROSS is None or QEMU is None, reason=(
 
 @pytest.fixture(scope="session")
 def cross_build():
-    res = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "cross"], capture_output=True, text=True, timeout=600)
+    with run_lock("firmware"):
+        res = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "cross"], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     return res.stdout
 
@@ -414,6 +416,7 @@ def test_the_board_image_builds_warning_free_and_reports_its_size(cross_build):
 
 
 @needs_cross
+@pytest.mark.alone          # QEMU's emulated board keeps its FIFO only with a core of its own
 def test_the_board_image_streams_in_qemu_and_tecdard_imu_reads_it(cross_build):
     """The STM32F405 image with the register model in place of the chip, on QEMU's netduinoplus2: its USART1
     on a pty, read by `tecdard imu`: status and samples, no CRC error."""

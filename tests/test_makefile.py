@@ -45,6 +45,7 @@ def test_a_python_older_than_3_11_is_refused_in_one_line(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.alone          # it reinstalls the package into the venv the other worker's tests run from
 def test_the_install_prints_no_warning_of_setuptools():
     """Issue 50 item 15: `make install` printed setuptools' warnings, one for each folder of ros2/tecdar_msgs
     (importable, yet not in pyproject's packages), and its notice that the install is editable. The

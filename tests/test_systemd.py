@@ -43,6 +43,42 @@ def test_notify_ready_and_watchdog(make_daemon, tmp_path):
         sock.close()
 
 
+def test_a_manager_that_stops_reading_never_holds_the_notifier(tmp_path):
+    """A full notify queue (the manager stopped reading: net.unix.max_dgram_qlen) drops the message at once
+    instead of holding the control tick that pings the watchdog; STOPPING=1 goes once."""
+    import threading
+
+    from tecdard.runtime.sdnotify import Notifier
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    try:
+        n = Notifier(path)
+        sent: list[bool] = []
+        pinger = threading.Thread(target=lambda: sent.extend(n.notify("WATCHDOG=1") for _ in range(200)), daemon=True)
+        pinger.start()
+        pinger.join(30.0)
+        assert not pinger.is_alive(), "a send to a full queue waits for the manager to read"
+        assert sent[0] and not sent[-1]
+        sock.setblocking(False)
+        while True:                                 # the manager reads again: the next message is queued
+            try:
+                sock.recv(256)
+            except BlockingIOError:
+                break
+        n.stopping()
+        n.stopping()
+        got = []
+        while True:
+            try:
+                got.append(sock.recv(256).decode())
+            except BlockingIOError:
+                break
+        assert got == ["STOPPING=1"]
+    finally:
+        sock.close()
+
+
 def test_unit_file_declares_notify_watchdog_and_hardening():
     unit = configparser.ConfigParser(strict=False, interpolation=None)
     unit.optionxform = str
@@ -50,6 +86,8 @@ def test_unit_file_declares_notify_watchdog_and_hardening():
     svc = unit["Service"]
     assert svc["Type"] == "notify"
     assert svc["WatchdogSec"] and svc["Restart"] == "on-failure"
+    # a hang (the watchdog, a stop that times out) is aborted: the daemon's faulthandler writes its stacks
+    assert svc["TimeoutStopFailureMode"] == "abort"
     assert svc["NoNewPrivileges"] == "yes" and svc["ProtectSystem"] == "strict"
     assert "tecdard run --config" in svc["ExecStart"]
     text = (ROOT / "systemd" / "tecdard.service").read_text()

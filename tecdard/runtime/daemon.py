@@ -1,6 +1,7 @@
 """The tecdard process: builds every component from the config, runs the threads, serves Zenoh."""
 from __future__ import annotations
 
+import faulthandler
 import gc
 import pathlib
 import json
@@ -311,7 +312,7 @@ class Daemon:
     def _shutdown(self) -> None:
         """Stop motion first, then the threads; each step guarded so one failure skips nothing."""
         self.stop_event.set()
-        self.notifier.notify("STOPPING=1")
+        self.notifier.stopping()
         for th in self._threads:
             try:
                 th.join(RECORDER_JOIN_S if th.name == "recorder" else THREAD_JOIN_S)
@@ -334,6 +335,9 @@ class Daemon:
         # cut the UR path's tick lateness a little, but starved the simulated firmware board's
         # stream at start: imu_stale in 2 of 3 runs of tests/test_firmware.py's rotate.)
         sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        # A daemon that hangs says where: systemd's watchdog and a stop that times out
+        # (TimeoutStopFailureMode=abort) send SIGABRT, and every thread's stack goes to stderr (the journal)
+        faulthandler.enable(all_threads=True)
         signal.signal(signal.SIGINT, self.request_stop)
         signal.signal(signal.SIGTERM, self.request_stop)
         with zenoh.open(self.zenoh_config) as session:
@@ -413,6 +417,7 @@ class Daemon:
             if self.shutdown_requested.is_set():
                 if shutdown_by is None:
                     log.info("shutting down: stopping the task and the arm first")
+                    self.notifier.stopping()
                     self.control.request_stop(Stop(None, "daemon shutting down"))
                     # a capture is closed and written now, while the arm stops, not after it
                     self.recorder.close_capture("daemon stopping")

@@ -12,6 +12,7 @@ class Notifier:
         path = path if path is not None else os.environ.get("NOTIFY_SOCKET")
         self.addr = None
         self.sock = None
+        self._stopping = False
         if path:
             self.addr = "\0" + path[1:] if path.startswith("@") else path
             self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
@@ -21,13 +22,23 @@ class Notifier:
         return self.sock is not None
 
     def notify(self, message: str) -> bool:
+        """Sent, or False. Never waits: the control tick pings the watchdog, and a manager that has
+        stopped reading (its queue full, net.unix.max_dgram_qlen: 10) once held the tick, and with it the
+        daemon's shutdown, until it was killed. A message that cannot be queued is dropped."""
         if self.sock is None:
             return False
         try:
-            self.sock.sendto(message.encode(), self.addr)
+            self.sock.sendto(message.encode(), socket.MSG_DONTWAIT, self.addr)
             return True
         except OSError:
             return False
+
+    def stopping(self) -> None:
+        """STOPPING=1, once: as the daemon's shutdown begins (the arm's stop, the last writes), not at
+        its end."""
+        if not self._stopping:
+            self._stopping = True
+            self.notify("STOPPING=1")
 
     def watchdog_interval_s(self) -> float | None:
         """Half of WATCHDOG_USEC when the watchdog is on for this process, else None."""
