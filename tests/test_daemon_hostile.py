@@ -82,6 +82,7 @@ def flood(endpoint: str, seconds: float) -> subprocess.Popen:
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 
+@pytest.mark.alone      # the flooder runs at nice 19: beside another worker's daemon it does not flood
 def test_a_flood_during_a_task_neither_ends_it_nor_delays_stop(make_daemon):
     d = make_daemon()
     cli = d.client
