@@ -58,8 +58,11 @@ def pytest_sessionfinish(session, exitstatus):
 def pytest_unconfigure(config):
     """A thread that is not a daemon thread and outlives the run keeps the interpreter from exiting:
     CI once sat 70 minutes after the summary (a Zenoh callback thread). Such a run says which threads,
-    in one line, and exits with a failure instead of hanging."""
+    in one line, and exits with a failure instead of hanging. The controller removes the run's locks."""
+    import shutil
     import threading
+    for folder in _locks_made:
+        shutil.rmtree(folder, ignore_errors=True)
     import time
     deadline = time.monotonic() + LEFT_THREADS_JOIN_S
     left = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
@@ -202,9 +205,19 @@ def frozen_heap():
     gc.unfreeze()
 
 
+LOCKS_ENV = "TECDAR_TEST_LOCKS"     # the run's folder of locks, made by the controller, named to its workers
+_locks_made: list[str] = []
+
+
+def pytest_configure(config):
+    """The controller makes the run's folder of locks before it starts its workers, which inherit its name."""
+    if not os.environ.get("PYTEST_XDIST_WORKER") and LOCKS_ENV not in os.environ:
+        os.environ[LOCKS_ENV] = tempfile.mkdtemp(prefix="tecdar-tests-")
+        _locks_made.append(os.environ[LOCKS_ENV])
+
+
 def _run_lock_file(name: str):
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "run")
-    return open(pathlib.Path(tempfile.gettempdir()) / f"tecdar-tests-{run}-{name}.lock", "a+")
+    return open(pathlib.Path(os.environ[LOCKS_ENV]) / f"{name}.lock", "a+")
 
 
 @contextlib.contextmanager
