@@ -61,9 +61,9 @@ def pytest_unconfigure(config):
     in one line, and exits with a failure instead of hanging. The controller removes the run's locks."""
     import shutil
     import threading
+    import time
     for folder in _locks_made:
         shutil.rmtree(folder, ignore_errors=True)
-    import time
     deadline = time.monotonic() + LEFT_THREADS_JOIN_S
     left = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
     for t in left:
