@@ -22,9 +22,9 @@ class Notifier:
         return self.sock is not None
 
     def notify(self, message: str) -> bool:
-        """Sent, or False. Never waits: the control tick pings the watchdog, and a manager that has
-        stopped reading (its queue full, net.unix.max_dgram_qlen: 10) once held the tick, and with it the
-        daemon's shutdown, until it was killed. A message that cannot be queued is dropped."""
+        """Sent, or False. Never waits: the control tick pings the watchdog, and a blocking send to a
+        manager that has stopped reading (its queue full, net.unix.max_dgram_qlen: 10) holds the tick,
+        and with it an orderly shutdown. A message that cannot be queued is dropped."""
         if self.sock is None:
             return False
         try:
