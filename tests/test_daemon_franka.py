@@ -19,7 +19,7 @@ from tests.fakes.fake_ur import wait_for
 
 # the slow tier (`make check` leaves it out): whole-daemon runs
 # alone: franky-sim keeps its 1 kHz schedule only with the machine to itself (its tests judge nothing when it
-# falls behind, and under the other worker's load it would, more often)
+# falls behind, and under the other workers' load it would, more often)
 pytestmark = [pytest.mark.slow, pytest.mark.alone]
 
 franky = pytest.importorskip("franky", reason="franky-control is installed by `make test` (extra `franka`)")
